@@ -1,0 +1,1 @@
+"""Synthetic footage and marker data with exact ground truth, so every stage is measured."""

