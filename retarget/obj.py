@@ -1,0 +1,193 @@
+"""Wavefront OBJ meshes: read and write with vertex order, polygons, UVs and groups kept.
+
+A general mesh library (trimesh) merges or splits vertices at UV seams, which
+breaks the one-to-one vertex correspondence blendshape targets rely on; this
+reader keeps every ``v`` in file order. Polygons of any size are kept as
+written (``polygons``) and fan-triangulated on demand (``triangles``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError, require_file
+from pipeline.files import atomic_write
+
+
+@dataclass
+class Mesh:
+    """A polygon mesh.
+
+    Attributes
+    ----------
+    vertices : (n_vertices, 3) float64
+    polygons : list of (k,) int arrays, zero-based vertex indices per face
+    uvs : (n_uvs, 2) float64, may be empty
+    polygon_uvs : list of (k,) int arrays or None per face (zero-based ``vt`` indices)
+    groups : dict of group name -> (n,) int array of face indices (``g`` lines)
+    """
+
+    vertices: np.ndarray
+    polygons: list = field(default_factory=list)
+    uvs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    polygon_uvs: list = field(default_factory=list)
+    groups: dict = field(default_factory=dict)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """(n_triangles, 3) int array: every polygon fan-triangulated from its first vertex."""
+        tris = [np.stack([np.full(len(p) - 2, p[0]), p[1:-1], p[2:]], axis=1) for p in self.polygons if len(p) >= 3]
+        return np.concatenate(tris).astype(np.intp) if tris else np.zeros((0, 3), np.intp)
+
+    def group_vertices(self, name: str) -> np.ndarray:
+        """Sorted vertex indices used by the faces of group ``name``."""
+        if name not in self.groups:
+            raise InputError(f"mesh has no group {name!r}; it has {', '.join(self.groups) or 'none'}")
+        faces = self.groups[name]
+        return np.unique(np.concatenate([self.polygons[i] for i in faces])) if len(faces) else np.zeros(0, np.intp)
+
+    def with_vertices(self, vertices: np.ndarray) -> "Mesh":
+        """A copy sharing topology, UVs and groups, with new vertex positions."""
+        v = np.asarray(vertices, dtype=np.float64)
+        if v.shape != self.vertices.shape:
+            raise InputError(f"vertices: expected shape {self.vertices.shape}, got {v.shape}")
+        return Mesh(v, self.polygons, self.uvs, self.polygon_uvs, self.groups)
+
+
+def _floats(rows: list[str], path: Path, first_line: list[int], width: int, what: str) -> np.ndarray:
+    try:
+        arr = np.array([r.split()[1:width + 1] for r in rows], dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != width:
+            raise ValueError
+    except ValueError:
+        for r, ln in zip(rows, first_line):
+            parts = r.split()[1:width + 1]
+            try:
+                if len(parts) != width:
+                    raise ValueError
+                [float(x) for x in parts]
+            except ValueError:
+                raise InputError(f"broken {what} line {r.strip()!r}: expected {width} numbers", path, ln) from None
+        raise
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.flatnonzero(~np.isfinite(arr).all(axis=1))[0])
+        raise InputError(f"non-finite {what} coordinate", path, first_line[bad])
+    return arr
+
+
+def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
+    """Read an OBJ file keeping vertex order; raise :class:`InputError` naming file and line.
+
+    Parameters
+    ----------
+    path : str or Path
+    require_faces : bool
+        Raise when the file has no faces.
+    """
+    path = require_file(path, "mesh")
+    try:
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError:
+        raise InputError("not a text OBJ file", path) from None
+    v_rows, v_ln, vt_rows, vt_ln = [], [], [], []
+    polygons, polygon_uvs = [], []
+    groups: dict[str, list[int]] = {}
+    current: list[int] | None = None
+    face_lines = []
+    for ln, line in enumerate(lines, start=1):
+        if line.startswith("v "):
+            v_rows.append(line)
+            v_ln.append(ln)
+        elif line.startswith("vt "):
+            vt_rows.append(line)
+            vt_ln.append(ln)
+        elif line.startswith("f "):
+            face_lines.append((ln, line))
+            if current is not None:
+                current.append(len(face_lines) - 1)
+        elif line.startswith("g ") or line.strip() == "g":
+            name = line[1:].strip() or "default"
+            current = groups.setdefault(name, [])
+    if not v_rows:
+        raise InputError("no vertices ('v x y z' lines): not an OBJ mesh", path)
+    vertices = _floats(v_rows, path, v_ln, 3, "vertex")
+    uvs = _floats(vt_rows, path, vt_ln, 2, "texture") if vt_rows else np.zeros((0, 2))
+    nv, nt = len(vertices), len(uvs)
+    for ln, line in face_lines:
+        items = line.split()[1:]
+        try:
+            vi = [int(it.split("/")[0]) for it in items]
+            ti = [int(it.split("/")[1]) if it.count("/") >= 1 and it.split("/")[1] else 0 for it in items]
+        except ValueError:
+            raise InputError(f"broken face line {line.strip()!r}", path, ln) from None
+        if len(vi) < 3:
+            raise InputError(f"face with {len(vi)} vertices (need at least 3)", path, ln)
+        vi = np.array([i - 1 if i > 0 else nv + i for i in vi], dtype=np.intp)
+        if vi.min() < 0 or vi.max() >= nv:
+            raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
+        polygons.append(vi)
+        if all(ti):
+            t = np.array([i - 1 if i > 0 else nt + i for i in ti], dtype=np.intp)
+            if t.min() < 0 or t.max() >= nt:
+                raise InputError(f"face names a texture coordinate outside 1..{nt}", path, ln)
+            polygon_uvs.append(t)
+        else:
+            polygon_uvs.append(None)
+    if require_faces and not polygons:
+        raise InputError("mesh has no faces ('f' lines)", path)
+    return Mesh(vertices, polygons, uvs, polygon_uvs, {k: np.array(v, dtype=np.intp) for k, v in groups.items()})
+
+
+def read_obj_vertices(path: str | Path, n_vertices: int | None = None) -> np.ndarray:
+    """Read only the vertex positions of an OBJ (fast path for blendshape targets).
+
+    Raises :class:`InputError` when ``n_vertices`` is given and differs.
+    """
+    path = require_file(path, "mesh")
+    try:
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError:
+        raise InputError("not a text OBJ file", path) from None
+    rows = [(ln, l) for ln, l in enumerate(lines, start=1) if l.startswith("v ")]
+    if not rows:
+        raise InputError("no vertices ('v x y z' lines): not an OBJ mesh", path)
+    v = _floats([l for _, l in rows], path, [ln for ln, _ in rows], 3, "vertex")
+    if n_vertices is not None and len(v) != n_vertices:
+        raise InputError(f"{len(v)} vertices, expected {n_vertices} (targets must share one topology)", path)
+    return v
+
+
+def write_obj(path: str | Path, mesh: Mesh, vertices: np.ndarray | None = None) -> None:
+    """Write ``mesh`` (optionally with other ``vertices`` of the same count) atomically."""
+    v = mesh.vertices if vertices is None else np.asarray(vertices, dtype=np.float64)
+    if v.shape != mesh.vertices.shape:
+        raise InputError(f"vertices: expected shape {mesh.vertices.shape}, got {v.shape}", path)
+    face_group = {}
+    for name, faces in mesh.groups.items():
+        for f in faces:
+            face_group[int(f)] = name
+    out = ["# written by keyshape"]
+    out.append("\n".join("v %.6f %.6f %.6f" % tuple(r) for r in v))
+    if len(mesh.uvs):
+        out.append("\n".join("vt %.6f %.6f" % tuple(r) for r in mesh.uvs))
+    group = None
+    flines = []
+    for i, (p, t) in enumerate(zip(mesh.polygons, mesh.polygon_uvs or [None] * len(mesh.polygons))):
+        g = face_group.get(i)
+        if g is not None and g != group:
+            flines.append(f"g {g}")
+            group = g
+        if t is None:
+            flines.append("f " + " ".join(str(a + 1) for a in p))
+        else:
+            flines.append("f " + " ".join(f"{a + 1}/{b + 1}" for a, b in zip(p, t)))
+    if flines:
+        out.append("\n".join(flines))
+    with atomic_write(path) as f:
+        f.write("\n".join(out) + "\n")
