@@ -25,6 +25,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("decompose.cli", None),
     ("retarget.cli", None),
     ("retarget.mocap.cli", None),
+    ("retarget.dense_cli", None),
 ]
 
 
