@@ -14,9 +14,21 @@ from pathlib import Path
 from typing import IO, Iterator
 
 
+def _umask_mode(base: int = 0o666) -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return base & ~mask
+
+
 def _tmp_sibling(path: Path, suffix: str = "") -> Path:
+    """A new empty temporary file beside ``path`` with the permissions a plain ``open`` would give.
+
+    ``mkstemp`` creates files readable by their owner only; outputs that users
+    share (videos, .glb) must get the usual umask-derived mode instead.
+    """
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial" + suffix, dir=path.parent)
     os.close(fd)
+    os.chmod(name, _umask_mode())
     return Path(name)
 
 
@@ -74,6 +86,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    os.chmod(tmp, _umask_mode(0o777))
     try:
         yield tmp
         if path.exists():

@@ -1,0 +1,40 @@
+import os
+import stat
+
+import pytest
+
+from pipeline.files import atomic_dir, atomic_path, atomic_write
+
+
+def test_atomic_write_mode_follows_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        with atomic_write(tmp_path / "a.txt") as f:
+            f.write("x")
+        with atomic_path(tmp_path / "b.bin") as p:
+            p.write_bytes(b"x")
+        with atomic_dir(tmp_path / "d") as d:
+            (d / "f").write_text("x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == 0o644
+    assert stat.S_IMODE((tmp_path / "b.bin").stat().st_mode) == 0o644
+    assert stat.S_IMODE((tmp_path / "d").stat().st_mode) == 0o755
+
+
+def test_failed_writes_leave_nothing(tmp_path):
+    with pytest.raises(RuntimeError):
+        with atomic_write(tmp_path / "a.txt") as f:
+            f.write("half")
+            raise RuntimeError
+    with pytest.raises(RuntimeError):
+        with atomic_dir(tmp_path / "d") as d:
+            (d / "f").write_text("x")
+            raise RuntimeError
+    (tmp_path / "keep").mkdir()
+    (tmp_path / "keep" / "old").write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_dir(tmp_path / "keep") as d:
+            raise RuntimeError
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"]
+    assert (tmp_path / "keep" / "old").read_text() == "old"
