@@ -105,3 +105,18 @@ def head_motion(pose: np.ndarray, reference: int = 0, units_per_model: float = 1
     rotation = np.stack([np.zeros(n), np.zeros(n), np.sin(angle / 2), np.cos(angle / 2)], axis=1)
     scale = np.repeat((s / sr)[:, None], 3, axis=1)
     return HeadMotion(translation, rotation, scale, angle)
+
+
+def hold_invalid(pose: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Copy of ``pose`` where frames that are not ``valid`` or not finite hold the last valid pose
+    (the first valid one before any). Raises :class:`InputError` when no frame is valid."""
+    p = np.array(pose, dtype=np.float64)
+    ok = np.isfinite(p).all(axis=(1, 2))
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    if not ok.any():
+        raise InputError("pose: no frame has a valid pose")
+    idx = np.where(ok, np.arange(len(p)), -1)
+    idx = np.maximum.accumulate(idx)
+    idx[idx < 0] = int(np.flatnonzero(ok)[0])
+    return p[idx]
