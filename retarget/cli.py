@@ -74,7 +74,7 @@ def run(args) -> int:
         if fps is None and len(tr.time) > 1:
             dt = np.diff(tr.time)
             dt = dt[np.isfinite(dt) & (dt > 0)]
-            fps = float(1.0 / np.median(dt)) if len(dt) else None
+            fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
     fps = fps or 30.0
     info = export(args.output, rt, frames, weights, fps=fps, head=head, clamp=args.clamp, livelink=args.livelink,
                   bake_head=args.bake_head, scheme=args.scheme)

@@ -198,11 +198,9 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         pts = _head_2d(out, head) if (head is not None and bake_head) else out
         images = _draw_2d(pts, size, _scheme_for(ts.n_vertices, scheme))
     else:
-        from retarget.render import OrthoCamera, render
+        from retarget.render import render_frames
         verts = head.apply(out) if (head is not None and bake_head) else out
-        cam = OrthoCamera.fit(verts[:: max(1, len(verts) // 50)], *size)
-        tri = ts.mesh.triangles
-        images = (render(v, tri, cam) for v in verts)
+        images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
         with atomic_dir(path) as tmp:
             for fr, img in zip(frames, images):

@@ -114,3 +114,13 @@ def render(vertices: np.ndarray, triangles: np.ndarray, camera: OrthoCamera,
     flat = image.reshape(-1, 3)
     flat[pix[sel]] = np.clip(shade[:, None] * np.asarray(colour, dtype=np.float64), 0, 255).astype(np.uint8)
     return image
+
+
+def render_frames(frames: np.ndarray, triangles: np.ndarray, size=(320, 320), camera: OrthoCamera | None = None,
+                  **kw):
+    """Yield a rendered BGR image per frame of ``frames`` (n_frames, n_vertices, 3), all with one
+    camera (default: framing every 50th frame, so the face does not jump between frames)."""
+    f = np.asarray(frames)
+    cam = camera or OrthoCamera.fit(f[:: max(1, len(f) // 50)], *size)
+    for v in f:
+        yield render(v, triangles, cam, **kw)
