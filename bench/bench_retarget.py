@@ -5,7 +5,8 @@ output (10,000 x 80,157 x 4 B = 3.2 GB; float64 would be 6.4 GB), evaluated by
 :class:`retarget.blend.BlendBasis` and compared, in the same run, with a plain
 numpy matmul of the same size into the same preallocated buffer (the floor any
 implementation can reach). One output buffer is reused by every variant so the
-run peaks at about 3.3 GB. Also reported: the delta form (one extra add pass)
+run peaks at about 3.3 GB. Also reported: the delta form (the neutral is one more
+basis row driven by a constant weight, so still one product)
 and a streaming variant that evaluates 1,000-frame chunks into a 320 MB buffer
 (what an exporter writing frames as it goes needs).
 
@@ -64,7 +65,7 @@ def main() -> None:
             ab.transform(w[s:s + a.chunk], out=buf[: len(w[s:s + a.chunk])])
     t_stream = best(stream, a.repeat)
     print(f"plain numpy matmul (baseline)   {t_np:7.3f} s   {n / t_np:9.0f} frames/s")
-    for name, t in (("BlendBasis absolute", t_abs), ("BlendBasis delta (+neutral)", t_delta),
+    for name, t in (("BlendBasis absolute", t_abs), ("BlendBasis delta (neutral row)", t_delta),
                     (f"absolute, {a.chunk}-frame chunks", t_stream)):
         print(f"{name:31s} {t:7.3f} s   {n / t:9.0f} frames/s   ratio to baseline {t / t_np:.2f}x")
 

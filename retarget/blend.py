@@ -55,8 +55,10 @@ class BlendBasis:
     Attributes
     ----------
     offset_ : (n_vertices, dim) array, zero in absolute form, the neutral in delta form
-    basis_ : (n_keys, n_vertices * dim) array, row i is target i (minus the neutral in
-        delta form) scaled per vertex by its region's weight
+    basis_ : (n_keys [+ 1], n_vertices * dim) array, row i is target i (minus the neutral in
+        delta form) scaled per vertex by its region's weight; in delta form a last row holds
+        the neutral, driven by a constant weight 1, so the neutral costs no extra pass
+    n_keys_ : int
     shape_ : (n_vertices, dim)
     """
 
@@ -101,39 +103,43 @@ class BlendBasis:
                 raise InputError(f"key_regions: expected {k} indices into {len(rw)} regions")
             b = b * rw[kr][:, :, None]
         self.shape_ = (nv, dim)
+        self.n_keys_ = k
         self.offset_ = offset.astype(self.dtype)
-        self.basis_ = np.ascontiguousarray(b.reshape(k, nv * dim), dtype=self.dtype)
+        rows = b.reshape(k, nv * dim)
+        if self.form == "delta":
+            rows = np.concatenate([rows, offset.reshape(1, -1)])
+        self.basis_ = np.ascontiguousarray(rows, dtype=self.dtype)
         return self
 
     def transform(self, weights: np.ndarray, out: np.ndarray | None = None,
                   chunk_frames: int | None = None) -> np.ndarray:
         """Evaluate all frames: ``(n_frames, n_vertices, dim)``.
 
-        One matrix product ``weights @ basis_`` (BLAS GEMM), written into ``out``
+        One matrix product ``weights @ basis_`` (BLAS GEMM; in delta form the
+        weights get a last column of ones for the neutral row), written into ``out``
         when given; ``chunk_frames`` splits the frames into blocks of that many
-        rows to bound the temporary memory (no temporary at all in absolute form
-        with ``out`` of the basis dtype).
+        rows to bound the temporary memory (no temporary at all with ``out`` of
+        the basis dtype).
         """
         if not hasattr(self, "basis_"):
             raise InputError("BlendBasis is not fitted: call fit(targets, ...) first")
-        k = self.basis_.shape[0]
-        w = _check_weights(weights, k).astype(self.dtype, copy=False)
+        k = self.n_keys_
+        w = _check_weights(weights, k)
         n = len(w)
+        if self.form == "delta":
+            w = np.concatenate([w, np.ones((n, 1))], axis=1)
+        w = w.astype(self.dtype, copy=False)
         if out is None:
             out = np.empty((n, *self.shape_), dtype=self.dtype)
         elif out.shape != (n, *self.shape_) or not out.flags.c_contiguous:
             raise InputError(f"out: expected a C-contiguous array of shape {(n, *self.shape_)}, got {out.shape}")
         flat = out.reshape(n, -1)
         step = n if not chunk_frames else max(1, int(chunk_frames))
-        add = self.form == "delta"
-        off = self.offset_.reshape(-1)
         for s in range(0, n, step):   # blocks of frames, not frames: one GEMM each
             if flat.dtype == self.dtype:
                 np.matmul(w[s:s + step], self.basis_, out=flat[s:s + step])
             else:
                 flat[s:s + step] = w[s:s + step] @ self.basis_
-            if add:
-                flat[s:s + step] += off
         return out
 
     __call__ = transform

@@ -359,3 +359,10 @@ def test_ict_facekit_weights_against_direct_blend(shared_data, tmp_path):
     j = ex.names.index("jawOpen")
     np.testing.assert_allclose(ex.deltas[j], (read_obj_vertices(ict / "jawOpen.obj") - neutral)[:len(ex.neutral)],
                                atol=2e-3)
+
+
+def test_3d_video_preview(scene):
+    tmp, d, m, shapes, w = scene
+    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(tmp / "v.mp4")]) == 0
+    from tracker.video import video_info
+    assert video_info(tmp / "v.mp4").n_frames == 10
