@@ -23,15 +23,6 @@ import numpy as np
 from retarget.blend import BlendBasis
 
 
-def best(fn, repeat):
-    t = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        t.append(time.perf_counter() - t0)
-    return min(t)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=10_000)
@@ -51,19 +42,24 @@ def main() -> None:
     flat = out.reshape(n, -1)
     w32 = w.astype(np.float32)
     b32 = np.ascontiguousarray(targets.reshape(k, -1), dtype=np.float32)
-    t_np = best(lambda: np.matmul(w32, b32, out=flat), a.repeat)
-    ref = flat[:5].copy()
     ab = BlendBasis("absolute", np.float32).fit(targets)
-    t_abs = best(lambda: ab.transform(w, out=out), a.repeat)
-    np.testing.assert_allclose(flat[:5], ref, rtol=1e-5, atol=1e-4)
     db = BlendBasis("delta", np.float32).fit(targets, neutral)
-    t_delta = best(lambda: db.transform(w, out=out), a.repeat)
     buf = np.empty((a.chunk, v, 3), np.float32)
 
     def stream():
         for s in range(0, n, a.chunk):
             ab.transform(w[s:s + a.chunk], out=buf[: len(w[s:s + a.chunk])])
-    t_stream = best(stream, a.repeat)
+    variants = {"numpy": lambda: np.matmul(w32, b32, out=flat), "absolute": lambda: ab.transform(w, out=out),
+                "delta": lambda: db.transform(w, out=out), "stream": stream}
+    times = {name: [] for name in variants}
+    for _ in range(a.repeat):          # interleaved, so machine load hits every variant alike
+        for name, fn in variants.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    ab.transform(w[:5], out=out[:5])
+    np.testing.assert_allclose(flat[:5], w32[:5] @ b32, rtol=1e-5, atol=1e-4)
+    t_np, t_abs, t_delta, t_stream = (min(times[k]) for k in variants)
     print(f"plain numpy matmul (baseline)   {t_np:7.3f} s   {n / t_np:9.0f} frames/s")
     for name, t in (("BlendBasis absolute", t_abs), ("BlendBasis delta (neutral row)", t_delta),
                     (f"absolute, {a.chunk}-frame chunks", t_stream)):

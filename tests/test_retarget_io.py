@@ -231,43 +231,34 @@ def main_raise(argv):
 
 # ---------------------------------------------------------------- bad input
 
-def test_different_vertex_counts_names_the_file(scene):
+def _replace_line(path, index, text):
+    lines = path.read_text().splitlines()
+    lines[index] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+BAD_INPUTS = {
+    "different vertex counts": (lambda tmp, d: write_obj(d / "EYES_0.obj", Mesh(np.zeros((4, 3)), [])),
+                                r"EYES_0\.obj.*4 vertices, expected 6"),
+    "broken OBJ line": (lambda tmp, d: _replace_line(d / "MOUTH_1.obj", 2, "v 1.0 oops 2.0"),
+                        r"MOUTH_1\.obj, line 3: broken vertex line"),
+    "column without target": (lambda tmp, d: (d / "EYES_0.obj").unlink(), r"\['eyes_0'\] have no target.*targets"),
+    "NaN weight": (lambda tmp, d: _replace_line(tmp / "w.csv", 4, "3,0.1,nan,0.2"),
+                   r"w\.csv, line 5: nan in column 'mouth_1'"),
+}
+
+
+@pytest.mark.parametrize("suffix", [".glb", ".csv", ""])
+@pytest.mark.parametrize("case", list(BAD_INPUTS))
+def test_bad_input_names_the_file_and_writes_nothing(scene, case, suffix):
     tmp, d, m, shapes, w = scene
-    write_obj(d / "EYES_0.obj", Mesh(np.zeros((4, 3)), []))
-    with pytest.raises(InputError, match=r"EYES_0\.obj.*4 vertices, expected 6"):
-        main_raise(["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(tmp / "o.glb")])
-    assert not (tmp / "o.glb").exists()
-
-
-def test_broken_obj_line_names_file_and_line(scene):
-    tmp, d, m, shapes, w = scene
-    p = d / "MOUTH_1.obj"
-    lines = p.read_text().splitlines()
-    lines[2] = "v 1.0 oops 2.0"
-    p.write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match=r"MOUTH_1\.obj, line 3: broken vertex line"):
-        main_raise(["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(tmp / "o.glb")])
-    assert not (tmp / "o.glb").exists()
-
-
-def test_column_without_target(scene):
-    tmp, d, m, shapes, w = scene
-    (d / "EYES_0.obj").unlink()
-    with pytest.raises(InputError, match=r"\['eyes_0'\] have no target.*targets"):
-        main_raise(["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(tmp / "o.csv")])
-    assert not (tmp / "o.csv").exists()
-
-
-def test_nan_weights_name_file_line_and_column(scene):
-    tmp, d, m, shapes, w = scene
-    p = tmp / "w.csv"
-    lines = p.read_text().splitlines()
-    lines[4] = "3,0.1,nan,0.2"
-    p.write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match=r"w\.csv, line 5: nan in column 'mouth_1'"):
-        main_raise(["retarget", str(p), "--targets", str(d), "-o", str(tmp / "o.glb")])
-    assert main(["retarget", str(p), "--targets", str(d), "-o", str(tmp / "o.glb")]) == 2
-    assert not (tmp / "o.glb").exists()
+    breaker, message = BAD_INPUTS[case]
+    breaker(tmp, d)
+    argv = ["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(tmp / f"out{suffix}")]
+    with pytest.raises(InputError, match=message):
+        main_raise(argv)
+    assert main(argv) == 2
+    assert sorted(p.name for p in tmp.iterdir()) == ["targets", "w.csv"]     # nothing half-written
 
 
 def test_mapping(scene):
