@@ -158,13 +158,12 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         raise InputError(f"head motion has {head.n_frames} frames but the weights have {len(weights)}")
     info = {"kind": kind, "path": path, "n_clamped": 0}
     if kind == "glb":
-        from retarget.gltf import write_glb
+        from retarget.gltf import split_at_uv_seams, write_glb
         base, deltas, names, mw, info["n_clamped"] = rt.morph_targets(weights, clamp=clamp)
-        mesh = ts.mesh
-        tri = mesh.triangles
+        ids, uvs, tri = split_at_uv_seams(ts.mesh)
         if len(tri) == 0:
             raise InputError("the target meshes have no faces: .glb needs faces", ts.files[0])
-        write_glb(path, base, tri, deltas, names, mw, fps, head)
+        write_glb(path, base[ids], tri, deltas[:, ids], names, mw, fps, head, uvs=uvs)
         info["n_morph_targets"] = len(names)
         return info
     if kind == "csv":

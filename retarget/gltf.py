@@ -5,7 +5,7 @@ Written with pygltflib. Layout (the conventions of glTF 2.0 morph targets):
 * node 0 ``head`` (root): carries the head motion as translation/rotation/scale
   channels (see :mod:`retarget.headpose`); node 1 ``face`` (its child) holds the mesh.
 * mesh: one primitive, triangles (polygons fan-triangulated), ``POSITION`` of the base
-  shape, ``targets[i].POSITION`` = target i minus the base (deltas), default
+  shape, ``TEXCOORD_0`` when the OBJ has UVs (vertices split at UV seams), ``targets[i].POSITION`` = target i minus the base (deltas), default
   ``mesh.weights`` and the target names in ``mesh.extras.targetNames`` (read by
   Blender's importer, three.js and glTFast).
 * animation ``performance``: one sampler drives ``weights`` of the face node at the
@@ -57,9 +57,40 @@ class _Blob:
         return b"".join(self.parts)
 
 
+def split_at_uv_seams(mesh) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """glTF vertices for an OBJ mesh: one per distinct (vertex, uv) corner pair.
+
+    glTF stores one UV per vertex, OBJ one per polygon corner; a vertex on a UV seam
+    becomes several glTF vertices at the same position (and with the same morph deltas).
+
+    Returns
+    -------
+    vertex_ids : (n_gltf,) index into ``mesh.vertices`` of each glTF vertex
+    uvs : (n_gltf, 2) float32 in glTF convention (``v`` flipped: origin top-left), or None
+        when some polygon has no UVs (then ``vertex_ids`` is the identity)
+    triangles : (n_triangles, 3) indices into the glTF vertices (polygons fan-triangulated)
+    """
+    polys = mesh.polygons
+    have_uv = len(mesh.uvs) and polys and all(t is not None for t in mesh.polygon_uvs)
+    if not have_uv:
+        return np.arange(mesh.n_vertices), None, mesh.triangles
+    sizes = np.array([len(p) for p in polys])
+    v = np.concatenate(polys).astype(np.int64)
+    t = np.concatenate(mesh.polygon_uvs).astype(np.int64)
+    pairs, corner = np.unique(np.stack([v, t], axis=1), axis=0, return_inverse=True)
+    corner = corner.reshape(-1)
+    starts = np.cumsum(sizes) - sizes
+    fan = [np.stack([np.full(k - 2, s), np.arange(s + 1, s + k - 1), np.arange(s + 2, s + k)], axis=1)
+           for s, k in zip(starts, sizes) if k >= 3]
+    tri = corner[np.concatenate(fan)] if fan else np.zeros((0, 3), np.int64)
+    uv = mesh.uvs[pairs[:, 1]].astype(np.float32)
+    uv[:, 1] = 1.0 - uv[:, 1]
+    return pairs[:, 0], uv, tri
+
+
 def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, names: Sequence[str],
                weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-               default_weights: np.ndarray | None = None):
+               default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None):
     """Build a :class:`pygltflib.GLTF2` in memory (see :func:`write_glb`)."""
     import pygltflib as g
     base = np.asarray(base, dtype=np.float64)
@@ -85,7 +116,14 @@ def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, name
     idx = blob.add(tri.astype(np.uint32).reshape(-1), "SCALAR", UINT, g.ELEMENT_ARRAY_BUFFER, minmax=False)
     tgt = [{"POSITION": blob.add(d, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)} for d in tg.astype(np.float32)]
     dw = np.zeros(len(tg)) if default_weights is None else np.asarray(default_weights, dtype=np.float64)
-    prim = g.Primitive(attributes=g.Attributes(POSITION=pos), indices=idx, targets=tgt, mode=4)
+    attrs = g.Attributes(POSITION=pos)
+    if uvs is not None:
+        if np.shape(uvs) != (len(base), 2):
+            raise InputError(f"uvs: expected ({len(base)}, 2), got {np.shape(uvs)}")
+        attrs.TEXCOORD_0 = blob.add(np.asarray(uvs, np.float32), "VEC2", FLOAT, g.ARRAY_BUFFER)
+    gltf.materials.append(g.Material(name="skin", pbrMetallicRoughness=g.PbrMetallicRoughness(
+        baseColorFactor=[0.8, 0.72, 0.66, 1.0], metallicFactor=0.0, roughnessFactor=0.7)))
+    prim = g.Primitive(attributes=attrs, indices=idx, targets=tgt, mode=4, material=0)
     gltf.meshes.append(g.Mesh(name="face", primitives=[prim], weights=[float(x) for x in dw],
                               extras={"targetNames": [str(n) for n in names]}))
     gltf.nodes.append(g.Node(name="head", children=[1]))
@@ -116,7 +154,7 @@ def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, name
 
 def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray,
               names: Sequence[str], weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-              default_weights: np.ndarray | None = None) -> None:
+              default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None) -> None:
     """Write a .glb atomically.
 
     Parameters
@@ -129,10 +167,11 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas:
     fps : frame rate of the weight and head-motion samplers
     head : :class:`retarget.headpose.HeadMotion` or None
     default_weights : (n_targets,) ``mesh.weights`` (default zeros)
+    uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
 
     See :func:`retarget.export.morph_targets` for how target shapes, regions and the
     absolute form become glTF deltas and weights exactly.
     """
-    gltf = build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights)
+    gltf = build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs)
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))

@@ -21,8 +21,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 def tiny_mesh():
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float)
-    return Mesh(v, [np.array([0, 1, 2, 3]), np.array([1, 4, 5, 2])], groups={"mouth": np.array([0]),
-                                                                              "eyes": np.array([1])})
+    uv = np.array([[0, 0], [.5, 0], [.5, 1], [0, 1], [.6, 0], [1, 0], [1, 1], [.6, 1]])   # a seam at x=1
+    return Mesh(v, [np.array([0, 1, 2, 3]), np.array([1, 4, 5, 2])], uv,
+                [np.array([0, 1, 2, 3]), np.array([4, 5, 6, 7])],
+                groups={"mouth": np.array([0]), "eyes": np.array([1])})
 
 
 @pytest.fixture
@@ -51,13 +53,13 @@ def glb_arrays(path):
     def acc(i):
         a = g.accessors[i]
         bv = g.bufferViews[a.bufferView]
-        n = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[a.type]
+        n = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[a.type]
         dt = np.float32 if a.componentType == 5126 else np.uint32
         return np.frombuffer(blob, dt, a.count * n, bv.byteOffset + (a.byteOffset or 0)).reshape(a.count, n)
     prim = g.meshes[0].primitives[0]
     out = {"gltf": g, "base": acc(prim.attributes.POSITION),
            "deltas": np.stack([acc(t["POSITION"]) for t in prim.targets]),
-           "names": g.meshes[0].extras["targetNames"]}
+           "names": g.meshes[0].extras["targetNames"], "uv": acc(prim.attributes.TEXCOORD_0)}
     an = g.animations[0]
     for ch in an.channels:
         s = an.samplers[ch.sampler]
@@ -86,8 +88,13 @@ def test_glb_roundtrip_with_head_motion(scene):
     export(tmp / "o.glb", rt, np.arange(10), w, fps=25, head=hm)
     g = glb_arrays(tmp / "o.glb")
     assert g["names"] == ["MOUTH_0", "MOUTH_1", "EYES_0"]
+    from retarget.gltf import split_at_uv_seams
+    ids, uv, tri = split_at_uv_seams(ts.mesh)
+    assert len(ids) == 8 and sorted(ids) == [0, 1, 1, 2, 2, 3, 4, 5]      # seam vertices 1, 2 split
+    np.testing.assert_allclose(g["uv"], uv)
+    np.testing.assert_allclose(uv[ids == 0], [[0, 1]])                     # v flipped (glTF origin top-left)
     frames = g["base"] + np.einsum("fk,kvd->fvd", g["weights"].reshape(10, 3), g["deltas"])
-    np.testing.assert_allclose(frames, rt.transform(w), atol=1e-5)
+    np.testing.assert_allclose(frames, rt.transform(w)[:, ids], atol=1e-5)
     np.testing.assert_allclose(g["times"], np.arange(10) / 25, atol=1e-7)
     np.testing.assert_allclose(g["rotation"], hm.rotation, atol=1e-7)
     np.testing.assert_allclose(g["translation"], hm.translation, atol=1e-5)
@@ -100,6 +107,8 @@ def test_absolute_form_glb_adds_sum_target(scene):
     g = glb_arrays(tmp / "a.glb")
     assert g["names"][-1] == "keyshape_sum"
     ts = load_targets(list(shapes), d)
+    from retarget.gltf import split_at_uv_seams
+    ts.shapes = ts.shapes[:, split_at_uv_seams(ts.mesh)[0]]
     ref = np.einsum("fk,kvd->fvd", w, ts.shapes)            # the paper's sum w_i B_i
     frames = g["base"] + np.einsum("fk,kvd->fvd", g["weights"].reshape(10, 4), g["deltas"])
     np.testing.assert_allclose(frames, ref, atol=1e-5)
