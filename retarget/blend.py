@@ -181,7 +181,8 @@ def region_weights(vertices: np.ndarray, groups: Sequence[np.ndarray], band: flo
     band : width of the band, in mesh units (> 0)
     edges : (n_edges, 2) vertex index pairs, required for ``metric="geodesic"``
     metric : "euclidean" (straight-line distance) or "geodesic" (shortest path along mesh edges,
-        scipy.sparse.csgraph.dijkstra; vertices not connected to a group get infinite distance)
+        scipy.sparse.csgraph.dijkstra). Vertices on shells that no group reaches along edges (teeth,
+        eyeballs: separate shells) use the Euclidean distances instead, so lower teeth follow the mouth.
 
     Returns
     -------
@@ -211,13 +212,15 @@ def region_weights(vertices: np.ndarray, groups: Sequence[np.ndarray], band: flo
             d[r] = dijkstra(graph, directed=False, indices=g, min_only=True)
         else:
             raise InputError(f"metric must be 'euclidean' or 'geodesic', got {metric!r}")
+    unreached = ~np.isfinite(d).any(axis=0)
+    if unreached.any():
+        from scipy.spatial import cKDTree
+        for r, g in enumerate(groups):
+            d[r, unreached] = cKDTree(v[np.asarray(g, dtype=np.intp)]).query(v[unreached])[0]
     dmin = d.min(axis=0)
-    unreached = ~np.isfinite(dmin)
-    dmin[unreached] = 0.0
     with np.errstate(invalid="ignore"):
         a = np.clip(1.0 - (d - dmin) / band, 0.0, 1.0)
-    a[:, unreached] = 1.0     # vertices on shells no group reaches: equal share
-    a[~np.isfinite(a)] = 0.0
+    a[~np.isfinite(a)] = 0.0      # a group this vertex's shell does not reach
     return a / a.sum(axis=0)
 
 

@@ -110,6 +110,17 @@ def test_geodesic_differs_from_euclidean_across_a_gap():
     assert eu[0, j] < 0.9 and ge[0, j] == 1.0
 
 
+def test_geodesic_shells_no_group_reaches_use_euclidean_distance():
+    v1, q1 = grid(21, 3)
+    v2, q2 = grid(3, 3)
+    v2 = v2 + [1.0, -5.0, 0.0]                          # a separate shell ("teeth") near x=1..3
+    v = np.concatenate([v1, v2])
+    quads = q1 + [q + len(v1) for q in q2]
+    left, right = np.flatnonzero(v1[:, 0] <= 1), np.flatnonzero(v1[:, 0] >= 19)
+    rw = region_weights(v, [left, right], 4.0, edges=mesh_edges(quads), metric="geodesic")
+    np.testing.assert_array_equal(rw[0, len(v1):], 1.0)  # the shell follows the region nearest in space
+
+
 def test_region_blending_is_continuous_across_the_band():
     """Mouth targets lift z, eye targets push z down: the blended surface has no step larger than
     the targets' own neighbour differences plus the linear-ramp share of their difference."""
