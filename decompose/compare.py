@@ -120,3 +120,54 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
             if progress:
                 progress(region, method)
     return rows
+
+
+COLUMNS = ("method", "region", "k", "error", "rms_px", "target_nnls_px", "target_lstsq_px")
+
+
+def write_errors(path, rows: list[dict]) -> None:
+    """errors.csv: one row per (method, region, k) with :data:`COLUMNS`."""
+    from pipeline.files import atomic_write
+
+    with atomic_write(path) as f:
+        f.write(",".join(COLUMNS) + "\n")
+        for r in rows:
+            f.write(f"{r['method']},{r['region']},{r['k']},{r['error']:.6g},{r['rms_px']:.6g},"
+                    f"{r['target_nnls_px']:.6g},{r['target_lstsq_px']:.6g}\n")
+
+
+def plot_errors(path, rows: list[dict]) -> None:
+    """errors.png: eq. (5) error against k, one line per selector, one panel per region (Figure 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline.files import atomic_path
+
+    regions = list(dict.fromkeys(r["region"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    style = {"spread": ("tab:blue", "-"), "kmeans2": ("tab:green", "--"), "kmeans3": ("m", "--"),
+             "hull2": ("tab:red", ""), "random": ("0.5", ":"), "greedy": ("k", "-")}
+    fig, axes = plt.subplots(1, len(regions), figsize=(5 * len(regions), 4), squeeze=False)
+    for ax, region in zip(axes[0], regions):
+        for m in methods:
+            rr = sorted((r for r in rows if r["region"] == region and r["method"] == m), key=lambda r: r["k"])
+            if not rr:
+                continue
+            c, ls = style.get(m, (None, "-"))
+            ks, es = [r["k"] for r in rr], [r["error"] for r in rr]
+            if len(rr) == 1 or not ls:
+                ax.plot(ks, es, "o", color=c, label=m)
+            else:
+                ax.plot(ks, es, ls, color=c, label=m, lw=2 if m in ("spread", "greedy") else 1.3)
+        ax.set_yscale("log")
+        ax.set_xlabel("number of key shapes k")
+        ax.set_ylabel("eq. (5) error, sum of squared px")
+        ax.set_title(f"{region}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)

@@ -153,7 +153,7 @@ class KMeansSelector(_Selector):
         n_distinct = len(np.unique(Y.round(12), axis=0))
         if n_distinct < self.n_keys:
             raise InputError(f"cannot form {self.n_keys} clusters from {n_distinct} distinct shapes")
-        km = KMeans(n_clusters=self.n_keys, n_init=10, random_state=seed).fit(Y)
+        km = KMeans(n_clusters=self.n_keys, n_init=3, random_state=seed).fit(Y)
         labels = km.labels_
         counts = np.bincount(labels, minlength=self.n_keys)
         centres = np.einsum("tc,tpd->cpd", np.eye(self.n_keys)[labels], arr) / counts[:, None, None]
@@ -217,7 +217,7 @@ class GreedySelector(_Selector):
     ``order_`` is nested: the first j keys of a fit with k are the fit with j.
     """
 
-    def __init__(self, n_keys: int = 8, n_candidates: int = 24, max_eval: int = 3000, rng=None):
+    def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None):
         self.n_keys = n_keys
         self.n_candidates = n_candidates
         self.max_eval = max_eval
@@ -232,6 +232,7 @@ class GreedySelector(_Selector):
         chosen: list[int] = []
         resid_nnls = (E ** 2).sum(axis=1)             # per evaluation frame, current NNLS residual
         Q = np.zeros((0, X.shape[1]))                 # orthonormal basis of the chosen keys' span
+        w_prev = np.zeros((len(E), 0))
         for _ in range(self.n_keys):
             R = E - (E @ Q.T) @ Q                     # least-squares residuals
             C = X - (X @ Q.T) @ Q                     # candidates' parts outside the span
@@ -246,41 +247,43 @@ class GreedySelector(_Selector):
             worst = ev[np.argsort(-resid_nnls)]
             short.update([int(i) for i in worst if ok[i]][:self.n_candidates])
             cands = np.array(sorted(short), dtype=np.intp)
-            errs, res = self._nnls_errors(E, X, chosen, cands)
+            errs, res, w_best = self._nnls_errors(E, X, chosen, cands, w_prev)
             best = int(np.argmin(errs))
             c = int(cands[best])
             chosen.append(c)
             resid_nnls = res[best]
+            w_prev = w_best[best]
             q = C[c] / np.sqrt(cn[c]) if cn[c] > 0 else np.zeros(X.shape[1])
             Q = np.vstack([Q, q])
         self.order_ = np.array(chosen, dtype=np.intp)
         return chosen, None
 
     @staticmethod
-    def _nnls_errors(E, X, chosen, cands):
-        """Eq. (5) over the evaluation frames for keys ``chosen + [c]``, every candidate c at once."""
-        B0 = X[chosen]                                 # (j, d)
-        G0 = B0 @ B0.T
-        h0 = E @ B0.T                                   # (n_eval, j)
+    def _nnls_errors(E, X, chosen, cands, w_prev):
+        """Eq. (5) over the evaluation frames for keys ``chosen + [c]``, all candidates c in one batch.
+
+        One NNLS problem per (candidate, frame) pair, solved together; warm-started
+        from the previous step's weights (the new key's weight starts positive).
+        """
+        B0 = X[chosen]                                  # (j, d)
         Bc = X[cands]                                   # (m, d)
-        hc = E @ Bc.T                                   # (n_eval, m)
-        cross = Bc @ B0.T                               # (m, j)
-        diag = (Bc ** 2).sum(axis=1)
         j, m, ne = len(chosen), len(cands), len(E)
-        errs = np.empty(m)
-        res = np.empty((m, ne))
+        G = np.empty((m, j + 1, j + 1))
+        G[:, :j, :j] = B0 @ B0.T
+        G[:, :j, j] = G[:, j, :j] = Bc @ B0.T
+        G[:, j, j] = (Bc ** 2).sum(axis=1)
+        h = np.empty((m, ne, j + 1))
+        h[:, :, :j] = E @ B0.T
+        h[:, :, j] = (E @ Bc.T).T
+        passive = np.ones((m, ne, j + 1), dtype=bool)
+        passive[:, :, :j] = w_prev > 0
+        Gr = np.broadcast_to(G[:, None], (m, ne, j + 1, j + 1)).reshape(m * ne, j + 1, j + 1)
+        w, _ = nnls_gram(Gr, h.reshape(m * ne, j + 1), passive=passive.reshape(m * ne, j + 1))
+        w = w.reshape(m, ne, j + 1)
         e2 = (E ** 2).sum(axis=1)
-        for a in range(m):                              # a few dozen candidates, each a batch of frames
-            G = np.empty((j + 1, j + 1))
-            G[:j, :j] = G0
-            G[:j, j] = G[j, :j] = cross[a]
-            G[j, j] = diag[a]
-            h = np.column_stack([h0, hc[:, a]])
-            w, _ = nnls_gram(G, h)
-            r = e2 - 2 * (w * h).sum(1) + np.einsum("ti,ij,tj->t", w, G, w)
-            res[a] = np.maximum(r, 0.0)
-            errs[a] = res[a].sum()
-        return errs, res
+        r = e2 - 2 * (w * h).sum(-1) + np.einsum("mti,mij,mtj->mt", w, G, w)
+        res = np.maximum(r, 0.0)
+        return res.sum(axis=1), res, w
 
 
 def make_selector(method: str, n_keys: int, rng=None) -> _Selector:

@@ -80,52 +80,58 @@ def lstsq_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | No
 def _masked_solve(G: np.ndarray, h: np.ndarray, passive: np.ndarray) -> np.ndarray:
     """Solve ``G_PP w_P = h_P`` for every row's passive set P (w = 0 elsewhere), batched.
 
-    ``G`` (k, k), ``h`` (m, k), ``passive`` (m, k) bool. Rows of the system outside P are
-    replaced by identity rows so one batched ``np.linalg.solve`` does all frames.
+    ``G`` (k, k) or (m, k, k), ``h`` (m, k), ``passive`` (m, k) bool. Rows of the system
+    outside P are replaced by identity rows so one batched ``np.linalg.solve`` does all frames.
     """
     p = passive.astype(np.float64)
-    A = G[None] * (p[:, :, None] * p[:, None, :])
-    idx = np.arange(G.shape[0])
+    A = (G if G.ndim == 3 else G[None]) * (p[:, :, None] * p[:, None, :])
+    idx = np.arange(G.shape[-1])
     A[:, idx, idx] += 1.0 - p
     return np.linalg.solve(A, (h * p)[..., None])[..., 0]
 
 
-def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None,
-              tol: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
+def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: float = 1e-10,
+              passive: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact NNLS ``min_{w >= 0} w^T G w - 2 h^T w`` for many right-hand sides at once.
 
     Block principal pivoting (Kim and Park 2011), an active-set method like
     Lawson-Hanson's that exchanges every infeasible variable at once and falls
-    back to exchanging one (the largest index) when that cycles; it ends at the
-    point satisfying the KKT conditions ``w >= 0``, ``y = G w - h >= 0``,
-    ``w * y = 0``: the unique NNLS solution for positive-definite ``G``, the same
-    one Lawson-Hanson (eq. 4, [Law74]) finds.
+    back to exchanging one (the largest index) when that stops reducing their
+    number; it ends at the point satisfying the KKT conditions ``w >= 0``,
+    ``y = G w - h >= 0``, ``w * y = 0``: the unique NNLS solution for
+    positive-definite ``G``, the one Lawson-Hanson (eq. 4, [Law74]) finds.
 
     Parameters
     ----------
-    G : (n_keys, n_keys) positive definite Gram matrix ``B B^T``.
-    h : (n_frames, n_keys) projections ``X B^T``.
+    G : (n_keys, n_keys) or (m, n_keys, n_keys)
+        Positive definite Gram matrix ``B B^T`` (one shared, or one per problem).
+    h : (m, n_keys)
+        Projections ``X B^T``.
     max_iter : int, optional
         Pivoting iterations (default ``10 * n_keys``).
     tol : float
         Relative feasibility tolerance.
+    passive : (m, n_keys) bool, optional
+        Initial guess of the positive weights (warm start); default: those
+        positive in the unconstrained solution.
 
     Returns
     -------
-    w : (n_frames, n_keys) non-negative weights.
-    converged : (n_frames,) bool.
+    w : (m, n_keys) non-negative weights.
+    converged : (m,) bool.
     """
     G = np.asarray(G, dtype=np.float64)
     h = np.atleast_2d(np.asarray(h, dtype=np.float64))
     m, k = h.shape
+    batched = G.ndim == 3
     max_iter = 10 * k if max_iter is None else max_iter
-    scale = max(float(np.abs(np.diag(G)).max()), 1e-300)
-    Gs = G / scale
-    Gs = Gs + np.eye(k) * 1e-13  # guards exactly collinear keys; far below any meaningful weight
+    scale = max(float(np.abs(np.diagonal(G, axis1=-2, axis2=-1)).max()), 1e-300)
+    Gs = G / scale + np.eye(k) * 1e-13  # ridge guards exactly collinear keys; far below any meaningful weight
     hs = h / scale
     htol = tol * max(1.0, float(np.abs(hs).max(initial=0.0)))
-    # start from the unconstrained solution's positive part
-    passive = np.linalg.solve(Gs, hs.T).T > 0
+    if passive is None:
+        passive = np.linalg.solve(Gs, hs[..., None])[..., 0] > 0 if batched else np.linalg.solve(Gs, hs.T).T > 0
+    passive = np.array(passive, dtype=bool)
     w = np.zeros((m, k))
     converged = np.zeros(m, dtype=bool)
     n_bad_best = np.full(m, k + 1)
@@ -135,14 +141,15 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None,
         if not len(todo):
             break
         P = passive[todo]
-        x = _masked_solve(Gs, hs[todo], P)
-        y = x @ Gs - hs[todo]
+        Gt = Gs[todo] if batched else Gs
+        x = _masked_solve(Gt, hs[todo], P)
+        y = (np.einsum("mij,mj->mi", Gt, x) if batched else x @ Gs) - hs[todo]
         infeasible = (P & (x < -htol)) | (~P & (y < -htol))
         n_bad = infeasible.sum(axis=1)
         done = n_bad == 0
         w[todo[done]] = np.where(P[done], np.maximum(x[done], 0.0), 0.0)
         converged[todo[done]] = True
-        # full exchange while the count of infeasible variables falls; else a few tries; else one
+        # exchange all infeasible variables while their count falls (or for 3 tries), else only one
         better = n_bad < n_bad_best[todo]
         n_bad_best[todo[better]] = n_bad[better]
         backup[todo[better]] = 3
@@ -151,12 +158,10 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None,
         last = k - 1 - np.argmax(infeasible[:, ::-1], axis=1)
         single = np.zeros_like(infeasible)
         single[np.arange(len(todo)), last] = True
-        swap = np.where(full[:, None], infeasible, single)
-        P = P ^ swap
-        passive[todo] = P
+        passive[todo] = P ^ np.where(full[:, None], infeasible, single)
         todo = todo[~done]
     if len(todo):  # not converged: best feasible point of the last passive set
-        x = _masked_solve(Gs, hs[todo], passive[todo])
+        x = _masked_solve(Gs[todo] if batched else Gs, hs[todo], passive[todo])
         w[todo] = np.maximum(x, 0.0) * passive[todo]
     return w, converged
 
