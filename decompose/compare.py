@@ -75,9 +75,28 @@ def target_distortion(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray,
     return float(np.mean(out))
 
 
+def key_noise_amplification(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray, weights: np.ndarray,
+                            pose: np.ndarray, amplitude: float, n_fields: int = 3, rng=None) -> float:
+    """RMS (px) of ``F(w, S + E) - F(w, S)`` where every key and the neutral get their own smooth field.
+
+    Stands in for an artist re-drawing each key shape with small independent errors
+    (the traced lips of Figures 4 and 5): weights that sum to about one pass the
+    errors through at about ``amplitude``; large weights of both signs amplify them.
+    """
+    rng = np.random.default_rng(rng)
+    sample = shapes.reshape(-1, 2)[::max(1, shapes.size // 2000)]
+    out = []
+    for _ in range(n_fields):
+        fk = np.stack([smooth_field(sample, amplitude, rng)(s) for s in np.concatenate([keys, neutral[None]])])
+        rec0 = reconstruct(weights, keys, neutral)
+        rec = reconstruct(weights, fk[:-1], fk[-1])
+        out.append(pixel_errors(rec0, rec, pose)[1])
+    return float(np.mean(out))
+
+
 def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin: int = 2, kmax: int = 24,
             amplitude: float = 3.0, rng=None, progress=None) -> list[dict]:
-    """Rows ``method, region, k, error, rms_px, target_nnls_px, target_lstsq_px`` for every k in kmin..kmax.
+    """Rows of :data:`COLUMNS` for every method, region and k in kmin..kmax.
 
     Weights are NNLS (eq. 4), as in Figure 6. ``hull2`` gives one row at its own k.
     ``random`` uses a fresh draw per k. Failed frames are left out.
@@ -116,13 +135,18 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
                 row = {"method": method, "region": region, "k": int(k), "error": e, "rms_px": rms,
                        "target_nnls_px": target_distortion(Q, keys, neutral, w, pose, amplitude, rng=field_seed),
                        "target_lstsq_px": target_distortion(Q, keys, neutral, wl, pose, amplitude, rng=field_seed)}
+                row["keynoise_nnls_px"] = key_noise_amplification(Q, keys, neutral, w, pose, amplitude,
+                                                                  rng=field_seed)
+                row["keynoise_lstsq_px"] = key_noise_amplification(Q, keys, neutral, wl, pose, amplitude,
+                                                                   rng=field_seed)
                 rows.append(row)
             if progress:
                 progress(region, method)
     return rows
 
 
-COLUMNS = ("method", "region", "k", "error", "rms_px", "target_nnls_px", "target_lstsq_px")
+COLUMNS = ("method", "region", "k", "error", "rms_px", "target_nnls_px", "target_lstsq_px",
+           "keynoise_nnls_px", "keynoise_lstsq_px")
 
 
 def write_errors(path, rows: list[dict]) -> None:
@@ -132,8 +156,8 @@ def write_errors(path, rows: list[dict]) -> None:
     with atomic_write(path) as f:
         f.write(",".join(COLUMNS) + "\n")
         for r in rows:
-            f.write(f"{r['method']},{r['region']},{r['k']},{r['error']:.6g},{r['rms_px']:.6g},"
-                    f"{r['target_nnls_px']:.6g},{r['target_lstsq_px']:.6g}\n")
+            f.write(",".join([r["method"], r["region"], str(r["k"])]
+                             + [f"{r[c]:.6g}" for c in COLUMNS[3:]]) + "\n")
 
 
 def plot_errors(path, rows: list[dict]) -> None:
