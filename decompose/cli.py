@@ -26,8 +26,8 @@ def register(subparsers) -> None:
     p.add_argument("--keys", required=True, help="KEYS.json from keyshape select")
     p.add_argument("--solver", choices=SOLVERS, default="nnls",
                    help="nnls (default), lstsq (unconstrained), smooth (NNLS + temporal smoothness)")
-    p.add_argument("--smooth-lambda", type=float, default=1.0,
-                   help="weight of the frame-to-frame change penalty for --solver smooth (default 1)")
+    p.add_argument("--smooth-lambda", type=float, default=0.1,
+                   help="weight of the frame-to-frame change penalty for --solver smooth (default 0.1)")
     p.add_argument("-o", "--output", required=True, help="WEIGHTS.csv to write")
     p.set_defaults(func=_decompose)
 

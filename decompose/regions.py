@@ -128,7 +128,7 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
     return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_]], sel.keys_, sel.neutral_, from_frame)
 
 
-def decompose_region(tracks: Tracks, keys: RegionKeys, solver: str = "nnls", smooth_lambda: float = 1.0,
+def decompose_region(tracks: Tracks, keys: RegionKeys, solver: str = "nnls", smooth_lambda: float = 0.1,
                      shapes: np.ndarray | None = None) -> np.ndarray:
     """Weights (n_frames, n_keys) of ``keys`` for every frame of ``tracks``; failed frames interpolated."""
     shapes = model_shapes(tracks) if shapes is None else shapes
