@@ -143,24 +143,55 @@ class KMeansSelector(_Selector):
         self.rng = rng
 
     def _select(self, X, arr):
-        from sklearn.cluster import KMeans
-
         if self.centre not in ("mean", "nearest"):
             raise InputError(f"centre must be 'mean' or 'nearest', got {self.centre!r}")
         scores, _ = _pca(X)
         Y = scores[:, :self.n_dims]
-        seed = int(np.random.default_rng(self.rng).integers(2**31 - 1))
         n_distinct = len(np.unique(Y.round(12), axis=0))
         if n_distinct < self.n_keys:
             raise InputError(f"cannot form {self.n_keys} clusters from {n_distinct} distinct shapes")
-        km = KMeans(n_clusters=self.n_keys, n_init=3, random_state=seed).fit(Y)
-        labels = km.labels_
+        labels = kmeans_labels(Y, self.n_keys, rng=self.rng)
         counts = np.bincount(labels, minlength=self.n_keys)
         centres = np.einsum("tc,tpd->cpd", np.eye(self.n_keys)[labels], arr) / counts[:, None, None]
         d2 = ((X[None] - (centres - self.neutral_).reshape(self.n_keys, 1, -1)) ** 2).sum(-1)
         d2[labels[None] != np.arange(self.n_keys)[:, None]] = np.inf  # nearest member of its own cluster
         idx = np.argmin(d2, axis=1)
         return idx, (centres if self.centre == "mean" else None)
+
+
+def kmeans_labels(Y: np.ndarray, n_clusters: int, n_init: int = 4, max_iter: int = 100, rng=None) -> np.ndarray:
+    """Cluster labels of ``Y`` (n, dim) by Lloyd's k-means with k-means++ seeding; best of ``n_init``.
+
+    Every cluster keeps at least one member (an emptied cluster is re-seeded at the
+    point farthest from its centre).
+    """
+    rng = np.random.default_rng(rng)
+    n = len(Y)
+    best, best_inertia = None, np.inf
+    for _ in range(n_init):
+        c = [Y[rng.integers(n)]]
+        d2 = ((Y - c[0]) ** 2).sum(1)
+        for _ in range(1, n_clusters):
+            c.append(Y[rng.choice(n, p=d2 / d2.sum()) if d2.sum() > 0 else rng.integers(n)])
+            d2 = np.minimum(d2, ((Y - c[-1]) ** 2).sum(1))
+        C = np.array(c)
+        labels = np.full(n, -1)
+        for _ in range(max_iter):
+            D = ((Y[:, None] - C[None]) ** 2).sum(-1)
+            new = np.argmin(D, axis=1)
+            counts = np.bincount(new, minlength=n_clusters)
+            for j in np.flatnonzero(counts == 0):          # re-seed empty clusters (rare)
+                far = int(np.argmax(D[np.arange(n), new]))
+                new[far] = j
+                D[far] = 0
+            if np.array_equal(new, labels):
+                break
+            labels = new
+            C = (np.eye(n_clusters)[labels].T @ Y) / np.bincount(labels, minlength=n_clusters)[:, None]
+        inertia = ((Y - C[labels]) ** 2).sum()
+        if inertia < best_inertia:
+            best, best_inertia = labels, inertia
+    return best
 
 
 class HullSelector(_Selector):
