@@ -7,13 +7,16 @@ Two forms of the combination:
 
 They differ by ``(1 - sum_i w_ti) N``: they agree exactly when the weights of a
 frame sum to one and differ otherwise. NNLS weights (section 4.1) are *not*
-constrained to sum to one; they are fitted in the absolute form
-``S_t ~ sum_i w_ti S_i`` on absolute source shapes, so the absolute form is the
-one that replays them faithfully (a frame that the source reconstructs at 0.9 of
-a key shape's size is 0.9 of the target's size). The absolute form is the
-default. Use the delta form for weights that were fitted to *deltas* from a neutral
-(ARKit/Live Link curves, ICT-FaceKit coefficients), where all-zero weights mean
-"neutral face".
+constrained to sum to one, so the form must be the one the weights were fitted
+in; then targets equal to the source key shapes give back the decomposed frames
+exactly. ``keyshape decompose`` fits ``Q_t = N + sum_i w_ti (S_i - N)`` with ``N``
+the sequence's mean shape (its KEYS.json ``neutral``): replay its weights in the
+**delta** form with the target of that face as the neutral (the artist's rest
+face is the usual stand-in). The paper's literal fit ``S_t ~ sum_i w_ti S_i`` (no
+neutral) is replayed by the **absolute** form. Delta-form weights replayed in the
+absolute form would lose ``(1 - sum_i w_ti) N``: a head shrunk or grown about the
+origin by the unspent weight. Weights fitted to deltas from a rest face (ARKit,
+Live Link, ICT-FaceKit) are delta form too.
 
 Regions (the paper's eye and mouth regions) are folded into the basis: key shape
 ``i`` of region ``r`` is scaled per vertex by the region weight ``a_r(v)``
@@ -148,6 +151,8 @@ class BlendBasis:
 def blend(weights: np.ndarray, targets: np.ndarray, neutral: np.ndarray | None = None,
           form: str = "absolute", dtype=np.float64) -> np.ndarray:
     """Blend ``targets`` (n_keys, n_vertices, dim) with ``weights`` (n_frames, n_keys) in one product.
+
+    ``form`` is "absolute" or "delta" (needs ``neutral``); see the module docstring.
 
     Examples
     --------

@@ -17,8 +17,10 @@ def register(subparsers) -> None:
     p.add_argument("--map", dest="mapping", help='mapping JSON {"REGION_K": "target file"} '
                                                  "(default: match column names to file stems)")
     p.add_argument("--neutral", help="neutral mesh/drawing (needed for --form delta; base of the .glb)")
-    p.add_argument("--form", choices=("absolute", "delta"), default="absolute",
-                   help="absolute: sum w_i B_i (paper; right for NNLS weights); delta: N + sum w_i (B_i - N)")
+    p.add_argument("--form", choices=("auto", "absolute", "delta"), default="auto",
+                   help="delta: N + sum w_i (B_i - N), for weights fitted relative to a neutral (keyshape "
+                        "decompose's, relative to the sequence's mean shape); absolute: sum w_i B_i (the paper's "
+                        "literal form); auto: delta when a neutral is given or found, else absolute")
     p.add_argument("--regions", help="region vertex groups: JSON {region: [vertex indices] | 'OBJ group'} "
                                      "or an OBJ with groups; columns REGION_K use region REGION")
     p.add_argument("--band", type=float, default=None,
@@ -80,7 +82,7 @@ def run(args) -> int:
                   bake_head=args.bake_head, scheme=args.scheme)
     extra = f", {info['n_clamped']} weights clamped to [0, 1]" if args.clamp else ""
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
-          f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form} form"
+          f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
           f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"
           f"{extra} -> {info['path']} ({info['kind']})")
     return 0

@@ -85,8 +85,8 @@ def load_expressions(path: str | Path | None = None) -> ExpressionSet:
                              d["landmarks"].astype(np.intp) if "landmarks" in d.files else np.zeros(0, np.intp))
 
 
-def demo_targets(key_coeffs: Mapping[str, Mapping[str, float]], expressions: ExpressionSet | None = None) \
-        -> TargetSet:
+def demo_targets(key_coeffs: Mapping[str, Mapping[str, float]], expressions: ExpressionSet | None = None,
+                 neutral_coeffs: Mapping[str, float] | None = None) -> TargetSet:
     """Targets for key shapes given their expression coefficients.
 
     Parameters
@@ -94,6 +94,9 @@ def demo_targets(key_coeffs: Mapping[str, Mapping[str, float]], expressions: Exp
     key_coeffs : ``{"mouth_0": {"jawOpen": 0.7, ...}, "eyes_0": {...}, ...}``, one entry per weight
         column in column order
     expressions : default :func:`load_expressions`
+    neutral_coeffs : coefficients of the target neutral. ``keyshape decompose`` fits weights relative
+        to the sequence's *mean* shape, so the matching target neutral is the target of that mean
+        face: pass the mean of the hidden coefficients over the frames (default: the rest face, all 0).
 
     Returns
     -------
@@ -102,16 +105,18 @@ def demo_targets(key_coeffs: Mapping[str, Mapping[str, float]], expressions: Exp
     ex = load_expressions() if expressions is None else expressions
     cols = list(key_coeffs)
     shapes = ex.shapes([key_coeffs[c] for c in cols])
-    return TargetSet(cols, cols, shapes, [DATA] * len(cols), ex.neutral.copy(), ex.mesh)
+    neutral = ex.shape(neutral_coeffs or {})
+    return TargetSet(cols, cols, shapes, [DATA] * len(cols), neutral, ex.mesh.with_vertices(neutral))
 
 
 def write_demo_targets(folder: str | Path, key_coeffs: Mapping[str, Mapping[str, float]],
-                       expressions: ExpressionSet | None = None) -> Path:
+                       expressions: ExpressionSet | None = None,
+                       neutral_coeffs: Mapping[str, float] | None = None) -> Path:
     """Write one OBJ per key shape (``<column>.obj``) and ``neutral.obj`` into ``folder`` atomically,
     the input ``keyshape retarget --targets folder`` reads."""
     from pipeline.files import atomic_dir
     from retarget.obj import write_obj
-    ts = demo_targets(key_coeffs, expressions)
+    ts = demo_targets(key_coeffs, expressions, neutral_coeffs)
     with atomic_dir(folder) as tmp:
         write_obj(tmp / "neutral.obj", ts.mesh)
         for c, s in zip(ts.columns, ts.shapes):

@@ -21,9 +21,10 @@ class Retargeter:
 
     Parameters
     ----------
-    form : {"absolute", "delta"}
-        ``sum_i w_i B_i`` (the paper's; right for NNLS weights) or ``N + sum_i w_i (B_i - N)``;
-        see :mod:`retarget.blend`.
+    form : {"auto", "absolute", "delta"}
+        ``sum_i w_i B_i`` (the paper's literal Eq. 2) or ``N + sum_i w_i (B_i - N)``; "auto"
+        (default) is "delta" when the targets have a neutral, else "absolute" (see
+        :mod:`retarget.blend`: use the form the weights were fitted in).
     band : float or None
         Width of the region blending band in mesh units (default: 10% of the mesh's
         bounding-box diagonal).
@@ -41,7 +42,7 @@ class Retargeter:
     basis_ : BlendBasis
     """
 
-    def __init__(self, form: str = "absolute", band: float | None = None, metric: str = "geodesic",
+    def __init__(self, form: str = "auto", band: float | None = None, metric: str = "geodesic",
                  dtype=np.float64):
         self.form, self.band, self.metric, self.dtype = form, band, metric, dtype
 
@@ -49,6 +50,9 @@ class Retargeter:
             regions_source: str = "regions") -> "Retargeter":
         """Precompute the blend basis (regions folded in, see :class:`~retarget.blend.BlendBasis`)."""
         self.targets_ = targets
+        self.form_ = self.form
+        if self.form == "auto":
+            self.form_ = "delta" if targets.neutral is not None else "absolute"
         self.region_names_ = self.key_regions_ = self.region_weights_ = None
         if regions:
             names, kr = key_regions(targets.columns, regions, regions_source)
@@ -65,7 +69,7 @@ class Retargeter:
                     edges = mesh_edges(targets.mesh.polygons)
             self.region_weights_ = region_weights(ref, [regions[n] for n in names], band, edges, metric)
             self.region_names_, self.key_regions_ = names, kr
-        self.basis_ = BlendBasis(self.form, self.dtype).fit(targets.shapes, targets.neutral, self.key_regions_,
+        self.basis_ = BlendBasis(self.form_, self.dtype).fit(targets.shapes, targets.neutral, self.key_regions_,
                                                             self.region_weights_)
         return self
 
@@ -114,7 +118,7 @@ class Retargeter:
         deltas = rw[kr][:, :, None] * (ts.shapes - base)
         names = _unique(ts.names, ts.columns)
         mw = w
-        if self.form == "absolute":
+        if self.form_ == "absolute":
             sums = np.stack([w[:, kr == r].sum(axis=1) for r in range(len(rw))], axis=1) - 1.0
             if np.any(np.abs(sums) > 1e-6):
                 deltas = np.concatenate([deltas, rw[:, :, None] * base[None]])

@@ -1,8 +1,10 @@
 """Per-frame key-shape weights as CSV: ``frame`` then one column per key shape.
 
-A minimal reader for the decompose stage's output (``frame,mouth_0,...,eyes_0,...``)
+A reader for the decompose stage's output (``frame,mouth_0,...,eyes_0,...[,interpolated]``,
+see ``decompose/io.py``) that also accepts any other column names (ARKit curves),
 and a writer for retargeted curves (``frame,<target name>,...``), which is what
-Maya and Blender import scripts read. Key-shape columns are named ``REGION_K``.
+Maya and Blender import scripts read. A last column ``interpolated`` (decompose's
+flag for frames filled in where tracking failed) is not a key shape and is dropped.
 """
 from __future__ import annotations
 
@@ -35,7 +37,8 @@ def read_weights(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     if not rows or not rows[0] or rows[0][0].strip() != "frame":
         raise InputError("expected a header 'frame,<key shape>,...'", path, 1)
     names = [c.strip() for c in rows[0][1:]]
-    if not names:
+    flag = bool(names) and names[-1] == "interpolated"
+    if not names or (flag and len(names) == 1):
         raise InputError("no key-shape columns after 'frame'", path, 1)
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -61,6 +64,8 @@ def read_weights(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
         i, j = np.argwhere(bad)[0]
         col = "frame" if j == 0 else names[j - 1]
         raise InputError(f"{a[i, j]} in column {col!r} (weights must be finite numbers)", path, body[i][0])
+    if flag:
+        return a[:, 0].astype(np.int64), names[:-1], a[:, 1:-1]
     return a[:, 0].astype(np.int64), names, a[:, 1:]
 
 

@@ -133,7 +133,7 @@ def test_region_blending_is_continuous_across_the_band():
     ts = TargetSet(["mouth_0", "mouth_1", "mouth_2", "eyes_0", "eyes_1"], list("abcde"),
                    np.concatenate([mouth, eyes]), [None] * 5, v, None)
     band = 6.0
-    rt = Retargeter(band=band, metric="euclidean").fit(ts, {"mouth": left, "eyes": right})
+    rt = Retargeter(form="absolute", band=band, metric="euclidean").fit(ts, {"mouth": left, "eyes": right})
     w = rng.uniform(0, 1, size=(20, 5))
     out = rt.transform(w)
     e = mesh_edges(quads)
@@ -146,7 +146,7 @@ def test_region_blending_is_continuous_across_the_band():
     mid = np.isclose(v[:, 0], 15.0)          # where the regions meet
     gap_mid = np.linalg.norm(per_region[0] - per_region[1], axis=-1)[:, mid].min(axis=1)
     assert np.all(step < 0.25 * gap_mid)     # a hard switch steps by half the gap twice (midline 0.5/0.5)
-    hard = Retargeter(band=1e-6, metric="euclidean").fit(ts, {"mouth": left, "eyes": right}).transform(w)
+    hard = Retargeter(form="absolute", band=1e-6, metric="euclidean").fit(ts, {"mouth": left, "eyes": right}).transform(w)
     hard_step = np.linalg.norm(hard[:, e[:, 0]] - hard[:, e[:, 1]], axis=-1).max(axis=1)
     assert np.all(hard_step > 0.45 * gap_mid)   # the check above can fail
 

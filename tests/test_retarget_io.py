@@ -103,7 +103,8 @@ def test_glb_roundtrip_with_head_motion(scene):
 
 def test_absolute_form_glb_adds_sum_target(scene):
     tmp, d, m, shapes, w = scene
-    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(tmp / "a.glb")]) == 0
+    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--form", "absolute",
+                 "-o", str(tmp / "a.glb")]) == 0
     g = glb_arrays(tmp / "a.glb")
     assert g["names"][-1] == "keyshape_sum"
     ts = load_targets(list(shapes), d)
@@ -191,7 +192,7 @@ def test_livelink_csv(tmp_path):
 def test_obj_frames_folder(scene):
     tmp, d, m, shapes, w = scene
     out = tmp / "frames"
-    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(out)]) == 0
+    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--form", "absolute", "-o", str(out)]) == 0
     files = sorted(out.iterdir())
     assert [f.name for f in files[:2]] == ["frame_000000.obj", "frame_000001.obj"] and len(files) == 10
     ts = load_targets(list(shapes), d)
