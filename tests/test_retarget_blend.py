@@ -247,3 +247,33 @@ def test_hold_invalid_pose():
     np.testing.assert_array_equal(held[[1, 2]], p[[0, 0]])
     with pytest.raises(InputError, match="no frame"):
         hold_invalid(p, np.zeros(4, bool))
+
+
+def test_identity_with_decompose_weights(tmp_path):
+    """Weights written by keyshape decompose (NNLS relative to the mean shape, WEIGHTS.csv with an
+    ``interpolated`` column), targets = its 2D key shapes and mean shape: the retargeted frames
+    are decompose's own reconstruction (auto form = delta, as the neutral is given)."""
+    from decompose.io import write_weights as decompose_write_weights
+    from decompose.weights import nnls_weights, reconstruct
+    from retarget.targets import load_targets
+    from retarget.weights_io import read_weights
+    from tracker.io import read_pts, write_pts
+    rng = np.random.default_rng(11)
+    keys = rng.normal(size=(5, 20, 2)) * 5 + 50
+    shapes = np.einsum("fk,kpd->fpd", rng.dirichlet(np.ones(5), 30), keys) + rng.normal(scale=0.1, size=(30, 20, 2))
+    cols = [f"mouth_{i}" for i in range(5)]
+    for c, k in zip(cols, keys):
+        write_pts(tmp_path / f"{c}.pts", k)
+    write_pts(tmp_path / "neutral.pts", shapes.mean(axis=0))
+    keys = np.stack([read_pts(tmp_path / f"{c}.pts") for c in cols])       # as written (3 decimals)
+    neutral = read_pts(tmp_path / "neutral.pts")
+    w = nnls_weights(shapes, keys, neutral)
+    assert np.ptp(w.sum(axis=1)) > 0.01                                      # rows do not sum to one
+    decompose_write_weights(tmp_path / "w.csv", np.arange(30), cols, w, np.zeros(30))
+    frames, names, w_read = read_weights(tmp_path / "w.csv")
+    assert names == cols
+    rt = Retargeter().fit(load_targets(names, tmp_path))
+    assert rt.form_ == "delta"
+    np.testing.assert_allclose(rt.transform(w_read), reconstruct(w, keys, neutral), atol=1e-5)
+    wrong = Retargeter(form="absolute").fit(load_targets(names, tmp_path)).transform(w_read)
+    assert np.abs(wrong - reconstruct(w, keys, neutral)).max() > 1.0     # the other form is visibly off
