@@ -124,3 +124,17 @@ def render_frames(frames: np.ndarray, triangles: np.ndarray, size=(320, 320), ca
     cam = camera or OrthoCamera.fit(f[:: max(1, len(f) // 50)], *size)
     for v in f:
         yield render(v, triangles, cam, **kw)
+
+
+def side_by_side(left: np.ndarray, right: np.ndarray, gap: int = 4, background=(40, 40, 40)) -> np.ndarray:
+    """One BGR image: ``left`` (e.g. the source frame with contours) | ``right`` (the rendered target),
+    ``right`` scaled to ``left``'s height (``cv2.resize``), separated by ``gap`` background pixels."""
+    import cv2
+    a = left if left.ndim == 3 else cv2.cvtColor(left, cv2.COLOR_GRAY2BGR)
+    b = right if right.ndim == 3 else cv2.cvtColor(right, cv2.COLOR_GRAY2BGR)
+    h = a.shape[0]
+    if b.shape[0] != h:
+        b = cv2.resize(b, (max(1, round(b.shape[1] * h / b.shape[0])), h), interpolation=cv2.INTER_AREA)
+    mid = np.empty((h, gap, 3), np.uint8)
+    mid[:] = background
+    return np.concatenate([a, mid, b], axis=1)

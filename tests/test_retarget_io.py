@@ -319,6 +319,12 @@ def test_render_covers_triangle_and_zbuffer():
     assert (near[..., 0] > 0).sum() == covered
 
 
+def test_side_by_side():
+    from retarget.render import side_by_side
+    out = side_by_side(np.zeros((288, 360), np.uint8), np.full((320, 320, 3), 200, np.uint8), gap=4)
+    assert out.shape == (288, 360 + 4 + 288, 3) and out[0, -1, 0] == 200
+
+
 def test_demo_targets_builder(tmp_path):
     from retarget.demo_targets import demo_targets, load_expressions, write_demo_targets
     ex = load_expressions()
