@@ -332,6 +332,9 @@ def test_demo_targets_builder(tmp_path):
     ts = demo_targets({"mouth_0": {"jawOpen": 0.7, "mouthSmileLeft": 0.3}, "eyes_0": {"eyeBlink_L": 1.0}})
     j, s = ex.names.index("jawOpen"), ex.names.index("mouthSmile_L")
     np.testing.assert_allclose(ts.shapes[0], ex.neutral + 0.7 * ex.deltas[j] + 0.3 * ex.deltas[s], atol=1e-12)
+    ts2 = demo_targets({"mouth_0": {"jawOpen": 1.0}}, neutral_coeffs={"jawOpen": 0.2})
+    np.testing.assert_allclose(ts2.neutral, ex.neutral + 0.2 * ex.deltas[j], atol=1e-12)
+    np.testing.assert_allclose(ts.neutral, ex.neutral)
     with pytest.raises(InputError, match="unknown expression 'tongueOut'"):
         demo_targets({"mouth_0": {"tongueOut": 1.0}})
     write_demo_targets(tmp_path / "t", {"mouth_0": {"jawOpen": 1.0}})
