@@ -8,7 +8,7 @@ Keeps the face skin only (vertices 0-9408 of ``generic_neutral_mesh.obj``, the
 polygons made only of them, fan-triangulated), the neutral positions and the
 delta ``expression - neutral`` of every ICT-FaceKit expression, stored as float16
 centimetres (resolution under 0.01 mm at these magnitudes) in a compressed npz,
-plus the MIT licence text beside it (``ICT-FaceKit-LICENSE.txt``).
+plus the MIT licence text beside it (``LICENSE-ICT-FaceKit.txt``).
 """
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ def build(source: Path, out: Path) -> Path:
                                 names=np.array(names), deltas=deltas.astype(np.float16),
                                 landmarks=landmarks.astype(np.int32))
     out.chmod(0o644)
-    shutil.copyfile(source / "LICENSE", out.parent / "ICT-FaceKit-LICENSE.txt")
+    shutil.copyfile(source / "LICENSE", out.parent / "LICENSE-ICT-FaceKit.txt")
     return out
 
 

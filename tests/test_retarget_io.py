@@ -339,7 +339,7 @@ def test_demo_targets_builder(tmp_path):
         demo_targets({"mouth_0": {"tongueOut": 1.0}})
     write_demo_targets(tmp_path / "t", {"mouth_0": {"jawOpen": 1.0}})
     assert sorted(p.name for p in (tmp_path / "t").iterdir()) == ["mouth_0.obj", "neutral.obj"]
-    assert (REPO / "retarget" / "data" / "ICT-FaceKit-LICENSE.txt").read_text().startswith("MIT License")
+    assert (REPO / "retarget" / "data" / "LICENSE-ICT-FaceKit.txt").read_text().startswith("MIT License")
     assert (REPO / "retarget" / "data" / "ict_face.npz").stat().st_size < 3e6
 
 
