@@ -172,6 +172,17 @@ def test_csv_outputs(scene):
     fr, names, ww = read_weights(tmp / "c.csv")
     assert names == ["MOUTH_0", "MOUTH_1", "EYES_0"]
     np.testing.assert_allclose(ww, np.clip(w, 0, 1), atol=1e-5)
+    arkit = {"MOUTH_0": "jawOpen", "MOUTH_1": "mouthSmile_L", "EYES_0": "eyeBlink_R"}
+    for old, new in arkit.items():                      # ARKit-named targets for the Live Link layout
+        (d / f"{old}.obj").rename(d / f"{new}.obj")
+    fr, names, w = read_weights(tmp / "w.csv")
+    write_weights(tmp / "arkit.csv", fr, ["jawOpen", "mouthSmileLeft", "eyeBlinkRight"], w)
+    assert main(["retarget", str(tmp / "arkit.csv"), "--targets", str(d), "--livelink", "--fps", "60",
+                 "-o", str(tmp / "ll.csv")]) == 0
+    rows = (tmp / "ll.csv").read_text().splitlines()
+    header, second = rows[0].split(","), dict(zip(rows[0].split(","), rows[2].split(",")))
+    assert len(header) == 63 and len(rows) == 11 and second["Timecode"] == "00:00:00:01.000"
+    assert float(second["MouthSmileLeft"]) == pytest.approx(w[1, 1], abs=1e-5)
 
 
 def test_livelink_csv(tmp_path):
