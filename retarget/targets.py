@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError, MissingFileError, require_dir, require_file
+from pipeline.errors import InputError, MissingFileError, require_file
 from retarget.obj import Mesh, read_obj, read_obj_vertices
 
 TARGET_SUFFIXES = (".obj", ".pts", ".json")
