@@ -85,6 +85,24 @@ def load_expressions(path: str | Path | None = None) -> ExpressionSet:
                              d["landmarks"].astype(np.intp) if "landmarks" in d.files else np.zeros(0, np.intp))
 
 
+# Multi-PIE 68-landmark indices of each decompose region (iBUG order: brows 17-26, eyes 36-47, mouth 48-67)
+LANDMARK_REGIONS = {"mouth": list(range(48, 68)), "eyes": list(range(17, 27)) + list(range(36, 48)),
+                    "pupils": list(range(36, 48))}
+
+
+def demo_regions(expressions: ExpressionSet | None = None, names: Sequence[str] = ("mouth", "eyes")) \
+        -> dict[str, np.ndarray]:
+    """Region vertex groups on the shipped face (decompose's region names), from its 68 landmark vertices:
+    ready for :meth:`retarget.retargeter.Retargeter.fit` (``regions=``)."""
+    ex = load_expressions() if expressions is None else expressions
+    if len(ex.landmarks) != 68:
+        raise InputError("this expression set has no 68 landmark vertices")
+    unknown = [n for n in names if n not in LANDMARK_REGIONS]
+    if unknown:
+        raise InputError(f"unknown regions {unknown}; known: {', '.join(LANDMARK_REGIONS)}")
+    return {n: ex.landmarks[LANDMARK_REGIONS[n]] for n in names}
+
+
 def demo_targets(key_coeffs: Mapping[str, Mapping[str, float]], expressions: ExpressionSet | None = None,
                  neutral_coeffs: Mapping[str, float] | None = None) -> TargetSet:
     """Targets for key shapes given their expression coefficients.

@@ -343,6 +343,18 @@ def test_demo_targets_builder(tmp_path):
     ts = demo_targets({"mouth_0": {"jawOpen": 0.7, "mouthSmileLeft": 0.3}, "eyes_0": {"eyeBlink_L": 1.0}})
     j, s = ex.names.index("jawOpen"), ex.names.index("mouthSmile_L")
     np.testing.assert_allclose(ts.shapes[0], ex.neutral + 0.7 * ex.deltas[j] + 0.3 * ex.deltas[s], atol=1e-12)
+    from retarget.demo_targets import demo_regions
+    from retarget.retargeter import Retargeter
+    reg = demo_regions(ex)
+    assert len(reg["mouth"]) == 20 and len(reg["eyes"]) == 22
+    rt = Retargeter(band=2.0).fit(ts, reg)           # delta form (neutral), geodesic band on the face
+    out = rt.transform(np.array([[1.0, 0.0]]))[0]    # mouth key only: the eye stays open
+    eye_only = (np.abs(ts.shapes[1] - ts.neutral).max(axis=1) > 0.05) \
+        & (rt.region_weights_[rt.region_names_.index("eyes")] == 1)
+    assert eye_only.sum() > 50
+    np.testing.assert_allclose(out[eye_only], ts.neutral[eye_only])
+    jaw = np.abs(ts.shapes[0] - ts.neutral).max(axis=1).argmax()
+    np.testing.assert_allclose(out[jaw], ts.shapes[0][jaw])      # the jaw opens fully
     ts2 = demo_targets({"mouth_0": {"jawOpen": 1.0}}, neutral_coeffs={"jawOpen": 0.2})
     np.testing.assert_allclose(ts2.neutral, ex.neutral + 0.2 * ex.deltas[j], atol=1e-12)
     np.testing.assert_allclose(ts.neutral, ex.neutral)
