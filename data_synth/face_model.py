@@ -122,7 +122,7 @@ class FaceModel:
         self.gaze_range = np.array([8.0, 3.5])
         self.brow_gap = 25.0 * j(0.08)
         self.brow_arch = 7.0 * j(0.2)
-        mw, ut, lt = 34.0 * j(0.06), 9.0 * j(0.12), 10.0 * j(0.12)
+        mw, ut, lt = 38.0 * j(0.06), 9.5 * j(0.12), 11.0 * j(0.12)
         # geometry parameters, each an affine function of the weights: [base, per-component coefficients]
         P = {}
         for side, s, smile, blink, outer in (("l", -1, "mouthSmile_R", "eyeBlink_R", "browOuterUp_R"),

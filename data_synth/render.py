@@ -30,11 +30,11 @@ _SHIFT = 4
 _ONE = 1 << _SHIFT
 _C = {name: k for k, name in enumerate(COMPONENTS)}
 
-_SKIN = np.array([[0.56, 0.66, 0.86], [0.45, 0.57, 0.78], [0.33, 0.44, 0.63], [0.62, 0.71, 0.88],
-                  [0.50, 0.62, 0.84]])
+_SKIN = np.array([[0.58, 0.64, 0.88], [0.46, 0.55, 0.80], [0.32, 0.42, 0.62], [0.64, 0.70, 0.92],
+                  [0.52, 0.60, 0.86]])
 _HAIR = np.array([[0.07, 0.08, 0.10], [0.10, 0.16, 0.24], [0.20, 0.32, 0.45], [0.05, 0.05, 0.06]])
 _IRIS = np.array([[0.10, 0.22, 0.36], [0.55, 0.42, 0.25], [0.30, 0.42, 0.28], [0.08, 0.14, 0.22]])
-_LIP = np.array([[0.36, 0.36, 0.66], [0.40, 0.40, 0.72], [0.30, 0.30, 0.55]])
+_LIP = np.array([[0.36, 0.32, 0.70], [0.40, 0.34, 0.74], [0.33, 0.28, 0.62]])
 _SHIRT = np.array([[0.45, 0.25, 0.12], [0.20, 0.20, 0.22], [0.55, 0.55, 0.50], [0.15, 0.30, 0.50]])
 
 
@@ -133,10 +133,10 @@ class FaceRenderer:
         ppu = self.ppu
         g = lambda x0, y0, sx, sy: np.exp(-((X - x0) / sx) ** 2 - ((Y - y0) / sy) ** 2)  # noqa: E731
         # head: egg-shaped (narrower jaw), ears, neck
-        a = 112.0 * (1 - 0.28 * np.clip((Y - 10) / 140, 0, 1) ** 1.6)
+        a = 112.0 * (1 - 0.22 * np.clip((Y - 10) / 140, 0, 1) ** 1.6)
         f_head = (X / a) ** 2 + ((Y + 5) / 150.0) ** 2
         head = f_head < 1
-        f_neck = np.abs(X) / (50.0 + 0.25 * np.clip(Y - 150, 0, None))
+        f_neck = np.abs(X) / (60.0 + 0.3 * np.clip(Y - 150, 0, None))
         neck = (f_neck < 1) & (Y > 40)
         ears = [((X - s * 110) / 13.0) ** 2 + ((Y + 2) / 27.0) ** 2 < 1 for s in (-1, 1)]
         # height field for the normals
@@ -155,14 +155,14 @@ class FaceRenderer:
         norm = np.sqrt(gx ** 2 + gy ** 2 + 1)
         self._n = np.stack([-gx / norm, -gy / norm, nz / norm]).astype(np.float32)   # (3, h, w)
         # albedo: skin with multi-scale texture
-        tex = (1 + 0.05 * _noise(X.shape, 9 * ppu, rng) + 0.03 * _noise(X.shape, 2.5 * ppu, rng)
-               + 0.025 * _noise(X.shape, 0.6 * ppu, rng))
-        red = 0.05 * _noise(X.shape, 14 * ppu, rng)
+        tex = (1 + 0.03 * _noise(X.shape, 9 * ppu, rng) + 0.025 * _noise(X.shape, 2.5 * ppu, rng)
+               + 0.03 * _noise(X.shape, 0.6 * ppu, rng))
+        red = 0.03 * _noise(X.shape, 14 * ppu, rng)
         albedo = np.empty(X.shape + (3,), np.float32)
         for c in range(3):
             albedo[..., c] = self.skin[c] * tex
         albedo[..., 2] *= 1 + red
-        albedo[..., 1] *= 1 - 0.4 * red
+        albedo[..., 1] *= 1 - 0.2 * red
         blush = 0.08 * (g(-62, 30, 22, 16) + g(62, 30, 22, 16))
         albedo[..., 2] += blush * 0.5
         albedo[..., 0] -= blush * 0.3
@@ -188,6 +188,9 @@ class FaceRenderer:
         strands /= strands.std()
         edge_noise = 3.0 * _noise(X.shape, 3 * ppu, rng)
         hair = (f_hair < 1 + edge_noise * 0.01) & (Y < hairline + edge_noise) & (Y < 20)
+        n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(hair.astype(np.uint8), connectivity=8)
+        if n_lab > 1:        # keep the one hair region, drop islands of the edge noise
+            hair = lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         hair_tex = (1 + 0.22 * strands + 0.1 * _noise(X.shape, 12 * ppu, rng)) * (0.8 + 0.2 * np.clip(-Y / 150, 0, 1))
         for c in range(3):
             albedo[..., c] = np.where(hair, self.hair[c] * hair_tex, albedo[..., c])
@@ -198,10 +201,13 @@ class FaceRenderer:
             wr += np.exp(-((Y - yy) / 0.9) ** 2) * np.exp(-(X / 55.0) ** 4)
         self._wrinkles = wr
         self._hair_mask = hair
+        self._spec_mask = np.where(hair, 0.0, 0.12).astype(np.float32)
         mask = (head | neck | ears[0] | ears[1] | hair).astype(np.float32)
         self._alpha = cv2.GaussianBlur(mask, (0, 0), 0.6 * ppu)
         self._albedo = albedo
+        self._alpha3 = np.repeat(self._alpha[..., None], 3, axis=2)
         self._strands = strands
+        self._fine = _noise(X.shape, 0.5 * ppu, rng)
         self._tex = tex.astype(np.float32)
         rows = np.flatnonzero(np.abs(wr).max(axis=1) > 0.01)
         self._wrinkle_rows = slice(int(rows.min()), int(rows.max()) + 1)
@@ -225,7 +231,7 @@ class FaceRenderer:
             bg = bg * (1 - 0.8 * m[..., None]) + 0.8 * m[..., None] * col
         lamp = np.exp(-(((xs - rng.uniform(0, W)) / (0.2 * W)) ** 2 + ((ys - 0.15 * H) / (0.2 * H)) ** 2))
         bg += 0.25 * lamp[..., None].astype(np.float32)
-        self._background = cv2.GaussianBlur(bg, (0, 0), 2.5 * s)
+        self._background = cv2.GaussianBlur(bg, (0, 0), 4.0 * s)
         # torso: shoulders and collar in model coordinates, drawn at scale 1 and shifted with the head
         sh = [(-300, 420), (-280, 262), (-190, 222), (-62, 196), (0, 250), (62, 196), (190, 222),
               (280, 262), (300, 420)]
@@ -238,10 +244,17 @@ class FaceRenderer:
         collar = _poly_mask((H, W), [np.array([(-62, 196), (0, 250), (62, 196), (0, 262)]) * s + self.anchor],
                             thickness=max(1, int(round(4 * s))))
         col = col * (1 - 0.5 * collar[..., None])
-        self._torso_pm = (col * m[..., None]).astype(np.float32)
-        self._torso_a = m.astype(np.float32)
+        # only rows that the torso can reach (it moves with the head by at most ~60 model units up)
+        rows = np.flatnonzero(m.max(axis=1) > 0)
+        self._torso_top = int(max(rows.min() - 80 * s, 0)) if len(rows) else H - 1
+        top = self._torso_top
+        self._torso_pm = np.ascontiguousarray((col * m[..., None]).astype(np.float32)[top:])
+        self._torso_a = np.ascontiguousarray(m.astype(np.float32)[top:])
+        # torso layer is stored from row ``top`` down: a translation by (dx, dy) still applies as is
+        # sensor noise field (std 0.013 per frame after subtracting two independent crops)
+        self._noise = (rng.standard_normal((H + 64, W + 64, 3)).astype(np.float32) * np.float32(0.013))
         r = np.hypot((xs - W / 2) / W, (ys - H / 2) / H)
-        self._vignette = (1 - 0.35 * r ** 2)[..., None].astype(np.float32)
+        self._vignette = np.repeat((1 - 0.35 * r ** 2)[..., None], 3, axis=2).astype(np.float32)
 
     # ------------------------------------------------------------------ pose
     def poses(self, perf: Performance) -> np.ndarray:
@@ -287,11 +300,10 @@ class FaceRenderer:
         poly = np.concatenate([top, bot[::-1]])
         x0, x1, y0, y1 = self._roi(poly, 2, 2, 2)
         m = _poly_mask((y1 - y0, x1 - x0), [poly], (x0, y0))
-        hairy = np.clip(0.75 + 0.35 * self._strands[y0:y1, x0:x1], 0, 1)
-        m = m * hairy
+        m *= 0.8 + 0.1 * np.clip(self._fine[y0:y1, x0:x1], -2, 2)
         roi = img[y0:y1, x0:x1]
-        roi *= (1 - 0.85 * m)[..., None]
-        roi += (0.85 * m)[..., None] * self.hair
+        roi *= (1 - m)[..., None]
+        roi += m[..., None] * (0.8 * self.hair).astype(np.float32)
 
     def _draw_eye(self, img: np.ndarray, upper: np.ndarray, lower: np.ndarray, iris: np.ndarray,
                   neutral_upper: np.ndarray, light: np.ndarray, side: int) -> None:
@@ -413,8 +425,9 @@ class FaceRenderer:
         spec *= spec
         spec *= spec
         spec *= spec          # ndh ** 32
-        img *= shade[..., None]
-        img += (0.12 * spec * (1 - self._hair_mask))[..., None]
+        cv2.multiply(img, cv2.merge([shade, shade, shade]), dst=img)
+        spec *= self._spec_mask
+        cv2.add(img, cv2.merge([spec, spec, spec]), dst=img)
         return img
 
     def composite(self, canvas: np.ndarray, pose: np.ndarray, shift_px: np.ndarray, exposure: float,
@@ -440,22 +453,36 @@ class FaceRenderer:
         if x1 > x0 and y1 > y0:
             Mr = M.copy()
             Mr[:, 2] -= (x0, y0)
-            rgba = np.dstack([canvas * self._alpha[..., None], self._alpha])
-            warped = cv2.warpAffine(rgba, Mr, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            pm = cv2.multiply(canvas, self._alpha3)
+            dsize = (x1 - x0, y1 - y0)
+            pm = cv2.warpAffine(pm, Mr, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            a = cv2.warpAffine(self._alpha, Mr, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=0)
             if L >= 1.0:
-                warped = cv2.filter2D(warped, -1, _motion_kernel(blur_vec), borderType=cv2.BORDER_CONSTANT)
-            roi = frame[y0:y1, x0:x1]
-            roi *= 1 - warped[..., 3:4]
-            roi += warped[..., :3]
+                ker = _motion_kernel(blur_vec)
+                pm = cv2.filter2D(pm, -1, ker, borderType=cv2.BORDER_CONSTANT)
+                a = cv2.filter2D(a, -1, ker, borderType=cv2.BORDER_CONSTANT)
+            _over(frame[y0:y1, x0:x1], pm, a)
         T = np.array([[1, 0, shift_px[0]], [0, 1, shift_px[1]]], np.float64)
-        tpm = cv2.warpAffine(np.dstack([self._torso_pm, self._torso_a]), T, (W, H), flags=cv2.INTER_LINEAR)
-        frame *= 1 - tpm[..., 3:4]
-        frame += tpm[..., :3]
-        frame *= self._vignette * np.float32(exposure)
-        frame = cv2.GaussianBlur(frame, (0, 0), 0.35 + 0.35 * self.model_scale)
-        frame += rng.standard_normal(frame.shape, dtype=np.float32) * np.float32(0.013)
-        return np.clip(frame * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        dsize = (W, H - self._torso_top)
+        tpm = cv2.warpAffine(self._torso_pm, T, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        ta = cv2.warpAffine(self._torso_a, T, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        _over(frame[self._torso_top:], tpm, ta)
+        cv2.multiply(frame, self._vignette, dst=frame, scale=float(exposure))
+        frame = cv2.GaussianBlur(frame, (5, 5), 0.35 + 0.35 * self.model_scale)
+        # sensor noise: a random crop of a fixed noise field chosen by the frame's rng
+        nh, nw = self._noise.shape[:2]
+        ya, xa = rng.integers(0, nh - H + 1), rng.integers(0, nw - W + 1)
+        cv2.add(frame, self._noise[ya:ya + H, xa:xa + W], dst=frame)
+        return cv2.convertScaleAbs(frame, alpha=255.0)
+
+
+def _over(dst: np.ndarray, pm: np.ndarray, alpha: np.ndarray) -> None:
+    """Composite premultiplied colour ``pm`` with coverage ``alpha`` over ``dst`` in place."""
+    a3 = cv2.merge([alpha, alpha, alpha])
+    np.subtract(np.float32(1.0), a3, out=a3)
+    cv2.multiply(dst, a3, dst=dst)
+    cv2.add(dst, pm, dst=dst)
 
 
 def _motion_kernel(vec: np.ndarray) -> np.ndarray:
