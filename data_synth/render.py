@@ -14,7 +14,7 @@ the lid polygon), lips (outer lip polygon, dark mouth interior with teeth and
 tongue inside the inner lip polygon).
 
 Pixel convention: OpenCV's, pixel centres at integer coordinates, for the
-polygons (``cv2.fillPoly`` with 4 fractional bits and anti-aliasing), the
+polygons (filled at 4x resolution and area-averaged), the
 analytic iris and pupil discs and the warp, so the ``contours48`` points
 computed from the same curves lie on the drawn edges to sub-pixel accuracy.
 """
@@ -28,6 +28,7 @@ from data_synth.performance import Performance
 
 _SHIFT = 4
 _ONE = 1 << _SHIFT
+_SUPER = 4      # supersampling of filled polygons
 _C = {name: k for k, name in enumerate(COMPONENTS)}
 
 _SKIN = np.array([[0.58, 0.64, 0.88], [0.46, 0.55, 0.80], [0.32, 0.42, 0.62], [0.64, 0.70, 0.92],
@@ -47,12 +48,23 @@ def _noise(shape, sigma, rng, gen=None) -> np.ndarray:
 
 
 def _poly_mask(shape, polys, origin=(0.0, 0.0), closed=True, thickness: int | None = None) -> np.ndarray:
-    """Anti-aliased coverage in [0, 1] of polygons (or polylines of ``thickness`` px) on a grid of ``shape``."""
-    m = np.zeros(shape, np.uint8)
-    pts = [np.round((np.asarray(p) - origin) * _ONE).astype(np.int32).reshape(-1, 1, 2) for p in polys]
+    """Coverage in [0, 1] of polygons (or polylines ``thickness`` px wide) on a pixel grid of ``shape``.
+
+    Filled polygons are rasterised at ``_SUPER`` times the resolution and
+    area-averaged, so the 50 % coverage contour follows the polygon to about
+    1/8 pixel (OpenCV's own anti-aliased fill grows shapes by about half a
+    pixel). Polylines (non-ground-truth strokes) use OpenCV's anti-aliasing.
+    """
     if thickness is None:
-        cv2.fillPoly(m, pts, 255, cv2.LINE_AA, _SHIFT)
+        S = _SUPER
+        m = np.zeros((shape[0] * S, shape[1] * S), np.uint8)
+        pts = [np.round(((np.asarray(p) - origin) * S + (S - 1) / 2) * _ONE).astype(np.int32).reshape(-1, 1, 2)
+               for p in polys]
+        cv2.fillPoly(m, pts, 255, cv2.LINE_8, _SHIFT)
+        m = cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
     else:
+        m = np.zeros(shape, np.uint8)
+        pts = [np.round((np.asarray(p) - origin) * _ONE).astype(np.int32).reshape(-1, 1, 2) for p in polys]
         cv2.polylines(m, pts, closed, 255, max(1, int(thickness)), cv2.LINE_AA, _SHIFT)
     return m.astype(np.float32) * (1.0 / 255.0)
 
@@ -319,10 +331,10 @@ class FaceRenderer:
         cm = _poly_mask(shape, [crease], org, closed=False, thickness=round(1.5 * ppu))
         cm = cv2.GaussianBlur(cm, (0, 0), 0.8 * ppu)
         roi *= (1 - 0.35 * cm)[..., None]
-        lm = _poly_mask(shape, [lo + [0, 0.8 * ppu]], org, closed=False, thickness=round(1.5 * ppu))
+        lm = _poly_mask(shape, [lo + [0, 0.6 * ppu]], org, closed=False, thickness=round(1.5 * ppu))
         roi *= (1 - 0.25 * lm)[..., None]
         # lash line just above the upper lid edge (the eye interior is drawn over its lower half)
-        lash = _poly_mask(shape, [up - [0, 0.6 * ppu]], org, closed=False, thickness=round(2.6 * ppu))
+        lash = _poly_mask(shape, [up - [0, 1.2 * ppu]], org, closed=False, thickness=round(3.2 * ppu))
         roi *= (1 - 0.9 * lash)[..., None]
         roi += (0.9 * lash)[..., None] * (0.3 * self.hair)
         # eye interior on the ROI grid
@@ -332,7 +344,7 @@ class FaceRenderer:
         below_lid = (gy - yu) / ppu
         xc = (gx - (up[0, 0] + up[-1, 0]) / 2) / (up[-1, 0] - up[0, 0]) * 2
         sclera = np.array([0.80, 0.84, 0.88], np.float32) * (
-            (1 - 0.45 * np.exp(-np.clip(below_lid, 0, None) / 2.2)) * (1 - 0.25 * xc ** 4))[..., None]
+            (1 - 0.3 * np.exp(-np.clip(below_lid, 0, None) / 0.9)) * (1 - 0.25 * xc ** 4))[..., None]
         dx, dy = gx - ic[0], gy - ic[1]
         r = np.sqrt(dx * dx + dy * dy) / ppu
         R, Rp = self.model.iris_radius, self.model.pupil_radius
@@ -341,7 +353,7 @@ class FaceRenderer:
                              + np.sin(23 * ang + self.iris_phase[2]) + np.sin(37 * ang + self.iris_phase[3]))
         radial = 0.75 + 0.45 * np.exp(-((r - 1.5 * Rp) / 2.0) ** 2) - 0.45 * np.clip((r - 0.8 * R) / (0.2 * R), 0, 1)
         iris = self.iris[None, None, :].astype(np.float32) * (streak * radial)[..., None]
-        iris *= (1 - 0.4 * np.exp(-np.clip(below_lid, 0, None) / 2.5))[..., None]
+        iris *= (1 - 0.3 * np.exp(-np.clip(below_lid, 0, None) / 0.9))[..., None]
         ci = np.clip((R - r) * ppu + 0.5, 0, 1)[..., None]
         cp = np.clip((Rp - r) * ppu + 0.5, 0, 1)[..., None]
         col = sclera * (1 - ci) + iris * ci

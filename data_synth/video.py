@@ -180,27 +180,42 @@ class SyntheticVideo:
         perf = self.performance
         feats = np.column_stack([perf.weights, 0.5 * perf.gaze, 0.5 * perf.roll_deg / 15.0,
                                  0.5 * (perf.scale - 1) / 0.1, 0.5 * perf.shift / [30.0, 15.0]])
-        return select_label_frames(feats, k)
+        return select_label_frames(feats, k, n_weights=len(COMPONENTS))
 
 
-def select_label_frames(features: np.ndarray, k: int) -> np.ndarray:
-    """Farthest-point sampling: the frame nearest neutral, then repeatedly the frame farthest from all chosen.
+def select_label_frames(features: np.ndarray, k: int, n_weights: int | None = None) -> np.ndarray:
+    """Label frames that span a performance: the most neutral frame, each weight's extreme, then farthest points.
 
     Parameters
     ----------
-    features : (n_frames, n_features) per-frame description (expression weights, gaze, pose).
+    features : (n_frames, n_features) per-frame description; the first
+        ``n_weights`` columns are expression weights (the rest, e.g. gaze and
+        head pose, only take part in the farthest-point fill).
     k : int, 1 <= k <= n_frames.
+    n_weights : int, optional
+        Number of leading weight columns (default: all columns).
 
     Returns
     -------
-    (k,) sorted distinct frame indices. Each new pick maximises its distance
-    to the frames already chosen, so the set reaches the extremes of every
-    weight and contains no near-duplicates while distinct frames remain.
+    (k,) sorted distinct frame indices. The first pick is the frame with the
+    smallest weights; then, strongest first, the frame where each weight peaks
+    (skipped when it repeats a chosen frame); then farthest-point sampling:
+    each new pick maximises its distance to the frames already chosen, so the
+    set has no near-duplicates while distinct frames remain.
     """
     f = np.asarray(features, dtype=np.float64)
-    chosen = [int(np.argmin(np.linalg.norm(f[:, :len(COMPONENTS)], axis=1)))]
-    d = np.linalg.norm(f - f[chosen[0]], axis=1)
-    for _ in range(k - 1):      # loop over labels, not frames
+    nw = f.shape[1] if n_weights is None else int(n_weights)
+    w = f[:, :nw]
+    chosen = [int(np.argmin(np.linalg.norm(w, axis=1)))]
+    for j in np.argsort(-w.max(axis=0), kind="stable"):          # loop over weights, not frames
+        if len(chosen) >= k or w[:, j].max() <= 0:
+            break
+        i = int(np.argmax(w[:, j]))
+        if np.linalg.norm(f[chosen] - f[i], axis=1).min() > 1e-9:
+            chosen.append(i)
+    d = np.min(np.linalg.norm(f[:, None, :] - f[None, chosen, :], axis=2), axis=1)
+    d[chosen] = -1.0
+    while len(chosen) < k:      # loop over labels, not frames
         j = int(np.argmax(d))
         chosen.append(j)
         d = np.minimum(d, np.linalg.norm(f - f[j], axis=1))
