@@ -153,7 +153,7 @@ class FaceRenderer:
         ears = [((X - s * 110) / 13.0) ** 2 + ((Y + 2) / 27.0) ** 2 < 1 for s in (-1, 1)]
         # height field for the normals
         hgt = 95.0 * np.sqrt(np.clip(1 - f_head, 0, 1))
-        hgt = hgt + 14 * g(0, 5, 6.5, 32) * (Y < 40) + 10 * g(0, 36, 8, 8) + 5 * g(-12, 41, 6, 5) + 5 * g(12, 41, 6, 5)
+        hgt = hgt + 11 * g(0, 5, 8.5, 32) * (Y < 40) + 10 * g(0, 36, 8, 8) + 5 * g(-12, 41, 6, 5) + 5 * g(12, 41, 6, 5)
         hgt = hgt + 5 * g(0, -52, 70, 8) - 7 * g(-47, -28, 22, 13) - 7 * g(47, -28, 22, 13)
         hgt = hgt + 4 * g(-47, -28, 11, 8) + 4 * g(47, -28, 11, 8) + 6 * g(-60, 12, 22, 18) + 6 * g(60, 12, 22, 18)
         hgt = hgt + 6 * g(0, 80, 28, 11) + 6 * g(0, 132, 18, 14) - 3 * g(0, 106, 16, 5)
@@ -165,7 +165,7 @@ class FaceRenderer:
         gy, gx = np.gradient(hgt, 1.0 / ppu)
         nz = np.ones_like(gx)
         norm = np.sqrt(gx ** 2 + gy ** 2 + 1)
-        self._n = np.stack([-gx / norm, -gy / norm, nz / norm]).astype(np.float32)   # (3, h, w)
+        self._n = np.ascontiguousarray(np.dstack([-gx / norm, -gy / norm, nz / norm]).astype(np.float32))  # (h, w, 3)
         # albedo: skin with multi-scale texture
         tex = (1 + 0.03 * _noise(X.shape, 9 * ppu, rng) + 0.025 * _noise(X.shape, 2.5 * ppu, rng)
                + 0.03 * _noise(X.shape, 0.6 * ppu, rng))
@@ -217,7 +217,18 @@ class FaceRenderer:
         mask = (head | neck | ears[0] | ears[1] | hair).astype(np.float32)
         self._alpha = cv2.GaussianBlur(mask, (0, 0), 0.6 * ppu)
         self._albedo = albedo
-        self._alpha3 = np.repeat(self._alpha[..., None], 3, axis=2)
+        # jaw: below the mouth the face follows the lower lip down (the chin drops with the jaw)
+        my = float(self.model.mouth_centre[1])
+        cx0, cy0 = self._to_canvas(np.array([-128.0, my - 6.0])).astype(int)
+        cx1, cy1 = self._to_canvas(np.array([128.0, 235.0])).astype(int)
+        self._jaw_roi = (max(cy0, 0), min(cy1, self.canvas_shape[0]), max(cx0, 0), min(cx1, self.canvas_shape[1]))
+        y0, y1, x0, x1 = self._jaw_roi
+        jx, jy = X[y0:y1, x0:x1], Y[y0:y1, x0:x1]
+        sstep = lambda v: np.clip(v, 0, 1) ** 2 * (3 - 2 * np.clip(v, 0, 1))  # noqa: E731
+        prof = sstep((jy - (my - 4)) / 24) * (1 - sstep((jy - 150) / 75)) * (1 - sstep((np.abs(jx) - 50) / 65))
+        self._jaw_prof = (prof * ppu).astype(np.float32)
+        gx_, gy_ = np.meshgrid(np.arange(x0, x1, dtype=np.float32), np.arange(y0, y1, dtype=np.float32))
+        self._jaw_grid = (gx_, gy_)
         self._strands = strands
         self._fine = _noise(X.shape, 0.5 * ppu, rng)
         self._tex = tex.astype(np.float32)
@@ -304,7 +315,7 @@ class FaceRenderer:
         n = len(sp)
         # v: 0 at the inner end, 1 at the outer end (the spine runs image-left to image-right)
         v = np.linspace(1, 0, n) if inner_right else np.linspace(0, 1, n)
-        th = (7.5 - 4.5 * v ** 1.2) * ppu
+        th = (9.0 - 6.5 * v ** 1.1) * ppu
         d = np.gradient(sp, axis=0)
         nrm = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.linalg.norm(d, axis=1, keepdims=True)
         top = sp - nrm * (th[:, None] / 2)
@@ -312,6 +323,7 @@ class FaceRenderer:
         poly = np.concatenate([top, bot[::-1]])
         x0, x1, y0, y1 = self._roi(poly, 2, 2, 2)
         m = _poly_mask((y1 - y0, x1 - x0), [poly], (x0, y0))
+        m = cv2.GaussianBlur(m, (0, 0), 0.5 * ppu)
         m *= 0.8 + 0.1 * np.clip(self._fine[y0:y1, x0:x1], -2, 2)
         roi = img[y0:y1, x0:x1]
         roi *= (1 - m)[..., None]
@@ -400,20 +412,39 @@ class FaceRenderer:
         gaps = 0.8 + 0.2 * np.abs(np.cos(np.pi * (gx - mx) / (7.5 * ppu))) ** 0.3
         teeth_u = (from_top < 4.5) & (opening > 1.5)
         teeth_l = (from_bottom < 2.5) & (opening > 12)
-        tc = np.array([0.78, 0.86, 0.88], np.float32)
+        tc = np.array([0.66, 0.74, 0.77], np.float32) * (0.75 + 0.25 * np.clip(from_top / 3, 0, 1))[..., None]
         col = np.where((teeth_u | teeth_l)[..., None], tc * (gaps * np.where(teeth_l, 0.8, 1.0))[..., None], col)
+        # shadows in the lip corners (multiplicative: the lip colour boundary keeps its place)
+        for corner in (ou[0], ou[-1]):
+            d2 = ((gx - corner[0]) ** 2 + (gy - corner[1]) ** 2) / (2.5 * ppu) ** 2
+            roi *= (1 - 0.3 * np.exp(-d2))[..., None]
         mi = _poly_mask(shape, [_closed(iu, il)], org)[..., None]
         roi *= 1 - mi
         roi += mi * col
 
-    def render_canvas(self, curves: dict, weights: np.ndarray, light: np.ndarray) -> np.ndarray:
-        """The face of one frame on the model-frame canvas: BGR float32 in [0, ~1.2], not yet premultiplied.
+    def render_canvas(self, curves: dict, weights: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The face of one frame on the model-frame canvas.
 
         ``curves`` holds one frame of :meth:`FaceModel.curves` (arrays without
         the frame axis), ``weights`` that frame's expression weights and
-        ``light`` its unit light direction.
+        ``light`` its unit light direction. Returns the colour (BGR float32,
+        not premultiplied) and the coverage (float32 in [0, 1]).
         """
         img = self._albedo.copy()
+        alpha, normals = self._alpha, self._n
+        # the chin drops with the lower lip (jaw opening)
+        il = curves["lip_inner_lower"]
+        mid = len(il) // 2
+        drop = 0.8 * max(0.0, float(il[mid, 1] - self._neutral["lip_inner_lower"][0, mid, 1]))
+        if drop > 0.2:
+            y0, y1, x0, x1 = self._jaw_roi
+            gx, gy = self._jaw_grid
+            mapy = gy - np.float32(drop) * self._jaw_prof
+            img[y0:y1, x0:x1] = cv2.remap(self._albedo, gx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            alpha = alpha.copy()
+            alpha[y0:y1, x0:x1] = cv2.remap(self._alpha, gx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            normals = normals.copy()
+            normals[y0:y1, x0:x1] = cv2.remap(self._n, gx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         raise_w = max(weights[_C["browInnerUp"]], 0.5 * (weights[_C["browOuterUp_L"]] + weights[_C["browOuterUp_R"]]))
         if raise_w > 0.02:
             rows = self._wrinkle_rows
@@ -423,29 +454,44 @@ class FaceRenderer:
         for k, name in enumerate(("left", "right")):
             self._draw_eye(img, curves[f"eye_{name}_upper"], curves[f"eye_{name}_lower"], curves["iris"][k],
                            self._neutral[f"eye_{name}_upper"][0], light, k)
+        self._draw_folds(img, curves, weights)
         self._draw_mouth(img, curves)
         # shading: wrapped diffuse plus a little specular, from the light direction
-        n = self._n
-        ndl = n[0] * np.float32(light[0]) + n[1] * np.float32(light[1]) + n[2] * np.float32(light[2])
+        ndl = cv2.transform(normals, np.asarray(light, np.float32).reshape(1, 3))
         diff = np.clip(0.55 * ndl + 0.45, 0, 1)
         shade = 0.28 + 0.95 * diff * diff
         h = np.asarray(light, np.float64) + [0, 0, 1]
-        h = h / np.linalg.norm(h)
-        ndh = np.clip(n[0] * np.float32(h[0]) + n[1] * np.float32(h[1]) + n[2] * np.float32(h[2]), 0, 1)
-        spec = ndh * ndh
+        h = (h / np.linalg.norm(h)).astype(np.float32)
+        spec = np.clip(cv2.transform(normals, h.reshape(1, 3)), 0, 1)
         spec *= spec
         spec *= spec
         spec *= spec
-        spec *= spec          # ndh ** 32
+        spec *= spec
+        spec *= spec          # (n.h) ** 32
         cv2.multiply(img, cv2.merge([shade, shade, shade]), dst=img)
         spec *= self._spec_mask
         cv2.add(img, cv2.merge([spec, spec, spec]), dst=img)
-        return img
+        return img, alpha
 
-    def composite(self, canvas: np.ndarray, pose: np.ndarray, shift_px: np.ndarray, exposure: float,
-                  blur_vec: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Warp ``canvas`` into the frame with ``pose`` (image_from_model), add background, torso and
-        camcorder degradations; return BGR uint8.
+    def _draw_folds(self, img: np.ndarray, c: dict, weights: np.ndarray) -> None:
+        """Nasolabial folds from the nose wings to beside the lip corners, deeper with the smile."""
+        ppu = self.ppu
+        ou = c["lip_outer_upper"]
+        u = np.linspace(0, 1, 12)[:, None]
+        for side, corner, smile in ((-1, ou[0], weights[_C["mouthSmile_R"]]), (1, ou[-1], weights[_C["mouthSmile_L"]])):
+            A = np.array([side * 15.0, 39.0])
+            B = corner + [side * 7.0, 9.0]
+            C = np.array([side * (max(abs(A[0]), abs(B[0])) + 5.0), 0.5 * (A[1] + B[1]) - 3.0])
+            curve = self._to_canvas((1 - u) ** 2 * A + 2 * u * (1 - u) * C + u ** 2 * B)
+            x0, x1, y0, y1 = self._roi(curve, 6 * ppu, 6 * ppu, 6 * ppu)
+            m = _poly_mask((y1 - y0, x1 - x0), [curve], (x0, y0), closed=False, thickness=round(2 * ppu))
+            m = cv2.GaussianBlur(m, (0, 0), 1.8 * ppu)
+            img[y0:y1, x0:x1] *= (1 - (0.12 + 0.25 * smile) * m)[..., None]
+
+    def composite(self, canvas: np.ndarray, alpha: np.ndarray, pose: np.ndarray, shift_px: np.ndarray,
+                  exposure: float, blur_vec: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Warp ``canvas`` with coverage ``alpha`` into the frame with ``pose`` (image_from_model), add
+        background, torso and camcorder degradations; return BGR uint8.
 
         ``shift_px`` moves the torso (the head's translation in pixels),
         ``blur_vec`` is the image motion during the exposure (pixels) for the
@@ -465,10 +511,10 @@ class FaceRenderer:
         if x1 > x0 and y1 > y0:
             Mr = M.copy()
             Mr[:, 2] -= (x0, y0)
-            pm = cv2.multiply(canvas, self._alpha3)
+            pm = cv2.multiply(canvas, cv2.merge([alpha, alpha, alpha]))
             dsize = (x1 - x0, y1 - y0)
             pm = cv2.warpAffine(pm, Mr, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            a = cv2.warpAffine(self._alpha, Mr, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+            a = cv2.warpAffine(alpha, Mr, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                borderValue=0)
             if L >= 1.0:
                 ker = _motion_kernel(blur_vec)

@@ -140,9 +140,9 @@ class SyntheticVideo:
             raise InputError(f"frame {t} is outside 0..{self.n_frames - 1}")
         perf = self.performance
         c = {k: v[t] for k, v in self.curves.items()}
-        canvas = self.renderer.render_canvas(c, perf.weights[t], perf.light[t])
+        canvas, alpha = self.renderer.render_canvas(c, perf.weights[t], perf.light[t])
         rng = np.random.default_rng([self.seed, 1, t])
-        return self.renderer.composite(canvas, self.pose[t], self.renderer.model_scale * perf.shift[t],
+        return self.renderer.composite(canvas, alpha, self.pose[t], self.renderer.model_scale * perf.shift[t],
                                        perf.exposure[t], self.motion(t), rng)
 
     def tracks(self) -> Tracks:
