@@ -128,7 +128,7 @@ class FaceModel:
         for side, s, smile, blink, outer in (("l", -1, "mouthSmile_R", "eyeBlink_R", "browOuterUp_R"),
                                             ("r", +1, "mouthSmile_L", "eyeBlink_L", "browOuterUp_L")):
             # eye: upper lid height above the corner line, lower lid depth below it
-            P[f"eye_up_{side}"] = _param(10.0, **{blink: -16.5, smile: -1.0, outer: 1.0})
+            P[f"eye_up_{side}"] = _param(10.0, **{blink: -15.0, smile: -1.0, outer: 1.0})  # shut at 1: meets the lower lid
             P[f"eye_lo_{side}"] = _param(6.5, **{blink: -1.2, smile: -2.2})
             # brow: rise of the inner and outer ends
             P[f"brow_in_{side}"] = _param(0.0, browInnerUp=9.0, **{blink: -1.5})
