@@ -159,6 +159,10 @@ class FaceRenderer:
         hgt = hgt + 6 * g(0, 80, 28, 11) + 6 * g(0, 132, 18, 14) - 3 * g(0, 106, 16, 5)
         neck_h = 60.0 * np.sqrt(np.clip(1 - f_neck ** 2, 0, 1)) - 25
         hgt = np.where(head, hgt, np.where(neck, neck_h, 0.0))
+        # hair volume: a slightly larger ellipsoid over the top of the head
+        f_hair = (X / 126.0) ** 2 + ((Y + 18) / 170.0) ** 2
+        hair_h = 100.0 * np.sqrt(np.clip(1 - f_hair, 0, 1)) - 10.0
+        hgt = hgt + np.clip((-Y - 20) / 40, 0, 1) * np.clip(hair_h - hgt, 0, None)
         for e in ears:
             hgt = np.where(e & ~head, 30.0, hgt)
         hgt = cv2.GaussianBlur(hgt.astype(np.float32), (0, 0), 1.2 * ppu)
@@ -194,7 +198,6 @@ class FaceRenderer:
         albedo *= occl[..., None]
         # hair: cap above a hairline, sides down to the temples, strand texture
         hairline = -102 + 88 * np.clip((np.abs(X) - 68) / 48, 0, 1) ** 1.5 + 4 * np.cos(X / 9.0)
-        f_hair = (X / 126.0) ** 2 + ((Y + 18) / 170.0) ** 2
         strands = rng.standard_normal(X.shape).astype(np.float32)
         strands = cv2.GaussianBlur(strands, (0, 0), sigmaX=0.7 * ppu, sigmaY=7 * ppu)
         strands /= strands.std()
@@ -244,14 +247,33 @@ class FaceRenderer:
         grad = 0.85 + 0.25 * (1 - ys / H) + 0.1 * np.sin(xs / W * 2.5 + rng.uniform(0, 6))
         bg = wall[None, None, :] * grad[..., None] * (1 + 0.04 * _noise((H, W), 20 * s, rng))[..., None]
         bg = bg.astype(np.float32)
-        # furniture: a door frame, a shelf, a picture and a lamp glow, out of focus
-        for _ in range(int(rng.integers(3, 6))):
-            w, h = rng.uniform(0.08, 0.3) * W, rng.uniform(0.1, 0.6) * H
-            x0 = rng.choice([rng.uniform(0, 0.25), rng.uniform(0.62, 0.92)]) * W
-            y0 = rng.uniform(0, 0.7) * H
-            col = rng.uniform(0.1, 0.8, 3).astype(np.float32)
-            m = ((xs > x0) & (xs < x0 + w) & (ys > y0) & (ys < y0 + h)).astype(np.float32)
-            bg = bg * (1 - 0.8 * m[..., None]) + 0.8 * m[..., None] * col
+        # furniture, out of focus: a bookshelf on one side, a framed picture on the other
+        side = 1 if rng.random() < 0.5 else -1
+        sx0, sx1 = (0.70 * W, 0.99 * W) if side > 0 else (0.01 * W, 0.30 * W)
+        sy0, sy1 = 0.04 * H, 0.80 * H
+        wood = np.array([0.16, 0.26, 0.38]) * rng.uniform(0.7, 1.3)
+        inside_shelf = (xs > sx0) & (xs < sx1) & (ys > sy0) & (ys < sy1)
+        bg[inside_shelf] = wood * 0.45
+        n_shelves = 3
+        gap = (sy1 - sy0) / n_shelves
+        for k in range(n_shelves):          # loops over shelves and books, once per seed
+            top, bottom = sy0 + k * gap, sy0 + (k + 1) * gap
+            bg[(xs > sx0) & (xs < sx1) & (ys > bottom - 0.018 * H) & (ys < bottom)] = wood
+            x = sx0 + 0.01 * W
+            while x < sx1 - 0.04 * W:
+                bw = rng.uniform(0.01, 0.03) * W
+                bh = rng.uniform(0.55, 0.92) * (gap - 0.02 * H)
+                col = rng.uniform(0.1, 0.75, 3) * rng.uniform(0.5, 1.0)
+                book = (xs > x) & (xs < x + bw) & (ys > bottom - 0.018 * H - bh) & (ys < bottom - 0.018 * H)
+                bg[book] = col
+                x += bw + rng.uniform(0.0, 0.006) * W
+        px0, px1 = (0.05 * W, 0.24 * W) if side > 0 else (0.76 * W, 0.95 * W)
+        py0, py1 = 0.10 * H, 0.38 * H
+        frame_m = (xs > px0) & (xs < px1) & (ys > py0) & (ys < py1)
+        bg[frame_m] = np.array([0.12, 0.12, 0.13]) * rng.uniform(0.5, 2.0)
+        inner = (xs > px0 + 0.012 * W) & (xs < px1 - 0.012 * W) & (ys > py0 + 0.012 * W) & (ys < py1 - 0.012 * W)
+        art = np.stack([_noise((H, W), 10 * s, rng) for _ in range(3)], axis=-1) * 0.07 + rng.uniform(0.3, 0.6, 3)
+        bg[inner] = art[inner]
         lamp = np.exp(-(((xs - rng.uniform(0, W)) / (0.2 * W)) ** 2 + ((ys - 0.15 * H) / (0.2 * H)) ** 2))
         bg += 0.25 * lamp[..., None].astype(np.float32)
         self._background = cv2.GaussianBlur(bg, (0, 0), 4.0 * s)
