@@ -134,8 +134,8 @@ class FaceModel:
             P[f"brow_in_{side}"] = _param(0.0, browInnerUp=9.0, **{blink: -1.5})
             P[f"brow_out_{side}"] = _param(0.0, browInnerUp=1.5, **{outer: 9.0, blink: -1.0})
             # lip corner x (outwards positive) and y (down positive), relative to the neutral corner
-            P[f"corner_x_{side}"] = _param(mw, **{smile: 6.0}, mouthPucker=-11.0, mouthFunnel=-8.0, jawOpen=-2.0)
-            P[f"corner_y_{side}"] = _param(0.0, **{smile: -6.0}, jawOpen=5.0, mouthFunnel=1.0)
+            P[f"corner_x_{side}"] = _param(mw, **{smile: 7.0}, mouthPucker=-11.0, mouthFunnel=-8.0, jawOpen=-2.0)
+            P[f"corner_y_{side}"] = _param(0.0, **{smile: -8.0}, jawOpen=5.0, mouthFunnel=1.0)
         P["up_outer"] = _param(ut, mouthPucker=3.0, mouthFunnel=3.0, mouthSmile_L=-1.0, mouthSmile_R=-1.0)
         P["up_inner"] = _param(0.6, jawOpen=-3.0, mouthFunnel=-3.0, mouthSmile_L=-1.0, mouthSmile_R=-1.0)
         P["open_jaw"] = _param(0.4, jawOpen=26.0, mouthSmile_L=1.0, mouthSmile_R=1.0)

@@ -278,19 +278,31 @@ def synthesize(out_dir, frames: int = 600, seed: int = 0, size=(640, 480), fps: 
     return paths
 
 
-def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray]) -> Path:
-    """Contact sheet of ``frames`` (index -> image) with the ground truth drawn, as a PNG."""
-    from tracker.draw import contact_sheet, draw_shape
+def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray], tile_width: int = 400) -> Path:
+    """Contact sheet of ``frames`` (index -> image) as face close-ups with the ground truth drawn, as a PNG.
+
+    Each tile is the face region of a frame, enlarged to ``tile_width`` pixels
+    before the contours are drawn so that a person can check that they follow
+    the lids, lips, brows and pupils; the caption names the frame and its
+    strongest hidden weights.
+    """
+    from tracker.draw import contact_sheet, crop_around, draw_shape
     from tracker.schemes import load_scheme
 
-    scheme = load_scheme("contours48")
-    idx = sorted(frames)
-    tiles = [draw_shape(frames[t], sv.points[t], scheme) for t in idx]
-    caps = [f"frame {t}  jaw {sv.weights[t, 0]:.2f}" for t in idx]
-    sheet = contact_sheet(tiles, caps, columns=4, tile_width=min(480, sv.size[0]))
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise InputError("preview must be a .png file", path)
+    scheme = load_scheme("contours48")
+    tiles, caps = [], []
+    for t in sorted(frames):
+        crop, pts = crop_around(frames[t], sv.points[t], margin=0.3)
+        f = tile_width / crop.shape[1]
+        big = cv2.resize(crop, (tile_width, int(round(crop.shape[0] * f))), interpolation=cv2.INTER_CUBIC)
+        tiles.append(draw_shape(big, pts * f + (f - 1) / 2, scheme))
+        top = np.argsort(-sv.weights[t])[:2]
+        caps.append(f"frame {t}: " + ", ".join(f"{COMPONENTS[j]} {sv.weights[t, j]:.2f}" for j in top
+                                                if sv.weights[t, j] >= 0.05))
+    sheet = contact_sheet(tiles, caps, columns=4, tile_width=tile_width)
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), sheet):
             raise InputError("cannot write the preview image", path)
