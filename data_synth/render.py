@@ -39,7 +39,7 @@ _LIP = np.array([[0.36, 0.32, 0.70], [0.40, 0.34, 0.74], [0.33, 0.28, 0.62]])
 _SHIRT = np.array([[0.45, 0.25, 0.12], [0.20, 0.20, 0.22], [0.55, 0.55, 0.50], [0.15, 0.30, 0.50]])
 
 
-def _noise(shape, sigma, rng, gen=None) -> np.ndarray:
+def _noise(shape, sigma, rng) -> np.ndarray:
     """Smooth noise of unit standard deviation: white noise blurred with ``sigma`` pixels."""
     x = rng.standard_normal(shape).astype(np.float32)
     if sigma > 0.3:
@@ -154,8 +154,9 @@ class FaceRenderer:
         # height field for the normals
         hgt = 95.0 * np.sqrt(np.clip(1 - f_head, 0, 1))
         hgt = hgt + 11 * g(0, 5, 8.5, 32) * (Y < 40) + 10 * g(0, 36, 8, 8) + 5 * g(-12, 41, 6, 5) + 5 * g(12, 41, 6, 5)
-        hgt = hgt + 5 * g(0, -52, 70, 8) - 7 * g(-47, -28, 22, 13) - 7 * g(47, -28, 22, 13)
-        hgt = hgt + 4 * g(-47, -28, 11, 8) + 4 * g(47, -28, 11, 8) + 6 * g(-60, 12, 22, 18) + 6 * g(60, 12, 22, 18)
+        ex, ey = self.model.eye_centres[1]          # eye sockets and eyeballs where this face's eyes are
+        hgt = hgt + 5 * g(0, ey - 24, 70, 8) - 7 * g(-ex, ey, 22, 13) - 7 * g(ex, ey, 22, 13)
+        hgt = hgt + 4 * g(-ex, ey, 11, 8) + 4 * g(ex, ey, 11, 8) + 6 * g(-60, 12, 22, 18) + 6 * g(60, 12, 22, 18)
         hgt = hgt + 6 * g(0, 80, 28, 11) + 6 * g(0, 132, 18, 14) - 3 * g(0, 106, 16, 5)
         neck_h = 60.0 * np.sqrt(np.clip(1 - f_neck ** 2, 0, 1)) - 25
         hgt = np.where(head, hgt, np.where(neck, neck_h, 0.0))
@@ -215,7 +216,6 @@ class FaceRenderer:
             yy = y0 + 3 * np.sin(X / 25.0 + k)
             wr += np.exp(-((Y - yy) / 0.9) ** 2) * np.exp(-(X / 55.0) ** 4)
         self._wrinkles = wr
-        self._hair_mask = hair
         self._spec_mask = np.where(hair, 0.0, 0.12).astype(np.float32)
         mask = (head | neck | ears[0] | ears[1] | hair).astype(np.float32)
         self._alpha = cv2.GaussianBlur(mask, (0, 0), 0.6 * ppu)
@@ -232,7 +232,6 @@ class FaceRenderer:
         self._jaw_prof = (prof * ppu).astype(np.float32)
         gx_, gy_ = np.meshgrid(np.arange(x0, x1, dtype=np.float32), np.arange(y0, y1, dtype=np.float32))
         self._jaw_grid = (gx_, gy_)
-        self._strands = strands
         self._fine = _noise(X.shape, 0.5 * ppu, rng)
         self._tex = tex.astype(np.float32)
         rows = np.flatnonzero(np.abs(wr).max(axis=1) > 0.01)
@@ -352,7 +351,7 @@ class FaceRenderer:
         roi += m[..., None] * (0.8 * self.hair).astype(np.float32)
 
     def _draw_eye(self, img: np.ndarray, upper: np.ndarray, lower: np.ndarray, iris: np.ndarray,
-                  neutral_upper: np.ndarray, light: np.ndarray, side: int) -> None:
+                  neutral_upper: np.ndarray, light: np.ndarray) -> None:
         ppu = self.ppu
         up, lo = self._to_canvas(upper), self._to_canvas(lower)
         crease = self._to_canvas(neutral_upper + [0.0, -6.0])
@@ -475,7 +474,7 @@ class FaceRenderer:
         self._draw_brow(img, curves["brow_right"], inner_right=False)
         for k, name in enumerate(("left", "right")):
             self._draw_eye(img, curves[f"eye_{name}_upper"], curves[f"eye_{name}_lower"], curves["iris"][k],
-                           self._neutral[f"eye_{name}_upper"][0], light, k)
+                           self._neutral[f"eye_{name}_upper"][0], light)
         self._draw_folds(img, curves, weights)
         self._draw_mouth(img, curves)
         # shading: wrapped diffuse plus a little specular, from the light direction
