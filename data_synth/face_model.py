@@ -218,13 +218,13 @@ class FaceModel:
         x_in = xl + ins + (xr - xl - 2 * ins) * u
         bow = self.bow_depth * np.exp(-((u - 0.5) / 0.07) ** 2)
         ellipse = 2 * np.sqrt(np.clip(u * (1 - u), 0, None))
-        out["lip_outer_upper"] = np.stack([x_out, line - p["up_outer"][:, None] * bump(0.7) + bow], axis=-1)
+        out["lip_outer_upper"] = np.stack([x_out, line - p["up_outer"][:, None] * bump(0.55) + bow], axis=-1)
         inner_up = line + p["up_inner"][:, None] * bump(0.8)
         inner_lo = inner_up + p["open_jaw"][:, None] * bump(0.8) + p["open_funnel"][:, None] * ellipse
         out["lip_inner_upper"] = np.stack([x_in, inner_up], axis=-1)
         out["lip_inner_lower"] = np.stack([x_in, inner_lo], axis=-1)
         outer_lo = (line + p["up_inner"][:, None] * bump(0.8) + p["open_jaw"][:, None] * bump(0.8)
-                    + p["open_funnel"][:, None] * ellipse + p["lo_thick"][:, None] * bump(0.8))
+                    + p["open_funnel"][:, None] * ellipse + p["lo_thick"][:, None] * bump(0.6))
         out["lip_outer_lower"] = np.stack([x_out, outer_lo], axis=-1)
         # pupils: midpoint of the eye corners plus gaze
         iris = self.eye_centres[None, :, :] + (g * self.gaze_range)[:, None, :]

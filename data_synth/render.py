@@ -34,7 +34,7 @@ _C = {name: k for k, name in enumerate(COMPONENTS)}
 _SKIN = np.array([[0.58, 0.64, 0.88], [0.46, 0.55, 0.80], [0.32, 0.42, 0.62], [0.64, 0.70, 0.92],
                   [0.52, 0.60, 0.86]])
 _HAIR = np.array([[0.07, 0.08, 0.10], [0.10, 0.16, 0.24], [0.20, 0.32, 0.45], [0.05, 0.05, 0.06]])
-_IRIS = np.array([[0.10, 0.22, 0.36], [0.55, 0.42, 0.25], [0.30, 0.42, 0.28], [0.08, 0.14, 0.22]])
+_IRIS = np.array([[0.10, 0.22, 0.36], [0.55, 0.42, 0.25], [0.30, 0.42, 0.28], [0.14, 0.26, 0.40]])
 _LIP = np.array([[0.36, 0.32, 0.70], [0.40, 0.34, 0.74], [0.33, 0.28, 0.62]])
 _SHIRT = np.array([[0.45, 0.25, 0.12], [0.20, 0.20, 0.22], [0.55, 0.55, 0.50], [0.15, 0.30, 0.50]])
 
@@ -433,8 +433,13 @@ class FaceRenderer:
         gaps = 0.8 + 0.2 * np.abs(np.cos(np.pi * (gx - mx) / (7.5 * ppu))) ** 0.3
         teeth_u = (from_top < 4.5) & (opening > 1.5)
         teeth_l = (from_bottom < 2.5) & (opening > 12)
-        tc = np.array([0.66, 0.74, 0.77], np.float32) * (0.75 + 0.25 * np.clip(from_top / 3, 0, 1))[..., None]
-        col = np.where((teeth_u | teeth_l)[..., None], tc * (gaps * np.where(teeth_l, 0.8, 1.0))[..., None], col)
+        # teeth only in the front of the mouth: towards the corners they recede into the dark
+        half, mid_x = 0.5 * (ou[-1, 0] - ou[0, 0]), 0.5 * (ou[-1, 0] + ou[0, 0])
+        front = np.clip((0.7 * half - np.abs(gx - mid_x)) / (0.2 * half), 0, 1)
+        tc = np.array([0.72, 0.82, 0.88], np.float32) * (0.7 + 0.3 * np.clip(from_top / 3, 0, 1))[..., None]
+        tc = tc * (gaps * np.where(teeth_l, 0.8, 1.0))[..., None]
+        tmask = ((teeth_u | teeth_l) * front)[..., None]
+        col = col * (1 - tmask) + tc * tmask
         # shadows in the lip corners (multiplicative: the lip colour boundary keeps its place)
         for corner in (ou[0], ou[-1]):
             d2 = ((gx - corner[0]) ** 2 + (gy - corner[1]) ** 2) / (2.5 * ppu) ** 2

@@ -96,47 +96,82 @@ def test_synthesis_is_deterministic_for_a_seed(tmp_path):
 
 # --------------------------------------------------------------------------- ground truth on the features
 
-def test_pupils_are_the_darkest_blob_in_each_eye(sv):
+def pupil_errors(image: np.ndarray, points: np.ndarray, radius: float = 3.5) -> list[float]:
+    """Distance from each true pupil to the darkest pupil-sized blob inside its true eye contour.
+
+    The blob is the minimum of the image averaged over a disc of ``radius``
+    pixels (robust to noise and compression blocks), refined to sub-pixel by a
+    parabola through its neighbours in x and in y.
+    """
+    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float64)
+    k = int(np.ceil(radius))
+    yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+    disc = (xx ** 2 + yy ** 2 <= radius ** 2).astype(np.float64)
+    dark = cv2.filter2D(gray, -1, disc / disc.sum(), borderType=cv2.BORDER_REPLICATE)
     errs = []
-    for t in _open_eye_frames(sv):
-        gray = cv2.cvtColor(sv.frame(t), cv2.COLOR_BGR2GRAY).astype(np.float64)
-        gray = cv2.GaussianBlur(gray, (3, 3), 0)
-        for eye, pupil in (("eye_left", 26), ("eye_right", 27)):
-            mask = np.zeros(gray.shape, np.uint8)
-            poly = sv.points[t, list(SCHEME.contours[eye])]
-            cv2.fillPoly(mask, [np.round(poly * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
-            vals = gray[mask > 0]
-            lo, mid = vals.min(), np.median(vals)
-            dark = ((gray < lo + 0.3 * (mid - lo)) & (mask > 0)).astype(np.uint8)
-            n, lab = cv2.connectedComponents(dark)
-            darkest = np.unravel_index(np.argmin(np.where(mask > 0, gray, np.inf)), gray.shape)
-            ys, xs = np.nonzero(lab == lab[darkest])
-            centre = np.array([xs.mean(), ys.mean()])
-            errs.append(np.linalg.norm(centre - sv.points[t, pupil]))
+    for eye, pupil in (("eye_left", 26), ("eye_right", 27)):
+        mask = np.zeros(gray.shape, np.uint8)
+        poly = points[list(SCHEME.contours[eye])]
+        cv2.fillPoly(mask, [np.round(poly * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+        y, x = np.unravel_index(np.argmin(np.where(mask > 0, dark, np.inf)), gray.shape)
+        sub = []
+        for lo, mid, hi in ((dark[y, x - 1], dark[y, x], dark[y, x + 1]), (dark[y - 1, x], dark[y, x], dark[y + 1, x])):
+            den = lo - 2 * mid + hi
+            sub.append(0.5 * (lo - hi) / den if den > 0 else 0.0)
+        errs.append(float(np.linalg.norm([x + sub[0] - points[pupil, 0], y + sub[1] - points[pupil, 1]])))
+    return errs
+
+
+def lip_corner_errors(image: np.ndarray, points: np.ndarray) -> list[float]:
+    """Distance along the mouth axis from each true outer lip corner to the lip/skin colour boundary.
+
+    The boundary is where the redness crosses half-way between the lip and the
+    skin. At a tapering corner this estimate sits inside the true tip (the
+    pixels at the tip are mostly skin): about 0.4-0.6 px on the sharp canvas,
+    about 1 px after the camera blur, so tolerances allow for it.
+    """
+    img = cv2.GaussianBlur(image.astype(np.float64), (3, 3), 0)
+    b, g, r = img[..., 0], img[..., 1], img[..., 2]
+    chroma = (r - g) / (r + g + b + 1.0)          # lips are redder than skin; shading cancels
+    centre = points[28:40].mean(axis=0)
+    errs = []
+    for corner in (28, 34):
+        d = points[corner] - centre
+        d /= np.linalg.norm(d)
+        s = np.arange(-4.0, 10.0, 0.05)
+        prof = _profile(chroma, points[corner], d, s)
+        lip = prof[s < 0].max()                          # the lip (or the mouth inside), however thin
+        skin = prof[(s > 7) & (s < 9)].mean()
+        assert lip > skin + 0.05, (corner, lip, skin)
+        thr = 0.5 * (lip + skin)
+        k = np.flatnonzero(prof > thr).max()             # last lip-coloured sample going outwards
+        errs.append(abs(s[k] + (prof[k] - thr) / (prof[k] - prof[k + 1]) * 0.05))
+    return errs
+
+
+def test_pupils_are_the_darkest_blob_in_each_eye(sv):
+    errs = [e for t in _open_eye_frames(sv) for e in pupil_errors(sv.frame(t), sv.points[t])]
     assert max(errs) < 1.5, errs
 
 
 def test_lip_corners_are_on_the_lip_colour_boundary(sv):
-    errs = []
-    for t in np.linspace(5, sv.n_frames - 5, 6).round().astype(int):
-        img = cv2.GaussianBlur(sv.frame(t).astype(np.float64), (3, 3), 0)
-        b, g, r = img[..., 0], img[..., 1], img[..., 2]
-        chroma = (r - g) / (r + g + b + 1.0)          # lips are redder than skin, shading cancels
-        pts = sv.points[t]
-        centre = pts[28:40].mean(axis=0)
-        for corner in (28, 34):
-            d = pts[corner] - centre
-            d /= np.linalg.norm(d)
-            s = np.arange(-3.0, 10.0, 0.05)
-            prof = _profile(chroma, pts[corner], d, s)
-            lip = _profile(chroma, pts[corner], d, np.array([-2.5, -2.0])).mean()
-            skin = _profile(chroma, pts[corner], d, np.array([7.0, 8.0, 9.0])).mean()
-            assert lip > skin + 0.04, (t, corner, lip, skin)
-            thr = 0.5 * (lip + skin)
-            k = np.flatnonzero(prof > thr).max()             # last lip-coloured sample going outwards
-            cross = s[k] + (prof[k] - thr) / (prof[k] - prof[k + 1]) * 0.05
-            errs.append(abs(cross))
+    frames = np.linspace(5, sv.n_frames - 5, 6).round().astype(int)
+    errs = [e for t in frames for e in lip_corner_errors(sv.frame(t), sv.points[t])]
     assert max(errs) < 1.5, errs
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_truth_on_features_after_encoding(tmp_path, seed):
+    """Other seeds (other faces and looks): pupils on the decoded mp4v video, lip corners before encoding
+    (mp4v halves the colour resolution, which moves colour boundaries by about a pixel)."""
+    out = synthesize(tmp_path / "f", frames=120, seed=seed, labels=2)
+    sv = SyntheticVideo(frames=120, seed=seed)
+    frames = dict(VideoReader(out["video"]))
+    pupil = [e for t in _open_eye_frames(sv, 8) for e in pupil_errors(frames[t], sv.points[t])]
+    lips = [e for t in range(0, 120, 10) for e in lip_corner_errors(sv.frame(t), sv.points[t])]
+    assert max(pupil) < 1.5 and np.mean(pupil) < 0.5, pupil
+    assert max(lips) < 2.0 and np.median(lips) < 1.3, lips
 
 
 def test_eye_contours_lie_on_the_lid_edges(sv):
@@ -174,10 +209,10 @@ def test_contours_run_on_the_curves_evenly_spaced(sv, contour, curve, start):
     up, lo = sv.curves[f"{curve}_upper"][t], sv.curves[f"{curve}_lower"][t]
     half = n // 2
     upper_pts, lower_pts = pts[:half + 1], np.vstack([pts[half:], pts[:1]])
-    assert _dist_to_polyline(upper_pts, up).max() < 1e-9 and _dist_to_polyline(lower_pts, lo).max() < 1e-9
+    assert _dist_to_polyline(upper_pts, up).max() < 1e-6 and _dist_to_polyline(lower_pts, lo).max() < 1e-6
     # image-left corner first, upper curve first (smaller y), corners are the curves' ends
-    np.testing.assert_allclose(pts[0], up[0], atol=1e-9)
-    np.testing.assert_allclose(pts[half], up[-1], atol=1e-9)
+    np.testing.assert_allclose(pts[0], up[0], atol=1e-6)
+    np.testing.assert_allclose(pts[half], up[-1], atol=1e-6)
     assert pts[0, 0] < pts[half, 0] and pts[half // 2, 1] <= pts[half + half // 2, 1]
     for chain, line in ((upper_pts, up), (lower_pts, lo)):
         chords = np.linalg.norm(np.diff(chain, axis=0), axis=1)
