@@ -16,8 +16,9 @@ raised brows, head turns) rather than K similar frames. Over the whole video:
    ones, so the extremes are included and near-duplicates never are (and no
    two chosen frames are closer than ``min_gap`` frames in time).
 4. **Sharpness**: each chosen frame is swapped for the sharpest frame (variance
-   of the Laplacian) among its temporal neighbours of the same micro-cluster,
-   so a motion-blurred frame is replaced when a sharp look-alike is next to it.
+   of the Laplacian) among its temporal neighbours (``sharp_window`` frames
+   either side) that look more like it than like any other chosen frame, so a
+   motion-blurred frame is replaced when a sharp look-alike is next to it.
 """
 from __future__ import annotations
 
@@ -178,15 +179,20 @@ def choose_frames(descriptors: np.ndarray, sharpness: np.ndarray, count: int, *,
                 blocked = np.zeros(len(cand), bool)
                 score = dist
             nxt = int(np.argmax(score))
-    # swap each for the sharpest close neighbour of the same micro-cluster
+    # swap each for the sharpest temporal neighbour that still looks more like it than like any
+    # other chosen frame (motion blur changes the descriptor a little, a new expression a lot)
+    chosen_arr = np.array(chosen)
     final = []
     for f in chosen:
-        lo, hi = max(f - sharp_window, 0), min(f + sharp_window + 1, n)
-        nb = np.arange(lo, hi)
-        nb = nb[(km.labels_[nb] == km.labels_[f]) & free[nb]]
-        others = [g for g in final]
-        if others:
-            nb = nb[np.min(np.abs(nb[:, None] - np.array(others)[None]), axis=1) >= min_gap]
+        nb = np.arange(max(f - sharp_window, 0), min(f + sharp_window + 1, n))
+        nb = nb[free[nb]]
+        others = chosen_arr[chosen_arr != f]
+        if len(others):
+            d_self = np.linalg.norm(F[nb] - F[f], axis=1)
+            d_other = np.min(np.linalg.norm(F[nb][:, None] - F[others][None], axis=2), axis=1)
+            nb = nb[d_self < 0.5 * d_other]
+        if final:
+            nb = nb[np.min(np.abs(nb[:, None] - np.array(final)[None]), axis=1) >= min_gap]
         final.append(int(nb[np.argmax(sharp[nb])]) if len(nb) else f)
     return FrameChoice(np.array(sorted(final), dtype=np.intp), labels, F, sharp)
 
