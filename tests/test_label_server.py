@@ -9,23 +9,9 @@ import threading
 import numpy as np
 import pytest
 
-from tracker.io import read_pts, write_pts
+from tracker.io import read_pts
 from tracker.labelling import server as srv_mod
-from tracker.labelling.prepare import template_points
-from tracker.schemes import load_scheme
-
-
-def make_folder(root, frames=(5, 40)):
-    import cv2
-    folder = root / "labels"
-    (folder / "frames").mkdir(parents=True)
-    sch = load_scheme("contours48")
-    for f in frames:
-        cv2.imwrite(str(folder / "frames" / f"{f:06d}.png"), np.full((120, 160, 3), 90, np.uint8))
-        write_pts(folder / f"{f:06d}.pts", template_points(sch, 160, 120))
-    (folder / "session.json").write_text(json.dumps({"scheme": "contours48", "video": "v.mp4",
-                                                     "frames": list(frames)}))
-    return folder
+from label_helpers import make_folder
 
 
 def snapshot(root):
