@@ -140,7 +140,8 @@ def choose_frames(descriptors: np.ndarray, sharpness: np.ndarray, count: int, *,
     seed = np.random.default_rng(rng).integers(2**31 - 1)
     k_comp = max(1, min(n_components, n - 1, X.shape[1]))
     F = PCA(n_components=k_comp, random_state=int(seed)).fit_transform(X) if n > 1 else X[:, :1] * 0
-    n_micro = int(min(max(4 * count, count + 1), n))
+    n_distinct = len(np.unique(np.round(F, 6), axis=0))  # a still video repeats frames exactly
+    n_micro = int(min(max(4 * count, count + 1), n_distinct))
     km = KMeans(n_clusters=n_micro, n_init=2, random_state=int(seed)).fit(F)
     labels = km.labels_.copy()
     sizes = np.bincount(labels, minlength=n_micro)

@@ -122,6 +122,8 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
     from tracker.schemes import load_scheme  # noqa: PLC0415
     from tracker.video import VideoReader  # noqa: PLC0415
 
+    if int(count) < 1:
+        raise InputError(f"--count must be at least 1, got {count}")
     scheme = load_scheme(scheme_name)
     out = Path(out)
     reader = VideoReader(video)
