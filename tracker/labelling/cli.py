@@ -21,6 +21,8 @@ def register(subparsers) -> None:
     p.add_argument("--scheme", default="contours48", help="landmark scheme: contours48, ibug68 or a JSON file")
     p.add_argument("--no-prefill", action="store_true",
                    help="start from a generic face shape instead of dlib's points")
+    p.add_argument("--frames", type=_frame_list, default=None,
+                   help="label exactly these zero-based frames (comma-separated) instead of choosing")
     p.add_argument("--seed", type=int, default=0, help="seed of the frame clustering")
     p.add_argument("--serve", action="store_true", help="start the correction page after preparing")
     p.add_argument("--port", type=int, default=8765, help="port of the correction page (0: any free port)")
@@ -28,11 +30,19 @@ def register(subparsers) -> None:
     p.set_defaults(func=_run)
 
 
+def _frame_list(text: str) -> list[int]:
+    try:
+        return [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got {text!r}") from None
+
+
 def _run(args) -> int:
     from tracker.labelling.prepare import prepare_label_folder, write_contact_sheet  # noqa: PLC0415
 
     session = prepare_label_folder(args.video, args.out, args.count, args.scheme,
-                                   use_prefill=not args.no_prefill, rng=args.seed, quiet=args.quiet)
+                                   use_prefill=not args.no_prefill, rng=args.seed, quiet=args.quiet,
+                                   frames=args.frames)
     frames = session["frames"]
     print(f"{len(frames)} frames in {args.out}: {', '.join(map(str, frames))}")
     if session.get("no_face"):

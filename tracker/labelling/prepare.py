@@ -76,10 +76,10 @@ def prefill(images: np.ndarray, scheme, landmarker) -> list[np.ndarray | None]:
 
 
 def write_contact_sheet(folder: Path, frames, scheme, path: Path | None = None) -> Path:
-    """Draw each chosen frame with its current points into ``folder/contact_sheet.png``."""
+    """Draw each chosen frame's face, enlarged, with its current points into ``folder/contact_sheet.png``."""
     import cv2  # noqa: PLC0415
 
-    from tracker.draw import contact_sheet, draw_shape  # noqa: PLC0415
+    from tracker.draw import contact_sheet, crop_around, draw_shape  # noqa: PLC0415
     from tracker.io import pts_name, read_pts  # noqa: PLC0415
 
     tiles, caps = [], []
@@ -89,10 +89,12 @@ def write_contact_sheet(folder: Path, frames, scheme, path: Path | None = None) 
             raise InputError(f"frame image {f:06d}.png missing or unreadable", folder / "frames")
         p = folder / pts_name(f)
         if p.is_file():
-            im = draw_shape(im, read_pts(p), scheme)
+            pts = read_pts(p)
+            big = cv2.resize(im, None, fx=3, fy=3, interpolation=cv2.INTER_CUBIC)  # room for sub-pixel lines
+            im, _ = crop_around(draw_shape(big, pts * 3 + 1, scheme), pts * 3 + 1, margin=0.3)
         tiles.append(im)
         caps.append(f"frame {f}" + ("" if p.is_file() else " (no points)"))
-    sheet = contact_sheet(tiles, caps, columns=4, tile_width=max(320, tiles[0].shape[1]))
+    sheet = contact_sheet(tiles, caps, columns=4, tile_width=360)
     path = path or folder / "contact_sheet.png"
     _write_png(path, sheet)
     return path
@@ -109,8 +111,11 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 
 
 def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, scheme_name: str = "contours48",
-                         use_prefill: bool = True, exclude=(), rng=0, quiet: bool = False) -> dict:
+                         use_prefill: bool = True, exclude=(), rng=0, quiet: bool = False,
+                         frames=None) -> dict:
     """Choose ``count`` frames of ``video`` and make the label folder ``out`` (see module docstring).
+
+    ``frames`` (zero-based indices) skips the choice and labels exactly those frames.
 
     Returns the session dict (``scheme``, ``video``, ``frames``, ``prefilled``).
     """
@@ -142,6 +147,13 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         else:
             raise InputError(f"already holds labels of {old.get('video')} in scheme {old['scheme']}: "
                              f"choose another output folder", out)
+    if session is None and frames is not None:
+        frames = sorted(set(int(f) for f in frames))
+        if not frames or frames[0] < 0 or frames[-1] >= info.n_frames:
+            raise InputError(f"--frames must be frame indices in 0..{info.n_frames - 1}", info.path)
+        session = {"scheme": scheme.name, "video": str(info.path.resolve()), "frames": frames,
+                   "prefilled": landmarker is not None,
+                   "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
     if session is None:
         box = None
         if landmarker is not None:
