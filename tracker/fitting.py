@@ -82,14 +82,15 @@ class Tracker:
         Alignment iterations per level.
     lost_factor : float
         A frame is lost when its residual exceeds ``lost_factor`` times the
-        largest leave-one-out training residual.
+        largest leave-one-out training residual (clipped to [0.1, 0.8]; a
+        patch unrelated to the face scores about 1).
     search : bool
         Recover lost tracks (local search, then global re-initialisation).
     reinit_every : int
         While lost, the (costlier) whole-frame search runs every this many frames.
     """
 
-    def __init__(self, model: AppearanceModel, n_iter: int = 6, lost_factor: float = 3.0, search: bool = True,
+    def __init__(self, model: AppearanceModel, n_iter: int = 6, lost_factor: float = 6.0, search: bool = True,
                  reinit_every: int = 3):
         model._check_fitted()
         self.model = model
@@ -115,7 +116,8 @@ class Tracker:
         self.levels = [coarse, fine]
         ref_res = float(np.max(m.train_residuals_))
         self.ref_residual = float(np.median(m.train_residuals_))
-        self.lost_threshold = max(lost_factor * ref_res, 0.05)
+        # a patch unrelated to the face has a residual near 1 (normalised intensities): stay well below
+        self.lost_threshold = float(np.clip(lost_factor * ref_res, 0.1, 0.8))
         ref = m.reference_
         a, b = m.scheme_.inter_ocular
         self._ref_iod = float(np.linalg.norm(ref[a] - ref[b]))
