@@ -42,7 +42,7 @@ def load_model(path: str | Path, scheme: str | Scheme | None = None) -> Appearan
     """Read a model file; raise :class:`InputError` naming it when it is not one or has another scheme."""
     path = require_file(path, "model file")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise InputError(f"not a keyshape model file (cannot read it as .npz: {exc})", path) from None
