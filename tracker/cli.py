@@ -34,6 +34,7 @@ def register(subparsers) -> None:
     p.add_argument("--overlay", metavar="OUT.mp4", help="also write the video with the tracked contours drawn")
     p.add_argument("--smooth", default="none", choices=("none", "savgol", "oneeuro"),
                    help="temporal smoothing of the landmarks (default none)")
+    p.add_argument("--scheme", default=None, help="refuse a model trained in another scheme (optional check)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_track)
 
@@ -66,7 +67,7 @@ def _track(args) -> int:
     from tracker.commands import track_video
 
     summary = track_video(args.video, args.model, args.output, overlay=args.overlay, smooth=args.smooth,
-                          show_progress=not args.quiet)
+                          scheme=args.scheme, show_progress=not args.quiet)
     print(summary.message)
     if summary.interrupted:
         return 130

@@ -7,6 +7,7 @@ tracked when the video is truncated or the run is interrupted (Ctrl-C).
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,20 +58,22 @@ class TrackSummary:
 
 
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
-                tracker_options: dict | None = None) -> TrackSummary:
+                tracker_options: dict | None = None, scheme=None) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
 
     Frames are decoded, tracked, written and (with ``overlay``) drawn one at a
     time. A truncated video yields the frames that decoded; Ctrl-C stops the
     loop and keeps the rows written so far (the summary says which).
     """
+    import cv2
+
     from tracker.draw import draw_shape
     from tracker.fitting import Tracker
     from tracker.smoothing import StreamSmoother
     from tracker.video import video_writer
 
     if not isinstance(model, AppearanceModel):
-        model = AppearanceModel.load(model)
+        model = AppearanceModel.load(model, scheme)
     reader = VideoReader(video)
     info = reader.info
     tracker = Tracker(model, **(tracker_options or {}))
@@ -79,8 +82,6 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     interrupted = False
     prog = Progress(info.n_frames or None, desc="keyshape track", enabled=show_progress)
     t0 = time.perf_counter()
-    import contextlib
-
     with contextlib.ExitStack() as stack:
         f = stack.enter_context(atomic_write(output))
         writer = TracksWriter(f, model.n_points)
@@ -92,7 +93,6 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
                 if vw is not None:
                     img = draw_shape(frame, pts, model.scheme_) if res.success else frame.copy()
                     if not res.success:
-                        import cv2
                         cv2.putText(img, "lost", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 255), 2)
                     vw.write(img)
 
