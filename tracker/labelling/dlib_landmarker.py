@@ -170,13 +170,16 @@ class DlibLandmarker:
         """
         out = []
         for frame in frames:
-            pts = self.detect(frame, previous)
-            if pts is None:
-                out.append(np.full((68, 2), np.nan))
-            else:
-                out.append(pts)
-                previous = pts
+            pts, previous = self.detect_next(frame, previous)
+            out.append(pts)
         return np.stack(out) if out else np.empty((0, 68, 2))
+
+    def detect_next(self, image: np.ndarray, previous: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """One step over a video: (points or NaN (68, 2), the ``previous`` for the next frame)."""
+        pts = self.detect(image, previous)
+        if pts is None:
+            return np.full((68, 2), np.nan), previous
+        return pts, pts
 
 
 def landmark_video(path: str | Path, landmarker: DlibLandmarker | None = None, frames=None,
@@ -205,12 +208,8 @@ def landmark_video(path: str | Path, landmarker: DlibLandmarker | None = None, f
         if want is not None and i not in want:
             pts_all.append(np.full((68, 2), np.nan))
         else:
-            pts = lm.detect(gray, previous)
-            if pts is None:
-                pts_all.append(np.full((68, 2), np.nan))
-            else:
-                pts_all.append(pts)
-                previous = pts
+            pts, previous = lm.detect_next(gray, previous)
+            pts_all.append(pts)
         if progress is not None:
             progress(i + 1, n)
         if want is not None and want and i >= max(want):
