@@ -57,11 +57,18 @@ def _run(args) -> int:
             from pipeline.errors import InputError  # noqa: PLC0415
             raise InputError(f"cannot listen on 127.0.0.1:{args.port} ({exc.strerror}): try --port 0") from None
         print(f"correct the points at {server.url} (Ctrl-C to stop)", flush=True)
+        import signal  # noqa: PLC0415
+
+        def _stop(signum, frame):
+            raise KeyboardInterrupt
+
+        old = signal.signal(signal.SIGTERM, _stop)  # a plain `kill` stops it cleanly too
         try:
             server.serve_forever()
         except KeyboardInterrupt:
             pass
         finally:
+            signal.signal(signal.SIGTERM, old)
             server.server_close()
             write_contact_sheet(server.folder, frames, load_scheme(session["scheme"]))
             print(f"contact sheet redrawn: {args.out}/contact_sheet.png")
