@@ -1,5 +1,7 @@
-"""Command-line registration for the tracker stage: ``keyshape scheme`` (and ``train``/``track``)."""
+"""Command-line registration for the tracker stage: ``keyshape scheme``, ``train`` and ``track``."""
 from __future__ import annotations
+
+import sys
 
 
 def register(subparsers) -> None:
@@ -7,6 +9,34 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("scheme", help="print a landmark scheme (points, contours, regions)")
     p.add_argument("name", nargs="?", default="contours48", help="contours48, ibug68 or a scheme JSON file")
     p.set_defaults(func=_scheme)
+
+    p = subparsers.add_parser("train", help="train a person-specific eigen-points tracking model from labelled frames",
+                              description="Train the appearance model of section 3 (Covell's eigen-points) from a "
+                                          "handful of labelled frames. Labels are iBUG .pts files named by "
+                                          "zero-based frame index (000123.pts = frame 123).")
+    p.add_argument("video", help="the video the labels belong to")
+    p.add_argument("--labels", required=True, metavar="DIR", help="folder of NNNNNN.pts label files")
+    p.add_argument("--scheme", default="contours48", help="contours48 (default), ibug68 or a scheme JSON file")
+    p.add_argument("--components", type=int, default=None, metavar="K",
+                   help="eigenvectors kept (default: enough for 98%% of the variance)")
+    p.add_argument("--morphs", type=int, default=120, help="morphed images added to the training set (default 120)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the choice of morph pairs")
+    p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model file to write (.npz)")
+    p.set_defaults(func=_train)
+
+    p = subparsers.add_parser("track", help="track a video with a trained model -> tracks CSV",
+                              description="Track every frame of VIDEO with MODEL and write OpenFace-style tracks "
+                                          "(frame,time,confidence,success,x_*,y_*,pose_*). Lost frames have "
+                                          "success=0 and empty coordinates.")
+    p.add_argument("video")
+    p.add_argument("--model", required=True, help="model file from `keyshape train`")
+    p.add_argument("-o", "--output", required=True, metavar="TRACKS.csv")
+    p.add_argument("--overlay", metavar="OUT.mp4", help="also write the video with the tracked contours drawn")
+    p.add_argument("--smooth", default="none", choices=("none", "savgol", "oneeuro"),
+                   help="temporal smoothing of the landmarks (default none)")
+    p.add_argument("--scheme", default=None, help="refuse a model trained in another scheme (optional check)")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=_track)
 
 
 def _scheme(args) -> int:
@@ -18,4 +48,31 @@ def _scheme(args) -> int:
         print(f"  contour {name:12s} {idx[0]}-{idx[-1]}{' (closed)' if s.closed[name] else ''}")
     for name, idx in s.regions.items():
         print(f"  region  {name:12s} {len(idx)} points")
+    return 0
+
+
+def _train(args) -> int:
+    from tracker.commands import train_model
+
+    model, seconds = train_model(args.video, args.labels, args.scheme, n_components=args.components,
+                                 n_morphs=args.morphs, rng=args.seed)
+    model.save(args.output)
+    print(f"keyshape train: {len(model.train_poses_)} labelled frames + {model.n_samples_ - len(model.train_poses_)} "
+          f"morphs, {model.k_} components ({100 * model.explained_variance_ratio_.sum():.1f}% of the variance), "
+          f"{seconds:.1f} s -> {args.output}")
+    return 0
+
+
+def _track(args) -> int:
+    from tracker.commands import track_video
+
+    summary = track_video(args.video, args.model, args.output, overlay=args.overlay, smooth=args.smooth,
+                          scheme=args.scheme, show_progress=not args.quiet)
+    print(summary.message)
+    if summary.interrupted:
+        return 130
+    if summary.truncated:
+        print(f"keyshape track: warning: {args.video} ended after {summary.n_frames} of the "
+              f"{summary.expected} frames its header announces (truncated or damaged file); "
+              f"tracks written for the {summary.n_frames} frames decoded", file=sys.stderr)
     return 0

@@ -272,3 +272,27 @@ def _is_float(v: str) -> bool:
         return True
     except ValueError:
         return False
+
+
+class TracksWriter:
+    """Write a tracks CSV row by row to an open text file (streaming: memory does not grow with length).
+
+    Use inside :func:`pipeline.files.atomic_write` so an interrupted run never
+    leaves a file that looks complete unless it is finished deliberately.
+    """
+
+    def __init__(self, f, n_points: int):
+        self.f = f
+        self.n_points = n_points
+        self.n_rows = 0
+        f.write(",".join(tracks_header(n_points)) + "\n")
+
+    def write(self, frame: int, time: float, confidence: float, success: bool, points: np.ndarray,
+              pose: np.ndarray) -> None:
+        p = np.asarray(points, np.float64)
+        vals = np.concatenate([p[:, 0], p[:, 1]])
+        fields = [str(int(frame)), f"{time:.6f}", f"{confidence:.4f}", "1" if success else "0"]
+        fields += ["" if not np.isfinite(v) else f"{v:.4f}" for v in vals]
+        fields += ["" if not np.isfinite(v) else f"{v:.8g}" for v in np.asarray(pose, np.float64).ravel()]
+        self.f.write(",".join(fields) + "\n")
+        self.n_rows += 1

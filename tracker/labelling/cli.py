@@ -1,6 +1,75 @@
-"""Command-line registration for this stage (stub: filled in by the issue that builds it)."""
+"""``keyshape label``: choose frames to label, pre-fill their points, correct them in a browser."""
 from __future__ import annotations
+
+import argparse
 
 
 def register(subparsers) -> None:
-    """Add this stage's subcommands to ``subparsers``."""
+    """Add ``keyshape label`` to ``subparsers``."""
+    p = subparsers.add_parser(
+        "label", help="choose frames of a video to label, pre-fill them (dlib), correct them in a browser",
+        description="Choose COUNT frames covering the performance's variety (sharp, never near-duplicates), "
+                    "save them under DIR/frames/, pre-fill their points with dlib's 68-point landmarker "
+                    "(optional extra: pip install \"keyshape[label]\") converted to the scheme, write "
+                    "DIR/NNNNNN.pts (NNNNNN = zero-based frame index) and DIR/contact_sheet.png. With --serve, "
+                    "open a local page (127.0.0.1 only) to drag the points and save them. Running it again on "
+                    "the same DIR keeps the chosen frames and the points already saved.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("video", help="the performance video")
+    p.add_argument("--count", "-k", type=int, default=12, help="frames to label")
+    p.add_argument("-o", "--out", required=True, help="label folder to make (or resume)")
+    p.add_argument("--scheme", default="contours48", help="landmark scheme: contours48, ibug68 or a JSON file")
+    p.add_argument("--no-prefill", action="store_true",
+                   help="start from a generic face shape instead of dlib's points")
+    p.add_argument("--frames", type=_frame_list, default=None,
+                   help="label exactly these zero-based frames (comma-separated) instead of choosing")
+    p.add_argument("--seed", type=int, default=0, help="seed of the frame clustering")
+    p.add_argument("--serve", action="store_true", help="start the correction page after preparing")
+    p.add_argument("--port", type=int, default=8765, help="port of the correction page (0: any free port)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_run)
+
+
+def _frame_list(text: str) -> list[int]:
+    try:
+        return [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got {text!r}") from None
+
+
+def _run(args) -> int:
+    from tracker.labelling.prepare import prepare_label_folder, write_contact_sheet  # noqa: PLC0415
+
+    session = prepare_label_folder(args.video, args.out, args.count, args.scheme,
+                                   use_prefill=not args.no_prefill, rng=args.seed, quiet=args.quiet,
+                                   frames=args.frames)
+    frames = session["frames"]
+    print(f"{len(frames)} frames in {args.out}: {', '.join(map(str, frames))}")
+    if session.get("no_face"):
+        print(f"no face found by dlib in frames {session['no_face']}: they start from a generic shape")
+    print(f"check {args.out}/contact_sheet.png")
+    if args.serve:
+        from tracker.labelling.server import LabelServer  # noqa: PLC0415
+        from tracker.schemes import load_scheme  # noqa: PLC0415
+        try:
+            server = LabelServer(args.out, args.port)
+        except OSError as exc:
+            from pipeline.errors import InputError  # noqa: PLC0415
+            raise InputError(f"cannot listen on 127.0.0.1:{args.port} ({exc.strerror}): try --port 0") from None
+        print(f"correct the points at {server.url} (Ctrl-C to stop)", flush=True)
+        import signal  # noqa: PLC0415
+
+        def _stop(signum, frame):
+            raise KeyboardInterrupt
+
+        old = signal.signal(signal.SIGTERM, _stop)  # a plain `kill` stops it cleanly too
+        try:
+            server.serve_forever()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            signal.signal(signal.SIGTERM, old)
+            server.server_close()
+            write_contact_sheet(server.folder, frames, load_scheme(session["scheme"]))
+            print(f"contact sheet redrawn: {args.out}/contact_sheet.png")
+    return 0

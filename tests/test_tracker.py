@@ -1,0 +1,255 @@
+"""Eigen-points model, pose recovery, lost-track handling, model files, warping and smoothing."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError, KeyshapeError
+from tracker.eigenpoints import AppearanceModel
+from tracker.fitting import Tracker
+from tracker.schemes import load_scheme
+from tracker.smoothing import StreamSmoother, smooth
+from tracker.warp import (PiecewiseAffine, apply_affine, compose_affine, fit_affine, fit_similarity,
+                          invert_affine, morph, triangulate)
+
+SCHEME = load_scheme("contours48")
+H, W = 240, 320
+
+
+def _layout(rng) -> np.ndarray:
+    """48 model points in a 90 x 70 px face box; points 10 and 22 (the inter-ocular pair) far apart."""
+    pts = np.column_stack([rng.uniform(-45, 45, 48), rng.uniform(-30, 40, 48)])
+    pts[10] = (-40, -20)
+    pts[22] = (40, -20)
+    return pts
+
+
+def _texture(rng) -> np.ndarray:
+    """Smooth random texture, uint8 (the 'face')."""
+    noise = rng.normal(size=(H, W)).astype(np.float32)
+    img = cv2.GaussianBlur(noise, (0, 0), 3.0)
+    img = (img - img.min()) / (img.max() - img.min())
+    return (40 + 180 * img).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def footage():
+    """Frames made by warping one texture with known landmarks: expression (mouth-like opening of
+    the lower points, brow raise of the upper points) plus a head affine; labels exact by construction."""
+    rng = np.random.default_rng(7)
+    tex = _texture(rng)
+    base = _layout(rng)
+    centre = np.array([W / 2, H / 2])
+    border = np.array([[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1], [W / 2, 0], [W / 2, H - 1],
+                       [0, H / 2], [W - 1, H / 2]], float)
+    tri = triangulate(np.vstack([base + centre, border]))
+    frames, labels = [], []
+    for k in range(10):
+        opening, raise_ = rng.uniform(0, 1), rng.uniform(0, 1)
+        shape = base.copy()
+        shape[:, 1] += np.where(base[:, 1] > 10, 10 * opening * (base[:, 1] - 10) / 30, 0)
+        shape[:, 1] -= np.where(base[:, 1] < -10, 5 * raise_, 0)
+        ang, s = rng.uniform(-0.12, 0.12), rng.uniform(0.9, 1.1)
+        rot = s * np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+        t = centre + rng.uniform(-20, 20, 2)
+        img_pts = shape @ rot.T + t
+        src_border = border   # background fixed
+        pwa = PiecewiseAffine(np.vstack([img_pts, border]), tri, (H, W))
+        frames.append(pwa(tex, np.vstack([base + centre, src_border])))
+        labels.append(img_pts)
+    return np.stack(frames), np.stack(labels)
+
+
+@pytest.fixture(scope="module")
+def model(footage):
+    frames, labels = footage
+    return AppearanceModel("contours48", n_morphs=40, rng=0).fit(list(frames), labels)
+
+
+# --------------------------------------------------------------------------- warp
+
+
+def test_affine_fits_are_exact():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(20, 2)) * 30
+    a = np.array([[1.1, 0.2, 5.0], [-0.1, 0.9, -3.0]])
+    np.testing.assert_allclose(fit_affine(src, apply_affine(a, src)), a, atol=1e-10)
+    c, s = np.cos(0.3) * 1.7, np.sin(0.3) * 1.7
+    sim = np.array([[c, -s, 2.0], [s, c, 7.0]])
+    np.testing.assert_allclose(fit_similarity(src, apply_affine(sim, src)), sim, atol=1e-10)
+    np.testing.assert_allclose(compose_affine(a, invert_affine(a)), [[1, 0, 0], [0, 1, 0]], atol=1e-12)
+
+
+def test_piecewise_affine_is_affine_for_an_affine_motion_and_morph_endpoints():
+    rng = np.random.default_rng(1)
+    img = _texture(rng)[:80, :80]
+    pts = np.array([[5, 5], [74, 5], [5, 74], [74, 74], [40, 30], [30, 50]], float)
+    tri = triangulate(pts)
+    a = np.array([[1.0, 0.05, 2.0], [0.0, 1.0, 1.5]])
+    pwa = PiecewiseAffine(pts, tri, (80, 80))
+    out = pwa(img, apply_affine(a, pts))
+    ref = cv2.warpAffine(img, a, (80, 80), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_REPLICATE)
+    assert np.abs(out[10:70, 10:70].astype(float) - ref[10:70, 10:70]).max() <= 1.0
+    other = pts + rng.normal(size=pts.shape)
+    m0, s0 = morph(img, pts, img[::-1], other, 0.0, tri, (80, 80))
+    np.testing.assert_allclose(s0, pts)
+    np.testing.assert_allclose(m0, img, atol=1e-3)
+
+
+# --------------------------------------------------------------------------- eigen-points algebra
+
+
+def test_training_frame_gives_back_its_own_labels(footage):
+    """With every component kept, a training image lies in the basis: projection is exact."""
+    frames, labels = footage
+    full = AppearanceModel("contours48", n_components=1000, n_morphs=20, rng=0).fit(list(frames), labels)
+    for i in range(len(frames)):
+        pts, r = full.predict(frames[i], full.train_poses_[i])
+        assert np.abs(pts - labels[i]).max() < 0.05, i
+        assert r < 1e-6
+
+
+def test_default_model_reads_training_labels_within_a_fraction_of_a_pixel(model, footage):
+    frames, labels = footage
+    errs = [np.linalg.norm(model.predict(f, p)[0] - l, axis=1).mean()
+            for f, p, l in zip(frames, model.train_poses_, labels)]
+    assert max(errs) < 0.5, errs
+    assert 1 <= model.k_ < model.n_samples_
+    assert model.explained_variance_ratio_.sum() >= 0.98 - 1e-9
+
+
+def test_unfitted_model_refuses():
+    with pytest.raises(KeyshapeError, match="not fitted"):
+        AppearanceModel().predict(np.zeros((10, 10), np.uint8), np.eye(2, 3))
+
+
+def test_fit_checks_shapes(footage):
+    frames, labels = footage
+    with pytest.raises(InputError, match="expected shape"):
+        AppearanceModel("ibug68").fit(list(frames), labels)
+    with pytest.raises(InputError, match="frames but"):
+        AppearanceModel().fit(list(frames[:3]), labels)
+
+
+# --------------------------------------------------------------------------- pose recovery and tracking
+
+
+@pytest.mark.parametrize("affine", [
+    np.array([[1.0, 0.0, 6.0], [0.0, 1.0, -4.0]]),
+    np.array([[1.05, -0.06, -3.0], [0.06, 1.05, 5.0]]),
+    np.array([[0.95, 0.04, 4.0], [-0.02, 1.0, 2.0]]),
+], ids=["shift", "rotate-scale", "shear"])
+def test_warped_training_frame_recovers_the_affine(model, footage, affine):
+    frames, labels = footage
+    i = 3
+    warped = cv2.warpAffine(frames[i], affine, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    tr = Tracker(model)
+    tr.pose = tr.last_good = model.train_poses_[i]           # previous frame: the unwarped one
+    res = tr.step(warped)
+    assert res.success
+    want_pose = compose_affine(affine, model.train_poses_[i])
+    np.testing.assert_allclose(res.pose[:, :2], want_pose[:, :2], atol=0.01)
+    np.testing.assert_allclose(res.pose[:, 2], want_pose[:, 2], atol=0.5)
+    assert np.linalg.norm(res.points - apply_affine(affine, labels[i]), axis=1).mean() < 0.5
+
+
+def test_first_frame_found_without_a_previous_pose(model, footage):
+    frames, labels = footage
+    shifted = np.roll(frames[5], (15, -25), axis=(0, 1))
+    res = Tracker(model).step(shifted)
+    assert res.success
+    assert np.linalg.norm(res.points - (labels[5] + [-25, 15]), axis=1).mean() < 1.0
+
+
+def test_lighting_change_does_not_matter(model, footage):
+    frames, labels = footage
+    dim = (frames[2].astype(np.float32) * 0.5 + 30).astype(np.uint8)
+    tr = Tracker(model)
+    tr.pose = tr.last_good = model.train_poses_[2]
+    res = tr.step(dim)
+    assert res.success
+    assert np.linalg.norm(res.points - labels[2], axis=1).mean() < 0.5
+
+
+def test_lost_frame_is_marked_and_recovered(model, footage):
+    frames, labels = footage
+    rng = np.random.default_rng(3)
+    noise = rng.integers(0, 255, (H, W), dtype=np.uint8)
+    tr = Tracker(model)
+    seq = [frames[0], frames[1], noise, noise, frames[4], np.roll(frames[6], 30, axis=1)]
+    out = list(tr.track(seq))
+    assert [r.success for r in out] == [True, True, False, False, True, True]
+    assert np.isnan(out[2].points).all() and out[2].confidence == 0.0
+    assert np.linalg.norm(out[4].points - labels[4], axis=1).mean() < 1.0
+    assert np.linalg.norm(out[5].points - (labels[6] + [30, 0]), axis=1).mean() < 1.0
+    assert all(0 < r.confidence <= 1 for r in out if r.success)
+
+
+# --------------------------------------------------------------------------- model files
+
+
+def test_model_roundtrip(model, footage, tmp_path):
+    frames, _ = footage
+    path = tmp_path / "m.npz"
+    model.save(path)
+    back = AppearanceModel.load(path, scheme="contours48")
+    for i in (0, 4):
+        np.testing.assert_allclose(back.predict(frames[i], model.train_poses_[i])[0],
+                                   model.predict(frames[i], model.train_poses_[i])[0], atol=1e-9)
+
+
+def test_bad_model_files(model, tmp_path):
+    good = tmp_path / "m.npz"
+    model.save(good)
+    with pytest.raises(InputError, match=r"m\.npz.*scheme 'contours48'.*not 'ibug68'"):
+        AppearanceModel.load(good, scheme="ibug68")
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(good.read_bytes()[:500])
+    with pytest.raises(InputError, match=r"corrupt\.npz: not a keyshape model"):
+        AppearanceModel.load(corrupt)
+    other = tmp_path / "other.npz"
+    np.savez(other, a=np.zeros(3))
+    with pytest.raises(InputError, match=r"other\.npz: not a keyshape model file \(no format header\)"):
+        AppearanceModel.load(other)
+    text = tmp_path / "text.npz"
+    text.write_text("hello")
+    with pytest.raises(InputError, match=r"text\.npz: not a keyshape model"):
+        AppearanceModel.load(text)
+
+
+# --------------------------------------------------------------------------- smoothing
+
+
+@pytest.mark.parametrize("method", ["savgol", "oneeuro"])
+def test_smoothing_lags_a_fast_mouth_opening_by_at_most_one_frame(method):
+    t = np.arange(40)
+    gap = np.where(t < 20, 0.0, 12.0)                      # the mouth snaps open at frame 20
+    pts = np.zeros((40, 2, 2))
+    pts[:, 1, 1] = gap
+    out = smooth(pts, method, fps=30)
+    # half-way crossing at most one frame after the raw one, and within 10% by frame 21
+    raw_cross = 20
+    cross = int(np.argmax(out[:, 1, 1] >= 6.0))
+    assert cross - raw_cross <= 1
+    assert out[21, 1, 1] >= 0.9 * 12 - 1e-9 or method == "savgol" and out[22, 1, 1] >= 0.9 * 12
+
+
+def test_savgol_keeps_quadratics_and_nan_gaps():
+    t = np.arange(30.0)
+    pts = np.stack([0.2 * t ** 2 - t, 3 * t], axis=1)[:, None, :]
+    np.testing.assert_allclose(smooth(pts, "savgol"), pts, atol=1e-9)
+    pts[10] = np.nan
+    out = smooth(pts, "savgol")
+    assert np.isnan(out[10]).all()
+    np.testing.assert_allclose(np.delete(out, 10, 0), np.delete(pts, 10, 0), atol=1e-9)
+    noisy = pts + np.random.default_rng(0).normal(size=pts.shape)
+    assert np.nanstd(smooth(noisy, "savgol") - pts) < np.nanstd(noisy - pts)
+
+
+def test_smoothing_off_by_default_and_bad_name():
+    pts = np.random.default_rng(0).normal(size=(5, 3, 2))
+    np.testing.assert_array_equal(smooth(pts), pts)
+    with pytest.raises(InputError, match="unknown smoothing"):
+        StreamSmoother("kalman")

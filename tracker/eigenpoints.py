@@ -1,0 +1,365 @@
+"""Covell's eigen-points appearance model: coupled PCA of face intensities and landmarks.
+
+Section 3 of 004_119ba07521a9af0b.txt (after Covell 1996): labelled frames have
+their affine motion removed (warped into a common *model frame*), the set is
+enlarged by image morphing between pairs, and PCA is run on vectors stacking
+the normalised intensities of the model-frame face region and the landmark
+coordinates. A new (pre-warped) image is projected on the basis using the
+intensity rows only; the same coefficients give its landmarks.
+
+Model-frame coordinates are pixels of a square ``patch_size`` x ``patch_size``
+image; ``image_from_model`` affines (2, 3) map them to video pixels.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.errors import InputError, KeyshapeError, require_file
+from tracker.schemes import Scheme, load_scheme
+from tracker.warp import apply_affine, fit_affine, invert_affine, morph, procrustes_mean, triangulate
+
+FORMAT = "keyshape-eigenpoints"
+FORMAT_VERSION = 1
+
+
+# --------------------------------------------------------------------------- sampling
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """``uint8`` single-channel view of a BGR or gray frame."""
+    image = np.asarray(image)
+    if image.ndim == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2:
+        raise InputError(f"frame: expected (height, width) or (height, width, 3), got {image.shape}")
+    return image
+
+
+class Pyramid:
+    """Gaussian pyramid (``cv2.pyrDown``) of a gray frame, finest first, built lazily on access."""
+
+    def __init__(self, gray: np.ndarray, levels: int = 4):
+        self._levels = [gray]
+        n = 1
+        h, w = gray.shape[:2]
+        while n < levels and min(h, w) >= 64:
+            h, w = (h + 1) // 2, (w + 1) // 2
+            n += 1
+        self.n_levels = n
+
+    def __len__(self) -> int:
+        return self.n_levels
+
+    def __getitem__(self, level: int) -> np.ndarray:
+        while len(self._levels) <= level:
+            self._levels.append(cv2.pyrDown(self._levels[-1]))
+        return self._levels[level]
+
+
+def build_pyramid(gray: np.ndarray, levels: int = 4) -> Pyramid:
+    """Lazy Gaussian pyramid of a gray frame (see :class:`Pyramid`)."""
+    return Pyramid(gray, levels)
+
+
+def warp_patch(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.ndarray:
+    """Sample the ``size`` x ``size`` model-frame patch of a frame (float32).
+
+    The pyramid level is chosen so that one model pixel covers at most about
+    1.5 source pixels (anti-aliasing without per-frame blurring). Pixel
+    centres of pyramid level ``l`` sit at ``(x_0 + 0.5) / 2**l - 0.5``.
+    """
+    a = np.asarray(image_from_model, np.float64)
+    scale = np.sqrt(abs(np.linalg.det(a[:, :2])))
+    lvl = int(np.clip(np.floor(np.log2(max(scale, 1e-6) / 1.5)) + 1, 0, len(pyramid) - 1)) if scale > 1.5 else 0
+    if lvl:
+        f = 0.5 ** lvl
+        a = np.vstack([a[0] * f, a[1] * f])
+        a[:, 2] += 0.5 * f - 0.5
+    return cv2.warpAffine(pyramid[lvl], a, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+
+
+def normalise(values: np.ndarray) -> np.ndarray:
+    """Zero mean, unit variance along the last axis (per-frame lighting normalisation)."""
+    v = np.asarray(values, np.float64)
+    v = v - v.mean(axis=-1, keepdims=True)
+    sd = v.std(axis=-1, keepdims=True)
+    return v / np.maximum(sd, 1e-6)
+
+
+def _pca_rows(xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Principal axes (rows, orthonormal) and their variances of centred rows ``xc`` (n, d), n << d.
+
+    Uses the n x n Gram matrix (``xc xc^T = V Λ V^T`` gives axes ``Λ^{-1/2} V^T xc``),
+    the same axes as an SVD of ``xc`` at a fraction of the cost when n << d.
+    """
+    g = xc @ xc.T
+    lam, v = np.linalg.eigh(g)
+    order = np.argsort(lam)[::-1]
+    lam, v = lam[order], v[:, order]
+    keep = lam > lam[0] * 1e-10 if len(lam) and lam[0] > 0 else np.zeros(len(lam), bool)
+    lam, v = lam[keep], v[:, keep]
+    axes = (v.T @ xc) / np.sqrt(lam)[:, None]
+    return axes, lam
+
+
+# --------------------------------------------------------------------------- the model
+
+class AppearanceModel:
+    """Person-specific eigen-points model (Covell 1996; section 3 of 004_119ba07521a9af0b.txt).
+
+    Parameters
+    ----------
+    scheme : str or Scheme
+        Landmark scheme of the labels (``contours48``, ``ibug68`` or a JSON file).
+    n_components : int or None
+        Number of coupled eigenvectors kept; None chooses the smallest number
+        explaining ``variance`` of the training set.
+    variance : float
+        Fraction of variance to explain when ``n_components`` is None.
+    face_width : int
+        Width in model pixels of the reference shape's bounding box.
+    margin : float
+        Border around the reference shape, as a fraction of its size.
+    n_morphs : int
+        Morphed images added to the training set (pairs drawn at random,
+        blend weights 1/3 and 2/3).
+    landmark_weight : float
+        Total variance of the landmark rows relative to the intensity rows in
+        the stacked PCA vectors (the coupling of eigen-points).
+    rng : None, int or Generator
+        Randomness of the choice of morph pairs.
+
+    Attributes
+    ----------
+    reference_ : (n_points, 2) mean shape in the model frame
+    patch_size_ : int
+    mask_ : (patch_size, patch_size) bool, the face region sampled
+    mean_ : (n_pixels + 2 n_points,) mean stacked vector (landmark rows scaled)
+    components_ : (k, n_pixels + 2 n_points) coupled eigenvectors (rows)
+    explained_variance_ratio_ : (k,)
+    landmark_scale_ : float, factor applied to landmark coordinates in the stacked vectors
+    train_residuals_ : (n_labels,) leave-one-label-out appearance residuals of the labelled frames
+    train_poses_ : (n_labels, 2, 3) ``image_from_model`` of each labelled frame
+    train_shapes_ : (n_labels, n_points, 2) model-frame labels
+    """
+
+    def __init__(self, scheme: str | Scheme = "contours48", n_components: int | None = None,
+                 variance: float = 0.98, face_width: int = 64, margin: float = 0.22, n_morphs: int = 120,
+                 landmark_weight: float = 1.0, rng=None):
+        self.scheme = scheme
+        self.n_components = n_components
+        self.variance = variance
+        self.face_width = face_width
+        self.margin = margin
+        self.n_morphs = n_morphs
+        self.landmark_weight = landmark_weight
+        self.rng = rng
+
+    # ---------------------------------------------------------------- fitting
+    def _scheme(self) -> Scheme:
+        return self.scheme if isinstance(self.scheme, Scheme) else load_scheme(self.scheme)
+
+    def fit(self, frames, labels: np.ndarray) -> "AppearanceModel":
+        """Learn the model from labelled frames.
+
+        Parameters
+        ----------
+        frames : sequence of (H, W) or (H, W, 3) uint8 images
+        labels : (n_labels, n_points, 2) landmarks of those frames, image pixels
+
+        Returns
+        -------
+        self
+        """
+        scheme = self._scheme()
+        labels = scheme.check_shapes(labels, "labels")
+        if labels.ndim != 3:
+            raise InputError(f"labels: expected (n_labels, {scheme.n_points}, 2), got {labels.shape}")
+        n = len(labels)
+        if len(frames) != n:
+            raise InputError(f"{len(frames)} frames but {n} label sets")
+        if n < 2:
+            raise InputError(f"need at least 2 labelled frames, got {n}")
+        if not np.isfinite(labels).all():
+            raise InputError("labels contain NaN or infinity")
+        rng = np.random.default_rng(self.rng)
+
+        # reference shape in the model frame (eq.: affine removal of section 3)
+        mean = procrustes_mean(labels)
+        lo, hi = mean.min(0), mean.max(0)
+        s = self.face_width / (hi - lo)[0]
+        size = int(np.ceil(self.face_width * (1 + 2 * self.margin)))
+        ref = (mean - (lo + hi) / 2) * s + (size - 1) / 2.0
+        ref[:, 1] += (size - 1) / 2.0 - (ref[:, 1].min() + ref[:, 1].max()) / 2.0
+        self.reference_ = ref
+        self.patch_size_ = size
+
+        hull = cv2.convexHull(np.round(ref).astype(np.int32))
+        mask = np.zeros((size, size), np.uint8)
+        cv2.fillConvexPoly(mask, hull, 1)
+        grow = max(1, int(round(self.face_width * 0.08)))
+        mask = cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)).astype(bool)
+        self.mask_ = mask
+        self._index = np.flatnonzero(mask.ravel())
+
+        poses, patches, shapes = [], [], []
+        for img, lab in zip(frames, labels):
+            a = fit_affine(ref, lab)
+            poses.append(a)
+            patches.append(warp_patch(build_pyramid(to_gray(img)), a, size))
+            shapes.append(apply_affine(invert_affine(a), lab))
+        self.train_poses_ = np.stack(poses)
+        self.train_shapes_ = np.stack(shapes)
+        patches = np.stack(patches)
+
+        # enlargement by morphing between pre-warped labelled images
+        border = np.array([[0, 0], [size - 1, 0], [0, size - 1], [size - 1, size - 1],
+                           [(size - 1) / 2, 0], [(size - 1) / 2, size - 1], [0, (size - 1) / 2],
+                           [size - 1, (size - 1) / 2]], np.float64)
+        tri = triangulate(np.vstack([ref, border]))
+        pairs = np.array([(i, j) for i in range(n) for j in range(i + 1, n)])
+        m_pairs = min(len(pairs), max(self.n_morphs // 2, 0))
+        chosen = pairs[rng.choice(len(pairs), m_pairs, replace=False)] if m_pairs else np.empty((0, 2), int)
+        src_of = [(i, i) for i in range(n)]
+        m_patches, m_shapes = [patches], [self.train_shapes_]
+        for i, j in chosen:
+            for alpha in (1 / 3, 2 / 3):
+                img, shp = morph(patches[i], np.vstack([shapes[i], border]), patches[j],
+                                 np.vstack([shapes[j], border]), alpha, tri, (size, size))
+                m_patches.append(img[None])
+                m_shapes.append(shp[None, :len(ref)])
+                src_of.append((i, j))
+        all_patches = np.concatenate(m_patches)
+        all_shapes = np.concatenate(m_shapes)
+        self.n_samples_ = len(all_patches)
+
+        intens = normalise(all_patches.reshape(len(all_patches), -1)[:, self._index])
+        land = all_shapes.reshape(len(all_shapes), -1)
+        # coupling weight: landmark rows get `landmark_weight` times the intensity rows' total variance
+        var_i = intens.var(0).sum()
+        var_l = max(land.var(0).sum(), 1e-12)
+        self.landmark_scale_ = float(np.sqrt(self.landmark_weight * var_i / var_l))
+        x = np.hstack([intens, land * self.landmark_scale_])
+        self._pca(x)
+
+        # leave-one-label-out residuals: the scale of "normal" appearance error when tracking
+        src_of = np.array(src_of)
+        res = []
+        for i in range(n):
+            keep = (src_of[:, 0] != i) & (src_of[:, 1] != i)
+            xi = intens[keep]
+            mu = xi.mean(0)
+            vt, _ = _pca_rows(xi - mu)
+            vt = vt[:self.k_]
+            e = intens[i] - mu
+            e = e - vt.T @ (vt @ e)
+            res.append(float(e @ e / len(e)))
+        self.train_residuals_ = np.array(res)
+        self.scheme_ = scheme
+        self._precompute()
+        return self
+
+    def _pca(self, x: np.ndarray) -> None:
+        mean = x.mean(0)
+        vt, var = _pca_rows(x - mean)
+        # deterministic signs (as sklearn's svd_flip): largest |loading| positive
+        signs = np.sign(vt[np.arange(len(vt)), np.abs(vt).argmax(1)])
+        signs[signs == 0] = 1
+        vt *= signs[:, None]
+        ratio = var / max(var.sum(), 1e-300)
+        max_k = max(1, len(x) - 1)
+        if self.n_components is None:
+            k = int(np.searchsorted(np.cumsum(ratio), self.variance) + 1)
+        else:
+            k = int(self.n_components)
+            if k < 1:
+                raise InputError(f"n_components must be >= 1, got {k}")
+        k = min(k, max_k)
+        self.k_ = k
+        self.mean_ = mean
+        self.components_ = vt[:k]
+        self.explained_variance_ratio_ = ratio[:k]
+
+    def _precompute(self) -> None:
+        """Everything constant per frame: the pseudo-inverse of the intensity rows."""
+        n_pix = len(self._index)
+        ui = self.components_[:, :n_pix].T                      # (n_pix, k)
+        self._mean_i = self.mean_[:n_pix]
+        self._mean_l = self.mean_[n_pix:] / self.landmark_scale_
+        self._ul = self.components_[:, n_pix:].T / self.landmark_scale_   # (2 n_points, k)
+        self._pinv_i = np.linalg.pinv(ui)                       # (k, n_pix): least squares on intensity rows
+        self._ui = ui
+        self._n_pix = n_pix
+
+    # ---------------------------------------------------------------- use
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "components_"):
+            raise KeyshapeError("this AppearanceModel is not fitted: call fit(frames, labels) or load a model")
+
+    @property
+    def n_points(self) -> int:
+        self._check_fitted()
+        return len(self.reference_)
+
+    @property
+    def index_(self) -> np.ndarray:
+        """Flat indices of the mask pixels in the patch."""
+        return self._index
+
+    def intensities(self, patch: np.ndarray) -> np.ndarray:
+        """Normalised intensity vector(s) of model-frame patch(es) (..., size, size)."""
+        p = np.asarray(patch)
+        return normalise(p.reshape(*p.shape[:-2], -1)[..., self._index])
+
+    def project(self, intensities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coefficients and appearance residual of normalised intensities (..., n_pix).
+
+        The coefficients solve ``min_c |U_I c - (v - mean_I)|`` (least squares
+        on the intensity rows of the coupled eigenvectors); the residual is
+        the mean squared error per pixel of that fit.
+        """
+        self._check_fitted()
+        e = np.asarray(intensities, np.float64) - self._mean_i
+        c = e @ self._pinv_i.T
+        r = e - c @ self._ui.T
+        return c, np.einsum("...i,...i->...", r, r) / self._n_pix
+
+    def landmarks(self, coefficients: np.ndarray) -> np.ndarray:
+        """Model-frame landmarks (..., n_points, 2) read from the coefficients (landmark rows)."""
+        c = np.asarray(coefficients, np.float64)
+        flat = self._mean_l + c @ self._ul.T
+        return flat.reshape(*c.shape[:-1], -1, 2)
+
+    def predict(self, frame: np.ndarray, image_from_model: np.ndarray) -> tuple[np.ndarray, float]:
+        """Image landmarks ``(n_points, 2)`` and residual of ``frame`` warped by ``image_from_model``."""
+        self._check_fitted()
+        patch = warp_patch(build_pyramid(to_gray(frame)), image_from_model, self.patch_size_)
+        c, r = self.project(self.intensities(patch))
+        return apply_affine(image_from_model, self.landmarks(c)), float(r)
+
+    def initial_pose(self) -> np.ndarray:
+        """Mean ``image_from_model`` of the labelled frames (a start for tracking)."""
+        self._check_fitted()
+        return self.train_poses_.mean(0)
+
+    # ---------------------------------------------------------------- persistence
+    _ARRAYS = ("reference_", "mask_", "mean_", "components_", "explained_variance_ratio_",
+               "train_residuals_", "train_poses_", "train_shapes_")
+
+    def save(self, path: str | Path) -> None:
+        """Write the model as ``.npz`` (format name, version and scheme included), atomically."""
+        from tracker.model_io import save_model
+
+        self._check_fitted()
+        save_model(path, self)
+
+    @classmethod
+    def load(cls, path: str | Path, scheme: str | Scheme | None = None) -> "AppearanceModel":
+        """Read a model written by :meth:`save`; ``scheme`` (optional) must match the model's."""
+        from tracker.model_io import load_model
+
+        return load_model(path, scheme)
+

@@ -1,0 +1,295 @@
+"""The tracking loop: pose refinement, eigen-points projection, lost-track detection and recovery.
+
+For each frame (section 3 of 004_119ba07521a9af0b.txt): start from the previous
+frame's ``image_from_model`` affine, refine it by image alignment of the
+model-frame patch against the model's mean appearance (inverse-compositional
+Lucas-Kanade with the appearance subspace projected out, coarse to fine),
+warp the frame into the model frame, project it on the eigen-points basis with
+the intensity rows only, read the landmarks from the same coefficients and map
+them back with the affine.
+
+A frame is *lost* when its appearance residual is far above the training
+residuals or the pose/shape collapses; the tracker then searches translations
+and scales around the last good pose and, failing that, re-initialises from
+the best match of the mean appearance over the whole frame (no face detector
+needed). Lost frames are returned with ``success = False`` and NaN landmarks.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from tracker.eigenpoints import AppearanceModel, Pyramid, normalise, to_gray, warp_patch
+from tracker.warp import apply_affine, compose_affine, invert_affine
+
+_HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
+
+
+@dataclass
+class FrameResult:
+    """What the tracker found in one frame."""
+
+    index: int
+    points: np.ndarray        # (n_points, 2) image pixels, NaN when not success
+    pose: np.ndarray          # (2, 3) image_from_model (last estimate, also when lost)
+    residual: float           # appearance residual (mean squared normalised intensity error)
+    confidence: float         # in [0, 1]
+    success: bool
+    iterations: int
+
+
+class _Level:
+    """Precomputed inverse-compositional alignment data of one resolution.
+
+    ``sd`` rows index the 6 affine parameters ``p`` of ``W(x; p) = [[1+p0, p2, p4], [p1, 1+p3, p5]] x``;
+    ``update`` (6, n_pix) maps a normalised intensity error to ``Δp`` in one
+    matrix-vector product (Gauss-Newton with the appearance subspace projected out).
+    """
+
+    def __init__(self, mean_img: np.ndarray, basis_imgs: np.ndarray, mask: np.ndarray, to_fine: np.ndarray):
+        size = mean_img.shape[0]
+        inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        self.index = np.flatnonzero(inner.ravel())
+        self.size = size
+        self.to_fine = to_fine                      # fine_from_level affine
+        self.level_from_fine = invert_affine(to_fine)
+        t = normalise(mean_img.ravel()[self.index])
+        img = np.zeros(size * size)
+        img[self.index] = t
+        img = img.reshape(size, size)
+        gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, scale=1 / 8).ravel()[self.index]
+        gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, scale=1 / 8).ravel()[self.index]
+        yy, xx = np.divmod(self.index, size)
+        sd = np.stack([gx * xx, gy * xx, gx * yy, gy * yy, gx, gy], axis=1)
+        b = basis_imgs.reshape(len(basis_imgs), -1)[:, self.index].T
+        b = b - b.mean(0)
+        q, _ = np.linalg.qr(b)
+        sd_po = sd - q @ (q.T @ sd)
+        self.template = t
+        self.update = np.linalg.pinv(sd_po)          # (6, n_pix)
+
+
+class Tracker:
+    """Track an :class:`AppearanceModel` through frames.
+
+    Parameters
+    ----------
+    model : AppearanceModel (fitted)
+    n_iter : int
+        Alignment iterations per level.
+    lost_factor : float
+        A frame is lost when its residual exceeds ``lost_factor`` times the
+        largest leave-one-out training residual (clipped to [0.1, 0.8]; a
+        patch unrelated to the face scores about 1).
+    search : bool
+        Recover lost tracks (local search, then global re-initialisation).
+    reinit_every : int
+        While lost, the (costlier) whole-frame search runs every this many frames.
+    """
+
+    def __init__(self, model: AppearanceModel, n_iter: int = 6, lost_factor: float = 6.0, search: bool = True,
+                 reinit_every: int = 3):
+        model._check_fitted()
+        self.model = model
+        self.n_iter = n_iter
+        self.search = search
+        self.reinit_every = max(1, int(reinit_every))
+        m = model
+        size = m.patch_size_
+        n_pix = len(m.index_)
+        mean = np.zeros(size * size)
+        mean[m.index_] = m.mean_[:n_pix]
+        mean = mean.reshape(size, size)
+        basis = np.zeros((m.k_, size * size))
+        basis[:, m.index_] = m.components_[:, :n_pix]
+        basis = basis.reshape(m.k_, size, size)
+        fine = _Level(mean, basis, m.mask_, np.array([[1.0, 0, 0], [0, 1.0, 0]]))
+        half = size // 2
+        cmean = cv2.resize(mean, (half, half), interpolation=cv2.INTER_AREA)
+        cbasis = np.stack([cv2.resize(b, (half, half), interpolation=cv2.INTER_AREA) for b in basis])
+        cmask = cv2.resize(m.mask_.astype(np.float32), (half, half), interpolation=cv2.INTER_AREA) > 0.99
+        scale = size / half
+        coarse = _Level(cmean, cbasis, cmask, np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2]]))
+        self.levels = [coarse, fine]
+        ref_res = float(np.max(m.train_residuals_))
+        self.ref_residual = float(np.median(m.train_residuals_))
+        # a patch unrelated to the face has a residual near 1 (normalised intensities): stay well below
+        self.lost_threshold = float(np.clip(lost_factor * ref_res, 0.1, 0.8))
+        ref = m.reference_
+        a, b = m.scheme_.inter_ocular
+        self._ref_iod = float(np.linalg.norm(ref[a] - ref[b]))
+        self._template_cache: dict = {}
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the previous frame (next frame starts with a whole-frame search)."""
+        self.pose = None
+        self.last_good = None
+        self.lost_for = 0
+
+    # ---------------------------------------------------------------- core steps
+    def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0, 1), n_iter: int | None = None) -> tuple[np.ndarray, int]:
+        """Refine ``pose`` (image_from_model) by inverse-compositional alignment, coarse to fine."""
+        n_iter = self.n_iter if n_iter is None else n_iter
+        a = np.asarray(pose, np.float64)
+        its = 0
+        for li in levels:
+            lv = self.levels[li]
+            al = compose_affine(a, lv.to_fine)               # image_from_level
+            for _ in range(n_iter):
+                patch = warp_patch(pyr, al, lv.size)
+                v = normalise(patch.ravel()[lv.index])
+                dp = lv.update @ (v - lv.template)
+                w = np.array([[1 + dp[0], dp[2], dp[4]], [dp[1], 1 + dp[3], dp[5]]])
+                al = compose_affine(al, invert_affine(w))
+                its += 1
+                if np.abs(dp[4:]).max() < 0.02 and np.abs(dp[:4]).max() < 5e-4:
+                    break
+            a = compose_affine(al, lv.level_from_fine)
+        return a, its
+
+    def read(self, pyr: Pyramid, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Eigen-points step: model-frame landmarks, image landmarks and residual at ``pose``."""
+        m = self.model
+        patch = warp_patch(pyr, pose, m.patch_size_)
+        c, r = m.project(m.intensities(patch))
+        shape = m.landmarks(c)
+        return shape, apply_affine(pose, shape), float(r)
+
+    def _sane(self, pose: np.ndarray, shape: np.ndarray, image_size: tuple[int, int]) -> bool:
+        lin = pose[:, :2]
+        sv = np.linalg.svd(lin, compute_uv=False)
+        if np.linalg.det(lin) <= 0 or sv[0] / max(sv[1], 1e-9) > 1.8:
+            return False
+        a, b = self.model.scheme_.inter_ocular
+        iod = np.linalg.norm(shape[a] - shape[b])
+        if not 0.6 < iod / self._ref_iod < 1.6:
+            return False
+        centre = apply_affine(pose, self.model.reference_.mean(0))
+        h, w = image_size
+        if not (-0.1 * w < centre[0] < 1.1 * w and -0.1 * h < centre[1] < 1.1 * h):
+            return False
+        if self.last_good is not None:
+            s0 = np.sqrt(abs(np.linalg.det(self.last_good[:, :2])))
+            if not 0.6 < np.sqrt(np.linalg.det(lin)) / s0 < 1.6:
+                return False
+        return True
+
+    def _evaluate(self, pyr, pose, image_size, levels=(0, 1), n_iter=None):
+        pose, its = self.align(pyr, pose, levels, n_iter)
+        shape, pts, r = self.read(pyr, pose)
+        ok = r < self.lost_threshold and self._sane(pose, shape, image_size)
+        return ok, r, pose, pts, its
+
+    # ---------------------------------------------------------------- search
+    def _local_candidates(self, pose: np.ndarray) -> list[np.ndarray]:
+        s = np.sqrt(abs(np.linalg.det(pose[:, :2])))
+        step = 0.18 * self.model.face_width * s
+        out = []
+        for sc in (1.0, 0.88, 1.14):
+            for dx in (0, -1, 1, -2, 2):
+                for dy in (0, -1, 1):
+                    if sc != 1.0 and (abs(dx) > 1 or dy):
+                        continue
+                    c = self.model.reference_.mean(0)
+                    z = np.array([[sc, 0, (1 - sc) * c[0]], [0, sc, (1 - sc) * c[1]]])
+                    p = compose_affine(pose, z)
+                    p[:, 2] += (dx * step, dy * step)
+                    out.append(p)
+        return out
+
+    def _global_candidates(self, pyr: Pyramid, n_best: int = 3) -> list[np.ndarray]:
+        """Poses where the mean appearance best matches the frame (normalised cross-correlation)."""
+        m = self.model
+        scales = np.sqrt(np.abs(np.linalg.det(m.train_poses_[:, :2, :2])))
+        rot = m.train_poses_.mean(0)[:, :2]
+        rot = rot / np.sqrt(abs(np.linalg.det(rot)))
+        base = float(np.median(scales))
+        cands = []
+        for sc in base * np.array([0.8, 1.0, 1.25]):
+            lvl = 0
+            while lvl + 1 < len(pyr) and sc / 2 ** (lvl + 1) * m.face_width >= 24:
+                lvl += 1
+            f = sc / 2 ** lvl
+            key = round(f, 3)
+            if key not in self._template_cache:
+                tmpl = self.levels[1].template
+                img = np.zeros(m.patch_size_ ** 2)
+                img[self.levels[1].index] = tmpl
+                img = img.reshape(m.patch_size_, m.patch_size_).astype(np.float32)
+                lo, hi = m.reference_.min(0), m.reference_.max(0)
+                x0, y0 = np.floor(lo).astype(int)
+                x1, y1 = np.ceil(hi).astype(int)
+                crop = img[y0:y1 + 1, x0:x1 + 1]
+                size = (max(8, int(round(crop.shape[1] * f))), max(8, int(round(crop.shape[0] * f))))
+                self._template_cache[key] = (cv2.resize(crop, size, interpolation=cv2.INTER_AREA), (x0, y0))
+            t, (x0, y0) = self._template_cache[key]
+            im = pyr[lvl].astype(np.float32)
+            if im.shape[0] <= t.shape[0] or im.shape[1] <= t.shape[1]:
+                continue
+            score = cv2.matchTemplate(im, t, cv2.TM_CCOEFF_NORMED)
+            for _ in range(n_best):
+                _, val, _, (px, py) = cv2.minMaxLoc(score)
+                cv2.rectangle(score, (px - t.shape[1] // 4, py - t.shape[0] // 4),
+                              (px + t.shape[1] // 4, py + t.shape[0] // 4), -1.0, -1)
+                lin = rot * sc
+                # image position of the model crop's corner at this level, back to level 0
+                corner = (np.array([px, py], float) + 0.5) * 2 ** lvl - 0.5
+                tvec = corner - lin @ np.array([x0, y0], float)
+                cands.append((val, np.hstack([lin, tvec[:, None]])))
+        cands.sort(key=lambda c: -c[0])
+        return [p for _, p in cands[:n_best]]
+
+    # ---------------------------------------------------------------- per frame
+    def step(self, frame: np.ndarray, index: int = 0) -> FrameResult:
+        """Track one frame (BGR or gray uint8)."""
+        gray = to_gray(frame)
+        pyr = Pyramid(gray)
+        size = gray.shape[:2]
+        n_pts = self.model.n_points
+        best = None
+        its_total = 0
+        if self.pose is not None:
+            ok, r, pose, pts, its = self._evaluate(pyr, self.pose, size)
+            its_total += its
+            best = (ok, r, pose, pts)
+        if (best is None or not best[0]) and self.search:
+            cands = []
+            if self.last_good is not None and self.lost_for < 2 * self.reinit_every + 1:
+                cands += self._local_candidates(self.last_good)
+            if self.last_good is None or self.lost_for % self.reinit_every == 0:
+                cands += self._global_candidates(pyr)
+                if self.last_good is None:
+                    cands += list(self.model.train_poses_)
+            for p in cands:
+                ok, r, pose, pts, its = self._evaluate(pyr, p, size)
+                its_total += its
+                if best is None or (ok, -r) > (best[0], -best[1]):
+                    best = (ok, r, pose, pts)
+                if ok and r < 0.5 * self.lost_threshold:
+                    break
+        if best is None:
+            return FrameResult(index, np.full((n_pts, 2), np.nan), np.full((2, 3), np.nan), np.inf, 0.0, False, 0)
+        ok, r, pose, pts = best
+        conf = float(np.clip((self.lost_threshold - r) / max(self.lost_threshold - self.ref_residual, 1e-9), 0, 1))
+        if ok:
+            self.pose = pose
+            self.last_good = pose
+            self.lost_for = 0
+        else:
+            self.lost_for += 1
+            self.pose = self.last_good
+            pts = np.full((n_pts, 2), np.nan)
+            conf = 0.0
+        return FrameResult(index, pts, pose, r, conf if ok else 0.0, bool(ok), its_total)
+
+    def track(self, frames: Iterable) -> Iterator[FrameResult]:
+        """Track a stream of frames (``(index, frame)`` pairs or plain frames), one result each."""
+        for k, item in enumerate(frames):
+            if isinstance(item, tuple):
+                yield self.step(item[1], item[0])
+            else:
+                yield self.step(item, k)

@@ -1,0 +1,219 @@
+"""dlib's generic 68-point landmarker (HOG face detector + ensemble-of-trees shape predictor).
+
+An optional extra, ``pip install "keyshape[label]"`` (the prebuilt ``dlib-bin``
+wheel and ``face-recognition-models``, which ships
+``shape_predictor_68_face_landmarks.dat``). Both are imported lazily, only when
+a :class:`DlibLandmarker` is made, so the rest of keyshape runs without them.
+
+The points are in the iBUG-68 layout (jaw 0-16, brows 17-26, nose 27-35, eyes
+36-47, mouth 48-67), image pixels, origin top-left.
+
+The HOG detector can fire on face-like patches (a poster, a patterned shirt):
+of several detections the one nearest the previous frame's face is kept when
+there is one, otherwise the largest.
+"""
+from __future__ import annotations
+
+import importlib.util
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import KeyshapeError, MissingFileError
+
+INSTALL_HINT = 'pip install "keyshape[label]"'
+MODEL_NAME = "shape_predictor_68_face_landmarks.dat"
+
+
+def _import_dlib():
+    try:
+        import dlib  # noqa: PLC0415 (optional dependency, imported lazily)
+    except ImportError:
+        raise KeyshapeError(f"the dlib landmarker needs dlib, which is not installed: "
+                            f"{INSTALL_HINT}") from None
+    return dlib
+
+
+def default_model_path() -> Path:
+    """Path of ``shape_predictor_68_face_landmarks.dat`` from ``face-recognition-models``.
+
+    The package is located without importing it (its ``__init__`` needs
+    ``pkg_resources``, absent from recent setuptools).
+    """
+    spec = importlib.util.find_spec("face_recognition_models")
+    if spec is None or not spec.submodule_search_locations:
+        raise KeyshapeError(f"the dlib landmarker needs face-recognition-models, which is not "
+                            f"installed: {INSTALL_HINT}")
+    path = Path(list(spec.submodule_search_locations)[0]) / "models" / MODEL_NAME
+    if not path.is_file():
+        raise MissingFileError(path, f"dlib shape model (reinstall with {INSTALL_HINT})")
+    return path
+
+
+@dataclass
+class Timing:
+    """Seconds spent in face detection and in shape prediction over ``n_frames`` frames.
+
+    ``*_s`` are wall-clock seconds; ``*_cpu_s`` the calling thread's CPU seconds
+    (the fair figure on a shared machine: dlib runs on one thread).
+    """
+
+    detect_s: float = 0.0
+    predict_s: float = 0.0
+    n_frames: int = 0
+    n_found: int = 0
+    detect_cpu_s: float = 0.0
+    predict_cpu_s: float = 0.0
+
+    def per_frame_ms(self, cpu: bool = False) -> tuple[float, float]:
+        """Mean (detection, prediction) milliseconds per frame (thread CPU time with ``cpu``)."""
+        n = max(self.n_frames, 1)
+        if cpu:
+            return 1e3 * self.detect_cpu_s / n, 1e3 * self.predict_cpu_s / n
+        return 1e3 * self.detect_s / n, 1e3 * self.predict_s / n
+
+
+@dataclass
+class DlibLandmarker:
+    """dlib HOG face detection followed by the 68-point shape predictor.
+
+    Parameters
+    ----------
+    upsample : int
+        Times the detector upsamples the image (finds smaller faces, slower).
+    model_path : str or Path, optional
+        A dlib shape predictor file; default: the one in ``face-recognition-models``.
+    min_size : float
+        Faces whose box is narrower than this many pixels are ignored.
+
+    Attributes
+    ----------
+    timing : Timing
+        Accumulated detection/prediction time of the calls so far.
+    """
+
+    upsample: int = 0
+    model_path: str | Path | None = None
+    min_size: float = 20.0
+    timing: Timing = field(default_factory=Timing)
+
+    def __post_init__(self):
+        dlib = _import_dlib()
+        path = Path(self.model_path) if self.model_path is not None else default_model_path()
+        if not path.is_file():
+            raise MissingFileError(path, "dlib shape model")
+        self._dlib = dlib
+        self._detector = dlib.get_frontal_face_detector()
+        self._predictor = dlib.shape_predictor(str(path))
+
+    @staticmethod
+    def _gray(image: np.ndarray) -> np.ndarray:
+        img = np.asarray(image)
+        if img.ndim == 3:
+            import cv2  # noqa: PLC0415
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        return np.ascontiguousarray(img, dtype=np.uint8)
+
+    def detect_box(self, gray: np.ndarray, previous: np.ndarray | None = None):
+        """The face box to use in ``gray`` (a ``dlib.rectangle``) or None.
+
+        ``previous`` ((n_points, 2) points of the last frame) picks the detection
+        nearest it; without it the largest detection is kept.
+        """
+        boxes = [b for b in self._detector(gray, self.upsample) if b.width() >= self.min_size]
+        if not boxes:
+            return None
+        if previous is not None and np.all(np.isfinite(previous)):
+            c = np.asarray(previous, dtype=np.float64).mean(axis=0)
+            return min(boxes, key=lambda b: (b.center().x - c[0]) ** 2 + (b.center().y - c[1]) ** 2)
+        return max(boxes, key=lambda b: b.area())
+
+    def predict(self, gray: np.ndarray, box) -> np.ndarray:
+        """The (68, 2) float64 points of the face in ``box`` (a ``dlib.rectangle``)."""
+        shape = self._predictor(gray, box)
+        return np.array([(p.x, p.y) for p in shape.parts()], dtype=np.float64)
+
+    def box_from_points(self, points: np.ndarray):
+        """A ``dlib.rectangle`` around 68 points, sized like the HOG detector's boxes."""
+        lo, hi = np.min(points, axis=0), np.max(points, axis=0)
+        c = (lo + hi) / 2
+        half = 0.5 * max(hi - lo) * 0.9
+        return self._dlib.rectangle(int(c[0] - half), int(c[1] - half), int(c[0] + half), int(c[1] + half))
+
+    def detect(self, image: np.ndarray, previous: np.ndarray | None = None) -> np.ndarray | None:
+        """Detect a face in ``image`` (gray or BGR) and return its (68, 2) points, or None.
+
+        Time spent is added to :attr:`timing`.
+        """
+        gray = self._gray(image)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        box = self.detect_box(gray, previous)
+        t1, c1 = time.perf_counter(), time.thread_time()
+        self.timing.detect_s += t1 - t0
+        self.timing.detect_cpu_s += c1 - c0
+        self.timing.n_frames += 1
+        if box is None:
+            return None
+        pts = self.predict(gray, box)
+        self.timing.predict_s += time.perf_counter() - t1
+        self.timing.predict_cpu_s += time.thread_time() - c1
+        self.timing.n_found += 1
+        return pts
+
+    def detect_frames(self, frames, previous: np.ndarray | None = None) -> np.ndarray:
+        """Points of every frame of an iterable of images -> (n_frames, 68, 2), NaN where no face.
+
+        Each frame runs the detector (no tracking shortcut), choosing among
+        several detections the one nearest the previous frame's face.
+        """
+        out = []
+        for frame in frames:
+            pts, previous = self.detect_next(frame, previous)
+            out.append(pts)
+        return np.stack(out) if out else np.empty((0, 68, 2))
+
+    def detect_next(self, image: np.ndarray, previous: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """One step over a video: (points or NaN (68, 2), the ``previous`` for the next frame)."""
+        pts = self.detect(image, previous)
+        if pts is None:
+            return np.full((68, 2), np.nan), previous
+        return pts, pts
+
+
+def landmark_video(path: str | Path, landmarker: DlibLandmarker | None = None, frames=None,
+                   progress=None) -> np.ndarray:
+    """Run dlib on every frame of the video at ``path`` -> (n_frames, 68, 2), NaN where no face.
+
+    Parameters
+    ----------
+    path : str or Path
+    landmarker : DlibLandmarker, optional
+        Reused (and its :attr:`~DlibLandmarker.timing` accumulated) when given.
+    frames : iterable of int, optional
+        Only these frame indices (the rest come back NaN).
+    progress : callable, optional
+        Called as ``progress(i, n)`` after each frame.
+    """
+    from tracker.video import VideoReader  # noqa: PLC0415
+
+    lm = landmarker if landmarker is not None else DlibLandmarker()
+    reader = VideoReader(path, gray=True)
+    n = len(reader)
+    want = None if frames is None else set(int(i) for i in frames)
+    pts_all: list[np.ndarray] = []
+    previous = None
+    for i, gray in reader:
+        if want is not None and i not in want:
+            pts_all.append(np.full((68, 2), np.nan))
+        else:
+            pts, previous = lm.detect_next(gray, previous)
+            pts_all.append(pts)
+        if progress is not None:
+            progress(i + 1, n)
+        if want is not None and want and i >= max(want):
+            break
+    while want is not None and len(pts_all) < n:  # stopped after the last wanted frame
+        pts_all.append(np.full((68, 2), np.nan))
+    return np.stack(pts_all)

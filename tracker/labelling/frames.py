@@ -1,0 +1,220 @@
+"""Choose the frames worth labelling: few, varied, sharp, never near-duplicates.
+
+A person-specific tracker learns from a handful of labelled frames, so they
+should cover the performance's range (neutral, open mouth, smiles, blinks,
+raised brows, head turns) rather than K similar frames. Over the whole video:
+
+1. **Descriptor**: the face region (a box, default the central part of the
+   frame) shrunk to 24x24 gray, each frame normalised to zero mean and unit
+   contrast (so lighting flicker does not count as variety); projected on its
+   first principal components.
+2. **Micro-clusters**: k-means into ``4K`` clusters; clusters of fewer than
+   ``min_cluster`` frames (a cut, a glitch) are dropped, the rest represented by
+   their medoid.
+3. **Farthest-point sampling** over the medoids, starting from the one nearest
+   the mean appearance: each next frame is the one least like all the chosen
+   ones, so the extremes are included and near-duplicates never are (and no
+   two chosen frames are closer than ``min_gap`` frames in time).
+4. **Sharpness**: each chosen frame is swapped for the sharpest frame (variance
+   of the Laplacian) among its temporal neighbours (``sharp_window`` frames
+   either side) that look more like it than like any other chosen frame, so a
+   motion-blurred frame is replaced when a sharp look-alike is next to it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+DESC_SIZE = 24
+
+
+def face_crop(image: np.ndarray, box: tuple[int, int, int, int] | None) -> np.ndarray:
+    """The ``box = (x0, y0, x1, y1)`` part of ``image``; default the central 60% x 80%."""
+    h, w = image.shape[:2]
+    if box is None:
+        box = (int(0.2 * w), int(0.1 * h), int(0.8 * w), int(0.9 * h))
+    x0, y0, x1, y1 = (int(v) for v in box)
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, w), min(y1, h)
+    if x1 - x0 < 4 or y1 - y0 < 4:
+        raise InputError(f"face box {box} leaves less than 4x4 pixels of a {w}x{h} frame")
+    return image[y0:y1, x0:x1]
+
+
+def describe(gray: np.ndarray, box=None) -> tuple[np.ndarray, float]:
+    """Appearance descriptor (DESC_SIZE**2,) and sharpness (variance of Laplacian) of one frame."""
+    import cv2  # noqa: PLC0415
+
+    crop = face_crop(gray, box)
+    small = cv2.resize(crop, (DESC_SIZE, DESC_SIZE), interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
+    small -= small.mean()
+    small /= small.std() + 1e-6
+    sharp = float(cv2.Laplacian(crop, cv2.CV_32F).var())
+    return small, sharp
+
+
+def describe_video(frames, box=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptors (n_frames, DESC_SIZE**2) and sharpness (n_frames,) of an iterable of gray frames.
+
+    ``frames`` yields ``(index, gray)`` pairs (a gray :class:`~tracker.video.VideoReader`).
+    """
+    desc, sharp = [], []
+    for i, gray in frames:
+        d, s = describe(gray, box)
+        desc.append(d)
+        sharp.append(s)
+        if progress is not None:
+            progress(i + 1)
+    if not desc:
+        raise InputError("no frames to choose from")
+    return np.stack(desc), np.asarray(sharp)
+
+
+@dataclass
+class FrameChoice:
+    """The chosen frames and why.
+
+    Attributes
+    ----------
+    frames : (K,) int array, in time order
+    cluster : (n_frames,) int array
+        Micro-cluster of every frame (-1: dropped as too small).
+    features : (n_frames, n_components) array
+        The PCA features the choice was made in.
+    sharpness : (n_frames,) array
+    """
+
+    frames: np.ndarray
+    cluster: np.ndarray
+    features: np.ndarray
+    sharpness: np.ndarray
+
+
+def choose_frames(descriptors: np.ndarray, sharpness: np.ndarray, count: int, *, min_gap: int = 12,
+                  sharp_window: int = 4, min_cluster: int = 3, n_components: int = 16,
+                  exclude=(), rng=None) -> FrameChoice:
+    """Pick ``count`` varied, sharp frames from per-frame descriptors (see module docstring).
+
+    Parameters
+    ----------
+    descriptors : (n_frames, d) array
+    sharpness : (n_frames,) array
+        Larger is sharper (variance of Laplacian).
+    count : int
+        Frames to choose (K).
+    min_gap : int
+        No two chosen frames (nor a chosen and an ``exclude``d one) closer than this in time.
+    sharp_window : int
+        A chosen frame may move this many frames to a sharper neighbour of its cluster.
+    min_cluster : int
+        Micro-clusters with fewer frames are ignored (glitches, cuts).
+    n_components : int
+        PCA dimensions of the features.
+    exclude : iterable of int
+        Frames not to choose (and to keep ``min_gap`` away from), e.g. already labelled ones.
+    rng : None, int or numpy.random.Generator
+        Seeds k-means.
+    """
+    from sklearn.cluster import KMeans  # noqa: PLC0415
+    from sklearn.decomposition import PCA  # noqa: PLC0415
+
+    X = np.asarray(descriptors, dtype=np.float64)
+    sharp = np.asarray(sharpness, dtype=np.float64)
+    n = len(X)
+    if X.ndim != 2 or len(sharp) != n:
+        raise InputError(f"descriptors (n_frames, d) and sharpness (n_frames,) disagree: "
+                         f"{X.shape} vs {sharp.shape}")
+    count = int(count)
+    if count < 1:
+        raise InputError(f"--count must be at least 1, got {count}")
+    excluded = np.array(sorted(set(int(i) for i in exclude)), dtype=np.intp)
+    free = np.ones(n, bool)
+    for e in excluded:
+        free[max(e - min_gap + 1, 0):e + min_gap] = False
+    if count > free.sum():
+        raise InputError(f"cannot choose {count} frames from a video of {n} frames "
+                         f"({int(free.sum())} free after exclusions)")
+    seed = np.random.default_rng(rng).integers(2**31 - 1)
+    k_comp = max(1, min(n_components, n - 1, X.shape[1]))
+    F = PCA(n_components=k_comp, random_state=int(seed)).fit_transform(X) if n > 1 else X[:, :1] * 0
+    n_distinct = len(np.unique(np.round(F, 6), axis=0))  # a still video repeats frames exactly
+    n_micro = int(min(max(4 * count, count + 1), n_distinct))
+    km = KMeans(n_clusters=n_micro, n_init=2, random_state=int(seed)).fit(F)
+    labels = km.labels_.copy()
+    sizes = np.bincount(labels, minlength=n_micro)
+    small = sizes < min(min_cluster, max(1, n // (4 * n_micro)))
+    labels[small[labels]] = -1
+    # medoid of each kept micro-cluster (member nearest its centroid), free frames only
+    d_cent = np.linalg.norm(F - km.cluster_centers_[km.labels_], axis=1)
+    cand = []
+    for c in np.flatnonzero(~small):
+        members = np.flatnonzero((labels == c) & free)
+        if len(members):
+            cand.append(members[np.argmin(d_cent[members])])
+    cand = np.array(cand, dtype=np.intp)
+    if len(cand) < count:  # too few clusters survive: fall back to every free frame
+        cand = np.flatnonzero(free)
+    # farthest-point sampling, starting nearest the mean appearance
+    chosen: list[int] = []
+    dist = np.full(len(cand), np.inf)
+    blocked = np.zeros(len(cand), bool)
+    nxt = int(np.argmin(np.linalg.norm(F[cand] - F.mean(axis=0), axis=1)))
+    while len(chosen) < count:
+        f = int(cand[nxt])
+        chosen.append(f)
+        blocked |= np.abs(cand - f) < min_gap
+        dist = np.minimum(dist, np.linalg.norm(F[cand] - F[f], axis=1))
+        score = np.where(blocked, -np.inf, dist)
+        if len(chosen) < count:
+            if not np.isfinite(score.max()):  # candidates exhausted: widen to every free frame
+                rest = np.flatnonzero(free)
+                far = np.min(np.abs(rest[:, None] - np.array(chosen)[None]), axis=1) >= min_gap
+                if not far.any():
+                    raise InputError(f"cannot choose {count} frames at least {min_gap} frames apart "
+                                     f"from a video of {n} frames")
+                cand = rest[far]
+                dist = np.min(np.linalg.norm(F[cand][:, None] - F[chosen][None], axis=2), axis=1)
+                blocked = np.zeros(len(cand), bool)
+                score = dist
+            nxt = int(np.argmax(score))
+    # swap each for the sharpest temporal neighbour that still looks more like it than like any
+    # other chosen frame (motion blur changes the descriptor a little, a new expression a lot)
+    chosen_arr = np.array(chosen)
+    final = []
+    for f in chosen:
+        nb = np.arange(max(f - sharp_window, 0), min(f + sharp_window + 1, n))
+        nb = nb[free[nb]]
+        others = chosen_arr[chosen_arr != f]
+        if len(others):
+            d_self = np.linalg.norm(F[nb] - F[f], axis=1)
+            d_other = np.min(np.linalg.norm(F[nb][:, None] - F[others][None], axis=2), axis=1)
+            nb = nb[d_self < 0.5 * d_other]
+        if final:
+            nb = nb[np.min(np.abs(nb[:, None] - np.array(final)[None]), axis=1) >= min_gap]
+        final.append(int(nb[np.argmax(sharp[nb])]) if len(nb) else f)
+    return FrameChoice(np.array(sorted(final), dtype=np.intp), labels, F, sharp)
+
+
+def spread_frames(n_frames: int, count: int, exclude=(), min_gap: int = 12, rng=None) -> np.ndarray:
+    """``count`` frames drawn at random, spread over the video, ``min_gap`` away from ``exclude``.
+
+    For held-back evaluation frames: random rather than chosen for variety, so
+    they sample the performance as it is. The video is cut into ``count`` equal
+    spans and one frame drawn in each (retrying spans that fall too close).
+    """
+    g = np.random.default_rng(rng)
+    taken = [int(e) for e in exclude]
+    edges = np.linspace(0, n_frames, count + 1).astype(int)
+    out = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        ok = np.arange(a, b)
+        if taken or out:
+            ref = np.array(taken + out)
+            ok = ok[np.min(np.abs(ok[:, None] - ref[None]), axis=1) >= min_gap]
+        if not len(ok):
+            raise InputError(f"cannot place {count} held-back frames {min_gap} apart in {n_frames} frames")
+        out.append(int(g.choice(ok)))
+    return np.array(out, dtype=np.intp)

@@ -1,0 +1,190 @@
+"""Make a label folder: choose frames, save them as images, pre-fill their points, draw a contact sheet.
+
+This is the I/O side of ``keyshape label``; the algorithms live in
+:mod:`~tracker.labelling.frames` (frame choice), :mod:`~tracker.labelling.convert`
+(iBUG-68 to contours48) and :mod:`~tracker.labelling.dlib_landmarker`.
+
+Running it again on the same folder and video keeps the chosen frames and any
+``.pts`` file already there (the user's corrections), and only redraws the
+contact sheet.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.files import atomic_write
+from tracker.labelling.server import SESSION_FILE
+
+MEAN_SHAPE = Path(__file__).parent / "ibug68_mean.json"
+
+
+def mean_ibug68() -> np.ndarray:
+    """Mean iBUG-68 shape (68, 2): origin between the outer eye corners, unit corner distance."""
+    return np.asarray(json.loads(MEAN_SHAPE.read_text())["points"], dtype=np.float64)
+
+
+def template_points(scheme, width: int, height: int) -> np.ndarray:
+    """A generic face in ``scheme``'s layout, centred in a ``width`` x ``height`` frame (no pre-fill)."""
+    from tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
+
+    p = mean_ibug68() * (0.3 * min(width, height)) + [width / 2, 0.4 * height]
+    if scheme.n_points == 68:
+        return p
+    if scheme.n_points == 48:
+        return ibug68_to_contours48(p)
+    raise InputError(f"no starting template for scheme {scheme.name!r} ({scheme.n_points} points): "
+                     f"use contours48 or ibug68")
+
+
+def face_box(frames: np.ndarray, landmarker, margin: float = 0.15) -> tuple[int, int, int, int] | None:
+    """Box around every face dlib finds in ``frames`` (gray), enlarged by ``margin``; None if none."""
+    boxes = []
+    for g in frames:
+        pts = landmarker.detect(g)
+        if pts is not None:
+            boxes.append(np.r_[pts.min(axis=0), pts.max(axis=0)])
+    if not boxes:
+        return None
+    b = np.asarray(boxes)
+    lo, hi = np.median(b[:, :2], axis=0), np.median(b[:, 2:], axis=0)
+    pad = margin * (hi - lo)
+    lo, hi = lo - pad, hi + pad
+    h, w = frames[0].shape[:2]
+    return (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], w)), int(min(hi[1], h)))
+
+
+def prefill(images: np.ndarray, scheme, landmarker) -> list[np.ndarray | None]:
+    """dlib's points for each image (BGR) in ``scheme``'s layout; None where no face is found."""
+    from tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
+
+    out: list[np.ndarray | None] = []
+    for im in images:
+        p = landmarker.detect(im)
+        if p is None:
+            out.append(None)
+        elif scheme.n_points == 68:
+            out.append(p)
+        elif scheme.n_points == 48:
+            out.append(ibug68_to_contours48(p, im))
+        else:
+            raise InputError(f"dlib pre-fill gives ibug68 or contours48, not {scheme.name!r}: use --no-prefill")
+    return out
+
+
+def write_contact_sheet(folder: Path, frames, scheme, path: Path | None = None) -> Path:
+    """Draw each chosen frame's face, enlarged, with its current points into ``folder/contact_sheet.png``."""
+    import cv2  # noqa: PLC0415
+
+    from tracker.draw import contact_sheet, crop_around, draw_shape  # noqa: PLC0415
+    from tracker.io import pts_name, read_pts  # noqa: PLC0415
+
+    tiles, caps = [], []
+    for f in frames:
+        im = cv2.imread(str(folder / "frames" / f"{f:06d}.png"), cv2.IMREAD_COLOR)
+        if im is None:
+            raise InputError(f"frame image {f:06d}.png missing or unreadable", folder / "frames")
+        p = folder / pts_name(f)
+        if p.is_file():
+            pts = read_pts(p)
+            big = cv2.resize(im, None, fx=3, fy=3, interpolation=cv2.INTER_CUBIC)  # room for sub-pixel lines
+            im, _ = crop_around(draw_shape(big, pts * 3 + 1, scheme), pts * 3 + 1, margin=0.3)
+        tiles.append(im)
+        caps.append(f"frame {f}" + ("" if p.is_file() else " (no points)"))
+    sheet = contact_sheet(tiles, caps, columns=4, tile_width=360)
+    path = path or folder / "contact_sheet.png"
+    _write_png(path, sheet)
+    return path
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    import cv2  # noqa: PLC0415
+
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise InputError("could not encode the image as PNG", path)
+    with atomic_write(path, "wb") as fh:
+        fh.write(buf.tobytes())
+
+
+def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, scheme_name: str = "contours48",
+                         use_prefill: bool = True, exclude=(), rng=0, quiet: bool = False,
+                         frames=None) -> dict:
+    """Choose ``count`` frames of ``video`` and make the label folder ``out`` (see module docstring).
+
+    ``frames`` (zero-based indices) skips the choice and labels exactly those frames.
+
+    Returns the session dict (``scheme``, ``video``, ``frames``, ``prefilled``).
+    """
+    import cv2  # noqa: PLC0415
+
+    from pipeline.progress import Progress  # noqa: PLC0415
+    from tracker.io import pts_name, write_pts  # noqa: PLC0415
+    from tracker.labelling.frames import choose_frames, describe_video  # noqa: PLC0415
+    from tracker.schemes import load_scheme  # noqa: PLC0415
+    from tracker.video import VideoReader  # noqa: PLC0415
+
+    if int(count) < 1:
+        raise InputError(f"--count must be at least 1, got {count}")
+    scheme = load_scheme(scheme_name)
+    out = Path(out)
+    reader = VideoReader(video)
+    info = reader.info
+    sess_path = out / SESSION_FILE
+    landmarker = None
+    if use_prefill:
+        from tracker.labelling.dlib_landmarker import DlibLandmarker  # noqa: PLC0415
+        landmarker = DlibLandmarker()
+    session = None
+    if sess_path.is_file():
+        from tracker.labelling.server import read_session  # noqa: PLC0415
+        old = read_session(out)
+        if Path(old.get("video", "")).name == info.path.name and old["scheme"] == scheme.name:
+            session = old
+        else:
+            raise InputError(f"already holds labels of {old.get('video')} in scheme {old['scheme']}: "
+                             f"choose another output folder", out)
+    if session is None and frames is not None:
+        frames = sorted(set(int(f) for f in frames))
+        if not frames or frames[0] < 0 or frames[-1] >= info.n_frames:
+            raise InputError(f"--frames must be frame indices in 0..{info.n_frames - 1}", info.path)
+        session = {"scheme": scheme.name, "video": str(info.path.resolve()), "frames": frames,
+                   "prefilled": landmarker is not None,
+                   "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+    if session is None:
+        box = None
+        if landmarker is not None:
+            sample = reader.read_frames(np.linspace(0, max(info.n_frames - 1, 0), 9).astype(int))
+            box = face_box([cv2.cvtColor(s, cv2.COLOR_BGR2GRAY) for s in sample], landmarker)
+        with Progress(info.n_frames, "describing frames", enabled=not quiet) as prog:
+            desc, sharp = describe_video(VideoReader(video, gray=True), box,
+                                         progress=lambda i: prog.update())
+        gap = max(1, int(round(info.fps / 2))) if info.fps > 0 else 12
+        gap = min(gap, max(1, len(desc) // (2 * count)))
+        choice = choose_frames(desc, sharp, count, min_gap=gap, exclude=exclude, rng=rng)
+        session = {"scheme": scheme.name, "video": str(info.path.resolve()),
+                   "frames": [int(f) for f in choice.frames], "face_box": box,
+                   "prefilled": landmarker is not None,
+                   "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+    frames = session["frames"]
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    images = reader.read_frames(frames)
+    missing = [k for k, f in enumerate(frames) if not (out / pts_name(f)).is_file()]
+    for f, im in zip(frames, images):
+        png = out / "frames" / f"{f:06d}.png"
+        if not png.is_file():
+            _write_png(png, im)
+    if missing:
+        filled = prefill(images[missing], scheme, landmarker) if landmarker is not None else [None] * len(missing)
+        h, w = images.shape[1:3]
+        for k, pts in zip(missing, filled):
+            write_pts(out / pts_name(frames[k]), pts if pts is not None else template_points(scheme, w, h))
+        session["no_face"] = sorted(set(session.get("no_face", [])) |
+                                    {frames[k] for k, p in zip(missing, filled) if p is None})
+    with atomic_write(sess_path) as fh:
+        json.dump(session, fh, indent=1)
+    write_contact_sheet(out, frames, scheme)
+    return session
