@@ -69,6 +69,7 @@ class _Level:
         b = b - b.mean(0)
         q, _ = np.linalg.qr(np.hstack([np.ones((len(b), 1)), b]))
         self.q, self.xx, self.yy = q, xx.astype(np.float64), yy.astype(np.float64)
+        self.jac = np.empty((len(self.index), 6))    # work buffer of the polish Jacobian
         sd_po = sd - q @ (q.T @ sd)
         # weighted Gauss-Newton: pixels that vary a lot between labelled frames (mouth, eyelids)
         # count less, so an expression never seen in training does not drag the pose
@@ -99,8 +100,8 @@ class Tracker:
         While lost, the (costlier) whole-frame search runs every this many frames.
     """
 
-    def __init__(self, model: AppearanceModel, n_iter: int = 6, lost_factor: float = 6.0, search: bool = True,
-                 reinit_every: int = 3, n_polish: int = 4):
+    def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 6.0, search: bool = True,
+                 reinit_every: int = 3, n_polish: int = 3):
         model._check_fitted()
         self.model = model
         self.n_iter = n_iter
@@ -149,7 +150,7 @@ class Tracker:
         self.lost_for = 0
 
     # ---------------------------------------------------------------- core steps
-    def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0, 1), n_iter: int | None = None) -> tuple[np.ndarray, int]:
+    def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0,), n_iter: int | None = None) -> tuple[np.ndarray, int]:
         """Refine ``pose`` (image_from_model) by inverse-compositional alignment, coarse to fine."""
         n_iter = self.n_iter if n_iter is None else n_iter
         a = np.asarray(pose, np.float64)
@@ -164,10 +165,10 @@ class Tracker:
                 w = np.array([[1 + dp[0], dp[2], dp[4]], [dp[1], 1 + dp[3], dp[5]]])
                 al = self._clamp(compose_affine(al, invert_affine(w)))
                 its += 1
-                if np.abs(dp[4:]).max() < 0.02 and np.abs(dp[:4]).max() < 5e-4:
+                if np.abs(dp[4:]).max() < 0.03 and np.abs(dp[:4]).max() < 1e-3:
                     break
             a = compose_affine(al, lv.level_from_fine)
-        if levels and levels[-1] == len(self.levels) - 1 and self.n_polish:
+        if self.n_polish:
             a, k = self.polish(pyr, a)
             its += k
         return a, its
@@ -198,12 +199,19 @@ class Tracker:
             best_r, prev = r, a
             gx = cv2.Sobel(patch, cv2.CV_64F, 1, 0, ksize=3, scale=1 / 8).ravel()[lv.index] / sd
             gy = cv2.Sobel(patch, cv2.CV_64F, 0, 1, ksize=3, scale=1 / 8).ravel()[lv.index] / sd
-            j = np.stack([gx * lv.xx, gy * lv.xx, gx * lv.yy, gy * lv.yy, gx, gy], axis=1)
+            j = lv.jac
+            np.multiply(gx, lv.xx, out=j[:, 0])
+            np.multiply(gy, lv.xx, out=j[:, 1])
+            np.multiply(gx, lv.yy, out=j[:, 2])
+            np.multiply(gy, lv.yy, out=j[:, 3])
+            j[:, 4], j[:, 5] = gx, gy
             j_po = j - lv.q @ (lv.q.T @ j)
             dp = -np.linalg.solve(j_po.T @ j_po + 1e-9 * np.eye(6), j_po.T @ e_po)
             w = np.array([[1 + dp[0], dp[2], dp[4]], [dp[1], 1 + dp[3], dp[5]]])
             a = self._clamp(compose_affine(a, w))
             its += 1
+            if np.abs(dp[4:]).max() < 0.01 and np.abs(dp[:4]).max() < 3e-4:
+                break
         return a, its
 
     def _clamp(self, pose: np.ndarray) -> np.ndarray:
@@ -215,10 +223,13 @@ class Tracker:
         stretch; only the ratio of the singular values is limited.
         """
         lin = pose[:, :2]
-        u, sv, vt = np.linalg.svd(lin)
-        ratio = sv[0] / max(sv[1], 1e-12)
-        if ratio <= self.max_anisotropy:
+        # singular values of a 2x2 in closed form: s0 s1 = |det|, s0² + s1² = |L|²_F
+        det = abs(lin[0, 0] * lin[1, 1] - lin[0, 1] * lin[1, 0])
+        fro = float((lin * lin).sum())
+        disc = np.sqrt(max(fro * fro - 4 * det * det, 0.0))
+        if (fro + disc) <= self.max_anisotropy ** 2 * max(fro - disc, 1e-300):
             return pose
+        u, sv, vt = np.linalg.svd(lin)
         g = np.sqrt(sv[0] * sv[1])
         r = np.sqrt(self.max_anisotropy)
         out = pose.copy()
@@ -252,7 +263,7 @@ class Tracker:
                 return False
         return True
 
-    def _evaluate(self, pyr, pose, image_size, levels=(0, 1), n_iter=None):
+    def _evaluate(self, pyr, pose, image_size, levels=(0,), n_iter=None):
         pose, its = self.align(pyr, pose, levels, n_iter)
         shape, pts, r = self.read(pyr, pose)
         ok = r < self.lost_threshold and self._sane(pose, shape, image_size)
