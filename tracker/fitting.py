@@ -205,8 +205,10 @@ class Tracker:
             np.multiply(gx, lv.yy, out=j[:, 2])
             np.multiply(gy, lv.yy, out=j[:, 3])
             j[:, 4], j[:, 5] = gx, gy
-            j_po = j - lv.q @ (lv.q.T @ j)
-            dp = -np.linalg.solve(j_po.T @ j_po + 1e-9 * np.eye(6), j_po.T @ e_po)
+            # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe⊥ (e⊥ is orthogonal to Q)
+            qj = lv.q.T @ j
+            hess = j.T @ j - qj.T @ qj
+            dp = -np.linalg.solve(hess + 1e-9 * np.eye(6), j.T @ e_po)
             w = np.array([[1 + dp[0], dp[2], dp[4]], [dp[1], 1 + dp[3], dp[5]]])
             a = self._clamp(compose_affine(a, w))
             its += 1
