@@ -148,6 +148,7 @@ class Tracker:
         self.pose = None
         self.last_good = None
         self.lost_for = 0
+        self._last_r = 0.0
 
     # ---------------------------------------------------------------- core steps
     def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0,), n_iter: int | None = None) -> tuple[np.ndarray, int]:
@@ -340,8 +341,15 @@ class Tracker:
         best = None
         its_total = 0
         if self.pose is not None:
-            ok, r, pose, pts, its = self._evaluate(pyr, self.pose, size)
+            # fast path: small motion needs only the full-resolution polish; fall back to the
+            # coarse-to-fine alignment when the residual is not as good as the previous frame's
+            ok, r, pose, pts, its = self._evaluate(pyr, self.pose, size, levels=())
             its_total += its
+            if not (ok and r <= 1.2 * self._last_r + 0.01):
+                ok2, r2, pose2, pts2, its = self._evaluate(pyr, self.pose, size)
+                its_total += its
+                if (ok2, -r2) > (ok, -r):
+                    ok, r, pose, pts = ok2, r2, pose2, pts2
             best = (ok, r, pose, pts)
         if (best is None or not best[0]) and self.search:
             cands = []
@@ -365,6 +373,7 @@ class Tracker:
         if ok:
             self.pose = pose
             self.last_good = pose
+            self._last_r = r
             self.lost_for = 0
         else:
             self.lost_for += 1
