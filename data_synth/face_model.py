@@ -122,20 +122,20 @@ class FaceModel:
         self.gaze_range = np.array([8.0, 3.5])
         self.brow_gap = 25.0 * j(0.08)
         self.brow_arch = 7.0 * j(0.2)
-        mw, ut, lt = 34.0 * j(0.06), 9.0 * j(0.12), 10.0 * j(0.12)
+        mw, ut, lt = 38.0 * j(0.06), 9.5 * j(0.12), 11.0 * j(0.12)
         # geometry parameters, each an affine function of the weights: [base, per-component coefficients]
         P = {}
         for side, s, smile, blink, outer in (("l", -1, "mouthSmile_R", "eyeBlink_R", "browOuterUp_R"),
                                             ("r", +1, "mouthSmile_L", "eyeBlink_L", "browOuterUp_L")):
             # eye: upper lid height above the corner line, lower lid depth below it
-            P[f"eye_up_{side}"] = _param(10.0, **{blink: -16.5, smile: -1.0, outer: 1.0})
+            P[f"eye_up_{side}"] = _param(10.0, **{blink: -15.0, smile: -1.0, outer: 1.0})  # shut at 1: meets the lower lid
             P[f"eye_lo_{side}"] = _param(6.5, **{blink: -1.2, smile: -2.2})
             # brow: rise of the inner and outer ends
             P[f"brow_in_{side}"] = _param(0.0, browInnerUp=9.0, **{blink: -1.5})
             P[f"brow_out_{side}"] = _param(0.0, browInnerUp=1.5, **{outer: 9.0, blink: -1.0})
             # lip corner x (outwards positive) and y (down positive), relative to the neutral corner
-            P[f"corner_x_{side}"] = _param(mw, **{smile: 6.0}, mouthPucker=-11.0, mouthFunnel=-8.0, jawOpen=-2.0)
-            P[f"corner_y_{side}"] = _param(0.0, **{smile: -6.0}, jawOpen=5.0, mouthFunnel=1.0)
+            P[f"corner_x_{side}"] = _param(mw, **{smile: 7.0}, mouthPucker=-11.0, mouthFunnel=-8.0, jawOpen=-2.0)
+            P[f"corner_y_{side}"] = _param(0.0, **{smile: -8.0}, jawOpen=5.0, mouthFunnel=1.0)
         P["up_outer"] = _param(ut, mouthPucker=3.0, mouthFunnel=3.0, mouthSmile_L=-1.0, mouthSmile_R=-1.0)
         P["up_inner"] = _param(0.6, jawOpen=-3.0, mouthFunnel=-3.0, mouthSmile_L=-1.0, mouthSmile_R=-1.0)
         P["open_jaw"] = _param(0.4, jawOpen=26.0, mouthSmile_L=1.0, mouthSmile_R=1.0)
@@ -218,13 +218,13 @@ class FaceModel:
         x_in = xl + ins + (xr - xl - 2 * ins) * u
         bow = self.bow_depth * np.exp(-((u - 0.5) / 0.07) ** 2)
         ellipse = 2 * np.sqrt(np.clip(u * (1 - u), 0, None))
-        out["lip_outer_upper"] = np.stack([x_out, line - p["up_outer"][:, None] * bump(0.7) + bow], axis=-1)
+        out["lip_outer_upper"] = np.stack([x_out, line - p["up_outer"][:, None] * bump(0.55) + bow], axis=-1)
         inner_up = line + p["up_inner"][:, None] * bump(0.8)
         inner_lo = inner_up + p["open_jaw"][:, None] * bump(0.8) + p["open_funnel"][:, None] * ellipse
         out["lip_inner_upper"] = np.stack([x_in, inner_up], axis=-1)
         out["lip_inner_lower"] = np.stack([x_in, inner_lo], axis=-1)
         outer_lo = (line + p["up_inner"][:, None] * bump(0.8) + p["open_jaw"][:, None] * bump(0.8)
-                    + p["open_funnel"][:, None] * ellipse + p["lo_thick"][:, None] * bump(0.8))
+                    + p["open_funnel"][:, None] * ellipse + p["lo_thick"][:, None] * bump(0.6))
         out["lip_outer_lower"] = np.stack([x_out, outer_lo], axis=-1)
         # pupils: midpoint of the eye corners plus gaze
         iris = self.eye_centres[None, :, :] + (g * self.gaze_range)[:, None, :]

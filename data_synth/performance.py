@@ -156,7 +156,6 @@ def make_performance(n_frames: int, fps: float = 30.0, rng=None) -> Performance:
     W = np.clip(W, 0.0, 1.0)
 
     # --- gaze: fixations joined by saccades of ~3 frames
-    gaze = np.zeros((n_frames, 2))
     times = np.concatenate([[-1.0], _events(total, 1.1, r_gaze)])
     targets = np.column_stack([r_gaze.uniform(-0.85, 0.85, len(times)), r_gaze.uniform(-0.6, 0.6, len(times))])
     targets[0] = r_gaze.uniform(-0.3, 0.3, 2)

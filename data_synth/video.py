@@ -140,9 +140,9 @@ class SyntheticVideo:
             raise InputError(f"frame {t} is outside 0..{self.n_frames - 1}")
         perf = self.performance
         c = {k: v[t] for k, v in self.curves.items()}
-        canvas = self.renderer.render_canvas(c, perf.weights[t], perf.light[t])
+        canvas, alpha = self.renderer.render_canvas(c, perf.weights[t], perf.light[t])
         rng = np.random.default_rng([self.seed, 1, t])
-        return self.renderer.composite(canvas, self.pose[t], self.renderer.model_scale * perf.shift[t],
+        return self.renderer.composite(canvas, alpha, self.pose[t], self.renderer.model_scale * perf.shift[t],
                                        perf.exposure[t], self.motion(t), rng)
 
     def tracks(self) -> Tracks:
@@ -180,27 +180,42 @@ class SyntheticVideo:
         perf = self.performance
         feats = np.column_stack([perf.weights, 0.5 * perf.gaze, 0.5 * perf.roll_deg / 15.0,
                                  0.5 * (perf.scale - 1) / 0.1, 0.5 * perf.shift / [30.0, 15.0]])
-        return select_label_frames(feats, k)
+        return select_label_frames(feats, k, n_weights=len(COMPONENTS))
 
 
-def select_label_frames(features: np.ndarray, k: int) -> np.ndarray:
-    """Farthest-point sampling: the frame nearest neutral, then repeatedly the frame farthest from all chosen.
+def select_label_frames(features: np.ndarray, k: int, n_weights: int | None = None) -> np.ndarray:
+    """Label frames that span a performance: the most neutral frame, each weight's extreme, then farthest points.
 
     Parameters
     ----------
-    features : (n_frames, n_features) per-frame description (expression weights, gaze, pose).
+    features : (n_frames, n_features) per-frame description; the first
+        ``n_weights`` columns are expression weights (the rest, e.g. gaze and
+        head pose, only take part in the farthest-point fill).
     k : int, 1 <= k <= n_frames.
+    n_weights : int, optional
+        Number of leading weight columns (default: all columns).
 
     Returns
     -------
-    (k,) sorted distinct frame indices. Each new pick maximises its distance
-    to the frames already chosen, so the set reaches the extremes of every
-    weight and contains no near-duplicates while distinct frames remain.
+    (k,) sorted distinct frame indices. The first pick is the frame with the
+    smallest weights; then, strongest first, the frame where each weight peaks
+    (skipped when it repeats a chosen frame); then farthest-point sampling:
+    each new pick maximises its distance to the frames already chosen, so the
+    set has no near-duplicates while distinct frames remain.
     """
     f = np.asarray(features, dtype=np.float64)
-    chosen = [int(np.argmin(np.linalg.norm(f[:, :len(COMPONENTS)], axis=1)))]
-    d = np.linalg.norm(f - f[chosen[0]], axis=1)
-    for _ in range(k - 1):      # loop over labels, not frames
+    nw = f.shape[1] if n_weights is None else int(n_weights)
+    w = f[:, :nw]
+    chosen = [int(np.argmin(np.linalg.norm(w, axis=1)))]
+    for j in np.argsort(-w.max(axis=0), kind="stable"):          # loop over weights, not frames
+        if len(chosen) >= k or w[:, j].max() <= 0:
+            break
+        i = int(np.argmax(w[:, j]))
+        if np.linalg.norm(f[chosen] - f[i], axis=1).min() > 1e-9:
+            chosen.append(i)
+    d = np.min(np.linalg.norm(f[:, None, :] - f[None, chosen, :], axis=2), axis=1)
+    d[chosen] = -1.0
+    while len(chosen) < k:      # loop over labels, not frames
         j = int(np.argmax(d))
         chosen.append(j)
         d = np.minimum(d, np.linalg.norm(f - f[j], axis=1))
@@ -263,19 +278,31 @@ def synthesize(out_dir, frames: int = 600, seed: int = 0, size=(640, 480), fps: 
     return paths
 
 
-def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray]) -> Path:
-    """Contact sheet of ``frames`` (index -> image) with the ground truth drawn, as a PNG."""
-    from tracker.draw import contact_sheet, draw_shape
+def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray], tile_width: int = 400) -> Path:
+    """Contact sheet of ``frames`` (index -> image) as face close-ups with the ground truth drawn, as a PNG.
+
+    Each tile is the face region of a frame, enlarged to ``tile_width`` pixels
+    before the contours are drawn so that a person can check that they follow
+    the lids, lips, brows and pupils; the caption names the frame and its
+    strongest hidden weights.
+    """
+    from tracker.draw import contact_sheet, crop_around, draw_shape
     from tracker.schemes import load_scheme
 
-    scheme = load_scheme("contours48")
-    idx = sorted(frames)
-    tiles = [draw_shape(frames[t], sv.points[t], scheme) for t in idx]
-    caps = [f"frame {t}  jaw {sv.weights[t, 0]:.2f}" for t in idx]
-    sheet = contact_sheet(tiles, caps, columns=4, tile_width=min(480, sv.size[0]))
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise InputError("preview must be a .png file", path)
+    scheme = load_scheme("contours48")
+    tiles, caps = [], []
+    for t in sorted(frames):
+        crop, pts = crop_around(frames[t], sv.points[t], margin=0.3)
+        f = tile_width / crop.shape[1]
+        big = cv2.resize(crop, (tile_width, int(round(crop.shape[0] * f))), interpolation=cv2.INTER_CUBIC)
+        tiles.append(draw_shape(big, pts * f + (f - 1) / 2, scheme))
+        top = np.argsort(-sv.weights[t])[:2]
+        caps.append(f"frame {t}: " + ", ".join(f"{COMPONENTS[j]} {sv.weights[t, j]:.2f}" for j in top
+                                                if sv.weights[t, j] >= 0.05))
+    sheet = contact_sheet(tiles, caps, columns=4, tile_width=tile_width)
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), sheet):
             raise InputError("cannot write the preview image", path)

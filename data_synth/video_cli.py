@@ -1,6 +1,35 @@
-"""Command-line registration for this stage (stub: filled in by the issue that builds it)."""
+"""``keyshape synth video``: synthetic camcorder footage of a talking face with exact ground truth."""
 from __future__ import annotations
+
+import time
 
 
 def register(subparsers) -> None:
-    """Add this stage's subcommands to ``subparsers``."""
+    """Add ``video`` under ``keyshape synth``."""
+    p = subparsers.add_parser(
+        "video", help="synthetic talking-face footage with ground-truth contours48 landmarks",
+        description="Write video.mp4, truth.csv (contours48 landmarks and head pose per frame), "
+                    "labels/ (suggested training frames as .pts) and truth.json (hidden expression "
+                    "weights and basis) into OUT_DIR.")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="output folder (created)")
+    p.add_argument("--frames", type=int, default=600, help="number of frames (default 600)")
+    p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same footage (default 0)")
+    p.add_argument("--size", default="640x480", help="frame size WIDTHxHEIGHT (default 640x480)")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    p.add_argument("--labels", type=int, default=12, help="suggested training frames written to labels/ (default 12)")
+    p.add_argument("--preview", metavar="PNG", default=None,
+                   help="also write a contact sheet of 12 frames with the ground truth drawn")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from data_synth.video import parse_size, synthesize
+
+    t0 = time.perf_counter()
+    out = synthesize(args.out_dir, frames=args.frames, seed=args.seed, size=parse_size(args.size), fps=args.fps,
+                     labels=args.labels, preview=args.preview, verbose=True)
+    dt = time.perf_counter() - t0
+    print(f"keyshape synth video: {args.frames} frames in {dt:.1f} s ({1000 * dt / args.frames:.1f} ms/frame)")
+    for name, path in out.items():
+        print(f"  {name:11s} {path}")
+    return 0

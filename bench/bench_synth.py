@@ -1,0 +1,57 @@
+"""Speed of synthetic footage: ms per frame of rendering and of the whole ``synthesize`` call.
+
+Prints wall-clock and CPU milliseconds per frame and the ratio to a baseline
+measured in the same run (encoding the same number of ready-made frames with
+``tracker.video.video_writer``), so numbers from loaded machines stay comparable.
+
+    PYTHONPATH=. python bench/bench_synth.py [--frames 300] [--size 640x480]
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--size", default="640x480")
+    args = ap.parse_args()
+    from data_synth.video import SyntheticVideo, parse_size, synthesize
+    from tracker.video import video_writer
+
+    size = parse_size(args.size)
+    n = args.frames
+    with tempfile.TemporaryDirectory() as tmp:
+        frame = np.random.default_rng(0).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
+        w0, c0 = time.perf_counter(), time.process_time()
+        with video_writer(Path(tmp) / "base.mp4", 30.0, size) as wr:
+            for _ in range(n):
+                wr.write(frame)
+        base_wall, base_cpu = time.perf_counter() - w0, time.process_time() - c0
+
+        sv = SyntheticVideo(n, 0, size)
+        w0, c0 = time.perf_counter(), time.process_time()
+        for t in range(n):
+            sv.frame(t)
+        render_wall, render_cpu = time.perf_counter() - w0, time.process_time() - c0
+
+        w0, c0 = time.perf_counter(), time.process_time()
+        synthesize(Path(tmp) / "out", frames=n, seed=0, size=size)
+        all_wall, all_cpu = time.perf_counter() - w0, time.process_time() - c0
+
+    ms = lambda s: 1000.0 * s / n  # noqa: E731
+    print(f"frames {n} at {size[0]}x{size[1]}")
+    print(f"baseline encode only : {ms(base_wall):6.1f} ms/frame wall, {ms(base_cpu):6.1f} ms/frame cpu")
+    print(f"render (no encoding) : {ms(render_wall):6.1f} ms/frame wall, {ms(render_cpu):6.1f} ms/frame cpu"
+          f"  ratio to baseline {render_cpu / base_cpu:5.2f}")
+    print(f"synthesize (all)     : {ms(all_wall):6.1f} ms/frame wall, {ms(all_cpu):6.1f} ms/frame cpu"
+          f"  ratio to baseline {all_cpu / base_cpu:5.2f}  total {all_wall:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
