@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.errors import InputError, KeyshapeError, require_file
+from pipeline.errors import InputError, KeyshapeError
 from tracker.schemes import Scheme, load_scheme
 from tracker.warp import apply_affine, fit_affine, invert_affine, morph, procrustes_mean, triangulate
 
