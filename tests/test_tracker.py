@@ -213,6 +213,17 @@ def test_bad_model_files(model, tmp_path):
     np.savez(other, a=np.zeros(3))
     with pytest.raises(InputError, match=r"other\.npz: not a keyshape model file \(no format header\)"):
         AppearanceModel.load(other)
+    import json
+
+    with np.load(good) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    meta["format_version"] = 99
+    arrays["meta"] = np.array(json.dumps(meta))
+    future = tmp_path / "future.npz"
+    np.savez(future, **arrays)
+    with pytest.raises(InputError, match=r"future\.npz: model format version 99 is not supported"):
+        AppearanceModel.load(future)
     text = tmp_path / "text.npz"
     text.write_text("hello")
     with pytest.raises(InputError, match=r"text\.npz: not a keyshape model"):
