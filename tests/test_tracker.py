@@ -367,7 +367,6 @@ def test_model_from_another_scheme_or_corrupt(files, tmp_path, capsys):
 
 
 def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, capsys):
-
     d, video, model, _ = files
     real_step = Tracker.step
 
