@@ -1,15 +1,19 @@
-"""Eigen-points model, pose recovery, lost-track handling, model files, warping and smoothing."""
+"""Eigen-points model, pose recovery, lost-track handling, model files, warping, smoothing, and the
+``keyshape train`` / ``keyshape track`` commands with their bad-input errors."""
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
 
+from pipeline.cli import main
 from pipeline.errors import InputError, KeyshapeError
 from tracker.eigenpoints import AppearanceModel
 from tracker.fitting import Tracker
+from tracker.io import read_tracks, write_labels, write_pts
 from tracker.schemes import load_scheme
 from tracker.smoothing import StreamSmoother, smooth
+from tracker.video import video_writer
 from tracker.warp import (PiecewiseAffine, apply_affine, compose_affine, fit_affine, fit_similarity,
                           invert_affine, morph, triangulate)
 
@@ -104,7 +108,7 @@ def test_piecewise_affine_is_affine_for_an_affine_motion_and_morph_endpoints():
 def test_training_frame_gives_back_its_own_labels(footage):
     """With every component kept, a training image lies in the basis: projection is exact."""
     frames, labels = footage
-    full = AppearanceModel("contours48", n_components=1000, n_morphs=20, rng=0).fit(list(frames), labels)
+    full = AppearanceModel("contours48", n_components=1000, n_morphs=20, ridge=0.0, rng=0).fit(list(frames), labels)
     for i in range(len(frames)):
         pts, r = full.predict(frames[i], full.train_poses_[i])
         assert np.abs(pts - labels[i]).max() < 0.05, i
@@ -213,6 +217,17 @@ def test_bad_model_files(model, tmp_path):
     np.savez(other, a=np.zeros(3))
     with pytest.raises(InputError, match=r"other\.npz: not a keyshape model file \(no format header\)"):
         AppearanceModel.load(other)
+    import json
+
+    with np.load(good) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    meta["format_version"] = 99
+    arrays["meta"] = np.array(json.dumps(meta))
+    future = tmp_path / "future.npz"
+    np.savez(future, **arrays)
+    with pytest.raises(InputError, match=r"future\.npz: model format version 99 is not supported"):
+        AppearanceModel.load(future)
     text = tmp_path / "text.npz"
     text.write_text("hello")
     with pytest.raises(InputError, match=r"text\.npz: not a keyshape model"):
@@ -253,3 +268,116 @@ def test_smoothing_off_by_default_and_bad_name():
     np.testing.assert_array_equal(smooth(pts), pts)
     with pytest.raises(InputError, match="unknown smoothing"):
         StreamSmoother("kalman")
+
+
+# --------------------------------------------------------------------------- commands and bad input
+
+LABELLED = [0, 2, 4, 6, 8]
+
+
+@pytest.fixture(scope="module")
+def files(footage, tmp_path_factory):
+    frames, labels = footage
+    d = tmp_path_factory.mktemp("cli")
+    video = d / "clip.avi"
+    with video_writer(video, 10.0, (frames.shape[2], frames.shape[1])) as w:
+        for f in frames:
+            w.write(np.repeat(f[:, :, None], 3, axis=2))
+    write_labels(d / "labels", LABELLED, labels[LABELLED])
+    model = d / "model.npz"
+    assert main(["train", str(video), "--labels", str(d / "labels"), "-o", str(model)]) == 0
+    return d, video, model, labels
+
+
+def test_train_and_track(files, capsys):
+    d, video, model, labels = files
+    out = d / "tracks.csv"
+    rc = main(["track", str(video), "--model", str(model), "-o", str(out), "--overlay", str(d / "over.avi"),
+               "--quiet"])
+    assert rc == 0
+    tr = read_tracks(out)
+    assert tr.n_frames == len(labels) and tr.success.all()
+    err = np.linalg.norm(tr.points - labels, axis=-1).mean(1)
+    assert err[LABELLED].max() < 1.5 and err.mean() < 2.0, err
+    assert (d / "over.avi").is_file()
+    assert "10 frames, 0 lost" in capsys.readouterr().out
+
+
+def test_video_that_does_not_open(files, tmp_path, capsys):
+    d, video, model, _ = files
+    bad = tmp_path / "notavideo.mp4"
+    bad.write_text("hello")
+    assert main(["track", str(bad), "--model", str(model), "-o", str(tmp_path / "t.csv")]) == 2
+    assert "notavideo.mp4: cannot open as a video" in capsys.readouterr().err
+    assert not (tmp_path / "t.csv").exists()
+
+
+def test_truncated_video_tracks_up_to_the_break(files, tmp_path, capsys):
+    d, video, model, _ = files
+    data = video.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) * 6 // 10])
+    out = tmp_path / "t.csv"
+    rc = main(["track", str(cut), "--model", str(model), "-o", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    tr = read_tracks(out)
+    assert 0 < tr.n_frames < 10
+    assert "cut.avi ended after" in err and "truncated" in err
+
+
+def test_label_count_mismatch_names_the_file(files, tmp_path, capsys):
+    d, video, _, labels = files
+    lab = tmp_path / "labels"
+    write_labels(lab, [0, 2], labels[[0, 2]])
+    write_pts(lab / "000004.pts", labels[4][:40])
+    assert main(["train", str(video), "--labels", str(lab), "-o", str(tmp_path / "m.npz")]) == 2
+    assert "000004.pts: 40 points, expected 48" in capsys.readouterr().err
+
+
+def test_labels_past_the_end(files, tmp_path, capsys):
+    d, video, _, labels = files
+    lab = tmp_path / "labels"
+    write_labels(lab, [0, 2, 50], labels[[0, 2, 4]])
+    assert main(["train", str(video), "--labels", str(lab), "-o", str(tmp_path / "m.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "labels" in err and "[50]" in err and "10 frames" in err
+
+
+def test_zero_frame_video(files, tmp_path, capsys):
+    d, _, model, _ = files
+    empty = tmp_path / "empty.avi"
+    with video_writer(empty, 10.0, (320, 240)):
+        pass
+    assert main(["track", str(empty), "--model", str(model), "-o", str(tmp_path / "t.csv"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "empty.avi" in err and ("no decodable frames" in err or "cannot open" in err)
+    assert not (tmp_path / "t.csv").exists()
+
+
+def test_model_from_another_scheme_or_corrupt(files, tmp_path, capsys):
+    d, video, model, _ = files
+    assert main(["track", str(video), "--model", str(model), "--scheme", "ibug68",
+                 "-o", str(tmp_path / "t.csv")]) == 2
+    assert "model.npz: model was trained in scheme 'contours48'" in capsys.readouterr().err
+    bad = tmp_path / "broken.npz"
+    bad.write_bytes(model.read_bytes()[:300])
+    assert main(["track", str(video), "--model", str(bad), "-o", str(tmp_path / "t.csv")]) == 2
+    assert "broken.npz: not a keyshape model file" in capsys.readouterr().err
+
+
+def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, capsys):
+    d, video, model, _ = files
+    real_step = Tracker.step
+
+    def step(self, frame, index=0):
+        if index == 4:
+            raise KeyboardInterrupt
+        return real_step(self, frame, index)
+
+    monkeypatch.setattr(Tracker, "step", step)
+    out = tmp_path / "t.csv"
+    assert main(["track", str(video), "--model", str(model), "-o", str(out), "--smooth", "savgol", "--quiet"]) == 130
+    assert "interrupted: tracks written for frames 0-3 only" in capsys.readouterr().out
+    tr = read_tracks(out)
+    np.testing.assert_array_equal(tr.frame, [0, 1, 2, 3])

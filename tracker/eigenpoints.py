@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.errors import InputError, KeyshapeError, require_file
+from pipeline.errors import InputError, KeyshapeError
 from tracker.schemes import Scheme, load_scheme
 from tracker.warp import apply_affine, fit_affine, invert_affine, morph, procrustes_mean, triangulate
 
@@ -126,6 +126,9 @@ class AppearanceModel:
     n_morphs : int
         Morphed images added to the training set (pairs drawn at random,
         blend weights 1/3 and 2/3).
+    ridge : float
+        Strength of the Gaussian prior on the coefficients in the projection
+        (0: the paper's plain least squares on the intensity rows).
     landmark_weight : float
         Total variance of the landmark rows relative to the intensity rows in
         the stacked PCA vectors (the coupling of eigen-points).
@@ -148,7 +151,7 @@ class AppearanceModel:
 
     def __init__(self, scheme: str | Scheme = "contours48", n_components: int | None = None,
                  variance: float = 0.98, face_width: int = 64, margin: float = 0.22, n_morphs: int = 120,
-                 landmark_weight: float = 1.0, rng=None):
+                 landmark_weight: float = 1.0, ridge: float = 1.0, rng=None):
         self.scheme = scheme
         self.n_components = n_components
         self.variance = variance
@@ -156,6 +159,7 @@ class AppearanceModel:
         self.margin = margin
         self.n_morphs = n_morphs
         self.landmark_weight = landmark_weight
+        self.ridge = ridge
         self.rng = rng
 
     # ---------------------------------------------------------------- fitting
@@ -282,6 +286,7 @@ class AppearanceModel:
         self.mean_ = mean
         self.components_ = vt[:k]
         self.explained_variance_ratio_ = ratio[:k]
+        self.explained_variance_ = var[:k] / len(x)
 
     def _precompute(self) -> None:
         """Everything constant per frame: the pseudo-inverse of the intensity rows."""
@@ -290,7 +295,16 @@ class AppearanceModel:
         self._mean_i = self.mean_[:n_pix]
         self._mean_l = self.mean_[n_pix:] / self.landmark_scale_
         self._ul = self.components_[:, n_pix:].T / self.landmark_scale_   # (2 n_points, k)
-        self._pinv_i = np.linalg.pinv(ui)                       # (k, n_pix): least squares on intensity rows
+        if self.ridge > 0:
+            # MAP estimate under the PCA prior c_j ~ N(0, λ_j) and pixel noise σ² (the typical
+            # leave-one-out residual): c = (U_Iᵀ U_I + σ² Λ⁻¹)⁻¹ U_Iᵀ e. With ridge = 0 it is the plain
+            # least squares of the paper; the prior stops components whose intensity rows are
+            # nearly dependent from amplifying noise into wild landmark readings.
+            sigma2 = self.ridge * float(np.median(self.train_residuals_))
+            reg = np.diag(sigma2 / np.maximum(self.explained_variance_, 1e-12))
+            self._pinv_i = np.linalg.solve(ui.T @ ui + reg, ui.T)
+        else:
+            self._pinv_i = np.linalg.pinv(ui)                   # (k, n_pix): least squares on intensity rows
         self._ui = ui
         self._n_pix = n_pix
 
@@ -346,7 +360,7 @@ class AppearanceModel:
         return self.train_poses_.mean(0)
 
     # ---------------------------------------------------------------- persistence
-    _ARRAYS = ("reference_", "mask_", "mean_", "components_", "explained_variance_ratio_",
+    _ARRAYS = ("reference_", "mask_", "mean_", "components_", "explained_variance_ratio_", "explained_variance_",
                "train_residuals_", "train_poses_", "train_shapes_")
 
     def save(self, path: str | Path) -> None:

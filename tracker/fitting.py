@@ -49,7 +49,8 @@ class _Level:
     matrix-vector product (Gauss-Newton with the appearance subspace projected out).
     """
 
-    def __init__(self, mean_img: np.ndarray, basis_imgs: np.ndarray, mask: np.ndarray, to_fine: np.ndarray):
+    def __init__(self, mean_img: np.ndarray, basis_imgs: np.ndarray, mask: np.ndarray, to_fine: np.ndarray,
+                 var_img: np.ndarray, noise: float):
         size = mean_img.shape[0]
         inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         self.index = np.flatnonzero(inner.ravel())
@@ -66,10 +67,16 @@ class _Level:
         sd = np.stack([gx * xx, gy * xx, gx * yy, gy * yy, gx, gy], axis=1)
         b = basis_imgs.reshape(len(basis_imgs), -1)[:, self.index].T
         b = b - b.mean(0)
-        q, _ = np.linalg.qr(b)
+        q, _ = np.linalg.qr(np.hstack([np.ones((len(b), 1)), b]))
+        self.q, self.xx, self.yy = q, xx.astype(np.float64), yy.astype(np.float64)
+        self.jac = np.empty((len(self.index), 6))    # work buffer of the polish Jacobian
         sd_po = sd - q @ (q.T @ sd)
+        # weighted Gauss-Newton: pixels that vary a lot between labelled frames (mouth, eyelids)
+        # count less, so an expression never seen in training does not drag the pose
+        wgt = 1.0 / (noise + var_img.ravel()[self.index])
+        hess = sd_po.T @ (sd_po * wgt[:, None])
         self.template = t
-        self.update = np.linalg.pinv(sd_po)          # (6, n_pix)
+        self.update = np.linalg.solve(hess, (sd_po * wgt[:, None]).T)   # (6, n_pix)
 
 
 class Tracker:
@@ -86,17 +93,21 @@ class Tracker:
         patch unrelated to the face scores about 1).
     search : bool
         Recover lost tracks (local search, then global re-initialisation).
+    n_polish : int
+        Forward-compositional iterations on the eigen residual after the
+        coarse-to-fine alignment (:meth:`polish`; 0 to skip).
     reinit_every : int
         While lost, the (costlier) whole-frame search runs every this many frames.
     """
 
-    def __init__(self, model: AppearanceModel, n_iter: int = 6, lost_factor: float = 6.0, search: bool = True,
-                 reinit_every: int = 3):
+    def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 6.0, search: bool = True,
+                 reinit_every: int = 3, n_polish: int = 3):
         model._check_fitted()
         self.model = model
         self.n_iter = n_iter
         self.search = search
         self.reinit_every = max(1, int(reinit_every))
+        self.n_polish = int(n_polish)
         m = model
         size = m.patch_size_
         n_pix = len(m.index_)
@@ -106,14 +117,22 @@ class Tracker:
         basis = np.zeros((m.k_, size * size))
         basis[:, m.index_] = m.components_[:, :n_pix]
         basis = basis.reshape(m.k_, size, size)
-        fine = _Level(mean, basis, m.mask_, np.array([[1.0, 0, 0], [0, 1.0, 0]]))
+        noise = float(np.median(m.train_residuals_))
+        var = np.zeros(size * size)
+        var[m.index_] = (m.components_[:, :n_pix] ** 2 * m.explained_variance_[:, None]).sum(0)
+        var = var.reshape(size, size)
+        fine = _Level(mean, basis, m.mask_, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var, noise)
         half = size // 2
         cmean = cv2.resize(mean, (half, half), interpolation=cv2.INTER_AREA)
         cbasis = np.stack([cv2.resize(b, (half, half), interpolation=cv2.INTER_AREA) for b in basis])
         cmask = cv2.resize(m.mask_.astype(np.float32), (half, half), interpolation=cv2.INTER_AREA) > 0.99
         scale = size / half
-        coarse = _Level(cmean, cbasis, cmask, np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2]]))
+        cvar = cv2.resize(var, (half, half), interpolation=cv2.INTER_AREA)
+        coarse = _Level(cmean, cbasis, cmask, np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2]]),
+                        cvar, noise)
         self.levels = [coarse, fine]
+        sv = np.linalg.svd(m.train_poses_[:, :, :2], compute_uv=False)
+        self.max_anisotropy = float(np.exp(np.log(sv[:, 0] / sv[:, 1]).max() + np.log(1.03)))
         ref_res = float(np.max(m.train_residuals_))
         self.ref_residual = float(np.median(m.train_residuals_))
         # a patch unrelated to the face has a residual near 1 (normalised intensities): stay well below
@@ -129,9 +148,10 @@ class Tracker:
         self.pose = None
         self.last_good = None
         self.lost_for = 0
+        self._last_r = 0.0
 
     # ---------------------------------------------------------------- core steps
-    def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0, 1), n_iter: int | None = None) -> tuple[np.ndarray, int]:
+    def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0,), n_iter: int | None = None) -> tuple[np.ndarray, int]:
         """Refine ``pose`` (image_from_model) by inverse-compositional alignment, coarse to fine."""
         n_iter = self.n_iter if n_iter is None else n_iter
         a = np.asarray(pose, np.float64)
@@ -144,12 +164,80 @@ class Tracker:
                 v = normalise(patch.ravel()[lv.index])
                 dp = lv.update @ (v - lv.template)
                 w = np.array([[1 + dp[0], dp[2], dp[4]], [dp[1], 1 + dp[3], dp[5]]])
-                al = compose_affine(al, invert_affine(w))
+                al = self._clamp(compose_affine(al, invert_affine(w)))
                 its += 1
-                if np.abs(dp[4:]).max() < 0.02 and np.abs(dp[:4]).max() < 5e-4:
+                if np.abs(dp[4:]).max() < 0.03 and np.abs(dp[:4]).max() < 1e-3:
                     break
             a = compose_affine(al, lv.level_from_fine)
+        if self.n_polish:
+            a, k = self.polish(pyr, a)
+            its += k
         return a, its
+
+    def polish(self, pyr: Pyramid, pose: np.ndarray) -> tuple[np.ndarray, int]:
+        """Forward-compositional Gauss-Newton on the eigen residual itself, at full model resolution.
+
+        Minimises ``|P⊥ (v(W(x; p)) - mean)|²`` (P⊥ projects out the appearance
+        basis) with the Jacobian of the *current* warped patch, so its fixed
+        point is the pose whose patch the model explains best, and a step is
+        kept only if it lowers that residual. ``Δp`` composes on the model
+        side: ``image_from_model ← image_from_model ∘ W(Δp)``.
+        """
+        lv = self.levels[-1]
+        a = np.asarray(pose, np.float64)
+        best_r, its = None, 0
+        for _ in range(self.n_polish):
+            patch = warp_patch(pyr, a, lv.size)
+            flat = patch.ravel()[lv.index].astype(np.float64)
+            mu, sd = flat.mean(), max(flat.std(), 1e-6)
+            v = (flat - mu) / sd
+            e = v - lv.template
+            e_po = e - lv.q @ (lv.q.T @ e)
+            r = float(e_po @ e_po) / len(e)
+            if best_r is not None and r >= best_r:
+                a = prev
+                break
+            best_r, prev = r, a
+            gx = cv2.Sobel(patch, cv2.CV_64F, 1, 0, ksize=3, scale=1 / 8).ravel()[lv.index] / sd
+            gy = cv2.Sobel(patch, cv2.CV_64F, 0, 1, ksize=3, scale=1 / 8).ravel()[lv.index] / sd
+            j = lv.jac
+            np.multiply(gx, lv.xx, out=j[:, 0])
+            np.multiply(gy, lv.xx, out=j[:, 1])
+            np.multiply(gx, lv.yy, out=j[:, 2])
+            np.multiply(gy, lv.yy, out=j[:, 3])
+            j[:, 4], j[:, 5] = gx, gy
+            # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe⊥ (e⊥ is orthogonal to Q)
+            qj = lv.q.T @ j
+            hess = j.T @ j - qj.T @ qj
+            dp = -np.linalg.solve(hess + 1e-9 * np.eye(6), j.T @ e_po)
+            w = np.array([[1 + dp[0], dp[2], dp[4]], [dp[1], 1 + dp[3], dp[5]]])
+            a = self._clamp(compose_affine(a, w))
+            its += 1
+            if np.abs(dp[4:]).max() < 0.01 and np.abs(dp[:4]).max() < 3e-4:
+                break
+        return a, its
+
+    def _clamp(self, pose: np.ndarray) -> np.ndarray:
+        """Keep the affine's anisotropy (singular-value ratio) within the labelled frames' range.
+
+        Without it the alignment can absorb an expression never seen in
+        training (a wide-open mouth) into a vertical squash of the pose.
+        The clamp keeps the rotation, the area and the axes of the
+        stretch; only the ratio of the singular values is limited.
+        """
+        lin = pose[:, :2]
+        # singular values of a 2x2 in closed form: s0 s1 = |det|, s0² + s1² = |L|²_F
+        det = abs(lin[0, 0] * lin[1, 1] - lin[0, 1] * lin[1, 0])
+        fro = float((lin * lin).sum())
+        disc = np.sqrt(max(fro * fro - 4 * det * det, 0.0))
+        if (fro + disc) <= self.max_anisotropy ** 2 * max(fro - disc, 1e-300):
+            return pose
+        u, sv, vt = np.linalg.svd(lin)
+        g = np.sqrt(sv[0] * sv[1])
+        r = np.sqrt(self.max_anisotropy)
+        out = pose.copy()
+        out[:, :2] = u @ np.diag([g * r, g / r]) @ vt
+        return out
 
     def read(self, pyr: Pyramid, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """Eigen-points step: model-frame landmarks, image landmarks and residual at ``pose``."""
@@ -162,7 +250,7 @@ class Tracker:
     def _sane(self, pose: np.ndarray, shape: np.ndarray, image_size: tuple[int, int]) -> bool:
         lin = pose[:, :2]
         sv = np.linalg.svd(lin, compute_uv=False)
-        if np.linalg.det(lin) <= 0 or sv[0] / max(sv[1], 1e-9) > 1.8:
+        if np.linalg.det(lin) <= 0 or sv[0] / max(sv[1], 1e-9) > self.max_anisotropy * 1.01:
             return False
         a, b = self.model.scheme_.inter_ocular
         iod = np.linalg.norm(shape[a] - shape[b])
@@ -178,7 +266,7 @@ class Tracker:
                 return False
         return True
 
-    def _evaluate(self, pyr, pose, image_size, levels=(0, 1), n_iter=None):
+    def _evaluate(self, pyr, pose, image_size, levels=(0,), n_iter=None):
         pose, its = self.align(pyr, pose, levels, n_iter)
         shape, pts, r = self.read(pyr, pose)
         ok = r < self.lost_threshold and self._sane(pose, shape, image_size)
@@ -253,8 +341,15 @@ class Tracker:
         best = None
         its_total = 0
         if self.pose is not None:
-            ok, r, pose, pts, its = self._evaluate(pyr, self.pose, size)
+            # fast path: small motion needs only the full-resolution polish; fall back to the
+            # coarse-to-fine alignment when the residual is not as good as the previous frame's
+            ok, r, pose, pts, its = self._evaluate(pyr, self.pose, size, levels=())
             its_total += its
+            if not (ok and r <= 1.2 * self._last_r + 0.01):
+                ok2, r2, pose2, pts2, its = self._evaluate(pyr, self.pose, size)
+                its_total += its
+                if (ok2, -r2) > (ok, -r):
+                    ok, r, pose, pts = ok2, r2, pose2, pts2
             best = (ok, r, pose, pts)
         if (best is None or not best[0]) and self.search:
             cands = []
@@ -278,6 +373,7 @@ class Tracker:
         if ok:
             self.pose = pose
             self.last_good = pose
+            self._last_r = r
             self.lost_for = 0
         else:
             self.lost_for += 1

@@ -18,7 +18,7 @@ from pipeline.files import atomic_path
 from tracker.eigenpoints import FORMAT, FORMAT_VERSION, AppearanceModel
 from tracker.schemes import Scheme, _validate, load_scheme
 
-_PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight")
+_PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge")
 
 
 def _scheme_dict(s: Scheme) -> dict:
