@@ -239,13 +239,18 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     rho = float(np.sqrt(max(s.min(), 1e-6 * s.max()) * s.max())) + mu
     deg = np.full(n, 2.0)
     deg[[0, -1]] = 1.0 if n > 1 else 0.0
-    # banded (upper form) matrices, one per eigen-column j: diag m_t s_j + mu deg_t + rho, off -mu
-    factors = []
-    for j in range(k):
-        ab = np.zeros((2, n))
-        ab[1] = m * s[j] + mu * deg + rho
-        ab[0, 1:] = -mu
-        factors.append(cholesky_banded(ab, lower=False))
+
+    def factor(rho):
+        # banded (upper form) matrix per eigen-column j: diagonal m_t s_j + mu deg_t + rho, off-diagonal -mu
+        out = []
+        for j in range(k):
+            ab = np.zeros((2, n))
+            ab[1] = m * s[j] + mu * deg + rho
+            ab[0, 1:] = -mu
+            out.append(cholesky_banded(ab, lower=False))
+        return out
+
+    factors = factor(rho)
     # start from per-frame NNLS on the observed frames (exact when mu = 0)
     Z = np.zeros((n, k))
     obs = m > 0
@@ -271,6 +276,12 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
         if r_primal < tol * ref and r_dual < tol * ref:
             converged = True
             break
+        if it % 10 == 0 and (r_primal > 10 * r_dual or r_dual > 10 * r_primal):
+            # residual balancing (Boyd et al. 2011, 3.4.1): rescale rho and the scaled dual U
+            f = 2.0 if r_primal > r_dual else 0.5
+            rho *= f
+            U /= f
+            factors = factor(rho)
     return (Z, {"iterations": it, "converged": converged}) if return_info else Z
 
 
