@@ -374,7 +374,7 @@ def test_on_synthetic_video_truth(tmp_path):
     from data_synth.video import synthesize
     from decompose.compare import compare
 
-    paths = synthesize(tmp_path / "s", frames=300, seed=0, labels=0)
+    paths = synthesize(tmp_path / "s", frames=300, seed=0, labels=1)
     tracks = read_tracks(paths["truth"])
     rows = compare(tracks, SCHEME, methods=("spread", "greedy"), regions=("mouth",), kmin=8, kmax=16, rng=0)
     by = {(r["method"], r["k"]): r for r in rows}
