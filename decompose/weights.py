@@ -197,7 +197,7 @@ def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
 
 def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
                    smooth_lambda: float = 0.1, observed: np.ndarray | None = None,
-                   max_iter: int = 3000, tol: float = 1e-6, return_info: bool = False):
+                   max_iter: int = 3000, tol: float = 1e-5, return_info: bool = False):
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
@@ -211,9 +211,11 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     (:func:`scipy.linalg.cholesky_banded`) and solved every iteration; the Z-step is
     clipping at zero (over-relaxed with 1.6; rho rebalanced from the residuals every 10
     iterations when they differ tenfold). Stops when primal and dual residuals fall
-    below ``tol`` relative to the weights' scale; the weights are then within about
-    ``1e3 * tol`` of the exact minimiser (measured: ``tol=1e-10`` reproduces per-frame NNLS to
-    1e-7 when ``smooth_lambda = 0``). With ``smooth_lambda = 0`` and every frame observed it
+    below ``tol`` (max-norm) relative to the weights' scale. Measured on 10,000 frames x 24
+    keys (lambda 0.1) against a ``tol=1e-9`` solution: the default ``tol=1e-5`` (458 iterations)
+    leaves weights within 6e-3 (max) and 6e-4 (RMS) and the objective within 1e-6 relative;
+    ``1e-6`` (936 iterations) within 7e-4; ``tol=1e-10`` reproduces per-frame NNLS to 1e-7
+    when ``smooth_lambda = 0``. With ``smooth_lambda = 0`` and every frame observed it
     returns per-frame NNLS (eq. 4) directly.
 
     Returns
@@ -259,7 +261,13 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
         Z[obs] = nnls_gram(Gs, H[obs])[0]
     if mu == 0 and obs.all():
         return (Z, {"iterations": 0, "converged": True}) if return_info else Z
-    U = np.zeros((n, k))
+    # dual warm start consistent with Z: U = -grad f(Z) / rho, f the smooth part of the objective
+    LZ = np.zeros_like(Z)
+    if n > 1:
+        dZ = np.diff(Z, axis=0)
+        LZ[:-1] -= dZ
+        LZ[1:] += dZ
+    U = -(Z @ Gs * m[:, None] - H + mu * LZ) / rho
     it, converged = 0, False
     for it in range(1, max_iter + 1):
         rhs = (H + rho * (Z - U)) @ V                     # to G's eigenbasis
