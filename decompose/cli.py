@@ -17,7 +17,7 @@ def register(subparsers) -> None:
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
     p.add_argument("--seed", type=int, default=0, help="seed of kmeans/random/greedy (default 0)")
     p.add_argument("-o", "--output", required=True, help="KEYS.json to write")
-    p.add_argument("--sheet", default=None, help="also write a key-frame sheet PNG (needs --video)")
+    p.add_argument("--sheet", default=None, help="also write a key-frame sheet, .png or .jpg (needs --video)")
     p.add_argument("--video", default=None, help="the video the tracks came from (for --sheet)")
     p.set_defaults(func=_select)
 
@@ -59,6 +59,8 @@ def _load(args):
 
 
 def _select(args) -> int:
+    from pathlib import Path
+
     from pipeline.errors import InputError
     from decompose.io import write_keys
     from decompose.regions import available_regions, model_shapes, select_region
@@ -83,8 +85,11 @@ def _select(args) -> int:
         from pipeline.files import atomic_write
         import cv2
 
+        suffix = Path(args.sheet).suffix.lower()
+        if suffix not in (".png", ".jpg", ".jpeg"):
+            raise InputError(f"--sheet {args.sheet}: use a .png or .jpg file name")
         img = key_sheet(args.video, tracks, scheme, chosen)
-        ok, buf = cv2.imencode(".png", img)
+        ok, buf = cv2.imencode(suffix, img, [cv2.IMWRITE_JPEG_QUALITY, 88] if suffix != ".png" else [])
         with atomic_write(args.sheet, "wb") as f:
             f.write(buf.tobytes())
         print(f"sheet: {args.sheet}")

@@ -197,7 +197,7 @@ def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
 
 def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
                    smooth_lambda: float = 0.1, observed: np.ndarray | None = None,
-                   max_iter: int = 3000, tol: float = 1e-6, return_info: bool = False):
+                   max_iter: int = 3000, tol: float = 1e-5, return_info: bool = False):
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
@@ -207,12 +207,15 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
 
     Method: ADMM on ``W = Z, Z >= 0``. The W-step's matrix ``diag(m) (x) G + mu L (x) I + rho I``
     (``L`` the path-graph Laplacian: block tridiagonal) becomes, in the eigenbasis ``V`` of ``G``,
-    ``n_keys`` independent tridiagonal systems, each Cholesky-factored once
+    ``n_keys`` independent tridiagonal systems, Cholesky-factored once per value of rho
     (:func:`scipy.linalg.cholesky_banded`) and solved every iteration; the Z-step is
-    clipping at zero (over-relaxed with 1.6). Stops when primal and dual residuals fall
-    below ``tol`` relative to the weights' scale; the weights are then within about
-    ``1e3 * tol`` of the exact minimiser (measured: ``tol=1e-10`` reproduces per-frame NNLS to
-    1e-7 when ``smooth_lambda = 0``). With ``smooth_lambda = 0`` and every frame observed it
+    clipping at zero (over-relaxed with 1.6; rho rebalanced from the residuals every 10
+    iterations when they differ tenfold). Stops when primal and dual residuals fall
+    below ``tol`` (max-norm) relative to the weights' scale. Measured on 10,000 frames x 24
+    keys (lambda 0.1) against a ``tol=1e-9`` solution: the default ``tol=1e-5`` (458 iterations)
+    leaves weights within 6e-3 (max) and 6e-4 (RMS) and the objective within 1e-6 relative;
+    ``1e-6`` (936 iterations) within 7e-4; ``tol=1e-10`` reproduces per-frame NNLS to 1e-7
+    when ``smooth_lambda = 0``. With ``smooth_lambda = 0`` and every frame observed it
     returns per-frame NNLS (eq. 4) directly.
 
     Returns
@@ -239,13 +242,18 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     rho = float(np.sqrt(max(s.min(), 1e-6 * s.max()) * s.max())) + mu
     deg = np.full(n, 2.0)
     deg[[0, -1]] = 1.0 if n > 1 else 0.0
-    # banded (upper form) matrices, one per eigen-column j: diag m_t s_j + mu deg_t + rho, off -mu
-    factors = []
-    for j in range(k):
-        ab = np.zeros((2, n))
-        ab[1] = m * s[j] + mu * deg + rho
-        ab[0, 1:] = -mu
-        factors.append(cholesky_banded(ab, lower=False))
+
+    def factor(rho):
+        # banded (upper form) matrix per eigen-column j: diagonal m_t s_j + mu deg_t + rho, off-diagonal -mu
+        out = []
+        for j in range(k):
+            ab = np.zeros((2, n))
+            ab[1] = m * s[j] + mu * deg + rho
+            ab[0, 1:] = -mu
+            out.append(cholesky_banded(ab, lower=False))
+        return out
+
+    factors = factor(rho)
     # start from per-frame NNLS on the observed frames (exact when mu = 0)
     Z = np.zeros((n, k))
     obs = m > 0
@@ -253,7 +261,13 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
         Z[obs] = nnls_gram(Gs, H[obs])[0]
     if mu == 0 and obs.all():
         return (Z, {"iterations": 0, "converged": True}) if return_info else Z
-    U = np.zeros((n, k))
+    # dual warm start consistent with Z: U = -grad f(Z) / rho, f the smooth part of the objective
+    LZ = np.zeros_like(Z)
+    if n > 1:
+        dZ = np.diff(Z, axis=0)
+        LZ[:-1] -= dZ
+        LZ[1:] += dZ
+    U = -(Z @ Gs * m[:, None] - H + mu * LZ) / rho
     it, converged = 0, False
     for it in range(1, max_iter + 1):
         rhs = (H + rho * (Z - U)) @ V                     # to G's eigenbasis
@@ -271,6 +285,12 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
         if r_primal < tol * ref and r_dual < tol * ref:
             converged = True
             break
+        if it % 10 == 0 and (r_primal > 10 * r_dual or r_dual > 10 * r_primal):
+            # residual balancing (Boyd et al. 2011, 3.4.1): rescale rho and the scaled dual U
+            f = 2.0 if r_primal > r_dual else 0.5
+            rho *= f
+            U /= f
+            factors = factor(rho)
     return (Z, {"iterations": it, "converged": converged}) if return_info else Z
 
 

@@ -340,3 +340,45 @@ def test_sheet_draws_key_frames(tmp_path):
     assert (img[..., 1].astype(int) - img[..., 0] > 100).any()   # green lip contours drawn
     with pytest.raises(KeyshapeError):
         raise InputError("x")
+
+
+# ----------------------------------------------------------------------------- target-domain check
+
+def test_target_domain_measures(toy):
+    from decompose.compare import key_noise_amplification, pixel_errors, smooth_field, target_distortion
+
+    tracks, _, Q = toy
+    pose = tracks.pose
+    sel = SpreadSelector(10).fit(Q)
+    w = nnls_weights(Q, sel.keys_, sel.neutral_)
+    rms = pixel_errors(Q, reconstruct(w, sel.keys_, sel.neutral_), pose)[1]
+    # no perturbation: the target-domain error is the source reconstruction error
+    assert target_distortion(Q, sel.keys_, sel.neutral_, w, pose, 0.0, rng=0) == pytest.approx(rms)
+    assert key_noise_amplification(Q, sel.keys_, sel.neutral_, w, pose, 0.0, rng=0) == pytest.approx(0.0)
+    # the field has the amplitude asked (RMS over the points it was scaled on)
+    f = smooth_field(Q.reshape(-1, 2), 2.0, rng=1)
+    d = f(Q.reshape(-1, 2)) - Q.reshape(-1, 2)
+    assert np.sqrt((d ** 2).sum(-1).mean()) == pytest.approx(2.0, rel=1e-6)
+    # weights of both signs amplify independent key errors; NNLS on the same keys does not
+    wl = lstsq_weights(Q, sel.keys_, sel.neutral_)
+    big = np.zeros_like(wl)
+    big[:, 0], big[:, 1] = 5.0, -5.0
+    a = key_noise_amplification(Q, sel.keys_, sel.neutral_, np.abs(w), pose, 2.0, rng=3)
+    b = key_noise_amplification(Q, sel.keys_, sel.neutral_, w + big, pose, 2.0, rng=3)
+    assert b > 2 * a
+
+
+@pytest.mark.slow
+def test_on_synthetic_video_truth(tmp_path):
+    """Greedy >= 20% below spread at k = 8, 12, 16 and NNLS below lstsq on independent key errors."""
+    from data_synth.video import synthesize
+    from decompose.compare import compare
+
+    paths = synthesize(tmp_path / "s", frames=300, seed=0, labels=1)
+    tracks = read_tracks(paths["truth"])
+    rows = compare(tracks, SCHEME, methods=("spread", "greedy"), regions=("mouth",), kmin=8, kmax=16, rng=0)
+    by = {(r["method"], r["k"]): r for r in rows}
+    for k in (8, 12, 16):
+        assert by[("greedy", k)]["rms_px"] < 0.8 * by[("spread", k)]["rms_px"], k
+    for k in range(8, 17):
+        assert by[("spread", k)]["keynoise_nnls_px"] < by[("spread", k)]["keynoise_lstsq_px"], k
