@@ -1,0 +1,398 @@
+"""Planar-bone deformation of a dense mesh by a triangulated control surface (section 4 of 001_7296bf6ea73cabea.txt).
+
+``bones = PlanarBones.bind(mesh_vertices, control_points, triangles, masks=None)``
+runs once; ``bones.deform(control_points_frame)`` then costs only the per-bone
+frames and one sparse product, and ``bones.deform_many(frames)`` does the same for
+a whole take.
+
+Derivation (the extracted equations are flattened)
+--------------------------------------------------
+Row-vector convention as in eq. (1). A bone is a control triangle with corners
+``V_0, V_1, V_2`` (O, P, Q), edges ``e_i = V_{i+1} - V_i`` (eq. 6, indices mod 3),
+unit normal ``n = e_0 x (V_2 - V_0) / |.|`` (eq. 2) and outward edge normals
+``m_i = (e_i x n) / |e_i x n|`` (the second row of eq. 7).
+
+*Regions, eqs. (3)-(5).* The projection ``Pi(S)`` of a vertex onto the bone's plane
+falls in one of seven regions: the triangle (``R_A``), the slab beyond edge ``i``
+(``R_B,i``: outside edge ``i`` and ``0 <= c_i(S) <= |e_i|``, eq. 6) or the wedge beyond
+corner ``i`` (``R_C,i``). Eq. (3) proposes a candidate from the barycentric signs and
+eqs. (4)-(5) move it to the neighbouring slab or wedge with ``c_i``; the result is
+exactly the partition by the *nearest feature* (interior, edge ``i``, corner ``i``) of
+the triangle to ``S``, which is how it is computed here (the closest point on the
+triangle, vectorised); ``test_planar_bones`` checks it against the ``c_i`` tests.
+The distance ``d_ij`` of eq. (12) is ``|S - closest point|``.
+
+*Frames, eqs. (1), (7)-(10).* Each region has an origin corner and a frame whose
+rows are: ``R_A``: ``(e_0, V_2 - V_0, n)`` at ``V_0`` (eq. 2); ``R_B,i``:
+``(e_i, m_i, n)`` at ``V_i`` (eq. 7); ``R_C,i``: ``(m_i, m_{i-1}, n)`` at ``V_i`` (eq. 8).
+A vertex's local coordinates ``c = (S - origin) F^{-1}`` are fixed at bind time and
+the deformed vertex is ``origin' + c F'``: eqs. (1) and (9). In ``R_B,i`` only the
+edge row is unnormalised, so the bone may stretch along the edge but not across
+it. In ``R_C,i`` eq. (10) rescales the in-plane part so its length is kept:
+``s = V_i' + (D/d) (c_1 m_i' + c_2 m_{i-1}') + c_3 n'`` with
+``D = |c_1 m_i + c_2 m_{i-1}| = |Pi(S) - V_i|`` and ``d = |c_1 m_i' + c_2 m_{i-1}'|``
+(the 4-vector in the extracted ``Diag`` is a duplication; the frame is 3 x 3 and the
+factor multiplies the two in-plane rows). The regions meet continuously: on the
+edge line ``R_A`` and ``R_B,i`` agree, and on the rays ``V_i + t m_i`` and
+``V_i + t m_{i-1}`` the wedge map equals the slab maps (``D = d`` there).
+
+*Rigid motions.* Under ``X -> X R + t`` (``R`` a rotation) every row of every frame
+maps to ``row R``, ``d = D`` and the origins map rigidly, so each bone moves each of its
+vertices by exactly that motion; normalised weights (below) keep it for the blend.
+
+*Blend, eqs. (11)-(12).* ``w_ij = (1 + cos(pi d_ij / R_j)) / 2`` for ``d_ij < R_j``, else 0,
+with ``R_j = radius_scale * (shortest control edge touching a corner of bone j)``
+("a fraction of the closest distance to a connected vertex"). The weights of each
+vertex are divided by their sum so they sum to one (eq. 11 leaves this implicit;
+without it a rigid motion would not be reproduced). A vertex no allowed bone reaches
+is *unbound*: it stays at its rest position (``unbound="still"``, the right thing
+after rigid head motion was removed) or follows its nearest allowed bone with
+weight one (``unbound="nearest"``). Hard normalisation makes a step between the last
+bound and the first unbound vertex; ``unbound="fade"`` instead treats the rest position
+as one more bone of weight ``max(0, 1 - sum_j w_ij)`` and divides by the sum only where it
+exceeds one: continuous everywhere, exact rigid reproduction wherever the summed raw
+weight reaches one (``rest_weight_`` is then 0).
+
+*Masks, section 4.3.* ``masks[v, j] = False`` forbids bone ``j`` to move vertex ``v``
+(e.g. lower-lip bones and upper-lip vertices); see :mod:`retarget.mocap.masks`.
+
+Evaluation
+----------
+For frame ``t`` the per-bone data ``Y`` holds, for each of the 7 region slots of each
+bone, the origin and the three frame rows: ``(n_bones * 7 * 4, 3)``. Every (vertex,
+bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)``, linear in ``Y``
+except the wedge factor ``D/d``; so ``deform = M @ Y + (wedge pairs) + still``, with the
+sparse ``M`` (n_vertices x n_bones*28) built once at bind time: entry ``M[v, 4k + a]`` is
+the weight of vertex ``v`` times its coordinate ``a`` (1 for the origin) in slot ``k``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from pipeline.errors import InputError
+
+N_SLOTS = 7  # per bone: A, B_0, B_1, B_2, C_0, C_1, C_2
+REGION_NAMES = ("A", "B0", "B1", "B2", "C0", "C1", "C2")
+
+
+def _unit(v: np.ndarray, eps: float = 1e-300) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, eps)
+
+
+def bone_frames(corners: np.ndarray) -> np.ndarray:
+    """Origins and frame rows of the 7 region slots of every bone.
+
+    Parameters
+    ----------
+    corners : (..., n_bones, 3, 3) triangle corners ``V_0, V_1, V_2``
+
+    Returns
+    -------
+    (..., n_bones, 7, 4, 3): for slot ``A, B_0..2, C_0..2`` the origin then rows 1-3
+    (eqs. 2, 7, 8).
+    """
+    v0, v1, v2 = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+    e = np.stack([v1 - v0, v2 - v1, v0 - v2], axis=-2)          # (..., nb, 3, 3) eq. (6)
+    n = _unit(np.cross(e[..., 0, :], v2 - v0))                   # eq. (2)
+    m = _unit(np.cross(e, n[..., None, :]))                      # outward edge normals, eq. (7)
+    nn = np.broadcast_to(n[..., None, :], e.shape)
+    out = np.empty(corners.shape[:-2] + (N_SLOTS, 4, 3))
+    out[..., 0, 0, :] = v0
+    out[..., 0, 1, :] = e[..., 0, :]
+    out[..., 0, 2, :] = v2 - v0
+    out[..., 0, 3, :] = n
+    out[..., 1:4, 0, :] = corners
+    out[..., 1:4, 1, :] = e
+    out[..., 1:4, 2, :] = m
+    out[..., 1:4, 3, :] = nn
+    out[..., 4:7, 0, :] = corners
+    out[..., 4:7, 1, :] = m
+    out[..., 4:7, 2, :] = np.roll(m, 1, axis=-2)                 # m_{i-1}
+    out[..., 4:7, 3, :] = nn
+    return out
+
+
+def closest_feature(points: np.ndarray, corners: np.ndarray):
+    """Nearest feature of a triangle to each point (the partition of eqs. 3-5).
+
+    Parameters
+    ----------
+    points : (n, 3)
+    corners : (n, 3, 3) the triangle of each point
+
+    Returns
+    -------
+    region : (n,) int in 0..6 (``A, B_0, B_1, B_2, C_0, C_1, C_2``)
+    distance : (n,) ``|S - closest point on the triangle|`` (``d_ij`` of eq. 12)
+    """
+    v0 = corners[:, 0]
+    e1 = corners[:, 1] - v0
+    e2 = corners[:, 2] - v0
+    rel = points - v0
+    # barycentric coordinates (u along e1, v along e2) of the projection
+    g11 = np.einsum("ij,ij->i", e1, e1)
+    g12 = np.einsum("ij,ij->i", e1, e2)
+    g22 = np.einsum("ij,ij->i", e2, e2)
+    b1 = np.einsum("ij,ij->i", rel, e1)
+    b2 = np.einsum("ij,ij->i", rel, e2)
+    det = g11 * g22 - g12 * g12
+    u = (g22 * b1 - g12 * b2) / det
+    v = (g11 * b2 - g12 * b1) / det
+    inside = (u >= 0) & (v >= 0) & (u + v <= 1)
+    proj = v0 + u[:, None] * e1 + v[:, None] * e2
+    normal_dist = np.linalg.norm(points - proj, axis=1)
+    # distance to each edge segment i (V_i -> V_{i+1}) with its clamped parameter
+    starts = corners
+    edges = np.roll(corners, -1, axis=1) - corners
+    t = np.einsum("nij,nij->ni", points[:, None, :] - starts, edges) / np.einsum("nij,nij->ni", edges, edges)
+    tc = np.clip(t, 0.0, 1.0)
+    near = starts + tc[..., None] * edges
+    dist = np.linalg.norm(points[:, None, :] - near, axis=2)
+    k = np.argmin(dist, axis=1)
+    rows = np.arange(len(points))
+    tk = tc[rows, k]
+    region = np.where(tk <= 0.0, 4 + k, np.where(tk >= 1.0, 4 + (k + 1) % 3, 1 + k))
+    region = np.where(inside, 0, region)
+    distance = np.where(inside, normal_dist, dist[rows, k])
+    return region.astype(np.intp), distance
+
+
+class PlanarBones:
+    """A mesh bound to a planar-bone control surface (eqs. 1-12 of 001).
+
+    Build with :meth:`bind`; see the module docstring for the maths.
+
+    Attributes
+    ----------
+    n_vertices, n_bones, n_controls : int
+    triangles : (n_bones, 3) int control-point indices of every bone
+    radii_ : (n_bones,) affection radius ``R_j`` (eq. 12)
+    pair_vertex_, pair_bone_, pair_region_ : (n_pairs,) one row per (vertex, bone) binding
+    pair_weight_ : (n_pairs,) normalised weights (sum to one per bound vertex)
+    pair_coords_ : (n_pairs, 3) local coordinates ``c`` in the region frame
+    bound_ : (n_vertices,) bool, False for unbound vertices
+    rest_weight_ : (n_vertices,) weight of the rest position (1 unbound, 0 fully bound)
+    """
+
+    def __init__(self):
+        raise TypeError("build a PlanarBones with PlanarBones.bind(mesh_vertices, control_points, triangles)")
+
+    # ------------------------------------------------------------------------------------------
+    @classmethod
+    def bind(cls, mesh_vertices, control_points, triangles, masks=None, *, radius_scale: float = 1.0,
+             unbound: str = "still", labels=None, min_angle_deg: float = 1.0) -> "PlanarBones":
+        """Bind every mesh vertex to the bones whose affection volume holds it.
+
+        Parameters
+        ----------
+        mesh_vertices : (n_vertices, 3) rest mesh
+        control_points : (n_controls, 3) rest control surface (retargeted neutral markers)
+        triangles : (n_bones, 3) int, control-point indices of each bone
+        masks : (n_vertices, n_bones) bool array or sparse matrix, optional
+            ``False`` where bone ``j`` may not move vertex ``v`` (section 4.3).
+        radius_scale : float
+            ``R_j`` as a multiple of the shortest control edge touching bone ``j``.
+        unbound : {"still", "nearest", "fade"}
+            What a vertex that no allowed bone reaches does: stay at rest, follow its nearest
+            allowed bone, or (``fade``) weights are normalised only where their sum exceeds
+            one and the rest position takes the remainder, so the mesh fades continuously
+            to still at the edge of the control surface (normalising hard makes a step there).
+        labels : sequence of str, optional
+            Control-point names for error messages.
+        min_angle_deg : float
+            Bones with a smaller corner angle are degenerate (collinear) and refused.
+
+        Raises
+        ------
+        InputError
+            Bad shapes, NaNs, indices out of range, degenerate (collinear) bones, bad masks.
+        """
+        self = object.__new__(cls)
+        x = np.asarray(mesh_vertices, dtype=np.float64)
+        c = np.asarray(control_points, dtype=np.float64)
+        tri = np.asarray(triangles)
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise InputError(f"`mesh_vertices`: expected shape (n_vertices, 3), got {x.shape}")
+        if c.ndim != 2 or c.shape[1] != 3:
+            raise InputError(f"`control_points`: expected shape (n_controls, 3), got {c.shape}")
+        if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0 or not np.issubdtype(tri.dtype, np.integer):
+            raise InputError(f"`triangles`: expected a non-empty int array (n_bones, 3), got {tri.dtype} {tri.shape}")
+        if tri.min() < 0 or tri.max() >= len(c):
+            raise InputError(f"`triangles`: indices must lie in [0, {len(c)}), found {tri.min()}..{tri.max()}")
+        if not np.all(np.isfinite(x)) or not np.all(np.isfinite(c)):
+            raise InputError("`mesh_vertices`/`control_points`: NaN or infinite coordinates")
+        if unbound not in ("still", "nearest", "fade"):
+            raise InputError(f"unbound: expected 'still', 'nearest' or 'fade', got {unbound!r}")
+        name = (lambda k: repr(labels[k])) if labels is not None else str
+        corners = c[tri]
+        ang = triangle_min_angles(corners)
+        bad = np.flatnonzero(ang < np.deg2rad(min_angle_deg))
+        if len(bad):
+            j = bad[0]
+            raise InputError(
+                f"`triangles`: {len(bad)} degenerate (near-collinear) bone(s), e.g. bone {j} with corners "
+                f"{', '.join(name(k) for k in tri[j])} (smallest angle {np.rad2deg(ang[j]):.2g} deg < {min_angle_deg}); "
+                "drop them (retarget.mocap.triangulate does) or move the markers")
+        nb, nv = len(tri), len(x)
+        if masks is not None:
+            masks = sp.csr_matrix(masks, dtype=bool) if sp.issparse(masks) else np.asarray(masks, dtype=bool)
+            if masks.shape != (nv, nb):
+                raise InputError(f"`masks`: expected shape (n_vertices, n_bones) = {(nv, nb)}, got {masks.shape}")
+
+        # radii: fraction of the shortest control edge touching the bone's corners (eq. 12)
+        edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+        elen = np.linalg.norm(c[edges[:, 0]] - c[edges[:, 1]], axis=1)
+        shortest = np.full(len(c), np.inf)
+        np.minimum.at(shortest, edges[:, 0], elen)
+        np.minimum.at(shortest, edges[:, 1], elen)
+        radii = radius_scale * shortest[tri].min(axis=1)
+
+        # candidate pairs: vertices within (circumscribing ball + R_j) of each bone
+        centre = corners.mean(axis=1)
+        reach = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1) + radii
+        tree = cKDTree(x)
+        lists = tree.query_ball_point(centre, reach)
+        counts = np.fromiter((len(l) for l in lists), np.intp, nb)
+        pv = np.fromiter((i for l in lists for i in l), np.intp, counts.sum())
+        pb = np.repeat(np.arange(nb), counts)
+        region, dist = closest_feature(x[pv], corners[pb])
+        keep = dist < radii[pb]
+        if masks is not None:
+            allowed = np.asarray(masks[pv, pb]).ravel()
+            keep &= allowed
+        pv, pb, region, dist = pv[keep], pb[keep], region[keep], dist[keep]
+        w = 0.5 * (1.0 + np.cos(np.pi * dist / radii[pb]))                # eq. (12)
+        # a vertex exactly on the affection boundary gets w = 0: drop those pairs
+        pos = w > 0
+        pv, pb, region, dist, w = pv[pos], pb[pos], region[pos], dist[pos], w[pos]
+
+        bound = np.zeros(nv, bool)
+        bound[pv] = True
+        if unbound == "nearest" and not bound.all():
+            lone = np.flatnonzero(~bound)
+            # nearest allowed bone by distance to its triangle (dense over bones; lone vertices only)
+            lv = np.repeat(lone, nb)
+            lb = np.tile(np.arange(nb), len(lone))
+            if masks is not None:
+                ok = np.asarray(masks[lv, lb]).ravel()
+                lv, lb = lv[ok], lb[ok]
+            r2, d2 = closest_feature(x[lv], corners[lb])
+            order = np.lexsort((d2, lv))
+            first = np.ones(len(order), bool)
+            first[1:] = lv[order][1:] != lv[order][:-1]
+            sel = order[first]
+            pv = np.concatenate([pv, lv[sel]])
+            pb = np.concatenate([pb, lb[sel]])
+            region = np.concatenate([region, r2[sel]])
+            w = np.concatenate([w, np.ones(len(sel))])
+            bound[lv[sel]] = True
+
+        wsum = np.bincount(pv, weights=w, minlength=nv)
+        if unbound == "fade":
+            # the rest position is one more "bone" of weight max(0, 1 - sum w): continuous fade to still
+            rest_w = np.clip(1.0 - wsum, 0.0, 1.0)
+            w = w / np.maximum(wsum, 1.0)[pv]
+        else:
+            rest_w = (~bound).astype(np.float64)
+            w = w / wsum[pv]                                                # eq. (11), normalised
+
+        rest = bone_frames(corners)                                         # (nb, 7, 4, 3)
+        slot = pb * N_SLOTS + region
+        frames = rest[pb, region]                                           # (n_pairs, 4, 3)
+        inv = np.linalg.inv(frames[:, 1:].transpose(0, 1, 2))               # rows -> solve c F = S - origin
+        coords = np.einsum("pj,pjk->pk", x[pv] - frames[:, 0], inv)
+        wedge = region >= 4
+        inplane = coords[:, 0, None] * frames[:, 1] + coords[:, 1, None] * frames[:, 2]
+        self.pair_D_ = np.linalg.norm(inplane, axis=1)
+
+        n_cols = nb * N_SLOTS * 4
+        rows = np.repeat(pv, 4)
+        cols = (slot[:, None] * 4 + np.arange(4)).ravel()
+        vals = np.column_stack([w, w * coords[:, 0], w * coords[:, 1], w * coords[:, 2]])
+        vals[wedge, 1:3] = 0.0                                              # wedge in-plane part is nonlinear
+        self._M = sp.csr_matrix((vals.ravel(), (rows, cols)), shape=(nv, n_cols))
+        wi = np.flatnonzero(wedge)
+        self._wedge = wi
+        self._wedge_slot = slot[wi]
+        self._wedge_c = coords[wi, :2]
+        self._wedge_scale = (w * self.pair_D_)[wi]
+        self._W = sp.csr_matrix((np.ones(len(wi)), (pv[wi], np.arange(len(wi)))), shape=(nv, len(wi)))
+        self._still = rest_w[:, None] * x
+        self.rest_weight_ = rest_w
+        self.triangles = tri.astype(np.intp)
+        self.n_vertices, self.n_bones, self.n_controls = nv, nb, len(c)
+        self.radii_ = radii
+        self.pair_vertex_, self.pair_bone_, self.pair_region_ = pv, pb, region
+        self.pair_weight_, self.pair_coords_ = w, coords
+        self.bound_ = bound
+        self.rest_vertices_ = x
+        self.rest_controls_ = c
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def weights(self) -> sp.csr_matrix:
+        """(n_vertices, n_bones) normalised blend weights ``w_ij`` of eq. (11)."""
+        return sp.csr_matrix((self.pair_weight_, (self.pair_vertex_, self.pair_bone_)),
+                             shape=(self.n_vertices, self.n_bones))
+
+    def _check_controls(self, control_points) -> np.ndarray:
+        c = np.asarray(control_points, dtype=np.float64)
+        if c.shape[-2:] != (self.n_controls, 3):
+            raise InputError(f"`control_points`: expected shape (..., {self.n_controls}, 3), got {c.shape}")
+        if not np.all(np.isfinite(c)):
+            raise InputError("`control_points`: NaN or infinite coordinates; rebuild missing markers first "
+                             "(retarget.mocap.clean)")
+        return c
+
+    def deform(self, control_points) -> np.ndarray:
+        """Deformed mesh ``(n_vertices, 3)`` for one frame of the control surface ``(n_controls, 3)``."""
+        c = self._check_controls(control_points)
+        if c.ndim != 2:
+            raise InputError(f"`control_points`: expected one frame (n_controls, 3), got {c.shape}; use deform_many")
+        y = bone_frames(c[self.triangles]).reshape(-1, 3)                   # (nb*7*4, 3)
+        out = self._M @ y
+        if len(self._wedge):
+            ys = y.reshape(-1, 4, 3)[self._wedge_slot]
+            u = self._wedge_c[:, 0, None] * ys[:, 1] + self._wedge_c[:, 1, None] * ys[:, 2]
+            d = np.linalg.norm(u, axis=1)
+            out += self._W @ (u * (self._wedge_scale / np.maximum(d, 1e-300))[:, None])
+        return out + self._still
+
+    def deform_many(self, control_points, chunk: int = 64) -> np.ndarray:
+        """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``."""
+        c = self._check_controls(control_points)
+        if c.ndim != 3:
+            raise InputError(f"`control_points`: expected (n_frames, n_controls, 3), got {c.shape}")
+        nf = len(c)
+        out = np.empty((nf, self.n_vertices, 3))
+        for s in range(0, nf, chunk):                                     # chunks bound memory only
+            cc = c[s:s + chunk]
+            f = len(cc)
+            y = bone_frames(cc[:, self.triangles]).reshape(f, -1, 3)        # (f, ncol, 3)
+            res = self._M @ y.transpose(1, 0, 2).reshape(y.shape[1], -1)   # (nv, f*3)
+            res = res.reshape(self.n_vertices, f, 3).transpose(1, 0, 2)
+            if len(self._wedge):
+                ys = y.reshape(f, -1, 4, 3)[:, self._wedge_slot]
+                u = self._wedge_c[None, :, 0, None] * ys[:, :, 1] + self._wedge_c[None, :, 1, None] * ys[:, :, 2]
+                d = np.linalg.norm(u, axis=2)
+                u = u * (self._wedge_scale / np.maximum(d, 1e-300))[..., None]
+                res = res + (self._W @ u.transpose(1, 0, 2).reshape(len(self._wedge), -1)).reshape(
+                    self.n_vertices, f, 3).transpose(1, 0, 2)
+            out[s:s + f] = res + self._still
+        return out
+
+
+def triangle_min_angles(corners: np.ndarray) -> np.ndarray:
+    """Smallest interior angle (radians) of each triangle ``(n, 3, 3)``; 0 for collinear corners."""
+    a = np.roll(corners, -1, axis=1) - corners
+    b = np.roll(corners, 1, axis=1) - corners
+    na = np.linalg.norm(a, axis=2)
+    nb = np.linalg.norm(b, axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosang = np.einsum("nij,nij->ni", a, b) / (na * nb)
+    ang = np.arccos(np.clip(np.nan_to_num(cosang, nan=1.0), -1.0, 1.0))
+    return ang.min(axis=1)
