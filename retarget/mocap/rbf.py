@@ -92,7 +92,7 @@ class RBFRetarget:
     radius_scale : float
         Multiplies the per-centre radii of eq. (16) (``imq`` only).
     sigma : float, optional
-        Gaussian width; default the mean nearest-neighbour distance of the centres.
+        Gaussian width; default the median nearest-neighbour distance of the centres.
     labels : sequence of str, optional
         Names of the centres, used only in error messages.
 
@@ -171,7 +171,7 @@ class RBFRetarget:
         if self.kernel == "imq":
             self.radii_ = self.radius_scale * nn
         elif self.kernel == "gaussian":
-            sigma = float(np.mean(nn)) if self.sigma is None else float(self.sigma)
+            sigma = float(np.median(nn)) if self.sigma is None else float(self.sigma)
             if not sigma > 0:
                 raise InputError(f"sigma: expected a positive width, got {sigma}")
             self.radii_ = np.full(n, sigma)
