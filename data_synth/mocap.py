@@ -287,12 +287,13 @@ LOWER_LIP_MARKERS = ("lipOuterLo", "lipInnerLo", "chin", "jaw")
 UPPER_LIP_MARKERS = ("lipOuterUp", "lipInnerUp", "nose", "nostril", "nasolabial")
 
 
-def discontinuity_regions(kit: FaceKit, labels) -> list:
+def discontinuity_regions(kit: FaceKit, labels, split: float = 0.3) -> list:
     """Lip and eyelid mask regions on the ICT topology, as an artist would paint them.
 
     The vertex sets are read off the rig itself: around the mouth, vertices that
-    ``jawOpen`` drops by more than half the lower lip's drop are the lower lip and those
-    it barely moves (< 10 %) the upper lip; around each eye, vertices ``eyeBlink``
+    ``jawOpen`` drops by more than ``split`` of the lower lip's drop are the lower lip and
+    the others the upper lip (the mouth corners, outside 80 % of the mouth's width, stay
+    unmasked as they belong to both); around each eye, vertices ``eyeBlink``
     moves by more than 30 % of its maximum are the upper lid and the still ones below
     the eye's centre the lower lid. Lower-lip vertices may not use bones touching
     upper-lip, nose or nasolabial markers and the reverse; lids likewise.
@@ -312,8 +313,9 @@ def discontinuity_regions(kit: FaceKit, labels) -> list:
         width = np.ptp(lm[48:68, 0])
         area = np.linalg.norm((v[:FACE_SKIN] - mouth)[:, :2] / [0.75 * width, 0.6 * width], axis=1) < 1.0
         drop = -dy[kit.landmarks[57]]
-        lower = skin[area & (dy < -0.5 * drop)]
-        upper = skin[area & (dy > -0.1 * drop) & (v[:FACE_SKIN, 1] > lm[[48, 54], 1].mean() - 0.3)]
+        corners = np.abs(v[:FACE_SKIN, 0] - mouth[0]) > 0.4 * width      # the corners belong to both lips
+        lower = skin[area & ~corners & (dy < -split * drop)]
+        upper = skin[area & ~corners & (dy >= -split * drop)]
         out.append(Region("upper_lip", upper, {s for s in known if not s.startswith(LOWER_LIP_MARKERS)}))
         out.append(Region("lower_lip", lower, {s for s in known if not s.startswith(UPPER_LIP_MARKERS)}))
     for side, name, lids in (("R", "eyeBlink_R", slice(36, 42)), ("L", "eyeBlink_L", slice(42, 48))):

@@ -82,7 +82,7 @@ class Triangulation:
 
 
 def triangulate_markers(points, labels=None, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0),
-                        min_angle_deg: float = 8.0, max_edge_ratio: float = 2.5, forbid=()) -> Triangulation:
+                        min_angle_deg: float = 8.0, max_edge_ratio: float = 4.0, forbid=()) -> Triangulation:
     """Delaunay triangulation of markers in a cylindrical projection (the control surface).
 
     Parameters
