@@ -137,15 +137,15 @@ def remove_rigid_motion(positions, rigid=None, reference: int | np.ndarray = 0, 
     idx = choose_rigid_set(x) if robust else np.asarray(rigid, dtype=np.intp)
     if len(idx) < 3:
         raise InputError(f"rigid set: need at least 3 markers, got {len(idx)}")
-    ref = x[reference, idx] if np.isscalar(reference) else np.asarray(reference, np.float64)[idx]
-    if np.isscalar(reference) and not np.isfinite(ref).all():
-        # reference frame has gaps in the rigid set: use the per-marker median after a first pass
-        ref = np.where(np.isfinite(ref), ref, np.nanmedian(x[:, idx], axis=0))
     sub = x[:, idx]
     dead = ~np.isfinite(sub).all(axis=2).any(axis=0)
     if dead.all():
         name = [labels[i] for i in idx] if labels is not None else idx.tolist()
         raise InputError(f"rigid set {name}: every marker is missing in every frame")
+    ref = x[reference, idx] if np.isscalar(reference) else np.asarray(reference, np.float64)[idx]
+    if np.isscalar(reference) and not np.isfinite(ref).all():
+        # reference frame has gaps in the rigid set: use the per-marker median after a first pass
+        ref = np.where(np.isfinite(ref), ref, np.nanmedian(np.where(dead[:, None], 0.0, sub), axis=0))
     w = np.ones(sub.shape[:2])
     for _ in range(robust_iters if robust else 1):
         rot, trans, _s = rigid_fit(ref, sub, w)
@@ -250,6 +250,10 @@ def fill_gaps(positions, reference=None, max_gap: int = 12, k: int = 4, fill_lon
     gap, so the filled track meets the real one without a step. Gaps longer than
     ``max_gap`` frames are reported (``GapReport.long``) and filled only if ``fill_long``.
     Frames where fewer than 3 neighbours are visible stay NaN (``unfillable``).
+
+    ``reference`` (n_markers, 3) is a pose holding every marker; by default the per-marker
+    median over frames, which is a valid pose only once head motion has been removed
+    (:func:`remove_rigid_motion` first).
     """
     x = np.array(positions, dtype=np.float64)
     nf, nm, _ = x.shape
