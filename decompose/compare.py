@@ -1,0 +1,197 @@
+"""Reconstruction error against the number of key shapes, per selector and region (Figure 6),
+and the target-domain distortion of Figures 4 and 5.
+
+Errors are measured in image pixels: the reconstruction (model frame) is mapped
+back with each frame's pose and compared with the tracked points.
+
+- ``error``: eq. (5) of 004_119ba07521a9af0b.txt, ``E = sum_t ||Q_t - F(w_t, S)||^2``, summed over
+  the successful frames and the region's points (pixels squared);
+- ``rms_px``: ``sqrt(E / (n_frames * n_points))``, the RMS point error in pixels.
+
+Target-domain check: the artist's key shapes are stood in for by the source key
+shapes displaced by a smooth random field ``f(p) = p + a * phi(p)`` (``phi`` a random
+sum of low-frequency sinusoids of the model-frame position with unit RMS over the
+face, ``a`` the amplitude in pixels), applied to the neutral and to every key. The
+weights of each frame are applied to those displaced keys, and the result is
+compared with the same field applied to the true frame, ``f(Q_t)``. Were the frame
+truly a morph of the keys, and the field affine, the two would agree; large
+weights of both signs (least squares) amplify the field's non-affine part.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.errors import InputError
+from tracker.io import Tracks
+from tracker.schemes import Scheme
+from decompose.regions import RegionKeys, available_regions, model_shapes, region_points, to_image
+from decompose.selectors import METHODS, make_selector
+from decompose.weights import lstsq_weights, nnls_weights, reconstruct
+
+NESTED = ("spread", "greedy")   # the first j keys of a fit with k are the fit with j
+
+
+def pixel_errors(shapes: np.ndarray, recon: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
+    """Eq. (5) in image pixels squared and the RMS point error (px) of model-frame ``recon``."""
+    lin = pose[:, :, :2]
+    d = np.einsum("tij,tpj->tpi", lin, recon - shapes)
+    e = float((d ** 2).sum())
+    return e, float(np.sqrt(e / (d.shape[0] * d.shape[1])))
+
+
+def smooth_field(points: np.ndarray, amplitude: float, rng=None, n_waves: int = 4,
+                 extent: float | None = None) -> "callable":
+    """A random smooth displacement field ``f(p) = p + amplitude * phi(p)`` over the model frame.
+
+    ``phi`` sums ``n_waves`` random sinusoids per axis with wavelengths between 0.5 and 1.5 times
+    the extent of ``points``, scaled to unit RMS displacement over ``points``.
+    """
+    rng = np.random.default_rng(rng)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    ext = extent or float(np.ptp(pts, axis=0).max()) or 1.0
+    freq = rng.normal(size=(2, n_waves, 2))
+    freq *= (2 * np.pi / (ext * rng.uniform(0.5, 1.5, size=(2, n_waves, 1)))) / np.linalg.norm(freq, axis=-1,
+                                                                                                  keepdims=True)
+    phase = rng.uniform(0, 2 * np.pi, size=(2, n_waves))
+    amp = rng.normal(size=(2, n_waves))
+
+    def phi(p):
+        p = np.asarray(p, dtype=np.float64)
+        return np.stack([np.sin(p @ freq[a].T + phase[a]) @ amp[a] for a in range(2)], axis=-1)
+
+    norm = float(np.sqrt((phi(pts) ** 2).sum(-1).mean())) or 1.0
+    return lambda p: np.asarray(p, dtype=np.float64) + amplitude * phi(p) / norm
+
+
+def target_distortion(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray, weights: np.ndarray,
+                      pose: np.ndarray, amplitude: float, n_fields: int = 3, rng=None) -> float:
+    """RMS (px) of ``F(w, f(S)) - f(Q)`` over frames and points, averaged over ``n_fields`` random fields."""
+    rng = np.random.default_rng(rng)
+    out = []
+    for _ in range(n_fields):
+        f = smooth_field(shapes.reshape(-1, 2)[::max(1, shapes.size // 2000)], amplitude, rng)
+        rec = reconstruct(weights, f(keys), f(neutral))
+        out.append(pixel_errors(f(shapes), rec, pose)[1])
+    return float(np.mean(out))
+
+
+def key_noise_amplification(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray, weights: np.ndarray,
+                            pose: np.ndarray, amplitude: float, n_fields: int = 3, rng=None) -> float:
+    """RMS (px) of ``F(w, S + E) - F(w, S)`` where every key and the neutral get their own smooth field.
+
+    Stands in for an artist re-drawing each key shape with small independent errors
+    (the traced lips of Figures 4 and 5): weights that sum to about one pass the
+    errors through at about ``amplitude``; large weights of both signs amplify them.
+    """
+    rng = np.random.default_rng(rng)
+    sample = shapes.reshape(-1, 2)[::max(1, shapes.size // 2000)]
+    out = []
+    for _ in range(n_fields):
+        fk = np.stack([smooth_field(sample, amplitude, rng)(s) for s in np.concatenate([keys, neutral[None]])])
+        rec0 = reconstruct(weights, keys, neutral)
+        rec = reconstruct(weights, fk[:-1], fk[-1])
+        out.append(pixel_errors(rec0, rec, pose)[1])
+    return float(np.mean(out))
+
+
+def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin: int = 2, kmax: int = 24,
+            amplitude: float = 3.0, rng=None, progress=None) -> list[dict]:
+    """Rows of :data:`COLUMNS` for every method, region and k in kmin..kmax.
+
+    Weights are NNLS (eq. 4), as in Figure 6. ``hull2`` gives one row at its own k.
+    ``random`` uses a fresh draw per k. Failed frames are left out.
+    """
+    rng = np.random.default_rng(rng)
+    shapes_all = model_shapes(tracks)
+    ok = np.flatnonzero(tracks.success)
+    if kmax > len(ok):
+        raise InputError(f"--kmax {kmax} is larger than the {len(ok)} successful frames")
+    if kmin < 1 or kmin > kmax:
+        raise InputError(f"need 1 <= kmin <= kmax, got {kmin}..{kmax}")
+    regions = available_regions(scheme) if regions is None else list(regions)
+    pose = tracks.pose[ok]
+    rows = []
+    for region in regions:
+        idx = region_points(scheme, region)
+        Q = shapes_all[ok][:, idx]
+        field_seed = int(rng.integers(2**31 - 1))
+        for method in methods:
+            if method in NESTED:
+                sel = make_selector(method, kmax, rng=rng).fit(Q)
+                fits = [(k, sel.order_[:k], Q[sel.order_[:k]]) for k in range(kmin, kmax + 1)]
+            elif method == "hull2":
+                sel = make_selector(method, 0).fit(Q)
+                fits = [(len(sel.indices_), sel.indices_, sel.keys_)]
+            else:
+                fits = []
+                for k in range(kmin, kmax + 1):
+                    sel = make_selector(method, k, rng=rng).fit(Q)
+                    fits.append((k, sel.indices_, sel.keys_))
+            neutral = Q.mean(axis=0)
+            for k, _, keys in fits:
+                w = nnls_weights(Q, keys, neutral)
+                e, rms = pixel_errors(Q, reconstruct(w, keys, neutral), pose)
+                wl = lstsq_weights(Q, keys, neutral)
+                row = {"method": method, "region": region, "k": int(k), "error": e, "rms_px": rms,
+                       "target_nnls_px": target_distortion(Q, keys, neutral, w, pose, amplitude, rng=field_seed),
+                       "target_lstsq_px": target_distortion(Q, keys, neutral, wl, pose, amplitude, rng=field_seed)}
+                row["keynoise_nnls_px"] = key_noise_amplification(Q, keys, neutral, w, pose, amplitude,
+                                                                  rng=field_seed)
+                row["keynoise_lstsq_px"] = key_noise_amplification(Q, keys, neutral, wl, pose, amplitude,
+                                                                   rng=field_seed)
+                rows.append(row)
+            if progress:
+                progress(region, method)
+    return rows
+
+
+COLUMNS = ("method", "region", "k", "error", "rms_px", "target_nnls_px", "target_lstsq_px",
+           "keynoise_nnls_px", "keynoise_lstsq_px")
+
+
+def write_errors(path, rows: list[dict]) -> None:
+    """errors.csv: one row per (method, region, k) with :data:`COLUMNS`."""
+    from pipeline.files import atomic_write
+
+    with atomic_write(path) as f:
+        f.write(",".join(COLUMNS) + "\n")
+        for r in rows:
+            f.write(",".join([r["method"], r["region"], str(r["k"])]
+                             + [f"{r[c]:.6g}" for c in COLUMNS[3:]]) + "\n")
+
+
+def plot_errors(path, rows: list[dict]) -> None:
+    """errors.png: eq. (5) error against k, one line per selector, one panel per region (Figure 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline.files import atomic_path
+
+    regions = list(dict.fromkeys(r["region"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    style = {"spread": ("tab:blue", "-"), "kmeans2": ("tab:green", "--"), "kmeans3": ("m", "--"),
+             "hull2": ("tab:red", ""), "random": ("0.5", ":"), "greedy": ("k", "-")}
+    fig, axes = plt.subplots(1, len(regions), figsize=(5 * len(regions), 4), squeeze=False)
+    for ax, region in zip(axes[0], regions):
+        for m in methods:
+            rr = sorted((r for r in rows if r["region"] == region and r["method"] == m), key=lambda r: r["k"])
+            if not rr:
+                continue
+            c, ls = style.get(m, (None, "-"))
+            ks, es = [r["k"] for r in rr], [r["error"] for r in rr]
+            if len(rr) == 1 or not ls:
+                ax.plot(ks, es, "o", color=c, label=m)
+            else:
+                ax.plot(ks, es, ls, color=c, label=m, lw=2 if m in ("spread", "greedy") else 1.3)
+        ax.set_yscale("log")
+        ax.set_xlabel("number of key shapes k")
+        ax.set_ylabel("eq. (5) error, sum of squared px")
+        ax.set_title(f"{region}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)

@@ -1,0 +1,332 @@
+"""Key-shape selectors (section 4.2 of 004_119ba07521a9af0b.txt) with one estimator interface.
+
+Every selector takes ``shapes`` (n_frames, n_points, dim) in the model frame (head
+pose removed) and, after ``fit``, has
+
+- ``indices_`` (n_keys,) : the chosen frames (row indices into ``shapes``);
+- ``keys_`` (n_keys, n_points, dim) : the key shapes (``shapes[indices_]`` except for
+  k-means with ``centre="mean"``, whose keys are cluster centres of mass);
+- ``neutral_`` (n_points, dim) : the mean shape the PCA and the weights are centred on.
+
+Swap one for another in one line: ``SpreadSelector(12).fit(shapes).indices_``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.errors import InputError
+from decompose.weights import nnls_gram
+
+METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
+
+
+def _check_shapes(shapes, n_keys: int | None) -> np.ndarray:
+    arr = np.asarray(shapes, dtype=np.float64)
+    if arr.ndim != 3:
+        raise InputError(f"shapes: expected (n_frames, n_points, dim), got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=(1, 2)))
+        raise InputError(f"shapes contain NaN at frame rows {bad[:5].tolist()}: exclude failed frames "
+                         f"before selecting key shapes")
+    if n_keys is not None:
+        if int(n_keys) < 1:
+            raise InputError(f"n_keys must be at least 1, got {n_keys}")
+        if n_keys > len(arr):
+            raise InputError(f"cannot choose {n_keys} key shapes from {len(arr)} frames "
+                             f"(k larger than the frames available)")
+    return arr
+
+
+def _pca(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scores (n_frames, r) and axes (r, d) of centred ``X``, signs fixed as scikit-learn's svd_flip."""
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    r = int((s > s[0] * 1e-10).sum()) if len(s) and s[0] > 0 else 0
+    U, s, Vt = U[:, :r], s[:r], Vt[:r]
+    signs = np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(r)])
+    signs[signs == 0] = 1
+    return U * s * signs, Vt * signs[:, None]
+
+
+class _Selector:
+    """Shared fit scaffolding: validate, centre on the mean, learn, set keys."""
+
+    def __init__(self, n_keys: int = 8):
+        self.n_keys = n_keys
+
+    def fit(self, shapes: np.ndarray) -> "_Selector":
+        """Choose key shapes from ``shapes`` (n_frames, n_points, dim); returns ``self``."""
+        arr = _check_shapes(shapes, self._needed_keys())
+        self.neutral_ = arr.mean(axis=0)
+        X = (arr - self.neutral_).reshape(len(arr), -1)
+        idx, keys = self._select(X, arr)
+        self.indices_ = np.asarray(idx, dtype=np.intp)
+        self.keys_ = arr[self.indices_].copy() if keys is None else keys
+        return self
+
+    def _needed_keys(self) -> int | None:
+        return self.n_keys
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "indices_"):
+            raise InputError(f"this {type(self).__name__} is not fitted yet: call fit(shapes) first")
+
+    @property
+    def n_keys_(self) -> int:
+        self._check_fitted()
+        return len(self.indices_)
+
+    def __repr__(self) -> str:
+        params = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if not k.endswith("_"))
+        return f"{type(self).__name__}({params})"
+
+
+class SpreadSelector(_Selector):
+    """Maximum spread along principal components (the paper's method, section 4.2).
+
+    PCA of the mean-centred shapes; for axis 0, 1, ... the frames with the maximum
+    and then the minimum projection are chosen, skipping frames already chosen,
+    until ``n_keys`` are chosen (the first ``ceil(k/2)`` axes; the last contributes
+    only its maximum when k is odd). If the axes run out (rank < k/2), the pass is
+    repeated taking each axis' next-most-extreme frames. ``order_`` is nested:
+    the first j keys of a fit with k are those of a fit with j.
+    """
+
+    def _select(self, X, arr):
+        scores, _ = _pca(X)
+        if scores.shape[1] == 0:
+            raise InputError("all shapes are identical: there is no variation to choose key shapes from")
+        order_max = np.argsort(-scores, axis=0, kind="stable")
+        order_min = np.argsort(scores, axis=0, kind="stable")
+        chosen: list[int] = []
+        taken = np.zeros(len(X), dtype=bool)
+        depth = np.zeros((scores.shape[1], 2), dtype=np.intp)
+        while len(chosen) < self.n_keys:
+            progress = False
+            for a in range(scores.shape[1]):
+                for side, order in ((0, order_max), (1, order_min)):
+                    if len(chosen) == self.n_keys:
+                        break
+                    d = depth[a, side]
+                    while d < len(X) and taken[order[d, a]]:
+                        d += 1
+                    depth[a, side] = d + 1
+                    if d < len(X):
+                        chosen.append(int(order[d, a]))
+                        taken[order[d, a]] = True
+                        progress = True
+            if not progress:
+                break
+        self.order_ = np.array(chosen, dtype=np.intp)
+        return chosen, None
+
+
+class KMeansSelector(_Selector):
+    """k-means clustering of the first ``n_dims`` PCA coordinates (section 4.2, "Clustering").
+
+    Parameters
+    ----------
+    n_keys : int
+    n_dims : int
+        PCA coordinates clustered (the paper reports 2 and 3).
+    centre : {"mean", "nearest"}
+        ``"mean"``: the key shape is the cluster's centre of mass in shape space (as the
+        paper says); ``indices_`` then holds the frame nearest each centre, for display.
+        ``"nearest"``: the key is that nearest frame itself.
+    rng : None, int or Generator
+        Seeds the k-means initialisations.
+    """
+
+    def __init__(self, n_keys: int = 8, n_dims: int = 2, centre: str = "mean", rng=None):
+        self.n_keys = n_keys
+        self.n_dims = n_dims
+        self.centre = centre
+        self.rng = rng
+
+    def _select(self, X, arr):
+        if self.centre not in ("mean", "nearest"):
+            raise InputError(f"centre must be 'mean' or 'nearest', got {self.centre!r}")
+        scores, _ = _pca(X)
+        Y = scores[:, :self.n_dims]
+        n_distinct = len(np.unique(Y.round(12), axis=0))
+        if n_distinct < self.n_keys:
+            raise InputError(f"cannot form {self.n_keys} clusters from {n_distinct} distinct shapes")
+        labels = kmeans_labels(Y, self.n_keys, rng=self.rng)
+        counts = np.bincount(labels, minlength=self.n_keys)
+        centres = np.einsum("tc,tpd->cpd", np.eye(self.n_keys)[labels], arr) / counts[:, None, None]
+        d2 = ((X[None] - (centres - self.neutral_).reshape(self.n_keys, 1, -1)) ** 2).sum(-1)
+        d2[labels[None] != np.arange(self.n_keys)[:, None]] = np.inf  # nearest member of its own cluster
+        idx = np.argmin(d2, axis=1)
+        return idx, (centres if self.centre == "mean" else None)
+
+
+def kmeans_labels(Y: np.ndarray, n_clusters: int, n_init: int = 4, max_iter: int = 100, rng=None) -> np.ndarray:
+    """Cluster labels of ``Y`` (n, dim) by Lloyd's k-means with k-means++ seeding; best of ``n_init``.
+
+    Every cluster keeps at least one member (an emptied cluster is re-seeded at the
+    point farthest from its centre).
+    """
+    rng = np.random.default_rng(rng)
+    n = len(Y)
+    best, best_inertia = None, np.inf
+    for _ in range(n_init):
+        c = [Y[rng.integers(n)]]
+        d2 = ((Y - c[0]) ** 2).sum(1)
+        for _ in range(1, n_clusters):
+            c.append(Y[rng.choice(n, p=d2 / d2.sum()) if d2.sum() > 0 else rng.integers(n)])
+            d2 = np.minimum(d2, ((Y - c[-1]) ** 2).sum(1))
+        C = np.array(c)
+        labels = np.full(n, -1)
+        for _ in range(max_iter):
+            D = ((Y[:, None] - C[None]) ** 2).sum(-1)
+            new = np.argmin(D, axis=1)
+            counts = np.bincount(new, minlength=n_clusters)
+            for j in np.flatnonzero(counts == 0):          # re-seed empty clusters (rare)
+                far = int(np.argmax(D[np.arange(n), new]))
+                new[far] = j
+                D[far] = 0
+            if np.array_equal(new, labels):
+                break
+            labels = new
+            C = (np.eye(n_clusters)[labels].T @ Y) / np.bincount(labels, minlength=n_clusters)[:, None]
+        inertia = ((Y - C[labels]) ** 2).sum()
+        if inertia < best_inertia:
+            best, best_inertia = labels, inertia
+    return best
+
+
+class HullSelector(_Selector):
+    """Frames on the 2D convex hull of the first two PCA coordinates (section 4.2, "Convex hull").
+
+    ``n_keys`` is not a parameter: it is however many frames lie on the hull.
+    """
+
+    def __init__(self):
+        pass
+
+    def _needed_keys(self):
+        return None
+
+    def _select(self, X, arr):
+        from scipy.spatial import ConvexHull, QhullError
+
+        scores, _ = _pca(X)
+        if scores.shape[1] < 2:
+            raise InputError("the shapes vary along fewer than two directions: no 2D hull")
+        try:
+            hull = ConvexHull(scores[:, :2])
+        except QhullError as exc:
+            raise InputError(f"convex hull failed ({str(exc).splitlines()[0]})") from None
+        return hull.vertices, None
+
+
+class RandomSelector(_Selector):
+    """``n_keys`` distinct frames drawn at random (the baseline); ``rng``: None, int or Generator."""
+
+    def __init__(self, n_keys: int = 8, rng=None):
+        self.n_keys = n_keys
+        self.rng = rng
+
+    def _select(self, X, arr):
+        return np.random.default_rng(self.rng).choice(len(X), size=self.n_keys, replace=False), None
+
+
+class GreedySelector(_Selector):
+    """Greedy forward selection on the NNLS reconstruction error itself (this toolkit's own).
+
+    Starting from no keys, each step adds the frame whose addition most reduces
+    eq. (5), ``E = sum_t min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2``.
+    Each step evaluates a shortlist of candidates exactly and in one batch:
+    the ``n_candidates`` frames that most reduce the *least-squares* residual
+    (one matrix product over all frames: the gain of candidate c is
+    ``||R c_perp||^2 / ||c_perp||^2`` with R the residuals and ``c_perp`` the part of c
+    outside the current keys' span) together with the ``n_candidates`` frames worst
+    reconstructed now (a frame that is poorly reached is a good key). For every
+    candidate the NNLS problems of all evaluation frames are solved together
+    (:func:`~decompose.weights.nnls_gram`, stacked over candidates). On long
+    sequences the error is evaluated on ``max_eval`` frames drawn with ``rng``.
+
+    ``order_`` is nested: the first j keys of a fit with k are the fit with j.
+    """
+
+    def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None):
+        self.n_keys = n_keys
+        self.n_candidates = n_candidates
+        self.max_eval = max_eval
+        self.rng = rng
+
+    def _select(self, X, arr):
+        n = len(X)
+        rng = np.random.default_rng(self.rng)
+        ev = np.sort(rng.choice(n, self.max_eval, replace=False)) if n > self.max_eval else np.arange(n)
+        E = X[ev]                                     # evaluation frames (n_eval, d)
+        sq = (X ** 2).sum(axis=1)
+        chosen: list[int] = []
+        resid_nnls = (E ** 2).sum(axis=1)             # per evaluation frame, current NNLS residual
+        Q = np.zeros((0, X.shape[1]))                 # orthonormal basis of the chosen keys' span
+        w_prev = np.zeros((len(E), 0))
+        for _ in range(self.n_keys):
+            R = E - (E @ Q.T) @ Q                     # least-squares residuals
+            C = X - (X @ Q.T) @ Q                     # candidates' parts outside the span
+            cn = (C ** 2).sum(axis=1)
+            ok = cn > 1e-12 * max(sq.max(), 1e-300)
+            ok[chosen] = False
+            if not ok.any():
+                ok = np.ones(n, dtype=bool)
+                ok[chosen] = False
+            gain = np.where(ok, ((R @ C.T) ** 2).sum(axis=0) / np.where(ok, cn, 1.0), -np.inf)
+            short = set(np.argsort(-gain)[:self.n_candidates].tolist())
+            worst = ev[np.argsort(-resid_nnls)]
+            short.update([int(i) for i in worst if ok[i]][:self.n_candidates])
+            cands = np.array(sorted(short), dtype=np.intp)
+            errs, res, w_best = self._nnls_errors(E, X, chosen, cands, w_prev)
+            best = int(np.argmin(errs))
+            c = int(cands[best])
+            chosen.append(c)
+            resid_nnls = res[best]
+            w_prev = w_best[best]
+            q = C[c] / np.sqrt(cn[c]) if cn[c] > 0 else np.zeros(X.shape[1])
+            Q = np.vstack([Q, q])
+        self.order_ = np.array(chosen, dtype=np.intp)
+        return chosen, None
+
+    @staticmethod
+    def _nnls_errors(E, X, chosen, cands, w_prev):
+        """Eq. (5) over the evaluation frames for keys ``chosen + [c]``, all candidates c in one batch.
+
+        One NNLS problem per (candidate, frame) pair, solved together; warm-started
+        from the previous step's weights (the new key's weight starts positive).
+        """
+        B0 = X[chosen]                                  # (j, d)
+        Bc = X[cands]                                   # (m, d)
+        j, m, ne = len(chosen), len(cands), len(E)
+        G = np.empty((m, j + 1, j + 1))
+        G[:, :j, :j] = B0 @ B0.T
+        G[:, :j, j] = G[:, j, :j] = Bc @ B0.T
+        G[:, j, j] = (Bc ** 2).sum(axis=1)
+        h = np.empty((m, ne, j + 1))
+        h[:, :, :j] = E @ B0.T
+        h[:, :, j] = (E @ Bc.T).T
+        passive = np.ones((m, ne, j + 1), dtype=bool)
+        passive[:, :, :j] = w_prev > 0
+        Gr = np.broadcast_to(G[:, None], (m, ne, j + 1, j + 1)).reshape(m * ne, j + 1, j + 1)
+        w, _ = nnls_gram(Gr, h.reshape(m * ne, j + 1), passive=passive.reshape(m * ne, j + 1))
+        w = w.reshape(m, ne, j + 1)
+        e2 = (E ** 2).sum(axis=1)
+        r = e2 - 2 * (w * h).sum(-1) + np.einsum("mti,mij,mtj->mt", w, G, w)
+        res = np.maximum(r, 0.0)
+        return res.sum(axis=1), res, w
+
+
+def make_selector(method: str, n_keys: int, rng=None) -> _Selector:
+    """The selector named ``method`` (one of :data:`METHODS`) for ``n_keys`` keys."""
+    if method == "spread":
+        return SpreadSelector(n_keys)
+    if method in ("kmeans2", "kmeans3"):
+        return KMeansSelector(n_keys, n_dims=int(method[-1]), rng=rng)
+    if method == "hull2":
+        return HullSelector()
+    if method == "random":
+        return RandomSelector(n_keys, rng=rng)
+    if method == "greedy":
+        return GreedySelector(n_keys, rng=rng)
+    raise InputError(f"unknown selection method {method!r}: use one of {', '.join(METHODS)}")

@@ -1,0 +1,60 @@
+"""The key-frame sheet: every chosen key frame cropped from the video with its contours, numbered.
+
+This is what the artist models the target key shapes from, so each tile shows
+the face enlarged, the key's region drawn bold in the scheme's colours over the
+rest of the face drawn thin and grey, and the key's name (``mouth_3``) and frame
+number in a caption.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from pipeline.errors import InputError
+from tracker.draw import contact_sheet, crop_around, draw_shape
+from tracker.io import Tracks
+from tracker.schemes import Scheme
+from decompose.regions import RegionKeys, to_image
+
+
+def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[RegionKeys],
+              tile_width: int = 280) -> tuple[list[np.ndarray], list[str]]:
+    """One annotated tile per key shape; ``frames_bgr`` maps frame number -> BGR image."""
+    row_of = {int(f): i for i, f in enumerate(tracks.frame)}
+    tiles, captions = [], []
+    for rk in regions:
+        sub = Scheme(scheme.name, scheme.n_points,
+                     {n: c for n, c in scheme.contours.items() if set(c) <= set(rk.points.tolist())},
+                     scheme.closed, scheme.regions, scheme.inter_ocular)
+        for name, f, key, exact in zip(rk.names, rk.frames, rk.keys, rk.from_frame):
+            if int(f) not in row_of:
+                raise InputError(f"key {name} names frame {f}, which the tracks file does not have")
+            r = row_of[int(f)]
+            face = tracks.points[r]
+            shape = face.copy()
+            shape[rk.points] = to_image(key[None], tracks.pose[r:r + 1])[0]   # the key itself, in the image
+            crop, p = crop_around(frames_bgr[int(f)], face, margin=0.3)
+            s = tile_width / max(crop.shape[1], 1)
+            big = cv2.resize(crop, (tile_width, max(1, int(round(crop.shape[0] * s)))), interpolation=cv2.INTER_CUBIC)
+            p = p * s
+            big = draw_shape(big, p, scheme, colour=(150, 150, 150), thickness=1)
+            big = draw_shape(big, np.where(np.isin(np.arange(len(p)), rk.points)[:, None], p, np.nan), sub,
+                             thickness=2)
+            num = name.rsplit("_", 1)[1]
+            cv2.putText(big, num, (8, big.shape[0] - 10), cv2.FONT_HERSHEY_DUPLEX, 1.2, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(big, num, (8, big.shape[0] - 10), cv2.FONT_HERSHEY_DUPLEX, 1.2, (255, 255, 255), 1,
+                        cv2.LINE_AA)
+            tiles.append(big)
+            captions.append(f"{name}  frame {int(f)}" + ("" if exact else " (cluster mean)"))
+    return tiles, captions
+
+
+def key_sheet(video_path, tracks: Tracks, scheme: Scheme, regions: list[RegionKeys], columns: int = 4,
+              tile_width: int = 280) -> np.ndarray:
+    """The sheet image (BGR uint8) for ``regions``' keys, frames decoded from ``video_path``."""
+    from tracker.video import VideoReader
+
+    wanted = sorted({int(f) for rk in regions for f in rk.frames})
+    images = VideoReader(video_path).read_frames(wanted)
+    tiles, captions = key_tiles(dict(zip(wanted, images)), tracks, scheme, regions, tile_width)
+    return contact_sheet(tiles, captions, columns=columns, tile_width=tile_width)

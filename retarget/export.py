@@ -1,0 +1,212 @@
+"""Write retargeted animation, chosen by the extension of the output path.
+
+=================  ==========================================================
+``OUT.glb``        glTF 2.0 binary: mesh, morph targets, weight + head animation (3D)
+``OUT.csv``        per-frame weights per target name (``frame,<name>,...``), or the
+                   Live Link Face layout with ``livelink=True``
+``OUT.mp4/.avi``   rendered animation: the drawn character (2D) or the shaded mesh (3D)
+``OUT`` (folder)   one OBJ per frame (3D) or one PNG per frame (2D), written atomically
+=================  ==========================================================
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.files import atomic_dir, atomic_write
+from retarget.headpose import HeadMotion
+from retarget.retargeter import Retargeter
+from retarget.targets import name_key
+from retarget.weights_io import write_weights
+
+VIDEO_SUFFIXES = (".mp4", ".avi")
+
+# ARKit's 52 names in the order of the Live Link Face CSV (PascalCase there).
+ARKIT52 = (
+    "eyeBlinkLeft eyeLookDownLeft eyeLookInLeft eyeLookOutLeft eyeLookUpLeft eyeSquintLeft eyeWideLeft "
+    "eyeBlinkRight eyeLookDownRight eyeLookInRight eyeLookOutRight eyeLookUpRight eyeSquintRight eyeWideRight "
+    "jawForward jawRight jawLeft jawOpen mouthClose mouthFunnel mouthPucker mouthRight mouthLeft "
+    "mouthSmileLeft mouthSmileRight mouthFrownLeft mouthFrownRight mouthDimpleLeft mouthDimpleRight "
+    "mouthStretchLeft mouthStretchRight mouthRollLower mouthRollUpper mouthShrugLower mouthShrugUpper "
+    "mouthPressLeft mouthPressRight mouthLowerDownLeft mouthLowerDownRight mouthUpperUpLeft mouthUpperUpRight "
+    "browDownLeft browDownRight browInnerUp browOuterUpLeft browOuterUpRight cheekPuff cheekSquintLeft "
+    "cheekSquintRight noseSneerLeft noseSneerRight tongueOut").split()
+LIVELINK_TAIL = ("HeadYaw HeadPitch HeadRoll LeftEyeYaw LeftEyePitch LeftEyeRoll "
+                 "RightEyeYaw RightEyePitch RightEyeRoll").split()
+
+
+def output_kind(path: str | Path, dim: int) -> str:
+    """``"glb"``, ``"csv"``, ``"video"``, ``"obj_frames"`` or ``"png_frames"`` for ``path``."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".glb":
+        return "glb"
+    if suffix == ".csv":
+        return "csv"
+    if suffix in VIDEO_SUFFIXES:
+        return "video"
+    if suffix == "" or Path(path).is_dir():
+        return "obj_frames" if dim == 3 else "png_frames"
+    raise InputError("output must end in .glb, .csv, .mp4/.avi, or be a folder (OBJ or PNG frames)", path)
+
+
+def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
+    """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``).
+
+    Target names are matched to ARKit names case-insensitively with ``_L``/``Left`` alike;
+    an unsided ARKit name (``browInnerUp``, ``cheekPuff``) missing from the targets takes the
+    mean of its ``_L``/``_R`` targets (ICT-FaceKit splits them). Unmatched ARKit columns are 0.
+    ``HeadRoll`` is the head motion's in-plane angle in radians (yaw and pitch are not
+    estimated from 2D video: 0). Raises :class:`InputError` when no target name is an ARKit name.
+    """
+    col = {name_key(n): j for j, n in enumerate(names)}
+    out = np.zeros((len(weights), len(ARKIT52)))
+    hit = 0
+    for a, n in enumerate(ARKIT52):
+        k = name_key(n)
+        if k in col:
+            out[:, a] = weights[:, col[k]]
+            hit += 1
+        elif k + "left" in col and k + "right" in col:
+            out[:, a] = (weights[:, col[k + "left"]] + weights[:, col[k + "right"]]) / 2
+            hit += 1
+    if not hit:
+        raise InputError(f"no target name is an ARKit blendshape name (targets: {', '.join(names[:8])}...); "
+                         "the Live Link layout needs ARKit-named targets")
+    tail = np.zeros((len(weights), len(LIVELINK_TAIL)))
+    if head is not None:
+        tail[:, 2] = head.angle
+    header = ["Timecode", "BlendShapeCount"] + [n[0].upper() + n[1:] for n in ARKIT52] + LIVELINK_TAIL
+    rows = []
+    for i in range(len(weights)):
+        t = i / fps
+        sec = int(t)
+        ff = int(round((t - sec) * fps, 6))
+        sub = (t - sec) * fps - ff
+        tc = f"{sec // 3600:02d}:{sec // 60 % 60:02d}:{sec % 60:02d}:{ff:02d}.{int(round(sub * 1000)):03d}"
+        rows.append([tc, "61"] + ["%.6g" % x for x in out[i]] + ["%.6g" % x for x in tail[i]])
+    return header, rows
+
+
+def _draw_2d(points: np.ndarray, size=(480, 480), scheme=None):
+    """Frames of a drawn 2D character: (n_frames, h, w, 3) generator, one common framing."""
+    import cv2
+    w, h = size
+    lo, hi = np.nanmin(points.reshape(-1, 2), axis=0), np.nanmax(points.reshape(-1, 2), axis=0)
+    s = 0.9 * min(w / max(hi[0] - lo[0], 1e-9), h / max(hi[1] - lo[1], 1e-9))
+    off = np.array([w, h]) / 2 - s * (lo + hi) / 2
+    for p in points:
+        img = np.full((h, w, 3), 255, np.uint8)
+        q = p * s + off
+        if scheme is not None:
+            from tracker.draw import draw_shape
+            img = draw_shape(img, q, scheme, colour=(40, 40, 40), thickness=2)
+        else:
+            qi = np.round(q * 16).astype(np.int32)
+            cv2.polylines(img, [qi.reshape(-1, 1, 2)], False, (40, 40, 40), 2, cv2.LINE_AA, 4)
+        yield img
+
+
+def _scheme_for(n_points: int, scheme):
+    from tracker.schemes import BUILTIN, load_scheme
+    if scheme is not None:
+        return load_scheme(scheme)
+    for name in BUILTIN:
+        s = load_scheme(name)
+        if s.n_points == n_points:
+            return s
+    return None
+
+
+def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
+    """Apply head motion to 2D drawings (image axes, y down) about the drawing's first-frame centre."""
+    c = points[0].mean(axis=0)
+    ang = -head.angle                          # back to image axes
+    cs, sn = np.cos(ang), np.sin(ang)
+    rot = np.stack([np.stack([cs, -sn], -1), np.stack([sn, cs], -1)], -2) * head.scale[:, 0, None, None]
+    t = head.translation[:, :2] * np.array([1.0, -1.0])
+    return np.einsum("fij,fpj->fpi", rot, points - c) + c + t[:, None]
+
+
+def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
+           head: HeadMotion | None = None, clamp: bool = False, livelink: bool = False,
+           bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480)) -> dict:
+    """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
+
+    Parameters
+    ----------
+    rt : fitted :class:`~retarget.retargeter.Retargeter`
+    frames : (n_frames,) frame numbers; weights : (n_frames, n_keys)
+    fps : frame rate of the animation (glTF sampler times ``i / fps``, Live Link timecode)
+    head : root motion (glTF node animation; baked into OBJ/PNG/video frames only with ``bake_head``)
+    clamp : clamp weights to [0, 1] in .glb and .csv outputs (default keep: NNLS weights may exceed 1)
+    livelink : .csv in the Live Link Face layout instead of ``frame,<target names>``
+    scheme : landmark scheme for drawing 2D targets (default: a built-in one with the same point count)
+
+    Returns
+    -------
+    dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error.
+    """
+    rt._fitted()
+    ts = rt.targets_
+    kind = output_kind(path, ts.dim)
+    path = Path(path)
+    weights = np.asarray(weights, dtype=np.float64)
+    if head is not None and head.n_frames != len(weights):
+        raise InputError(f"head motion has {head.n_frames} frames but the weights have {len(weights)}")
+    info = {"kind": kind, "path": path, "n_clamped": 0}
+    if kind == "glb":
+        from retarget.gltf import split_at_uv_seams, write_glb
+        base, deltas, names, mw, info["n_clamped"] = rt.morph_targets(weights, clamp=clamp)
+        ids, uvs, tri = split_at_uv_seams(ts.mesh)
+        if len(tri) == 0:
+            raise InputError("the target meshes have no faces: .glb needs faces", ts.files[0])
+        write_glb(path, base[ids], tri, deltas[:, ids], names, mw, fps, head, uvs=uvs)
+        info["n_morph_targets"] = len(names)
+        return info
+    if kind == "csv":
+        w = weights
+        if clamp:
+            c = np.clip(w, 0, 1)
+            info["n_clamped"] = int(np.count_nonzero(c != w))
+            w = c
+        names = list(ts.names)
+        if livelink:
+            header, rows = livelink_rows(names, w, fps, head)
+            with atomic_write(path, newline="") as f:
+                wr = csv.writer(f)
+                wr.writerow(header)
+                wr.writerows(rows)
+        else:
+            from retarget.retargeter import _unique
+            write_weights(path, frames, _unique(names, ts.columns), w)
+        return info
+    out = rt.transform(weights, chunk_frames=chunk_frames)
+    if kind == "obj_frames":
+        from retarget.obj import write_obj
+        if bake_head and head is not None:
+            out = head.apply(out)
+        with atomic_dir(path) as tmp:
+            for fr, v in zip(frames, out):
+                write_obj(tmp / f"frame_{int(fr):06d}.obj", ts.mesh, v)
+        return info
+    import cv2
+    if ts.dim == 2:
+        pts = _head_2d(out, head) if (head is not None and bake_head) else out
+        images = _draw_2d(pts, size, _scheme_for(ts.n_vertices, scheme))
+    else:
+        from retarget.render import render_frames
+        verts = head.apply(out) if (head is not None and bake_head) else out
+        images = render_frames(verts, ts.mesh.triangles, size)
+    if kind == "png_frames":
+        with atomic_dir(path) as tmp:
+            for fr, img in zip(frames, images):
+                cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
+    else:
+        from tracker.video import video_writer
+        with video_writer(path, fps, size) as wr:
+            for img in images:
+                wr.write(img)
+    return info

@@ -1,0 +1,177 @@
+"""glTF 2.0 binary (.glb) output: base mesh, morph targets, weight and head-motion animation.
+
+Written with pygltflib. Layout (the conventions of glTF 2.0 morph targets):
+
+* node 0 ``head`` (root): carries the head motion as translation/rotation/scale
+  channels (see :mod:`retarget.headpose`); node 1 ``face`` (its child) holds the mesh.
+* mesh: one primitive, triangles (polygons fan-triangulated), ``POSITION`` of the base
+  shape, ``TEXCOORD_0`` when the OBJ has UVs (vertices split at UV seams), ``targets[i].POSITION`` = target i minus the base (deltas), default
+  ``mesh.weights`` and the target names in ``mesh.extras.targetNames`` (read by
+  Blender's importer, three.js and glTFast).
+* animation ``performance``: one sampler drives ``weights`` of the face node at the
+  video frame rate (input: frame times ``frame / fps`` in seconds; output:
+  n_frames x n_targets weights, LINEAR), plus one sampler per head-motion path.
+
+Weights above 1: glTF allows any real weight and readers apply them as given, so
+they are **kept** by default (an NNLS weight of 1.2 means "20% past the key
+shape"); :func:`retarget.export.morph_targets` can clamp them to [0, 1] (what
+ARKit-style consumers expect) and reports how many values changed.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.files import atomic_path
+
+FLOAT, UINT = 5126, 5125
+
+
+class _Blob:
+    """Accumulates tightly packed, 4-byte aligned buffer views and their accessors."""
+
+    def __init__(self, gltf):
+        self.gltf, self.parts, self.offset = gltf, [], 0
+
+    def add(self, array: np.ndarray, type_: str, component: int, target: int | None = None,
+            minmax: bool = False) -> int:
+        import pygltflib as g
+        data = np.ascontiguousarray(array).tobytes()
+        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=self.offset, byteLength=len(data),
+                                                  target=target))
+        pad = (-len(data)) % 4
+        self.parts.append(data + b"\0" * pad)
+        self.offset += len(data) + pad
+        kw = {}
+        if minmax:
+            a = np.asarray(array).reshape(len(array), -1)
+            kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
+        self.gltf.accessors.append(g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=component,
+                                              count=len(array), type=type_, **kw))
+        return len(self.gltf.accessors) - 1
+
+    def bytes(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def split_at_uv_seams(mesh) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """glTF vertices for an OBJ mesh: one per distinct (vertex, uv) corner pair.
+
+    glTF stores one UV per vertex, OBJ one per polygon corner; a vertex on a UV seam
+    becomes several glTF vertices at the same position (and with the same morph deltas).
+
+    Returns
+    -------
+    vertex_ids : (n_gltf,) index into ``mesh.vertices`` of each glTF vertex
+    uvs : (n_gltf, 2) float32 in glTF convention (``v`` flipped: origin top-left), or None
+        when some polygon has no UVs (then ``vertex_ids`` is the identity)
+    triangles : (n_triangles, 3) indices into the glTF vertices (polygons fan-triangulated)
+    """
+    polys = mesh.polygons
+    have_uv = len(mesh.uvs) and polys and all(t is not None for t in mesh.polygon_uvs)
+    if not have_uv:
+        return np.arange(mesh.n_vertices), None, mesh.triangles
+    sizes = np.array([len(p) for p in polys])
+    v = np.concatenate(polys).astype(np.int64)
+    t = np.concatenate(mesh.polygon_uvs).astype(np.int64)
+    pairs, corner = np.unique(np.stack([v, t], axis=1), axis=0, return_inverse=True)
+    corner = corner.reshape(-1)
+    starts = np.cumsum(sizes) - sizes
+    fan = [np.stack([np.full(k - 2, s), np.arange(s + 1, s + k - 1), np.arange(s + 2, s + k)], axis=1)
+           for s, k in zip(starts, sizes) if k >= 3]
+    tri = corner[np.concatenate(fan)] if fan else np.zeros((0, 3), np.int64)
+    uv = mesh.uvs[pairs[:, 1]].astype(np.float32)
+    uv[:, 1] = 1.0 - uv[:, 1]
+    return pairs[:, 0], uv, tri
+
+
+def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, names: Sequence[str],
+               weights: np.ndarray | None = None, fps: float = 30.0, head=None,
+               default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None):
+    """Build a :class:`pygltflib.GLTF2` in memory (see :func:`write_glb`)."""
+    import pygltflib as g
+    base = np.asarray(base, dtype=np.float64)
+    tg = np.asarray(deltas, dtype=np.float64)
+    tri = np.asarray(triangles)
+    if base.ndim != 2 or base.shape[1] != 3:
+        raise InputError(f"base: expected (n_vertices, 3), got {base.shape}")
+    if tg.ndim != 3 or tg.shape[1:] != base.shape:
+        raise InputError(f"deltas: expected (n_targets, {base.shape[0]}, 3), got {tg.shape}")
+    if len(names) != len(tg):
+        raise InputError(f"{len(names)} target names for {len(tg)} targets")
+    if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
+        raise InputError(f"triangles: expected (n_triangles, 3) with at least one, got {tri.shape}")
+    if not fps > 0:
+        raise InputError(f"fps must be > 0, got {fps}")
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.ndim != 2 or weights.shape[1] != len(tg) or not np.all(np.isfinite(weights)):
+            raise InputError(f"weights: expected finite (n_frames, {len(tg)}), got {weights.shape}")
+    gltf = g.GLTF2(asset=g.Asset(version="2.0", generator="keyshape"))
+    blob = _Blob(gltf)
+    pos = blob.add(base.astype(np.float32), "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)
+    idx = blob.add(tri.astype(np.uint32).reshape(-1), "SCALAR", UINT, g.ELEMENT_ARRAY_BUFFER, minmax=False)
+    tgt = [{"POSITION": blob.add(d, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)} for d in tg.astype(np.float32)]
+    dw = np.zeros(len(tg)) if default_weights is None else np.asarray(default_weights, dtype=np.float64)
+    attrs = g.Attributes(POSITION=pos)
+    if uvs is not None:
+        if np.shape(uvs) != (len(base), 2):
+            raise InputError(f"uvs: expected ({len(base)}, 2), got {np.shape(uvs)}")
+        attrs.TEXCOORD_0 = blob.add(np.asarray(uvs, np.float32), "VEC2", FLOAT, g.ARRAY_BUFFER)
+    gltf.materials.append(g.Material(name="skin", pbrMetallicRoughness=g.PbrMetallicRoughness(
+        baseColorFactor=[0.8, 0.72, 0.66, 1.0], metallicFactor=0.0, roughnessFactor=0.7)))
+    prim = g.Primitive(attributes=attrs, indices=idx, targets=tgt, mode=4, material=0)
+    gltf.meshes.append(g.Mesh(name="face", primitives=[prim], weights=[float(x) for x in dw],
+                              extras={"targetNames": [str(n) for n in names]}))
+    gltf.nodes.append(g.Node(name="head", children=[1]))
+    gltf.nodes.append(g.Node(name="face", mesh=0))
+    gltf.scenes.append(g.Scene(name="scene", nodes=[0]))
+    gltf.scene = 0
+    if weights is not None and len(weights):
+        times = (np.arange(len(weights)) / fps).astype(np.float32)
+        t_acc = blob.add(times, "SCALAR", FLOAT, minmax=True)
+        samplers = [g.AnimationSampler(input=t_acc, output=blob.add(weights.astype(np.float32).reshape(-1),
+                                                                    "SCALAR", FLOAT), interpolation="LINEAR")]
+        channels = [g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=1, path="weights"))]
+        if head is not None:
+            if head.n_frames != len(weights):
+                raise InputError(f"head motion has {head.n_frames} frames, weights {len(weights)}")
+            for path, arr, typ in (("translation", head.translation, "VEC3"), ("rotation", head.rotation, "VEC4"),
+                                   ("scale", head.scale, "VEC3")):
+                samplers.append(g.AnimationSampler(input=t_acc, output=blob.add(arr.astype(np.float32), typ, FLOAT),
+                                                   interpolation="LINEAR"))
+                channels.append(g.AnimationChannel(sampler=len(samplers) - 1,
+                                                   target=g.AnimationChannelTarget(node=0, path=path)))
+        gltf.animations.append(g.Animation(name="performance", samplers=samplers, channels=channels))
+    data = blob.bytes()
+    gltf.buffers.append(g.Buffer(byteLength=len(data)))
+    gltf.set_binary_blob(data)
+    return gltf
+
+
+def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray,
+              names: Sequence[str], weights: np.ndarray | None = None, fps: float = 30.0, head=None,
+              default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None) -> None:
+    """Write a .glb atomically.
+
+    Parameters
+    ----------
+    base : (n_vertices, 3) base shape (the neutral, or the first target)
+    triangles : (n_triangles, 3) vertex indices
+    deltas : (n_targets, n_vertices, 3) morph targets as displacements from ``base``
+    names : n_targets names (``mesh.extras.targetNames``)
+    weights : (n_frames, n_targets) morph weights per frame, or None for no animation
+    fps : frame rate of the weight and head-motion samplers
+    head : :class:`retarget.headpose.HeadMotion` or None
+    default_weights : (n_targets,) ``mesh.weights`` (default zeros)
+    uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
+
+    See :func:`retarget.export.morph_targets` for how target shapes, regions and the
+    absolute form become glTF deltas and weights exactly.
+    """
+    gltf = build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs)
+    with atomic_path(path) as tmp:
+        gltf.save_binary(str(tmp))

@@ -1,0 +1,342 @@
+"""Key-shape selection and weights (decompose/), on synthetic low-rank tracks with known structure."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.optimize import nnls
+
+from pipeline.cli import main
+from pipeline.errors import InputError, KeyshapeError
+from tracker.io import read_tracks, write_tracks
+from tracker.schemes import load_scheme
+from decompose.io import read_keys, read_weights, write_keys, write_weights
+from decompose.regions import decompose_region, model_shapes, region_points, select_region
+from decompose.selectors import (GreedySelector, HullSelector, KMeansSelector, RandomSelector, SpreadSelector,
+                                 make_selector)
+from decompose.toy import toy_tracks
+from decompose.weights import (lstsq_weights, nnls_gram, nnls_weights, reconstruct, smooth_weights,
+                               solve_weights)
+
+SCHEME = load_scheme("contours48")
+
+
+@pytest.fixture(scope="module")
+def toy():
+    tracks, truth = toy_tracks(300, rng=3, return_truth=True)
+    shapes = model_shapes(tracks)
+    return tracks, truth, shapes[:, region_points(SCHEME, "mouth")]
+
+
+def _random_problem(seed, n_frames=200, n_points=12, n_keys=9):
+    rng = np.random.default_rng(seed)
+    keys = rng.normal(size=(n_keys, n_points, 2))
+    neutral = rng.normal(size=(n_points, 2)) * 0.1
+    shapes = rng.normal(size=(n_frames, n_points, 2))
+    return shapes, keys, neutral
+
+
+# ----------------------------------------------------------------------------- weights
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("centred", [True, False], ids=["neutral", "absolute"])
+def test_nnls_equals_scipy_lawson_hanson(seed, centred):
+    shapes, keys, neutral = _random_problem(seed)
+    neutral = neutral if centred else None
+    w, ok = nnls_weights(shapes, keys, neutral, return_converged=True)
+    ref_n = 0 if neutral is None else neutral
+    B = (keys - ref_n).reshape(len(keys), -1).T
+    ref = np.array([nnls(B, x)[0] for x in (shapes - ref_n).reshape(len(shapes), -1)])
+    assert ok.all()
+    np.testing.assert_allclose(w, ref, atol=1e-9)
+
+
+def test_nnls_gram_batched_matrices_equal_shared():
+    shapes, keys, _ = _random_problem(4, n_keys=6)
+    B = keys.reshape(6, -1)
+    X = shapes.reshape(len(shapes), -1)
+    G = B @ B.T
+    w1, _ = nnls_gram(G, X @ B.T)
+    w2, ok = nnls_gram(np.broadcast_to(G, (len(X), 6, 6)), X @ B.T)
+    assert ok.all()
+    np.testing.assert_allclose(w1, w2, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_nnls_weights_never_negative(seed):
+    shapes, keys, neutral = _random_problem(seed + 10, n_keys=int(5 + seed * 3))
+    assert nnls_weights(shapes, keys, neutral).min() >= 0.0
+    assert smooth_weights(shapes, keys, neutral, smooth_lambda=0.5).min() >= 0.0
+    assert lstsq_weights(shapes, keys, neutral).min() < 0  # the unconstrained solution does go negative
+
+
+@pytest.mark.parametrize("solver", ["nnls", "lstsq"])
+def test_key_shapes_decompose_exactly_into_themselves(toy, solver):
+    _, _, Q = toy
+    sel = SpreadSelector(10).fit(Q)
+    w = solve_weights(sel.keys_, sel.keys_, sel.neutral_, solver=solver)
+    np.testing.assert_allclose(w, np.eye(10), atol=1e-8)
+    np.testing.assert_allclose(reconstruct(w, sel.keys_, sel.neutral_), sel.keys_, atol=1e-8)
+
+
+def test_frame_equal_to_key_uses_that_key_alone(toy):
+    _, _, Q = toy
+    sel = SpreadSelector(8).fit(Q)
+    frames = Q[sel.indices_[[2, 5]]]
+    w = nnls_weights(frames, sel.keys_, sel.neutral_)
+    expect = np.zeros((2, 8))
+    expect[0, 2] = expect[1, 5] = 1.0
+    np.testing.assert_allclose(w, expect, atol=1e-8)
+
+
+def test_smooth_with_zero_lambda_is_nnls(toy):
+    _, _, Q = toy
+    sel = SpreadSelector(8).fit(Q)
+    obs = np.ones(len(Q), bool)
+    obs[[5, 50]] = False
+    w0 = smooth_weights(np.where(obs[:, None, None], Q, sel.neutral_), sel.keys_, sel.neutral_, 0.0,
+                        observed=obs, tol=1e-10)
+    np.testing.assert_allclose(w0[obs], nnls_weights(Q[obs], sel.keys_, sel.neutral_), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_smooth_halves_jitter_on_static_stretches_with_small_error_cost(seed):
+    tracks, truth = toy_tracks(600, noise_px=1.0, rng=seed, return_truth=True)
+    Q = model_shapes(tracks)[:, region_points(SCHEME, "mouth")]
+    sel = SpreadSelector(12).fit(Q)
+    still = truth["static"][1:] & truth["static"][:-1]
+    res = {}
+    for solver in ("nnls", "smooth"):
+        w = solve_weights(Q, sel.keys_, sel.neutral_, solver=solver)  # default smooth_lambda
+        jitter = np.sqrt((np.diff(w, axis=0)[still] ** 2).sum(1).mean())
+        err = np.sqrt(((reconstruct(w, sel.keys_, sel.neutral_) - Q) ** 2).sum(-1).mean())
+        res[solver] = jitter, err
+    assert res["smooth"][0] < 0.5 * res["nnls"][0], res
+    assert res["smooth"][1] < 1.10 * res["nnls"][1], res
+
+
+def test_failed_frames_interpolated():
+    w_obs = np.array([[0.0, 1.0], [1.0, 3.0]])
+    obs = np.array([False, True, False, False, True, False])
+    shapes = np.zeros((6, 3, 2))
+    from decompose.weights import interpolate_rows
+    w = interpolate_rows(w_obs, obs)
+    np.testing.assert_allclose(w[:, 0], [0, 0, 1 / 3, 2 / 3, 1, 1])
+    np.testing.assert_allclose(w[:, 1], [1, 1, 5 / 3, 7 / 3, 3, 3])
+    assert shapes.shape == (6, 3, 2)
+
+
+def test_nan_shapes_are_an_error():
+    shapes, keys, neutral = _random_problem(0)
+    shapes[3, 1, 0] = np.nan
+    with pytest.raises(InputError, match="NaN.*frame rows \\[3\\]"):
+        nnls_weights(shapes, keys, neutral)
+    with pytest.raises(InputError, match="NaN"):
+        SpreadSelector(4).fit(shapes)
+
+
+# ----------------------------------------------------------------------------- selectors
+
+def test_spread_picks_extremes_of_principal_axes(toy):
+    _, _, Q = toy
+    X = (Q - Q.mean(0)).reshape(len(Q), -1)
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    p1 = X @ Vt[0]
+    sel = SpreadSelector(6).fit(Q)
+    assert set(sel.indices_[:2]) == {int(np.argmax(p1)), int(np.argmin(p1))}
+    assert len(set(sel.indices_)) == 6
+    np.testing.assert_array_equal(SpreadSelector(4).fit(Q).indices_, sel.indices_[:4])  # nested
+
+
+@pytest.mark.parametrize("method", ["spread", "kmeans2", "kmeans3", "random", "greedy"])
+def test_selector_interface(toy, method):
+    _, _, Q = toy
+    sel = make_selector(method, 7, rng=0)
+    with pytest.raises(InputError, match="not fitted"):
+        sel.n_keys_
+    assert sel.fit(Q) is sel
+    assert sel.indices_.shape == (7,) and sel.keys_.shape == (7, *Q.shape[1:])
+    assert len(set(sel.indices_.tolist())) == 7 and sel.indices_.max() < len(Q)
+    again = make_selector(method, 7, rng=0).fit(Q)
+    np.testing.assert_array_equal(again.indices_, sel.indices_)   # seeded: reproducible
+    with pytest.raises(InputError, match="cannot choose 400 key shapes from 300 frames"):
+        make_selector(method, 400, rng=0).fit(Q)
+
+
+def test_kmeans_centre_mean_and_nearest(toy):
+    _, _, Q = toy
+    mean = KMeansSelector(5, n_dims=2, centre="mean", rng=1).fit(Q)
+    near = KMeansSelector(5, n_dims=2, centre="nearest", rng=1).fit(Q)
+    np.testing.assert_array_equal(mean.indices_, near.indices_)
+    np.testing.assert_allclose(near.keys_, Q[near.indices_])
+    assert not np.allclose(mean.keys_, near.keys_)
+    # centres of mass average the shapes: inside the range of the data
+    assert (mean.keys_.min(0) >= Q.min(0) - 1e-9).all() and (mean.keys_.max(0) <= Q.max(0) + 1e-9).all()
+
+
+def test_hull_selects_the_2d_hull_vertices(toy):
+    from scipy.spatial import Delaunay
+
+    _, _, Q = toy
+    sel = HullSelector().fit(Q)
+    X = (Q - Q.mean(0)).reshape(len(Q), -1)
+    Vt = np.linalg.svd(X, full_matrices=False)[2]
+    Y = X @ Vt[:2].T
+    inside = Delaunay(Y[sel.indices_]).find_simplex(Y) >= 0
+    assert inside.all() and 3 <= len(sel.indices_) < len(Q) // 2
+
+
+def test_random_selector_uses_rng(toy):
+    _, _, Q = toy
+    a = RandomSelector(6, rng=1).fit(Q).indices_
+    b = RandomSelector(6, rng=2).fit(Q).indices_
+    assert not np.array_equal(a, b)
+
+
+def test_greedy_beats_spread_by_20_percent():
+    tracks = toy_tracks(300, rng=7)
+    Q = model_shapes(tracks)[:, region_points(SCHEME, "mouth")]
+    g = GreedySelector(12, rng=0).fit(Q)
+    for k in (8, 12):
+        sp = SpreadSelector(k).fit(Q)
+        e = []
+        for keys in (sp.keys_, Q[g.order_[:k]]):
+            w = nnls_weights(Q, keys, Q.mean(0))
+            e.append(np.sqrt(((reconstruct(w, keys, Q.mean(0)) - Q) ** 2).mean()))
+        assert e[1] < 0.8 * e[0], (k, e)
+
+
+# ----------------------------------------------------------------------------- regions and failed frames
+
+def test_failed_frames_never_selected_and_weights_flagged(tmp_path):
+    tracks = toy_tracks(200, rng=2, fail_fraction=0.1)
+    failed = set(tracks.frame[~tracks.success].tolist())
+    for method in ("spread", "greedy", "random", "kmeans2"):
+        rk = select_region(tracks, SCHEME, "mouth", 6, method, rng=0)
+        assert not failed & set(rk.frames.tolist()), method
+    rk = select_region(tracks, SCHEME, "eyes", 6)
+    w = decompose_region(tracks, rk, "nnls")
+    assert np.isfinite(w).all() and w.min() >= 0
+    t = np.flatnonzero(~tracks.success)[0]
+    if 0 < t < len(w) - 1 and tracks.success[t - 1] and tracks.success[t + 1]:
+        np.testing.assert_allclose(w[t], (w[t - 1] + w[t + 1]) / 2)
+
+
+def test_pose_is_removed_before_selection():
+    tracks, truth = toy_tracks(100, noise_px=0.0, rng=1, return_truth=True)
+    np.testing.assert_allclose(model_shapes(tracks), truth["shapes"], atol=1e-9)
+
+
+def test_region_errors():
+    tracks = toy_tracks(50, rng=0)
+    with pytest.raises(InputError, match="lacks region.*pupils"):
+        region_points(load_scheme("ibug68"), "pupils")
+    with pytest.raises(InputError, match="unknown region 'nose'"):
+        region_points(SCHEME, "nose")
+    with pytest.raises(InputError, match="cannot choose 60 key shapes from 50 successful frames"):
+        select_region(tracks, SCHEME, "mouth", 60)
+    tracks.points[4, 3] = np.nan
+    with pytest.raises(InputError, match="frames \\[4\\] are marked success=1"):
+        model_shapes(tracks)
+
+
+# ----------------------------------------------------------------------------- formats
+
+def test_keys_and_weights_round_trip(tmp_path):
+    tracks = toy_tracks(80, rng=0)
+    regs = [select_region(tracks, SCHEME, r, 5, m, rng=0) for r, m in (("mouth", "spread"), ("eyes", "kmeans2"))]
+    write_keys(tmp_path / "k.json", "contours48", 48, regs)
+    name, n, back = read_keys(tmp_path / "k.json")
+    assert (name, n) == ("contours48", 48)
+    for a, b in zip(regs, back):
+        assert a.region == b.region and a.method == b.method and b.names == [f"{a.region}_{i}" for i in range(5)]
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.frames, b.frames)
+        np.testing.assert_array_equal(a.from_frame, b.from_frame)
+        np.testing.assert_allclose(a.keys, b.keys, atol=1e-6)
+        np.testing.assert_allclose(a.neutral, b.neutral, atol=1e-6)
+    assert not back[1].from_frame.any()        # kmeans centres of mass are not frames
+    w = np.random.default_rng(0).random((80, 10))
+    flag = np.zeros(80, bool)
+    flag[3] = True
+    write_weights(tmp_path / "w.csv", tracks.frame, back[0].names + back[1].names, w, flag)
+    fr, names, w2, fl = read_weights(tmp_path / "w.csv")
+    assert names[0] == "mouth_0" and names[-1] == "eyes_4"
+    np.testing.assert_array_equal(fr, tracks.frame)
+    np.testing.assert_allclose(w2, w, atol=1e-6)
+    np.testing.assert_array_equal(fl, flag)
+
+
+def test_format_errors_name_the_file(tmp_path):
+    p = tmp_path / "bad.json"
+    p.write_text("{}")
+    with pytest.raises(InputError, match="bad.json.*not a key-shapes file"):
+        read_keys(p)
+    p.write_text(json.dumps({"format": "keyshape-keys", "scheme": "contours48", "n_points": 48,
+                             "regions": {"mouth": {"points": [0, 1], "neutral": [[0, 0]], "keys": []}}}))
+    with pytest.raises(InputError, match="bad.json.*no key shapes"):
+        read_keys(p)
+    q = tmp_path / "w.csv"
+    q.write_text("frame,mouth_0,blob\n0,1,2\n")
+    with pytest.raises(InputError, match="w.csv.*REGION_K"):
+        read_weights(q)
+    q.write_text("frame,mouth_0\n0,x\n")
+    with pytest.raises(InputError, match="w.csv, line 2"):
+        read_weights(q)
+
+
+# ----------------------------------------------------------------------------- commands
+
+def test_cli_select_decompose_compare(tmp_path, capsys):
+    tracks = toy_tracks(150, rng=4, fail_fraction=0.05)
+    write_tracks(tmp_path / "t.csv", tracks)
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "6", "--method", "greedy", "--region", "mouth",
+                 "--region", "eyes", "-o", str(tmp_path / "k.json")]) == 0
+    assert main(["decompose", str(tmp_path / "t.csv"), "--keys", str(tmp_path / "k.json"), "--solver", "smooth",
+                 "-o", str(tmp_path / "w.csv")]) == 0
+    fr, names, w, flag = read_weights(tmp_path / "w.csv")
+    assert names == [f"mouth_{i}" for i in range(6)] + [f"eyes_{i}" for i in range(6)]
+    np.testing.assert_array_equal(flag, ~tracks.success)
+    assert w.min() >= 0
+    assert main(["compare", str(tmp_path / "t.csv"), "--kmax", "5", "--methods", "spread", "random", "hull2",
+                 "--region", "mouth", "-o", str(tmp_path / "cmp")]) == 0
+    lines = (tmp_path / "cmp" / "errors.csv").read_text().splitlines()
+    assert lines[0].startswith("method,region,k,error,rms_px,target_nnls_px,target_lstsq_px")
+    assert len(lines) == 1 + 4 + 4 + 1
+    assert (tmp_path / "cmp" / "errors.png").stat().st_size > 1000
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    tracks = toy_tracks(30, rng=0)
+    tracks.points[2, 0] = np.nan
+    write_tracks(tmp_path / "t.csv", tracks)
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "-o", str(tmp_path / "k.json")]) == 2
+    assert "t.csv: frames [2] are marked success=1" in capsys.readouterr().err
+    tracks = toy_tracks(30, rng=0)
+    write_tracks(tmp_path / "t.csv", tracks)
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "40", "-o", str(tmp_path / "k.json")]) == 2
+    assert "cannot choose 40 key shapes from 30" in capsys.readouterr().err
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "nose", "-o", "x.json"]) == 2
+    assert not (tmp_path / "k.json").exists()
+
+
+def test_sheet_draws_key_frames(tmp_path):
+    import cv2
+
+    from tracker.video import video_writer
+
+    tracks = toy_tracks(40, rng=0)
+    tracks.points *= 0.8   # keep the face inside a 320x240 frame
+    tracks.pose[:, :, :] *= 0.8
+    with video_writer(tmp_path / "v.mp4", 25, (320, 240)) as wr:
+        for t in range(40):
+            wr.write(np.full((240, 320, 3), 40 + t, np.uint8))
+    write_tracks(tmp_path / "t.csv", tracks)
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "mouth", "-o", str(tmp_path / "k.json"),
+                 "--sheet", str(tmp_path / "s.png"), "--video", str(tmp_path / "v.mp4")]) == 0
+    img = cv2.imread(str(tmp_path / "s.png"))
+    assert img is not None and img.shape[1] > 4 * 280
+    assert (img[..., 1].astype(int) - img[..., 0] > 100).any()   # green lip contours drawn
+    with pytest.raises(KeyshapeError):
+        raise InputError("x")
