@@ -150,7 +150,7 @@ def test_drive_rebuilds_never_seen_inner_lips(kit):
     assert err.mean() < 3.0, err.mean()          # mm, while the jaw moves them by up to ~20 mm
 
 
-@pytest.mark.parametrize("out", ["take.npz", "objs"])
+@pytest.mark.parametrize("out", ["take.npz", "objs", "take.glb"])
 def test_cli_end_to_end(kit, tmp_path, shared_data, out, capsys):
     from data_synth.mocap import synthesize, write_take
 
@@ -164,6 +164,13 @@ def test_cli_end_to_end(kit, tmp_path, shared_data, out, capsys):
     if out.endswith(".npz"):
         with np.load(tmp_path / out) as z:
             assert z["vertices"].shape == (n, kit.neutral.shape[0], 3)
+    elif out.endswith(".glb"):
+        import pygltflib
+
+        g = pygltflib.GLTF2().load(str(tmp_path / out))
+        names = g.meshes[0].extras["targetNames"]
+        assert len(names) == n and len(g.meshes[0].primitives[0].targets) == n   # min(--components, frames)
+        assert g.animations[0].channels[0].target.path == "weights"
     else:
         assert len(list((tmp_path / out).glob("frame_*.obj"))) == n
     assert "rigid set: jig_front" in capsys.readouterr().out
