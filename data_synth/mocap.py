@@ -341,3 +341,26 @@ def lip_vertices(kit: FaceKit) -> np.ndarray:
     height = np.ptp(lm[48:60, 1])
     e = np.linalg.norm((v - mouth)[:, :2] / [0.55 * width, 0.75 * height], axis=1)
     return np.flatnonzero((e < 1.0) & (v[:, 2] > mouth[2] - 1.5))
+
+
+def animface_target_markers(kit: FaceKit, labels, neutral_mm) -> dict:
+    """Target markers on ICT for the AnimFace take's labels (real data, ``mocap/animface``).
+
+    The source neutral markers are carried onto the ICT face by a similarity fit on nine
+    hand-matched landmarks (nose top and tip, eye and mouth corners, chin), then snapped to
+    the nearest face-skin vertex: a stand-in for the hand placement of section 5.1.
+    """
+    from retarget.mocap.clean import rigid_fit
+
+    lm = kit.neutral[kit.landmarks]
+    pairs = {"NoseTop": 27, "NoseHead": 30, "Leye_Outside": 45, "Reye_Outside": 36, "Mouth_Lend": 54,
+             "Mouth_Rend": 48, "Chin": 8, "Leye_Inside": 42, "Reye_Inside": 39}
+    src = np.array([neutral_mm[labels.index(k)] for k in pairs])
+    dst = lm[list(pairs.values())]
+    rot, trans, sc = rigid_fit(src, dst[None], scale=True)
+    carried = sc[0] * neutral_mm @ rot[0].T + trans[0]
+    skin = kit.neutral[:9409]
+    out = {}
+    for lab, p in zip(labels, carried):
+        out[lab] = skin[np.argmin(np.linalg.norm(skin - p, axis=1))]
+    return out

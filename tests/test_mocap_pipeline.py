@@ -132,7 +132,9 @@ def test_drive_same_face_recovers_truth(kit):
     assert res.rigid == p.labels[nface:]
 
 
-def test_drive_rebuilds_never_seen_inner_lips(kit):
+def test_drive_rebuilds_never_seen_markers(kit):
+    """All-NaN markers: inner lips from their outer sibling, the outer eye corner (the paper's
+    example) from its neighbours' rigid motion."""
     from data_synth.mocap import synthesize
     from retarget.mocap.drive import drive_mesh
 
@@ -141,13 +143,18 @@ def test_drive_rebuilds_never_seen_inner_lips(kit):
     x = p.markers_mm.copy()
     inner = [i for i, s in enumerate(p.labels) if "lipInner" in s]
     x[:, inner] = np.nan
+    corner = p.labels.index("eyeR_outer")
+    x[:, corner] = np.nan
     tm = {lab: kit.neutral[v] for lab, v in zip(p.labels[:nface], p.marker_vertices)}
     res = drive_mesh(x, p.labels, kit.neutral, tm, rigid_names=p.labels[nface:])
-    assert sorted(res.rebuilt) == sorted(p.labels[i] for i in inner)
+    assert sorted(res.rebuilt) == sorted([p.labels[i] for i in inner] + ["eyeR_outer"])
     truth = kit.neutral[None] + np.einsum("fe,evc->fvc", p.weights, kit.deltas)
     k = [res.labels.index(p.labels[i]) for i in inner]
     err = np.linalg.norm(res.markers[:, k] - truth[:, p.marker_vertices[inner]], axis=2) * 10
     assert err.mean() < 3.0, err.mean()          # mm, while the jaw moves them by up to ~20 mm
+    kc = res.labels.index("eyeR_outer")
+    ec = np.linalg.norm(res.markers[:, kc] - truth[:, p.marker_vertices[corner]], axis=1) * 10
+    assert ec.mean() < 1.0, ec.mean()
 
 
 @pytest.mark.parametrize("out", ["take.npz", "objs", "take.glb"])
@@ -204,32 +211,15 @@ def test_real_animface_runs_onto_ict(kit, shared_data):
     take = read_trc(shared_data / "mocap/animface/jaw.trc")
     x = take.positions[::10]
     x[20:24, 5] = np.nan                                  # a gap to fill
-    tm = animface_on_ict(kit, take.labels, x[0])
+    from data_synth.mocap import animface_target_markers
+
+    tm = animface_target_markers(kit, take.labels, x[0])
     res = drive_mesh(x, take.labels, kit.neutral, tm, method="planar")
     assert np.isfinite(res.vertices).all()
     assert res.gaps.filled and res.gaps.filled[0][0] == take.labels[5]
     assert {"ForeHead_M", "ForeHead_L", "ForeHead_R", "NoseTop"} & set(res.rigid)
     moved = np.linalg.norm(res.vertices - kit.neutral, axis=2).max(axis=1)
     assert moved.max() > 0.3                              # the jaw clip opens the mouth (cm)
-
-
-def animface_on_ict(kit, labels, neutral_mm):
-    """Target markers for the AnimFace labels: the source markers carried onto ICT by a similarity
-    fit on a few hand-matched landmarks, then snapped to the nearest face-skin vertex."""
-    from retarget.mocap.clean import rigid_fit
-
-    lm = kit.neutral[kit.landmarks]
-    pairs = {"NoseTop": 27, "NoseHead": 30, "Leye_Outside": 45, "Reye_Outside": 36, "Mouth_Lend": 54,
-             "Mouth_Rend": 48, "Chin": 8, "Leye_Inside": 42, "Reye_Inside": 39}
-    src = np.array([neutral_mm[labels.index(k)] for k in pairs])
-    dst = lm[list(pairs.values())]
-    rot, trans, sc = rigid_fit(src, dst[None], scale=True)
-    carried = sc[0] * neutral_mm @ rot[0].T + trans[0]
-    skin = kit.neutral[:9409]
-    out = {}
-    for lab, p in zip(labels, carried):
-        out[lab] = skin[np.argmin(np.linalg.norm(skin - p, axis=1))]
-    return out
 
 
 @pytest.mark.slow

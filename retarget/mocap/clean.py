@@ -274,7 +274,7 @@ def fill_gaps(positions, reference=None, max_gap: int = 12, k: int = 4, fill_lon
         if ok[:, m].all():
             continue
         starts, lens = _runs(~ok[:, m])
-        if dead[m] or not np.isfinite(ref[m]).all():
+        if not np.isfinite(ref[m]).all():      # a marker never seen needs its place in ``reference``
             report.unfillable += [(names[m], int(s), int(n)) for s, n in zip(starts, lens)]
             continue
         pred = predict_from_frame(x, ref, m, nb[m])
