@@ -323,11 +323,14 @@ class PlanarBones:
         indptr = np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=n_cols))])
         self._M = sp.csc_matrix((vals[order], rows[order], indptr), shape=(nv, n_cols))
         wi = np.flatnonzero(wedge)
+        wi = wi[np.argsort(where[4 * wi + 1], kind="stable")]                    # sequential writes
         self._wedge = wi
         self._wedge_slot = slot[wi]
         self._wedge_pos = np.stack([where[4 * wi + 1], where[4 * wi + 2]])     # data positions, (2, n_wedge)
         self._wedge_wc = (w[wi, None] * coords[wi, :2]).T                        # (2, n_wedge)
-        self._wedge_c = coords[wi, :2]
+        c1, c2 = coords[wi, 0], coords[wi, 1]
+        self._wedge_sq = c1 * c1 + c2 * c2                                       # d^2 = sq + cross * g
+        self._wedge_cross = 2.0 * c1 * c2
         self._wedge_D = self.pair_D_[wi]
         self._still = rest_w[:, None] * x
         self.rest_weight_ = rest_w
@@ -367,8 +370,7 @@ class PlanarBones:
         if len(self._wedge):
             ys = y.reshape(-1, 4, 3)
             g = np.einsum("sc,sc->s", ys[:, 1], ys[:, 2])[self._wedge_slot]
-            c1, c2 = self._wedge_c[:, 0], self._wedge_c[:, 1]
-            d = np.sqrt(np.maximum(c1 * c1 + c2 * c2 + 2.0 * c1 * c2 * g, 0.0))
+            d = np.sqrt(np.maximum(self._wedge_sq + self._wedge_cross * g, 0.0))
             k = self._wedge_D / np.maximum(d, 1e-300)
             self._M.data[self._wedge_pos[0]] = self._wedge_wc[0] * k
             self._M.data[self._wedge_pos[1]] = self._wedge_wc[1] * k
