@@ -58,14 +58,14 @@ weight reaches one (``rest_weight_`` is then 0).
 
 Evaluation
 ----------
-For frame ``t`` the per-bone data ``Y`` holds, for each of the 7 region slots of each
-bone, the origin and the three frame rows: ``(n_bones * 7 * 4, 3)``. Every (vertex,
-bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)``, linear in ``Y``
-except the wedge factor ``D/d``; so ``deform = M @ Y + (wedge pairs) + still``, with the
-sparse ``M`` (n_vertices x n_bones*28) built once at bind time: entry ``M[v, 4k + a]`` is
-the weight of vertex ``v`` times its coordinate ``a`` (1 for the origin) in slot ``k``.
-The wedge entries of ``M`` are rewritten each frame with their factor ``D/d`` (one dot
-product per bone corner, one gather per pair), so a frame is one sparse product.
+Every (vertex, bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)``, and
+every origin and frame row is a control point, a difference of two, or one of the unit
+vectors ``n, m_0, m_1, m_2`` of its bone. So for frame ``t``, with
+``Y = [control points; per bone n, m_0, m_1, m_2]`` (``n_controls + 4 n_bones`` rows),
+``deform = M @ Y + still`` where the sparse ``M`` (n_vertices x that) is built once at bind
+time (a vertex's entries on a shared control point merged). Only the wedge entries (the
+factor ``D/d`` of eq. 10) are rewritten per frame, from one dot product per bone corner
+and one gather per pair: a frame is one sparse product.
 """
 from __future__ import annotations
 
@@ -310,27 +310,61 @@ class PlanarBones:
         inplane = coords[:, 0, None] * frames[:, 1] + coords[:, 1, None] * frames[:, 2]
         self.pair_D_ = np.linalg.norm(inplane, axis=1)                      # D of eq. (10)
 
-        n_cols = nb * N_SLOTS * 4
-        rows = np.repeat(pv, 4)
-        cols = (slot[:, None] * 4 + np.arange(4)).ravel()
-        vals = np.column_stack([w, w * coords[:, 0], w * coords[:, 1], w * coords[:, 2]]).ravel()
-        # CSC built by hand so that the data positions of the wedge entries are known: their
-        # values (w c_1 D/d, w c_2 D/d) are rewritten every frame (eq. 10), the rest is fixed.
-        # (CSC: scipy's product with a 3-column dense block measured faster than CSR here.)
-        order = np.lexsort((rows, cols))
-        where = np.empty(len(order), np.intp)
-        where[order] = np.arange(len(order))
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=n_cols))])
-        self._M = sp.csc_matrix((vals[order], rows[order], indptr), shape=(nv, n_cols))
+        # Sparse matrix over Y = [control points; per bone n, m_0, m_1, m_2] (n_controls + 4 n_bones
+        # rows). Every frame row is a control-point difference or one of those unit vectors:
+        #   A:    s = (1-c1-c2) V_0 + c1 V_1 + c2 V_2 + c3 n
+        #   B_i:  s = (1-c1) V_i + c1 V_{i+1} + c2 m_i + c3 n
+        #   C_i:  s = V_i + (D/d) (c1 m_i + c2 m_{i-1}) + c3 n        (wedge: rewritten per frame)
+        # so the entries of one vertex on a shared control point merge into one.
+        nc = len(c)
+        n_cols = nc + 4 * nb
+        isA, isB = region == 0, (region >= 1) & (region <= 3)
+        side = np.where(isB, region - 1, np.where(wedge, region - 4, 0))          # i of B_i / C_i
+        corner = tri[pb]                                                          # (n_pairs, 3)
+        ar = np.arange(len(pv))
+        vi = corner[ar, side]
+        vn = corner[ar, (side + 1) % 3]
+        ncol = nc + 4 * pb
+        r_, c_, v_ = [], [], []
+
+        def put(mask, col, val):
+            r_.append(pv[mask])
+            c_.append(col[mask])
+            v_.append(val[mask])
+
+        c1, c2, c3 = coords[:, 0], coords[:, 1], coords[:, 2]
+        put(isA, corner[:, 0], w * (1 - c1 - c2))
+        put(isA, corner[:, 1], w * c1)
+        put(isA, corner[:, 2], w * c2)
+        put(isB, vi, w * (1 - c1))
+        put(isB, vn, w * c1)
+        put(isB, ncol + 1 + side, w * c2)
+        put(wedge, vi, w)
+        put(np.ones(len(pv), bool), ncol, w * c3)
+        rows, cols, vals = np.concatenate(r_), np.concatenate(c_), np.concatenate(v_)
+        keys = cols.astype(np.int64) * nv + rows
+        uniq, inv = np.unique(keys, return_inverse=True)                          # CSC order, merged
+        data = np.bincount(inv, weights=vals, minlength=len(uniq))
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // nv, minlength=n_cols))])
+        self._M = sp.csc_matrix((data, (uniq % nv).astype(np.int32), indptr), shape=(nv, n_cols))
+        # the wedge entries (w c_1 D/d on m_i, w c_2 D/d on m_{i-1}; eq. 10) change every frame:
+        # a second CSC matrix whose data is refilled in place from one factor per wedge pair
         wi = np.flatnonzero(wedge)
-        wi = wi[np.argsort(where[4 * wi + 1], kind="stable")]                    # sequential writes
+        wrows = np.concatenate([pv[wi], pv[wi]])
+        wcols = np.concatenate([(ncol + 1 + side)[wi], (ncol + 1 + (side + 2) % 3)[wi]])
+        wpair = np.concatenate([np.arange(len(wi)), np.arange(len(wi))])
+        wcoef = np.concatenate([w[wi] * c1[wi], w[wi] * c2[wi]])
+        order = np.lexsort((wrows, wcols))
+        windptr = np.concatenate([[0], np.cumsum(np.bincount(wcols, minlength=n_cols))])
+        self._Mw = sp.csc_matrix((np.zeros(len(order)), wrows[order].astype(np.int32), windptr),
+                                 shape=(nv, n_cols))
+        self._wedge_entry_pair = wpair[order]
+        self._wedge_entry_coef = wcoef[order]
         self._wedge = wi
-        self._wedge_slot = slot[wi]
-        self._wedge_pos = np.stack([where[4 * wi + 1], where[4 * wi + 2]])     # data positions, (2, n_wedge)
-        self._wedge_wc = (w[wi, None] * coords[wi, :2]).T                        # (2, n_wedge)
-        c1, c2 = coords[wi, 0], coords[wi, 1]
-        self._wedge_sq = c1 * c1 + c2 * c2                                       # d^2 = sq + cross * g
-        self._wedge_cross = 2.0 * c1 * c2
+        self._wedge_corner = (pb * 3 + side)[wi]                                    # which (bone, corner)
+        c1w, c2w = c1[wi], c2[wi]
+        self._wedge_sq = c1w * c1w + c2w * c2w                                      # d^2 = sq + cross * g
+        self._wedge_cross = 2.0 * c1w * c2w
         self._wedge_D = self.pair_D_[wi]
         self._still = rest_w[:, None] * x
         self.rest_weight_ = rest_w
@@ -360,43 +394,59 @@ class PlanarBones:
                              "(retarget.mocap.clean)")
         return c
 
+    def _y(self, c: np.ndarray) -> np.ndarray:
+        """Y for frames ``c`` (..., n_controls, 3): control points then per bone n, m_0, m_1, m_2."""
+        corners = c[..., self.triangles, :]
+        v0, v1, v2 = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+        e = np.stack([v1 - v0, v2 - v1, v0 - v2], axis=-2)
+        n = _unit(np.cross(e[..., 0, :], v2 - v0))                                 # eq. (2)
+        m = _unit(np.cross(e, n[..., None, :]))                                    # eq. (7)
+        vec = np.concatenate([n[..., None, :], m], axis=-2)                        # (..., nb, 4, 3)
+        return np.concatenate([c, vec.reshape(vec.shape[:-3] + (-1, 3))], axis=-2)
+
     def _frame_matrix(self, y: np.ndarray) -> sp.csc_matrix:
-        """Write this frame's wedge entries into the bound matrix (eq. 10) and return it.
+        """Refill the wedge matrix for this frame (eq. 10) and return it.
 
         With unit rows ``m_i', m_{i-1}'`` the wedge length is
         ``d = sqrt(c_1^2 + c_2^2 + 2 c_1 c_2 (m_i' . m_{i-1}'))``: one dot product per bone
         corner per frame, one gather per wedge pair.
         """
         if len(self._wedge):
-            ys = y.reshape(-1, 4, 3)
-            g = np.einsum("sc,sc->s", ys[:, 1], ys[:, 2])[self._wedge_slot]
-            d = np.sqrt(np.maximum(self._wedge_sq + self._wedge_cross * g, 0.0))
-            k = self._wedge_D / np.maximum(d, 1e-300)
-            self._M.data[self._wedge_pos[0]] = self._wedge_wc[0] * k
-            self._M.data[self._wedge_pos[1]] = self._wedge_wc[1] * k
-        return self._M
+            m = y[self.n_controls:].reshape(-1, 4, 3)[:, 1:]                        # (nb, 3, 3)
+            g = np.einsum("bic,bic->bi", m, np.roll(m, 1, axis=1)).ravel()
+            k = np.take(g, self._wedge_corner)                                      # in place from here
+            k *= self._wedge_cross
+            k += self._wedge_sq
+            np.maximum(k, 1e-300, out=k)
+            np.sqrt(k, out=k)
+            np.divide(self._wedge_D, k, out=k)                                      # D / d
+            np.multiply(self._wedge_entry_coef, np.take(k, self._wedge_entry_pair), out=self._Mw.data)
+        return self._Mw
 
     def deform(self, control_points) -> np.ndarray:
         """Deformed mesh ``(n_vertices, 3)`` for one frame of the control surface ``(n_controls, 3)``."""
         c = self._check_controls(control_points)
         if c.ndim != 2:
             raise InputError(f"`control_points`: expected one frame (n_controls, 3), got {c.shape}; use deform_many")
-        y = bone_frames(c[self.triangles]).reshape(-1, 3)                   # (nb*7*4, 3)
-        return self._frame_matrix(y) @ y + self._still
+        y = self._y(c)
+        return self._M @ y + self._frame_matrix(y) @ y + self._still
 
     def deform_many(self, control_points) -> np.ndarray:
         """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``.
 
-        The per-bone frames of all frames are computed in one batched call; each frame then
-        costs one sparse product (its wedge factors differ, so frames are not stacked).
+        The per-bone frames of all frames are computed in one batched call and the fixed part
+        of the map is one sparse product for all frames; only the wedge part (its factors differ
+        per frame) costs one small sparse product per frame.
         """
         c = self._check_controls(control_points)
         if c.ndim != 3:
             raise InputError(f"`control_points`: expected (n_frames, n_controls, 3), got {c.shape}")
-        y = bone_frames(c[:, self.triangles]).reshape(len(c), -1, 3)
+        y = self._y(c)
         out = np.empty((len(c), self.n_vertices, 3))
         for f in range(len(c)):
             out[f] = self._frame_matrix(y[f]) @ y[f]
+        out += (self._M @ y.transpose(1, 0, 2).reshape(y.shape[1], -1)).reshape(
+            self.n_vertices, len(c), 3).transpose(1, 0, 2)                          # fixed part: one product
         out += self._still
         return out
 
