@@ -172,7 +172,8 @@ class PlanarBones:
     n_vertices, n_bones, n_controls : int
     triangles : (n_bones, 3) int control-point indices of every bone
     radii_ : (n_bones,) affection radius ``R_j`` (eq. 12)
-    pair_vertex_, pair_bone_, pair_region_ : (n_pairs,) one row per (vertex, bone) binding
+    pair_vertex_, pair_bone_, pair_region_ : (n_pairs,) one row per (vertex, bone) binding;
+        the region is an index into ``REGION_NAMES`` (A, B0, B1, B2, C0, C1, C2)
     pair_weight_ : (n_pairs,) normalised weights (sum to one per bound vertex)
     pair_coords_ : (n_pairs, 3) local coordinates ``c`` in the region frame
     bound_ : (n_vertices,) bool, False for unbound vertices
@@ -302,9 +303,8 @@ class PlanarBones:
             w = w / wsum[pv]                                                # eq. (11), normalised
 
         rest = bone_frames(corners)                                         # (nb, 7, 4, 3)
-        slot = pb * N_SLOTS + region
         frames = rest[pb, region]                                           # (n_pairs, 4, 3)
-        inv = np.linalg.inv(frames[:, 1:].transpose(0, 1, 2))               # rows -> solve c F = S - origin
+        inv = np.linalg.inv(frames[:, 1:])                                   # c = (S - origin) F^-1, eq. (1)
         coords = np.einsum("pj,pjk->pk", x[pv] - frames[:, 0], inv)
         wedge = region >= 4
         inplane = coords[:, 0, None] * frames[:, 1] + coords[:, 1, None] * frames[:, 2]
