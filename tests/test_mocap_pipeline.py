@@ -242,3 +242,21 @@ def test_accuracy_table_planar_with_masks_best_on_lips(shared_data):
                 assert best[2] < v[2] and best[3] < v[3], (target, m, best, v)   # lips: mean and p95
                 assert best[0] < v[0], (target, m, best, v)                      # face mean
         assert best[0] < 1.5 and best[2] < 3.0, (target, best)                  # mm
+
+
+@pytest.mark.slow
+def test_synth_then_mocap_commands(shared_data, tmp_path, capsys):
+    """`keyshape synth mocap` output (C3D, masks, jig) straight into `keyshape mocap`."""
+    out = tmp_path / "synth"
+    assert main(["synth", "mocap", str(out), "--frames", "40", "--seed", "2", "--facekit",
+                 str(shared_data / "ict-facekit")]) == 0
+    for name in ("take.c3d", "take.trc", "target_markers.json", "rigid.txt", "masks.json", "truth.npz"):
+        assert (out / name).is_file(), name
+    mesh = shared_data / "ict-facekit" / "generic_neutral_mesh.obj"
+    assert main(["mocap", str(out / "take.c3d"), "--target", str(mesh), "--target-markers",
+                 str(out / "target_markers.json"), "--rigid", f"@{out / 'rigid.txt'}", "--masks",
+                 str(out / "masks.json"), "-o", str(tmp_path / "o.npz")]) == 0
+    with np.load(out / "truth.npz") as t, np.load(tmp_path / "o.npz") as o:
+        err = np.linalg.norm(o["vertices"][:, :9409] - t["vertices"][:, :9409], axis=2).mean() * 10
+    assert err < 1.0, err                                     # mm
+    assert "rigid set: jig_front" in capsys.readouterr().out

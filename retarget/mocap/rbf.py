@@ -56,7 +56,7 @@ from pipeline.errors import InputError, KeyshapeError
 KERNELS = ("imq", "tps", "gaussian")
 
 
-class NotFittedError(KeyshapeError, AttributeError):
+class NotFittedError(KeyshapeError, ValueError, AttributeError):
     """An estimator was used before ``fit``."""
 
 
