@@ -13,14 +13,20 @@ Regions come from a JSON file::
       {"name": "upper_lip", "vertices": [12, 13, ...],          # or "vertex_group": "lips_up"
        "exclude_markers": ["lipOuterLo_C", ...]},                # or "markers": [...] (allowed)
       {"name": "lower_lip", "image_value": 2, ...}],              # vertices from the mask image
-     "image": "mask.png"}                                         # optional, beside the JSON
+     "image": "mask.png",                                         # optional, beside the JSON
+     "image_markers": {"lipOuterUp_C": [x, y, z], ...}}           # optional: markers of the painted face
 
 A mask image (section 4.3: "a texture in the cylindrical coordinate space") is read in
 the cylindrical projection normalised to the *markers'* extent: pixel column 0..W-1
 spans the markers' arc range, row 0..H-1 their height range top to bottom (a margin of
 ``IMAGE_MARGIN`` of the range on every side). Because the frame is set by the markers,
 the same image carries to any other mesh labelled with the same markers (section 6.1):
-each vertex of the new mesh is projected the same way and takes the pixel under it.
+each vertex of the new mesh is projected the same way and takes the pixel under it. With
+``image_markers`` (the markers of the face the image was painted on) the new face's
+projection is first warped onto the painted face's by a 2D thin-plate spline through the
+markers. Measured lip-region recall on other ICT identities: 0.89-0.92 (extent alone) vs
+0.91-1.0 (warp) on a mild identity, 0.89 / 0.70 vs 0.92 / 0.69 (upper / lower lip) on a
+strong one: the folded inner-lip surfaces that share pixels limit both.
 """
 from __future__ import annotations
 
@@ -59,25 +65,48 @@ def allowed_matrix(regions, triangles, labels, n_vertices: int) -> np.ndarray:
     return allowed
 
 
-def image_coordinates(vertices, markers, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0), shape=(256, 256)):
-    """(row, col) float pixel coordinates of ``vertices`` in the markers' cylindrical frame."""
-    frame = CylinderFrame.around(markers, up, forward)
-    m = frame.project(markers)
+def image_coordinates(vertices, markers, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0), shape=(256, 256),
+                      reference_markers=None):
+    """(row, col) float pixel coordinates of ``vertices`` in the markers' cylindrical frame.
+
+    With ``reference_markers`` (the same markers on the face the image was painted on), the
+    vertices' projections are first carried into the reference face's projection by a 2D
+    thin-plate spline through the markers (new projection -> reference projection), so a
+    mask follows the features between the markers, not only their bounding box (001 6.1).
+    """
+    m3 = np.asarray(markers, dtype=np.float64)
+    r3 = m3 if reference_markers is None else np.asarray(reference_markers, dtype=np.float64)
+    ref_frame = CylinderFrame.around(r3, up, forward)
+    m = ref_frame.project(r3)
+    if reference_markers is None:
+        uv = ref_frame.project(vertices)
+    else:
+        from scipy.interpolate import RBFInterpolator
+
+        if r3.shape != m3.shape:
+            raise InputError(f"reference_markers: expected shape {m3.shape}, got {r3.shape}")
+        new_frame = CylinderFrame.around(m3, up, forward)
+        warp = RBFInterpolator(new_frame.project(m3), m, kernel="thin_plate_spline", degree=1)
+        uv = warp(new_frame.project(vertices))
     lo, hi = m.min(axis=0), m.max(axis=0)
     span = hi - lo
     lo, hi = lo - IMAGE_MARGIN * span, hi + IMAGE_MARGIN * span
-    uv = (frame.project(vertices) - lo) / (hi - lo)
+    uv = (uv - lo) / (hi - lo)
     h, w = shape[:2]
     return (1.0 - uv[:, 1]) * (h - 1), uv[:, 0] * (w - 1)
 
 
 def regions_from_image(image: np.ndarray, vertices, markers, values: dict, up=(0.0, 1.0, 0.0),
-                       forward=(0.0, 0.0, 1.0)) -> dict:
-    """Vertex indices per region name from a label image (``values``: name -> pixel value)."""
+                       forward=(0.0, 0.0, 1.0), reference_markers=None) -> dict:
+    """Vertex indices per region name from a label image (``values``: name -> pixel value).
+
+    ``reference_markers``: the markers of the face the image was painted on (see
+    :func:`image_coordinates`); without them the image frame is the markers' own extent.
+    """
     img = np.asarray(image)
     if img.ndim == 3:
         img = img[..., 0]
-    r, c = image_coordinates(vertices, markers, up, forward, img.shape)
+    r, c = image_coordinates(vertices, markers, up, forward, img.shape, reference_markers)
     ri, ci = np.rint(r).astype(np.intp), np.rint(c).astype(np.intp)
     inside = (ri >= 0) & (ri < img.shape[0]) & (ci >= 0) & (ci < img.shape[1])
     pix = np.full(len(ri), -1)
@@ -129,9 +158,15 @@ def read_masks(path, labels, vertices=None, markers=None, mesh=None, up=(0.0, 1.
         img = cv2.imread(str(ip), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise InputError("not a readable image", ip)
+        ref = None
+        if "image_markers" in spec:                       # {label: [x, y, z]} on the painted face
+            missing = [s for s in labels if s not in spec["image_markers"]]
+            if missing:
+                raise InputError(f"image_markers lacks marker(s) {missing}", path)
+            ref = np.array([spec["image_markers"][s] for s in labels], dtype=np.float64)
         image_regions = regions_from_image(img, vertices, markers,
                                            {r["name"]: r["image_value"] for r in regions if "image_value" in r},
-                                           up, forward)
+                                           up, forward, reference_markers=ref)
     out = []
     known = set(labels)
     for k, r in enumerate(regions):
