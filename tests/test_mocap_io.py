@@ -92,3 +92,17 @@ def test_bad_files(tmp_path):
     with pytest.raises(InputError, match="unknown marker label"):
         m.index(["m1", "zz"])
     assert unit_scale("mm", "cm") == pytest.approx(0.1)
+
+
+def test_trc_missing_labels_and_csv_rate_from_time(tmp_path):
+    m = _take(np.random.default_rng(3), n_markers=3)
+    write_markers(tmp_path / "a.trc", m)
+    lines = (tmp_path / "a.trc").read_text().splitlines()
+    lines[3] = "Frame#\tTime\tm0\t\t\t\t\t\tm2"             # the second label is missing
+    (tmp_path / "b.trc").write_text("\n".join(lines) + "\n")
+    assert read_trc(tmp_path / "b.trc").labels == ["m0", "M002", "m2"]   # by column; the missing one numbered
+    write_markers(tmp_path / "a.csv", m)
+    body = [ln for ln in (tmp_path / "a.csv").read_text().splitlines() if not ln.startswith("#")]
+    (tmp_path / "b.csv").write_text("\n".join(body) + "\n")
+    r = read_markers(tmp_path / "b.csv")
+    assert r.rate == pytest.approx(120.0, rel=1e-4) and r.units == "mm"

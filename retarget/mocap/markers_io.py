@@ -205,8 +205,11 @@ def read_trc(path, duplicates: str = "error") -> Markers:
     except (KeyError, ValueError):
         raise InputError("header needs DataRate and NumMarkers values", path, 3) from None
     units = head.get("Units", "mm") or "mm"
-    names = [s.strip() for s in lines[3].split(sep)[2:]]
-    names = [s for s in names if s]
+    cells = [s.strip() for s in lines[3].split(sep)[2:]]
+    names = [cells[3 * k] if 3 * k < len(cells) else "" for k in range(n_markers)]   # X column of each
+    packed = [s for s in cells if s]
+    if "" in names and len(packed) == n_markers:
+        names = packed                          # labels not on the X/Y/Z grid but one per marker
     labels = _fix_labels(names, n_markers, path, duplicates)
     rows, row_ln = [], []
     for ln in range(5, len(lines)):
