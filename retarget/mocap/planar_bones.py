@@ -1,0 +1,463 @@
+"""Planar-bone deformation of a dense mesh by a triangulated control surface (section 4 of 001_7296bf6ea73cabea.txt).
+
+``bones = PlanarBones.bind(mesh_vertices, control_points, triangles, masks=None)``
+runs once; ``bones.deform(control_points_frame)`` then costs only the per-bone
+frames and one sparse product, and ``bones.deform_many(frames)`` does the same for
+a whole take.
+
+Derivation (the extracted equations are flattened)
+--------------------------------------------------
+Row-vector convention as in eq. (1). A bone is a control triangle with corners
+``V_0, V_1, V_2`` (O, P, Q), edges ``e_i = V_{i+1} - V_i`` (eq. 6, indices mod 3),
+unit normal ``n = e_0 x (V_2 - V_0) / |.|`` (eq. 2) and outward edge normals
+``m_i = (e_i x n) / |e_i x n|`` (the second row of eq. 7).
+
+*Regions, eqs. (3)-(5).* The projection ``Pi(S)`` of a vertex onto the bone's plane
+falls in one of seven regions: the triangle (``R_A``), the slab beyond edge ``i``
+(``R_B,i``: outside edge ``i`` and ``0 <= c_i(S) <= |e_i|``, eq. 6) or the wedge beyond
+corner ``i`` (``R_C,i``). Eq. (3) proposes a candidate from the barycentric signs and
+eqs. (4)-(5) move it to the neighbouring slab or wedge with ``c_i``; the result is
+exactly the partition by the *nearest feature* (interior, edge ``i``, corner ``i``) of
+the triangle to ``S``, which is how it is computed here (the closest point on the
+triangle, vectorised); ``test_planar_bones`` checks it against the ``c_i`` tests.
+The distance ``d_ij`` of eq. (12) is ``|S - closest point|``.
+
+*Frames, eqs. (1), (7)-(10).* Each region has an origin corner and a frame whose
+rows are: ``R_A``: ``(e_0, V_2 - V_0, n)`` at ``V_0`` (eq. 2); ``R_B,i``:
+``(e_i, m_i, n)`` at ``V_i`` (eq. 7); ``R_C,i``: ``(m_i, m_{i-1}, n)`` at ``V_i`` (eq. 8).
+A vertex's local coordinates ``c = (S - origin) F^{-1}`` are fixed at bind time and
+the deformed vertex is ``origin' + c F'``: eqs. (1) and (9). In ``R_B,i`` only the
+edge row is unnormalised, so the bone may stretch along the edge but not across
+it. In ``R_C,i`` eq. (10) rescales the in-plane part so its length is kept:
+``s = V_i' + (D/d) (c_1 m_i' + c_2 m_{i-1}') + c_3 n'`` with
+``D = |c_1 m_i + c_2 m_{i-1}| = |Pi(S) - V_i|`` and ``d = |c_1 m_i' + c_2 m_{i-1}'|``
+(the 4-vector in the extracted ``Diag`` is a duplication; the frame is 3 x 3 and the
+factor multiplies the two in-plane rows). The regions meet continuously: on the
+edge line ``R_A`` and ``R_B,i`` agree, and on the rays ``V_i + t m_i`` and
+``V_i + t m_{i-1}`` the wedge map equals the slab maps (``D = d`` there).
+
+*Rigid motions.* Under ``X -> X R + t`` (``R`` a rotation) every row of every frame
+maps to ``row R``, ``d = D`` and the origins map rigidly, so each bone moves each of its
+vertices by exactly that motion; normalised weights (below) keep it for the blend.
+
+*Blend, eqs. (11)-(12).* ``w_ij = (1 + cos(pi d_ij / R_j)) / 2`` for ``d_ij < R_j``, else 0,
+with ``R_j = radius_scale * (shortest control edge touching a corner of bone j)``
+("a fraction of the closest distance to a connected vertex"). The weights of each
+vertex are divided by their sum so they sum to one (eq. 11 leaves this implicit;
+without it a rigid motion would not be reproduced). A vertex no allowed bone reaches
+is *unbound*: it stays at its rest position (``unbound="still"``, the right thing
+after rigid head motion was removed) or follows its nearest allowed bone with
+weight one (``unbound="nearest"``). Hard normalisation makes a step between the last
+bound and the first unbound vertex; ``unbound="fade"`` instead treats the rest position
+as one more bone of weight ``max(0, 1 - sum_j w_ij)`` and divides by the sum only where it
+exceeds one: continuous everywhere, exact rigid reproduction wherever the summed raw
+weight reaches one (``rest_weight_`` is then 0).
+
+*Masks, section 4.3.* ``masks[v, j] = False`` forbids bone ``j`` to move vertex ``v``
+(e.g. lower-lip bones and upper-lip vertices); see :mod:`retarget.mocap.masks`.
+
+Evaluation
+----------
+Every (vertex, bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)``, and
+every origin and frame row is a control point, a difference of two, or one of the unit
+vectors ``n, m_0, m_1, m_2`` of its bone. So for frame ``t``, with
+``Y = [control points; per bone n, m_0, m_1, m_2]`` (``n_controls + 4 n_bones`` rows),
+``deform = M @ Y + still`` where the sparse ``M`` (n_vertices x that) is built once at bind
+time (a vertex's entries on a shared control point merged). Only the wedge entries (the
+factor ``D/d`` of eq. 10) are rewritten per frame, from one dot product per bone corner
+and one gather per pair: a frame is one sparse product.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from pipeline.errors import InputError
+
+N_SLOTS = 7  # per bone: A, B_0, B_1, B_2, C_0, C_1, C_2
+REGION_NAMES = ("A", "B0", "B1", "B2", "C0", "C1", "C2")
+
+
+def _unit(v: np.ndarray, eps: float = 1e-300) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, eps)
+
+
+def bone_frames(corners: np.ndarray) -> np.ndarray:
+    """Origins and frame rows of the 7 region slots of every bone.
+
+    Parameters
+    ----------
+    corners : (..., n_bones, 3, 3) triangle corners ``V_0, V_1, V_2``
+
+    Returns
+    -------
+    (..., n_bones, 7, 4, 3): for slot ``A, B_0..2, C_0..2`` the origin then rows 1-3
+    (eqs. 2, 7, 8).
+    """
+    v0, v1, v2 = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+    e = np.stack([v1 - v0, v2 - v1, v0 - v2], axis=-2)          # (..., nb, 3, 3) eq. (6)
+    n = _unit(np.cross(e[..., 0, :], v2 - v0))                   # eq. (2)
+    m = _unit(np.cross(e, n[..., None, :]))                      # outward edge normals, eq. (7)
+    nn = np.broadcast_to(n[..., None, :], e.shape)
+    out = np.empty(corners.shape[:-2] + (N_SLOTS, 4, 3))
+    out[..., 0, 0, :] = v0
+    out[..., 0, 1, :] = e[..., 0, :]
+    out[..., 0, 2, :] = v2 - v0
+    out[..., 0, 3, :] = n
+    out[..., 1:4, 0, :] = corners
+    out[..., 1:4, 1, :] = e
+    out[..., 1:4, 2, :] = m
+    out[..., 1:4, 3, :] = nn
+    out[..., 4:7, 0, :] = corners
+    out[..., 4:7, 1, :] = m
+    out[..., 4:7, 2, :] = np.roll(m, 1, axis=-2)                 # m_{i-1}
+    out[..., 4:7, 3, :] = nn
+    return out
+
+
+def closest_feature(points: np.ndarray, corners: np.ndarray):
+    """Nearest feature of a triangle to each point (the partition of eqs. 3-5).
+
+    Parameters
+    ----------
+    points : (n, 3)
+    corners : (n, 3, 3) the triangle of each point
+
+    Returns
+    -------
+    region : (n,) int in 0..6 (``A, B_0, B_1, B_2, C_0, C_1, C_2``)
+    distance : (n,) ``|S - closest point on the triangle|`` (``d_ij`` of eq. 12)
+    """
+    v0 = corners[:, 0]
+    e1 = corners[:, 1] - v0
+    e2 = corners[:, 2] - v0
+    rel = points - v0
+    # barycentric coordinates (u along e1, v along e2) of the projection
+    g11 = np.einsum("ij,ij->i", e1, e1)
+    g12 = np.einsum("ij,ij->i", e1, e2)
+    g22 = np.einsum("ij,ij->i", e2, e2)
+    b1 = np.einsum("ij,ij->i", rel, e1)
+    b2 = np.einsum("ij,ij->i", rel, e2)
+    det = g11 * g22 - g12 * g12
+    u = (g22 * b1 - g12 * b2) / det
+    v = (g11 * b2 - g12 * b1) / det
+    inside = (u >= 0) & (v >= 0) & (u + v <= 1)
+    proj = v0 + u[:, None] * e1 + v[:, None] * e2
+    normal_dist = np.linalg.norm(points - proj, axis=1)
+    # distance to each edge segment i (V_i -> V_{i+1}) with its clamped parameter
+    starts = corners
+    edges = np.roll(corners, -1, axis=1) - corners
+    t = np.einsum("nij,nij->ni", points[:, None, :] - starts, edges) / np.einsum("nij,nij->ni", edges, edges)
+    tc = np.clip(t, 0.0, 1.0)
+    near = starts + tc[..., None] * edges
+    dist = np.linalg.norm(points[:, None, :] - near, axis=2)
+    k = np.argmin(dist, axis=1)
+    rows = np.arange(len(points))
+    tk = tc[rows, k]
+    region = np.where(tk <= 0.0, 4 + k, np.where(tk >= 1.0, 4 + (k + 1) % 3, 1 + k))
+    region = np.where(inside, 0, region)
+    distance = np.where(inside, normal_dist, dist[rows, k])
+    return region.astype(np.intp), distance
+
+
+class PlanarBones:
+    """A mesh bound to a planar-bone control surface (eqs. 1-12 of 001).
+
+    Build with :meth:`bind`; see the module docstring for the maths.
+
+    Attributes
+    ----------
+    n_vertices, n_bones, n_controls : int
+    triangles : (n_bones, 3) int control-point indices of every bone
+    radii_ : (n_bones,) affection radius ``R_j`` (eq. 12)
+    pair_vertex_, pair_bone_, pair_region_ : (n_pairs,) one row per (vertex, bone) binding;
+        the region is an index into ``REGION_NAMES`` (A, B0, B1, B2, C0, C1, C2)
+    pair_weight_ : (n_pairs,) normalised weights (sum to one per bound vertex)
+    pair_coords_ : (n_pairs, 3) local coordinates ``c`` in the region frame
+    bound_ : (n_vertices,) bool, False for unbound vertices
+    rest_weight_ : (n_vertices,) weight of the rest position (1 unbound, 0 fully bound)
+    """
+
+    def __init__(self):
+        raise TypeError("build a PlanarBones with PlanarBones.bind(mesh_vertices, control_points, triangles)")
+
+    # ------------------------------------------------------------------------------------------
+    @classmethod
+    def bind(cls, mesh_vertices, control_points, triangles, masks=None, *, radius_scale: float = 1.0,
+             unbound: str = "still", labels=None, min_angle_deg: float = 1.0) -> "PlanarBones":
+        """Bind every mesh vertex to the bones whose affection volume holds it.
+
+        Parameters
+        ----------
+        mesh_vertices : (n_vertices, 3) rest mesh
+        control_points : (n_controls, 3) rest control surface (retargeted neutral markers)
+        triangles : (n_bones, 3) int, control-point indices of each bone
+        masks : (n_vertices, n_bones) bool array or sparse matrix, optional
+            ``False`` where bone ``j`` may not move vertex ``v`` (section 4.3).
+        radius_scale : float
+            ``R_j`` as a multiple of the shortest control edge touching bone ``j``.
+        unbound : {"still", "nearest", "fade"}
+            What a vertex that no allowed bone reaches does: stay at rest, follow its nearest
+            allowed bone, or (``fade``) weights are normalised only where their sum exceeds
+            one and the rest position takes the remainder, so the mesh fades continuously
+            to still at the edge of the control surface (normalising hard makes a step there).
+        labels : sequence of str, optional
+            Control-point names for error messages.
+        min_angle_deg : float
+            Bones with a smaller corner angle are degenerate (collinear) and refused.
+
+        Raises
+        ------
+        InputError
+            Bad shapes, NaNs, indices out of range, degenerate (collinear) bones, bad masks.
+        """
+        self = object.__new__(cls)
+        x = np.asarray(mesh_vertices, dtype=np.float64)
+        c = np.asarray(control_points, dtype=np.float64)
+        tri = np.asarray(triangles)
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise InputError(f"`mesh_vertices`: expected shape (n_vertices, 3), got {x.shape}")
+        if c.ndim != 2 or c.shape[1] != 3:
+            raise InputError(f"`control_points`: expected shape (n_controls, 3), got {c.shape}")
+        if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0 or not np.issubdtype(tri.dtype, np.integer):
+            raise InputError(f"`triangles`: expected a non-empty int array (n_bones, 3), got {tri.dtype} {tri.shape}")
+        if tri.min() < 0 or tri.max() >= len(c):
+            raise InputError(f"`triangles`: indices must lie in [0, {len(c)}), found {tri.min()}..{tri.max()}")
+        if not np.all(np.isfinite(x)) or not np.all(np.isfinite(c)):
+            raise InputError("`mesh_vertices`/`control_points`: NaN or infinite coordinates")
+        if unbound not in ("still", "nearest", "fade"):
+            raise InputError(f"unbound: expected 'still', 'nearest' or 'fade', got {unbound!r}")
+        name = (lambda k: repr(labels[k])) if labels is not None else str
+        corners = c[tri]
+        ang = triangle_min_angles(corners)
+        bad = np.flatnonzero(ang < np.deg2rad(min_angle_deg))
+        if len(bad):
+            j = bad[0]
+            raise InputError(
+                f"`triangles`: {len(bad)} degenerate (near-collinear) bone(s), e.g. bone {j} with corners "
+                f"{', '.join(name(k) for k in tri[j])} (smallest angle {np.rad2deg(ang[j]):.2g} deg < {min_angle_deg}); "
+                "drop them (retarget.mocap.triangulate does) or move the markers")
+        nb, nv = len(tri), len(x)
+        if masks is not None:
+            masks = sp.csr_matrix(masks, dtype=bool) if sp.issparse(masks) else np.asarray(masks, dtype=bool)
+            if masks.shape != (nv, nb):
+                raise InputError(f"`masks`: expected shape (n_vertices, n_bones) = {(nv, nb)}, got {masks.shape}")
+
+        # radii: fraction of the shortest control edge touching the bone's corners (eq. 12)
+        edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+        elen = np.linalg.norm(c[edges[:, 0]] - c[edges[:, 1]], axis=1)
+        shortest = np.full(len(c), np.inf)
+        np.minimum.at(shortest, edges[:, 0], elen)
+        np.minimum.at(shortest, edges[:, 1], elen)
+        radii = radius_scale * shortest[tri].min(axis=1)
+
+        # candidate pairs: vertices within (circumscribing ball + R_j) of each bone
+        centre = corners.mean(axis=1)
+        reach = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1) + radii
+        tree = cKDTree(x)
+        lists = tree.query_ball_point(centre, reach)
+        counts = np.fromiter((len(l) for l in lists), np.intp, nb)
+        pv = np.fromiter((i for l in lists for i in l), np.intp, counts.sum())
+        pb = np.repeat(np.arange(nb), counts)
+        region, dist = closest_feature(x[pv], corners[pb])
+        keep = dist < radii[pb]
+        if masks is not None:
+            allowed = np.asarray(masks[pv, pb]).ravel()
+            keep &= allowed
+        pv, pb, region, dist = pv[keep], pb[keep], region[keep], dist[keep]
+        w = 0.5 * (1.0 + np.cos(np.pi * dist / radii[pb]))                # eq. (12)
+        # a vertex exactly on the affection boundary gets w = 0: drop those pairs
+        pos = w > 0
+        pv, pb, region, dist, w = pv[pos], pb[pos], region[pos], dist[pos], w[pos]
+
+        bound = np.zeros(nv, bool)
+        bound[pv] = True
+        if unbound == "nearest" and not bound.all():
+            lone = np.flatnonzero(~bound)
+            # nearest allowed bone by distance to its triangle (dense over bones; lone vertices only)
+            lv = np.repeat(lone, nb)
+            lb = np.tile(np.arange(nb), len(lone))
+            if masks is not None:
+                ok = np.asarray(masks[lv, lb]).ravel()
+                lv, lb = lv[ok], lb[ok]
+            r2, d2 = closest_feature(x[lv], corners[lb])
+            order = np.lexsort((d2, lv))
+            first = np.ones(len(order), bool)
+            first[1:] = lv[order][1:] != lv[order][:-1]
+            sel = order[first]
+            pv = np.concatenate([pv, lv[sel]])
+            pb = np.concatenate([pb, lb[sel]])
+            region = np.concatenate([region, r2[sel]])
+            w = np.concatenate([w, np.ones(len(sel))])
+            bound[lv[sel]] = True
+
+        wsum = np.bincount(pv, weights=w, minlength=nv)
+        if unbound == "fade":
+            # the rest position is one more "bone" of weight max(0, 1 - sum w): continuous fade to still
+            rest_w = np.clip(1.0 - wsum, 0.0, 1.0)
+            w = w / np.maximum(wsum, 1.0)[pv]
+        else:
+            rest_w = (~bound).astype(np.float64)
+            w = w / wsum[pv]                                                # eq. (11), normalised
+
+        rest = bone_frames(corners)                                         # (nb, 7, 4, 3)
+        frames = rest[pb, region]                                           # (n_pairs, 4, 3)
+        inv = np.linalg.inv(frames[:, 1:])                                   # c = (S - origin) F^-1, eq. (1)
+        coords = np.einsum("pj,pjk->pk", x[pv] - frames[:, 0], inv)
+        wedge = region >= 4
+        inplane = coords[:, 0, None] * frames[:, 1] + coords[:, 1, None] * frames[:, 2]
+        self.pair_D_ = np.linalg.norm(inplane, axis=1)                      # D of eq. (10)
+
+        # Sparse matrix over Y = [control points; per bone n, m_0, m_1, m_2] (n_controls + 4 n_bones
+        # rows). Every frame row is a control-point difference or one of those unit vectors:
+        #   A:    s = (1-c1-c2) V_0 + c1 V_1 + c2 V_2 + c3 n
+        #   B_i:  s = (1-c1) V_i + c1 V_{i+1} + c2 m_i + c3 n
+        #   C_i:  s = V_i + (D/d) (c1 m_i + c2 m_{i-1}) + c3 n        (wedge: rewritten per frame)
+        # so the entries of one vertex on a shared control point merge into one.
+        nc = len(c)
+        n_cols = nc + 4 * nb
+        isA, isB = region == 0, (region >= 1) & (region <= 3)
+        side = np.where(isB, region - 1, np.where(wedge, region - 4, 0))          # i of B_i / C_i
+        corner = tri[pb]                                                          # (n_pairs, 3)
+        ar = np.arange(len(pv))
+        vi = corner[ar, side]
+        vn = corner[ar, (side + 1) % 3]
+        ncol = nc + 4 * pb
+        r_, c_, v_ = [], [], []
+
+        def put(mask, col, val):
+            r_.append(pv[mask])
+            c_.append(col[mask])
+            v_.append(val[mask])
+
+        c1, c2, c3 = coords[:, 0], coords[:, 1], coords[:, 2]
+        put(isA, corner[:, 0], w * (1 - c1 - c2))
+        put(isA, corner[:, 1], w * c1)
+        put(isA, corner[:, 2], w * c2)
+        put(isB, vi, w * (1 - c1))
+        put(isB, vn, w * c1)
+        put(isB, ncol + 1 + side, w * c2)
+        put(wedge, vi, w)
+        put(np.ones(len(pv), bool), ncol, w * c3)
+        rows, cols, vals = np.concatenate(r_), np.concatenate(c_), np.concatenate(v_)
+        keys = cols.astype(np.int64) * nv + rows
+        uniq, inv = np.unique(keys, return_inverse=True)                          # CSC order, merged
+        data = np.bincount(inv, weights=vals, minlength=len(uniq))
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // nv, minlength=n_cols))])
+        self._M = sp.csc_matrix((data, (uniq % nv).astype(np.int32), indptr), shape=(nv, n_cols))
+        # the wedge entries (w c_1 D/d on m_i, w c_2 D/d on m_{i-1}; eq. 10) change every frame:
+        # a second CSC matrix whose data is refilled in place from one factor per wedge pair
+        wi = np.flatnonzero(wedge)
+        wrows = np.concatenate([pv[wi], pv[wi]])
+        wcols = np.concatenate([(ncol + 1 + side)[wi], (ncol + 1 + (side + 2) % 3)[wi]])
+        wpair = np.concatenate([np.arange(len(wi)), np.arange(len(wi))])
+        wcoef = np.concatenate([w[wi] * c1[wi], w[wi] * c2[wi]])
+        order = np.lexsort((wrows, wcols))
+        windptr = np.concatenate([[0], np.cumsum(np.bincount(wcols, minlength=n_cols))])
+        self._Mw = sp.csc_matrix((np.zeros(len(order)), wrows[order].astype(np.int32), windptr),
+                                 shape=(nv, n_cols))
+        self._wedge_entry_pair = wpair[order]
+        self._wedge_entry_coef = wcoef[order]
+        self._wedge = wi
+        self._wedge_corner = (pb * 3 + side)[wi]                                    # which (bone, corner)
+        c1w, c2w = c1[wi], c2[wi]
+        self._wedge_sq = c1w * c1w + c2w * c2w                                      # d^2 = sq + cross * g
+        self._wedge_cross = 2.0 * c1w * c2w
+        self._wedge_D = self.pair_D_[wi]
+        self._still = rest_w[:, None] * x
+        self.rest_weight_ = rest_w
+        self.triangles = tri.astype(np.intp)
+        self.n_vertices, self.n_bones, self.n_controls = nv, nb, len(c)
+        self.radii_ = radii
+        self.pair_vertex_, self.pair_bone_, self.pair_region_ = pv, pb, region
+        self.pair_weight_, self.pair_coords_ = w, coords
+        self.bound_ = bound
+        self.rest_vertices_ = x
+        self.rest_controls_ = c
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def weights(self) -> sp.csr_matrix:
+        """(n_vertices, n_bones) normalised blend weights ``w_ij`` of eq. (11)."""
+        return sp.csr_matrix((self.pair_weight_, (self.pair_vertex_, self.pair_bone_)),
+                             shape=(self.n_vertices, self.n_bones))
+
+    def _check_controls(self, control_points) -> np.ndarray:
+        c = np.asarray(control_points, dtype=np.float64)
+        if c.shape[-2:] != (self.n_controls, 3):
+            raise InputError(f"`control_points`: expected shape (..., {self.n_controls}, 3), got {c.shape}")
+        if not np.all(np.isfinite(c)):
+            raise InputError("`control_points`: NaN or infinite coordinates; rebuild missing markers first "
+                             "(retarget.mocap.clean)")
+        return c
+
+    def _y(self, c: np.ndarray) -> np.ndarray:
+        """Y for frames ``c`` (..., n_controls, 3): control points then per bone n, m_0, m_1, m_2."""
+        corners = c[..., self.triangles, :]
+        v0, v1, v2 = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+        e = np.stack([v1 - v0, v2 - v1, v0 - v2], axis=-2)
+        n = _unit(np.cross(e[..., 0, :], v2 - v0))                                 # eq. (2)
+        m = _unit(np.cross(e, n[..., None, :]))                                    # eq. (7)
+        vec = np.concatenate([n[..., None, :], m], axis=-2)                        # (..., nb, 4, 3)
+        return np.concatenate([c, vec.reshape(vec.shape[:-3] + (-1, 3))], axis=-2)
+
+    def _frame_matrix(self, y: np.ndarray) -> sp.csc_matrix:
+        """Refill the wedge matrix for this frame (eq. 10) and return it.
+
+        With unit rows ``m_i', m_{i-1}'`` the wedge length is
+        ``d = sqrt(c_1^2 + c_2^2 + 2 c_1 c_2 (m_i' . m_{i-1}'))``: one dot product per bone
+        corner per frame, one gather per wedge pair.
+        """
+        if len(self._wedge):
+            m = y[self.n_controls:].reshape(-1, 4, 3)[:, 1:]                        # (nb, 3, 3)
+            g = np.einsum("bic,bic->bi", m, np.roll(m, 1, axis=1)).ravel()
+            k = np.take(g, self._wedge_corner)                                      # in place from here
+            k *= self._wedge_cross
+            k += self._wedge_sq
+            np.maximum(k, 1e-300, out=k)
+            np.sqrt(k, out=k)
+            np.divide(self._wedge_D, k, out=k)                                      # D / d
+            np.multiply(self._wedge_entry_coef, np.take(k, self._wedge_entry_pair), out=self._Mw.data)
+        return self._Mw
+
+    def deform(self, control_points) -> np.ndarray:
+        """Deformed mesh ``(n_vertices, 3)`` for one frame of the control surface ``(n_controls, 3)``."""
+        c = self._check_controls(control_points)
+        if c.ndim != 2:
+            raise InputError(f"`control_points`: expected one frame (n_controls, 3), got {c.shape}; use deform_many")
+        y = self._y(c)
+        return self._M @ y + self._frame_matrix(y) @ y + self._still
+
+    def deform_many(self, control_points) -> np.ndarray:
+        """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``.
+
+        The per-bone frames of all frames are computed in one batched call and the fixed part
+        of the map is one sparse product for all frames; only the wedge part (its factors differ
+        per frame) costs one small sparse product per frame.
+        """
+        c = self._check_controls(control_points)
+        if c.ndim != 3:
+            raise InputError(f"`control_points`: expected (n_frames, n_controls, 3), got {c.shape}")
+        y = self._y(c)
+        out = np.empty((len(c), self.n_vertices, 3))
+        for f in range(len(c)):
+            out[f] = self._frame_matrix(y[f]) @ y[f]
+        out += (self._M @ y.transpose(1, 0, 2).reshape(y.shape[1], -1)).reshape(
+            self.n_vertices, len(c), 3).transpose(1, 0, 2)                          # fixed part: one product
+        out += self._still
+        return out
+
+
+def triangle_min_angles(corners: np.ndarray) -> np.ndarray:
+    """Smallest interior angle (radians) of each triangle ``(n, 3, 3)``; 0 for collinear corners."""
+    a = np.roll(corners, -1, axis=1) - corners
+    b = np.roll(corners, 1, axis=1) - corners
+    na = np.linalg.norm(a, axis=2)
+    nb = np.linalg.norm(b, axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosang = np.einsum("nij,nij->ni", a, b) / (na * nb)
+    ang = np.arccos(np.clip(np.nan_to_num(cosang, nan=1.0), -1.0, 1.0))
+    return ang.min(axis=1)

@@ -1,0 +1,184 @@
+"""Planar bones (001 section 4) and RBF retargeting (001 section 5.1, 002 section 4): properties and errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+from scipy.spatial.transform import Rotation
+
+from pipeline.errors import InputError
+from retarget.mocap.planar_bones import PlanarBones, bone_frames, closest_feature, triangle_min_angles
+from retarget.mocap.rbf import NotFittedError, RBFRetarget
+
+
+def _surface(seed=0, n_ctrl=30, n_mesh=1500):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1, 1, (n_ctrl, 2))
+    ctrl = np.column_stack([xy, 0.2 * np.sin(2 * xy[:, 0])])
+    tri = Delaunay(xy).simplices
+    tri = tri[triangle_min_angles(ctrl[tri]) > np.deg2rad(5)]  # no hull slivers
+    mxy = rng.uniform(-1.1, 1.1, (n_mesh, 2))
+    mesh = np.column_stack([mxy, 0.2 * np.sin(2 * mxy[:, 0]) + rng.normal(0, 0.03, n_mesh)])
+    return ctrl, tri, mesh, rng
+
+
+def _rigid(seed):
+    return Rotation.random(random_state=seed).as_matrix(), np.array([3.0, -2.0, 5.0]) * (seed + 1)
+
+
+@pytest.mark.parametrize("unbound", ["still", "nearest", "fade"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_planar_zero_motion_and_weights(seed, unbound):
+    ctrl, tri, mesh, _ = _surface(seed)
+    b = PlanarBones.bind(mesh, ctrl, tri, unbound=unbound)
+    np.testing.assert_allclose(b.deform(ctrl), mesh, atol=1e-12)
+    w = np.asarray(b.weights.sum(axis=1)).ravel()
+    np.testing.assert_allclose(w + b.rest_weight_, 1.0, atol=1e-12)  # bones + rest position sum to one
+    if unbound != "fade":
+        np.testing.assert_allclose(w[b.bound_], 1.0, atol=1e-12)
+    assert np.all(w[~b.bound_] == 0)
+    assert np.all(b.pair_weight_ > 0)
+    if unbound == "nearest":
+        assert b.bound_.all()
+    elif unbound == "still":
+        assert 0.5 < b.bound_.mean() < 1.0  # the mesh reaches beyond the control surface
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_planar_rigid_motion_moves_every_vertex_rigidly(seed):
+    ctrl, tri, mesh, _ = _surface(seed)
+    b = PlanarBones.bind(mesh, ctrl, tri, unbound="nearest", radius_scale=1.5)
+    r, t = _rigid(seed)
+    np.testing.assert_allclose(b.deform(ctrl @ r + t), mesh @ r + t, atol=1e-10)
+    assert set(np.unique(b.pair_region_)) == set(range(7))  # every region kind exercised
+
+
+def test_planar_deform_many_matches_deform_and_is_continuous():
+    ctrl, tri, mesh, rng = _surface(3)
+    b = PlanarBones.bind(mesh, ctrl, tri)
+    frames = ctrl + rng.normal(0, 0.05, (7,) + ctrl.shape)
+    many = b.deform_many(frames)
+    for f in range(7):
+        np.testing.assert_allclose(many[f], b.deform(frames[f]), atol=1e-12)
+    # continuity across region boundaries: a dense line of vertices moves smoothly
+    x = np.linspace(-1.5, 1.5, 6001)
+    line = np.column_stack([x, np.full(len(x), 0.1), 0.2 * np.sin(2 * x) + 0.05])  # leaves the surface's reach
+    bl = PlanarBones.bind(line, ctrl, tri, unbound="fade")
+    assert 0 < bl.rest_weight_.mean() < 1
+    disp = bl.deform(frames[0]) - line
+    jumps = np.linalg.norm(np.diff(disp, axis=0), axis=1)
+    assert jumps.max() < 5e-3, jumps.max()  # displacement ~0.05; no step between neighbours 0.0005 apart
+    hard = PlanarBones.bind(line, ctrl, tri, unbound="still").deform(frames[0]) - line
+    assert np.linalg.norm(np.diff(hard, axis=0), axis=1).max() > 5e-3  # hard normalisation steps at the edge
+
+
+def test_region_partition_matches_eqs_4_5():
+    """The nearest-feature partition equals the c_i tests of eqs. (4)-(6) on an acute triangle."""
+    tri = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.4, 0.9, 0]])
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-1, 2, (5000, 2)), rng.normal(0, 0.1, 5000)])
+    region, dist = closest_feature(pts, np.broadcast_to(tri, (len(pts), 3, 3)))
+    fr = bone_frames(tri[None])[0]
+    e = np.roll(tri, -1, axis=0) - tri
+    elen = np.linalg.norm(e, axis=1)
+    c = np.einsum("nij,ij->ni", pts[:, None] - tri, e) / elen            # c_i(S), eq. (6)
+    out = np.einsum("nij,ij->ni", pts[:, None] - tri, fr[1:4, 2])         # signed distance beyond edge i
+    expect = np.zeros(len(pts), int)
+    for i in range(3):
+        expect[(out[:, i] > 0) & (c[:, i] >= 0) & (c[:, i] <= elen[i])] = 1 + i
+        expect[(c[:, i] < 0) & (c[:, i - 1] > elen[i - 1])] = 4 + i
+    np.testing.assert_array_equal(region, expect)
+    inside = region == 0
+    np.testing.assert_allclose(dist[inside], np.abs(pts[inside, 2]))
+
+
+def test_masks_keep_masked_vertices_still():
+    ctrl, tri, mesh, rng = _surface(4)
+    upper = mesh[:, 1] > 0.2
+    moving = ctrl[:, 1] < -0.2          # only these markers move
+    bone_touches_moving = moving[tri].any(axis=1)
+    masks = ~(upper[:, None] & bone_touches_moving[None, :])
+    b = PlanarBones.bind(mesh, ctrl, tri, masks=masks)
+    moved = ctrl.copy()
+    moved[moving] += rng.normal(0, 0.1, (moving.sum(), 3))
+    out = b.deform(moved)
+    np.testing.assert_allclose(out[upper], mesh[upper], atol=1e-12)
+    free = PlanarBones.bind(mesh, ctrl, tri).deform(moved)
+    assert np.abs(free[upper] - mesh[upper]).max() > 1e-3  # without the mask they would move
+
+
+def test_planar_errors():
+    ctrl, tri, mesh, _ = _surface(0)
+    bad = ctrl.copy()
+    bad[tri[0, 2]] = 0.5 * (bad[tri[0, 0]] + bad[tri[0, 1]])
+    with pytest.raises(InputError, match="degenerate .*collinear.*bone 0"):
+        PlanarBones.bind(mesh, bad, tri)
+    with pytest.raises(InputError, match="indices must lie"):
+        PlanarBones.bind(mesh, ctrl, tri + 100)
+    with pytest.raises(InputError, match="masks"):
+        PlanarBones.bind(mesh, ctrl, tri, masks=np.ones((3, 3), bool))
+    b = PlanarBones.bind(mesh, ctrl, tri)
+    nan = ctrl.copy()
+    nan[0] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        b.deform(nan)
+    with pytest.raises(TypeError, match="bind"):
+        PlanarBones()
+
+
+@pytest.mark.parametrize("kernel", ["imq", "tps", "gaussian"])
+def test_rbf_interpolates_centres_and_zero_motion(kernel):
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(25, 3))
+    v = 1.3 * u + rng.normal(0, 0.1, u.shape)
+    f = RBFRetarget(kernel).fit(u, v)
+    np.testing.assert_allclose(f(u), v, atol=1e-9)
+    x = rng.normal(size=(200, 3))
+    np.testing.assert_allclose(RBFRetarget(kernel).fit(u, u)(x), x, atol=1e-9)
+    frames = v + rng.normal(0, 0.1, (4,) + v.shape)
+    fm = RBFRetarget(kernel).fit(u, frames)
+    out = fm(u)
+    assert out.shape == (4, 25, 3)
+    np.testing.assert_allclose(out, frames, atol=1e-9)
+    np.testing.assert_allclose(fm(x)[2], RBFRetarget(kernel).fit(u, frames[2])(x), atol=1e-9)
+
+
+@pytest.mark.parametrize("kernel", ["imq", "tps", "gaussian"])
+def test_rbf_affine_term_reproduces_rigid_motion(kernel):
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(25, 3))
+    r, t = _rigid(2)
+    x = 10 * rng.normal(size=(300, 3))  # far from the centres too
+    np.testing.assert_allclose(RBFRetarget(kernel, affine=True).fit(u, u @ r + t)(x), x @ r + t, atol=1e-8)
+    assert np.allclose(RBFRetarget("imq").fit(u, u @ r + t).coef_[:25], 0, atol=1e-10)
+
+
+def test_rbf_imq_radii_are_eq_16():
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=(10, 3))
+    f = RBFRetarget("imq").fit(u, u)
+    d = np.linalg.norm(u[:, None] - u[None], axis=2) + np.diag(np.full(10, np.inf))
+    np.testing.assert_allclose(f.radii_, d.min(axis=1))
+
+
+def test_rbf_errors():
+    rng = np.random.default_rng(4)
+    u = rng.normal(size=(10, 3))
+    dup = u.copy()
+    dup[7] = dup[2]
+    with pytest.raises(InputError, match=r"centres 2 \('m2'\) and 7 \('m7'\) coincide"):
+        RBFRetarget("imq", labels=[f"m{i}" for i in range(10)]).fit(dup, u)
+    nan = u.copy()
+    nan[3] = np.nan
+    with pytest.raises(InputError, match=r"markers \[3\] are NaN"):
+        RBFRetarget().fit(nan, u)
+    with pytest.raises(InputError, match="expected 10 markers"):
+        RBFRetarget().fit(u, u[:5])
+    flat = u.copy()
+    flat[:, 2] = 0
+    with pytest.raises(InputError, match="plane"):
+        RBFRetarget("tps").fit(flat, flat)
+    with pytest.raises(InputError, match="kernel"):
+        RBFRetarget("cubic").fit(u, u)
+    with pytest.raises(NotFittedError, match="not fitted"):
+        RBFRetarget()(u)
