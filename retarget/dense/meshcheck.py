@@ -121,7 +121,7 @@ class TriangleSurface:
     meshes and points near the surface (the registration's case).
     """
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, k: int = 8):
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, k: int = 6):
         self.vertices = np.asarray(vertices, np.float64)
         self.triangles = np.asarray(triangles, np.intp)
         self.k = min(k, len(self.triangles))

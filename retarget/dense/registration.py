@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.optimize import minimize
+from scipy.sparse import csr_matrix
 
 from pipeline.errors import InputError
 from retarget.dense.keypoints import farthest_point_sample
@@ -139,9 +140,19 @@ class MeshEnergy:
         self.alpha, self.beta, self.gamma, self.delta = alpha, beta, gamma, delta
         self.lm_idx, self.lm_tgt = lm_idx, lm_tgt
         self.edges, _, _ = edges(triangles)
+        n = len(v0)
+        ne, nf = len(self.edges), len(triangles)
+        # sparse scatter matrices: gradient of per-edge / per-face vectors onto vertices (one matmul each)
+        self._E = csr_matrix((np.r_[np.ones(ne), -np.ones(ne)], (np.r_[self.edges[:, 1], self.edges[:, 0]],
+                             np.r_[np.arange(ne), np.arange(ne)])), shape=(n, ne))
+        self._F = [csr_matrix((np.ones(nf), (triangles[:, j], np.arange(nf))), shape=(n, nf)) for j in range(3)]
+        self._fitm = csr_matrix((np.ones(len(fit)), (fit, np.arange(len(fit)))), shape=(n, len(fit)))
         self.len0 = np.linalg.norm(v0[self.edges[:, 1]] - v0[self.edges[:, 0]], axis=1)
         self.fpairs, _ = interior_edge_faces(triangles)
         self.bend0 = self._bend(v0)[0]
+        npair = len(self.fpairs)
+        self._P0, self._P1 = (csr_matrix((np.ones(npair), (self.fpairs[:, j], np.arange(npair))), shape=(nf, npair))
+                              for j in range(2))
         self.n_evals = 0
 
     def _normals(self, v):
@@ -177,30 +188,25 @@ class MeshEnergy:
         q, _ = self.surface.closest(vf)
         r = vf - q
         e_dist = np.mean(np.sum(r * r, 1))
-        np.add.at(g, self.fit, 2.0 * self.alpha / len(vf) * r)
+        g += self._fitm @ (2.0 * self.alpha / len(vf) * r)
         # E_strain
         ev = v[self.edges[:, 1]] - v[self.edges[:, 0]]
         ln = np.linalg.norm(ev, axis=1)
         s = ln - self.len0
         e_strain = np.mean(s * s)
         ge = (2.0 * self.beta / len(s) * s / ln)[:, None] * ev
-        np.add.at(g, self.edges[:, 1], ge)
-        np.add.at(g, self.edges[:, 0], -ge)
+        g += self._E @ ge
         # E_bend: d(n1.n2) = n2.dn1 + n1.dn2, dn = (I - n n^T) dcr / |cr|, cr = (b - a) x (c - a)
         bend, (a, b, c, n, nrm) = self._bend(v)
         db = bend - self.bend0
         e_bend = np.mean(db * db) if len(db) else 0.0
         if len(db):
             coef = 2.0 * self.gamma / len(db) * db
-            gn = np.zeros_like(n)
-            np.add.at(gn, self.fpairs[:, 0], coef[:, None] * n[self.fpairs[:, 1]])
-            np.add.at(gn, self.fpairs[:, 1], coef[:, None] * n[self.fpairs[:, 0]])
+            gn = self._P0 @ (coef[:, None] * n[self.fpairs[:, 1]]) + self._P1 @ (coef[:, None] * n[self.fpairs[:, 0]])
             gcr = (gn - n * np.einsum("ij,ij->i", n, gn)[:, None]) / nrm[:, None]
             g1 = np.cross(c - a, gcr)  # d/d(b - a) of gcr.((b - a) x (c - a))
             g2 = np.cross(gcr, b - a)  # d/d(c - a)
-            np.add.at(g, self.tri[:, 1], g1)
-            np.add.at(g, self.tri[:, 2], g2)
-            np.add.at(g, self.tri[:, 0], -g1 - g2)
+            g += self._F[1] @ g1 + self._F[2] @ g2 - self._F[0] @ (g1 + g2)
         # landmarks
         e_lm = 0.0
         if len(self.lm_idx):
@@ -214,7 +220,7 @@ class MeshEnergy:
 def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_vertices: np.ndarray,
                   tgt_triangles: np.ndarray, pairs: list, *, solver: str = "lbfgs", n_controls: int = 200,
                   alpha: float = 1.0, beta: float = 1.0, gamma: float = 0.01, delta: float = 1.0,
-                  max_evals: int = 400, smoothing: float = 1e-6, rng=0, source: str = "landmarks"
+                  max_evals: int = 120, smoothing: float = 1e-6, rng=0, source: str = "landmarks"
                   ) -> RegistrationResult:
     """Fit the reference mesh onto the target (section 6 of 001); see the module notes.
 
@@ -254,13 +260,18 @@ def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_verti
     np.fill_diagonal(dd, np.inf)
     sigma = 1.5 * float(np.median(dd.min(1)))
     phi = kernel_matrix(cw, cw, sigma) + smoothing * np.eye(len(ctrl))
-    basis = np.linalg.solve(phi, kernel_matrix(warped, cw, sigma).T).T  # (n_vertices, n_controls)
+    basis = np.ascontiguousarray(np.linalg.solve(phi, kernel_matrix(warped, cw, sigma).T).T)  # (n_vertices, n_controls)
     # start: control vertices projected onto the target surface
     d0 = surface.closest(cw)[0] - cw
-    energy = MeshEnergy(warped, rt, basis, fit, surface, alpha, beta, gamma, delta,
-                        lidx[lidx >= 0], lt[lidx >= 0])
+    # the energy lives on the fitted shell only, re-indexed 0..len(fit)-1
+    local = np.full(len(rv), -1, np.intp)
+    local[fit] = np.arange(len(fit))
+    shell_tris = local[rt[np.isin(rt, fit).all(1)]]
+    lm_local = local[lidx[lidx >= 0]]
+    energy = MeshEnergy(warped[fit], shell_tris, np.ascontiguousarray(basis[fit]), np.arange(len(fit)), surface,
+                        alpha, beta, gamma, delta, lm_local, lt[lidx >= 0])
     x0 = d0.ravel()
-    start = energy.vertices(x0)
+    start = warped + basis @ d0
     e_start = energy(x0)[0]
     if solver == "lbfgs":
         res = minimize(energy, x0, jac=True, method="L-BFGS-B",
@@ -268,7 +279,57 @@ def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_verti
     else:
         res = minimize(lambda x: energy(x)[0], x0, method="Nelder-Mead",
                        options=dict(maxfev=max_evals, xatol=1e-6, fatol=1e-12, adaptive=True))
-    fitted = energy.vertices(res.x)
+    fitted = warped + basis @ res.x.reshape(-1, 3)
     return RegistrationResult(vertices=fitted, start=start, warped=warped, energy_start=float(e_start),
                               energy=float(res.fun), n_evals=energy.n_evals, seconds=time.perf_counter() - t0,
-                              solver=solver, converged=bool(res.success), terms=energy.terms(fitted))
+                              solver=solver, converged=bool(res.success), terms=energy.terms(fitted[fit]))
+
+
+def place_markers(markers: dict, ref_vertices: np.ndarray, ref_triangles: np.ndarray, fitted: np.ndarray,
+                  tgt_vertices: np.ndarray, tgt_triangles: np.ndarray, source: str = "markers") -> dict:
+    """Carry reference markers onto the target (what the mocap path needs from a new face).
+
+    A marker is a reference vertex index or an ``[x, y, z]`` point (taken at
+    its closest point on the reference surface, in barycentric coordinates).
+    Its fitted position is projected onto the target surface. Returns
+    ``{name: {"position": [x, y, z], "vertex": nearest target vertex}}``.
+    """
+    names = list(markers)
+    pts = np.empty((len(names), 3))
+    for i, k in enumerate(names):
+        m = markers[k]
+        if isinstance(m, (int, np.integer)):
+            if not 0 <= m < len(ref_vertices):
+                raise InputError(f"marker {k!r}: vertex {m} does not exist (0..{len(ref_vertices) - 1})", source)
+            pts[i] = fitted[m]
+        else:
+            p = np.asarray(m, np.float64)
+            q, f = TriangleSurface(ref_vertices, ref_triangles).closest(p[None])
+            a, b, c = ref_vertices[ref_triangles[f[0]]]
+            bary = np.linalg.lstsq(np.stack([a, b, c], 1), q[0], rcond=None)[0]
+            pts[i] = bary @ fitted[ref_triangles[f[0]]]
+    on_target, _ = TriangleSurface(tgt_vertices, tgt_triangles).closest(pts)
+    from scipy.spatial import cKDTree
+    _, near = cKDTree(tgt_vertices).query(on_target)
+    return {k: {"position": [float(x) for x in on_target[i]], "vertex": int(near[i])} for i, k in enumerate(names)}
+
+
+def transfer_masks(masks: dict, fitted: np.ndarray, tgt_vertices: np.ndarray, source: str = "masks") -> dict:
+    """Discontinuity masks (reference vertex groups) onto the target (section 6.1 of 001).
+
+    The paper renders the mask through a cylindrical projection into the
+    target's texture; with the fitted reference lying on the target, a
+    target vertex belongs to a mask when its nearest fitted reference vertex
+    does, which works for any target resolution. Returns {name: sorted target indices}.
+    """
+    from scipy.spatial import cKDTree
+    _, near = cKDTree(fitted).query(tgt_vertices)
+    out = {}
+    for k, idx in masks.items():
+        idx = np.asarray(idx, np.intp)
+        if len(idx) and (idx.min() < 0 or idx.max() >= len(fitted)):
+            raise InputError(f"mask {k!r}: vertex indices must lie in 0..{len(fitted) - 1}", source)
+        member = np.zeros(len(fitted), bool)
+        member[idx] = True
+        out[k] = np.flatnonzero(member[near])
+    return out
