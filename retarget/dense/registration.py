@@ -104,8 +104,18 @@ def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.nd
 
 
 def landmark_warp(vertices: np.ndarray, ref_points: np.ndarray, tgt_points: np.ndarray) -> np.ndarray:
-    """Thin-plate RBF warp (with an affine part) sending ``ref_points`` exactly to ``tgt_points``."""
-    rbf = RBFInterpolator(ref_points, tgt_points - ref_points, kernel="thin_plate_spline", degree=1)
+    """Thin-plate RBF warp sending ``ref_points`` exactly to ``tgt_points``.
+
+    The warp carries an affine part (scale, rotation, shear between faces)
+    when the reference landmarks span 3D; coplanar landmarks cannot fix an
+    affine map, so the warp is then a linear-kernel (``r``) RBF with a
+    translation only (the thin plate needs the affine part to be solvable).
+    """
+    spread = np.linalg.matrix_rank(ref_points - ref_points.mean(0), tol=1e-6 * np.ptp(ref_points))
+    if spread == 3:
+        rbf = RBFInterpolator(ref_points, tgt_points - ref_points, kernel="thin_plate_spline", degree=1)
+    else:
+        rbf = RBFInterpolator(ref_points, tgt_points - ref_points, kernel="linear", degree=0)
     return vertices + rbf(vertices)
 
 
