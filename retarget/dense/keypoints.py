@@ -127,7 +127,9 @@ class KeyPointInserter:
         Stop when a round lowers the mean error by less than this fraction (5.5).
     max_rounds : int
     sigma, smoothing : float, optional
-        RBF width and ridge (see :class:`FaceSpaceRBF`); sigma defaults to the key spacing, re-derived each round.
+        RBF width and ridge (see :class:`FaceSpaceRBF`); sigma defaults to the initial keys' spacing and
+        stays fixed over the rounds (the paper's fixed sigma; shrinking it as keys are added undoes
+        what the earlier keys interpolated).
     correspondence : bool
         True (default): the points of every frame correspond to the rest
         points (a tracked mesh, as SEQUENCE.npz holds): the error is the
@@ -144,6 +146,7 @@ class KeyPointInserter:
     key_indices_ : (n_keys,) rest-vertex index of each key point
     key_positions_ : (n_frames, n_keys, 3) key-point positions per frame
     history_ : list of dicts per round (mean error, n_keys, added, removed)
+    sigma_ : the kernel width used
     """
 
     def __init__(self, radius: float | None = None, n_candidates: int = 4000, max_new: int = 40,
@@ -190,7 +193,7 @@ class KeyPointInserter:
     def deform(self, frames: np.ndarray, indices: np.ndarray, positions: np.ndarray) -> np.ndarray:
         """``D(F^0 -> F^t)`` for every frame: (n_frames, n_points, 3) (eq. 4)."""
         rest = frames[0]
-        rbf = FaceSpaceRBF(rest[indices], sigma=self.sigma, smoothing=self.smoothing)
+        rbf = FaceSpaceRBF(rest[indices], sigma=getattr(self, "sigma_", self.sigma), smoothing=self.smoothing)
         return rbf.deform(rest, positions)
 
     def _candidates(self, rest, err_t, tree0, radius, rng):
@@ -241,6 +244,8 @@ class KeyPointInserter:
         rest = frames[0]
         radius = self._radius(rest)
         tree0 = cKDTree(rest)
+        # one fixed kernel width for every round (section 4.1.1), from the initial keys unless given
+        self.sigma_ = FaceSpaceRBF(rest[idx], sigma=self.sigma, smoothing=self.smoothing).sigma
         if self.correspondence:
             trees = None
             def errors(d):
@@ -267,12 +272,17 @@ class KeyPointInserter:
                 key_err = surface_errors(np.concatenate([pos, new_pos], 1), trees).mean(0)
             worst_new = key_err[len(idx):].max()
             drop = key_err[:len(idx)] > worst_new
-            cand_idx = np.concatenate([idx[~drop], new])
-            cand_pos = np.concatenate([pos[:, ~drop], new_pos], 1)
-            cand_def = self.deform(frames, cand_idx, cand_pos)
-            cand_err = errors(cand_def)
             prev = history[-1]["mean_error"]
-            cur = float(cand_err.mean())
+            # candidates come ordered by error: if the round does not help, retry with the better half
+            while True:
+                cand_idx = np.concatenate([idx[~drop], new])
+                cand_pos = np.concatenate([pos[:, ~drop], new_pos], 1)
+                cand_def = self.deform(frames, cand_idx, cand_pos)
+                cand_err = errors(cand_def)
+                cur = float(cand_err.mean())
+                if cur < prev or len(new) == 1:
+                    break
+                new, new_pos = new[:len(new) // 2], new_pos[:, :len(new) // 2]
             if cur >= prev:
                 break
             idx, pos, deformed, err_t = cand_idx, cand_pos, cand_def, cand_err
