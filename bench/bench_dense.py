@@ -12,22 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from data_synth.dense import PERFORMANCES, dense_sequence
+from data_synth.dense import LANDMARKS68, PERFORMANCES, dense_sequence, realistic_face
 from retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
 from retarget.dense.registration import place_markers, register_mesh
 from retarget.obj import read_obj, read_obj_vertices
 
 ICT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ict-facekit"
 SKIN = np.arange(9409)
-#: 12 landmarks picked from the 68-point set: eye corners, nose tip, nostrils, mouth corners, lips, chin
-LANDMARKS68 = (36, 39, 42, 45, 30, 31, 35, 48, 54, 51, 57, 8)
-
-
-def realistic_face(neutral, identities, seed):
-    """neutral + sum c_i (identity_i - neutral), c_i in [-3, 3], scaled by 0.9-1.1 (data README)."""
-    rng = np.random.default_rng(seed)
-    c = rng.uniform(-3, 3, len(identities))
-    return (neutral + sum(ci * (x - neutral) for ci, x in zip(c, identities))) * rng.uniform(0.9, 1.1)
 
 
 def mm(a, b):

@@ -73,3 +73,19 @@ def dense_sequence(ict_dir: str | Path, performance: str = "talk", n_frames: int
     if noise > 0:
         frames[1:] += rng.normal(scale=noise, size=frames[1:].shape)
     return frames, mesh.triangles
+
+
+#: 12 registration landmarks, as positions in ICT's 68-landmark list (``idx_to_landmark_verts``):
+#: outer/inner eye corners, nose tip, nostrils, mouth corners, upper/lower lip, chin
+LANDMARKS68 = (36, 39, 42, 45, 30, 31, 35, 48, 54, 51, 57, 8)
+
+
+def realistic_face(neutral: np.ndarray, identities: list, rng=None) -> np.ndarray:
+    """A face realistically different from ``neutral``: ``neutral + sum c_i (identity_i - neutral)``.
+
+    ``c_i`` uniform in [-3, 3] and the result scaled by a factor in [0.9, 1.1]
+    about the origin (the advice of the shared data README); seeded by ``rng``.
+    """
+    rng = np.random.default_rng(rng)
+    c = rng.uniform(-3, 3, len(identities))
+    return (neutral + sum(ci * (x - neutral) for ci, x in zip(c, identities))) * rng.uniform(0.9, 1.1)

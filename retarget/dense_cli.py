@@ -20,7 +20,7 @@ def register(subparsers) -> None:
     p.add_argument("--out-masks", help="where to write the masks as target vertex groups")
     p.add_argument("--solver", choices=("lbfgs", "simplex"), default="lbfgs")
     p.add_argument("--controls", type=int, default=200, help="number of control vertices (default 200)")
-    p.add_argument("--max-evals", type=int, default=120, help="energy evaluations (default 120)")
+    p.add_argument("--max-evals", type=int, default=200, help="energy evaluations (default 200)")
     p.set_defaults(func=_register)
 
     p = subparsers.add_parser("keypoints", help="insert key points into a dense sequence (002 section 5)")

@@ -230,7 +230,7 @@ class MeshEnergy:
 def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_vertices: np.ndarray,
                   tgt_triangles: np.ndarray, pairs: list, *, solver: str = "lbfgs", n_controls: int = 200,
                   alpha: float = 1.0, beta: float = 1.0, gamma: float = 0.01, delta: float = 1.0,
-                  max_evals: int = 120, smoothing: float = 1e-6, rng=0, source: str = "landmarks"
+                  max_evals: int = 200, smoothing: float = 1e-6, rng=0, source: str = "landmarks"
                   ) -> RegistrationResult:
     """Fit the reference mesh onto the target (section 6 of 001); see the module notes.
 
