@@ -50,6 +50,7 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.optimize import minimize
 from scipy.sparse import csr_matrix
+from scipy.spatial import cKDTree
 
 from pipeline.errors import InputError
 from retarget.dense.keypoints import farthest_point_sample
@@ -319,7 +320,6 @@ def place_markers(markers: dict, ref_vertices: np.ndarray, ref_triangles: np.nda
             bary = np.linalg.lstsq(np.stack([a, b, c], 1), q[0], rcond=None)[0]
             pts[i] = bary @ fitted[ref_triangles[f[0]]]
     on_target, _ = TriangleSurface(tgt_vertices, tgt_triangles).closest(pts)
-    from scipy.spatial import cKDTree
     _, near = cKDTree(tgt_vertices).query(on_target)
     return {k: {"position": [float(x) for x in on_target[i]], "vertex": int(near[i])} for i, k in enumerate(names)}
 
@@ -332,7 +332,6 @@ def transfer_masks(masks: dict, fitted: np.ndarray, tgt_vertices: np.ndarray, so
     target vertex belongs to a mask when its nearest fitted reference vertex
     does, which works for any target resolution. Returns {name: sorted target indices}.
     """
-    from scipy.spatial import cKDTree
     _, near = cKDTree(fitted).query(tgt_vertices)
     out = {}
     for k, idx in masks.items():
