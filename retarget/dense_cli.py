@@ -1,6 +1,133 @@
-"""Command-line registration for dense-mesh tools (stub: filled in by the registration/key-point issue)."""
+"""``keyshape register``, ``keyshape keypoints`` and ``keyshape transfer``: dense-mesh tools."""
 from __future__ import annotations
+
+from pathlib import Path
 
 
 def register(subparsers) -> None:
     """Add this stage's subcommands to ``subparsers``."""
+    p = subparsers.add_parser("register", help="fit a reference face mesh onto a target mesh (001 section 6)",
+                              description="Fit REFERENCE.obj onto TARGET.obj from 10-12 landmark pairs: RBF warp, "
+                                          "then minimise distance + strain + bending energy; optionally carry "
+                                          "markers and discontinuity masks onto the target.")
+    p.add_argument("reference")
+    p.add_argument("target")
+    p.add_argument("--landmarks", required=True, help="PAIRS.json: [{\"reference\": R, \"target\": T}, ...]")
+    p.add_argument("-o", "--output", required=True, help="FITTED.obj: the reference topology fitted to the target")
+    p.add_argument("--markers", help="reference markers JSON {name: vertex index or [x, y, z]}")
+    p.add_argument("--out-markers", help="where to write the markers placed on the target")
+    p.add_argument("--masks", help="reference masks JSON {name: [vertex index, ...]}")
+    p.add_argument("--out-masks", help="where to write the masks as target vertex groups")
+    p.add_argument("--solver", choices=("lbfgs", "simplex"), default="lbfgs")
+    p.add_argument("--controls", type=int, default=200, help="number of control vertices (default 200)")
+    p.add_argument("--max-evals", type=int, default=200, help="energy evaluations (default 200)")
+    p.set_defaults(func=_register)
+
+    p = subparsers.add_parser("keypoints", help="insert key points into a dense sequence (002 section 5)")
+    p.add_argument("sequence", help="SEQUENCE.npz with vertices (n_frames, n_points, 3)")
+    p.add_argument("--initial", required=True,
+                   help="number K of initial key points (farthest-point sampled) or a KEYPOINTS.json")
+    p.add_argument("-o", "--output", required=True, help="KEYPOINTS.json")
+    p.add_argument("--max-rounds", type=int, default=8)
+    p.add_argument("--no-correspondence", action="store_true",
+                   help="frames do not share point order: nearest-point errors and local registration")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_keypoints)
+
+    p = subparsers.add_parser("transfer", help="transfer a dense sequence onto another face (002 section 6)")
+    p.add_argument("sequence", help="SEQUENCE.npz (frame 0 neutral)")
+    p.add_argument("--target", required=True, help="target neutral MESH.obj")
+    p.add_argument("--keypoints", help="KEYPOINTS.json on the source (default: 68 farthest-point samples)")
+    p.add_argument("--landmarks", help="PAIRS.json mapping source vertices (reference) to the target; "
+                                       "default: same vertex indices (same topology)")
+    p.add_argument("-o", "--output", required=True, help="OUT.npz (vertices, faces of the target)")
+    p.add_argument("--gain", type=float, default=1.0, help="alpha / N_k of eq. 8 (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_transfer)
+
+
+def _register(args) -> int:
+    from pipeline.errors import InputError
+    from retarget.dense import io
+    from retarget.dense.registration import place_markers, register_mesh, transfer_masks
+    from retarget.obj import read_obj, write_obj
+
+    if bool(args.markers) != bool(args.out_markers):
+        raise InputError("--markers and --out-markers go together")
+    if bool(args.masks) != bool(args.out_masks):
+        raise InputError("--masks and --out-masks go together")
+    ref = read_obj(args.reference, require_faces=True)
+    tgt = read_obj(args.target, require_faces=True)
+    pairs = io.read_pairs(args.landmarks)
+    markers = io.read_markers(args.markers) if args.markers else None
+    masks = io.read_masks(args.masks) if args.masks else None
+    res = register_mesh(ref.vertices, ref.triangles, tgt.vertices, tgt.triangles, pairs, solver=args.solver,
+                        n_controls=args.controls, max_evals=args.max_evals, source=args.landmarks)
+    write_obj(args.output, ref, res.vertices)
+    if markers is not None:
+        io.write_json(args.out_markers, place_markers(markers, ref.vertices, ref.triangles, res.vertices,
+                                                      tgt.vertices, tgt.triangles, source=args.markers))
+    if masks is not None:
+        io.write_json(args.out_masks, {k: v.tolist() for k, v in
+                                       transfer_masks(masks, res.vertices, tgt.vertices, args.masks).items()})
+    print(f"registered in {res.seconds:.1f} s ({res.solver}, {res.n_evals} evaluations): "
+          f"energy {res.energy_start:.3g} -> {res.energy:.3g}; wrote {args.output}")
+    return 0
+
+
+def _initial(spec: str, frames, seed: int):
+    import numpy as np
+
+    from retarget.dense import io
+    from retarget.dense.keypoints import farthest_point_sample
+
+    if spec.isdigit():
+        return farthest_point_sample(frames[0], int(spec), np.random.default_rng(seed))
+    return io.read_keypoints(spec, frames.shape[1])
+
+
+def _keypoints(args) -> int:
+    from retarget.dense import io
+    from retarget.dense.keypoints import KeyPointInserter
+
+    frames, _ = io.read_sequence(args.sequence)
+    init = _initial(args.initial, frames, args.seed)
+    ins = KeyPointInserter(max_rounds=args.max_rounds, correspondence=not args.no_correspondence,
+                           rng=args.seed).fit(frames, init)
+    io.write_keypoints(args.output, ins.key_indices_, ins.history_)
+    h = ins.history_
+    print(f"{len(init)} -> {len(ins.key_indices_)} key points in {len(h) - 1} round(s); "
+          f"mean error {h[0]['mean_error']:.4g} -> {h[-1]['mean_error']:.4g}; wrote {args.output}")
+    return 0
+
+
+def _transfer(args) -> int:
+    import numpy as np
+
+    from pipeline.errors import InputError
+    from retarget.dense import io
+    from retarget.dense.registration import resolve_landmarks
+    from retarget.dense.transfer import transfer_sequence
+    from retarget.obj import read_obj
+
+    frames, _ = io.read_sequence(args.sequence)
+    tgt = read_obj(args.target, require_faces=True)
+    if args.landmarks:
+        pairs = io.read_pairs(args.landmarks)
+        _, tk, _ = resolve_landmarks(pairs, frames[0], tgt.vertices, args.landmarks)
+        sk = []
+        for i, p in enumerate(pairs):
+            if not isinstance(p["reference"], int):
+                raise InputError(f"pair {i}: the source side must be a vertex index for transfer", args.landmarks)
+            sk.append(p["reference"])
+        sk = np.array(sk, np.intp)
+    else:
+        if tgt.n_vertices != frames.shape[1]:
+            raise InputError(f"target has {tgt.n_vertices} vertices, the sequence {frames.shape[1]} points: "
+                             "give --landmarks PAIRS.json to say which points correspond", args.target)
+        sk = io.read_keypoints(args.keypoints, frames.shape[1]) if args.keypoints else _initial("68", frames, args.seed)
+        tk = sk
+    out = transfer_sequence(frames, sk, tgt.vertices, tk, gain=args.gain, rng=args.seed)
+    io.write_sequence(args.output, out, tgt.triangles)
+    print(f"transferred {len(out)} frames onto {Path(args.target).name}; wrote {args.output}")
+    return 0
