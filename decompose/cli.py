@@ -28,6 +28,9 @@ def register(subparsers) -> None:
                    help="nnls (default), lstsq (unconstrained), smooth (NNLS + temporal smoothness)")
     p.add_argument("--smooth-lambda", type=float, default=0.1,
                    help="weight of the frame-to-frame change penalty for --solver smooth (default 0.1)")
+    p.add_argument("--ridge", type=float, default=0.0,
+                   help="shrink weights towards 0 against tracking noise: Tikhonov term, dimensionless "
+                        "(0 = the paper's NNLS, the default; 0.01-0.1 on noisy tracks)")
     p.add_argument("-o", "--output", required=True, help="WEIGHTS.csv to write")
     p.set_defaults(func=_decompose)
 
@@ -112,7 +115,7 @@ def _decompose(args) -> int:
     shapes = model_shapes(tracks, args.tracks)
     names, cols = [], []
     for rk in regions:
-        cols.append(decompose_region(tracks, rk, args.solver, args.smooth_lambda, shapes=shapes))
+        cols.append(decompose_region(tracks, rk, args.solver, args.smooth_lambda, shapes=shapes, ridge=args.ridge))
         names += rk.names
     w = np.concatenate(cols, axis=1)
     write_weights(args.output, tracks.frame, names, w, ~tracks.success)

@@ -129,11 +129,11 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
 
 
 def decompose_region(tracks: Tracks, keys: RegionKeys, solver: str = "nnls", smooth_lambda: float = 0.1,
-                     shapes: np.ndarray | None = None) -> np.ndarray:
+                     shapes: np.ndarray | None = None, ridge: float = 0.0) -> np.ndarray:
     """Weights (n_frames, n_keys) of ``keys`` for every frame of ``tracks``; failed frames interpolated."""
     shapes = model_shapes(tracks) if shapes is None else shapes
     if keys.points.max(initial=-1) >= shapes.shape[1]:
         raise InputError(f"key shapes of {keys.region!r} name point {keys.points.max()} but the tracks "
                          f"have {shapes.shape[1]} points")
     return solve_weights(shapes[:, keys.points], keys.keys, keys.neutral, solver=solver,
-                         smooth_lambda=smooth_lambda, observed=tracks.success)
+                         smooth_lambda=smooth_lambda, observed=tracks.success, ridge=ridge)

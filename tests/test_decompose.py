@@ -71,6 +71,31 @@ def test_nnls_weights_never_negative(seed):
     assert lstsq_weights(shapes, keys, neutral).min() < 0  # the unconstrained solution does go negative
 
 
+def test_ridge_zero_is_the_paper_and_ridge_shrinks_weights():
+    shapes, keys, neutral = _random_problem(21, n_keys=7)
+    for solver in ("nnls", "lstsq"):
+        w0 = solve_weights(shapes, keys, neutral, solver=solver)
+        np.testing.assert_array_equal(solve_weights(shapes, keys, neutral, solver=solver, ridge=0.0), w0)
+        norms = [np.linalg.norm(solve_weights(shapes, keys, neutral, solver=solver, ridge=r)) for r in (0, 0.1, 1)]
+        assert norms[0] > norms[1] > norms[2], (solver, norms)
+    # ridge NNLS = NNLS of the system augmented with sqrt(ridge * trace(G) / k) * I rows (scipy's Lawson-Hanson)
+    r = 0.2
+    B = (keys - neutral).reshape(len(keys), -1).T
+    a = np.sqrt(r * (B ** 2).sum() / len(keys))
+    aug = np.vstack([B, a * np.eye(len(keys))])
+    ref = np.array([nnls(aug, np.r_[x, np.zeros(len(keys))])[0] for x in (shapes - neutral).reshape(len(shapes), -1)])
+    w = nnls_weights(shapes, keys, neutral, ridge=r)
+    assert w.min() >= 0
+    np.testing.assert_allclose(w, ref, atol=1e-9)
+    ridge_ls = np.linalg.lstsq(aug, np.vstack([(shapes - neutral).reshape(len(shapes), -1).T,
+                                               np.zeros((len(keys), len(shapes)))]), rcond=None)[0].T
+    np.testing.assert_allclose(lstsq_weights(shapes, keys, neutral, ridge=r), ridge_ls, atol=1e-9)
+    # the smooth solver with no smoothing is ridge NNLS too
+    np.testing.assert_allclose(smooth_weights(shapes, keys, neutral, 0.0, ridge=r), w, atol=1e-9)
+    with pytest.raises(InputError, match="ridge"):
+        nnls_weights(shapes, keys, neutral, ridge=-1.0)
+
+
 @pytest.mark.parametrize("solver", ["nnls", "lstsq"])
 def test_key_shapes_decompose_exactly_into_themselves(toy, solver):
     _, _, Q = toy
