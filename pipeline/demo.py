@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from decompose.selectors import METHODS
 from pipeline.errors import KeyshapeError
 
 # synthetic components -> demo region (contours48 regions used by decompose)
@@ -34,7 +35,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=int, default=300, help="frames of synthetic footage (default 300)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic performance (default 0)")
     p.add_argument("--keys", type=int, default=8, help="key shapes per region (default 8)")
-    p.add_argument("--method", default="greedy", help="key-shape selector (default greedy; spread is the paper's)")
+    p.add_argument("--method", default="greedy", choices=METHODS, help="key-shape selector (default greedy; spread is the paper's)")
     p.add_argument("--labels", type=int, default=20, help="labelled training frames (default 20)")
     p.add_argument("--solver", default="smooth", choices=("nnls", "lstsq", "smooth"),
                    help="weight solver for keyshape decompose (default smooth)")

@@ -68,8 +68,7 @@ def _register(args) -> int:
         io.write_json(args.out_markers, place_markers(markers, ref.vertices, ref.triangles, res.vertices,
                                                       tgt.vertices, tgt.triangles, source=args.markers))
     if masks is not None:
-        io.write_json(args.out_masks, {k: v.tolist() for k, v in
-                                       transfer_masks(masks, res.vertices, tgt.vertices, args.masks).items()})
+        io.write_masks(args.out_masks, transfer_masks(masks, res.vertices, tgt.vertices, args.masks), args.masks)
     print(f"registered in {res.seconds:.1f} s ({res.solver}, {res.n_evals} evaluations): "
           f"energy {res.energy_start:.3g} -> {res.energy:.3g}; wrote {args.output}")
     return 0

@@ -137,8 +137,8 @@ def load_targets(columns: Sequence[str], sources: Sequence[str | Path] | str | P
     sources : a folder or a list of target files (may be None when ``mapping`` names every file)
     mapping : mapping JSON path or dict column -> path; without it, column names are matched to
         file stems case-insensitively
-    neutral : optional neutral mesh/drawing; without it a file with stem ``neutral`` among the
-        sources is used when no column is named ``neutral``
+    neutral : optional neutral mesh/drawing; without it the mapping's ``"neutral"`` entry, else a
+        file with stem ``neutral`` among the sources, is used when no column is named ``neutral``
 
     Raises
     ------
@@ -164,9 +164,11 @@ def load_targets(columns: Sequence[str], sources: Sequence[str | Path] | str | P
     for f in files:
         by_key.setdefault(name_key(f.stem), f)
     col_keys = {name_key(c) for c in columns}
-    if neutral is None and mapping_src is None:
+    if neutral is None:  # a mapping's "neutral" entry, else a file named neutral.* among the sources
         for s in NEUTRAL_STEMS:
-            if s in by_key and s not in col_keys:
+            if s in chosen and s not in col_keys:
+                neutral = chosen.pop(s)
+            elif s in by_key and s not in col_keys:
                 neutral = by_key[s]
     missing, paths = [], []
     for c in columns:

@@ -292,3 +292,32 @@ def test_dense_sequences_are_deterministic(shared_data):
     assert a.shape == (5, 26719, 3) and np.array_equal(a, b) and not np.array_equal(a, c)
     with pytest.raises(InputError, match="unknown performance"):
         dense_sequence(shared_data / "ict-facekit", "sneeze")
+
+
+def test_register_outputs_feed_the_mocap_command(tmp_path):
+    """``register --out-markers/--out-masks`` write what ``keyshape mocap --target-markers/--masks`` reads."""
+    from retarget.mocap.cli import read_target_markers
+    from retarget.mocap.masks import read_masks as read_mocap_masks
+    from retarget.obj import Mesh, write_obj
+    v, t = grid(11)
+    write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
+    write_obj(tmp_path / "tgt.obj", Mesh(v.copy(), list(t)))       # same face: masks must carry unchanged
+    pairs = [{"reference": i, "target": i} for i in (0, 10, 110, 120, 60)]
+    (tmp_path / "pairs.json").write_text(json.dumps(pairs))
+    (tmp_path / "m.json").write_text(json.dumps({"tip": 60, "corner": 0, "edge": 5, "far": 120}))
+    lower = list(range(0, 55))
+    masks = {"regions": [{"name": "lower", "vertices": lower, "exclude_markers": ["far"]}], "note": "kept"}
+    (tmp_path / "masks.json").write_text(json.dumps(masks))
+    rc = main(["register", str(tmp_path / "ref.obj"), str(tmp_path / "tgt.obj"), "--landmarks",
+               str(tmp_path / "pairs.json"), "-o", str(tmp_path / "fit.obj"), "--controls", "20",
+               "--markers", str(tmp_path / "m.json"), "--out-markers", str(tmp_path / "tm.json"),
+               "--masks", str(tmp_path / "masks.json"), "--out-masks", str(tmp_path / "tmasks.json")])
+    assert rc == 0
+    tm = read_target_markers(tmp_path / "tm.json", len(v), v)
+    assert sorted(tm) == ["corner", "edge", "far", "tip"]
+    np.testing.assert_allclose(tm["tip"], v[60], atol=1e-6)
+    out = json.loads((tmp_path / "tmasks.json").read_text())
+    assert out["note"] == "kept" and out["regions"][0]["exclude_markers"] == ["far"]
+    assert out["regions"][0]["vertices"] == lower
+    regions = read_mocap_masks(tmp_path / "tmasks.json", ["tip", "corner", "edge", "far"], vertices=v)
+    assert regions[0].name == "lower" and regions[0].markers == {"tip", "corner", "edge"}

@@ -288,6 +288,13 @@ def test_mapping(scene):
                                               "eyes_0": "targets/MOUTH_0.obj"}))
     ts = load_targets(list(shapes), d, mapping=tmp / "map.json")
     assert ts.names == ["EYES_0", "MOUTH_1", "MOUTH_0"]
+    np.testing.assert_array_equal(ts.neutral, m.vertices)        # the folder's neutral.obj, map or not
+    moved = m.vertices + 1.0
+    write_obj(tmp / "other_neutral.obj", m, moved)
+    (tmp / "map3.json").write_text(json.dumps({"mouth_0": "targets/MOUTH_0.obj", "mouth_1": "targets/MOUTH_1.obj",
+                                               "eyes_0": "targets/EYES_0.obj", "neutral": "other_neutral.obj"}))
+    ts = load_targets(list(shapes), d, mapping=tmp / "map3.json")
+    np.testing.assert_allclose(ts.neutral, moved, atol=1e-6)       # the mapping's "neutral" entry wins
     (tmp / "map2.json").write_text(json.dumps({"mouth_0": "targets/nothere.obj"}))
     with pytest.raises(MissingFileError, match=r"nothere\.obj.*'mouth_0'.*map2\.json"):
         main_raise(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--map", str(tmp / "map2.json"),

@@ -9,7 +9,10 @@
 * markers JSON: ``{"name": vertex index or [x, y, z], ...}`` (a bare list of
   indices is named ``"0"``, ``"1"``...); placed markers are written as
   ``{"name": {"position": [x, y, z], "vertex": nearest target vertex}}``.
-* masks JSON: ``{"name": [vertex index, ...], ...}`` (discontinuity masks as vertex groups).
+* masks JSON: ``{"name": [vertex index, ...], ...}`` (discontinuity masks as vertex groups),
+  or the masks file of ``keyshape mocap`` (``{"regions": [{"name", "vertices", ...}], ...}``,
+  docs/mocap.md): its regions' ``vertices`` are carried to the target and everything else
+  (allowed markers, images) is written back unchanged, so the output feeds ``keyshape mocap --masks``.
 """
 from __future__ import annotations
 
@@ -107,8 +110,19 @@ def read_markers(path: str | Path) -> dict:
 
 
 def read_masks(path: str | Path) -> dict:
-    """Read a masks JSON -> {name: (n,) int vertex indices}."""
+    """Read a masks JSON -> {name: (n,) int vertex indices} (for a mocap masks file: the regions
+    that list ``vertices``)."""
     data = _json(path, "masks")
+    if isinstance(data, dict) and isinstance(data.get("regions"), list):
+        groups = {}
+        for i, r in enumerate(data["regions"]):
+            if not isinstance(r, dict):
+                raise InputError(f"regions[{i}]: expected an object", path)
+            if "vertices" in r:
+                groups[str(r.get("name", i))] = r["vertices"]
+        if not groups:
+            raise InputError("no region lists 'vertices' (image and vertex-group regions need no carrying)", path)
+        data = groups
     if not isinstance(data, dict) or not data:
         raise InputError("expected {\"name\": [vertex index, ...], ...}", path)
     out = {}
@@ -117,6 +131,18 @@ def read_masks(path: str | Path) -> dict:
             raise InputError(f"mask {k!r}: expected a list of vertex indices", path)
         out[k] = np.array(m, np.intp)
     return out
+
+
+def write_masks(path: str | Path, masks: dict, source: str | Path) -> None:
+    """Write carried masks ``{name: indices}`` in the layout of the ``source`` masks file."""
+    spec = _json(source, "masks")
+    if isinstance(spec, dict) and isinstance(spec.get("regions"), list):
+        for i, r in enumerate(spec["regions"]):
+            if "vertices" in r:
+                r["vertices"] = masks[str(r.get("name", i))].tolist()
+        write_json(path, spec)
+    else:
+        write_json(path, {k: v.tolist() for k, v in masks.items()})
 
 
 def write_json(path: str | Path, data) -> None:

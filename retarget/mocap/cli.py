@@ -32,7 +32,8 @@ def register(subparsers) -> None:
 
 
 def read_target_markers(path, n_vertices: int, vertices=None) -> dict:
-    """Label -> (3,) point: a vertex index (checked against ``n_vertices``) or an [x, y, z] point."""
+    """Label -> (3,) point: a vertex index (checked against ``n_vertices``), an [x, y, z] point, or
+    ``{"position": [x, y, z], "vertex": i}`` as ``keyshape register --out-markers`` writes."""
     import numpy as np
 
     from pipeline.errors import InputError, require_file
@@ -46,6 +47,8 @@ def read_target_markers(path, n_vertices: int, vertices=None) -> dict:
         raise InputError("expected a JSON object mapping marker label -> vertex index or [x, y, z]", path)
     out, bad = {}, []
     for lab, val in spec.items():
+        if isinstance(val, dict) and "position" in val:  # as keyshape register --out-markers writes them
+            val = val["position"]
         if isinstance(val, int) and not isinstance(val, bool):
             if not 0 <= val < n_vertices:
                 bad.append(f"{lab}: vertex {val}")
