@@ -263,3 +263,26 @@ def test_synth_then_mocap_commands(shared_data, tmp_path, capsys):
         err = np.linalg.norm(o["vertices"][:, :9409] - t["vertices"][:, :9409], axis=2).mean() * 10
     assert err < 1.0, err                                     # mm
     assert "rigid set: jig_front" in capsys.readouterr().out
+
+
+def test_cli_duplicate_labels_stop_or_rename(kit, tmp_path, shared_data, capsys):
+    from data_synth.mocap import synthesize, write_take
+
+    p = synthesize(kit, 4, rng=6, long_gap=0, n_gaps=0)
+    paths = write_take(tmp_path / "s", kit, p, formats=("trc",))
+    lines = paths["trc"].read_text().splitlines()
+    cells = lines[3].split("\t")
+    names = [c for c in cells[2:] if c.strip()]
+    victim = "nasolabialL"                                    # neither rigid nor needed: its data becomes browR_1#2
+    assert victim in names
+    lines[3] = "\t".join(cells[:2] + [c if c != victim else names[0] for c in cells[2:]])
+    (tmp_path / "dup.trc").write_text("\n".join(lines) + "\n")
+    mesh = shared_data / "ict-facekit" / "generic_neutral_mesh.obj"
+    argv = ["mocap", str(tmp_path / "dup.trc"), "--target", str(mesh), "--target-markers",
+            str(paths["target_markers"]), "--rigid", f"@{paths['rigid']}", "-o", str(tmp_path / "o.npz")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "dup.trc" in err and "duplicate marker labels" in err and not (tmp_path / "o.npz").exists()
+    assert main(argv + ["--duplicate-labels", "rename"]) == 0
+    with np.load(tmp_path / "o.npz") as z:
+        assert z["vertices"].shape[0] == 4

@@ -22,6 +22,8 @@ def register(subparsers) -> None:
                         "default: the most rigid markers, estimated")
     p.add_argument("--masks", default=None, help="discontinuity masks JSON (see docs/mocap.md)")
     p.add_argument("--method", default="planar", choices=["planar", "imq", "tps", "gaussian"])
+    p.add_argument("--duplicate-labels", default="error", choices=["error", "rename"],
+                   help="a take with two markers of one label: stop (default) or rename the second X to X#2")
     p.add_argument("--max-gap", type=int, default=12, help="longest gap (frames) filled without a report")
     p.add_argument("--radius", type=float, default=1.5,
                    help="planar-bone radius as a multiple of the shortest connected control edge")
@@ -72,7 +74,7 @@ def _mocap(args) -> int:
     from retarget.mocap.markers_io import read_markers
     from retarget.obj import read_obj, write_obj
 
-    take = read_markers(args.markers)
+    take = read_markers(args.markers, duplicates=args.duplicate_labels)
     mesh = read_obj(args.target, require_faces=True)
     tm = read_target_markers(args.target_markers, mesh.n_vertices, mesh.vertices)
     rigid = None
