@@ -12,6 +12,7 @@ image; ``image_from_model`` affines (2, 3) map them to video pixels.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -70,15 +71,22 @@ def warp_patch(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.
     1.5 source pixels (anti-aliasing without per-frame blurring). Pixel
     centres of pyramid level ``l`` sit at ``(x_0 + 0.5) / 2**l - 0.5``.
     """
+    return warp_patch_u8(pyramid, image_from_model, size).astype(np.float32)
+
+
+def warp_patch_u8(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.ndarray:
+    """:func:`warp_patch` before the float conversion: the ``uint8`` patch (same values)."""
     a = np.asarray(image_from_model, np.float64)
-    scale = np.sqrt(abs(np.linalg.det(a[:, :2])))
-    lvl = int(np.clip(np.floor(np.log2(max(scale, 1e-6) / 1.5)) + 1, 0, len(pyramid) - 1)) if scale > 1.5 else 0
+    scale = math.sqrt(abs(a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]))
+    lvl = 0
+    if scale > 1.5:
+        lvl = min(max(int(math.floor(math.log2(scale / 1.5))) + 1, 0), len(pyramid) - 1)
     if lvl:
         f = 0.5 ** lvl
-        a = np.vstack([a[0] * f, a[1] * f])
+        a = a * f
         a[:, 2] += 0.5 * f - 0.5
     return cv2.warpAffine(pyramid[lvl], a, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+                          borderMode=cv2.BORDER_REPLICATE)
 
 
 def normalise(values: np.ndarray) -> np.ndarray:
