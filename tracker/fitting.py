@@ -23,7 +23,7 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from tracker.eigenpoints import AppearanceModel, Pyramid, normalise, to_gray, warp_patch, warp_patch_u8
+from tracker.eigenpoints import AppearanceModel, Pyramid, normalise, warp_patch, warp_patch_u8
 from tracker.warp import apply_affine, compose_affine, invert_affine
 
 # polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
@@ -398,9 +398,8 @@ class Tracker:
     # ---------------------------------------------------------------- per frame
     def step(self, frame: np.ndarray, index: int = 0) -> FrameResult:
         """Track one frame (BGR or gray uint8)."""
-        gray = to_gray(frame)
-        pyr = Pyramid(gray)
-        size = gray.shape[:2]
+        pyr = Pyramid(frame)            # gray conversion and downsampling only where the face is looked at
+        size = pyr.size
         n_pts = self.model.n_points
         best = None
         its_total = 0
