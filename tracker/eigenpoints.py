@@ -12,6 +12,7 @@ image; ``image_from_model`` affines (2, 3) map them to video pixels.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -38,24 +39,80 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 class Pyramid:
-    """Gaussian pyramid (``cv2.pyrDown``) of a gray frame, finest first, built lazily on access."""
+    """Gaussian pyramid (``cv2.pyrDown``) of a frame, finest first, built lazily on access.
 
-    def __init__(self, gray: np.ndarray, levels: int = 4):
-        self._levels = [gray]
+    ``image`` is a gray frame or a BGR one (converted to gray when first needed).
+    :meth:`window` serves a window of a level without building the whole level:
+    the tracker only looks at the face, so per frame it converts and
+    downsamples a crop around it (the same pixel values as the full level).
+    """
+
+    _PAD = 12      # level pixels added around the first region asked for (later iterations move a little)
+
+    def __init__(self, image: np.ndarray, levels: int = 4):
+        image = np.asarray(image)
+        if image.ndim not in (2, 3):
+            raise InputError(f"frame: expected (height, width) or (height, width, 3), got {image.shape}")
+        self._src = image
+        self._levels = [image] if image.ndim == 2 else []
+        self._regions: dict = {}
         n = 1
-        h, w = gray.shape[:2]
+        h, w = image.shape[:2]
+        self._sizes = [(h, w)]
         while n < levels and min(h, w) >= 64:
             h, w = (h + 1) // 2, (w + 1) // 2
+            self._sizes.append((h, w))
             n += 1
         self.n_levels = n
 
     def __len__(self) -> int:
         return self.n_levels
 
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(height, width)`` of the finest level."""
+        return self._sizes[0]
+
     def __getitem__(self, level: int) -> np.ndarray:
+        if not self._levels:
+            self._levels.append(to_gray(self._src))
         while len(self._levels) <= level:
             self._levels.append(cv2.pyrDown(self._levels[-1]))
         return self._levels[level]
+
+    def window(self, level: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+        """An image of ``self[level]``'s size whose pixels ``[x0, x1) x [y0, y1)`` equal ``self[level]``'s.
+
+        When that level is not built yet, only a crop of the source around the
+        window (aligned to ``2**level``, with a margin wider than the smoothing
+        kernels reach, padded for the next few requests) is converted and
+        downsampled, into an uninitialised full-size buffer: the pixels outside
+        the crop are undefined. Sampling with the unchanged coordinates keeps
+        the results bit-identical to using the full level.
+        """
+        if len(self._levels) > level:
+            return self._levels[level]
+        h, w = self._sizes[level]
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+        got = self._regions.get(level)
+        if got is not None and got[1] <= x0 and got[2] <= y0 and x1 <= got[3] and y1 <= got[4]:
+            return got[0]
+        if got is not None or x0 >= x1 or y0 >= y1:      # moved out of the crop, or off the image
+            return self[level]
+        p = self._PAD
+        rx0, ry0, rx1, ry1 = max(x0 - p, 0), max(y0 - p, 0), min(x1 + p, w), min(y1 + p, h)
+        s, m = 2 ** level, 4     # pyrDown's 5-tap kernel disturbs at most 2 pixels of a crop's edge per level
+        H, W = self._sizes[0]
+        sx0, sy0 = max(rx0 - m, 0) * s, max(ry0 - m, 0) * s
+        sx1, sy1 = min((rx1 + m) * s, W), min((ry1 + m) * s, H)
+        img = self._levels[0][sy0:sy1, sx0:sx1] if self._levels else to_gray(self._src[sy0:sy1, sx0:sx1])
+        for _ in range(level):
+            img = cv2.pyrDown(img)
+        ox, oy = sx0 // s, sy0 // s
+        buf = np.empty((h, w), np.uint8)
+        buf[ry0:ry1, rx0:rx1] = img[ry0 - oy:ry1 - oy, rx0 - ox:rx1 - ox]
+        self._regions[level] = (buf, rx0, ry0, rx1, ry1)
+        return buf
 
 
 def build_pyramid(gray: np.ndarray, levels: int = 4) -> Pyramid:
@@ -70,15 +127,31 @@ def warp_patch(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.
     1.5 source pixels (anti-aliasing without per-frame blurring). Pixel
     centres of pyramid level ``l`` sit at ``(x_0 + 0.5) / 2**l - 0.5``.
     """
+    return warp_patch_u8(pyramid, image_from_model, size).astype(np.float32)
+
+
+def warp_patch_u8(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.ndarray:
+    """:func:`warp_patch` before the float conversion: the ``uint8`` patch (same values)."""
     a = np.asarray(image_from_model, np.float64)
-    scale = np.sqrt(abs(np.linalg.det(a[:, :2])))
-    lvl = int(np.clip(np.floor(np.log2(max(scale, 1e-6) / 1.5)) + 1, 0, len(pyramid) - 1)) if scale > 1.5 else 0
+    scale = math.sqrt(abs(a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]))
+    lvl = 0
+    if scale > 1.5:
+        lvl = min(max(int(math.floor(math.log2(scale / 1.5))) + 1, 0), len(pyramid) - 1)
     if lvl:
         f = 0.5 ** lvl
-        a = np.vstack([a[0] * f, a[1] * f])
+        a = a * f
         a[:, 2] += 0.5 * f - 0.5
-    return cv2.warpAffine(pyramid[lvl], a, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+    # sample only the window the patch covers (bilinear reads one pixel beyond; 2 for safety)
+    (a00, a01, a02), (a10, a11, a12) = a.tolist()
+    xs = (a02 - a00 - a01, a02 + a00 * size - a01, a02 - a00 + a01 * size, a02 + (a00 + a01) * size)
+    ys = (a12 - a10 - a11, a12 + a10 * size - a11, a12 - a10 + a11 * size, a12 + (a10 + a11) * size)
+    if all(map(math.isfinite, xs + ys)) and max(map(abs, xs + ys)) < 1e7:
+        img = pyramid.window(lvl, math.floor(min(xs)) - 2, math.floor(min(ys)) - 2,
+                             math.ceil(max(xs)) + 3, math.ceil(max(ys)) + 3)
+    else:
+        img = pyramid[lvl]
+    return cv2.warpAffine(img, a, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
 
 
 def normalise(values: np.ndarray) -> np.ndarray:

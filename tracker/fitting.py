@@ -16,15 +16,26 @@ needed). Lost frames are returned with ``success = False`` and NaN landmarks.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
 
-from tracker.eigenpoints import AppearanceModel, Pyramid, normalise, to_gray, warp_patch
+from tracker.eigenpoints import AppearanceModel, Pyramid, normalise, warp_patch, warp_patch_u8
 from tracker.warp import apply_affine, compose_affine, invert_affine
 
+# polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
+_COL_GRAD = np.array([0, 1, 0, 1, 0, 1])
+_COL_MONO3 = np.array([0, 0, 1, 1, 2, 2])
+_MONO_PAIR = np.array([[0, 1, 3], [1, 2, 4], [3, 4, 5]])     # x², xy, y², x, y, 1 by monomial pair
+_GRAD_PAIR = np.array([[0, 1], [1, 2]])                      # gx², gx gy, gy² by gradient pair
+_JTJ_MONO = _MONO_PAIR[_COL_MONO3[:, None], _COL_MONO3[None, :]]
+_JTJ_PROD = _GRAD_PAIR[_COL_GRAD[:, None], _COL_GRAD[None, :]]
+_JTE_MONO = np.array([3, 3, 4, 4, 5, 5])                     # x, x, y, y, 1, 1
+_JTE_PROD = 3 + _COL_GRAD                                    # gx e, gy e
+_DIAG6 = np.diag_indices(6)
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
 
 
@@ -69,7 +80,13 @@ class _Level:
         b = b - b.mean(0)
         q, _ = np.linalg.qr(np.hstack([np.ones((len(b), 1)), b]))
         self.q, self.xx, self.yy = q, xx.astype(np.float64), yy.astype(np.float64)
-        self.jac = np.empty((len(self.index), 6))    # work buffer of the polish Jacobian
+        # polish: the Jacobian's columns are (gx, gy) times (x, y, 1), so JᵀJ and Jᵀe are sums of
+        # gradient products weighted by the monomials below, and QᵀJ is [Q x | Q y | Q]ᵀ [gx gy]
+        self.mono = np.stack([xx * xx, xx * yy, yy * yy, xx, yy, np.ones(len(xx))], axis=1).astype(np.float64)
+        self.q_mono = np.hstack([q * xx[:, None], q * yy[:, None], q]).T.copy()      # (3 k', n_pix)
+        self.q_mono32 = self.q_mono.astype(np.float32)
+        self.qt = np.ascontiguousarray(q.T)
+        self.prod = np.empty((len(self.index), 5))    # work buffer: gx², gx gy, gy², gx e, gy e
         sd_po = sd - q @ (q.T @ sd)
         # weighted Gauss-Newton: pixels that vary a lot between labelled frames (mouth, eyelids)
         # count less, so an expression never seen in training does not drag the pose
@@ -140,7 +157,12 @@ class Tracker:
         ref = m.reference_
         a, b = m.scheme_.inter_ocular
         self._ref_iod = float(np.linalg.norm(ref[a] - ref[b]))
+        self._ref_centre = ref.mean(0)
         self._template_cache: dict = {}
+        # read(): coefficients and U_Iᵀe in one product, the Gram matrix for the residual
+        self._read_mat = np.vstack([m._pinv_i, m._ui.T])
+        self._read_gram = m._ui.T @ m._ui
+        self._read_ul = np.ascontiguousarray(m._ul)
         self.reset()
 
     def reset(self) -> None:
@@ -185,35 +207,54 @@ class Tracker:
         """
         lv = self.levels[-1]
         a = np.asarray(pose, np.float64)
+        n = len(lv.index)
+        nq = lv.q.shape[1]
+        prod = lv.prod
         best_r, its = None, 0
         for _ in range(self.n_polish):
-            patch = warp_patch(pyr, a, lv.size)
+            patch = warp_patch_u8(pyr, a, lv.size)
             flat = patch.ravel()[lv.index].astype(np.float64)
-            mu, sd = flat.mean(), max(flat.std(), 1e-6)
-            v = (flat - mu) / sd
-            e = v - lv.template
-            e_po = e - lv.q @ (lv.q.T @ e)
-            r = float(e_po @ e_po) / len(e)
+            mu = flat.sum() / n
+            e = flat - mu
+            sd = max(math.sqrt(float(e @ e) / n), 1e-6)
+            e *= 1.0 / sd
+            e -= lv.template
+            qe = lv.qt @ e
+            # e⊥ = e - Q Qᵀe (Q orthonormal): |e⊥|² = |e|² - |Qᵀe|²
+            r = max(float(e @ e) - float(qe @ qe), 0.0) / n
             if best_r is not None and r >= best_r:
                 a = prev
                 break
             best_r, prev = r, a
-            gx = cv2.Sobel(patch, cv2.CV_64F, 1, 0, ksize=3, scale=1 / 8).ravel()[lv.index] / sd
-            gy = cv2.Sobel(patch, cv2.CV_64F, 0, 1, ksize=3, scale=1 / 8).ravel()[lv.index] / sd
-            j = lv.jac
-            np.multiply(gx, lv.xx, out=j[:, 0])
-            np.multiply(gy, lv.xx, out=j[:, 1])
-            np.multiply(gx, lv.yy, out=j[:, 2])
-            np.multiply(gy, lv.yy, out=j[:, 3])
-            j[:, 4], j[:, 5] = gx, gy
-            # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe⊥ (e⊥ is orthogonal to Q)
-            qj = lv.q.T @ j
-            hess = j.T @ j - qj.T @ qj
-            dp = -np.linalg.solve(hess + 1e-9 * np.eye(6), j.T @ e_po)
-            w = np.array([[1 + dp[0], dp[2], dp[4]], [dp[1], 1 + dp[3], dp[5]]])
-            a = self._clamp(compose_affine(a, w))
+            gxi, gyi = cv2.spatialGradient(patch)          # 3x3 Sobel, unscaled (exact on uint8)
+            g = np.empty((n, 2))
+            g[:, 0] = gxi.ravel()[lv.index]
+            g[:, 1] = gyi.ravel()[lv.index]
+            g *= 1.0 / (8.0 * sd)
+            gx, gy = g[:, 0], g[:, 1]
+            np.multiply(gx, gx, out=prod[:, 0])
+            np.multiply(gx, gy, out=prod[:, 1])
+            np.multiply(gy, gy, out=prod[:, 2])
+            np.multiply(gx, e, out=prod[:, 3])
+            np.multiply(gy, e, out=prod[:, 4])
+            mom = lv.mono.T @ prod                          # (6 monomials, 5 products)
+            jtj = mom[_JTJ_MONO, _JTJ_PROD]
+            jte = mom[_JTE_MONO, _JTE_PROD]
+            qg = lv.q_mono @ g        # (3 k', 2); float32 halves the cost
+            qj = qg.reshape(3, nq, 2)[_COL_MONO3, :, _COL_GRAD].T   # (k', 6) = QᵀJ
+            # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
+            hess = jtj - qj.T @ qj
+            hess[_DIAG6] += 1e-9
+            ok, sol = cv2.solve(hess, (qj.T @ qe - jte)[:, None], flags=cv2.DECOMP_LU)
+            if not ok:
+                break
+            d0, d1, d2, d3, d4, d5 = sol.ravel().tolist()
+            # a ∘ W(Δp), W = [[1 + d0, d2, d4], [d1, 1 + d3, d5]]
+            (a00, a01, a02), (a10, a11, a12) = a.tolist()
+            a = self._clamp(np.array([[a00 * (1 + d0) + a01 * d1, a00 * d2 + a01 * (1 + d3), a00 * d4 + a01 * d5 + a02],
+                                      [a10 * (1 + d0) + a11 * d1, a10 * d2 + a11 * (1 + d3), a10 * d4 + a11 * d5 + a12]]))
             its += 1
-            if np.abs(dp[4:]).max() < 0.01 and np.abs(dp[:4]).max() < 3e-4:
+            if max(abs(d4), abs(d5)) < 0.01 and max(abs(d0), abs(d1), abs(d2), abs(d3)) < 3e-4:
                 break
         return a, its
 
@@ -225,13 +266,14 @@ class Tracker:
         The clamp keeps the rotation, the area and the axes of the
         stretch; only the ratio of the singular values is limited.
         """
-        lin = pose[:, :2]
+        (l00, l01, _), (l10, l11, _) = pose.tolist()
         # singular values of a 2x2 in closed form: s0 s1 = |det|, s0² + s1² = |L|²_F
-        det = abs(lin[0, 0] * lin[1, 1] - lin[0, 1] * lin[1, 0])
-        fro = float((lin * lin).sum())
-        disc = np.sqrt(max(fro * fro - 4 * det * det, 0.0))
+        det = abs(l00 * l11 - l01 * l10)
+        fro = l00 * l00 + l01 * l01 + l10 * l10 + l11 * l11
+        disc = math.sqrt(max(fro * fro - 4 * det * det, 0.0))
         if (fro + disc) <= self.max_anisotropy ** 2 * max(fro - disc, 1e-300):
             return pose
+        lin = pose[:, :2]
         u, sv, vt = np.linalg.svd(lin)
         g = np.sqrt(sv[0] * sv[1])
         r = np.sqrt(self.max_anisotropy)
@@ -240,29 +282,51 @@ class Tracker:
         return out
 
     def read(self, pyr: Pyramid, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        """Eigen-points step: model-frame landmarks, image landmarks and residual at ``pose``."""
+        """Eigen-points step: model-frame landmarks, image landmarks and residual at ``pose``.
+
+        Same as ``model.project(model.intensities(patch))`` then ``model.landmarks``, with the
+        coefficients and ``U_Iᵀ e`` from one stacked matrix product and the residual
+        ``|e - U_I c|²`` expanded as ``|e|² - 2 cᵀU_Iᵀe + cᵀ(U_IᵀU_I)c``.
+        """
         m = self.model
-        patch = warp_patch(pyr, pose, m.patch_size_)
-        c, r = m.project(m.intensities(patch))
-        shape = m.landmarks(c)
-        return shape, apply_affine(pose, shape), float(r)
+        patch = warp_patch_u8(pyr, pose, m.patch_size_)
+        flat = patch.ravel()[m.index_].astype(np.float64)
+        n = len(flat)
+        e = flat - flat.sum() / n
+        sd = max(math.sqrt(float(e @ e) / n), 1e-6)
+        e *= 1.0 / sd
+        e -= m._mean_i
+        cu = self._read_mat @ e
+        k = m.k_
+        c, ue = cu[:k], cu[k:]
+        r = max(float(e @ e) - 2.0 * float(c @ ue) + float(c @ (self._read_gram @ c)), 0.0) / n
+        shape = (m._mean_l + self._read_ul @ c).reshape(-1, 2)
+        return shape, apply_affine(pose, shape), r
 
     def _sane(self, pose: np.ndarray, shape: np.ndarray, image_size: tuple[int, int]) -> bool:
         lin = pose[:, :2]
-        sv = np.linalg.svd(lin, compute_uv=False)
-        if np.linalg.det(lin) <= 0 or sv[0] / max(sv[1], 1e-9) > self.max_anisotropy * 1.01:
+        det = float(lin[0, 0] * lin[1, 1] - lin[0, 1] * lin[1, 0])
+        if det <= 0:
+            return False
+        # singular values of a 2x2 in closed form: s0 s1 = det, s0² + s1² = |L|²_F
+        fro = float((lin * lin).sum())
+        disc = math.sqrt(max(fro * fro - 4 * det * det, 0.0))
+        s0, s1 = math.sqrt((fro + disc) / 2), math.sqrt(max(fro - disc, 0.0) / 2)
+        if s0 / max(s1, 1e-9) > self.max_anisotropy * 1.01:
             return False
         a, b = self.model.scheme_.inter_ocular
-        iod = np.linalg.norm(shape[a] - shape[b])
+        d = shape[a] - shape[b]
+        iod = math.hypot(float(d[0]), float(d[1]))
         if not 0.6 < iod / self._ref_iod < 1.6:
             return False
-        centre = apply_affine(pose, self.model.reference_.mean(0))
+        centre = apply_affine(pose, self._ref_centre)
         h, w = image_size
         if not (-0.1 * w < centre[0] < 1.1 * w and -0.1 * h < centre[1] < 1.1 * h):
             return False
         if self.last_good is not None:
-            s0 = np.sqrt(abs(np.linalg.det(self.last_good[:, :2])))
-            if not 0.6 < np.sqrt(np.linalg.det(lin)) / s0 < 1.6:
+            g = self.last_good
+            s0 = math.sqrt(abs(float(g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0])))
+            if not 0.6 < math.sqrt(det) / s0 < 1.6:
                 return False
         return True
 
@@ -334,9 +398,8 @@ class Tracker:
     # ---------------------------------------------------------------- per frame
     def step(self, frame: np.ndarray, index: int = 0) -> FrameResult:
         """Track one frame (BGR or gray uint8)."""
-        gray = to_gray(frame)
-        pyr = Pyramid(gray)
-        size = gray.shape[:2]
+        pyr = Pyramid(frame)            # gray conversion and downsampling only where the face is looked at
+        size = pyr.size
         n_pts = self.model.n_points
         best = None
         its_total = 0
@@ -369,7 +432,7 @@ class Tracker:
         if best is None:
             return FrameResult(index, np.full((n_pts, 2), np.nan), np.full((2, 3), np.nan), np.inf, 0.0, False, 0)
         ok, r, pose, pts = best
-        conf = float(np.clip((self.lost_threshold - r) / max(self.lost_threshold - self.ref_residual, 1e-9), 0, 1))
+        conf = min(max((self.lost_threshold - r) / max(self.lost_threshold - self.ref_residual, 1e-9), 0.0), 1.0)
         if ok:
             self.pose = pose
             self.last_good = pose

@@ -24,6 +24,7 @@ A @ [x_model, y_model] + t``.
 from __future__ import annotations
 
 import io as _io
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -290,9 +291,9 @@ class TracksWriter:
     def write(self, frame: int, time: float, confidence: float, success: bool, points: np.ndarray,
               pose: np.ndarray) -> None:
         p = np.asarray(points, np.float64)
-        vals = np.concatenate([p[:, 0], p[:, 1]])
+        vals = np.concatenate([p[:, 0], p[:, 1]]).tolist()       # Python floats: formatting without numpy scalars
         fields = [str(int(frame)), f"{time:.6f}", f"{confidence:.4f}", "1" if success else "0"]
-        fields += ["" if not np.isfinite(v) else f"{v:.4f}" for v in vals]
-        fields += ["" if not np.isfinite(v) else f"{v:.8g}" for v in np.asarray(pose, np.float64).ravel()]
+        fields += [f"{v:.4f}" if math.isfinite(v) else "" for v in vals]
+        fields += [f"{v:.8g}" if math.isfinite(v) else "" for v in np.asarray(pose, np.float64).ravel().tolist()]
         self.f.write(",".join(fields) + "\n")
         self.n_rows += 1
