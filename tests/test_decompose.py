@@ -407,3 +407,60 @@ def test_on_synthetic_video_truth(tmp_path):
         assert by[("greedy", k)]["rms_px"] < 0.8 * by[("spread", k)]["rms_px"], k
     for k in range(8, 17):
         assert by[("spread", k)]["keynoise_nnls_px"] < by[("spread", k)]["keynoise_lstsq_px"], k
+
+
+def _smooth_reference(shapes, keys, neutral, lam, observed):
+    """The smoothed-NNLS QP as one NNLS problem ``min_{w >= 0} ||A w - b||``, solved exactly by
+    scipy's Lawson-Hanson (independent of the ADMM solver)."""
+    X = (shapes - neutral).reshape(len(shapes), -1)
+    B = (keys - neutral).reshape(len(keys), -1)
+    n, k = len(X), len(B)
+    mu = lam * float(np.trace(B @ B.T)) / k
+    A = np.zeros((n * X.shape[1] + (n - 1) * k, n * k))
+    b = np.zeros(len(A))
+    d = X.shape[1]
+    for t in range(n):
+        if observed[t]:
+            A[t * d:(t + 1) * d, t * k:(t + 1) * k] = B.T
+            b[t * d:(t + 1) * d] = X[t]
+    r0 = n * d
+    for t in range(1, n):
+        A[r0 + (t - 1) * k + np.arange(k), t * k + np.arange(k)] = np.sqrt(mu)
+        A[r0 + (t - 1) * k + np.arange(k), (t - 1) * k + np.arange(k)] = -np.sqrt(mu)
+    x, rnorm = nnls(A, b, maxiter=50 * A.shape[1])
+    return x.reshape(n, k), float(rnorm ** 2)
+
+
+@pytest.mark.parametrize("partial", [False, True])
+def test_smooth_matches_tight_bounded_least_squares(partial):
+    # 120 frames x 5 keys; weights that often touch zero so the bounds are active
+    rng = np.random.default_rng(11)
+    n, k = 120, 5
+    neutral = rng.normal(size=(10, 2))
+    keys = neutral + rng.normal(size=(k, 10, 2))
+    t = np.arange(n)[:, None]
+    w_true = np.maximum(np.sin(t / 15.0 + np.arange(k)) * 0.8, 0.0)
+    shapes = neutral + np.einsum("tk,kpd->tpd", w_true, keys - neutral) + rng.normal(scale=0.3, size=(n, 10, 2))
+    obs = np.ones(n, bool)
+    if partial:
+        obs[[0, 1, 40, 41, 42, 43, 90, n - 1]] = False
+    ref, f_ref = _smooth_reference(shapes, keys, neutral, 0.1, obs)
+    assert (ref < 1e-9).mean() > 0.1  # the constraints matter
+    filled = np.where(obs[:, None, None], shapes, neutral)
+    X = (filled - neutral).reshape(n, -1)
+    B = (keys - neutral).reshape(k, -1)
+    mu = 0.1 * float(np.trace(B @ B.T)) / k
+
+    def objective(w):
+        r = w @ B - X
+        return float((obs * np.sum(r * r, axis=1)).sum() + mu * np.sum(np.diff(w, axis=0) ** 2))
+
+    tight, info = smooth_weights(filled, keys, neutral, 0.1, observed=obs, tol=1e-10, max_iter=20000,
+                                 return_info=True)
+    assert info["converged"]
+    assert tight.min() >= 0.0
+    np.testing.assert_allclose(tight, ref, atol=1e-6)
+    w, info = smooth_weights(filled, keys, neutral, 0.1, observed=obs, return_info=True)  # default tol 1e-5
+    assert info["converged"] and w.min() >= 0.0
+    assert np.abs(w - ref).max() < 1e-2 and np.sqrt(np.mean((w - ref) ** 2)) < 2e-3
+    assert objective(w) <= f_ref * (1 + 1e-5) and abs(objective(ref) - f_ref) < 1e-8 * f_ref
