@@ -1,5 +1,6 @@
 """Benchmark of the dense-mesh tools on ICT-FaceKit (issue 7): registration accuracy and speed,
-key-point insertion tables (002's Tables 1-2). Prints a markdown report; no timed asserts.
+key-point insertion tables (002's Tables 1-2),
+facial transfer (002 section 6). Prints a markdown report; no timed asserts.
 
     PYTHONPATH=. /work/venv/bin/python bench/bench_dense.py [--quick]
 """
@@ -15,6 +16,7 @@ import numpy as np
 from data_synth.dense import LANDMARKS68, PERFORMANCES, dense_sequence, realistic_face
 from retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
 from retarget.dense.registration import place_markers, register_mesh
+from retarget.dense.transfer import transfer_sequence
 from retarget.obj import read_obj, read_obj_vertices
 
 ICT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ict-facekit"
@@ -78,12 +80,38 @@ def bench_keypoints(quick):
               f"| {rr * 10:.2f} | {dt / rounds:.1f} |", flush=True)
 
 
+def bench_transfer(quick):
+    vi = json.loads((ICT / "vertex_indices.json").read_text())
+    lm68 = np.array(vi["idx_to_landmark_verts"])
+    n_frames = 8 if quick else 20
+    frames, _ = dense_sequence(ICT, "talk", n_frames, rng=0)
+    targets = [("own neutral", frames[0])] + [(f"identity00{i}", read_obj_vertices(ICT / f"identity00{i}.obj"))
+                                              for i in range(1 if quick else 4)]
+    motion = np.linalg.norm(frames[1:, SKIN] - frames[:1, SKIN], axis=2) * 10
+    print(f"\n### Facial transfer of ICT \"talk\" ({n_frames} frames, 26,719 points), face skin 0-9408, mm\n")
+    print("Keys of eq. 6: the 68 landmark vertices (same index on the target); eqs. 7-9 with the defaults "
+          "(6000 random target key points, seed 0). Truth: the same expression deltas added to the target. "
+          f"Motion (= error of leaving the target still): mean {motion.mean():.2f}, p95 "
+          f"{np.percentile(motion, 95):.2f}.\n")
+    print("| target | mean error | p95 error | mean / motion mean | p95 / motion p95 | time s |")
+    print("|---|---|---|---|---|---|")
+    for name, tv in targets:
+        t0 = time.perf_counter()
+        out = transfer_sequence(frames, lm68, tv, lm68, rng=0)
+        dt = time.perf_counter() - t0
+        d = np.linalg.norm(out[1:, SKIN] - (tv[None] + frames[1:] - frames[0])[:, SKIN], axis=2) * 10
+        print(f"| {name} | {d.mean():.2f} | {np.percentile(d, 95):.2f} | {d.mean() / motion.mean():.0%} "
+              f"| {np.percentile(d, 95) / np.percentile(motion, 95):.0%} | {dt:.1f} |", flush=True)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--only", choices=("registration", "keypoints"))
+    ap.add_argument("--only", choices=("registration", "keypoints", "transfer"))
     a = ap.parse_args()
-    if a.only != "registration":
+    if a.only in (None, "keypoints"):
         bench_keypoints(a.quick)
-    if a.only != "keypoints":
+    if a.only in (None, "registration"):
         bench_registration(a.quick)
+    if a.only in (None, "transfer"):
+        bench_transfer(a.quick)

@@ -42,6 +42,8 @@ def register(subparsers) -> None:
                                        "default: same vertex indices (same topology)")
     p.add_argument("-o", "--output", required=True, help="OUT.npz (vertices, faces of the target)")
     p.add_argument("--gain", type=float, default=1.0, help="alpha / N_k of eq. 8 (default 1)")
+    p.add_argument("--samples", type=int, default=6000,
+                   help="number N_k of random target key points of eqs. 7-9 (default 6000)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_transfer)
 
@@ -126,7 +128,7 @@ def _transfer(args) -> int:
                              "give --landmarks PAIRS.json to say which points correspond", args.target)
         sk = io.read_keypoints(args.keypoints, frames.shape[1]) if args.keypoints else _initial("68", frames, args.seed)
         tk = sk
-    out = transfer_sequence(frames, sk, tgt.vertices, tk, gain=args.gain, rng=args.seed)
+    out = transfer_sequence(frames, sk, tgt.vertices, tk, gain=args.gain, n_samples=args.samples, rng=args.seed)
     io.write_sequence(args.output, out, tgt.triangles)
     print(f"transferred {len(out)} frames onto {Path(args.target).name}; wrote {args.output}")
     return 0

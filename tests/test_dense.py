@@ -109,6 +109,61 @@ def test_transfer_properties():
     assert out[3, np.argmin(np.linalg.norm(target - target[peak], axis=1)), 2] > 0.5
 
 
+
+def test_transfer_onto_own_neutral_reproduces_the_sequence():
+    """Identity transfer: the bump sequence carried onto its own neutral comes back (tangential motion too)."""
+    frames, _ = bump_sequence(n_frames=6)
+    frames[:, :, 0] += 0.5 * np.sin(np.linspace(0, np.pi, 6))[:, None] * np.exp(
+        -((frames[0, :, 0] - 5) ** 2 + (frames[0, :, 1] - 5) ** 2) / 8.0)[None]   # sliding skin
+    keys = np.array([0, 24, 600, 624, 312])
+    out = transfer_sequence(frames, keys, frames[0], keys, n_samples=300, rng=0)
+    err = np.linalg.norm(out[1:] - frames[1:], axis=2).mean()
+    motion = np.linalg.norm(frames[1:] - frames[:1], axis=2).mean()
+    assert err < 0.1 * motion
+
+
+def _ict_case(ict, step=3, n_frames=6):
+    """A decimated ICT "talk" case: every ``step``-th face-skin vertex, ``n_frames`` frames, 68 landmarks as keys."""
+    from data_synth.dense import dense_sequence
+    from retarget.obj import read_obj_vertices
+    frames, _ = dense_sequence(ict, "talk", n_frames, rng=0)
+    lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
+    keep = np.union1d(np.arange(0, 9409, step), lm68[lm68 < 9409])
+    keys = np.searchsorted(keep, lm68[lm68 < 9409])
+    ident = read_obj_vertices(ict / "identity000.obj")[keep]
+    return frames[:, keep], keys, ident
+
+
+def _rel(out, truth):
+    err = np.linalg.norm(out[1:] - truth[1:], axis=2).mean()
+    return err, np.linalg.norm(truth[1:] - truth[:1], axis=2).mean()
+
+
+def test_ict_transfer_identity_and_onto_identity000(shared_data):
+    frames, keys, ident = _ict_case(shared_data / "ict-facekit")
+    out = transfer_sequence(frames, keys, frames[0], keys, n_samples=1500, rng=0)
+    err, motion = _rel(out, frames)
+    assert err < 0.2 * motion                      # own neutral: the sequence comes back
+    truth = ident[None] + frames - frames[0]       # same expression deltas on identity000
+    out = transfer_sequence(frames, keys, ident, keys, n_samples=1500, rng=0)
+    err, still = _rel(out, truth)                  # "no motion" leaves an error of the motion itself
+    assert err < 0.25 * still
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", ["self", "identity000", "identity003"])
+def test_ict_transfer_full_size(shared_data, target):
+    from data_synth.dense import dense_sequence
+    from retarget.obj import read_obj_vertices
+    ict = shared_data / "ict-facekit"
+    frames, _ = dense_sequence(ict, "talk", 8, rng=0)
+    lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
+    tv = frames[0] if target == "self" else read_obj_vertices(ict / f"{target}.obj")
+    out = transfer_sequence(frames, lm68, tv, lm68, rng=0)
+    skin = slice(0, 9409)
+    err, motion = _rel(out[:, skin], (tv[None] + frames - frames[0])[:, skin])
+    assert err < 0.25 * motion
+
 # --- mesh checks and closest points ------------------------------------------------------------
 def test_closest_on_triangles_against_dense_sampling():
     rng = np.random.default_rng(0)
@@ -237,6 +292,12 @@ def test_cli_register_and_keypoints(tmp_path, capsys):
     rc = main(["transfer", str(tmp_path / "seq.npz"), "--target", str(tmp_path / "ref.obj"),
                "-o", str(tmp_path / "o.npz")])
     assert rc == 2 and "ref.obj" in capsys.readouterr().err        # different point counts, no landmarks
+    write_obj(tmp_path / "self.obj", Mesh(frames[0], list(tri)))
+    rc = main(["transfer", str(tmp_path / "seq.npz"), "--target", str(tmp_path / "self.obj"), "--keypoints",
+               str(tmp_path / "k.json"), "--samples", "225", "-o", str(tmp_path / "o.npz")])
+    out, _ = io.read_sequence(tmp_path / "o.npz")
+    assert rc == 0 and out.shape == frames.shape
+    assert np.linalg.norm(out - frames, axis=2).mean() < 0.1 * np.linalg.norm(frames - frames[0], axis=2).mean()
 
 
 # --- ICT-FaceKit accuracy (slow) -------------------------------------------------------------------
