@@ -68,12 +68,16 @@ point merged). The wedge entries (``w c_1 D/d`` and ``w c_2 D/d`` of eq. 10) liv
 extra copies of the ``m`` rows, with the pairs sorted by bone corner, so they form the last
 two blocks of ``T``'s data in the same pair order: per frame one dot product per bone corner,
 one square root per wedge pair and two divisions refill them in place, and a frame is one
-sparse product, accumulated straight onto ``still``. ``deform_many`` does the fixed columns
-of ``T`` for 16 frames at once (the frames side by side as columns of the right-hand side,
-where scipy's sparse product costs about half as much per frame as with 3 columns) and only
-the wedge block per frame.
+sparse product, accumulated straight onto ``still``; with a second core a helper thread
+multiplies the fixed columns while the wedge block is refilled and multiplied. ``deform_many``
+does the fixed columns of ``T`` for 16 frames at once (the frames side by side as columns of
+the right-hand side, where scipy's sparse product costs about half as much per frame as with
+3 columns) and only the wedge block per frame, the two halves of the take in two threads.
 """
 from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sp
@@ -389,7 +393,10 @@ class PlanarBones:
         self._Tw.data = self._T.data[nf:]                                           # a view, not a copy
         if not np.shares_memory(self._Tw.data, self._wedge_data[0]) and npw:
             raise RuntimeError("wedge matrices must share their data")
-        self._fixed_csr = sp.csc_matrix((fdata, frows, findptr), shape=(nv, n_fixed_cols)).tocsr()
+        self._fixed_csc = sp.csc_matrix((fdata, frows, findptr), shape=(nv, n_fixed_cols))
+        self._fixed_csr = self._fixed_csc.tocsr()
+        self.threads = True                          # use a helper thread where there is a second core
+        self._Tw_spare = None
         self._still = rest_w[:, None] * x
         self.rest_weight_ = rest_w
         self.triangles = tri.astype(np.intp)
@@ -452,19 +459,51 @@ class PlanarBones:
         """Deformed mesh ``(n_vertices, 3)`` for one frame of the control surface ``(n_controls, 3)``.
 
         The wedge entries of the one sparse matrix are refilled in place (eq. 10), then a frame is
-        one sparse product.
+        one sparse product; with a second core (and ``self.threads``) a helper thread multiplies
+        the fixed columns meanwhile. Not safe to call from several threads on the same bones
+        (the wedge entries are shared state).
         """
         c = self._check_controls(control_points)
         if c.ndim != 2:
             raise InputError(f"`control_points`: expected one frame (n_controls, 3), got {c.shape}; use deform_many")
         y, g = self._y(c)
+        out = self._still.copy()
+        pool = _worker() if self.threads else None
+        if pool is None or not len(self._wedge_corner):
+            self._refill(g)
+            _add_product(self._T, y, out)
+            return out
+        nfc = self._fixed_csc.shape[1]
+        fixed = pool.submit(_add_product, self._fixed_csc, y[:nfc], out)    # fixed part meanwhile
+        self._refill(g)
+        wedge = self._Tw @ y[nfc:]
+        fixed.result()
+        out += wedge
+        return out
+
+    def _refill(self, g: np.ndarray, data=None) -> None:
+        """Write this frame's wedge entries ``w c_1 D/d``, ``w c_2 D/d`` (eq. 10) in place into ``T``
+        (or into ``data``, the data of a copy of the wedge block)."""
         if len(self._wedge_corner):
             d = self._inverse_d(g)
-            np.divide(self._wedge_num[0], d, out=self._wedge_data[0])
-            np.divide(self._wedge_num[1], d, out=self._wedge_data[1])
-        out = self._still.copy()
-        _add_product(self._T, y, out)
-        return out
+            npw = len(d)
+            targets = self._wedge_data if data is None else (data[:npw], data[npw:])
+            np.divide(self._wedge_num[0], d, out=targets[0])
+            np.divide(self._wedge_num[1], d, out=targets[1])
+
+    def _deform_range(self, y, g, out, start, stop, chunk, tw) -> None:
+        """Frames ``start:stop`` of ``deform_many`` into ``out``, refilling the wedge block ``tw``."""
+        nfc = self._fixed_csr.shape[1]
+        nv = self.n_vertices
+        for f0 in range(start, stop, chunk):
+            f1 = min(f0 + chunk, stop)
+            yb = np.ascontiguousarray(y[f0:f1, :nfc].transpose(1, 0, 2)).reshape(nfc, -1)
+            res = (self._fixed_csr @ yb).reshape(nv, f1 - f0, 3)
+            for j, f in enumerate(range(f0, f1)):
+                np.add(res[:, j], self._still, out=out[f])
+                if len(self._wedge_corner):
+                    self._refill(g[f], None if tw is self._Tw else tw.data)
+                    _add_product(tw, y[f, nfc:], out[f])
 
     def deform_many(self, control_points, chunk: int = 16) -> np.ndarray:
         """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``.
@@ -472,28 +511,38 @@ class PlanarBones:
         The bone frames of all frames are one batched call; the fixed part of the map is one
         sparse product for ``chunk`` frames at a time (the frames side by side as the columns of
         the right-hand side); only the wedge part (its factor differs per frame and pair) is
-        refilled and multiplied per frame.
+        refilled and multiplied per frame. With a second core (and ``self.threads``, default
+        True) a helper thread does the second half of the take with its own copy of the wedge
+        block (scipy's sparse kernels release the GIL).
         """
         c = self._check_controls(control_points)
         if c.ndim != 3:
             raise InputError(f"`control_points`: expected (n_frames, n_controls, 3), got {c.shape}")
-        nfc = self._fixed_csr.shape[1]
         y, g = self._y(c)
-        wedge = len(self._wedge_corner) > 0
-        nv = self.n_vertices
-        out = np.empty((len(c), nv, 3))
-        for f0 in range(0, len(c), chunk):
-            f1 = min(f0 + chunk, len(c))
-            yb = np.ascontiguousarray(y[f0:f1, :nfc].transpose(1, 0, 2)).reshape(nfc, -1)
-            res = (self._fixed_csr @ yb).reshape(nv, f1 - f0, 3)
-            for j, f in enumerate(range(f0, f1)):
-                np.add(res[:, j], self._still, out=out[f])
-                if wedge:
-                    d = self._inverse_d(g[f])
-                    np.divide(self._wedge_num[0], d, out=self._wedge_data[0])
-                    np.divide(self._wedge_num[1], d, out=self._wedge_data[1])
-                    _add_product(self._Tw, y[f, nfc:], out[f])
+        out = np.empty((len(c), self.n_vertices, 3))
+        pool = _worker() if self.threads else None
+        if pool is None or len(c) < 2 * chunk:
+            self._deform_range(y, g, out, 0, len(c), chunk, self._Tw)
+            return out
+        # two halves of the take at once, the helper thread with its own copy of the wedge block
+        if self._Tw_spare is None:
+            self._Tw_spare = self._Tw.copy()
+        mid = len(c) // 2
+        other = pool.submit(self._deform_range, y, g, out, mid, len(c), chunk, self._Tw_spare)
+        self._deform_range(y, g, out, 0, mid, chunk, self._Tw)
+        other.result()
         return out
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _worker() -> ThreadPoolExecutor | None:
+    """One helper thread (scipy's sparse kernels release the GIL), or None on a single core."""
+    global _POOL
+    if _POOL is None and (os.cpu_count() or 1) > 1:
+        _POOL = ThreadPoolExecutor(1, thread_name_prefix="planar-bones")
+    return _POOL
 
 
 def _add_product(a: sp.csc_matrix, x: np.ndarray, out: np.ndarray) -> None:
