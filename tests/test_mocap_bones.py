@@ -72,6 +72,34 @@ def test_planar_deform_many_matches_deform_and_is_continuous():
     assert np.linalg.norm(np.diff(hard, axis=0), axis=1).max() > 5e-3  # hard normalisation steps at the edge
 
 
+def _direct(b, ctrl_frame):
+    """Eqs. (1), (9)-(11) pair by pair, without the sparse matrix."""
+    fr = bone_frames(ctrl_frame[b.triangles])[b.pair_bone_, b.pair_region_]      # (n_pairs, 4, 3)
+    c = b.pair_coords_
+    inplane = c[:, :1] * fr[:, 1] + c[:, 1:2] * fr[:, 2]
+    wedge = b.pair_region_ >= 4
+    scale = np.where(wedge, b.pair_D_ / np.maximum(np.linalg.norm(inplane, axis=1), 1e-300), 1.0)
+    s = fr[:, 0] + scale[:, None] * inplane + c[:, 2:] * fr[:, 3]
+    out = b.rest_weight_[:, None] * b.rest_vertices_
+    np.add.at(out, b.pair_vertex_, b.pair_weight_[:, None] * s)
+    return out
+
+
+@pytest.mark.parametrize("unbound", ["still", "nearest", "fade"])
+def test_planar_sparse_layout_matches_direct_evaluation_with_and_without_threads(unbound):
+    ctrl, tri, mesh, rng = _surface(4)
+    b = PlanarBones.bind(mesh, ctrl, tri, unbound=unbound, radius_scale=1.5)
+    assert (b.pair_region_ >= 4).any()
+    frames = ctrl + rng.normal(0, 0.08, (37,) + ctrl.shape)
+    direct = np.stack([_direct(b, f) for f in frames])
+    for threads in (True, False):
+        b.threads = threads
+        np.testing.assert_allclose(b.deform_many(frames, chunk=4), direct, atol=1e-12)
+        np.testing.assert_allclose(b.deform_many(frames[:5]), direct[:5], atol=1e-12)
+        for f in (0, 17, 36):
+            np.testing.assert_allclose(b.deform(frames[f]), direct[f], atol=1e-12)
+
+
 def test_region_partition_matches_eqs_4_5():
     """The nearest-feature partition equals the c_i tests of eqs. (4)-(6) on an acute triangle."""
     tri = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.4, 0.9, 0]])

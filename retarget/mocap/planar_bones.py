@@ -61,19 +61,34 @@ Evaluation
 Every (vertex, bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)``, and
 every origin and frame row is a control point, a difference of two, or one of the unit
 vectors ``n, m_0, m_1, m_2`` of its bone. So for frame ``t``, with
-``Y = [control points; per bone n, m_0, m_1, m_2]`` (``n_controls + 4 n_bones`` rows),
-``deform = M @ Y + still`` where the sparse ``M`` (n_vertices x that) is built once at bind
-time (a vertex's entries on a shared control point merged). Only the wedge entries (the
-factor ``D/d`` of eq. 10) are rewritten per frame, from one dot product per bone corner
-and one gather per pair: a frame is one sparse product.
+``Y = [control points; n of every bone; m_i of every bone corner; m_i again; m_{i-1}]``
+(``n_controls + 10 n_bones`` rows), ``deform = T @ Y + still`` where the sparse ``T``
+(n_vertices x that, CSC) is built once at bind time (a vertex's entries on a shared control
+point merged). The wedge entries (``w c_1 D/d`` and ``w c_2 D/d`` of eq. 10) live on the two
+extra copies of the ``m`` rows, with the pairs sorted by bone corner, so they form the last
+two blocks of ``T``'s data in the same pair order: per frame one dot product per bone corner,
+one square root per wedge pair and two divisions refill them in place, and a frame is one
+sparse product, accumulated straight onto ``still``; with a second core a helper thread
+multiplies the fixed columns while the wedge block is refilled and multiplied. ``deform_many``
+does the fixed columns of ``T`` for 16 frames at once (the frames side by side as columns of
+the right-hand side, where scipy's sparse product costs about half as much per frame as with
+3 columns) and only the wedge block per frame, the two halves of the take in two threads.
 """
 from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from pipeline.errors import InputError
+
+try:  # out += A @ X for a CSC A, in place (scipy's own kernel behind ``A @ X``; no temporary)
+    from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs
+except ImportError:  # pragma: no cover - a scipy without it: the public product below
+    _csc_matvecs = None
 
 N_SLOTS = 7  # per bone: A, B_0, B_1, B_2, C_0, C_1, C_2
 REGION_NAMES = ("A", "B0", "B1", "B2", "C0", "C1", "C2")
@@ -310,21 +325,22 @@ class PlanarBones:
         inplane = coords[:, 0, None] * frames[:, 1] + coords[:, 1, None] * frames[:, 2]
         self.pair_D_ = np.linalg.norm(inplane, axis=1)                      # D of eq. (10)
 
-        # Sparse matrix over Y = [control points; per bone n, m_0, m_1, m_2] (n_controls + 4 n_bones
-        # rows). Every frame row is a control-point difference or one of those unit vectors:
+        # One sparse matrix over Y = [control points; n of every bone; m_i of every bone corner;
+        # again m_i; m_{i-1} of every bone corner] (n_controls + 10 n_bones rows; the two extra
+        # copies carry the wedge entries). Every frame row is a control-point difference or one of
+        # those unit vectors:
         #   A:    s = (1-c1-c2) V_0 + c1 V_1 + c2 V_2 + c3 n
         #   B_i:  s = (1-c1) V_i + c1 V_{i+1} + c2 m_i + c3 n
         #   C_i:  s = V_i + (D/d) (c1 m_i + c2 m_{i-1}) + c3 n        (wedge: rewritten per frame)
         # so the entries of one vertex on a shared control point merge into one.
         nc = len(c)
-        n_cols = nc + 4 * nb
+        n_fixed_cols = nc + 4 * nb
         isA, isB = region == 0, (region >= 1) & (region <= 3)
         side = np.where(isB, region - 1, np.where(wedge, region - 4, 0))          # i of B_i / C_i
         corner = tri[pb]                                                          # (n_pairs, 3)
         ar = np.arange(len(pv))
         vi = corner[ar, side]
         vn = corner[ar, (side + 1) % 3]
-        ncol = nc + 4 * pb
         r_, c_, v_ = [], [], []
 
         def put(mask, col, val):
@@ -338,34 +354,49 @@ class PlanarBones:
         put(isA, corner[:, 2], w * c2)
         put(isB, vi, w * (1 - c1))
         put(isB, vn, w * c1)
-        put(isB, ncol + 1 + side, w * c2)
+        put(isB, nc + nb + 3 * pb + side, w * c2)
         put(wedge, vi, w)
-        put(np.ones(len(pv), bool), ncol, w * c3)
+        put(np.ones(len(pv), bool), nc + pb, w * c3)
         rows, cols, vals = np.concatenate(r_), np.concatenate(c_), np.concatenate(v_)
         keys = cols.astype(np.int64) * nv + rows
         uniq, inv = np.unique(keys, return_inverse=True)                          # CSC order, merged
-        data = np.bincount(inv, weights=vals, minlength=len(uniq))
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // nv, minlength=n_cols))])
-        self._M = sp.csc_matrix((data, (uniq % nv).astype(np.int32), indptr), shape=(nv, n_cols))
-        # the wedge entries (w c_1 D/d on m_i, w c_2 D/d on m_{i-1}; eq. 10) change every frame:
-        # a second CSC matrix whose data is refilled in place from one factor per wedge pair
+        fdata = np.bincount(inv, weights=vals, minlength=len(uniq))
+        frows = (uniq % nv).astype(np.int32)
+        findptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // nv, minlength=n_fixed_cols))])
+        # The wedge entries (w c_1 D/d on m_i, w c_2 D/d on m_{i-1}; eq. 10) change every frame.
+        # Pairs sorted by (bone corner, vertex): the m_i copy's columns then hold them in that order
+        # and the m_{i-1} copy's columns hold them again in the same order, so the two blocks at
+        # the end of the CSC data are refilled in place, no gather, from one factor per pair.
         wi = np.flatnonzero(wedge)
-        wrows = np.concatenate([pv[wi], pv[wi]])
-        wcols = np.concatenate([(ncol + 1 + side)[wi], (ncol + 1 + (side + 2) % 3)[wi]])
-        wpair = np.concatenate([np.arange(len(wi)), np.arange(len(wi))])
-        wcoef = np.concatenate([w[wi] * c1[wi], w[wi] * c2[wi]])
-        order = np.lexsort((wrows, wcols))
-        windptr = np.concatenate([[0], np.cumsum(np.bincount(wcols, minlength=n_cols))])
-        self._Mw = sp.csc_matrix((np.zeros(len(order)), wrows[order].astype(np.int32), windptr),
-                                 shape=(nv, n_cols))
-        self._wedge_entry_pair = wpair[order]
-        self._wedge_entry_coef = wcoef[order]
-        self._wedge = wi
-        self._wedge_corner = (pb * 3 + side)[wi]                                    # which (bone, corner)
+        wcorner = 3 * pb[wi] + side[wi]                                           # which (bone, corner)
+        worder = np.lexsort((pv[wi], wcorner))
+        wi, wcorner = wi[worder], wcorner[worder]
+        wrows = pv[wi].astype(np.int32)
+        wcount = np.bincount(wcorner, minlength=3 * nb)
+        nf, npw = len(fdata), len(wi)
+        indptr = np.concatenate([findptr, nf + np.cumsum(wcount), nf + npw + np.cumsum(wcount)])
+        self._T = sp.csc_matrix((np.concatenate([fdata, np.zeros(2 * npw)]),
+                                 np.concatenate([frows, wrows, wrows]), indptr),
+                                shape=(nv, nc + 10 * nb))
+        self._wedge_data = (self._T.data[nf:nf + npw], self._T.data[nf + npw:])   # views, refilled
+        D = self.pair_D_[wi]
         c1w, c2w = c1[wi], c2[wi]
+        self._wedge_num = (w[wi] * c1w * D, w[wi] * c2w * D)                      # w c D, over d per frame
+        self._wedge_corner = wcorner
         self._wedge_sq = c1w * c1w + c2w * c2w                                      # d^2 = sq + cross * g
         self._wedge_cross = 2.0 * c1w * c2w
-        self._wedge_D = self.pair_D_[wi]
+        self._wedge_count = wcount
+        # the same wedge columns alone, sharing the data (for deform_many, whose fixed part is
+        # done for many frames at once): rows n_controls + 4 n_bones on of Y
+        self._Tw = sp.csc_matrix((self._T.data[nf:], self._T.indices[nf:], self._T.indptr[n_fixed_cols:] - nf),
+                                 shape=(nv, 6 * nb))
+        self._Tw.data = self._T.data[nf:]                                           # a view, not a copy
+        if not np.shares_memory(self._Tw.data, self._wedge_data[0]) and npw:
+            raise RuntimeError("wedge matrices must share their data")
+        self._fixed_csc = sp.csc_matrix((fdata, frows, findptr), shape=(nv, n_fixed_cols))
+        self._fixed_csr = self._fixed_csc.tocsr()
+        self.threads = True                          # use a helper thread where there is a second core
+        self._Tw_spare = None
         self._still = rest_w[:, None] * x
         self.rest_weight_ = rest_w
         self.triangles = tri.astype(np.intp)
@@ -394,61 +425,133 @@ class PlanarBones:
                              "(retarget.mocap.clean)")
         return c
 
-    def _y(self, c: np.ndarray) -> np.ndarray:
-        """Y for frames ``c`` (..., n_controls, 3): control points then per bone n, m_0, m_1, m_2."""
-        corners = c[..., self.triangles, :]
-        v0, v1, v2 = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
-        e = np.stack([v1 - v0, v2 - v1, v0 - v2], axis=-2)
-        n = _unit(np.cross(e[..., 0, :], v2 - v0))                                 # eq. (2)
-        m = _unit(np.cross(e, n[..., None, :]))                                    # eq. (7)
-        vec = np.concatenate([n[..., None, :], m], axis=-2)                        # (..., nb, 4, 3)
-        return np.concatenate([c, vec.reshape(vec.shape[:-3] + (-1, 3))], axis=-2)
+    def _y(self, c: np.ndarray):
+        """Y and the corner dot products ``g = m_i . m_{i-1}`` for frames ``c`` (..., n_controls, 3).
 
-    def _frame_matrix(self, y: np.ndarray) -> sp.csc_matrix:
-        """Refill the wedge matrix for this frame (eq. 10) and return it.
+        Y's rows: control points, then ``n`` of every bone, then ``m_i`` of every bone corner
+        ``3 b + i`` twice, then ``m_{i-1}`` of every bone corner (eqs. 2, 7).
+        """
+        corners = c[..., self.triangles, :]
+        e = np.roll(corners, -1, axis=-2) - corners                                # eq. (6)
+        n = _unit(np.cross(e[..., 0, :], corners[..., 2, :] - corners[..., 0, :]))  # eq. (2)
+        m = _unit(np.cross(e, n[..., None, :]))                                    # eq. (7)
+        mp = np.roll(m, 1, axis=-2)                                                # m_{i-1}
+        g = np.einsum("...i,...i->...", m, mp)
+        lead = m.shape[:-3]
+        m = m.reshape(lead + (-1, 3))
+        y = np.concatenate([c, n, m, m, mp.reshape(lead + (-1, 3))], axis=-2)
+        return y, g.reshape(lead + (-1,))
+
+    def _inverse_d(self, g: np.ndarray) -> np.ndarray:
+        """``d`` of eq. (10) for every wedge pair of one frame, from the corner dot products ``g`` (3 n_bones,).
 
         With unit rows ``m_i', m_{i-1}'`` the wedge length is
-        ``d = sqrt(c_1^2 + c_2^2 + 2 c_1 c_2 (m_i' . m_{i-1}'))``: one dot product per bone
-        corner per frame, one gather per wedge pair.
+        ``d = sqrt(c_1^2 + c_2^2 + 2 c_1 c_2 (m_i' . m_{i-1}'))``.
         """
-        if len(self._wedge):
-            m = y[self.n_controls:].reshape(-1, 4, 3)[:, 1:]                        # (nb, 3, 3)
-            g = np.einsum("bic,bic->bi", m, np.roll(m, 1, axis=1)).ravel()
-            k = np.take(g, self._wedge_corner)                                      # in place from here
-            k *= self._wedge_cross
-            k += self._wedge_sq
-            np.maximum(k, 1e-300, out=k)
-            np.sqrt(k, out=k)
-            np.divide(self._wedge_D, k, out=k)                                      # D / d
-            np.multiply(self._wedge_entry_coef, np.take(k, self._wedge_entry_pair), out=self._Mw.data)
-        return self._Mw
+        k = np.repeat(g, self._wedge_count)                                          # pairs by corner
+        k *= self._wedge_cross
+        k += self._wedge_sq
+        np.maximum(k, 1e-300, out=k)
+        np.sqrt(k, out=k)
+        return k
 
     def deform(self, control_points) -> np.ndarray:
-        """Deformed mesh ``(n_vertices, 3)`` for one frame of the control surface ``(n_controls, 3)``."""
+        """Deformed mesh ``(n_vertices, 3)`` for one frame of the control surface ``(n_controls, 3)``.
+
+        The wedge entries of the one sparse matrix are refilled in place (eq. 10), then a frame is
+        one sparse product; with a second core (and ``self.threads``) a helper thread multiplies
+        the fixed columns meanwhile. Not safe to call from several threads on the same bones
+        (the wedge entries are shared state).
+        """
         c = self._check_controls(control_points)
         if c.ndim != 2:
             raise InputError(f"`control_points`: expected one frame (n_controls, 3), got {c.shape}; use deform_many")
-        y = self._y(c)
-        return self._M @ y + self._frame_matrix(y) @ y + self._still
+        y, g = self._y(c)
+        out = self._still.copy()
+        pool = _worker() if self.threads else None
+        if pool is None or not len(self._wedge_corner):
+            self._refill(g)
+            _add_product(self._T, y, out)
+            return out
+        nfc = self._fixed_csc.shape[1]
+        fixed = pool.submit(_add_product, self._fixed_csc, y[:nfc], out)    # fixed part meanwhile
+        self._refill(g)
+        wedge = self._Tw @ y[nfc:]
+        fixed.result()
+        out += wedge
+        return out
 
-    def deform_many(self, control_points) -> np.ndarray:
+    def _refill(self, g: np.ndarray, data=None) -> None:
+        """Write this frame's wedge entries ``w c_1 D/d``, ``w c_2 D/d`` (eq. 10) in place into ``T``
+        (or into ``data``, the data of a copy of the wedge block)."""
+        if len(self._wedge_corner):
+            d = self._inverse_d(g)
+            npw = len(d)
+            targets = self._wedge_data if data is None else (data[:npw], data[npw:])
+            np.divide(self._wedge_num[0], d, out=targets[0])
+            np.divide(self._wedge_num[1], d, out=targets[1])
+
+    def _deform_range(self, y, g, out, start, stop, chunk, tw) -> None:
+        """Frames ``start:stop`` of ``deform_many`` into ``out``, refilling the wedge block ``tw``."""
+        nfc = self._fixed_csr.shape[1]
+        nv = self.n_vertices
+        for f0 in range(start, stop, chunk):
+            f1 = min(f0 + chunk, stop)
+            yb = np.ascontiguousarray(y[f0:f1, :nfc].transpose(1, 0, 2)).reshape(nfc, -1)
+            res = (self._fixed_csr @ yb).reshape(nv, f1 - f0, 3)
+            for j, f in enumerate(range(f0, f1)):
+                np.add(res[:, j], self._still, out=out[f])
+                if len(self._wedge_corner):
+                    self._refill(g[f], None if tw is self._Tw else tw.data)
+                    _add_product(tw, y[f, nfc:], out[f])
+
+    def deform_many(self, control_points, chunk: int = 16) -> np.ndarray:
         """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``.
 
-        The per-bone frames of all frames are computed in one batched call and the fixed part
-        of the map is one sparse product for all frames; only the wedge part (its factors differ
-        per frame) costs one small sparse product per frame.
+        The bone frames of all frames are one batched call; the fixed part of the map is one
+        sparse product for ``chunk`` frames at a time (the frames side by side as the columns of
+        the right-hand side); only the wedge part (its factor differs per frame and pair) is
+        refilled and multiplied per frame. With a second core (and ``self.threads``, default
+        True) a helper thread does the second half of the take with its own copy of the wedge
+        block (scipy's sparse kernels release the GIL).
         """
         c = self._check_controls(control_points)
         if c.ndim != 3:
             raise InputError(f"`control_points`: expected (n_frames, n_controls, 3), got {c.shape}")
-        y = self._y(c)
+        y, g = self._y(c)
         out = np.empty((len(c), self.n_vertices, 3))
-        for f in range(len(c)):
-            out[f] = self._frame_matrix(y[f]) @ y[f]
-        out += (self._M @ y.transpose(1, 0, 2).reshape(y.shape[1], -1)).reshape(
-            self.n_vertices, len(c), 3).transpose(1, 0, 2)                          # fixed part: one product
-        out += self._still
+        pool = _worker() if self.threads else None
+        if pool is None or len(c) < 2 * chunk:
+            self._deform_range(y, g, out, 0, len(c), chunk, self._Tw)
+            return out
+        # two halves of the take at once, the helper thread with its own copy of the wedge block
+        if self._Tw_spare is None:
+            self._Tw_spare = self._Tw.copy()
+        mid = len(c) // 2
+        other = pool.submit(self._deform_range, y, g, out, mid, len(c), chunk, self._Tw_spare)
+        self._deform_range(y, g, out, 0, mid, chunk, self._Tw)
+        other.result()
         return out
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _worker() -> ThreadPoolExecutor | None:
+    """One helper thread (scipy's sparse kernels release the GIL), or None on a single core."""
+    global _POOL
+    if _POOL is None and (os.cpu_count() or 1) > 1:
+        _POOL = ThreadPoolExecutor(1, thread_name_prefix="planar-bones")
+    return _POOL
+
+
+def _add_product(a: sp.csc_matrix, x: np.ndarray, out: np.ndarray) -> None:
+    """``out += a @ x`` for a CSC ``a``, C-contiguous ``x`` (n_cols, k) and ``out`` (n_rows, k)."""
+    if _csc_matvecs is not None and a.indices.dtype == a.indptr.dtype and out.flags.c_contiguous:
+        _csc_matvecs(a.shape[0], a.shape[1], x.shape[1], a.indptr, a.indices, a.data,
+                     np.ascontiguousarray(x).ravel(), out.reshape(-1))
+    else:
+        out += a @ x
 
 
 def triangle_min_angles(corners: np.ndarray) -> np.ndarray:
