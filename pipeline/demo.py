@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from decompose.selectors import METHODS
+from decompose.cli import METHODS, SOLVERS
 from pipeline.errors import KeyshapeError
 
 # synthetic components -> demo region (contours48 regions used by decompose)
@@ -37,7 +37,7 @@ def register(subparsers) -> None:
     p.add_argument("--keys", type=int, default=8, help="key shapes per region (default 8)")
     p.add_argument("--method", default="greedy", choices=METHODS, help="key-shape selector (default greedy; spread is the paper's)")
     p.add_argument("--labels", type=int, default=20, help="labelled training frames (default 20)")
-    p.add_argument("--solver", default="smooth", choices=("nnls", "lstsq", "smooth"),
+    p.add_argument("--solver", default="smooth", choices=SOLVERS,
                    help="weight solver for keyshape decompose (default smooth)")
     p.add_argument("--ridge", type=float, default=0.03,
                    help="keyshape decompose --ridge (default 0.03; 0 is the paper's plain NNLS)")
