@@ -94,19 +94,27 @@ def read_pairs(path: str | Path) -> list:
     return data
 
 
-def read_markers(path: str | Path) -> dict:
-    """Read a markers JSON -> {name: vertex index or [x, y, z]}."""
-    data = _json(path, "markers")
+def read_markers(path: str | Path, what: str = "markers") -> dict:
+    """Read a markers JSON -> {name: vertex index or [x, y, z]}.
+
+    Values may also be ``{"position": [x, y, z], "vertex": i}`` as :func:`place_markers` output
+    is written (``keyshape register --out-markers``); the position is used.
+    """
+    data = _json(path, what)
     if isinstance(data, list):
         data = {str(i): m for i, m in enumerate(data)}
     if not isinstance(data, dict) or not data:
         raise InputError("expected {\"name\": vertex index or [x, y, z], ...}", path)
+    out = {}
     for k, m in data.items():
+        if isinstance(m, dict) and "position" in m:
+            m = m["position"]
         ok = (isinstance(m, int) and not isinstance(m, bool)) or (
             isinstance(m, list) and len(m) == 3 and all(isinstance(c, (int, float)) for c in m))
         if not ok:
             raise InputError(f"marker {k!r}: expected a vertex index or [x, y, z], got {m!r:.60}", path)
-    return data
+        out[str(k)] = m
+    return out
 
 
 def read_masks(path: str | Path) -> dict:

@@ -1,7 +1,6 @@
 """``keyshape mocap``: a marker take (C3D/TRC/CSV) drives a dense target mesh (001 sections 4-5)."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 
@@ -35,31 +34,22 @@ def register(subparsers) -> None:
 
 def read_target_markers(path, n_vertices: int, vertices=None) -> dict:
     """Label -> (3,) point: a vertex index (checked against ``n_vertices``), an [x, y, z] point, or
-    ``{"position": [x, y, z], "vertex": i}`` as ``keyshape register --out-markers`` writes."""
+    ``{"position": [x, y, z], "vertex": i}`` as ``keyshape register --out-markers`` writes
+    (parsed by :func:`retarget.dense.io.read_markers`)."""
     import numpy as np
 
-    from pipeline.errors import InputError, require_file
+    from pipeline.errors import InputError
+    from retarget.dense.io import read_markers
 
-    path = require_file(path, "target markers file")
-    try:
-        spec = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"not JSON ({exc})", path) from None
-    if not isinstance(spec, dict) or not spec:
-        raise InputError("expected a JSON object mapping marker label -> vertex index or [x, y, z]", path)
     out, bad = {}, []
-    for lab, val in spec.items():
-        if isinstance(val, dict) and "position" in val:  # as keyshape register --out-markers writes them
-            val = val["position"]
-        if isinstance(val, int) and not isinstance(val, bool):
+    for lab, val in read_markers(path, "target markers file").items():
+        if isinstance(val, int):
             if not 0 <= val < n_vertices:
                 bad.append(f"{lab}: vertex {val}")
                 continue
-            out[str(lab)] = None if vertices is None else np.asarray(vertices[val], dtype=np.float64)
-        elif isinstance(val, list) and len(val) == 3 and all(isinstance(x, (int, float)) for x in val):
-            out[str(lab)] = np.asarray(val, dtype=np.float64)
+            out[lab] = None if vertices is None else np.asarray(vertices[val], dtype=np.float64)
         else:
-            raise InputError(f"marker {lab!r}: expected a vertex index or [x, y, z], got {val!r}", path)
+            out[lab] = np.asarray(val, dtype=np.float64)
     if bad:
         raise InputError(f"unknown vertex index(es) (the mesh has {n_vertices} vertices): {', '.join(bad)}", path)
     return out
