@@ -28,14 +28,15 @@ def register(subparsers) -> None:
 
 def _synth_mocap(args) -> int:
     from keyshape.data_synth.mocap import discontinuity_regions, load_facekit, synthesize, write_take
-    from keyshape.retarget.mocap.masks import write_masks
+    from keyshape.base.formats.masks import write_masks
+    from keyshape.retarget.mocap.masks import masks_from_regions
 
     kit = load_facekit(args.facekit)
     perf = synthesize(kit, args.frames, args.rate, rng=args.seed, noise_mm=args.noise, n_gaps=args.gaps,
                       long_gap=args.long_gap, head_degrees=args.head_degrees)
     paths = write_take(args.out_dir, kit, perf)
     face = perf.labels[:len(perf.marker_vertices)]
-    write_masks(Path(args.out_dir) / "masks.json", discontinuity_regions(kit, face))
+    write_masks(Path(args.out_dir) / "masks.json", masks_from_regions(discontinuity_regions(kit, face)))
     print(f"{args.frames} frames at {args.rate:g} Hz, {len(perf.labels)} markers "
           f"({len(face)} face + {len(perf.labels) - len(face)} jig) -> {args.out_dir}")
     for k, v in paths.items():

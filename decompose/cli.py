@@ -104,7 +104,8 @@ def _decompose(args) -> int:
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.base.formats.keys import read_keys, write_weights
+    from keyshape.base.formats.keys import read_keys
+    from keyshape.base.formats.weights import write_weights
     from keyshape.decompose.regions import decompose_region, model_shapes
 
     tracks, scheme = _load(args)

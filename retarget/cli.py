@@ -51,7 +51,7 @@ def run(args) -> int:
     from keyshape.retarget.targets import load_targets, read_regions
     from keyshape.base.formats.weights import read_weights
 
-    frames, columns, weights = read_weights(args.weights)
+    frames, columns, weights, _ = read_weights(args.weights)
     targets = args.targets[0] if len(args.targets) == 1 else args.targets
     ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
     regions = read_regions(args.regions, ts.mesh) if args.regions else None

@@ -11,7 +11,8 @@ from keyshape.cli import main
 from keyshape.base.errors import InputError, KeyshapeError
 from keyshape.base.formats.tracks import read_tracks, write_tracks
 from keyshape.base.schemes import load_scheme
-from keyshape.base.formats.keys import read_keys, read_weights, write_keys, write_weights
+from keyshape.base.formats.keys import read_keys, write_keys
+from keyshape.base.formats.weights import read_weights, write_weights
 from keyshape.decompose.regions import decompose_region, model_shapes, region_points, select_region
 from keyshape.decompose.selectors import (GreedySelector, HullSelector, KMeansSelector, RandomSelector, SpreadSelector,
                                  make_selector)
@@ -305,7 +306,7 @@ def test_format_errors_name_the_file(tmp_path):
     q = tmp_path / "w.csv"
     q.write_text("frame,mouth_0,blob\n0,1,2\n")
     with pytest.raises(InputError, match="w.csv.*REGION_K"):
-        read_weights(q)
+        read_weights(q, key_names=True)
     q.write_text("frame,mouth_0\n0,x\n")
     with pytest.raises(InputError, match="w.csv, line 2"):
         read_weights(q)

@@ -61,7 +61,7 @@ def test_identity_2d_targets_equal_to_source_keys_reproduce_decomposed_frames(tm
     """Targets = the source key shapes (as .pts files): retargeting gives back sum w_i S_i, the
     decomposed source frames, and the source frames themselves where they lie in the keys' cone."""
     from keyshape.retarget.targets import load_targets
-    from keyshape.base.formats.tracks import read_pts, write_pts
+    from keyshape.base.formats.labels import read_pts, write_pts
     rng = np.random.default_rng(4)
     cols = [f"mouth_{i}" for i in range(6)]
     for c in cols:
@@ -253,11 +253,10 @@ def test_identity_with_decompose_weights(tmp_path):
     """Weights written by keyshape decompose (NNLS relative to the mean shape, WEIGHTS.csv with an
     ``interpolated`` column), targets = its 2D key shapes and mean shape: the retargeted frames
     are decompose's own reconstruction (auto form = delta, as the neutral is given)."""
-    from keyshape.base.formats.keys import write_weights as decompose_write_weights
     from keyshape.decompose.weights import nnls_weights, reconstruct
     from keyshape.retarget.targets import load_targets
-    from keyshape.base.formats.weights import read_weights
-    from keyshape.base.formats.tracks import read_pts, write_pts
+    from keyshape.base.formats.weights import read_weights, write_weights
+    from keyshape.base.formats.labels import read_pts, write_pts
     rng = np.random.default_rng(11)
     keys = rng.normal(size=(5, 20, 2)) * 5 + 50
     shapes = np.einsum("fk,kpd->fpd", rng.dirichlet(np.ones(5), 30), keys) + rng.normal(scale=0.1, size=(30, 20, 2))
@@ -269,8 +268,8 @@ def test_identity_with_decompose_weights(tmp_path):
     neutral = read_pts(tmp_path / "neutral.pts")
     w = nnls_weights(shapes, keys, neutral)
     assert np.ptp(w.sum(axis=1)) > 0.01                                      # rows do not sum to one
-    decompose_write_weights(tmp_path / "w.csv", np.arange(30), cols, w, np.zeros(30))
-    frames, names, w_read = read_weights(tmp_path / "w.csv")
+    write_weights(tmp_path / "w.csv", np.arange(30), cols, w, np.zeros(30))
+    frames, names, w_read, _ = read_weights(tmp_path / "w.csv")
     assert names == cols
     rt = Retargeter().fit(load_targets(names, tmp_path))
     assert rt.form_ == "delta"

@@ -10,7 +10,8 @@ from keyshape.cli import main
 from keyshape.base.errors import InputError, KeyshapeError
 from keyshape.tracker.eigenpoints import AppearanceModel
 from keyshape.tracker.fitting import Tracker
-from keyshape.base.formats.tracks import read_tracks, write_labels, write_pts
+from keyshape.base.formats.tracks import read_tracks
+from keyshape.base.formats.labels import write_labels, write_pts
 from keyshape.base.schemes import load_scheme
 from keyshape.tracker.smoothing import StreamSmoother, smooth
 from keyshape.base.formats.video import video_writer

@@ -7,11 +7,14 @@ and Windows within one file system).
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
 from pathlib import Path
 from typing import IO, Iterator
+
+from keyshape.base.errors import InputError, require_file
 
 
 def _umask_mode(base: int = 0o666) -> int:
@@ -99,3 +102,18 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def read_json(path: str | Path, what: str = "JSON file"):
+    """Parse the JSON file ``path``; a missing file or bad JSON is a one-line error naming it."""
+    path = require_file(path, what)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+
+
+def write_json(path: str | Path, data, indent: int | None = 1) -> None:
+    """Write ``data`` as JSON (``indent`` 1, or compact with ``None``) atomically."""
+    with atomic_write(path) as f:
+        json.dump(data, f, indent=indent)
