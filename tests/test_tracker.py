@@ -15,8 +15,8 @@ from keyshape.base.formats.labels import write_labels, write_pts
 from keyshape.base.schemes import load_scheme
 from keyshape.tracker.smoothing import StreamSmoother, smooth
 from keyshape.base.formats.video import video_writer
-from keyshape.base.warp import (PiecewiseAffine, apply_affine, compose_affine, fit_affine, fit_similarity,
-                          invert_affine, morph, triangulate)
+from keyshape.base.geometry import apply_affine, compose_affine, fit_affine, fit_similarity, invert_affine
+from keyshape.base.warp import PiecewiseAffine, morph, triangulate
 
 SCHEME = load_scheme("contours48")
 H, W = 240, 320

@@ -22,7 +22,8 @@ import numpy as np
 from keyshape.base.errors import InputError, KeyshapeError
 from keyshape.base.formats.model import ModelFile, read_model, write_model
 from keyshape.base.schemes import Scheme, load_scheme
-from keyshape.base.warp import apply_affine, fit_affine, invert_affine, morph, procrustes_mean, triangulate
+from keyshape.base.geometry import apply_affine, fit_affine, invert_affine, procrustes_mean
+from keyshape.base.warp import morph, triangulate
 
 
 
