@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from keyshape.cli import main
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, NotFittedError
 from keyshape.base.formats.keypoints import read_keypoints
 from keyshape.base.formats.pairs import read_pairs
 from keyshape.base.formats.sequence import read_sequence, write_sequence
 from keyshape.retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
 from keyshape.retarget.dense.meshcheck import TriangleSurface, check_mesh, closest_on_triangles
-from keyshape.retarget.dense.rbf_face import FaceSpaceRBF
+from keyshape.retarget.dense.keypoints import face_rbf
 from keyshape.retarget.dense.registration import (MeshEnergy, place_markers, register_mesh, resolve_landmarks,
                                          transfer_masks)
 from keyshape.retarget.dense.transfer import transfer_sequence
@@ -43,7 +43,7 @@ def test_rbf_reproduces_keys_and_identity():
     rng = np.random.default_rng(0)
     k0 = rng.uniform(0, 10, (20, 3))
     kt = k0 + rng.normal(scale=0.5, size=(4, 20, 3))
-    rbf = FaceSpaceRBF(k0, smoothing=0.0)
+    rbf = face_rbf(None, 0.0).fit(k0)
     assert np.allclose(rbf.deform(k0, kt), kt, atol=1e-6)           # eq. 1: keys go exactly to K^t
     x = rng.uniform(0, 10, (50, 3))
     assert np.allclose(rbf.deform(x, k0), x)                        # K^t = K^0 is the identity
@@ -55,7 +55,7 @@ def test_rbf_reproduces_keys_and_identity():
 
 def test_rbf_rejects_coincident_keys():
     with pytest.raises(InputError, match="coincide"):
-        FaceSpaceRBF(np.zeros((3, 3)))
+        face_rbf(None, 1e-2).fit(np.zeros((3, 3)))
 
 
 # --- key-point insertion (section 5) --------------------------------------------------------------
@@ -89,7 +89,7 @@ def test_insertion_without_correspondence_runs_and_helps():
 
 def test_inserter_errors():
     frames, _ = bump_sequence()
-    with pytest.raises(InputError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         KeyPointInserter().reconstruct(frames)
     with pytest.raises(InputError, match="must lie in"):
         KeyPointInserter().fit(frames, np.array([0, 10_000]))

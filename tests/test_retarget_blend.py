@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, NotFittedError
 from keyshape.retarget.blend import BlendBasis, blend, mesh_edges, region_weights
 from keyshape.retarget.headpose import head_motion, hold_invalid, similarity
 from keyshape.retarget.retargeter import Retargeter
@@ -42,6 +42,23 @@ def test_absolute_and_delta_differ_by_unspent_weight_times_neutral():
     np.testing.assert_allclose(d - a, (1 - w.sum(1))[:, None, None] * n, atol=1e-12)
     w1 = w / w.sum(1, keepdims=True)            # affine weights: the forms agree
     np.testing.assert_allclose(blend(w1, b, n, "absolute"), blend(w1, b, n, "delta"), atol=1e-12)
+
+
+def test_one_default_form_for_blend_basis_and_retargeter():
+    """``blend``, ``BlendBasis`` and ``Retargeter`` share the default "auto": delta when a neutral is
+    given (it is never silently ignored), absolute without one."""
+    from keyshape.retarget.targets import TargetSet
+    rng = np.random.default_rng(8)
+    b, n = rng.normal(size=(4, 20, 3)), rng.normal(size=(20, 3))
+    w = rng.uniform(0, 1, size=(6, 4))
+    np.testing.assert_array_equal(blend(w, b, neutral=n), blend(w, b, n, "delta"))
+    np.testing.assert_array_equal(blend(w, b), blend(w, b, form="absolute"))
+    assert np.abs(blend(w, b, neutral=n) - blend(w, b, n, "absolute")).max() > 0.1
+    assert BlendBasis().fit(b, n).form_ == "delta" and BlendBasis().fit(b).form_ == "absolute"
+    names = [f"k{i}" for i in range(4)]
+    rt = Retargeter().fit(TargetSet(names, names, b, [None] * 4, n))
+    assert rt.form_ == "delta"
+    np.testing.assert_allclose(rt.transform(w), blend(w, b, neutral=n), atol=1e-12)
 
 
 def test_blend_matches_reference_and_chunking_and_float32():
@@ -193,7 +210,7 @@ def test_clamp_counts_changed_weights():
 
 
 def test_unfitted_and_bad_weights():
-    with pytest.raises(InputError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         BlendBasis().transform(np.zeros((1, 1)))
     bb = BlendBasis().fit(np.zeros((2, 3, 3)))
     with pytest.raises(InputError, match="nan"):

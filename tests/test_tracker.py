@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from keyshape.cli import main
-from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.errors import InputError, KeyshapeError, NotFittedError
 from keyshape.tracker.eigenpoints import AppearanceModel
 from keyshape.tracker.fitting import Tracker
 from keyshape.base.formats.tracks import read_tracks
@@ -126,7 +126,7 @@ def test_default_model_reads_training_labels_within_a_fraction_of_a_pixel(model,
 
 
 def test_unfitted_model_refuses():
-    with pytest.raises(KeyshapeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         AppearanceModel().predict(np.zeros((10, 10), np.uint8), np.eye(2, 3))
 
 

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.errors import InputError, NotFittedError
 from keyshape.base.formats.model import ModelFile, read_model, write_model
 from keyshape.base.schemes import Scheme, load_scheme
 from keyshape.base.geometry import apply_affine, fit_affine, invert_affine, procrustes_mean
@@ -400,7 +400,7 @@ class AppearanceModel:
     # ---------------------------------------------------------------- use
     def _check_fitted(self) -> None:
         if not hasattr(self, "components_"):
-            raise KeyshapeError("this AppearanceModel is not fitted: call fit(frames, labels) or load a model")
+            raise NotFittedError("this AppearanceModel is not fitted: call fit(frames, labels) or load a model")
 
     @property
     def n_points(self) -> int:

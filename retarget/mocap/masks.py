@@ -5,7 +5,7 @@ markers its bones may use. A vertex inside a region may be moved only by bones w
 three corners are all among the region's markers (so lower-lip bones, which have a
 lower-lip corner, cannot drag upper-lip vertices); a vertex in several regions obeys
 all of them; a vertex in none is unrestricted. :func:`allowed_matrix` turns that into
-the ``(n_vertices, n_bones)`` boolean array :meth:`PlanarBones.bind` takes.
+the ``(n_vertices, n_bones)`` boolean array :meth:`PlanarBones.fit` takes.
 
 Regions come from a masks JSON (the file format is :mod:`keyshape.base.formats.masks`;
 :func:`regions_from_masks` gives its :class:`Region` objects)::
