@@ -9,7 +9,6 @@ to the mapping file) or, without one, by file stem matched case-insensitively
 """
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError, MissingFileError, require_file
+from keyshape.base.files import read_json
 from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices
 
 TARGET_SUFFIXES = (".obj", ".pts", ".json")
@@ -68,10 +68,7 @@ def read_points(path: str | Path) -> np.ndarray:
     if path.suffix.lower() == ".pts":
         from keyshape.base.formats.labels import read_pts
         return read_pts(path)
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path)
     if isinstance(data, dict):
         if "points" not in data:
             raise InputError("expected a list of [x, y] or an object with 'points'", path)
@@ -112,10 +109,7 @@ def _candidates(sources: Sequence[str | Path] | str | Path) -> tuple[list[Path],
 def read_mapping(path: str | Path) -> dict[str, Path]:
     """Read a mapping JSON ``{"REGION_K": "file", ...}``; paths are relative to the mapping file."""
     path = require_file(path, "mapping JSON")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
         raise InputError('expected an object {"REGION_K": "target file", ...}', path)
     out = {}
@@ -230,10 +224,7 @@ def read_regions(path: str | Path, mesh: Mesh | None = None) -> dict[str, np.nda
         if not m.groups:
             raise InputError("OBJ has no groups ('g' lines) to use as regions", path)
         return {k: m.group_vertices(k) for k in m.groups}
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path)
     if not isinstance(data, dict) or not data:
         raise InputError('expected an object {"region": [vertex indices] or "OBJ group name", ...}', path)
     out = {}

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_write
+from keyshape.base.files import atomic_write, read_json
 
 FORMAT = "keyshape-keys"
 #: face regions (section 5 of the paper) and the scheme regions they are built from
@@ -82,10 +82,7 @@ def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[
 def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
     """Read a KEYS.json file: (scheme name, n_points, [RegionKeys, ...]); errors name the file."""
     path = require_file(path, "key-shapes file")
-    try:
-        data = json.loads(Path(path).read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid JSON ({exc})", path) from None
+    data = read_json(path, "key-shapes file")
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"not a key-shapes file: expected \"format\": \"{FORMAT}\" "
                          f"(write one with 'keyshape select')", path)
