@@ -13,7 +13,7 @@ import numpy as np
 import pygltflib
 import pytest
 
-from keyshape.base.formats.obj import Mesh, write_obj
+from keyshape.data_synth.library import grid_targets
 
 REPO = Path(__file__).resolve().parents[1]
 REGIONS = {"mouth": 8, "eyes": 8}
@@ -25,22 +25,6 @@ def readme_example() -> str:
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
-def grid_targets(folder: Path, seed: int = 0) -> dict:
-    """A 6x6 vertex grid mesh as neutral, one randomly displaced copy per key; regions: left and right half."""
-    rng = np.random.default_rng(seed)
-    n = 6
-    xy = np.stack(np.meshgrid(np.arange(n), np.arange(n)), -1).reshape(-1, 2).astype(float)
-    verts = np.column_stack([xy, np.zeros(len(xy))])
-    quads = [np.array([r * n + c, r * n + c + 1, (r + 1) * n + c + 1, (r + 1) * n + c])
-             for r in range(n - 1) for c in range(n - 1)]
-    mesh = Mesh(verts, quads)
-    write_obj(folder / "neutral.obj", mesh)
-    for region, k in REGIONS.items():
-        for i in range(k):
-            write_obj(folder / f"{region}_{i}.obj", mesh, verts + rng.normal(0, 0.2, verts.shape))
-    return {"mouth": np.flatnonzero(xy[:, 1] < n / 2).tolist(), "eyes": np.flatnonzero(xy[:, 1] >= n / 2).tolist()}
-
-
 @pytest.fixture(scope="module")
 def footage(tmp_path_factory):
     from keyshape.data_synth.video import synthesize
@@ -50,7 +34,7 @@ def footage(tmp_path_factory):
     shutil.copy(out["video"], d / "take1.mp4")
     shutil.copytree(out["labels"], d / "take1_labels")
     (d / "targets").mkdir()
-    (d / "regions.json").write_text(json.dumps(grid_targets(d / "targets")))
+    (d / "regions.json").write_text(json.dumps(grid_targets(d / "targets", REGIONS)))
     return d
 
 
