@@ -37,10 +37,10 @@ def grid_targets(folder: str | Path, keys: dict[str, int], seed: int = 0, n: int
 
 def synth_library(folder: str | Path, actors: int = 2, takes: int = 2, frames: int = 60, seed: int = 0,
                   keys: int = 4, morphs: int = 120, labels: int = 12, targets: bool = True,
-                  verbose: bool = False) -> Path:
+                  size=(640, 480), verbose: bool = False) -> Path:
     """Write ``actors`` x ``takes`` synthetic takes of ``frames`` frames and a ``manifest.toml``; return its path.
 
-    Actor ``a`` has seed ``seed + a``. Existing videos are kept (a benchmark can reuse the library).
+    Actor ``a`` has seed ``seed + a``; ``size`` is the frame size (width, height). Existing videos are kept (a benchmark can reuse the library).
     """
     from keyshape.base.formats.video import VideoReader, video_writer
     from keyshape.data_synth.video import synthesize
@@ -52,7 +52,7 @@ def synth_library(folder: str | Path, actors: int = 2, takes: int = 2, frames: i
         name = f"actor{a}"
         foot = folder / name / "footage"
         if not (foot / "video.mp4").is_file():
-            synthesize(foot, frames=frames * takes, seed=seed + a, labels=labels, verbose=verbose)
+            synthesize(foot, frames=frames * takes, seed=seed + a, size=size, labels=labels, verbose=verbose)
         paths = [folder / name / f"take{t:02d}.mp4" for t in range(takes)]
         if not all(p.is_file() for p in paths):
             reader = VideoReader(foot / "video.mp4")

@@ -105,6 +105,24 @@ def _failure(exc: BaseException) -> dict:
     return {"ok": False, "error": msg}
 
 
+def _one_thread() -> None:
+    """A worker is one core: keep OpenCV's own thread pool to one thread too (Dask already sets
+    OMP/MKL/OpenBLAS to one thread in the worker processes it starts). Results do not depend on it."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _max_rss_mb() -> float | None:
+    """Peak resident memory of this worker process so far (MiB; None where unknown)."""
+    try:
+        import resource
+        kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return round(kb / (1 << 20 if sys.platform == "darwin" else 1 << 10), 1)
+    except (ImportError, OSError):
+        return None
+
+
 def actor_dir(out: Path, actor: str) -> Path:
     return Path(out) / actor
 
@@ -117,6 +135,7 @@ def take_dir(out: Path, take: Take) -> Path:
 
 def task_model(actor: Actor, out: str) -> dict:
     """Train the actor's model once (or take its model file); skip when the record matches."""
+    _one_thread()
     t0 = time.perf_counter()
     try:
         adir = actor_dir(Path(out), actor.name)
@@ -150,6 +169,7 @@ def task_model(actor: Actor, out: str) -> dict:
 
 def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: str) -> dict:
     """Track one take with its actor's model -> tracks.csv; skip when video, model and settings are unchanged."""
+    _one_thread()
     t0 = time.perf_counter()
     if not model["ok"]:
         return {"ok": False, "error": f"actor {actor.name!r}: {model['error']}", "seconds": 0.0}
@@ -172,7 +192,8 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
         write_tracks(path, tracks)
         seconds = time.perf_counter() - t0
         stats = {"frames": int(tracks.n_frames), "lost_frames": int((~tracks.success).sum()),
-                 "confidence": float(np.mean(tracks.confidence)), "track_seconds": round(seconds, 3)}
+                 "confidence": float(np.mean(tracks.confidence)), "track_seconds": round(seconds, 3),
+                 "worker_max_rss_mb": _max_rss_mb()}
         # a re-tracked take invalidates its later stages: keep only what still holds
         rec = {"video": video, "track_key": key, "tracks_sha256": file_sha(path)["sha256"], "stats": stats}
         write_record(rec_path, rec)
@@ -184,6 +205,7 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
 
 def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) -> dict:
     """One key selection for the actor over all its successfully tracked takes (in manifest order)."""
+    _one_thread()
     t0 = time.perf_counter()
     used = [(t, r) for t, r in zip(takes, tracked) if r["ok"]]
     if not used:
@@ -242,6 +264,7 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
 
 def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, keys: dict, out: str) -> dict:
     """Decompose and retarget one take; skip when tracks, key set, targets and settings are unchanged."""
+    _one_thread()
     t0 = time.perf_counter()
     base = {"actor": take.actor, "take": take.name, "video": str(take.video)}
     if not tracked["ok"]:
@@ -267,9 +290,9 @@ def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, key
             rec["outputs"] = files
             write_record(rec_path, rec)
             stages["finish"] = "done"
-        seconds = tracked["seconds"] + time.perf_counter() - t0
+        finish = time.perf_counter() - t0
         return {**base, "ok": True, "stats": tracked["stats"], "outputs": files, "stages": stages,
-                "seconds": seconds}
+                "seconds": tracked["seconds"] + finish, "finish_seconds": finish}
     except Exception as exc:  # noqa: BLE001
         return {**base, **_failure(exc), "stats": tracked["stats"], "stages": stages,
                 "seconds": tracked["seconds"] + time.perf_counter() - t0}
@@ -393,7 +416,9 @@ def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, mode
                    s == "skipped" for s in r.get("stages", {}).values()) else "done"),
                "frames": st.get("frames"), "lost_frames": st.get("lost_frames"),
                "confidence": None if st.get("confidence") is None else round(st["confidence"], 4),
-               "seconds": round(r.get("seconds", 0.0), 3), "stages": r.get("stages", {}),
+               "track_seconds": st.get("track_seconds"), "worker_max_rss_mb": st.get("worker_max_rss_mb"),
+               "seconds": round(r.get("seconds", 0.0), 3),
+               "finish_seconds": round(r.get("finish_seconds", 0.0), 3), "stages": r.get("stages", {}),
                "outputs": r.get("outputs", {})}
         if not r["ok"]:
             row["error"] = r["error"]
@@ -403,7 +428,8 @@ def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, mode
         mr, kr = models[a], keys.get(a, {"ok": False, "error": "no takes"})
         actors[a] = {"model": mr.get("path"), "model_status": mr.get("status", "failed"),
                      "keys": kr.get("path"), "keys_status": kr.get("status", "failed"),
-                     "keys_takes": kr.get("takes"), "keys_frame_offsets": kr.get("offsets")}
+                     "keys_takes": kr.get("takes"), "keys_frame_offsets": kr.get("offsets"),
+                     "model_seconds": round(mr.get("seconds", 0.0), 3), "keys_seconds": round(kr.get("seconds", 0.0), 3)}
         for name, res in (("model_error", mr), ("keys_error", kr)):
             if not res["ok"]:
                 actors[a][name] = res["error"]

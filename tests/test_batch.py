@@ -28,7 +28,8 @@ COMPARED = ("tracks.csv", "weights.csv", "animation.glb", "curves.csv")
 def library(tmp_path_factory) -> Path:
     from keyshape.data_synth.library import synth_library
 
-    return synth_library(tmp_path_factory.mktemp("library"), actors=2, takes=2, frames=60, keys=4, morphs=30)
+    return synth_library(tmp_path_factory.mktemp("library"), actors=2, takes=2, frames=60, keys=4, morphs=30,
+                         size=(320, 240))
 
 
 @pytest.fixture(scope="module")
@@ -265,3 +266,36 @@ def test_a_real_scheduler_and_workers_on_localhost(library, first_run, tmp_path)
     finally:
         _stop(procs[::-1])
         log.close()
+
+
+def test_ctrl_c_leaves_only_complete_outputs_and_a_rerun_finishes(library, tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) once the first take is done:
+    status 130, no temporary files, every file there complete; the rerun skips what was finished."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", "batch", str(library), "-o", str(out), "--workers", "2"],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 240
+        for line in proc.stderr:
+            if "1/4 takes" in line or time.monotonic() > deadline:
+                break
+        os.killpg(proc.pid, signal.SIGINT)
+        err = proc.stderr.read()
+        assert proc.wait(timeout=60) == 130, err
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        proc.stderr.close()
+    assert "interrupted" in err
+    assert not [p for p in out.rglob("*") if ".partial" in p.name]
+    assert not (out / "report.json").exists()
+    from keyshape.base.formats.tracks import read_tracks
+    done = list(out.rglob("tracks.csv"))
+    assert done, "the first take's outputs should be there"
+    for p in done:
+        assert read_tracks(p).n_frames == 60
+    rep = run_batch(library, out, workers=1, processes=False, show_progress=False)
+    assert rep["n_failed"] == 0 and rep["n_skipped"] + rep["n_done"] == 4
+    assert any(r["stages"]["track"] == "skipped" for r in rep["takes"])
