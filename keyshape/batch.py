@@ -136,7 +136,7 @@ def take_dir(out: Path, take: Take) -> Path:
 def task_model(actor: Actor, out: str) -> dict:
     """Train the actor's model once (or take its model file); skip when the record matches."""
     _one_thread()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         adir = actor_dir(Path(out), actor.name)
         rec_path = adir / RECORD
@@ -162,7 +162,8 @@ def task_model(actor: Actor, out: str) -> dict:
         model.save(path)
         rec.update(video=video, model_key=key, model_sha256=file_sha(path)["sha256"])
         write_record(rec_path, rec)
-        return {"ok": True, "path": str(path), "key": key, "status": "trained", "seconds": time.perf_counter() - t0}
+        return {"ok": True, "path": str(path), "key": key, "status": "trained", "seconds": time.perf_counter() - t0,
+                "cpu_seconds": time.process_time() - c0}
     except Exception as exc:  # noqa: BLE001 - reported per actor, the batch goes on
         return {**_failure(exc), "seconds": time.perf_counter() - t0}
 
@@ -170,7 +171,7 @@ def task_model(actor: Actor, out: str) -> dict:
 def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: str) -> dict:
     """Track one take with its actor's model -> tracks.csv; skip when video, model and settings are unchanged."""
     _one_thread()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if not model["ok"]:
         return {"ok": False, "error": f"actor {actor.name!r}: {model['error']}", "seconds": 0.0}
     try:
@@ -193,6 +194,7 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
         seconds = time.perf_counter() - t0
         stats = {"frames": int(tracks.n_frames), "lost_frames": int((~tracks.success).sum()),
                  "confidence": float(np.mean(tracks.confidence)), "track_seconds": round(seconds, 3),
+                 "track_cpu_seconds": round(time.process_time() - c0, 3),
                  "worker_max_rss_mb": _max_rss_mb()}
         # a re-tracked take invalidates its later stages: keep only what still holds
         rec = {"video": video, "track_key": key, "tracks_sha256": file_sha(path)["sha256"], "stats": stats}
@@ -206,7 +208,7 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
 def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) -> dict:
     """One key selection for the actor over all its successfully tracked takes (in manifest order)."""
     _one_thread()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     used = [(t, r) for t, r in zip(takes, tracked) if r["ok"]]
     if not used:
         return {"ok": False, "error": f"actor {actor.name!r}: no take was tracked", "seconds": 0.0}
@@ -231,7 +233,7 @@ def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) ->
         rec.update(keys_key=key, keys_sha256=file_sha(path)["sha256"], keys_takes=names, keys_offsets=offsets)
         write_record(rec_path, rec)
         return {"ok": True, "status": "selected", "path": str(path), "sha256": rec["keys_sha256"], "takes": names,
-                "offsets": offsets, "seconds": time.perf_counter() - t0}
+                "offsets": offsets, "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
     except Exception as exc:  # noqa: BLE001
         return {**_failure(exc), "seconds": time.perf_counter() - t0}
 
@@ -265,7 +267,7 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
 def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, keys: dict, out: str) -> dict:
     """Decompose and retarget one take; skip when tracks, key set, targets and settings are unchanged."""
     _one_thread()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     base = {"actor": take.actor, "take": take.name, "video": str(take.video)}
     if not tracked["ok"]:
         return {**base, "ok": False, "error": tracked["error"], "seconds": tracked.get("seconds", 0.0)}
@@ -292,7 +294,8 @@ def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, key
             stages["finish"] = "done"
         finish = time.perf_counter() - t0
         return {**base, "ok": True, "stats": tracked["stats"], "outputs": files, "stages": stages,
-                "seconds": tracked["seconds"] + finish, "finish_seconds": finish}
+                "seconds": tracked["seconds"] + finish, "finish_seconds": finish,
+                "finish_cpu_seconds": time.process_time() - c0}
     except Exception as exc:  # noqa: BLE001
         return {**base, **_failure(exc), "stats": tracked["stats"], "stages": stages,
                 "seconds": tracked["seconds"] + time.perf_counter() - t0}
@@ -418,7 +421,9 @@ def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, mode
                "confidence": None if st.get("confidence") is None else round(st["confidence"], 4),
                "track_seconds": st.get("track_seconds"), "worker_max_rss_mb": st.get("worker_max_rss_mb"),
                "seconds": round(r.get("seconds", 0.0), 3),
-               "finish_seconds": round(r.get("finish_seconds", 0.0), 3), "stages": r.get("stages", {}),
+               "finish_seconds": round(r.get("finish_seconds", 0.0), 3),
+               "track_cpu_seconds": st.get("track_cpu_seconds"),
+               "finish_cpu_seconds": round(r.get("finish_cpu_seconds", 0.0), 3), "stages": r.get("stages", {}),
                "outputs": r.get("outputs", {})}
         if not r["ok"]:
             row["error"] = r["error"]
@@ -429,7 +434,9 @@ def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, mode
         actors[a] = {"model": mr.get("path"), "model_status": mr.get("status", "failed"),
                      "keys": kr.get("path"), "keys_status": kr.get("status", "failed"),
                      "keys_takes": kr.get("takes"), "keys_frame_offsets": kr.get("offsets"),
-                     "model_seconds": round(mr.get("seconds", 0.0), 3), "keys_seconds": round(kr.get("seconds", 0.0), 3)}
+                     "model_seconds": round(mr.get("seconds", 0.0), 3), "keys_seconds": round(kr.get("seconds", 0.0), 3),
+                     "model_cpu_seconds": round(mr.get("cpu_seconds", 0.0), 3),
+                     "keys_cpu_seconds": round(kr.get("cpu_seconds", 0.0), 3)}
         for name, res in (("model_error", mr), ("keys_error", kr)):
             if not res["ok"]:
                 actors[a][name] = res["error"]

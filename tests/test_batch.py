@@ -90,6 +90,26 @@ def test_identical_to_the_api_one_take_at_a_time(library, first_run, tmp_path):
                 assert filecmp.cmp(d / f, out / name / t.name / f, shallow=False), (name, t.name, f)
 
 
+def test_identical_to_the_commands(library, first_run, tmp_path):
+    """``keyshape train/track/decompose/retarget`` one after another give the batch's files, byte for byte
+    (the key set is the batch's: no command selects over several takes)."""
+    out, _ = first_run
+    m = read_manifest(library)
+    actor, take = m.actors["actor1"], m.takes[3]
+    assert take.actor == "actor1"
+    assert main(["train", str(actor.video), "--labels", str(actor.labels), "--morphs", str(actor.morphs),
+                 "-o", str(tmp_path / "model.npz")]) == 0
+    assert main(["track", str(take.video), "--model", str(tmp_path / "model.npz"), "-o", str(tmp_path / "tracks.csv"),
+                 "--quiet"]) == 0
+    assert main(["decompose", str(tmp_path / "tracks.csv"), "--keys", str(out / "actor1" / "keys.json"),
+                 "--solver", m.settings.solver, "--ridge", str(m.settings.ridge), "-o", str(tmp_path / "weights.csv")]) == 0
+    for name in ("animation.glb", "curves.csv"):
+        assert main(["retarget", str(tmp_path / "weights.csv"), "--targets", str(actor.targets), "--regions",
+                     str(actor.target_regions), "--tracks", str(tmp_path / "tracks.csv"), "-o", str(tmp_path / name)]) == 0
+    for name in COMPARED:
+        assert filecmp.cmp(tmp_path / name, out / "actor1" / take.name / name, shallow=False), name
+
+
 def test_rerun_skips_and_recomputes_only_a_changed_take(library, first_run, tmp_path):
     out0, _ = first_run
     lib = tmp_path / "lib"
