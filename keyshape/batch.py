@@ -255,8 +255,9 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
     files["weights"] = str(wpath)
     wanted = [o for o in outputs if o not in ("tracks", "weights")]
     if actor.targets is not None and wanted:
+        # the rest head pose: the take's first frame (frame 0 unless the take has a frame range)
         anim = api.retarget(api.Weights.load(wpath), actor.targets, actor.target_regions, tracks=tracks,
-                            neutral=actor.neutral, mapping=actor.map)
+                            neutral=actor.neutral, mapping=actor.map, reference_frame=int(tracks.frame[0]))
         for o in wanted:
             p = tdir / OUTPUT_FILES[o]
             anim.export(p, livelink=(o == "livelink"))

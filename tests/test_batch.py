@@ -154,6 +154,9 @@ def test_failing_takes_are_reported_and_the_others_finish(library, first_run, tm
 [actors.anna]
 model = "{out0 / 'actor0' / 'model.npz'}"
 keys = 4
+regions = ["mouth", "eyes"]
+targets = "{lib / 'actor0' / 'targets'}"
+target_regions = "{lib / 'actor0' / 'regions.json'}"
 
 [actors.bob]
 video = "{lib / 'actor1' / 'footage' / 'video.mp4'}"
@@ -168,6 +171,12 @@ actor = "anna"
 video = "corrupt.mp4"
 
 [[takes]]
+actor = "anna"
+video = "{lib / 'actor0' / 'take01.mp4'}"
+frames = [10, 40]
+name = "part"
+
+[[takes]]
 actor = "bob"
 video = "{lib / 'actor1' / 'take00.mp4'}"
 """)
@@ -178,6 +187,11 @@ video = "{lib / 'actor1' / 'take00.mp4'}"
     rows = {(r["actor"], r["take"]): r for r in rep["takes"]}
     assert rows[("anna", "take00")]["status"] == "done"
     assert (out / "anna" / "take00" / "weights.csv").is_file()
+    part = rows[("anna", "part")]
+    assert part["status"] == "done" and part["frames"] == 30, part
+    from keyshape.base.formats.tracks import read_tracks
+    np.testing.assert_array_equal(read_tracks(out / "anna" / "part" / "tracks.csv").frame, np.arange(10, 40))
+    assert (out / "anna" / "part" / "animation.glb").stat().st_size > 0
     bad = rows[("anna", "corrupt")]
     assert bad["status"] == "failed" and "corrupt.mp4" in bad["error"] and "video" in bad["error"], bad
     bob = rows[("bob", "take00")]
