@@ -1,6 +1,6 @@
 """``keyshape batch``: a synthetic library (2 actors x 2 takes x 60 frames) on Dask; outputs identical to
 the API run one take at a time; resume and skip; failing takes reported; the manifest's schema check;
-and a real ``dask scheduler`` + ``dask worker`` pair on 127.0.0.1."""
+and (marked slow: CI runs them) a real ``dask scheduler`` + ``dask worker`` pair on 127.0.0.1 and Ctrl-C."""
 from __future__ import annotations
 
 import filecmp
@@ -253,6 +253,7 @@ def _stop(procs) -> None:
             p.wait(timeout=10)
 
 
+@pytest.mark.slow
 def test_a_real_scheduler_and_workers_on_localhost(library, first_run, tmp_path):
     """``dask scheduler`` and ``dask worker`` processes on 127.0.0.1 run a batch through ``--scheduler``;
     the results are those of the local cluster's run (the same model file given)."""
@@ -302,6 +303,7 @@ def test_a_real_scheduler_and_workers_on_localhost(library, first_run, tmp_path)
         log.close()
 
 
+@pytest.mark.slow
 def test_ctrl_c_leaves_only_complete_outputs_and_a_rerun_finishes(library, tmp_path):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) once the first take is done:
     status 130, no temporary files, every file there complete; the rerun skips what was finished."""
