@@ -50,75 +50,63 @@ def register(subparsers) -> None:
 
 def _load(args):
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.base.schemes import load_scheme, scheme_for_n_points
-    from keyshape.base.errors import InputError
+    from keyshape.decompose.api import tracks_scheme
 
     tracks = read_tracks(args.tracks)
-    scheme = load_scheme(args.scheme) if getattr(args, "scheme", None) else scheme_for_n_points(tracks.n_points)
-    if scheme.n_points != tracks.n_points:
-        raise InputError(f"scheme {scheme.name!r} has {scheme.n_points} points, the tracks {tracks.n_points}",
-                         args.tracks)
-    return tracks, scheme
+    return tracks, tracks_scheme(tracks, getattr(args, "scheme", None), args.tracks)
 
 
 def _select(args) -> int:
-    from pathlib import Path
-
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import write_keys
-    from keyshape.decompose.regions import available_regions, model_shapes, select_region
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.decompose.api import select_keys
 
-    tracks, scheme = _load(args)
-    if args.k is None and args.method != "hull2":
-        raise InputError(f"-k is required for --method {args.method}")
     if args.sheet and not args.video:
         raise InputError("--sheet needs --video (the video the tracks came from)")
-    shapes = model_shapes(tracks, args.tracks)
-    regions = args.region or available_regions(scheme)
-    try:
-        chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes)
-                  for r in regions]
-    except InputError as exc:
-        raise InputError(str(exc), args.tracks) from None
+    tracks = read_tracks(args.tracks)
+    scheme, chosen = select_keys(tracks, args.k, args.method, args.region, args.scheme, args.seed, args.tracks)
     write_keys(args.output, scheme.name, scheme.n_points, chosen)
     for rk in chosen:
         print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}")
     if args.sheet:
-        from keyshape.decompose.sheet import key_sheet
-        from keyshape.base.files import atomic_write
-        import cv2
-
-        suffix = Path(args.sheet).suffix.lower()
-        if suffix not in (".png", ".jpg", ".jpeg"):
-            raise InputError(f"--sheet {args.sheet}: use a .png or .jpg file name")
-        img = key_sheet(args.video, tracks, scheme, chosen)
-        ok, buf = cv2.imencode(suffix, img, [cv2.IMWRITE_JPEG_QUALITY, 88] if suffix != ".png" else [])
-        with atomic_write(args.sheet, "wb") as f:
-            f.write(buf.tobytes())
+        write_sheet(args.sheet, args.video, tracks, scheme, chosen)
         print(f"sheet: {args.sheet}")
     print(f"wrote {args.output}")
     return 0
 
 
-def _decompose(args) -> int:
-    import numpy as np
+def write_sheet(path, video, tracks, scheme, chosen) -> None:
+    """Write the key-frame sheet of ``chosen`` (.png or .jpg) atomically."""
+    from pathlib import Path
 
+    import cv2
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import atomic_write
+    from keyshape.decompose.sheet import key_sheet
+
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".jpg", ".jpeg"):
+        raise InputError(f"--sheet {path}: use a .png or .jpg file name")
+    img = key_sheet(video, tracks, scheme, chosen)
+    ok, buf = cv2.imencode(suffix, img, [cv2.IMWRITE_JPEG_QUALITY, 88] if suffix != ".png" else [])
+    with atomic_write(path, "wb") as f:
+        f.write(buf.tobytes())
+
+
+def _decompose(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import read_keys
     from keyshape.base.formats.weights import write_weights
-    from keyshape.decompose.regions import decompose_region, model_shapes
+    from keyshape.decompose.api import decompose_keys
 
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
     if n_points != tracks.n_points:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)
-    shapes = model_shapes(tracks, args.tracks)
-    names, cols = [], []
-    for rk in regions:
-        cols.append(decompose_region(tracks, rk, args.solver, args.smooth_lambda, shapes=shapes, ridge=args.ridge))
-        names += rk.names
-    w = np.concatenate(cols, axis=1)
+    names, w = decompose_keys(tracks, regions, args.solver, args.smooth_lambda, args.ridge, args.tracks)
     write_weights(args.output, tracks.frame, names, w, ~tracks.success)
     n_fail = int((~tracks.success).sum())
     print(f"wrote {args.output}: {tracks.n_frames} frames x {len(names)} weights ({args.solver})"

@@ -26,6 +26,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.retarget.cli", None),
     ("keyshape.retarget.mocap.cli", None),
     ("keyshape.retarget.dense_cli", None),
+    ("keyshape.batch", None),
 ]
 
 

@@ -43,40 +43,21 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import numpy as np
-
-    from keyshape.base.errors import InputError
-    from keyshape.retarget.export import export
-    from keyshape.retarget.retargeter import Retargeter
-    from keyshape.retarget.targets import load_targets, read_regions
     from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.api import fit_retargeter, head_from_tracks
+    from keyshape.retarget.export import export
 
     frames, columns, weights, _ = read_weights(args.weights)
-    targets = args.targets[0] if len(args.targets) == 1 else args.targets
-    ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
-    regions = read_regions(args.regions, ts.mesh) if args.regions else None
-    rt = Retargeter(form=args.form, band=args.band, metric=args.metric).fit(ts, regions, args.regions or "regions")
+    rt = fit_retargeter(columns, args.targets, args.regions, mapping=args.mapping, neutral=args.neutral,
+                        form=args.form, band=args.band, metric=args.metric)
+    ts = rt.targets_
     head, fps = None, args.fps
     if args.tracks:
-        from keyshape.retarget.headpose import head_motion
         from keyshape.base.formats.tracks import read_tracks
-        tr = read_tracks(args.tracks)
-        pos = {int(f): i for i, f in enumerate(tr.frame)}
-        missing = [int(f) for f in frames if int(f) not in pos]
-        if missing:
-            raise InputError(f"weights frames {missing[:5]} are not in the tracks", args.tracks)
-        rows = np.array([pos[int(f)] for f in frames])
-        if args.reference_frame not in pos:
-            raise InputError(f"reference frame {args.reference_frame} is not in the tracks", args.tracks)
-        from keyshape.retarget.headpose import hold_invalid
-        full = hold_invalid(tr.pose, tr.success)
-        pose = np.concatenate([full[rows], full[[pos[args.reference_frame]]]])
-        head = head_motion(pose, reference=len(rows), units_per_model=args.head_units)
-        head = type(head)(head.translation[:-1], head.rotation[:-1], head.scale[:-1], head.angle[:-1])
-        if fps is None and len(tr.time) > 1:
-            dt = np.diff(tr.time)
-            dt = dt[np.isfinite(dt) & (dt > 0)]
-            fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
+
+        head, tracks_fps = head_from_tracks(read_tracks(args.tracks), frames, args.reference_frame,
+                                            args.head_units, args.tracks)
+        fps = fps or tracks_fps
     fps = fps or 30.0
     info = export(args.output, rt, frames, weights, fps=fps, head=head, clamp=args.clamp, livelink=args.livelink,
                   bake_head=args.bake_head, scheme=args.scheme)
