@@ -100,9 +100,17 @@ def _candidates(sources: Sequence[str | Path] | str | Path) -> tuple[list[Path],
         p = Path(s)
         if p.is_dir():
             folder = p
-            files += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in TARGET_SUFFIXES)
+            files += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in TARGET_SUFFIXES
+                            and not q.name.startswith("."))    # hidden: keyshape's manifest, editors' files
         else:
             files.append(require_file(p, "target"))
+    seen: dict[str, Path] = {}
+    for f in files:
+        key = f.stem.casefold()
+        if key in seen and seen[key] != f:
+            raise InputError(f"two targets whose names differ only by case or extension: {seen[key].name} and "
+                             f"{f.name} (which one is meant?); rename or remove one", f.parent)
+        seen[key] = f
     if not files:
         where = folder if folder is not None else ", ".join(map(str, sources))
         raise InputError(f"no target files ({'/'.join(TARGET_SUFFIXES)}) found", where)
