@@ -194,7 +194,9 @@ def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable
 
 
 def _rel_files(root: Path) -> list[str]:
-    return sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() or p.is_symlink())
+    """Files under ``root`` (relative paths), without its own manifest (a nested run's stays)."""
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*")
+                  if (p.is_file() or p.is_symlink()) and p != root / MANIFEST)
 
 
 @contextlib.contextmanager

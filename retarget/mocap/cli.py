@@ -1,6 +1,7 @@
 """``keyshape mocap``: a marker take (C3D/TRC/CSV) drives a dense target mesh (001 sections 4-5)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 
@@ -105,6 +106,8 @@ def _mocap(args) -> int:
     else:
         check_output_dir(out, args.overwrite, inputs)
     take = read_markers(args.markers, duplicates=args.duplicate_labels)
+    for w in take.warnings:
+        print(f"keyshape mocap: warning: {w}", file=sys.stderr)
     mesh = read_obj(args.target, require_faces=True)
     tm = read_target_markers(args.target_markers, mesh.n_vertices, mesh.vertices)
     axes = {"x": ((1, 0, 0), (0, 0, 1)), "y": ((0, 1, 0), (0, 0, 1)), "z": ((0, 0, 1), (0, -1, 0))}

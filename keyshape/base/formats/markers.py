@@ -20,7 +20,7 @@ and optional first comment lines ``# rate=120`` and ``# units=mm``.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -39,12 +39,15 @@ class Markers:
     labels : list of str, one per marker, unique
     rate : float, frames per second
     units : str, e.g. ``"mm"``
+    warnings : list of str, the reader's warnings (commands print them)
     """
 
     positions: np.ndarray
     labels: list
     rate: float
     units: str = "mm"
+    #: what the reader found suspicious but kept (e.g. fewer frames than the header announces)
+    warnings: list = field(default_factory=list, compare=False)
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64)
@@ -128,6 +131,69 @@ def _fix_labels(labels: list, n: int, path, duplicates: str) -> list:
     return labels
 
 
+#: half-size of the largest plausible capture volume, metres (a facial-mocap stage is a few metres)
+MAX_METRES = 20.0
+
+
+def coincident_pairs(points: np.ndarray, tol: float) -> list[tuple[int, int]]:
+    """Index pairs of ``points`` (n, 3) closer than ``tol`` (NaN rows ignored)."""
+    from scipy.spatial import cKDTree
+
+    ok = np.isfinite(points).all(axis=1)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 2:
+        return []
+    pairs = cKDTree(points[idx]).query_pairs(tol)
+    return sorted((int(idx[a]), int(idx[b])) for a, b in pairs)
+
+
+def check_take(m: "Markers", path, n_expected: int | None = None) -> "Markers":
+    """Sense checks of a marker take read from ``path``; return it or raise :class:`InputError`.
+
+    Refuses: infinite values, a rate outside (0, 100 kHz], unknown units, a
+    position beyond :data:`MAX_METRES` from the origin (corrupt bytes, wrong
+    units), a take whose every marker is missing, and a marker set collapsed
+    onto one point (more than 2 and more than 10% of the markers coinciding in
+    every frame). Warns (``m.warnings``, printed by the commands) of a frame
+    count other than the header's ``n_expected`` (a truncated file: the frames
+    present are kept) and of a pair of markers coinciding in every frame.
+    """
+    pos = m.positions
+    if m.n_frames == 0:
+        raise InputError("no frames", path)
+    if n_expected is not None and n_expected != m.n_frames:
+        m.warnings.append(f"{path}: the header announces {n_expected} frames but the file holds {m.n_frames} "
+                          f"(truncated or damaged file?); using the {m.n_frames} frames present")
+    if not (np.isfinite(m.rate) and 0 < m.rate <= 1e5):
+        raise InputError(f"frame rate {m.rate}: expected a positive rate up to 100 kHz", path)
+    scale = unit_scale(m.units, "m")
+    if np.isinf(pos).any():
+        raise InputError("infinite coordinates", path)
+    far = np.abs(np.nan_to_num(pos)) * scale > MAX_METRES
+    if far.any():
+        f, k, _ = np.argwhere(far)[0]
+        raise InputError(f"marker {m.labels[k]!r} at frame {f} is {np.abs(pos[f, k]).max() * scale:.3g} m from "
+                         f"the origin, beyond any capture volume ({MAX_METRES:g} m): damaged file or wrong units "
+                         f"({m.units})", path)
+    empty = ~np.isfinite(pos).all(axis=2).any(axis=0)
+    if empty.all():
+        raise InputError("every marker is missing in every frame", path)
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(pos, axis=0) if m.n_frames > 1 else pos[0]
+    pairs = coincident_pairs(med * scale, 1e-6)
+    if pairs:
+        same = [(a, b) for a, b in pairs
+                if np.nanmax(np.linalg.norm(pos[:, a] - pos[:, b], axis=-1) * scale, initial=0.0) < 1e-6]
+        if same:
+            names = sorted({m.labels[i] for ab in same for i in ab})
+            text = (f"{len(names)} markers coincide in every frame ({', '.join(names[:6])}"
+                    f"{', ...' if len(names) > 6 else ''})")
+            if len(names) > max(2, 0.1 * m.n_markers):
+                raise InputError(text + ": a collapsed marker set (damaged file?)", path)
+            m.warnings.append(f"{path}: {text}: duplicated markers, they drive the same point")
+    return m
+
+
 def _gaps_to_nan(p: np.ndarray) -> np.ndarray:
     p = p.copy()
     p[np.all(p == 0.0, axis=-1)] = np.nan
@@ -166,7 +232,12 @@ def read_c3d(path, duplicates: str = "error") -> Markers:
     units = (units[0] if len(units) else "mm").strip() or "mm"
     if not rate > 0:
         raise InputError(f"POINT:RATE is {rate}: expected a positive frame rate", path)
-    return Markers(xyz, labels, rate, units)
+    hp = c["header"]["points"]
+    try:
+        announced = int(hp["last_frame"]) - int(hp["first_frame"]) + 1
+    except (KeyError, TypeError, ValueError):
+        announced = None
+    return check_take(Markers(xyz, labels, rate, units), path, announced)
 
 
 def write_c3d(path, markers: Markers) -> None:
@@ -202,8 +273,11 @@ def read_trc(path, duplicates: str = "error") -> Markers:
     try:
         rate = float(head.get("DataRate") or head["CameraRate"])
         n_markers = int(head["NumMarkers"])
+        n_frames = int(head["NumFrames"]) if head.get("NumFrames") else None
     except (KeyError, ValueError):
         raise InputError("header needs DataRate and NumMarkers values", path, 3) from None
+    if not 0 < n_markers <= 100000:
+        raise InputError(f"NumMarkers {n_markers}: expected 1 to 100000", path, 3)
     units = head.get("Units", "mm") or "mm"
     cells = [s.strip() for s in lines[3].split(sep)[2:]]
     names = [cells[3 * k] if 3 * k < len(cells) else "" for k in range(n_markers)]   # X column of each
@@ -229,8 +303,13 @@ def read_trc(path, duplicates: str = "error") -> Markers:
         except ValueError:
             raise InputError(f"broken data row: expected {width} numbers (Frame#, Time, X/Y/Z per marker)",
                              path, ln) from None
+    fr = data[:, 0]
+    if not np.isfinite(fr).all() or (np.diff(fr) != 1).any():
+        bad = int(np.flatnonzero(~np.isfinite(fr[1:]) | (np.diff(fr) != 1))[0]) + 1 if len(fr) > 1 else 0
+        raise InputError(f"Frame# {fr[bad]:g} after {fr[bad - 1]:g}: frame numbers must be unique, sorted and "
+                         "contiguous", path, row_ln[bad])
     xyz = _gaps_to_nan(data[:, 2:].reshape(len(rows), n_markers, 3))
-    return Markers(xyz, labels, rate, units)
+    return check_take(Markers(xyz, labels, rate, units), path, n_frames)
 
 
 def _fmt(a: np.ndarray) -> np.ndarray:
@@ -298,8 +377,11 @@ def read_csv(path, rate: float | None = None, units: str | None = None, duplicat
             1.0 / float(np.median(np.diff(data[:, 1]))) if len(rows) > 1 else None)
     if not rate or not rate > 0:
         raise InputError("frame rate unknown: add '# rate=120' or a time column", path)
+    fr = data[:, 0]
+    if not np.isfinite(fr).all() or (np.diff(fr) != 1).any():
+        raise InputError("frame numbers must be unique, sorted and contiguous", path)
     xyz = _gaps_to_nan(data[:, 2:].reshape(len(rows), -1, 3))
-    return Markers(xyz, labels, float(rate), units or meta.get("units", "mm"))
+    return check_take(Markers(xyz, labels, float(rate), units or meta.get("units", "mm")), path)
 
 
 READERS = {".c3d": read_c3d, ".trc": read_trc, ".csv": read_csv}
