@@ -19,6 +19,7 @@ and optional first comment lines ``# rate=120`` and ``# units=mm``.
 """
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -201,43 +202,119 @@ def _gaps_to_nan(p: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------- C3D
-def read_c3d(path, duplicates: str = "error") -> Markers:
-    """Read the 3D points of a C3D file (analogs are ignored)."""
+def _c3d_contents(path: str) -> dict:
+    """What keyshape needs of a C3D file, read with ezc3d (plain arrays and strings)."""
     import ezc3d
 
-    path = require_file(path, "C3D file")
-    try:
-        c = ezc3d.c3d(str(path))
-    except Exception as exc:  # ezc3d raises bare RuntimeError/IOError
-        raise InputError(f"not a readable C3D file ({exc})", path) from None
+    c = ezc3d.c3d(path)
     params = c["parameters"]["POINT"]
-    pts = np.asarray(c["data"]["points"], dtype=np.float64)  # (4, n_markers, n_frames)
-    n = pts.shape[1]
-    if n == 0:
-        raise InputError("the C3D file holds no 3D points", path)
     labels = list(params.get("LABELS", {}).get("value", []))
     k = 2
     while f"LABELS{k}" in params:
         labels += list(params[f"LABELS{k}"]["value"])
         k += 1
-    labels = _fix_labels(labels, n, path, duplicates)
-    xyz = pts[:3].transpose(2, 1, 0)
     meta = c["data"].get("meta_points", {})
-    if "residuals" in meta:
-        res = np.asarray(meta["residuals"])[0].T
-        xyz[res < 0] = np.nan
+    hp = c["header"]["points"]
+    return {"points": np.asarray(c["data"]["points"], dtype=np.float64), "labels": [str(s) for s in labels],
+            "residuals": np.asarray(meta["residuals"]) if "residuals" in meta else None,
+            "rate": np.ravel(params.get("RATE", {}).get("value", [hp["frame_rate"]])).astype(np.float64),
+            "units": [str(u) for u in params.get("UNITS", {}).get("value", ["mm"])],
+            "first": int(hp["first_frame"]), "last": int(hp["last_frame"])}
+
+
+def _limit_memory(extra: int) -> None:  # pragma: no cover (runs in the child process)
+    """Cap the address space at its current size plus ``extra`` bytes (a damaged header can make a
+    C library try to allocate terabytes)."""
+    try:
+        import resource
+
+        with open("/proc/self/statm") as f:
+            vm = int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+        want = vm + extra
+        if hard == resource.RLIM_INFINITY or want < hard:
+            resource.setrlimit(resource.RLIMIT_AS, (want, hard))
+    except (OSError, ValueError, ImportError):
+        pass
+
+
+def _child_read(conn, fn, arg, extra) -> None:  # pragma: no cover (runs in the child process)
+    try:
+        _limit_memory(extra)
+        conn.send(("ok", fn(arg)))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent as text
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def _isolated(fn, arg, memory: int = 1 << 30, timeout: float = 300.0):
+    """``fn(arg)`` in a forked child process, so that a crash of a C library on a damaged file
+    (ezc3d segfaults on some corrupt C3D files) becomes an error instead of killing keyshape.
+    The child may allocate ``memory`` bytes more than it starts with and run ``timeout`` seconds.
+    Returns ``("ok", result)``, ``("error", text)`` or ``("crash", exit code)``."""
+    import multiprocessing as mp
+
+    if "fork" not in mp.get_all_start_methods():       # Windows: no isolation
+        try:
+            return "ok", fn(arg)
+        except Exception as exc:  # noqa: BLE001
+            return "error", f"{type(exc).__name__}: {exc}"
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child_read, args=(send, fn, arg, memory), daemon=True)
+    proc.start()
+    send.close()
+    try:
+        try:
+            out = recv.recv() if recv.poll(timeout) else ("error", f"no answer in {timeout:.0f} s: damaged file?")
+        except EOFError:
+            out = None
+        proc.join(5.0)
+    finally:
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+        recv.close()
+    return out if out is not None else ("crash", proc.exitcode)
+
+
+#: seconds ezc3d may take on a C3D file (plus 1 s per 5 MB) before the file is called damaged
+#: (some damaged headers send it into an endless loop)
+C3D_SECONDS = 30.0
+
+
+def read_c3d(path, duplicates: str = "error") -> Markers:
+    """Read the 3D points of a C3D file (analogs are ignored).
+
+    ezc3d parses the file in a child process: a damaged file that crashes it is
+    reported as an :class:`InputError` like any other unreadable file.
+    """
+    path = require_file(path, "C3D file")
+    size = path.stat().st_size
+    status, c = _isolated(_c3d_contents, str(path), memory=(1 << 30) + 64 * size,
+                          timeout=C3D_SECONDS + size / 5e6)
+    if status == "crash":
+        raise InputError(f"not a readable C3D file (damaged: the C3D reader crashed, exit {c})", path)
+    if status == "error":
+        raise InputError(f"not a readable C3D file ({c})", path)
+    pts = c["points"]  # (4, n_markers, n_frames)
+    if pts.ndim != 3 or pts.shape[0] < 3:
+        raise InputError(f"not a readable C3D file (points of shape {pts.shape})", path)
+    n = pts.shape[1]
+    if n == 0:
+        raise InputError("the C3D file holds no 3D points", path)
+    labels = _fix_labels(c["labels"], n, path, duplicates)
+    xyz = pts[:3].transpose(2, 1, 0)
+    res = c["residuals"]
+    if res is not None and res.ndim == 3 and res.shape[1:] == pts.shape[1:]:
+        xyz[res[0].T < 0] = np.nan
     xyz = _gaps_to_nan(xyz)
-    rate = float(np.ravel(params.get("RATE", {}).get("value", [c["header"]["points"]["frame_rate"]]))[0])
-    units = params.get("UNITS", {}).get("value", ["mm"])
-    units = (units[0] if len(units) else "mm").strip() or "mm"
+    rate = float(c["rate"][0]) if len(c["rate"]) else float("nan")
+    units = (c["units"][0] if len(c["units"]) else "mm").strip() or "mm"
     if not rate > 0:
         raise InputError(f"POINT:RATE is {rate}: expected a positive frame rate", path)
-    hp = c["header"]["points"]
-    try:
-        announced = int(hp["last_frame"]) - int(hp["first_frame"]) + 1
-    except (KeyError, TypeError, ValueError):
-        announced = None
-    return check_take(Markers(xyz, labels, rate, units), path, announced)
+    return check_take(Markers(xyz, labels, rate, units), path, c["last"] - c["first"] + 1)
 
 
 def write_c3d(path, markers: Markers) -> None:
