@@ -350,7 +350,7 @@ def animface_target_markers(kit: FaceKit, labels, neutral_mm) -> dict:
     hand-matched landmarks (nose top and tip, eye and mouth corners, chin), then snapped to
     the nearest face-skin vertex: a stand-in for the hand placement of section 5.1.
     """
-    from keyshape.retarget.mocap.clean import rigid_fit
+    from keyshape.base.geometry import rigid_fit
 
     lm = kit.neutral[kit.landmarks]
     pairs = {"NoseTop": 27, "NoseHead": 30, "Leye_Outside": 45, "Reye_Outside": 36, "Mouth_Lend": 54,

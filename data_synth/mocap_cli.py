@@ -34,7 +34,8 @@ def _synth_mocap(args) -> int:
 
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_dir, check_output_dir
-    from keyshape.retarget.mocap.masks import write_masks
+    from keyshape.base.formats.masks import write_masks
+    from keyshape.retarget.mocap.masks import masks_from_regions
 
     if args.frames < 2 or not (math.isfinite(args.rate) and 0 < args.rate <= 10000):
         raise InputError("--frames must be >= 2 and --rate a finite number of Hz in (0, 10000]")
@@ -51,7 +52,7 @@ def _synth_mocap(args) -> int:
     face = perf.labels[:len(perf.marker_vertices)]
     with atomic_dir(out_dir, args.overwrite) as tmp:
         paths = write_take(tmp, kit, perf)
-        write_masks(tmp / "masks.json", discontinuity_regions(kit, face))
+        write_masks(tmp / "masks.json", masks_from_regions(discontinuity_regions(kit, face)))
     paths = {k: out_dir / Path(v).relative_to(tmp) for k, v in paths.items()}
     print(f"{args.frames} frames at {args.rate:g} Hz, {len(perf.labels)} markers "
           f"({len(face)} face + {len(perf.labels) - len(face)} jig) -> {args.out_dir}")

@@ -26,7 +26,8 @@ from keyshape.data_synth.render import FaceRenderer
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir, atomic_path, atomic_write
 from keyshape.base.progress import Progress
-from keyshape.base.formats.tracks import Tracks, write_labels, write_tracks
+from keyshape.base.formats.tracks import Tracks, write_tracks
+from keyshape.base.formats.labels import write_labels
 from keyshape.base.formats.video import video_writer
 
 #: Fraction of the frame interval the shutter is open (sets the motion blur length).

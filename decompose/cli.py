@@ -131,7 +131,8 @@ def _decompose(args) -> int:
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.base.formats.keys import read_keys, write_weights
+    from keyshape.base.formats.keys import read_keys
+    from keyshape.base.formats.weights import write_weights
     from keyshape.base.files import check_outputs
     from keyshape.decompose.regions import decompose_region, model_shapes
 

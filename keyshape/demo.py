@@ -192,7 +192,7 @@ def _preview_and_errors(out: Path, video: Path, ex, names, hidden, key_coeffs, n
     from keyshape.base.formats.video import VideoReader, video_writer
 
     ts = demo_targets(key_coeffs, ex, neutral_coeffs)
-    _, columns, weights = read_weights(out / "weights.csv")
+    _, columns, weights, _ = read_weights(out / "weights.csv")
     order = [columns.index(c) for c in ts.columns]
     frames = Retargeter(band=1.5).fit(ts, demo_regions(ex)).transform(weights[:, order])
     truth_frames = ex.shapes([_expand(ex, dict(zip(names, w))) for w in hidden])

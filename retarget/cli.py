@@ -82,7 +82,7 @@ def run(args) -> int:
         check_output_dir(args.output, args.overwrite, inputs)
     else:
         check_output(args.output, "file", inputs)
-    frames, columns, weights = read_weights(args.weights)
+    frames, columns, weights, _ = read_weights(args.weights)
     targets = args.targets[0] if len(args.targets) == 1 else args.targets
     ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
     regions = read_regions(args.regions, ts.mesh) if args.regions else None

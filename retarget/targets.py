@@ -66,7 +66,7 @@ def read_points(path: str | Path) -> np.ndarray:
     """Read a 2D drawing: ``.pts`` or JSON (``[[x, y], ...]`` or ``{"points": [[x, y], ...]}``)."""
     path = require_file(path, "target drawing")
     if path.suffix.lower() == ".pts":
-        from keyshape.base.formats.tracks import read_pts
+        from keyshape.base.formats.labels import read_pts
         return read_pts(path)
     try:
         data = json.loads(path.read_text())

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from keyshape.base.errors import InputError
-from keyshape.base.formats.tracks import (Tracks, pts_name, read_labels, read_pts, read_tracks, write_labels, write_pts,
-                        write_tracks)
+from keyshape.base.formats.labels import pts_name, read_labels, read_pts, write_labels, write_pts
+from keyshape.base.formats.tracks import Tracks, read_tracks, write_tracks
 
 
 def _tracks(n=5, p=48, rng=0):

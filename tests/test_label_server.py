@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from keyshape.base.formats.tracks import read_pts
+from keyshape.base.formats.labels import read_pts
 from keyshape.tracker.labelling import server as srv_mod
 from label_helpers import make_folder
 

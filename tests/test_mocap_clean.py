@@ -6,8 +6,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.mocap.clean import (choose_rigid_set, fill_gaps, rebuild_inner_lips, remove_rigid_motion,
-                                  rigid_fit)
+from keyshape.base.geometry import rigid_fit
+from keyshape.retarget.mocap.clean import choose_rigid_set, fill_gaps, rebuild_inner_lips, remove_rigid_motion
 
 
 def _head(seed=0, n_frames=50, n_rigid=5, n_soft=12):
@@ -29,6 +29,7 @@ def test_rigid_fit_batched_recovers_motion(scale):
     r, t, sc = rigid_fit(local[0, :5], s * world[:, :5], scale=scale)
     np.testing.assert_allclose(r, rot, atol=1e-10)
     np.testing.assert_allclose(sc, s, atol=1e-10)
+    np.testing.assert_allclose(t, s * trans, atol=1e-8)           # s * (R x + t) = s R x + s t
     assert np.allclose(np.linalg.det(r), 1.0)
 
 

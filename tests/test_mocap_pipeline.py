@@ -8,7 +8,9 @@ import pytest
 
 from keyshape.cli import main
 from keyshape.base.errors import InputError
-from keyshape.retarget.mocap.masks import Region, allowed_matrix, read_masks, regions_from_image, render_mask_image
+from keyshape.base.formats.masks import read_masks, write_masks
+from keyshape.retarget.mocap.masks import (Region, allowed_matrix, masks_from_regions, regions_from_image,
+                                           regions_from_masks, render_mask_image)
 from keyshape.retarget.mocap.triangulate import cylindrical_projection, triangulate_markers
 
 FEW = ["jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L"]
@@ -60,12 +62,22 @@ def test_allowed_matrix_and_masks_json(tmp_path):
     assert m.tolist() == [[True, False], [True, True], [True, False], [True, True]]
     (tmp_path / "m.json").write_text(json.dumps({"regions": [{"name": "r", "vertices": [0, 2],
                                                               "exclude_markers": ["d"]}]}))
-    r = read_masks(tmp_path / "m.json", labels)
+    r = regions_from_masks(read_masks(tmp_path / "m.json"), labels)
     assert r[0].markers == {"a", "b", "c"}
     (tmp_path / "bad.json").write_text(json.dumps({"regions": [{"name": "r", "vertices": [0],
                                                                 "markers": ["zz"]}]}))
     with pytest.raises(InputError, match=r"bad.json: region 'r': unknown marker label\(s\) \['zz'\]"):
-        read_masks(tmp_path / "bad.json", labels)
+        regions_from_masks(read_masks(tmp_path / "bad.json"), labels)
+    write_masks(tmp_path / "rt.json", masks_from_regions(regions))        # one writer, read back as written
+    back = regions_from_masks(read_masks(tmp_path / "rt.json"), labels)
+    assert [(x.name, x.vertices.tolist(), x.markers) for x in back] == [("r", [0, 2], {"a", "b", "c"})]
+    (tmp_path / "plain.json").write_text('{"lips": [3, 1]}')             # plain vertex groups stay plain
+    plain = read_masks(tmp_path / "plain.json")
+    write_masks(tmp_path / "plain2.json", plain.with_vertex_lists({"lips": [5]}))
+    assert json.loads((tmp_path / "plain2.json").read_text()) == {"lips": [5]}
+    (tmp_path / "nosource.json").write_text('{"regions": [{"name": "r", "markers": ["a"]}]}')
+    with pytest.raises(InputError, match=r"nosource.json: region 'r': give 'vertices'"):
+        read_masks(tmp_path / "nosource.json")
 
 
 def test_mask_image_carries_to_another_face(kit, tmp_path):

@@ -169,13 +169,13 @@ def test_validator_catches_a_broken_glb(tmp_path):
 def test_csv_outputs(scene):
     tmp, d, m, shapes, w = scene
     assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--clamp", "-o", str(tmp / "c.csv")]) == 0
-    fr, names, ww = read_weights(tmp / "c.csv")
+    fr, names, ww, _ = read_weights(tmp / "c.csv")
     assert names == ["MOUTH_0", "MOUTH_1", "EYES_0"]
     np.testing.assert_allclose(ww, np.clip(w, 0, 1), atol=1e-5)
     arkit = {"MOUTH_0": "jawOpen", "MOUTH_1": "mouthSmile_L", "EYES_0": "eyeBlink_R"}
     for old, new in arkit.items():                      # ARKit-named targets for the Live Link layout
         (d / f"{old}.obj").rename(d / f"{new}.obj")
-    fr, names, w = read_weights(tmp / "w.csv")
+    fr, names, w, _ = read_weights(tmp / "w.csv")
     write_weights(tmp / "arkit.csv", fr, ["jawOpen", "mouthSmileLeft", "eyeBlinkRight"], w)
     assert main(["retarget", str(tmp / "arkit.csv"), "--targets", str(d), "--livelink", "--fps", "60",
                  "-o", str(tmp / "ll.csv")]) == 0
@@ -211,7 +211,7 @@ def test_obj_frames_folder(scene):
 
 
 def test_2d_png_and_video(tmp_path):
-    from keyshape.base.formats.tracks import write_pts
+    from keyshape.base.formats.labels import write_pts
     from keyshape.base.schemes import load_scheme
     s = load_scheme("contours48")
     rng = np.random.default_rng(1)
@@ -317,7 +317,7 @@ def test_weights_csv_errors(tmp_path):
 
 def test_mixed_2d_3d_targets(scene):
     tmp, d, m, shapes, w = scene
-    from keyshape.base.formats.tracks import write_pts
+    from keyshape.base.formats.labels import write_pts
     write_pts(d / "EYES_0.pts", np.zeros((6, 2)))
     (d / "EYES_0.obj").unlink()
     with pytest.raises(InputError, match="mix OBJ meshes and 2D drawings"):

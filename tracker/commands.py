@@ -18,7 +18,8 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
 from keyshape.base.progress import Progress
 from keyshape.tracker.eigenpoints import AppearanceModel
-from keyshape.base.formats.tracks import PARTIAL_MARK, TracksWriter, read_labels
+from keyshape.base.formats.tracks import PARTIAL_MARK, TracksWriter
+from keyshape.base.formats.labels import read_labels
 from keyshape.base.schemes import load_scheme
 from keyshape.base.formats.video import VideoReader, video_info
 

@@ -27,7 +27,7 @@ import tempfile
 from pathlib import Path
 from typing import IO, Iterable, Iterator
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, require_file
 
 #: file recording, in a folder output, the files keyshape wrote there (relative paths)
 MANIFEST = ".keyshape-outputs.json"
@@ -272,3 +272,34 @@ def describe_os_error(exc: OSError) -> str:
         return reason
     extra = f" -> {exc.filename2}" if exc.filename2 else ""
     return f"{name}{extra}: {reason}"
+
+
+def _json_number(text: str) -> float:
+    v = float(text)
+    if v != v or v in (float("inf"), float("-inf")):
+        raise ValueError(f"number {text} is out of range")
+    return v
+
+
+def _json_constant(name: str):
+    raise ValueError(f"{name} is not a number JSON allows")
+
+
+def read_json(path: str | Path, what: str = "JSON file"):
+    """Parse the JSON file ``path``; a missing file, bad JSON, ``NaN``/``Infinity`` or a number
+    beyond the float range (``1e999``) is a one-line error naming it."""
+    path = require_file(path, what)
+    try:
+        return json.loads(path.read_text(), parse_float=_json_number, parse_constant=_json_constant)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    except ValueError as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    except RecursionError:
+        raise InputError("not valid JSON (nested too deeply)", path) from None
+
+
+def write_json(path: str | Path, data, indent: int | None = 1) -> None:
+    """Write ``data`` as JSON (``indent`` 1, or compact with ``None``) atomically."""
+    with atomic_write(path) as f:
+        json.dump(data, f, indent=indent)

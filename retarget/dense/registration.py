@@ -13,7 +13,7 @@ Control parametrisation
 The paper moves the vertices of its planar-bone control surface. Here (the
 planar-bone module being written on another branch) the control vertices
 are ``n_controls`` reference vertices spread by farthest-point sampling, and
-a Gaussian RBF (:mod:`keyshape.retarget.dense.rbf_face`) carries their displacements
+a Gaussian RBF (:class:`keyshape.retarget.rbf.RBF`) carries their displacements
 ``D`` (n_controls, 3) to every vertex: ``V(D) = V_w + B D`` with the fixed
 (n_vertices, n_controls) matrix ``B = phi(V_w, C) (Phi + lambda I)^-1``,
 built once; each energy evaluation is one matmul. As in the paper, the
@@ -55,7 +55,7 @@ from scipy.spatial import cKDTree
 from keyshape.base.errors import InputError
 from keyshape.retarget.dense.keypoints import farthest_point_sample
 from keyshape.retarget.dense.meshcheck import TriangleSurface, check_mesh, component_of, edges, interior_edge_faces
-from keyshape.retarget.dense.rbf_face import kernel_matrix
+from keyshape.retarget.rbf import RBF
 
 
 def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.ndarray,
@@ -267,11 +267,8 @@ def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_verti
     ctrl = fit[farthest_point_sample(warped[fit], n_c, rng)]
     ctrl = np.unique(np.concatenate([lidx[lidx >= 0], ctrl]))
     cw = warped[ctrl]
-    dd = np.linalg.norm(cw[:, None] - cw[None], axis=2)
-    np.fill_diagonal(dd, np.inf)
-    sigma = 1.5 * float(np.median(dd.min(1)))
-    phi = kernel_matrix(cw, cw, sigma) + smoothing * np.eye(len(ctrl))
-    basis = np.ascontiguousarray(np.linalg.solve(phi, kernel_matrix(warped, cw, sigma).T).T)  # (n_vertices, n_controls)
+    rbf = RBF("gaussian", affine=False, sigma_scale=1.5, smoothing=smoothing).fit(cw)
+    basis = rbf.interpolation_matrix(warped)                                   # (n_vertices, n_controls)
     # start: control vertices projected onto the target surface
     d0 = surface.closest(cw)[0] - cw
     # the energy lives on the fitted shell only, re-indexed 0..len(fit)-1

@@ -3,10 +3,9 @@
 All functions take and return arrays ``(n_frames, n_markers, 3)`` with NaN gaps and
 never modify their input.
 
-Rigid motions are ``x_frame = x_ref @ R.T + t`` (``R`` a proper rotation, column-vector
-convention): ``frame_from_ref``. :func:`rigid_fit` solves the weighted least-squares
-(Kabsch/Umeyama) problem for every frame at once with one batched SVD; a marker
-hidden in a frame simply has weight 0 there.
+Rigid motions are ``x_frame = x_ref @ R.T + t`` (``frame_from_ref``), fitted by
+:func:`keyshape.base.geometry.rigid_fit` for every frame at once; a marker hidden in a
+frame simply has weight 0 there.
 """
 from __future__ import annotations
 
@@ -15,62 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from keyshape.base.errors import InputError
-
-
-def rigid_fit(ref: np.ndarray, frames: np.ndarray, weights: np.ndarray | None = None, scale: bool = False):
-    """Weighted Kabsch/Umeyama fit of ``ref`` to every frame, vectorised over frames.
-
-    Parameters
-    ----------
-    ref : (n_points, 3) or (n_frames, n_points, 3)
-    frames : (n_frames, n_points, 3), NaN allowed (such points get weight 0)
-    weights : (n_points,) or (n_frames, n_points), optional
-    scale : bool
-        Also fit a uniform scale (Umeyama).
-
-    Returns
-    -------
-    rot : (n_frames, 3, 3), trans : (n_frames, 3), scale : (n_frames,)
-        ``frames ~= scale * ref @ rot.T + trans``; frames with fewer than 3 usable points
-        get NaN.
-    """
-    x = np.asarray(frames, dtype=np.float64)
-    r = np.broadcast_to(np.asarray(ref, dtype=np.float64), x.shape)
-    ok = np.isfinite(x).all(axis=2) & np.isfinite(r).all(axis=2)
-    w = np.ones(x.shape[:2]) if weights is None else np.broadcast_to(np.asarray(weights, np.float64), x.shape[:2])
-    w = np.where(ok, w, 0.0)
-    x0 = np.where(ok[..., None], x, 0.0)
-    r0 = np.where(ok[..., None], r, 0.0)
-    ws = w.sum(axis=1)
-    safe = np.maximum(ws, 1e-300)[:, None]
-    mx = np.einsum("fp,fpc->fc", w, x0) / safe
-    mr = np.einsum("fp,fpc->fc", w, r0) / safe
-    xc = (x0 - mx[:, None]) * ok[..., None]
-    rc = (r0 - mr[:, None]) * ok[..., None]
-    cov = np.einsum("fp,fpi,fpj->fij", w, xc, rc)            # sum w x r^T
-    u, s, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(u @ vt))
-    d = np.where(d == 0, 1.0, d)
-    dd = np.ones((len(x), 3))
-    dd[:, 2] = d
-    rot = np.einsum("fij,fj,fjk->fik", u, dd, vt)
-    if scale:
-        var = np.einsum("fp,fpc,fpc->f", w, rc, rc)
-        sc = np.einsum("fj,fj->f", s, dd) / np.maximum(var, 1e-300)
-    else:
-        sc = np.ones(len(x))
-    trans = mx - sc[:, None] * np.einsum("fij,fj->fi", rot, mr)
-    rank_ok = (ok & (w > 0)).sum(axis=1) >= 3
-    rot[~rank_ok] = np.nan
-    trans[~rank_ok] = np.nan
-    return rot, trans, sc
-
-
-def apply_rigid(points: np.ndarray, rot: np.ndarray, trans: np.ndarray, inverse: bool = False) -> np.ndarray:
-    """``points @ rot.T + trans`` per frame, or its inverse ``(points - trans) @ rot``."""
-    if inverse:
-        return np.einsum("fpj,fji->fpi", points - trans[:, None], rot)
-    return np.einsum("fpj,fij->fpi", points, rot) + trans[:, None]
+from keyshape.base.geometry import apply_rigid, rigid_fit
 
 
 def rigidity_scores(positions: np.ndarray) -> np.ndarray:

@@ -62,14 +62,14 @@ def parse_rigid(spec: str) -> list[str]:
 def read_target_markers(path, n_vertices: int, vertices=None) -> dict:
     """Label -> (3,) point: a vertex index (checked against ``n_vertices``), an [x, y, z] point, or
     ``{"position": [x, y, z], "vertex": i}`` as ``keyshape register --out-markers`` writes
-    (parsed by :func:`retarget.dense.io.read_markers`)."""
+    (parsed by :func:`keyshape.base.formats.markers.read_mesh_markers`)."""
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.retarget.dense.io import read_markers
+    from keyshape.base.formats.markers import read_mesh_markers
 
     out, bad = {}, []
-    for lab, val in read_markers(path, "target markers file").items():
+    for lab, val in read_mesh_markers(path, "target markers file").items():
         if isinstance(val, int):
             if not 0 <= val < n_vertices:
                 bad.append(f"{lab}: vertex {val}")
@@ -115,12 +115,13 @@ def _mocap(args) -> int:
     regions = None
     used = [s for s in take.labels if s in tm]
     if args.masks:
-        from keyshape.retarget.mocap.masks import read_masks
+        from keyshape.base.formats.masks import read_masks
+        from keyshape.retarget.mocap.masks import regions_from_masks
 
         if args.method != "planar":
             raise InputError("--masks applies to --method planar only")
-        regions = read_masks(args.masks, used, vertices=mesh.vertices,
-                             markers=np.array([tm[s] for s in used]), mesh=mesh, up=up, forward=fw)
+        regions = regions_from_masks(read_masks(args.masks), used, vertices=mesh.vertices,
+                                     markers=np.array([tm[s] for s in used]), mesh=mesh, up=up, forward=fw)
     res = drive_mesh(take.positions, take.labels, mesh.vertices, tm, method=args.method, rigid_names=rigid,
                      regions=regions, max_gap=args.max_gap, radius_scale=args.radius, up=up, forward=fw)
     print(f"{take.n_frames} frames at {take.rate:g} Hz, {take.n_markers} markers ({take.units}); "

@@ -22,7 +22,7 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.retarget.mocap.clean import GapReport, fill_gaps, rebuild_inner_lips, remove_rigid_motion
 from keyshape.retarget.mocap.planar_bones import PlanarBones
-from keyshape.retarget.mocap.rbf import RBFRetarget
+from keyshape.retarget.rbf import RBF
 from keyshape.retarget.mocap.triangulate import Triangulation, triangulate_markers
 
 METHODS = ("planar", "imq", "tps", "gaussian")
@@ -121,7 +121,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
     rebuilt = []
     if dead.any():
         live = ~dead
-        inv = RBFRetarget("imq", labels=[use[i] for i in np.flatnonzero(live)]).fit(tgt[live], src[0, live])
+        inv = RBF("imq", labels=[use[i] for i in np.flatnonzero(live)]).fit(tgt[live], src[0, live])
         ref = src[0].copy()
         ref[dead] = inv(tgt[dead])
         sib = {i: o for i, o in lip_siblings(use).items() if dead[i] and not dead[o]}
@@ -138,7 +138,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
         f, m = np.argwhere(bad)[0]
         raise InputError(f"marker {use[m]!r} is still missing at frame {f} after gap filling "
                          f"({bad.sum()} marker-frames in all): too few visible neighbours")
-    retarget = RBFRetarget("imq", labels=use).fit(src[0], tgt)                 # eqs. (14)-(16)
+    retarget = RBF("imq", labels=use).fit(src[0], tgt)                 # eqs. (14)-(16)
     mk = retarget(src)                                                          # (n_frames, n_used, 3)
     tri = None
     if method == "planar":
@@ -152,11 +152,11 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
             from keyshape.retarget.mocap.masks import allowed_matrix
 
             masks = allowed_matrix(regions, tri.triangles, use, len(tv))
-        bones = PlanarBones.bind(tv, mk[0], tri.triangles, masks=masks, radius_scale=radius_scale,
-                                 unbound=unbound, labels=use)
+        bones = PlanarBones(radius_scale=radius_scale, unbound=unbound, labels=use).fit(tv, mk[0], tri.triangles,
+                                                                                        masks=masks)
         verts = bones.deform_many(mk)
     else:
-        deformer = RBFRetarget(method, labels=use).fit(mk[0], mk)
+        deformer = RBF(method, labels=use).fit(mk[0], mk)
         basis = deformer.basis(tv)
         verts = np.einsum("pk,fkc->fpc", basis, deformer.coef_)
         if not deformer.affine_:

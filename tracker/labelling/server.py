@@ -227,12 +227,12 @@ class LabelServer(ThreadingHTTPServer):
         return f"http://127.0.0.1:{self.port}/"
 
     def pts_path(self, frame: int) -> Path:
-        from keyshape.base.formats.tracks import pts_name  # noqa: PLC0415
+        from keyshape.base.formats.labels import pts_name  # noqa: PLC0415
         return self.folder / pts_name(frame)
 
     def read_points(self, frame: int) -> np.ndarray:
         """Points of ``frame`` from its .pts file; NaN where the file is missing."""
-        from keyshape.base.formats.tracks import read_pts  # noqa: PLC0415
+        from keyshape.base.formats.labels import read_pts  # noqa: PLC0415
         p = self.pts_path(frame)
         if p.is_file():
             return self.scheme.check_shapes(read_pts(p), str(p))
@@ -240,6 +240,6 @@ class LabelServer(ThreadingHTTPServer):
 
     def write_points(self, frame: int, points: np.ndarray) -> None:
         """Replace ``frame``'s .pts file atomically (the only write this server does)."""
-        from keyshape.base.formats.tracks import write_pts  # noqa: PLC0415
+        from keyshape.base.formats.labels import write_pts  # noqa: PLC0415
         with self._lock:
             write_pts(self.pts_path(frame), points)

@@ -16,6 +16,11 @@ Conventions
 
 CSV layout (read and written): a header ``frame,time,<label>_x,<label>_y,<label>_z,...``
 and optional first comment lines ``# rate=120`` and ``# units=mm``.
+
+Markers on a mesh (JSON, :func:`read_mesh_markers` / :func:`write_mesh_markers`): where each
+marker sits on a face mesh, ``{"name": vertex index or [x, y, z], ...}`` (a bare list is
+named ``"0"``, ``"1"``...); ``keyshape register --out-markers`` writes placed markers as
+``{"name": {"position": [x, y, z], "vertex": nearest target vertex}}``, read back by position.
 """
 from __future__ import annotations
 
@@ -27,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_path, atomic_write
+from keyshape.base.files import atomic_path, atomic_write, read_json, write_json
 
 
 @dataclass
@@ -479,3 +484,34 @@ def write_markers(path, markers: Markers) -> None:
     if ext not in WRITERS:
         raise InputError(f"unknown marker format {ext!r}: expected .c3d, .trc or .csv", path)
     WRITERS[ext](path, markers)
+
+
+# --------------------------------------------------------------------------- markers on a mesh (JSON)
+
+def read_mesh_markers(path, what: str = "markers") -> dict:
+    """Read a mesh-markers JSON -> ``{name: vertex index (int) or [x, y, z]}``.
+
+    Values may also be ``{"position": [x, y, z], "vertex": i}`` as
+    :func:`write_mesh_markers` writes them (``keyshape register --out-markers``); the position is used.
+    """
+    data = read_json(path, what)
+    if isinstance(data, list):
+        data = {str(i): m for i, m in enumerate(data)}
+    if not isinstance(data, dict) or not data:
+        raise InputError("expected {\"name\": vertex index or [x, y, z], ...}", path)
+    out = {}
+    for k, m in data.items():
+        if isinstance(m, dict) and "position" in m:
+            m = m["position"]
+        ok = (isinstance(m, int) and not isinstance(m, bool)) or (
+            isinstance(m, list) and len(m) == 3 and all(isinstance(c, (int, float)) for c in m))
+        if not ok:
+            raise InputError(f"marker {k!r}: expected a vertex index or [x, y, z], got {m!r:.60}", path)
+        out[str(k)] = m
+    return out
+
+
+def write_mesh_markers(path, placed: dict) -> None:
+    """Write placed markers ``{name: {"position": [x, y, z], "vertex": i}}`` (or plain
+    ``{name: vertex or [x, y, z]}``) as a mesh-markers JSON, atomically."""
+    write_json(path, placed)

@@ -72,7 +72,15 @@ class Scheme:
         return arr
 
 
-def _validate(data: dict, source: str) -> Scheme:
+def scheme_to_dict(s: Scheme) -> dict:
+    """``s`` in the layout of a scheme JSON file (what :func:`scheme_from_dict` reads)."""
+    return {"name": s.name, "n_points": s.n_points, "description": s.description,
+            "contours": {k: {"points": list(v), "closed": s.closed[k]} for k, v in s.contours.items()},
+            "regions": {k: list(v) for k, v in s.regions.items()}, "inter_ocular": list(s.inter_ocular)}
+
+
+def scheme_from_dict(data: dict, source: str) -> Scheme:
+    """Check a scheme JSON object and build the :class:`Scheme`; errors name ``source``."""
     try:
         n = int(data["n_points"])
         contours = {k: tuple(int(i) for i in v["points"]) for k, v in data["contours"].items()}
@@ -104,7 +112,7 @@ def load_scheme(name_or_path: str | Path = DEFAULT) -> Scheme:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid JSON ({exc})", path) from None
-    return _validate(data, str(path))
+    return scheme_from_dict(data, str(path))
 
 
 def scheme_for_n_points(n_points: int) -> Scheme:
