@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_write
+from keyshape.base.files import atomic_write, read_json
 
 FORMAT = "keyshape-keys"
 #: face regions (section 5 of the paper) and the scheme regions they are built from
@@ -81,11 +81,8 @@ def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[
 
 def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
     """Read a KEYS.json file: (scheme name, n_points, [RegionKeys, ...]); errors name the file."""
-    path = require_file(path, "key-shapes file")
-    try:
-        data = json.loads(Path(path).read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid JSON ({exc})", path) from None
+    data = read_json(path, "key-shapes file")
+    path = Path(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"not a key-shapes file: expected \"format\": \"{FORMAT}\" "
                          f"(write one with 'keyshape select')", path)
@@ -112,8 +109,16 @@ def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
             if names != expected:
                 raise InputError(f"region {region!r}: key names must be {expected[0]}..{expected[-1]} in "
                                  f"order, got {names[:3]}...", path)
+            if not (np.isfinite(keys).all() and np.isfinite(neutral).all()):
+                raise InputError(f"region {region!r}: non-finite coordinates", path)
+            if np.abs(keys).max() > 1e5 or np.abs(neutral).max() > 1e5:
+                raise InputError(f"region {region!r}: implausible coordinates (beyond 1e5 pixels)", path)
+            if len(np.unique(pts)) != len(pts):
+                raise InputError(f"region {region!r} names a point twice", path)
             out.append(RegionKeys(region, str(r.get("method", "")), pts, frames, keys, neutral, ff))
-    except (KeyError, TypeError, ValueError) as exc:
+            if len({rk.region for rk in out}) != len(out):
+                raise InputError(f"region {region!r} twice", path)
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"malformed key-shapes file (missing or bad field: {exc})", path) from None
