@@ -476,8 +476,9 @@ class AppearanceModel:
             model = cls(mf.scheme, **mf.params)
             for k in cls._ARRAYS:
                 a = np.asarray(mf.arrays[k.rstrip("_")])
-                if a.dtype.kind not in "biuf" or (a.dtype.kind == "f" and not np.isfinite(a).all()):
-                    raise InputError(f"model file: array {k.rstrip('_')!r} holds NaN, infinity or non-numbers", path)
+                if a.dtype.kind not in "biuf" or a.size == 0 or (a.dtype.kind == "f" and not np.isfinite(a).all()):
+                    raise InputError(f"model file: array {k.rstrip('_')!r} is empty or holds NaN, infinity or "
+                                     "non-numbers", path)
                 setattr(model, k, a)
             model.landmark_scale_ = float(mf.state["landmark_scale"])
             model.patch_size_ = int(mf.state["patch_size"])

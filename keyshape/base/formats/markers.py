@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -184,7 +185,8 @@ def check_take(m: "Markers", path, n_expected: int | None = None) -> "Markers":
     empty = ~np.isfinite(pos).all(axis=2).any(axis=0)
     if empty.all():
         raise InputError("every marker is missing in every frame", path)
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)       # markers missing in every frame: NaN
         med = np.nanmedian(pos, axis=0) if m.n_frames > 1 else pos[0]
     pairs = coincident_pairs(med * scale, 1e-6)
     if pairs:

@@ -137,8 +137,10 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
             raise InputError(f"broken face line {line.strip()!r}", path, ln) from None
         if len(vi) < 3:
             raise InputError(f"face with {len(vi)} vertices (need at least 3)", path, ln)
-        if any(not -nv <= i <= nv or i == 0 for i in vi) or any(not -nt <= i <= nt for i in ti):
-            raise InputError(f"face names a vertex or texture coordinate outside the file's {nv} / {nt}", path, ln)
+        if any(not -nv <= i <= nv or i == 0 for i in vi):       # before numpy: no int64 overflow
+            raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
+        if any(not -nt <= i <= nt for i in ti):
+            raise InputError(f"face names a texture coordinate outside 1..{nt}", path, ln)
         vi = np.array([i - 1 if i > 0 else nv + i for i in vi], dtype=np.intp)
         if vi.min() < 0 or vi.max() >= nv:
             raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
