@@ -147,7 +147,7 @@ class SyntheticVideo:
                                        perf.exposure[t], self.motion(t), rng)
 
     def tracks(self) -> Tracks:
-        """The ground truth as :class:`~tracker.io.Tracks` (confidence 1, success everywhere)."""
+        """The ground truth as :class:`~keyshape.base.formats.tracks.Tracks` (confidence 1, success everywhere)."""
         n = self.n_frames
         return Tracks(np.arange(n), np.arange(n) / self.fps, np.ones(n), np.ones(n, bool), self.points, self.pose)
 

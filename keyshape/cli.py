@@ -2,7 +2,7 @@
 
 Each stage keeps its own command code (``tracker/cli.py``, ``decompose/cli.py``,
 ...) exposing ``register(subparsers)``; this module only collects them, runs the
-chosen one and turns :class:`~pipeline.errors.KeyshapeError` into a one-line
+chosen one and turns :class:`~keyshape.base.errors.KeyshapeError` into a one-line
 message and exit status 2 (no traceback), and Ctrl-C into status 130.
 """
 from __future__ import annotations

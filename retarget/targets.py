@@ -9,7 +9,6 @@ to the mapping file) or, without one, by file stem matched case-insensitively
 """
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +18,7 @@ import numpy as np
 
 from keyshape.base.files import read_json
 from keyshape.base.errors import InputError, MissingFileError, require_file
+from keyshape.base.files import read_json
 from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices
 
 TARGET_SUFFIXES = (".obj", ".pts", ".json")
@@ -69,10 +69,7 @@ def read_points(path: str | Path) -> np.ndarray:
     if path.suffix.lower() == ".pts":
         from keyshape.base.formats.labels import read_pts
         return read_pts(path)
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path)
     if isinstance(data, dict):
         if "points" not in data:
             raise InputError("expected a list of [x, y] or an object with 'points'", path)
@@ -121,10 +118,7 @@ def _candidates(sources: Sequence[str | Path] | str | Path) -> tuple[list[Path],
 def read_mapping(path: str | Path) -> dict[str, Path]:
     """Read a mapping JSON ``{"REGION_K": "file", ...}``; paths are relative to the mapping file."""
     path = require_file(path, "mapping JSON")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
         raise InputError('expected an object {"REGION_K": "target file", ...}', path)
     out = {}

@@ -348,7 +348,8 @@ def test_cli_select_decompose_compare(tmp_path, capsys):
                  "--region", "eyes", "-o", str(tmp_path / "k.json")]) == 0
     assert main(["decompose", str(tmp_path / "t.csv"), "--keys", str(tmp_path / "k.json"), "--solver", "smooth",
                  "-o", str(tmp_path / "w.csv")]) == 0
-    fr, names, w, flag = read_weights(tmp_path / "w.csv")
+    fr, names, w, flag = read_weights(tmp_path / "w.csv", key_names=True)
+    np.testing.assert_array_equal(fr, tracks.frame)
     assert names == [f"mouth_{i}" for i in range(6)] + [f"eyes_{i}" for i in range(6)]
     np.testing.assert_array_equal(flag, ~tracks.success)
     assert w.min() >= 0
@@ -374,7 +375,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "k.json").exists()
 
 
-def test_sheet_draws_key_frames(tmp_path):
+def test_sheet_draws_key_frames(tmp_path, capsys):
     import cv2
 
     from keyshape.base.formats.video import video_writer
@@ -391,8 +392,11 @@ def test_sheet_draws_key_frames(tmp_path):
     img = cv2.imread(str(tmp_path / "s.png"))
     assert img is not None and img.shape[1] > 4 * 280
     assert (img[..., 1].astype(int) - img[..., 0] > 100).any()   # green lip contours drawn
-    with pytest.raises(KeyshapeError):
-        raise InputError("x")
+    (tmp_path / "bad.mp4").write_bytes(b"not a video")             # the sheet's own bad input fails cleanly
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "mouth", "-o", str(tmp_path / "k2.json"),
+                 "--sheet", str(tmp_path / "s2.png"), "--video", str(tmp_path / "bad.mp4")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.mp4" in err[0] and not (tmp_path / "s2.png").exists()
 
 
 # ----------------------------------------------------------------------------- target-domain check

@@ -84,7 +84,8 @@ def test_insertion_without_correspondence_runs_and_helps():
     frames, _ = bump_sequence()
     init = np.array([0, 24, 600, 624, 312])
     ins = KeyPointInserter(radius=1.5, n_candidates=400, max_new=6, sigma=1.0, correspondence=False, rng=0).fit(frames, init)
-    assert ins.history_[-1]["mean_error"] <= ins.history_[0]["mean_error"]
+    errs = [h["mean_error"] for h in ins.history_]      # measured 0.145 -> 0.076 (5 -> 9 keys)
+    assert errs[-1] < 0.7 * errs[0] and len(ins.key_indices_) > len(init)
 
 
 def test_inserter_errors():

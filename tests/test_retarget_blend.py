@@ -287,7 +287,7 @@ def test_identity_with_decompose_weights(tmp_path):
     assert np.ptp(w.sum(axis=1)) > 0.01                                      # rows do not sum to one
     write_weights(tmp_path / "w.csv", np.arange(30), cols, w, np.zeros(30))
     frames, names, w_read, _ = read_weights(tmp_path / "w.csv")
-    assert names == cols
+    assert names == cols and frames.tolist() == list(range(30))
     rt = Retargeter().fit(load_targets(names, tmp_path))
     assert rt.form_ == "delta"
     np.testing.assert_allclose(rt.transform(w_read), reconstruct(w, keys, neutral), atol=1e-5)

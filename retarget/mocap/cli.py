@@ -142,7 +142,7 @@ def _mocap(args) -> int:
         try:
             from keyshape.base.formats.gltf import write_glb
         except ImportError:
-            raise InputError(".glb output needs retarget.gltf (not in this build): use .npz or an OBJ folder") from None
+            raise InputError(".glb output needs keyshape.base.formats.gltf (not in this build): use .npz or an OBJ folder") from None
         base = verts[0]
         d = (verts - base).reshape(len(verts), -1)
         u, s, vt = np.linalg.svd(d, full_matrices=False)

@@ -7,15 +7,10 @@ lower-lip corner, cannot drag upper-lip vertices); a vertex in several regions o
 all of them; a vertex in none is unrestricted. :func:`allowed_matrix` turns that into
 the ``(n_vertices, n_bones)`` boolean array :meth:`PlanarBones.fit` takes.
 
-Regions come from a masks JSON (the file format is :mod:`keyshape.base.formats.masks`;
-:func:`regions_from_masks` gives its :class:`Region` objects)::
-
-    {"regions": [
-      {"name": "upper_lip", "vertices": [12, 13, ...],          # or "vertex_group": "lips_up"
-       "exclude_markers": ["lipOuterLo_C", ...]},                # or "markers": [...] (allowed)
-      {"name": "lower_lip", "image_value": 2, ...}],              # vertices from the mask image
-     "image": "mask.png",                                         # optional, beside the JSON
-     "image_markers": {"lipOuterUp_C": [x, y, z], ...}}           # optional: markers of the painted face
+Regions come from a masks JSON (the file and its layout: :mod:`keyshape.base.formats.masks`);
+:func:`regions_from_masks` gives its :class:`Region` objects: a region's vertices are listed,
+named by an OBJ vertex group, or painted in a label image; its markers are listed
+(``markers``) or all but some (``exclude_markers``).
 
 A mask image (section 4.3: "a texture in the cylindrical coordinate space") is read in
 the cylindrical projection normalised to the *markers'* extent: pixel column 0..W-1

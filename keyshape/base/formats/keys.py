@@ -81,8 +81,8 @@ def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[
 
 def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
     """Read a KEYS.json file: (scheme name, n_points, [RegionKeys, ...]); errors name the file."""
+    path = require_file(path, "key-shapes file")
     data = read_json(path, "key-shapes file")
-    path = Path(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"not a key-shapes file: expected \"format\": \"{FORMAT}\" "
                          f"(write one with 'keyshape select')", path)

@@ -7,13 +7,13 @@ own file of the same layout) with ``name``, ``n_points``, ``contours`` (name ->
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError, MissingFileError
+from keyshape.base.files import read_json
 
 _HERE = Path(__file__).parent
 BUILTIN = ("contours48", "ibug68")
@@ -110,11 +110,7 @@ def load_scheme(name_or_path: str | Path = DEFAULT) -> Scheme:
         if s in BUILTIN or s.endswith(".json") or "/" in s:
             raise MissingFileError(path, "landmark scheme")
         raise InputError(f"unknown landmark scheme {s!r}: use one of {', '.join(BUILTIN)} or a JSON file")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid JSON ({exc})", path) from None
-    return scheme_from_dict(data, str(path))
+    return scheme_from_dict(read_json(path, "landmark scheme"), str(path))
 
 
 def scheme_for_n_points(n_points: int) -> Scheme:
