@@ -359,3 +359,16 @@ def test_interrupted_demo_exits_130_and_leaves_the_folder_as_it_was(tmp_path):
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130, stderr
     assert sorted(p.name for p in out.iterdir()) == ["old_result.txt"]
+
+
+def test_target_markers_far_or_collapsed_are_refused(tmp_path):
+    from keyshape.retarget.mocap.cli import read_target_markers
+    v = np.random.default_rng(0).uniform(0, 10, (50, 3))
+    (tmp_path / "far.json").write_text(json.dumps({"a": 3, "b": [5.0, 5.0, 1e6]}))
+    with pytest.raises(InputError, match="outside the target mesh"):
+        read_target_markers(tmp_path / "far.json", len(v), v)
+    (tmp_path / "one.json").write_text(json.dumps({f"m{i}": [1.0, 2.0, 3.0] for i in range(28)}))
+    with pytest.raises(InputError, match="28 target markers on one point"):
+        read_target_markers(tmp_path / "one.json", len(v), v)
+    (tmp_path / "ok.json").write_text(json.dumps({"a": 3, "b": [5.0, 5.0, 5.0], "c": 7}))
+    assert sorted(read_target_markers(tmp_path / "ok.json", len(v), v)) == ["a", "b", "c"]

@@ -79,7 +79,37 @@ def read_target_markers(path, n_vertices: int, vertices=None) -> dict:
             out[lab] = np.asarray(val, dtype=np.float64)
     if bad:
         raise InputError(f"unknown vertex index(es) (the mesh has {n_vertices} vertices): {', '.join(bad)}", path)
+    if vertices is not None and out:
+        check_target_markers(out, np.asarray(vertices, dtype=np.float64), path)
     return out
+
+
+def check_target_markers(markers: dict, vertices, path) -> None:
+    """Refuse target markers far from the mesh (farther than its bounding-box diagonal from the box:
+    wrong units or a typo) and more than two markers on one point (a collapsed set)."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.markers import coincident_pairs
+
+    lo, hi = vertices.min(0), vertices.max(0)
+    diag = float(np.linalg.norm(hi - lo)) or 1.0
+    for lab, p in markers.items():
+        if p is None:
+            continue
+        if not np.all(np.isfinite(p)):
+            raise InputError(f"marker {lab!r}: position {p.tolist()} is not finite", path)
+        out_by = float(np.linalg.norm(np.maximum(lo - p, 0) + np.maximum(p - hi, 0)))
+        if out_by > diag:
+            raise InputError(f"marker {lab!r} at {p.tolist()} is {out_by:.3g} units outside the target mesh "
+                             f"(its size is {diag:.3g}): wrong units or a typo?", path)
+    labels = [k for k, v in markers.items() if v is not None]
+    pts = np.array([markers[k] for k in labels]).reshape(-1, 3)
+    pairs = coincident_pairs(pts, 1e-9 * diag)
+    names = sorted({labels[i] for ab in pairs for i in ab})
+    if len(names) > 2:
+        raise InputError(f"{len(names)} target markers on one point ({', '.join(names[:6])}"
+                         f"{', ...' if len(names) > 6 else ''}): a collapsed marker set", path)
 
 
 def _mocap(args) -> int:
