@@ -2,8 +2,9 @@
 
 Each stage keeps its own command code (``tracker/cli.py``, ``decompose/cli.py``,
 ...) exposing ``register(subparsers)``; this module only collects them, runs the
-chosen one and turns :class:`~keyshape.base.errors.KeyshapeError` into a one-line
-message and exit status 2 (no traceback), and Ctrl-C into status 130.
+chosen one and turns :class:`~keyshape.base.errors.KeyshapeError` and every ``OSError``
+(unreadable or unwritable file, disk full) into a one-line message and exit status 2 (no
+traceback), Ctrl-C into status 130 and SIGTERM into 143 (cleanup runs for both).
 """
 from __future__ import annotations
 
