@@ -38,17 +38,19 @@ def tracks_scheme(tracks: Tracks, scheme: str | Scheme | None = None, source=Non
 
 
 def select_keys(tracks: Tracks, k: int | None, method: str = "spread", regions: Sequence[str] | None = None,
-                scheme: str | Scheme | None = None, seed: int = 0, source=None) -> tuple[Scheme, list[RegionKeys]]:
+                scheme: str | Scheme | None = None, seed: int = 0, source=None,
+                progress: bool = False) -> tuple[Scheme, list[RegionKeys]]:
     """Choose ``k`` key shapes per region from ``tracks`` (see :func:`~keyshape.decompose.regions.select_region`).
 
-    ``regions`` default to all the scheme can form; ``source`` names the tracks file in errors.
+    ``regions`` default to all the scheme can form; ``source`` names the tracks file in errors;
+    ``progress`` shows the greedy selector's progress on stderr.
     """
     sch = tracks_scheme(tracks, scheme, source)
     if k is None and method != "hull2":
         raise InputError(f"-k is required for --method {method}")
     shapes = model_shapes(tracks, source)
     try:
-        chosen = [select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes)
+        chosen = [select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes, progress=progress)
                   for r in (regions or available_regions(sch))]
     except InputError as exc:
         if source is None:

@@ -76,7 +76,7 @@ def to_image(model_pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 
 def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | None, method: str = "spread",
-                  rng=None, shapes: np.ndarray | None = None) -> RegionKeys:
+                  rng=None, shapes: np.ndarray | None = None, progress: bool = False) -> RegionKeys:
     """Choose ``n_keys`` key shapes of ``region`` from the successful frames of ``tracks``.
 
     Failed frames (``success=0``) are never candidates. ``shapes`` may pass the
@@ -89,7 +89,8 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
         raise InputError(f"cannot choose {n_keys} key shapes from {len(ok)} successful frames "
                          f"({tracks.n_frames - len(ok)} of {tracks.n_frames} failed)")
     sub = shapes[ok][:, idx]
-    sel = make_selector(method, n_keys if n_keys is not None else 0, rng=rng).fit(sub)
+    sel = make_selector(method, n_keys if n_keys is not None else 0, rng=rng, progress=progress,
+                        desc=f"keyshape select {region}").fit(sub)
     from_frame = np.ones(len(sel.indices_), dtype=bool)
     if getattr(sel, "centre", "nearest") == "mean":
         from_frame[:] = False

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from keyshape.base.errors import InputError, NotFittedError
+from keyshape.base.progress import Progress
 from keyshape.decompose.weights import nnls_gram
 
 METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
@@ -242,11 +243,14 @@ class GreedySelector(_Selector):
     ``order_`` is nested: the first j keys of a fit with k are the fit with j.
     """
 
-    def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None):
+    def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None,
+                 progress: bool = False, desc: str = "greedy"):
         self.n_keys = n_keys
         self.n_candidates = n_candidates
         self.max_eval = max_eval
         self.rng = rng
+        self.progress = progress
+        self.desc = desc
 
     def _select(self, X, arr):
         n = len(X)
@@ -258,6 +262,7 @@ class GreedySelector(_Selector):
         resid_nnls = (E ** 2).sum(axis=1)             # per evaluation frame, current NNLS residual
         Q = np.zeros((0, X.shape[1]))                 # orthonormal basis of the chosen keys' span
         w_prev = np.zeros((len(E), 0))
+        prog = Progress(self.n_keys, desc=self.desc, unit="keys", enabled=self.progress, min_seconds=2.0)
         for _ in range(self.n_keys):
             R = E - (E @ Q.T) @ Q                     # least-squares residuals
             C = X - (X @ Q.T) @ Q                     # candidates' parts outside the span
@@ -280,6 +285,8 @@ class GreedySelector(_Selector):
             w_prev = w_best[best]
             q = C[c] / np.sqrt(cn[c]) if cn[c] > 0 else np.zeros(X.shape[1])
             Q = np.vstack([Q, q])
+            prog.update()
+        prog.close()
         self.order_ = np.array(chosen, dtype=np.intp)
         return chosen, None
 
@@ -311,8 +318,9 @@ class GreedySelector(_Selector):
         return res.sum(axis=1), res, w
 
 
-def make_selector(method: str, n_keys: int, rng=None) -> _Selector:
-    """The selector named ``method`` (one of :data:`METHODS`) for ``n_keys`` keys."""
+def make_selector(method: str, n_keys: int, rng=None, progress: bool = False, desc: str = "greedy") -> _Selector:
+    """The selector named ``method`` (one of :data:`METHODS`) for ``n_keys`` keys (``progress``:
+    report the keys chosen so far on standard error, for the slow greedy selector)."""
     if method == "spread":
         return SpreadSelector(n_keys)
     if method in ("kmeans2", "kmeans3"):
@@ -322,5 +330,5 @@ def make_selector(method: str, n_keys: int, rng=None) -> _Selector:
     if method == "random":
         return RandomSelector(n_keys, rng=rng)
     if method == "greedy":
-        return GreedySelector(n_keys, rng=rng)
+        return GreedySelector(n_keys, rng=rng, progress=progress, desc=desc)
     raise InputError(f"unknown selection method {method!r}: use one of {', '.join(METHODS)}")

@@ -46,6 +46,8 @@ def register(subparsers) -> None:
                    help="weight solver for keyshape decompose (default smooth)")
     p.add_argument("--ridge", type=float, default=0.03,
                    help="keyshape decompose --ridge (default 0.03; 0 is the paper's plain NNLS)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
     p.set_defaults(func=run)
 
 
@@ -76,13 +78,30 @@ def _region_coeffs(names, w, region: str) -> dict[str, float]:
 
 def run(args) -> int:
     run_demo(args.out_dir, frames=args.frames, seed=args.seed, keys=args.keys, method=args.method,
-             labels=args.labels, solver=args.solver, ridge=args.ridge)
+             labels=args.labels, solver=args.solver, ridge=args.ridge, overwrite=args.overwrite)
     return 0
 
 
 def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: str = "greedy", labels: int = 20,
-             solver: str = "smooth", ridge: float = 0.03) -> dict:
-    """Run the demo into ``out_dir``; print and return the measured figures (also written to
+             solver: str = "smooth", ridge: float = 0.03, overwrite: bool = False) -> dict:
+    """Run the demo into ``out_dir`` (see :func:`_run_demo`). Every stage works in a hidden
+    temporary folder inside ``out_dir``; the results replace an earlier demo's only when the
+    whole demo has finished, so an interrupted or failed demo leaves ``out_dir`` as it was, and
+    files keyshape did not write there are never touched."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import atomic_dir
+
+    if frames < 2 or keys < 1 or labels < 2:
+        raise InputError("--frames and --labels must be >= 2 and --keys >= 1")
+    with atomic_dir(out_dir, overwrite) as tmp:
+        figures = _run_demo(tmp, frames, seed, keys, method, labels, solver, ridge)
+    _print_summary(Path(out_dir), figures)
+    return figures
+
+
+def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels: int,
+              solver: str, ridge: float) -> dict:
+    """Run the demo into the folder ``out``; return the measured figures (also written to
     ``demo_report.json``): ``nme_mean``, ``nme_worst``, ``failed_frames``, ``target_error_mm``
     (mean vertex error of the retargeted face against the hidden performance on the same
     face), ``target_motion_mm`` (mean vertex motion of that performance: a still face's error),
@@ -95,8 +114,6 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
     from keyshape.base.schemes import load_scheme
     from keyshape.retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     foot = out / "footage"
     video = foot / "video.mp4"
@@ -155,6 +172,12 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
                "target_motion_mm": report["motion_mm"], "seconds": time.perf_counter() - t0}
     with atomic_write(out / "demo_report.json", "w") as f:
         json.dump(figures, f, indent=1)
+    return figures
+
+
+def _print_summary(out: Path, figures: dict) -> None:
+    foot = out / "footage"
+    video = foot / "video.mp4"
     print(f"\nkeyshape demo: done in {figures['seconds']:.1f} s")
     print(f"  tracking NME vs ground truth: mean {figures['nme_mean']:.4f}, worst frame {figures['nme_worst']:.4f}; "
           f"{figures['failed_frames']} frames marked failed")
@@ -168,7 +191,6 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
                         ("animation", out / "animation.glb"), ("preview video", out / "preview.mp4"),
                         ("figures", out / "demo_report.json")]:
         print(f"  {label:14s} {path}")
-    return figures
 
 
 def _preview_and_errors(out: Path, video: Path, tracks, weights, ex, names, hidden, key_coeffs,

@@ -204,7 +204,7 @@ def test_obj_frames_folder(scene):
     tmp, d, m, shapes, w = scene
     out = tmp / "frames"
     assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--form", "absolute", "-o", str(out)]) == 0
-    files = sorted(out.iterdir())
+    files = sorted(out.glob("frame_*"))
     assert [f.name for f in files[:2]] == ["frame_000000.obj", "frame_000001.obj"] and len(files) == 10
     ts = load_targets(list(shapes), d)
     np.testing.assert_allclose(read_obj_vertices(files[3]), np.einsum("k,kvd->vd", w[3], ts.shapes), atol=1e-5)
@@ -368,7 +368,7 @@ def test_demo_targets_builder(tmp_path):
     with pytest.raises(InputError, match="unknown expression 'tongueOut'"):
         demo_targets({"mouth_0": {"tongueOut": 1.0}})
     write_demo_targets(tmp_path / "t", {"mouth_0": {"jawOpen": 1.0}})
-    assert sorted(p.name for p in (tmp_path / "t").iterdir()) == ["mouth_0.obj", "neutral.obj"]
+    assert sorted(p.name for p in (tmp_path / "t").glob("*.obj")) == ["mouth_0.obj", "neutral.obj"]
     assert (REPO / "retarget" / "data" / "LICENSE-ICT-FaceKit.txt").read_text().startswith("MIT License")
     assert (REPO / "retarget" / "data" / "ict_face.npz").stat().st_size < 3e6
 

@@ -378,7 +378,13 @@ def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, ca
 
     monkeypatch.setattr(Tracker, "step", step)
     out = tmp_path / "t.csv"
+    out.write_text("earlier complete tracks\n")
     assert main(["track", str(video), "--model", str(model), "-o", str(out), "--smooth", "savgol", "--quiet"]) == 130
-    assert "interrupted: tracks written for frames 0-3 only" in capsys.readouterr().out
-    tr = read_tracks(out)
+    assert "interrupted: tracks written for frames 0-3 only, to " in capsys.readouterr().out
+    assert out.read_text() == "earlier complete tracks\n"          # the earlier output is untouched
+    part = tmp_path / "t.partial.csv"
+    with pytest.raises(InputError, match="partial tracks from an interrupted"):
+        read_tracks(part)
+    tr = read_tracks(part, accept_partial=True)
     np.testing.assert_array_equal(tr.frame, [0, 1, 2, 3])
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []

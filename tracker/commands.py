@@ -18,7 +18,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
 from keyshape.base.progress import Progress
 from keyshape.tracker.eigenpoints import AppearanceModel
-from keyshape.base.formats.tracks import Tracks, TracksWriter
+from keyshape.base.formats.tracks import PARTIAL_MARK, Tracks, TracksWriter
 from keyshape.base.formats.labels import read_labels
 from keyshape.base.schemes import load_scheme
 from keyshape.base.formats.video import VideoReader, video_info
@@ -57,6 +57,7 @@ def fit_model(video, labels, scheme="contours48", n_components: int | None = Non
         bad = [int(f) for f in frames if f >= info.n_frames]
         raise InputError(f"labels for frames {bad[:5]} but the video has {info.n_frames} frames "
                          f"(frames are numbered from 0)", source)
+    check_label_geometry(frames, shapes, source)
     images = VideoReader(video, gray=True).read_frames(frames)
     h, w = images.shape[1:3]
     outside = (shapes[..., 0] < -0.5 * w) | (shapes[..., 0] > 1.5 * w) | (shapes[..., 1] < -0.5 * h) | \
@@ -91,7 +92,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     reader = reader or VideoReader(video)
     tracker = Tracker(model, **(tracker_options or {}))
     smoother = StreamSmoother(smooth, reader.info.fps)
-    interrupted = False
+    interrupted: KeyboardInterrupt | None = None
     try:
         for i, frame in reader:
             if i < start:
@@ -101,11 +102,11 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
             res = tracker.step(frame, i)
             yield from ((pts, r, fr) for pts, (r, fr) in
                         smoother.push(res.points, (res, frame if keep_frames else None)))
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as exc:
+        interrupted = exc
     yield from ((pts, r, fr) for pts, (r, fr) in smoother.flush())
-    if interrupted:     # the frames the smoother held are out; now stop the caller too
-        raise KeyboardInterrupt
+    if interrupted is not None:     # the frames the smoother held are out; now stop the caller too
+        raise interrupted
 
 
 def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int | None = None,
@@ -133,6 +134,24 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
                   np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]))
 
 
+def check_label_geometry(frames: np.ndarray, shapes: np.ndarray, labels_dir) -> None:
+    """Refuse degenerate labels: points collapsed onto one spot or one line, or mostly coincident
+    (a half-finished label file), naming the file."""
+    for f, pts in zip(frames, shapes):
+        name = Path(labels_dir) / f"{int(f):06d}.pts" if labels_dir is not None else None
+        c = pts - pts.mean(0)
+        ev = np.linalg.eigvalsh(c.T @ c / len(pts))
+        if ev[-1] < 1.0:
+            raise InputError(f"the {len(pts)} points are collapsed onto one spot (spread "
+                             f"{np.sqrt(max(ev[-1], 0)):.2g} px): not a labelled face", name)
+        if ev[0] < 1e-6 * ev[-1]:
+            raise InputError(f"the {len(pts)} points lie on one line: not a labelled face", name)
+        distinct = len(np.unique(np.round(pts, 1), axis=0))
+        if distinct < 0.75 * len(pts):
+            raise InputError(f"only {distinct} of {len(pts)} points are distinct (coincident points): "
+                             "unfinished or corrupt label file", name)
+
+
 @dataclass
 class TrackSummary:
     n_frames: int
@@ -142,6 +161,7 @@ class TrackSummary:
     truncated: bool
     interrupted: bool
     message: str
+    terminated: bool = False
 
 
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
@@ -157,37 +177,70 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     from keyshape.base.draw import draw_shape
     from keyshape.base.formats.video import video_writer
 
+    import os
+    import shutil
+
+    from keyshape.base.files import _tmp_sibling, check_outputs, partial_name
+
+    check_outputs([output, overlay], inputs=[video, model if not isinstance(model, AppearanceModel) else None])
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)
     reader = VideoReader(video)
     info = reader.info
     n_lost = 0
-    interrupted = False
+    interrupted: KeyboardInterrupt | None = None
     prog = Progress(info.n_frames or None, desc="keyshape track", enabled=show_progress)
     t0 = time.perf_counter()
-    with contextlib.ExitStack() as stack:
-        f = stack.enter_context(atomic_write(output))
-        writer = TracksWriter(f, model.n_points)
-        vw = stack.enter_context(video_writer(overlay, info.fps, (info.width, info.height))) if overlay else None
-        try:
-            for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
-                                              keep_frames=vw is not None, reader=reader):
-                n_lost += not res.success
-                writer.write(res.index, res.index / info.fps, res.confidence, res.success, pts, res.pose)
-                if vw is not None:
-                    img = draw_shape(frame, pts, model.scheme_) if res.success else frame.copy()
-                    if not res.success:
-                        cv2.putText(img, "lost", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 255), 2)
-                    vw.write(img)
-                prog.update()
-        except KeyboardInterrupt:
-            interrupted = True
-        prog.close()
-    n = writer.n_rows
+    output = Path(output)
+    tmp_csv = _tmp_sibling(output)
+    tmp_vid = _tmp_sibling(Path(overlay), suffix=Path(overlay).suffix) if overlay else None
+    try:
+        with contextlib.ExitStack() as stack:
+            f = stack.enter_context(open(tmp_csv, "w"))
+            writer = TracksWriter(f, model.n_points)
+            vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
+            try:
+                for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
+                                                  keep_frames=vw is not None, reader=reader):
+                    n_lost += not res.success
+                    writer.write(res.index, res.index / info.fps, res.confidence, res.success, pts, res.pose)
+                    if vw is not None:
+                        img = draw_shape(frame, pts, model.scheme_) if res.success else frame.copy()
+                        if not res.success:
+                            cv2.putText(img, "lost", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 255), 2)
+                        vw.write(img)
+                    prog.update()
+            except KeyboardInterrupt as exc:
+                interrupted = exc
+            prog.close()
+            f.flush()
+            os.fsync(f.fileno())
+        n = writer.n_rows
+        if interrupted is None:
+            os.replace(tmp_csv, output)
+            if overlay:
+                os.replace(tmp_vid, overlay)
+        else:
+            # the earlier complete outputs stay; what was tracked goes to NAME.partial.csv, marked partial
+            part = partial_name(output)
+            with atomic_write(part) as pf, open(tmp_csv) as src:
+                pf.write(f"{PARTIAL_MARK} interrupted after {n} of {info.n_frames or '?'} frames; "
+                         "read it with --accept-partial\n")
+                shutil.copyfileobj(src, pf)
+            if overlay:
+                os.replace(tmp_vid, partial_name(overlay))
+    finally:
+        tmp_csv.unlink(missing_ok=True)
+        if tmp_vid is not None:
+            tmp_vid.unlink(missing_ok=True)
     dt = time.perf_counter() - t0
-    truncated = (not interrupted) and reader.truncated
-    msg = (f"keyshape track: {n} frames, {n_lost} lost, {n / max(dt, 1e-9):.0f} frames/s -> {output}"
-           + (f" and {overlay}" if overlay else ""))
-    if interrupted:
-        msg += f" (interrupted: tracks written for frames 0-{n - 1} only)"
-    return TrackSummary(n, info.n_frames, n_lost, n / max(dt, 1e-9), truncated, interrupted, msg)
+    truncated = (interrupted is None) and reader.truncated
+    if interrupted is None:
+        msg = (f"keyshape track: {n} frames, {n_lost} lost, {n / max(dt, 1e-9):.0f} frames/s -> {output}"
+               + (f" and {overlay}" if overlay else ""))
+    else:
+        msg = (f"keyshape track: interrupted: tracks written for frames 0-{n - 1} only, to "
+               f"{partial_name(output)} (marked partial); {output} "
+               f"{'is untouched' if output.exists() else 'was not written'}")
+    return TrackSummary(n, info.n_frames, n_lost, n / max(dt, 1e-9), truncated, interrupted is not None, msg,
+                        terminated=type(interrupted).__name__ == "Terminated")

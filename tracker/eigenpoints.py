@@ -475,24 +475,41 @@ class AppearanceModel:
         try:
             model = cls(mf.scheme, **mf.params)
             for k in cls._ARRAYS:
-                setattr(model, k, np.asarray(mf.arrays[k.rstrip("_")]))
+                a = np.asarray(mf.arrays[k.rstrip("_")])
+                if a.dtype.kind not in "biuf" or a.size == 0 or (a.dtype.kind == "f" and not np.isfinite(a).all()):
+                    raise InputError(f"model file: array {k.rstrip('_')!r} is empty or holds NaN, infinity or "
+                                     "non-numbers", path)
+                setattr(model, k, a)
             model.landmark_scale_ = float(mf.state["landmark_scale"])
             model.patch_size_ = int(mf.state["patch_size"])
             model.n_samples_ = int(mf.state["n_samples"])
         except KeyError as exc:
             raise InputError(f"model file is missing {exc}", path) from None
-        except TypeError as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
+            if isinstance(exc, InputError):
+                raise
             raise InputError(f"model file has bad parameters ({exc})", path) from None
+        if not (np.isfinite(model.landmark_scale_) and model.landmark_scale_ > 0 and 3 <= model.patch_size_ <= 4096
+                and model.n_samples_ >= 1):
+            raise InputError("model file is inconsistent (landmark scale, patch size or sample count)", path)
+        bad = (model.mask_.ndim != 2 or model.reference_.ndim != 2 or model.reference_.shape[-1:] != (2,)
+               or model.components_.ndim != 2 or model.mean_.ndim != 1)
+        if bad:
+            raise InputError("model file is inconsistent (array dimensions)", path)
         model.mask_ = model.mask_.astype(bool)
         model.scheme_ = mf.scheme
         model.k_ = len(model.components_)
         model._index = np.flatnonzero(model.mask_.ravel())
         n_pix, n_pts = len(model._index), len(model.reference_)
         if (model.mask_.shape != (model.patch_size_,) * 2 or model.components_.shape[1] != n_pix + 2 * n_pts
-                or model.mean_.shape != (n_pix + 2 * n_pts,) or n_pts != mf.scheme.n_points
+                or model.mean_.shape != (n_pix + 2 * n_pts,) or n_pts != mf.scheme.n_points or model.k_ < 1
                 or not np.isfinite(model.components_).all()):
             raise InputError("model file is inconsistent (array shapes do not match each other or the scheme)", path)
-        model._precompute()
+        try:
+            with np.errstate(over="raise", invalid="raise", divide="raise"):
+                model._precompute()
+        except (ValueError, IndexError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            raise InputError(f"model file is inconsistent ({type(exc).__name__}: {exc})", path) from None
         return model
 
     def save(self, path: str | Path) -> None:

@@ -101,6 +101,19 @@ def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.nd
     if d.min() < 1e-9:
         i, j = np.unravel_index(np.argmin(d), d.shape)
         raise InputError(f"pairs {i} and {j} name the same reference point", source)
+    for side, pts in (("reference", r), ("target", t)):
+        c = pts - pts.mean(0)
+        sv = np.linalg.svd(c, compute_uv=False)
+        if sv[0] <= 1e-9 * max(1.0, np.abs(pts).max()):
+            raise InputError(f"all {len(pts)} {side} landmarks are on one point: they must spread over the face",
+                             source)
+        if sv[1] <= 1e-6 * sv[0]:
+            raise InputError(f"the {side} landmarks lie on one line: they must spread over the face", source)
+        dt = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+        np.fill_diagonal(dt, np.inf)
+        if side == "target" and dt.min() < 1e-9 * max(1.0, np.abs(pts).max()):
+            i, j = np.unravel_index(np.argmin(dt), dt.shape)
+            raise InputError(f"pairs {i} and {j} send two reference points to the same target point", source)
     return r, t, np.array(ref_idx, np.intp)
 
 

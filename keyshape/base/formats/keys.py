@@ -109,8 +109,16 @@ def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
             if names != expected:
                 raise InputError(f"region {region!r}: key names must be {expected[0]}..{expected[-1]} in "
                                  f"order, got {names[:3]}...", path)
+            if not (np.isfinite(keys).all() and np.isfinite(neutral).all()):
+                raise InputError(f"region {region!r}: non-finite coordinates", path)
+            if np.abs(keys).max() > 1e5 or np.abs(neutral).max() > 1e5:
+                raise InputError(f"region {region!r}: implausible coordinates (beyond 1e5 pixels)", path)
+            if len(np.unique(pts)) != len(pts):
+                raise InputError(f"region {region!r} names a point twice", path)
             out.append(RegionKeys(region, str(r.get("method", "")), pts, frames, keys, neutral, ff))
-    except (KeyError, TypeError, ValueError) as exc:
+            if len({rk.region for rk in out}) != len(out):
+                raise InputError(f"region {region!r} twice", path)
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"malformed key-shapes file (missing or bad field: {exc})", path) from None

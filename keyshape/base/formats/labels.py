@@ -23,6 +23,8 @@ import numpy as np
 from keyshape.base.errors import InputError, require_dir, require_file
 from keyshape.base.files import atomic_write
 
+#: largest plausible pixel coordinate (no image is 100 000 pixels wide)
+MAX_PIXELS = 1e5
 _PTS_NAME = re.compile(r"^(\d+)\.pts$")
 
 
@@ -76,6 +78,8 @@ def read_pts(path: str | Path) -> np.ndarray:
             raise InputError(f"expected two numbers 'x y', found {s!r}", path, i) from None
         if not np.all(np.isfinite(xy)):
             raise InputError(f"non-finite coordinate {s!r}", path, i)
+        if max(abs(xy[0]), abs(xy[1])) > MAX_PIXELS:
+            raise InputError(f"implausible coordinate {s!r} (beyond {MAX_PIXELS:g} pixels)", path, i)
         pts.append(xy)
     if not closed:
         raise InputError("missing closing brace '}'", path, len(lines))
@@ -111,6 +115,10 @@ def read_labels(folder: str | Path, n_points: int | None = None) -> tuple[np.nda
     """
     folder = require_dir(folder, "labels folder")
     files = sorted((int(m.group(1)), p) for p in folder.iterdir() if (m := _PTS_NAME.match(p.name)))
+    for (fa, pa), (fb, pb) in zip(files, files[1:]):
+        if fa == fb:
+            raise InputError(f"two label files for frame {fa}: {pa.name} and {pb.name} (which one is meant?); "
+                             "remove one", folder)
     if not files:
         raise InputError("no labels: expected files named by frame index such as 000123.pts", folder)
     shapes = []

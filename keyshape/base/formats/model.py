@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,6 +59,17 @@ def write_model(path: str | Path, model: ModelFile) -> None:
             np.savez_compressed(f, meta=np.array(json.dumps(meta)), **model.arrays)
 
 
+def _finite(text: str) -> float:
+    v = float(text)
+    if not np.isfinite(v):
+        raise ValueError(f"number {text} out of range in the model header")
+    return v
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} in the model header")
+
+
 def read_model(path: str | Path, scheme: str | Scheme | None = None) -> ModelFile:
     """Read a model file; raise :class:`InputError` naming it when it is not one or has another scheme
     than ``scheme`` (a name, JSON file or :class:`Scheme`; None accepts any)."""
@@ -65,11 +77,12 @@ def read_model(path: str | Path, scheme: str | Scheme | None = None) -> ModelFil
     try:
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error, KeyError, NotImplementedError,
+            MemoryError, OverflowError) as exc:
         raise InputError(f"not a keyshape model file (cannot read it as .npz: {exc})", path) from None
     try:
-        meta = json.loads(str(data.pop("meta")))
-    except (KeyError, json.JSONDecodeError):
+        meta = json.loads(str(data.pop("meta")), parse_constant=_no_constant, parse_float=_finite)
+    except (KeyError, ValueError, RecursionError):
         raise InputError("not a keyshape model file (no format header)", path) from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise InputError(f"not a keyshape model file (format {meta.get('format') if isinstance(meta, dict) else None!r})",

@@ -26,6 +26,8 @@ from keyshape.base.errors import InputError, require_file
 from keyshape.base.files import atomic_write
 
 POSE_COLUMNS = ("pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty")
+#: first line of a tracks file an interrupted ``keyshape track`` wrote (``NAME.partial.csv``)
+PARTIAL_MARK = "# keyshape partial tracks:"
 
 
 # --------------------------------------------------------------------------- tracks
@@ -98,11 +100,13 @@ def write_tracks(path: str | Path, tracks: Tracks) -> None:
         f.write(text)
 
 
-def read_tracks(path: str | Path) -> Tracks:
+def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     """Read a tracks CSV. Raises :class:`InputError` naming file and line on malformed content.
 
     Empty fields (and ``nan``) read as NaN; the pose columns may be absent
     (identity pose assumed), so other trackers' OpenFace-style files can be read.
+    A file an interrupted ``keyshape track`` marked partial (first line
+    :data:`PARTIAL_MARK`) is refused unless ``accept_partial``.
     """
     path = require_file(path, "tracks file")
     try:
@@ -110,24 +114,33 @@ def read_tracks(path: str | Path) -> Tracks:
     except UnicodeDecodeError:
         raise InputError("not a text CSV file", path) from None
     lines = text.splitlines()
+    if lines and lines[0].startswith(PARTIAL_MARK):
+        if not accept_partial:
+            raise InputError("partial tracks from an interrupted 'keyshape track' "
+                             f"({lines[0][len(PARTIAL_MARK):].strip()}); pass --accept-partial to use them anyway",
+                             path, 1)
+        lines = lines[1:]
+    first = 2 if len(text.splitlines()) != len(lines) else 1   # line number of the header
     if not lines or not lines[0].strip():
-        raise InputError("empty file: expected a header row 'frame,time,confidence,success,x_0,...'", path, 1)
+        raise InputError("empty file: expected a header row 'frame,time,confidence,success,x_0,...'", path, first)
     header = [h.strip() for h in lines[0].split(",")]
     xs = [h for h in header if re.fullmatch(r"x_\d+", h)]
     n_points = len(xs)
     if header[:4] != ["frame", "time", "confidence", "success"] or n_points == 0:
-        raise InputError("header must start 'frame,time,confidence,success,x_0,...'", path, 1)
+        raise InputError("header must start 'frame,time,confidence,success,x_0,...'", path, first)
     with_pose = all(c in header for c in POSE_COLUMNS)
     expected = tracks_header(n_points) if with_pose else tracks_header(n_points)[:-6]
     if header != expected:
         raise InputError(f"unexpected columns: expected {len(expected)} columns "
                          f"frame,time,confidence,success,x_0..x_{n_points - 1},y_0..y_{n_points - 1}"
-                         f"{',pose_a11..pose_ty' if with_pose else ''}", path, 1)
+                         f"{',pose_a11..pose_ty' if with_pose else ''}", path, first)
     rows = []
     ncol = len(expected)
-    for ln, line in enumerate(lines[1:], start=2):
+    lns = []
+    for ln, line in enumerate(lines[1:], start=first + 1):
         if not line.strip():
             continue
+        lns.append(ln)
         parts = line.split(",")
         if len(parts) != ncol:
             raise InputError(f"{len(parts)} fields, expected {ncol}", path, ln)
@@ -137,17 +150,58 @@ def read_tracks(path: str | Path) -> Tracks:
             bad = next(v for v in parts if v.strip() and not _is_float(v))
             raise InputError(f"not a number: {bad.strip()!r}", path, ln) from None
     if not rows:
-        raise InputError("no data rows", path, 2)
+        raise InputError("no data rows", path, first + 1)
     a = np.array(rows, dtype=np.float64)
     n = len(a)
     for col, name in ((0, "frame"), (3, "success")):
         if np.isnan(a[:, col]).any():
-            ln = int(np.flatnonzero(np.isnan(a[:, col]))[0]) + 2
+            ln = lns[int(np.flatnonzero(np.isnan(a[:, col]))[0])]
             raise InputError(f"empty {name} field", path, ln)
+    _check_track_values(a, header, path, lns)
     pose = a[:, -6:].reshape(n, 2, 3) if with_pose else np.broadcast_to(
         np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 2, 3)).copy()
     pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:4 + 2 * n_points]], axis=-1)
     return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose)
+
+
+#: largest plausible pixel coordinate or pose translation (no video is 100 000 pixels wide)
+MAX_PIXELS = 1e5
+
+
+def _check_track_values(a: np.ndarray, header: list[str], path, lns: list[int]) -> None:
+    """Sense checks of the parsed rows: finite, plausible values; frame numbers whole, unique,
+    sorted and contiguous; success 0 or 1."""
+    def fail(row: int, col: int, why: str):
+        raise InputError(f"{header[col]} = {a[row, col]!r}: {why}", path, lns[row])
+
+    inf = np.isinf(a)
+    if inf.any():
+        r, c = np.argwhere(inf)[0]
+        fail(r, c, "not a finite number")
+    fr = a[:, 0]
+    bad = (fr != np.round(fr)) | (fr < 0) | (fr > 1e9)
+    if bad.any():
+        fail(int(np.flatnonzero(bad)[0]), 0, "frame numbers must be whole numbers from 0")
+    if ((a[:, 3] != 0) & (a[:, 3] != 1)).any():
+        fail(int(np.flatnonzero((a[:, 3] != 0) & (a[:, 3] != 1))[0]), 3, "success must be 0 or 1")
+    big = np.abs(np.nan_to_num(a[:, 4:])) > MAX_PIXELS
+    if big.any():
+        r, c = np.argwhere(big)[0]
+        fail(r, c + 4, f"implausible (beyond {MAX_PIXELS:g} pixels)")
+    t = a[:, 1]
+    if (np.abs(np.nan_to_num(t)) > 1e7).any():
+        fail(int(np.flatnonzero(np.abs(np.nan_to_num(t)) > 1e7)[0]), 1, "implausible time (seconds)")
+    step = np.diff(fr)
+    if (step <= 0).any():
+        i = int(np.flatnonzero(step <= 0)[0])
+        why = "repeated" if step[i] == 0 else f"out of order (after frame {int(fr[i])})"
+        fail(i + 1, 0, f"frame numbers must be unique and increasing: frame {why}")
+    if (step > 1).any():
+        gaps = np.flatnonzero(step > 1)
+        i = int(gaps[0])
+        raise InputError(f"frame numbers jump from {int(fr[i])} to {int(fr[i + 1])} ({len(gaps)} gap(s), "
+                         f"{int((step[gaps] - 1).sum())} frames missing): keyshape needs one row per frame "
+                         "(write the missing frames with success=0 and empty coordinates)", path, lns[i + 1])
 
 
 def _is_float(v: str) -> bool:

@@ -64,6 +64,29 @@ def _check_names(names, path, line=None, key_names: bool = False) -> None:
                          f"'frame'/'{FLAG}'; got {odd[:3]}", path, line)
 
 
+#: largest plausible weight magnitude (weights are about 0..1; far beyond is a damaged file)
+MAX_WEIGHT = 1e6
+
+
+def _check_frames(fr: np.ndarray, path, lines: list[int]) -> None:
+    """Frame numbers whole, from 0, unique, increasing and contiguous (one row per frame)."""
+    bad = (fr != np.round(fr)) | (fr < 0) | (fr > 1e9)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"frame {fr[i]:g}: frame numbers must be whole numbers from 0", path, lines[i])
+    step = np.diff(fr)
+    if (step <= 0).any():
+        i = int(np.flatnonzero(step <= 0)[0]) + 1
+        why = "repeated" if step[i - 1] == 0 else f"out of order (after frame {int(fr[i - 1])})"
+        raise InputError(f"frame {int(fr[i])} {why}: frame numbers must be unique and increasing", path, lines[i])
+    if (step > 1).any():
+        gaps = np.flatnonzero(step > 1)
+        i = int(gaps[0])
+        raise InputError(f"frame numbers jump from {int(fr[i])} to {int(fr[i + 1])} ({len(gaps)} gap(s), "
+                         f"{int((step[gaps] - 1).sum())} frames missing): one row per frame is needed for "
+                         "an animation at a steady rate", path, lines[i + 1])
+
+
 def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     """Read a WEIGHTS.csv.
 
@@ -78,8 +101,13 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
         Naming the file and line for a bad header, a short row, a non-number or a NaN.
     """
     path = require_file(path, "weights file")
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a UTF-8 text CSV file (byte {exc.start})", path) from None
+    except csv.Error as exc:
+        raise InputError(f"not a readable CSV file ({exc})", path) from None
     if not rows or not rows[0] or rows[0][0].strip() != "frame":
         raise InputError("expected a header 'frame,<key shape>,...'", path, 1)
     names = [c.strip() for c in rows[0][1:]]
@@ -109,6 +137,15 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
         i, j = np.argwhere(bad)[0]
         col = (["frame", *names, FLAG])[j]
         raise InputError(f"{a[i, j]} in column {col!r} (weights must be finite numbers)", path, body[i][0])
+    big = np.abs(a[:, 1:1 + len(names)]) > MAX_WEIGHT
+    if big.any():
+        i, j = np.argwhere(big)[0]
+        raise InputError(f"{a[i, j + 1]:g} in column {names[j]!r}: implausible weight (beyond +-{MAX_WEIGHT:g})",
+                         path, body[i][0])
+    if flag and not np.isin(a[:, -1], (0, 1)).all():
+        i = int(np.flatnonzero(~np.isin(a[:, -1], (0, 1)))[0])
+        raise InputError(f"'{FLAG}' must be 0 or 1, got {a[i, -1]:g}", path, body[i][0])
+    _check_frames(a[:, 0], path, [ln for ln, _ in body])
     interp = a[:, -1] != 0 if flag else np.zeros(len(a), dtype=bool)
     return WeightsTable(a[:, 0].astype(np.int64), names, a[:, 1:1 + len(names)], interp)
 

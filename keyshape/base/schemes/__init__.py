@@ -88,8 +88,10 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
         regions = {k: tuple(int(i) for i in v) for k, v in data["regions"].items()}
         io = tuple(int(i) for i in data["inter_ocular"])
         name = str(data["name"])
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         raise InputError(f"not a landmark scheme (missing or bad field: {exc})", source) from None
+    if not 1 <= n <= 100000:
+        raise InputError(f"n_points {n}: expected 1 to 100000", source)
     for kind, groups in (("contour", contours), ("region", regions)):
         for k, idx in groups.items():
             bad = [i for i in idx if not 0 <= i < n]
