@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from keyshape.base.geometry import apply_affine, apply_rigid, fit_similarity, procrustes_mean, rigid_fit
+from keyshape.base.geometry import apply_affine, apply_rigid, fit_similarity, procrustes_mean, rigid_fit, robust_rigid_fit
 
 
 def _rot2(a):
@@ -49,3 +49,57 @@ def test_procrustes_mean_ignores_similarity_motions():
     ref /= np.linalg.norm(ref)
     aligned = apply_affine(fit_similarity(mean, ref), mean)        # same shape as the noise-free base
     assert np.abs(aligned - ref).max() < 0.01
+
+
+def _rigid_take(seed, n_frames=40, n_points=6):
+    """Exact rigid motion of ``n_points`` 3D points (a head jig) with known pose per frame."""
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (n_points, 3))
+    rot = Rotation.from_rotvec(0.4 * rng.normal(size=(n_frames, 3))).as_matrix()
+    trans = rng.normal(0, 30, (n_frames, 3))
+    return ref, np.einsum("fij,pj->fpi", rot, ref) + trans[:, None], rot, trans
+
+
+def test_robust_rigid_fit_rejects_a_displaced_point_and_keeps_clean_frames_exact():
+    ref, frames, rot, trans = _rigid_take(0)
+    x = frames.copy()
+    bad = [3, 11, 25]
+    x[bad, [2, 4, 0]] += [[25.0, 0, 0], [0, -15.0, 5.0], [8.0, 8.0, 8.0]]      # knocked / mislabelled markers
+    x[30, 1] = np.nan                                                          # a gap is neither fitted nor rejected
+    plain_rot, plain_trans, _ = rigid_fit(ref, x)
+    assert np.abs(plain_rot[bad] - rot[bad]).max() > 1e-2                      # least squares is pulled off
+    r, t, rej = robust_rigid_fit(ref, x, threshold=1e-6)
+    np.testing.assert_allclose(r, rot, atol=1e-9)
+    np.testing.assert_allclose(t, trans, atol=1e-7)
+    expect = np.zeros(x.shape[:2], bool)
+    expect[bad, [2, 4, 0]] = True
+    np.testing.assert_array_equal(rej, expect)
+    clean = np.setdiff1d(np.arange(len(x)), bad)
+    assert np.array_equal(r[clean], plain_rot[clean]) and np.array_equal(t[clean], plain_trans[clean])
+    # two of four markers wrong: no consensus of 3, the plain fit is kept and nothing is claimed
+    y = frames[:1, :4].copy()
+    y[0, :2] += [[20.0, 0, 0], [0, 0, -30.0]]
+    r1, t1, rej1 = robust_rigid_fit(ref[:4], y, threshold=1e-6)
+    np.testing.assert_array_equal(r1, rigid_fit(ref[:4], y)[0])
+    assert not rej1.any()
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(0, 5), st.floats(5.0, 100.0))
+def test_robust_rigid_fit_is_rigidly_equivariant(seed, bad, shift):
+    """Moving every frame by one rigid motion G moves every fitted pose by G and rejects the same markers."""
+    from scipy.spatial.transform import Rotation
+    ref, frames, rot, trans = _rigid_take(seed, n_frames=4)
+    rng = np.random.default_rng(seed + 1)
+    x = frames.copy()
+    x[1:3, bad] += shift * Rotation.random(random_state=seed).as_matrix()[0]
+    g_rot = Rotation.random(random_state=seed + 2).as_matrix()
+    g_t = rng.normal(0, 100, 3)
+    r, t, rej = robust_rigid_fit(ref, x, threshold=1e-6)
+    r2, t2, rej2 = robust_rigid_fit(ref, x @ g_rot.T + g_t, threshold=1e-6)
+    np.testing.assert_array_equal(rej2, rej)
+    assert rej[1:3, bad].all() and rej.sum() == 2
+    np.testing.assert_allclose(r2, np.einsum("ij,fjk->fik", g_rot, r), atol=1e-9)
+    np.testing.assert_allclose(t2, t @ g_rot.T + g_t, atol=1e-7)
+    np.testing.assert_allclose(r, rot, atol=1e-9)

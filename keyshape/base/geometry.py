@@ -8,11 +8,23 @@ coordinates to image coordinates, ``[x', y'] = A[:, :2] @ [x, y] + A[:, 2]``.
 Rigid motions (any dimension) are ``x_frame = x_ref @ R.T + t`` (``R`` a proper rotation,
 column-vector convention), ``frame_from_ref``: :func:`rigid_fit` solves the weighted
 least-squares (Kabsch/Umeyama) problem for every frame at once with one batched SVD; a
-point hidden in a frame (NaN) simply has weight 0 there.
+point hidden in a frame (NaN) simply has weight 0 there. :func:`robust_rigid_fit` adds
+outlier rejection (scikit-image's RANSAC) in the frames where that fit leaves a large residual.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+from skimage.measure import ransac
+from skimage.transform import EuclideanTransform
+
+if hasattr(EuclideanTransform, "from_estimate"):     # scikit-image >= 0.26: dimension from the data
+    _Euclidean3D = EuclideanTransform
+else:                                                # older: ``ransac`` builds ``model_class()`` itself
+    class _Euclidean3D(EuclideanTransform):
+        def __init__(self):
+            super().__init__(dimensionality=3)
 
 
 def apply_affine(affine: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -132,3 +144,64 @@ def apply_rigid(points: np.ndarray, rot: np.ndarray, trans: np.ndarray, inverse:
     if inverse:
         return np.einsum("fpj,fji->fpi", points - trans[:, None], rot)
     return np.einsum("fpj,fij->fpi", points, rot) + trans[:, None]
+
+
+def _spans_a_plane(src: np.ndarray, dst: np.ndarray) -> bool:
+    """RANSAC sample check: three points that are not (nearly) collinear fix a 3D rotation."""
+    e1, e2 = src[1] - src[0], src[2] - src[0]
+    return bool(np.linalg.norm(np.cross(e1, e2)) > 1e-9 * max(np.dot(e1, e1), np.dot(e2, e2), 1e-300))
+
+
+def robust_rigid_fit(ref: np.ndarray, frames: np.ndarray, threshold: float, weights: np.ndarray | None = None,
+                     max_trials: int = 200, seed: int = 0):
+    """:func:`rigid_fit` that rejects the points of a frame that do not follow the others (3D).
+
+    Every frame first gets the plain weighted least-squares fit. Only in a frame where some
+    visible point lies further than ``threshold`` from its fitted position (and at least 4
+    points are visible) are the outliers sought, by RANSAC (Fischler & Bolles 1981) over
+    minimal 3-point samples with :func:`skimage.measure.ransac` and a 3D
+    :class:`skimage.transform.EuclideanTransform`; the frame is then refitted by
+    :func:`rigid_fit` (same weights) on the consensus set. Frames without a large residual
+    keep the plain fit bit for bit, so a clean take costs one batched SVD.
+
+    Parameters
+    ----------
+    ref : (n_points, 3) or (n_frames, n_points, 3)
+    frames : (n_frames, n_points, 3), NaN allowed (hidden points are never "rejected")
+    threshold : float
+        Inlier distance, in the points' units (above the noise, below the faults to reject).
+    weights : (n_points,) or (n_frames, n_points), optional
+    max_trials, seed
+        RANSAC samples per frame and its random seed (the same for every frame, so a frame's
+        result does not depend on the others).
+
+    Returns
+    -------
+    rot : (n_frames, 3, 3), trans : (n_frames, 3)
+        ``frames ~= ref @ rot.T + trans`` on the inliers.
+    rejected : (n_frames, n_points) bool
+        Visible points left out of the fit as outliers.
+    """
+    x = np.asarray(frames, dtype=np.float64)
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise ValueError(f"robust_rigid_fit: frames must be (n_frames, n_points, 3), got {x.shape}")
+    r = np.broadcast_to(np.asarray(ref, dtype=np.float64), x.shape)
+    w = np.ones(x.shape[:2]) if weights is None else np.broadcast_to(np.asarray(weights, np.float64), x.shape[:2])
+    rot, trans, _ = rigid_fit(r, x, w)
+    ok = np.isfinite(x).all(axis=2) & np.isfinite(r).all(axis=2) & (w > 0)
+    res = np.linalg.norm(apply_rigid(r, rot, trans) - x, axis=2)
+    suspect = (np.where(ok, res, 0.0) > threshold).any(axis=1) & (ok.sum(axis=1) >= 4)
+    rejected = np.zeros(x.shape[:2], dtype=bool)
+    for f in np.flatnonzero(suspect):              # the few frames with a fault; clean ones skip this
+        vis = np.flatnonzero(ok[f])
+        with warnings.catch_warnings():            # "No inliers found": handled below (plain fit kept)
+            warnings.filterwarnings("ignore", message="No inliers found", category=UserWarning)
+            model, inl = ransac((r[f, vis], x[f, vis]), _Euclidean3D, min_samples=3, residual_threshold=threshold,
+                                is_data_valid=_spans_a_plane, max_trials=max_trials, stop_sample_num=len(vis),
+                                stop_probability=0.9999, rng=seed)
+        if model is not None and 3 <= inl.sum() < len(vis):
+            rejected[f, vis[~inl]] = True
+    redo = rejected.any(axis=1)
+    if redo.any():
+        rot[redo], trans[redo], _ = rigid_fit(r[redo], x[redo], np.where(rejected[redo], 0.0, w[redo]))
+    return rot, trans, rejected

@@ -3,7 +3,8 @@
 Coordinates are ``(x, y)`` float arrays of shape ``(n_points, 2)``, image pixels with
 OpenCV's pixel-centre convention; affine maps and shape fits are :mod:`keyshape.base.geometry`.
 
-scikit-image's ``PiecewiseAffineTransform`` is not used: it triangulates the points itself
+scikit-image (a dependency, used for RANSAC rigid fits in :mod:`keyshape.base.geometry`)
+has a ``PiecewiseAffineTransform``, not used here: it triangulates the points itself
 (here the triangulation is given, the same for every shape of a model), leaves pixels
 outside the mesh unmapped (here the nearest triangle extrapolates) and locates every
 pixel's triangle on each call, where :class:`PiecewiseAffine` does that once per

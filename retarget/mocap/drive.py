@@ -1,7 +1,8 @@
 """The marker path end to end: a cleaned take drives a dense target mesh (001 sections 4-5).
 
-1. rigid head motion out (:func:`~retarget.mocap.clean.remove_rigid_motion`, a named rigid set
-   or the most rigid markers), in the first frame's head pose;
+1. rigid head motion out (:func:`~retarget.mocap.clean.remove_rigid_motion`, a named rigid set,
+   whose markers that break rank in a frame are rejected there by RANSAC, or the most rigid
+   markers), in the first frame's head pose;
 2. gaps filled from neighbours' rigid motion, long gaps reported;
 3. markers never seen (e.g. inner lips) placed from the target by the inverse map and
    rebuilt per frame from their outer sibling's local frame (section 5.2);
@@ -55,7 +56,10 @@ def lip_siblings(labels) -> dict:
 
 
 def clean_take(positions, labels, rigid_names=None, max_gap: int = 12):
-    """Steps 1-2: rigid removal then gap filling; returns (positions, rigid labels, GapReport)."""
+    """Steps 1-2: rigid removal then gap filling; returns (positions, rigid labels, GapReport, notes).
+
+    ``notes``: one line per rigid marker rejected as an outlier in some frames (named set only).
+    """
     x = np.asarray(positions, dtype=np.float64)
     labels = list(labels)
     dead = ~np.isfinite(x).all(axis=2).any(axis=0)
@@ -80,7 +84,9 @@ def clean_take(positions, labels, rigid_names=None, max_gap: int = 12):
     f, report = fill_gaps(stab[:, live], max_gap=max_gap, labels=[labels[i] for i in live])
     filled[:, live] = f
     report.unfillable += [(labels[i], 0, len(x)) for i in np.flatnonzero(dead)]
-    return filled, used, report
+    notes = [f"rigid set: {lab} rejected as an outlier in {n} frame(s), first {first} "
+             f"(more than {rr.threshold:.3g} from the others' rigid fit)" for lab, n, first in rr.rejected_report(labels)]
+    return filled, used, report, notes
 
 
 def drive_mesh(positions, labels, target_vertices, target_markers: dict, method: str = "planar",
@@ -112,7 +118,8 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
         notes.append(f"target markers not in the take (ignored): {missing_t}")
     if len(use) < 4:
         raise InputError(f"only {len(use)} marker label(s) of the take are in the target markers; need 4 or more")
-    x, rigid_used, gaps = clean_take(positions, labels, rigid_names, max_gap)
+    x, rigid_used, gaps, clean_notes = clean_take(positions, labels, rigid_names, max_gap)
+    notes += clean_notes
     idx = np.array([labels.index(s) for s in use])
     src = x[:, idx]
     tgt = np.array([target_markers[s] for s in use], dtype=np.float64)
