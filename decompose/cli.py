@@ -11,7 +11,12 @@ def register(subparsers) -> None:
     p.add_argument("tracks", help="tracks CSV (keyshape track, or truth.csv of keyshape synth video)")
     p.add_argument("-k", "--keys", dest="k", type=int, default=None,
                    help="key shapes per region (required but for --method hull2)")
-    p.add_argument("--method", choices=METHODS, default="spread", help="selector (default: spread, the paper's)")
+    p.add_argument("--method", choices=METHODS, default="greedy",
+                   help="selector (default: greedy, best in the project's measurements; spread is the paper's)")
+    p.add_argument("--neutral-frame", default="auto", metavar="F|auto|mean",
+                   help="what the weights are relative to: the actor's neutral, frame F or 'auto' (the most "
+                        "relaxed frame, the default), or 'mean' (the take's mean shape, the paper's centring). "
+                        "The actor's neutral is recorded in KEYS.json either way (for keyshape pose)")
     p.add_argument("--region", action="append", default=None,
                    help="mouth, eyes (with brows) or pupils; repeat for several (default: all the scheme has)")
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
@@ -76,13 +81,20 @@ def _select(args) -> int:
     shapes = model_shapes(tracks, args.tracks)
     regions = args.region or available_regions(scheme)
     try:
-        chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes)
-                  for r in regions]
+        nf = None if args.neutral_frame == "mean" else args.neutral_frame
+        if nf is not None and nf != "auto":
+            try:
+                nf = int(nf)
+            except ValueError:
+                raise InputError(f"--neutral-frame must be a frame number, 'auto' or 'mean', got {nf!r}") from None
+        chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes,
+                                neutral_frame=nf) for r in regions]
     except InputError as exc:
         raise InputError(str(exc), args.tracks) from None
     write_keys(args.output, scheme.name, scheme.n_points, chosen)
     for rk in chosen:
-        print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}")
+        print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}; "
+              f"neutral frame {rk.rest_frame}")
     if args.sheet:
         from keyshape.decompose.sheet import key_sheet
         from keyshape.base.files import atomic_write

@@ -86,8 +86,11 @@ class RegionKeys:
     points : (n,) point indices of the region in the scheme
     frames : (n_keys,) video frame numbers of the key frames (``tracks.frame``)
     keys : (n_keys, n, 2) key shapes
-    neutral : (n, 2) the mean shape weights are relative to
+    neutral : (n, 2) the shape weights are relative to (the take's mean, or the actor's neutral frame)
     from_frame : (n_keys,) bool, False for keys that are cluster means rather than frames
+    rest : (n, 2) or None, the actor's neutral (most relaxed) shape of the region, what a rig
+        pose's motion is measured from (``keyshape pose``)
+    rest_frame : int or None, the video frame ``rest`` was taken from
     """
 
     region: str
@@ -97,6 +100,8 @@ class RegionKeys:
     keys: np.ndarray
     neutral: np.ndarray
     from_frame: np.ndarray = field(default=None)
+    rest: np.ndarray | None = None
+    rest_frame: int | None = None
 
     def __post_init__(self):
         if self.from_frame is None:
@@ -108,11 +113,15 @@ class RegionKeys:
 
 
 def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | None, method: str = "spread",
-                  rng=None, shapes: np.ndarray | None = None) -> RegionKeys:
+                  rng=None, shapes: np.ndarray | None = None, neutral_frame: int | str | None = None) -> RegionKeys:
     """Choose ``n_keys`` key shapes of ``region`` from the successful frames of ``tracks``.
 
     Failed frames (``success=0``) are never candidates. ``shapes`` may pass the
-    already computed :func:`model_shapes`.
+    already computed :func:`model_shapes`. The actor's neutral (``rest``) is always
+    recorded: frame ``neutral_frame`` when it is a frame number, else the most relaxed
+    frame (:func:`relaxed_frame`). With ``neutral_frame`` given (a frame number or
+    ``"auto"``) the weights are relative to that neutral; without it, to the take's mean
+    (the paper's centring).
     """
     idx = region_points(scheme, region)
     shapes = model_shapes(tracks) if shapes is None else shapes
@@ -121,11 +130,49 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
         raise InputError(f"cannot choose {n_keys} key shapes from {len(ok)} successful frames "
                          f"({tracks.n_frames - len(ok)} of {tracks.n_frames} failed)")
     sub = shapes[ok][:, idx]
+    if neutral_frame is None or neutral_frame == "auto":
+        row = relaxed_frame(shapes[:, idx][ok])
+        row = int(ok[row])
+    else:
+        hit = np.flatnonzero(tracks.frame == int(neutral_frame))
+        if not len(hit) or not tracks.success[hit[0]]:
+            raise InputError(f"neutral frame {neutral_frame} is not a successfully tracked frame of the tracks")
+        row = int(hit[0])
+    rest = shapes[row, idx].copy()
+    # keys are chosen around the take's mean either way (measured: centring the greedy search on
+    # the neutral frame gave worse rig curves on a synthetic take); only the weights' origin moves
     sel = make_selector(method, n_keys if n_keys is not None else 0, rng=rng).fit(sub)
     from_frame = np.ones(len(sel.indices_), dtype=bool)
     if getattr(sel, "centre", "nearest") == "mean":
         from_frame[:] = False
-    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_]], sel.keys_, sel.neutral_, from_frame)
+    neutral = sel.neutral_ if neutral_frame is None else rest
+    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_]], sel.keys_, neutral, from_frame,
+                      rest, int(tracks.frame[row]))
+
+
+def relaxed_frame(shapes: np.ndarray, max_frames: int = 1500) -> int:
+    """Row of the most relaxed frame of ``shapes`` (n_frames, n, 2): the densest, most typical shape.
+
+    A performance returns to its relaxed face between expressions, so the shape
+    with the smallest mean distance to its ``max(5, n / 50)`` nearest neighbours
+    (the mode of the shape distribution) is taken as the actor's neutral. NaN rows
+    (failed frames) are never chosen; at most ``max_frames`` evenly spaced rows
+    are compared (one distance matrix, no loop over frames).
+    """
+    X = np.asarray(shapes, float).reshape(len(shapes), -1)
+    ok = np.flatnonzero(np.isfinite(X).all(axis=1))
+    if not len(ok):
+        raise InputError("no successful frame to take the neutral from")
+    rows = ok[np.linspace(0, len(ok) - 1, min(len(ok), max_frames)).round().astype(int)]
+    rows = np.unique(rows)
+    Y = X[rows]
+    sq = (Y ** 2).sum(1)
+    D = np.sqrt(np.maximum(sq[:, None] + sq[None] - 2 * Y @ Y.T, 0))
+    k = min(max(5, len(rows) // 50), len(rows) - 1)
+    if k < 1:
+        return int(rows[0])
+    score = np.sort(D, axis=1)[:, 1:k + 1].mean(axis=1)
+    return int(rows[np.argmin(score)])
 
 
 def decompose_region(tracks: Tracks, keys: RegionKeys, solver: str = "nnls", smooth_lambda: float = 0.1,

@@ -23,6 +23,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.tracker.labelling.cli", None),
     ("keyshape.tracker.cli", None),
     ("keyshape.decompose.cli", None),
+    ("keyshape.retarget.pose_cli", None),
     ("keyshape.retarget.cli", None),
     ("keyshape.retarget.mocap.cli", None),
     ("keyshape.retarget.dense_cli", None),

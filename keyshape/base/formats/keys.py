@@ -12,8 +12,11 @@ KEYS.json::
 
 ``frame`` is the video frame number (the tracks file's ``frame`` column) the key
 was taken from (for k-means centres of mass, ``from_frame`` is false and
-``frame`` is the nearest frame). ``neutral`` is the mean shape the weights are
-relative to: a frame is ``neutral + sum_i w_i (key_i - neutral)``.
+``frame`` is the nearest frame). ``neutral`` is the shape the weights are
+relative to (the take's mean, or the actor's neutral with ``select --neutral-frame``):
+a frame is ``neutral + sum_i w_i (key_i - neutral)``. Optional ``rest`` /
+``rest_frame``: the actor's neutral (most relaxed) shape of the region and its frame,
+which ``keyshape pose`` measures key motion from.
 
 WEIGHTS.csv: header ``frame,mouth_0,...,mouth_7,eyes_0,...,interpolated``; one row
 per frame of the tracks file; ``interpolated`` is 1 where the tracker failed on
@@ -46,6 +49,9 @@ def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[
             "neutral": np.round(rk.neutral, 6).tolist(),
             "keys": [{"name": name, "frame": int(f), "from_frame": bool(ff), "shape": np.round(s, 6).tolist()}
                      for name, f, ff, s in zip(rk.names, rk.frames, rk.from_frame, rk.keys)]}
+        if rk.rest is not None:
+            data["regions"][rk.region]["rest"] = np.round(rk.rest, 6).tolist()
+            data["regions"][rk.region]["rest_frame"] = int(rk.rest_frame)
     with atomic_write(path) as f:
         json.dump(data, f, indent=1)
         f.write("\n")
@@ -84,7 +90,12 @@ def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
             if names != expected:
                 raise InputError(f"region {region!r}: key names must be {expected[0]}..{expected[-1]} in "
                                  f"order, got {names[:3]}...", path)
-            out.append(RegionKeys(region, str(r.get("method", "")), pts, frames, keys, neutral, ff))
+            rest = np.array(r["rest"], dtype=np.float64) if "rest" in r else None
+            if rest is not None and rest.shape != (len(pts), 2):
+                raise InputError(f"region {region!r}: rest has shape {rest.shape}, expected {(len(pts), 2)}", path)
+            rest_frame = int(r["rest_frame"]) if "rest_frame" in r else None
+            out.append(RegionKeys(region, str(r.get("method", "")), pts, frames, keys, neutral, ff,
+                                  rest, rest_frame))
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, InputError):
             raise
