@@ -12,8 +12,14 @@ def register(subparsers) -> None:
                     "per-frame key-shape weights; write .glb, .csv, a folder of OBJ/PNG frames or a video.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("weights", help="weights CSV: frame,REGION_K,... (from keyshape decompose)")
-    p.add_argument("--targets", nargs="+", required=True, metavar="DIR|FILE",
-                   help="folder or files of target key shapes (.obj, .pts, .json)")
+    p.add_argument("--targets", nargs="+", metavar="DIR|FILE",
+                   help="folder or files of target key shapes (.obj, .pts, .json): one sculpted target per key "
+                        "(the paper's route); or use --poses with --rig")
+    p.add_argument("--poses", help="POSES.json from keyshape pose: drive an existing blendshape rig (--rig) "
+                                   "and write the rig's own curves")
+    p.add_argument("--rig", nargs="+", metavar="DIR|FILE",
+                   help="with --poses: the rig, a folder of shape OBJs (or a list of OBJ files); its neutral is "
+                        "--neutral or the folder's neutral.*/generic_neutral_mesh.obj")
     p.add_argument("--map", dest="mapping", help='mapping JSON {"REGION_K": "target file"} '
                                                  "(default: match column names to file stems)")
     p.add_argument("--neutral", help="neutral mesh/drawing (needed for --form delta; base of the .glb)")
@@ -43,19 +49,67 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import numpy as np
-
     from keyshape.base.errors import InputError
     from keyshape.retarget.export import export
     from keyshape.retarget.retargeter import Retargeter
     from keyshape.retarget.targets import load_targets, read_regions
     from keyshape.base.formats.weights import read_weights
 
+    if args.poses or args.rig:
+        return run_rig(args)
+    if not args.targets:
+        raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
     frames, columns, weights = read_weights(args.weights)
     targets = args.targets[0] if len(args.targets) == 1 else args.targets
     ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
     regions = read_regions(args.regions, ts.mesh) if args.regions else None
     rt = Retargeter(form=args.form, band=args.band, metric=args.metric).fit(ts, regions, args.regions or "regions")
+    head, fps = _head(args, frames)
+    fps = fps or 30.0
+    info = export(args.output, rt, frames, weights, fps=fps, head=head, clamp=args.clamp, livelink=args.livelink,
+                  bake_head=args.bake_head, scheme=args.scheme)
+    extra = f", {info['n_clamped']} weights clamped to [0, 1]" if args.clamp else ""
+    print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
+          f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
+          f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"
+          f"{extra} -> {info['path']} ({info['kind']})")
+    return 0
+
+
+def run_rig(args) -> int:
+    """``retarget --poses POSES.json --rig RIG``: the rig's own curves from key weights."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.poses import read_poses
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.poses import curves_from_library
+    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig_export import export_rig
+
+    if not (args.poses and args.rig):
+        raise InputError("--poses and --rig go together (drive a rig with a pose library)")
+    if args.targets:
+        raise InputError("--targets is for one sculpted target per key; with --poses give --rig only")
+    frames, columns, weights = read_weights(args.weights)
+    needs_mesh = not str(args.output).lower().endswith(".csv")
+    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    lib = read_poses(args.poses, rig.names)
+    curves = curves_from_library(weights, columns, lib, rig.names, args.poses)
+    head, fps = _head(args, frames)
+    fps = fps or 30.0
+    info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink)
+    used = int((np.abs(curves).max(axis=0) > 0).sum())
+    print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key weights -> {used} of {rig.n_shapes} rig "
+          f"shapes moving at {fps:g} fps -> {info['path']} ({info['kind']})")
+    return 0
+
+
+def _head(args, frames):
+    """Head motion from ``--tracks`` (or None) and the frame rate from its timestamps (or ``--fps``)."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
     head, fps = None, args.fps
     if args.tracks:
         from keyshape.retarget.headpose import head_motion
@@ -77,12 +131,4 @@ def run(args) -> int:
             dt = np.diff(tr.time)
             dt = dt[np.isfinite(dt) & (dt > 0)]
             fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
-    fps = fps or 30.0
-    info = export(args.output, rt, frames, weights, fps=fps, head=head, clamp=args.clamp, livelink=args.livelink,
-                  bake_head=args.bake_head, scheme=args.scheme)
-    extra = f", {info['n_clamped']} weights clamped to [0, 1]" if args.clamp else ""
-    print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
-          f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
-          f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"
-          f"{extra} -> {info['path']} ({info['kind']})")
-    return 0
+    return head, fps

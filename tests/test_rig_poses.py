@@ -1,0 +1,265 @@
+"""Pose library onto an existing blendshape rig: `keyshape pose`, `retarget --poses --rig` (issue 14)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from keyshape.base.errors import InputError
+from keyshape.base.formats.obj import Mesh, write_obj
+from keyshape.base.formats.poses import read_poses, write_rig_landmarks
+from keyshape.base.schemes import load_scheme
+from keyshape.cli import main
+from keyshape.decompose.regions import RegionKeys, region_points
+from keyshape.retarget.poses import (curves_from_library, fit_pose, fit_similarity, pose_library, rig_curves)
+from keyshape.retarget.rig import load_rig, project, shape_regions
+
+SCHEME = load_scheme("contours48")
+
+
+# ----------------------------------------------------------------------------------------- pure functions
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.05, 20), st.floats(-np.pi, np.pi), st.floats(-50, 50), st.floats(-50, 50),
+       st.integers(0, 10_000))
+def test_fit_similarity_recovers_a_similarity(s, ang, tx, ty, seed):
+    src = np.random.default_rng(seed).normal(size=(12, 2)) * 30
+    R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    dst = s * src @ R.T + [tx, ty]
+    s2, R2, t2 = fit_similarity(src, dst)
+    assert s2 == pytest.approx(s, rel=1e-8)
+    np.testing.assert_allclose(R2, R, atol=1e-8)
+    np.testing.assert_allclose(t2, [tx, ty], atol=1e-6 * max(1, s * 100))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_fit_pose_recovers_sparse_bounded_weights(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(40, 12))
+    p = np.zeros(12)
+    on = rng.choice(12, 3, replace=False)
+    p[on] = rng.uniform(0.2, 1.0, 3)
+    got = fit_pose(A, A @ p, sparsity=0.0)
+    np.testing.assert_allclose(got, p, atol=1e-4)
+    # a target beyond the range is met at the bound, never past it
+    big = fit_pose(A[:, :1], 3 * A[:, 0], sparsity=0.0)
+    assert big[0] == pytest.approx(1.0)
+
+
+def test_fit_pose_sparsity_prefers_one_strong_shape_and_ignores_free_translation():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=20)
+    # shape 0 moves the points like shapes 1 + 2 together, at half their weight
+    A = np.stack([a, 0.5 * a + 0.01 * rng.normal(size=20), 0.5 * a + 0.01 * rng.normal(size=20)], 1)
+    free = np.tile(np.eye(2), (10, 1))
+    b = 0.6 * a + free @ [3.0, -2.0]                     # plus a common shift of all points
+    p = fit_pose(A, b, sparsity=0.01, free=free)
+    assert p[0] > 0.5 and p[1:].max() < 0.05
+    assert fit_pose(A, b, sparsity=0.01)[0] < 0.5        # without the free shift the fit is spoiled
+
+
+def test_rig_curves_is_the_linear_map_of_the_paper():
+    rng = np.random.default_rng(0)
+    W = rng.uniform(0, 1, (30, 4))
+    P = rng.uniform(0, 1, (4, 6))
+    pn = rng.uniform(0, 0.2, 6)
+    c = rig_curves(W, P, pn, bounds=None)
+    for t in (0, 7, 29):                                  # frame = neutral + sum_i w_i (key_i - neutral)
+        np.testing.assert_allclose(c[t], pn + sum(W[t, i] * (P[i] - pn) for i in range(4)))
+    assert rig_curves(W * 5, P, pn).max() <= 1.0 and rig_curves(-W, P, pn).min() >= 0.0
+    with pytest.raises(InputError, match="do not match"):
+        rig_curves(W[:, :3], P)
+
+
+def test_curves_from_library_each_region_drives_only_its_shapes():
+    names = ["jawOpen", "mouthSmile_L", "eyeBlink_L", "eyeBlink_R"]
+    lib = {"range": [0, 1], "regions": {
+        "mouth": {"shapes": ["jawOpen", "mouthSmile_L"], "neutral": {},
+                  "keys": {"mouth_0": {"jawOpen": 0.8}, "mouth_1": {"mouthSmile_L": 0.5, "jawOpen": 0.1}}},
+        "eyes": {"shapes": ["eyeBlink_L", "eyeBlink_R"], "neutral": {},
+                 "keys": {"eyes_0": {"eyeBlink_L": 1.0, "eyeBlink_R": 1.0}}}}}
+    W = np.array([[1.0, 0.0, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 0.7]])
+    c = curves_from_library(W, ["mouth_0", "mouth_1", "eyes_0"], lib, names)
+    np.testing.assert_allclose(c, [[0.8, 0, 0, 0], [0.5, 0.5, 0, 0], [0, 0, 0.7, 0.7]])
+    with pytest.raises(InputError, match="no pose"):
+        curves_from_library(W, ["mouth_0", "mouth_1", "pupils_0"], lib, names)
+
+
+# ----------------------------------------------------------------------------------------- a toy rig
+
+SHAPES = {  # contours48 point motions (image axes, y down) of each toy rig shape, per unit weight
+    "jawOpen": {p: (0, 6.0) for p in (35, 36, 37, 38, 39, 45, 46, 47)} | {28: (0, 3.0), 34: (0, 3.0)},
+    "mouthSmile_L": {34: (4.0, -4.0), 44: (3.0, -3.0), 33: (1.5, -2.0)},
+    "mouthSmile_R": {28: (-4.0, -4.0), 40: (-3.0, -3.0), 29: (-1.5, -2.0)},
+    "mouthPucker": {28: (4.0, 0), 34: (-4.0, 0), 40: (3.0, 0), 44: (-3.0, 0)},
+    "eyeBlink_L": {p: (0, 5.0) for p in (19, 20, 21)},
+    "eyeBlink_R": {p: (0, 5.0) for p in (11, 12, 13)},
+    "browInnerUp_L": {5: (0, -4.0), 6: (0, -3.0)},
+    "browInnerUp_R": {4: (0, -4.0), 3: (0, -3.0)},
+    "PupilDilate_L": {},
+}
+
+
+def toy_rig_arrays():
+    """Rig vertices = the 48 contours48 points of a mean face (+ 2 off-face vertices), z = 0."""
+    from keyshape.data_synth.face_model import FaceModel
+    neutral2d, _ = FaceModel(rng=3).basis()
+    neutral2d = np.asarray(neutral2d).reshape(-1, 2)[:48] / 20.0     # rig units ~ cm
+    v2d = np.concatenate([neutral2d, [[0, -6], [0, 8]]])
+    verts = np.column_stack([v2d[:, 0], -v2d[:, 1], np.zeros(len(v2d))])   # y up in the rig
+    deltas = np.zeros((len(SHAPES), len(verts), 3))
+    for j, motion in enumerate(SHAPES.values()):
+        for p, (dx, dy) in motion.items():
+            deltas[j, p] = [dx / 20.0, -dy / 20.0, 0.0]
+    return verts, deltas
+
+
+def write_toy_rig(folder, n_bad: int | None = None):
+    verts, deltas = toy_rig_arrays()
+    polys = [np.array([i, i + 1, 48]) for i in range(0, 47)]
+    mesh = Mesh(verts, polys)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_obj(folder / "neutral.obj", mesh)
+    for name, d in zip(SHAPES, deltas):
+        write_obj(folder / f"{name}.obj", mesh, verts + d)
+    if n_bad is not None:
+        write_obj(folder / "broken.obj", Mesh(verts[:n_bad], []))
+    lm = folder.parent / "toy_landmarks.json"
+    write_rig_landmarks(lm, "contours48", len(verts), list(range(48)))
+    return folder, lm
+
+
+def actor_keys(true_poses: dict[str, dict[str, float]], s=3.0, ang=0.1, shift=(5.0, -2.0)):
+    """Keys of an 'actor' whose face is the toy rig seen through a similarity: rest + S (rig pose motion)."""
+    verts, deltas = toy_rig_arrays()
+    names = list(SHAPES)
+    R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    to_actor = lambda p2: s * p2 @ R.T + shift  # noqa: E731
+    rest = to_actor(project(verts[:48]))
+    regions = []
+    for region in ("mouth", "eyes"):
+        idx = region_points(SCHEME, region)
+        keys = []
+        knames = [k for k in true_poses if k.startswith(region)]
+        for k in knames:
+            c = np.zeros(len(names))
+            for n, v in true_poses[k].items():
+                c[names.index(n)] = v
+            keys.append(to_actor(project(verts[:48] + np.tensordot(c, deltas[:, :48], 1)))[idx])
+        regions.append(RegionKeys(region, "greedy", idx, np.arange(len(keys)), np.array(keys), rest[idx],
+                                  None, rest[idx], 0))
+    return regions
+
+
+TRUE = {"mouth_0": {"jawOpen": 0.7}, "mouth_1": {"mouthSmile_L": 0.6, "mouthSmile_R": 0.5},
+        "mouth_2": {"mouthPucker": 0.8, "jawOpen": 0.2}, "eyes_0": {"eyeBlink_L": 1.0, "eyeBlink_R": 0.9},
+        "eyes_1": {"browInnerUp_L": 0.5, "browInnerUp_R": 0.5}}
+
+
+def test_pose_library_recovers_the_poses_of_keys_made_from_the_rig():
+    verts, deltas = toy_rig_arrays()
+    ld = project(deltas[:, :48])
+    groups = {r: region_points(SCHEME, r) for r in ("mouth", "eyes", "pupils")}
+    rs = shape_regions(ld, groups)
+    names = list(SHAPES)
+    assert [names[j] for j in rs["mouth"]] == ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthPucker"]
+    assert "PupilDilate_L" not in [names[j] for r in rs.values() for j in r]        # moves nothing
+    lib = pose_library(actor_keys(TRUE), names, project(verts[:48]), ld, rs, sparsity=0.001, nuisance="none")
+    fit = lib.pop("_fit")
+    for k, pose in TRUE.items():
+        region = k.split("_")[0]
+        got = lib[region]["keys"][k]
+        for n in names:
+            assert got.get(n, 0.0) == pytest.approx(pose.get(n, 0.0), abs=0.01), (k, n, got)
+        assert fit[k] < 0.01
+
+
+def test_pose_and_retarget_commands_end_to_end(tmp_path):
+    from keyshape.base.formats.keys import write_keys
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.base.formats.keys import write_weights as write_key_weights
+    rig, lm = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "--nuisance", "none", "-o", str(tmp_path / "poses.json")]) == 0
+    poses = read_poses(tmp_path / "poses.json", list(SHAPES))
+    assert poses["regions"]["mouth"]["keys"]["mouth_0"]["jawOpen"] == pytest.approx(0.7, abs=0.03)
+    cols = list(TRUE)
+    W = np.zeros((5, len(cols)))
+    W[np.arange(5), np.arange(5)] = [1.0, 0.5, 1.0, 0.25, 3.0]
+    write_key_weights(tmp_path / "w.csv", np.arange(5), cols, W)
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                 "-o", str(tmp_path / "curves.csv")]) == 0
+    frames, names, C = read_weights(tmp_path / "curves.csv")
+    assert set(names) == set(SHAPES)
+    col = {n: i for i, n in enumerate(names)}
+    assert C[0, col["jawOpen"]] == pytest.approx(0.7, abs=0.03)
+    assert C[3, col["eyeBlink_L"]] == pytest.approx(0.25, abs=0.02)
+    assert C[4, col["browInnerUp_L"]] == pytest.approx(1.0, abs=1e-6)         # 3 x 0.5: clipped to the range
+    assert C[:, col["PupilDilate_L"]].max() == 0
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                 "--livelink", "-o", str(tmp_path / "ll.csv")]) == 0
+    header = (tmp_path / "ll.csv").read_text().splitlines()[0].split(",")
+    assert header[:3] == ["Timecode", "BlendShapeCount", "EyeBlinkLeft"]
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                 "-o", str(tmp_path / "take.glb")]) == 0
+    import pygltflib
+    g = pygltflib.GLTF2().load(str(tmp_path / "take.glb"))
+    assert g.meshes[0].extras["targetNames"] == load_rig(rig).names
+
+
+# ----------------------------------------------------------------------------------------- bad input
+
+def _setup(tmp_path):
+    from keyshape.base.formats.keys import write_keys
+    rig, lm = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "-o", str(tmp_path / "poses.json")]) == 0
+    from keyshape.base.formats.keys import write_weights as write_key_weights
+    write_key_weights(tmp_path / "w.csv", np.arange(3), list(TRUE), np.full((3, len(TRUE)), 0.5))
+    return rig, lm
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["regions"]["mouth"]["keys"]["mouth_0"].update({"tongueOut": 0.5}), "tongueOut"),
+    (lambda d: d["regions"]["mouth"]["shapes"].append("cheekPuff"), "lacks"),
+    (lambda d: d["regions"]["mouth"]["keys"]["mouth_0"].update({"jawOpen": 1.7}), "outside the rig's range"),
+    (lambda d: d["regions"]["eyes"]["keys"]["eyes_0"].update({"eyeBlink_L": -0.2}), "outside the rig's range"),
+    (lambda d: d["regions"]["eyes"]["keys"]["eyes_0"].update({"eyeBlink_L": "x"}), "not a finite number"),
+])
+def test_bad_poses_file_is_refused_naming_it_and_nothing_written(tmp_path, capsys, edit, message):
+    rig, _ = _setup(tmp_path)
+    p = tmp_path / "poses.json"
+    d = json.loads(p.read_text())
+    edit(d)
+    p.write_text(json.dumps(d))
+    out = tmp_path / "curves.csv"
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(p), "--rig", str(rig), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(p) in err and message in err
+    assert not out.exists()
+
+
+def test_rig_with_a_shape_of_another_vertex_count_is_refused(tmp_path, capsys):
+    rig, lm = write_toy_rig(tmp_path / "rig", n_bad=20)
+    with pytest.raises(InputError, match="broken.obj.*20 vertices"):
+        load_rig(rig)
+    from keyshape.base.formats.keys import write_keys
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    out = tmp_path / "poses.json"
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "-o", str(out)]) == 2
+    assert "broken.obj" in capsys.readouterr().err and not out.exists()
+
+
+def test_rig_without_landmarks_asks_for_them(tmp_path, capsys):
+    from keyshape.base.formats.keys import write_keys
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "-o", str(tmp_path / "p.json")]) == 2
+    assert "--landmarks" in capsys.readouterr().err
