@@ -49,7 +49,7 @@ def run(args) -> int:
     lm_neutral = project(W @ rig.neutral)
     lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
     groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
-    reg_shapes = shape_regions(lm_deltas, groups)
+    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, args.sparsity,
                        args.nuisance)
     fit = lib.pop("_fit")

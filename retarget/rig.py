@@ -169,8 +169,13 @@ def project(points3d: np.ndarray) -> np.ndarray:
     return np.stack([p[..., 0], -p[..., 1]], axis=-1)
 
 
+#: ARKit gaze shapes: driven by the pupils region whatever they move (ICT-FaceKit turns its eyeballs
+#: with bones, so its ``eyeLook*`` shapes move only the lids, and a lid fit would mistake a blink for gaze).
+GAZE_PREFIX = "eyelook"
+
+
 def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarray],
-                  min_fraction: float = 0.05) -> dict[str, np.ndarray]:
+                  min_fraction: float = 0.05, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """Regions of rig shapes from their own support: each shape goes to the region whose points it moves most.
 
     Parameters
@@ -180,12 +185,22 @@ def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarr
     min_fraction : a shape whose largest region motion (RMS over the region's points) is below
         this fraction of the largest over all shapes drives no region (e.g. ``PupilDilate``)
 
+    names : the shapes' names; ARKit gaze shapes (``eyeLook*``) go to the ``pupils`` region
+        (and to no region when there is none)
+
     Returns
     -------
     {region: indices of the shapes it drives}
     """
-    names = list(region_points)
-    rms = np.stack([np.sqrt((landmark_deltas[:, region_points[r]] ** 2).sum(-1).mean(-1)) for r in names], 1)
+    regions = list(region_points)
+    rms = np.stack([np.sqrt((landmark_deltas[:, region_points[r]] ** 2).sum(-1).mean(-1)) for r in regions], 1)
     best = np.argmax(rms, axis=1)
     keep = rms.max(axis=1) >= min_fraction * rms.max()
-    return {r: np.flatnonzero(keep & (best == i)) for i, r in enumerate(names)}
+    if names is not None:
+        gaze = np.array([n.lower().startswith(GAZE_PREFIX) for n in names])
+        if "pupils" in regions:
+            best[gaze] = regions.index("pupils")
+            keep |= gaze
+        else:
+            keep &= ~gaze
+    return {r: np.flatnonzero(keep & (best == i)) for i, r in enumerate(regions)}
