@@ -7,8 +7,10 @@ SOLVERS = ("nnls", "lstsq", "smooth")
 
 def register(subparsers) -> None:
     """Add this stage's subcommands to ``subparsers``."""
-    p = subparsers.add_parser("select", help="choose key shapes (key frames) from a tracks file")
-    p.add_argument("tracks", help="tracks CSV (keyshape track, or truth.csv of keyshape synth video)")
+    p = subparsers.add_parser("select", help="choose key shapes (key frames) from one or more tracks files")
+    p.add_argument("tracks", nargs="+",
+                   help="tracks CSV (keyshape track, or truth.csv of keyshape synth video); several files of one "
+                        "actor and one model give one key set for all of them")
     p.add_argument("-k", "--keys", dest="k", type=int, default=None,
                    help="key shapes per region (required but for --method hull2)")
     p.add_argument("--method", choices=METHODS, default="greedy",
@@ -36,6 +38,8 @@ def register(subparsers) -> None:
     p.add_argument("--ridge", type=float, default=0.0,
                    help="shrink weights towards 0 against tracking noise: Tikhonov term, dimensionless "
                         "(0 = the paper's NNLS, the default; 0.01-0.1 on noisy tracks)")
+    p.add_argument("--allow-foreign-keys", action="store_true",
+                   help="use keys chosen from tracks of another tracker model (refused by default)")
     p.add_argument("-o", "--output", required=True, help="WEIGHTS.csv to write")
     p.set_defaults(func=_decompose)
 
@@ -53,17 +57,47 @@ def register(subparsers) -> None:
     p.set_defaults(func=_compare)
 
 
-def _load(args):
+def _load(args, path=None):
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.schemes import load_scheme, scheme_for_n_points
     from keyshape.base.errors import InputError
 
-    tracks = read_tracks(args.tracks)
+    path = args.tracks if path is None else path
+    tracks = read_tracks(path)
     scheme = load_scheme(args.scheme) if getattr(args, "scheme", None) else scheme_for_n_points(tracks.n_points)
     if scheme.n_points != tracks.n_points:
         raise InputError(f"scheme {scheme.name!r} has {scheme.n_points} points, the tracks {tracks.n_points}",
-                         args.tracks)
+                         path)
     return tracks, scheme
+
+
+def _load_many(args):
+    """Several tracks files of one actor: concatenated, with the file index of every row."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.tracks import Tracks
+
+    loaded = [_load(args, p) for p in args.tracks]
+    tracks, scheme = loaded[0]
+    models = {t.meta.get("model") for t, _ in loaded}
+    if len(models) > 1:
+        which = ", ".join(f"{p}: {t.meta.get('model', 'unknown')}" for p, (t, _) in zip(args.tracks, loaded))
+        raise InputError(f"the tracks come from different tracker models ({which}); one key set needs "
+                         "one actor's model")
+    if len({t.n_points for t, _ in loaded}) > 1:
+        raise InputError("the tracks files have different point counts", args.tracks[1])
+    take = np.concatenate([np.full(t.n_frames, i) for i, (t, _) in enumerate(loaded)])
+    orig_frame = np.concatenate([t.frame for t, _ in loaded])
+    if len(loaded) > 1:             # one sequence; frame numbers repeat across files, so rows number them
+        ts = [t for t, _ in loaded]
+        tracks = Tracks(np.arange(len(take)), *(np.concatenate([getattr(t, k) for t in ts]) for k in
+                                                ("time", "confidence", "success", "points", "pose")),
+                        dict(ts[0].meta))
+    source = {"scheme": scheme.name, "tracks": [str(p) for p in args.tracks]}
+    if tracks.meta.get("model"):
+        source["model"] = tracks.meta["model"]
+    return tracks, scheme, take, orig_frame, source
 
 
 def _select(args) -> int:
@@ -73,15 +107,19 @@ def _select(args) -> int:
     from keyshape.base.formats.keys import write_keys
     from keyshape.decompose.regions import available_regions, model_shapes, select_region
 
-    tracks, scheme = _load(args)
+    tracks, scheme, take, orig_frame, source = _load_many(args)
     if args.k is None and args.method != "hull2":
         raise InputError(f"-k is required for --method {args.method}")
     if args.sheet and not args.video:
         raise InputError("--sheet needs --video (the video the tracks came from)")
-    shapes = model_shapes(tracks, args.tracks)
+    if args.sheet and len(args.tracks) > 1:
+        raise InputError("--sheet works with one tracks file (and its --video)")
+    shapes = model_shapes(tracks, args.tracks[0])
     regions = args.region or available_regions(scheme)
     try:
         nf = None if args.neutral_frame == "mean" else args.neutral_frame
+        if nf is not None and nf != "auto" and len(args.tracks) > 1:
+            raise InputError("--neutral-frame F is ambiguous with several tracks files: use auto")
         if nf is not None and nf != "auto":
             try:
                 nf = int(nf)
@@ -90,8 +128,13 @@ def _select(args) -> int:
         chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes,
                                 neutral_frame=nf) for r in regions]
     except InputError as exc:
-        raise InputError(str(exc), args.tracks) from None
-    write_keys(args.output, scheme.name, scheme.n_points, chosen)
+        raise InputError(str(exc), args.tracks[0]) from None
+    if len(args.tracks) > 1:          # rows were numbered 0..N-1: back to (file, frame)
+        for rk in chosen:
+            rk.takes = take[rk.frames]
+            rk.frames = orig_frame[rk.frames]
+            rk.rest_frame = int(orig_frame[rk.rest_frame])
+    write_keys(args.output, scheme.name, scheme.n_points, chosen, source)
     for rk in chosen:
         print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}; "
               f"neutral frame {rk.rest_frame}")
@@ -121,6 +164,13 @@ def _decompose(args) -> int:
 
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
+    from keyshape.base.formats.keys import read_keys_source
+    src = read_keys_source(args.keys)
+    mk, mt = src.get("model"), tracks.meta.get("model")
+    if mk and mt and mk != mt and not args.allow_foreign_keys:
+        raise InputError(f"these keys were chosen from tracks of another tracker model ({mk}; these tracks: {mt}): "
+                         "keys belong to one actor's model. Select keys from this model's tracks, or pass "
+                         "--allow-foreign-keys", args.keys)
     if n_points != tracks.n_points:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)

@@ -91,6 +91,8 @@ class RegionKeys:
     rest : (n, 2) or None, the actor's neutral (most relaxed) shape of the region, what a rig
         pose's motion is measured from (``keyshape pose``)
     rest_frame : int or None, the video frame ``rest`` was taken from
+    takes : (n_keys,) int or None, for keys chosen from several tracks files: which file
+        (index into KEYS.json's ``source.tracks``) each key's frame is in
     """
 
     region: str
@@ -102,6 +104,7 @@ class RegionKeys:
     from_frame: np.ndarray = field(default=None)
     rest: np.ndarray | None = None
     rest_frame: int | None = None
+    takes: np.ndarray | None = None
 
     def __post_init__(self):
         if self.from_frame is None:

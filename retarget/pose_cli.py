@@ -35,7 +35,7 @@ def run(args) -> int:
 
     import numpy as np
 
-    from keyshape.base.formats.keys import read_keys
+    from keyshape.base.formats.keys import read_keys, read_keys_source
     from keyshape.base.formats.poses import write_poses
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import available_regions, region_points
@@ -57,9 +57,9 @@ def run(args) -> int:
             "rig": {"neutral": str(rig.neutral_file), "n_vertices": rig.n_vertices, "shapes": rig.names,
                     "landmarks": str(lm_path)},
             "range": list(rig.value_range), "regions": lib}
-    src = getattr(regions[0], "source", None)
-    if src:
-        data["keys"]["model"] = src
+    src = read_keys_source(args.keys)
+    if src.get("model"):
+        data["keys"]["model"] = src["model"]
     write_poses(args.output, data)
     for r, reg in lib.items():
         print(f"{r}: {len(reg['keys'])} keys onto {len(reg['shapes'])} rig shapes")

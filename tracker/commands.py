@@ -84,7 +84,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     t0 = time.perf_counter()
     with contextlib.ExitStack() as stack:
         f = stack.enter_context(atomic_write(output))
-        writer = TracksWriter(f, model.n_points)
+        from keyshape.tracker.model_io import model_fingerprint
+        writer = TracksWriter(f, model.n_points, {"model": model_fingerprint(model), "scheme": model.scheme_.name})
         vw = stack.enter_context(video_writer(overlay, info.fps, (info.width, info.height))) if overlay else None
 
         def emit(items):

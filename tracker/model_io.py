@@ -27,6 +27,20 @@ def _scheme_dict(s: Scheme) -> dict:
             "regions": {k: list(v) for k, v in s.regions.items()}, "inter_ocular": list(s.inter_ocular)}
 
 
+def model_fingerprint(model: AppearanceModel) -> str:
+    """A short, stable identity of a trained model: ``sha256:`` of its learnt arrays (16 hex digits).
+
+    Written into the tracks it makes (``# keyshape-tracks`` line) and from there into
+    KEYS.json, so ``keyshape decompose`` can refuse keys chosen with another model.
+    """
+    import hashlib
+    h = hashlib.sha256()
+    for k in AppearanceModel._ARRAYS:
+        a = np.ascontiguousarray(getattr(model, k))
+        h.update(k.encode() + str(a.shape).encode() + a.astype(np.float64).tobytes())
+    return "sha256:" + h.hexdigest()[:16]
+
+
 def save_model(path: str | Path, model: AppearanceModel) -> None:
     """Write ``model`` to ``path`` (.npz), atomically."""
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "scheme": _scheme_dict(model.scheme_),

@@ -16,7 +16,10 @@ was taken from (for k-means centres of mass, ``from_frame`` is false and
 relative to (the take's mean, or the actor's neutral with ``select --neutral-frame``):
 a frame is ``neutral + sum_i w_i (key_i - neutral)``. Optional ``rest`` /
 ``rest_frame``: the actor's neutral (most relaxed) shape of the region and its frame,
-which ``keyshape pose`` measures key motion from.
+which ``keyshape pose`` measures key motion from. Optional top-level ``source``:
+``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``, the tracker model the keys'
+tracks came from (``keyshape decompose`` refuses keys of another model); with several
+tracks files each key has ``"take"``, the index of its file.
 
 WEIGHTS.csv: header ``frame,mouth_0,...,mouth_7,eyes_0,...,interpolated``; one row
 per frame of the tracks file; ``interpolated`` is 1 where the tracker failed on
@@ -39,10 +42,16 @@ FORMAT = "keyshape-keys"
 _NAME = re.compile(r"([a-z]+)_(\d+)")
 
 
-def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[RegionKeys]) -> None:
-    """Write key shapes of one or more regions to a KEYS.json file, atomically."""
+def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[RegionKeys],
+               source: dict | None = None) -> None:
+    """Write key shapes of one or more regions to a KEYS.json file, atomically.
+
+    ``source``: where the keys came from, ``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``
+    (``keyshape decompose`` refuses keys of another model)."""
     data = {"format": FORMAT, "version": 1, "scheme": scheme_name, "n_points": int(n_points),
             "coordinates": "model frame (head pose removed)", "regions": {}}
+    if source:
+        data["source"] = source
     for rk in regions:
         data["regions"][rk.region] = {
             "method": rk.method, "points": [int(i) for i in rk.points],
@@ -52,6 +61,9 @@ def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[
         if rk.rest is not None:
             data["regions"][rk.region]["rest"] = np.round(rk.rest, 6).tolist()
             data["regions"][rk.region]["rest_frame"] = int(rk.rest_frame)
+        if rk.takes is not None:
+            for k, t in zip(data["regions"][rk.region]["keys"], rk.takes):
+                k["take"] = int(t)
     with atomic_write(path) as f:
         json.dump(data, f, indent=1)
         f.write("\n")
@@ -103,6 +115,17 @@ def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
     if not out:
         raise InputError("no regions in key-shapes file", path)
     return scheme, n_points, out
+
+
+def read_keys_source(path: str | Path) -> dict:
+    """The ``source`` of a KEYS.json file (``{}`` when it has none): model, scheme and tracks files."""
+    path = require_file(path, "key-shapes file")
+    try:
+        data = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    src = data.get("source", {}) if isinstance(data, dict) else {}
+    return src if isinstance(src, dict) else {}
 
 
 def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weights: np.ndarray,

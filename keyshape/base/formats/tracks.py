@@ -20,13 +20,19 @@ Tracks CSV, one row per frame::
 
 The pose is the 2x3 affine map ``image_from_model``: ``[x_img, y_img] =
 A @ [x_model, y_model] + t``.
+
+``keyshape track`` writes one metadata line before the header,
+``# keyshape-tracks {"model": "sha256:...", "scheme": "contours48"}`` (JSON): which model
+and scheme made the tracks (``Tracks.meta``). Readers skip leading ``#`` lines; files
+without one read with empty metadata.
 """
 from __future__ import annotations
 
 import io as _io
+import json
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +165,7 @@ class Tracks:
     success : (n_frames,) bool; False where tracking failed (points are then NaN or not to be trusted)
     points : (n_frames, n_points, 2) float64, image pixels
     pose : (n_frames, 2, 3) float64, affine ``image_from_model``
+    meta : dict, e.g. ``{"model": "sha256:...", "scheme": "contours48"}`` (empty when unknown)
     """
 
     frame: np.ndarray
@@ -167,6 +174,7 @@ class Tracks:
     success: np.ndarray
     points: np.ndarray
     pose: np.ndarray
+    meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -193,7 +201,7 @@ class Tracks:
 
     def __getitem__(self, idx) -> "Tracks":
         return Tracks(self.frame[idx], self.time[idx], self.confidence[idx], self.success[idx],
-                      self.points[idx], self.pose[idx])
+                      self.points[idx], self.pose[idx], dict(self.meta))
 
 
 def tracks_header(n_points: int) -> list[str]:
@@ -211,8 +219,17 @@ def write_tracks(path: str | Path, tracks: Tracks) -> None:
     np.savetxt(buf, data, fmt=fmt, delimiter=",")
     text = buf.getvalue().replace("nan", "")
     with atomic_write(path) as f:
+        f.write(meta_line(tracks.meta))
         f.write(",".join(tracks_header(p)) + "\n")
         f.write(text)
+
+
+META_PREFIX = "# keyshape-tracks "
+
+
+def meta_line(meta: dict | None) -> str:
+    """The metadata line of a tracks CSV ('' for no metadata)."""
+    return META_PREFIX + json.dumps(meta, sort_keys=True) + "\n" if meta else ""
 
 
 def read_tracks(path: str | Path) -> Tracks:
@@ -227,22 +244,33 @@ def read_tracks(path: str | Path) -> Tracks:
     except UnicodeDecodeError:
         raise InputError("not a text CSV file", path) from None
     lines = text.splitlines()
+    meta: dict = {}
+    skip = 0
+    while skip < len(lines) and lines[skip].startswith("#"):
+        if lines[skip].startswith(META_PREFIX):
+            try:
+                meta = json.loads(lines[skip][len(META_PREFIX):])
+            except json.JSONDecodeError:
+                raise InputError("broken '# keyshape-tracks' metadata line (not JSON)", path, skip + 1) from None
+        skip += 1
+    lines = lines[skip:]
     if not lines or not lines[0].strip():
-        raise InputError("empty file: expected a header row 'frame,time,confidence,success,x_0,...'", path, 1)
+        raise InputError("empty file: expected a header row 'frame,time,confidence,success,x_0,...'", path,
+                         skip + 1)
     header = [h.strip() for h in lines[0].split(",")]
     xs = [h for h in header if re.fullmatch(r"x_\d+", h)]
     n_points = len(xs)
     if header[:4] != ["frame", "time", "confidence", "success"] or n_points == 0:
-        raise InputError("header must start 'frame,time,confidence,success,x_0,...'", path, 1)
+        raise InputError("header must start 'frame,time,confidence,success,x_0,...'", path, skip + 1)
     with_pose = all(c in header for c in POSE_COLUMNS)
     expected = tracks_header(n_points) if with_pose else tracks_header(n_points)[:-6]
     if header != expected:
         raise InputError(f"unexpected columns: expected {len(expected)} columns "
                          f"frame,time,confidence,success,x_0..x_{n_points - 1},y_0..y_{n_points - 1}"
-                         f"{',pose_a11..pose_ty' if with_pose else ''}", path, 1)
+                         f"{',pose_a11..pose_ty' if with_pose else ''}", path, skip + 1)
     rows = []
     ncol = len(expected)
-    for ln, line in enumerate(lines[1:], start=2):
+    for ln, line in enumerate(lines[1:], start=skip + 2):
         if not line.strip():
             continue
         parts = line.split(",")
@@ -254,17 +282,17 @@ def read_tracks(path: str | Path) -> Tracks:
             bad = next(v for v in parts if v.strip() and not _is_float(v))
             raise InputError(f"not a number: {bad.strip()!r}", path, ln) from None
     if not rows:
-        raise InputError("no data rows", path, 2)
+        raise InputError("no data rows", path, skip + 2)
     a = np.array(rows, dtype=np.float64)
     n = len(a)
     for col, name in ((0, "frame"), (3, "success")):
         if np.isnan(a[:, col]).any():
-            ln = int(np.flatnonzero(np.isnan(a[:, col]))[0]) + 2
+            ln = int(np.flatnonzero(np.isnan(a[:, col]))[0]) + skip + 2
             raise InputError(f"empty {name} field", path, ln)
     pose = a[:, -6:].reshape(n, 2, 3) if with_pose else np.broadcast_to(
         np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 2, 3)).copy()
     pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:4 + 2 * n_points]], axis=-1)
-    return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose)
+    return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose, meta)
 
 
 def _is_float(v: str) -> bool:
@@ -282,10 +310,11 @@ class TracksWriter:
     leaves a file that looks complete unless it is finished deliberately.
     """
 
-    def __init__(self, f, n_points: int):
+    def __init__(self, f, n_points: int, meta: dict | None = None):
         self.f = f
         self.n_points = n_points
         self.n_rows = 0
+        f.write(meta_line(meta))
         f.write(",".join(tracks_header(n_points)) + "\n")
 
     def write(self, frame: int, time: float, confidence: float, success: bool, points: np.ndarray,
