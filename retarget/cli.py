@@ -35,8 +35,13 @@ def register(subparsers) -> None:
                    help="distance for the region band")
     p.add_argument("--tracks", help="tracks CSV: its 2D pose gives the head motion (root transform)")
     p.add_argument("--reference-frame", type=int, default=0, help="tracks frame taken as the rest head pose")
-    p.add_argument("--head-units", type=float, default=1.0,
-                   help="mesh units per tracker model unit, scales the head translation")
+    p.add_argument("--head-units", type=float, default=None,
+                   help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
+                        "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
+                        "with --targets, 1)")
+    p.add_argument("--landmarks", default=None,
+                   help="with --rig: rig landmark JSON (default: the shipped one for ICT-FaceKit rigs); used for "
+                        "the head translation's units")
     p.add_argument("--bake-head", action="store_true", help="apply head motion to OBJ/PNG/video frames")
     p.add_argument("--fps", type=float, default=None,
                    help="frame rate (default: from the tracks' timestamps, else 30)")
@@ -96,7 +101,7 @@ def run_rig(args) -> int:
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
     lib = read_poses(args.poses, rig.names)
     curves = curves_from_library(weights, columns, lib, rig.names, args.poses)
-    head, fps = _head(args, frames)
+    head, fps = _head(args, frames, rig)
     fps = fps or 30.0
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
@@ -105,7 +110,22 @@ def run_rig(args) -> int:
     return 0
 
 
-def _head(args, frames):
+def rig_head_units(rig, tracks, landmarks=None) -> float:
+    """Rig units per tracker model unit: the rig's inter-ocular distance over the actor's (median, model frame)."""
+    import numpy as np
+
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.regions import model_shapes
+    from keyshape.retarget.rig import rig_landmarks
+    scheme = scheme_for_n_points(tracks.n_points)
+    W, _ = rig_landmarks(rig, scheme.name, landmarks)
+    a, b = scheme.inter_ocular
+    rig_iod = float(np.linalg.norm((W[a] - W[b]) @ rig.neutral))
+    iod = scheme.interocular_distance(model_shapes(tracks)[tracks.success])
+    return rig_iod / float(np.median(iod))
+
+
+def _head(args, frames, rig=None):
     """Head motion from ``--tracks`` (or None) and the frame rate from its timestamps (or ``--fps``)."""
     import numpy as np
 
@@ -125,7 +145,13 @@ def _head(args, frames):
         from keyshape.retarget.headpose import hold_invalid
         full = hold_invalid(tr.pose, tr.success)
         pose = np.concatenate([full[rows], full[[pos[args.reference_frame]]]])
-        head = head_motion(pose, reference=len(rows), units_per_model=args.head_units)
+        units = args.head_units
+        if units is None:
+            units = 1.0 if rig is None else rig_head_units(rig, tr, args.landmarks)
+            if rig is not None:
+                print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
+                      "(rig inter-ocular distance / actor's)")
+        head = head_motion(pose, reference=len(rows), units_per_model=units)
         head = type(head)(head.translation[:-1], head.rotation[:-1], head.scale[:-1], head.angle[:-1])
         if fps is None and len(tr.time) > 1:
             dt = np.diff(tr.time)

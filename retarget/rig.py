@@ -204,3 +204,55 @@ def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarr
         else:
             keep &= ~gaze
     return {r: np.flatnonzero(keep & (best == i)) for i, r in enumerate(regions)}
+
+
+#: Base colours (r, g, b, a) by material-name keyword, for OBJ materials without an .mtl ``Kd``;
+#: ICT-FaceKit's shading-only shells (lacrimal fluid, eye blend, eye occlusion) are transparent.
+MATERIAL_COLOURS = (("teeth", (0.92, 0.9, 0.84, 1.0)), ("sclera", (0.94, 0.94, 0.92, 1.0)),
+                    ("iris", (0.22, 0.3, 0.38, 1.0)), ("gum", (0.72, 0.36, 0.36, 1.0)),
+                    ("tongue", (0.72, 0.36, 0.36, 1.0)), ("lash", (0.08, 0.06, 0.05, 1.0)),
+                    ("lacrimal", (0.9, 0.9, 0.9, 0.0)), ("occlusion", (0.0, 0.0, 0.0, 0.0)),
+                    ("blend", (0.8, 0.7, 0.65, 0.0)))
+SKIN = (0.8, 0.66, 0.58, 1.0)
+
+
+def material_colour(mesh: Mesh, name: str) -> tuple:
+    """RGBA base colour of material ``name``: the .mtl ``Kd`` when there is one, else by keyword."""
+    if name in mesh.material_colours:
+        return (*mesh.material_colours[name], 1.0)
+    low = name.lower()
+    for key, rgba in MATERIAL_COLOURS:
+        if key in low:
+            return rgba
+    return SKIN
+
+
+def triangle_polygons(mesh: Mesh) -> np.ndarray:
+    """Polygon index of every triangle of ``mesh.triangles`` (fan triangulation order)."""
+    sizes = np.array([len(p) for p in mesh.polygons])
+    ok = np.flatnonzero(sizes >= 3)
+    return np.repeat(ok, sizes[ok] - 2)
+
+
+def material_parts(mesh: Mesh) -> list[tuple[str, np.ndarray, tuple]]:
+    """[(material, triangle indices, rgba)] covering every triangle (unassigned ones as ``default``)."""
+    tp = triangle_polygons(mesh)
+    mat = np.full(len(mesh.polygons), -1)
+    names = list(mesh.materials)
+    for i, n in enumerate(names):
+        mat[mesh.materials[n]] = i
+    tm = mat[tp]
+    parts = [(n, np.flatnonzero(tm == i), material_colour(mesh, n)) for i, n in enumerate(names)]
+    if (tm < 0).any():
+        parts.append(("default", np.flatnonzero(tm < 0), SKIN))
+    return [p for p in parts if len(p[1])]
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (n_vertices, 3) (``np.bincount``, no loop over faces)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b, c = (v[triangles[:, k]] for k in range(3))
+    fn = np.cross(b - a, c - a)
+    idx = np.concatenate([triangles[:, 0], triangles[:, 1], triangles[:, 2]])
+    n = np.stack([np.bincount(idx, np.tile(fn[:, d], 3), minlength=len(v)) for d in range(3)], axis=1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)

@@ -50,8 +50,14 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)
     if kind == "glb":
         from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
+        from keyshape.retarget.rig import material_parts, vertex_normals
         ids, uvs, tri = split_at_uv_seams(rig.mesh)
-        write_glb(path, rig.neutral[ids], tri, rig.deltas[:, ids], list(rig.names), curves, fps, head, uvs=uvs)
+        mt = rig.mesh.triangles
+        n0 = vertex_normals(rig.neutral, mt)
+        nd = np.stack([vertex_normals(rig.neutral + d, mt) - n0 for d in rig.deltas])
+        write_glb(path, rig.neutral[ids], tri, rig.deltas[:, ids], list(rig.names), curves, fps, head, uvs=uvs,
+                  normals=n0[ids], normal_deltas=nd[:, ids], parts=material_parts(rig.mesh),
+                  first_frame=int(frames[0]) if len(frames) else 0)
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj

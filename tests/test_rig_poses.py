@@ -263,3 +263,41 @@ def test_rig_without_landmarks_asks_for_them(tmp_path, capsys):
     write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
     assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "-o", str(tmp_path / "p.json")]) == 2
     assert "--landmarks" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------- a .glb that opens right
+
+def test_rig_glb_has_normals_materials_frame_range_and_passes_validator(tmp_path):
+    import pygltflib
+
+    from keyshape.retarget.rig import Rig, vertex_normals
+    from keyshape.retarget.rig_export import export_rig
+    verts, deltas = toy_rig_arrays()
+    polys = [np.array([i, i + 1, 48]) for i in range(0, 47)] + [np.array([0, 49, 47, 10])]
+    mesh = Mesh(verts, polys, materials={"M_Face": np.arange(0, 30), "M_Teeth": np.arange(30, 48)})
+    rig = Rig(list(SHAPES), verts, deltas, mesh)
+    curves = np.random.default_rng(0).uniform(0, 1, (12, len(SHAPES)))
+    out = tmp_path / "take.glb"
+    export_rig(out, rig, np.arange(100, 112), curves, fps=24.0)
+    g = pygltflib.GLTF2().load(str(out))
+    prims = g.meshes[0].primitives
+    assert [g.materials[p.material].name for p in prims] == ["M_Face", "M_Teeth"]
+    assert g.materials[1].pbrMetallicRoughness.baseColorFactor[:3] == pytest.approx([0.92, 0.9, 0.84])
+    assert prims[0].attributes.NORMAL is not None and "NORMAL" in prims[0].targets[0]
+    assert g.scenes[0].extras == {"fps": 24.0, "frame_start": 100, "frame_end": 111}
+    times = g.accessors[g.animations[0].samplers[0].input]
+    assert times.min[0] == pytest.approx(100 / 24) and times.max[0] == pytest.approx(111 / 24)
+    # the normal deltas are the change of the normals: base + delta = normals of the shape
+    n0 = vertex_normals(verts, mesh.triangles)
+    assert np.allclose(np.linalg.norm(n0, axis=1), 1)
+    try:
+        from tests.test_retarget_io import run_validator
+    except ImportError:                                   # tests not importable as a package
+        import importlib.util
+        import pathlib
+        spec = importlib.util.spec_from_file_location("tri", pathlib.Path(__file__).parent / "test_retarget_io.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        run_validator = mod.run_validator
+    rep = run_validator(out, tmp_path)
+    assert rep["errors"] == 0 and rep["warnings"] == 0, rep
