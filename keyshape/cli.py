@@ -25,6 +25,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.decompose.cli", None),
     ("keyshape.retarget.pose_cli", None),
     ("keyshape.retarget.cli", None),
+    ("keyshape.retarget.preview_cli", None),
     ("keyshape.retarget.mocap.cli", None),
     ("keyshape.retarget.dense_cli", None),
 ]

@@ -164,7 +164,7 @@ def test_pose_library_recovers_the_poses_of_keys_made_from_the_rig():
     verts, deltas = toy_rig_arrays()
     ld = project(deltas[:, :48])
     groups = {r: region_points(SCHEME, r) for r in ("mouth", "eyes", "pupils")}
-    rs = shape_regions(ld, groups)
+    rs = shape_regions(ld, groups, names=list(SHAPES))
     names = list(SHAPES)
     assert [names[j] for j in rs["mouth"]] == ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthPucker"]
     assert "PupilDilate_L" not in [names[j] for r in rs.values() for j in r]        # moves nothing
@@ -301,3 +301,52 @@ def test_rig_glb_has_normals_materials_frame_range_and_passes_validator(tmp_path
         run_validator = mod.run_validator
     rep = run_validator(out, tmp_path)
     assert rep["errors"] == 0 and rep["warnings"] == 0, rep
+
+
+# ----------------------------------------------------------------------------------------- preview
+
+def test_preview_renders_range_and_sheet(tmp_path):
+    from keyshape.base.formats.tracks import write_tracks
+    from keyshape.base.formats.video import video_info, video_writer
+    from keyshape.base.formats.weights import write_weights
+    from keyshape.decompose.toy import toy_tracks
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    tr = toy_tracks(30, rng=1)
+    write_tracks(tmp_path / "t.csv", tr)
+    with video_writer(tmp_path / "v.mp4", 10, (160, 120)) as wr:
+        for i in range(30):
+            wr.write(np.full((120, 160, 3), 8 * i, np.uint8))
+    c = np.zeros((30, len(SHAPES)))
+    c[:, 0] = np.linspace(0, 1, 30)
+    write_weights(tmp_path / "c.csv", np.arange(30), list(SHAPES), c)
+    out, sheet = tmp_path / "p.mp4", tmp_path / "s.jpg"
+    assert main(["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
+                 str(tmp_path / "c.csv"), "--rig", str(rig), "--frames", "5:17", "--sheet", str(sheet),
+                 "--sheet-frames", "4", "-o", str(out)]) == 0
+    info = video_info(out)
+    assert info.n_frames == 12 and info.height == 120 and info.width > 2 * 120
+    import cv2
+    assert cv2.imread(str(sheet)) is not None
+    assert main(["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
+                 str(tmp_path / "c.csv"), "--rig", str(rig), "--frames", "40:50", "-o",
+                 str(tmp_path / "q.mp4")]) == 2
+    assert not (tmp_path / "q.mp4").exists()
+
+
+def test_rig_renderer_draws_the_face_and_moves_with_the_curves(tmp_path):
+    from keyshape.retarget.preview import RigRenderer
+    from keyshape.retarget.rig import Rig
+    # a square of two triangles facing the camera, one shape moving it right
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    d = np.zeros((1, 4, 3))
+    d[0, :, 0] = 1.0
+    rig = Rig(["right"], v, d, Mesh(v, [np.array([0, 1, 2, 3])]))
+    r = RigRenderer(rig, size=(64, 64), background=(0, 0, 0)).fit(np.array([[0.0], [1.0]]))
+    a = r.render(rig.evaluate(np.array([[0.0]]))[0]).sum(axis=2) > 0
+    b = r.render(rig.evaluate(np.array([[1.0]]))[0]).sum(axis=2) > 0
+    assert 0.15 < a.mean() < 0.5 and abs(a.mean() - b.mean()) < 0.05
+    cols_a, cols_b = np.flatnonzero(a.any(0)), np.flatnonzero(b.any(0))
+    assert cols_b.mean() > cols_a.mean() + 10                       # moved to the image-right
+    back = Rig(["right"], v, d, Mesh(v, [np.array([3, 2, 1, 0])]))   # facing away: culled
+    rb = RigRenderer(back, size=(64, 64), background=(0, 0, 0)).fit(None)
+    assert rb.render(v).sum() == 0
