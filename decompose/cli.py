@@ -23,6 +23,9 @@ def register(subparsers) -> None:
                    help="mouth, eyes (with brows) or pupils; repeat for several (default: all the scheme has)")
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
     p.add_argument("--seed", type=int, default=0, help="seed of kmeans/random/greedy (default 0)")
+    p.add_argument("--min-key-distance", type=float, default=0.1,
+                   help="drop near-duplicate keys: a key closer to an earlier key than this fraction of the "
+                        "median key-to-neutral distance (default 0.1; 0 keeps all)")
     p.add_argument("-o", "--output", required=True, help="KEYS.json to write")
     p.add_argument("--sheet", default=None, help="also write a key-frame sheet, .png or .jpg (needs --video)")
     p.add_argument("--video", default=None, help="the video the tracks came from (for --sheet)")
@@ -126,7 +129,7 @@ def _select(args) -> int:
             except ValueError:
                 raise InputError(f"--neutral-frame must be a frame number, 'auto' or 'mean', got {nf!r}") from None
         chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes,
-                                neutral_frame=nf) for r in regions]
+                                neutral_frame=nf, min_distance=args.min_key_distance) for r in regions]
     except InputError as exc:
         raise InputError(str(exc), args.tracks[0]) from None
     if len(args.tracks) > 1:          # rows were numbered 0..N-1: back to (file, frame)
@@ -136,8 +139,10 @@ def _select(args) -> int:
             rk.rest_frame = int(orig_frame[rk.rest_frame])
     write_keys(args.output, scheme.name, scheme.n_points, chosen, source)
     for rk in chosen:
+        dropped = f" ({args.k - len(rk.keys)} near-duplicate keys dropped)" if args.k and len(rk.keys) < args.k \
+            else ""
         print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}; "
-              f"neutral frame {rk.rest_frame}")
+              f"neutral frame {rk.rest_frame}{dropped}")
     if args.sheet:
         from keyshape.decompose.sheet import key_sheet
         from keyshape.base.files import atomic_write

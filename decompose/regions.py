@@ -116,7 +116,8 @@ class RegionKeys:
 
 
 def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | None, method: str = "spread",
-                  rng=None, shapes: np.ndarray | None = None, neutral_frame: int | str | None = None) -> RegionKeys:
+                  rng=None, shapes: np.ndarray | None = None, neutral_frame: int | str | None = None,
+                  min_distance: float = 0.0) -> RegionKeys:
     """Choose ``n_keys`` key shapes of ``region`` from the successful frames of ``tracks``.
 
     Failed frames (``success=0``) are never candidates. ``shapes`` may pass the
@@ -124,7 +125,9 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
     recorded: frame ``neutral_frame`` when it is a frame number, else the most relaxed
     frame (:func:`relaxed_frame`). With ``neutral_frame`` given (a frame number or
     ``"auto"``) the weights are relative to that neutral; without it, to the take's mean
-    (the paper's centring).
+    (the paper's centring). ``min_distance`` > 0 drops near-duplicate keys: a key closer to
+    an earlier key than ``min_distance`` times the median distance of the keys from the
+    neutral (RMS point distance) is left out (so fewer than ``n_keys`` may come back).
     """
     idx = region_points(scheme, region)
     shapes = model_shapes(tracks) if shapes is None else shapes
@@ -149,8 +152,23 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
     if getattr(sel, "centre", "nearest") == "mean":
         from_frame[:] = False
     neutral = sel.neutral_ if neutral_frame is None else rest
-    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_]], sel.keys_, neutral, from_frame,
-                      rest, int(tracks.frame[row]))
+    keep = near_duplicates(sel.keys_, rest, min_distance) if min_distance > 0 else np.arange(len(sel.keys_))
+    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_[keep]]], sel.keys_[keep], neutral,
+                      from_frame[keep], rest, int(tracks.frame[row]))
+
+
+def near_duplicates(keys: np.ndarray, ref: np.ndarray, min_distance: float) -> np.ndarray:
+    """Indices of the keys to keep: each key farther than ``min_distance`` x the median key-to-``ref``
+    distance from every key kept before it (RMS point distances; a loop over keys, not frames)."""
+    k = np.asarray(keys, float)
+    rms = lambda a: np.sqrt((a ** 2).sum(-1).mean(-1))  # noqa: E731
+    scale = float(np.median(rms(k - ref)))
+    d = rms(k[:, None] - k[None])
+    kept: list[int] = []
+    for i in range(len(k)):
+        if all(d[i, j] >= min_distance * scale for j in kept):
+            kept.append(i)
+    return np.array(kept, dtype=np.intp)
 
 
 def relaxed_frame(shapes: np.ndarray, max_frames: int = 1500) -> int:

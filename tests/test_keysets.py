@@ -93,3 +93,24 @@ def test_relaxed_frame_is_the_mode_of_the_shapes():
     frames[5] = np.nan                                            # a failed frame is never chosen
     i = relaxed_frame(frames)
     assert i % 3 != 0 and np.abs(frames[i] - rest).max() < 0.05
+
+
+def test_near_duplicate_keys_are_dropped():
+    from keyshape.decompose.regions import near_duplicates
+    ref = np.zeros((4, 2))
+    keys = np.stack([np.full((4, 2), 1.0), np.full((4, 2), 1.02), np.full((4, 2), -1.0), np.full((4, 2), 2.0)])
+    assert near_duplicates(keys, ref, 0.1).tolist() == [0, 2, 3]
+    assert near_duplicates(keys, ref, 0.0).tolist() == [0, 1, 2, 3]
+
+
+def test_select_sheet_shows_the_neutral_and_key_distances(tmp_path):
+    from keyshape.base.formats.video import video_writer
+    from keyshape.decompose.sheet import key_tiles
+    a = _take(tmp_path / "a.csv", 4)
+    t = read_tracks(a)
+    assert main(["select", str(a), "-k", "3", "--region", "mouth", "-o", str(tmp_path / "k.json")]) == 0
+    _, _, regs = read_keys(tmp_path / "k.json")
+    frames = {int(f): np.zeros((480, 640, 3), np.uint8) for f in t.frame}
+    tiles, captions = key_tiles(frames, t, SCHEME, regs, tile_width=120)
+    assert captions[0].startswith(f"mouth_neutral  frame {regs[0].rest_frame}")
+    assert len(captions) == len(regs[0].keys) + 1 and all(" d=" in c for c in captions[1:])
