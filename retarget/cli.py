@@ -28,7 +28,9 @@ def register(subparsers) -> None:
                         "decompose's, relative to the sequence's mean shape); absolute: sum w_i B_i (the paper's "
                         "literal form); auto: delta when a neutral is given or found, else absolute")
     p.add_argument("--regions", help="region vertex groups: JSON {region: [vertex indices] | 'OBJ group'} "
-                                     "or an OBJ with groups; columns REGION_K use region REGION")
+                                     "or an OBJ with groups; columns REGION_K use region REGION; 'auto': from "
+                                     "the targets' own support (each vertex to the region whose targets move "
+                                     "it most)")
     p.add_argument("--band", type=float, default=None,
                    help="region blending band width in mesh units (default 10%% of the bounding-box diagonal)")
     p.add_argument("--metric", choices=("geodesic", "euclidean"), default="geodesic",
@@ -67,7 +69,15 @@ def run(args) -> int:
     frames, columns, weights = read_weights(args.weights)
     targets = args.targets[0] if len(args.targets) == 1 else args.targets
     ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
-    regions = read_regions(args.regions, ts.mesh) if args.regions else None
+    if args.regions == "auto":
+        if ts.neutral is None:
+            raise InputError("--regions auto needs a neutral (--neutral or neutral.* among the targets)")
+        from keyshape.retarget.rig import support_regions
+        regions = support_regions(ts.shapes, ts.neutral, ts.columns)
+        print("keyshape retarget: regions from the targets' own support: "
+              + ", ".join(f"{r} {len(g)} vertices" for r, g in regions.items()))
+    else:
+        regions = read_regions(args.regions, ts.mesh) if args.regions else None
     rt = Retargeter(form=args.form, band=args.band, metric=args.metric).fit(ts, regions, args.regions or "regions")
     head, fps = _head(args, frames)
     fps = fps or 30.0

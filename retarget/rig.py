@@ -256,3 +256,29 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     idx = np.concatenate([triangles[:, 0], triangles[:, 1], triangles[:, 2]])
     n = np.stack([np.bincount(idx, np.tile(fn[:, d], 3), minlength=len(v)) for d in range(3)], axis=1)
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def support_regions(shapes: np.ndarray, neutral: np.ndarray, columns: Sequence[str],
+                    min_fraction: float = 0.02) -> dict[str, np.ndarray]:
+    """Region vertex groups from the targets' own support (no hand-made regions file).
+
+    A vertex belongs to the region whose targets move it most (largest displacement
+    over that region's targets), if that displacement is at least ``min_fraction`` of
+    the largest displacement of any target; columns are ``REGION_K`` (``mouth_3``).
+    Regions come out disjoint; :func:`~keyshape.retarget.blend.region_weights` blends
+    them across a band.
+    """
+    from keyshape.retarget.targets import column_region
+    names: list[str] = []
+    for c in columns:
+        if column_region(c) not in names:
+            names.append(column_region(c))
+    disp = np.linalg.norm(np.asarray(shapes) - neutral, axis=2)          # (n_keys, n_vertices)
+    per = np.stack([disp[[i for i, c in enumerate(columns) if column_region(c) == r]].max(axis=0) for r in names])
+    best = np.argmax(per, axis=0)
+    moved = per.max(axis=0) >= min_fraction * per.max()
+    out = {r: np.flatnonzero(moved & (best == i)) for i, r in enumerate(names)}
+    empty = [r for r, g in out.items() if not len(g)]
+    if empty:
+        raise InputError(f"the targets of region(s) {empty} move no vertex: give --regions REGIONS.json")
+    return out

@@ -350,3 +350,33 @@ def test_rig_renderer_draws_the_face_and_moves_with_the_curves(tmp_path):
     back = Rig(["right"], v, d, Mesh(v, [np.array([3, 2, 1, 0])]))   # facing away: culled
     rb = RigRenderer(back, size=(64, 64), background=(0, 0, 0)).fit(None)
     assert rb.render(v).sum() == 0
+
+
+def test_support_regions_from_the_targets_themselves(tmp_path):
+    from keyshape.retarget.rig import support_regions
+    verts, deltas = toy_rig_arrays()
+    names = list(SHAPES)
+    cols = ["mouth_0", "mouth_1", "eyes_0", "eyes_1"]
+    shapes = verts + deltas[[names.index("jawOpen"), names.index("mouthSmile_L"), names.index("eyeBlink_L"),
+                             names.index("browInnerUp_L")]]
+    reg = support_regions(shapes, verts, cols)
+    mouth, eyes = set(region_points(SCHEME, "mouth").tolist()), set(region_points(SCHEME, "eyes").tolist())
+    assert set(reg["mouth"].tolist()) <= mouth and set(reg["eyes"].tolist()) <= eyes
+    assert {34, 45}.issubset(set(reg["mouth"].tolist())) and {5, 19}.issubset(set(reg["eyes"].tolist()))
+    with pytest.raises(InputError, match="move no vertex"):
+        support_regions(np.stack([shapes[0], verts]), verts, ["mouth_0", "eyes_0"])
+    # the command: --regions auto blends each region's targets on its own vertices
+    from keyshape.base.formats.weights import write_weights
+    tdir = tmp_path / "t"
+    tdir.mkdir()
+    mesh = Mesh(verts, [np.array([i, i + 1, 48]) for i in range(0, 47)])
+    write_obj(tdir / "neutral.obj", mesh)
+    for c, sh in zip(cols, shapes):
+        write_obj(tdir / f"{c}.obj", mesh, sh)
+    write_weights(tmp_path / "w.csv", np.arange(2), cols, np.array([[1.0, 0, 1.0, 0], [0, 0, 0, 0]]))
+    assert main(["retarget", str(tmp_path / "w.csv"), "--targets", str(tdir), "--regions", "auto",
+                 "-o", str(tmp_path / "f")]) == 0
+    from keyshape.base.formats.obj import read_obj_vertices
+    v = read_obj_vertices(tmp_path / "f" / "frame_000000.obj")
+    np.testing.assert_allclose(v[37], shapes[0][37], atol=1e-5)          # jaw moved the lower lip
+    np.testing.assert_allclose(v[20], shapes[2][20], atol=1e-5)          # blink moved the upper lid
