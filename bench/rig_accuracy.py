@@ -73,8 +73,9 @@ def table(rows: dict[str, dict]) -> str:
         out.append(f"{c:16s}" + "".join(f"{v['r'][c]:>10.3f} (lin {v['linear_bound'][c]:5.3f})" for v in rows.values()))
     out.append(f"{'mean r':16s}" + "".join(f"{v['mean_r']:>10.3f} (lin {np.mean(list(v['linear_bound'].values())):5.3f})"
                                            for v in rows.values()))
-    out.append(f"{'err / motion':16s}" + "".join(f"{v['error_ratio']:>10.3f} ({v['vertex_error']:.3f} cm / "
-                                                 f"{v['hidden_motion']:.3f})"[:22].rjust(22) for v in rows.values()))
+    out.append(f"{'err / motion':16s}" + "".join(f"{v['error_ratio']:>10.3f}".ljust(22) for v in rows.values()))
+    out.append(f"{'  err, motion cm':16s}" + "".join(f"{v['vertex_error']:>10.3f}, {v['hidden_motion']:.3f}".ljust(22)
+                                                     for v in rows.values()))
     return "\n".join(out)
 
 

@@ -55,7 +55,7 @@ class RigRenderer:
     """
 
     def __init__(self, rig: Rig, size=(480, 480), light=(0.3, 0.4, 1.0), ambient: float = 0.18, levels: int = 24,
-                 band: int = 400, background=(40, 40, 40), vertices: np.ndarray | None = None):
+                 band: int = 2000, background=(40, 40, 40), vertices: np.ndarray | None = None):
         if rig.mesh is None or not rig.mesh.polygons:
             raise InputError("the rig's neutral has no faces to render", rig.neutral_file)
         self.rig, self.size, self.light, self.ambient = rig, size, light, ambient
