@@ -69,6 +69,21 @@ def fit_model(video, labels, scheme="contours48", n_components: int | None = Non
     return AppearanceModel(sch, n_components=n_components, n_morphs=n_morphs, rng=rng).fit(list(images), shapes)
 
 
+def model_fingerprint(model: AppearanceModel) -> str:
+    """A short, stable identity of a trained model: ``sha256:`` of its learnt arrays (16 hex digits).
+
+    Written into the tracks it makes (``# keyshape-tracks`` line) and from there into
+    KEYS.json, so ``keyshape decompose`` can refuse keys chosen with another model.
+    """
+    import hashlib
+
+    h = hashlib.sha256()
+    for k in AppearanceModel._ARRAYS:
+        a = np.ascontiguousarray(getattr(model, k))
+        h.update(k.encode() + str(a.shape).encode() + a.astype(np.float64).tobytes())
+    return "sha256:" + h.hexdigest()[:16]
+
+
 def train_model(video, labels_dir, scheme="contours48", n_components: int | None = None, n_morphs: int = 120,
                 rng=0) -> tuple[AppearanceModel, float]:
     """:func:`fit_model` from a labels folder; return the model and the seconds taken."""
@@ -131,7 +146,8 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
         raise InputError(f"no frames from {start} on (the video has {reader.n_read} frames)", video)
     frame = np.array([r[0] for r in rows], dtype=np.int64)
     return Tracks(frame, frame / fps, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                  np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]))
+                  np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]),
+                  {"model": model_fingerprint(model), "scheme": model.scheme_.name})
 
 
 def check_label_geometry(frames: np.ndarray, shapes: np.ndarray, labels_dir) -> None:
@@ -197,7 +213,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     try:
         with contextlib.ExitStack() as stack:
             f = stack.enter_context(open(tmp_csv, "w"))
-            writer = TracksWriter(f, model.n_points)
+            writer = TracksWriter(f, model.n_points, {"model": model_fingerprint(model), "scheme": model.scheme_.name})
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:
                 for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
