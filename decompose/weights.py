@@ -86,74 +86,77 @@ def lstsq_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | No
 
 # --------------------------------------------------------------------------- NNLS
 
-def _masked_solve(G: np.ndarray, h: np.ndarray, passive: np.ndarray) -> np.ndarray:
+_CHUNK = 512  # frames per vectorised Cholesky block: keeps the (p, p, chunk) block in cache
+
+
+def _chol_solve_stacked(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve ``A[:, :, i] x_i = b[:, i]`` for a stack of small SPD matrices, in place.
+
+    ``A`` (p, p, n) and ``b`` (p, n), the stack on the last (contiguous) axis, so each
+    step of the Cholesky factorisation ``A = R^T R`` and of the two triangular solves is
+    one vectorised operation over all n systems (no per-matrix LAPACK call). Pivots are
+    floored at 1e-300: callers add a tiny ridge, so only exactly singular input hits it.
+    """
+    p = A.shape[0]
+    for j in range(p):
+        d = np.sqrt(np.maximum(A[j, j], 1e-300))
+        A[j, j:] /= d
+        b[j] /= d
+        if j + 1 < p:
+            r = A[j, j + 1:]
+            A[j + 1:, j + 1:] -= r[:, None] * r[None, :]
+            b[j + 1:] -= r * b[j]
+    for j in range(p - 1, -1, -1):
+        if j + 1 < p:
+            b[j] -= np.einsum("in,in->n", A[j, j + 1:], b[j + 1:])
+        b[j] /= A[j, j]
+    return b
+
+
+def _passive_solve(G: np.ndarray, h: np.ndarray, passive: np.ndarray) -> np.ndarray:
     """Solve ``G_PP w_P = h_P`` for every row's passive set P (w = 0 elsewhere), batched.
 
-    ``G`` (k, k) or (m, k, k), ``h`` (m, k), ``passive`` (m, k) bool. Rows of the system
-    outside P are replaced by identity rows so one batched ``np.linalg.solve`` does all frames.
+    ``G`` (k, k) shared or (m, k, k), ``h`` (m, k), ``passive`` (m, k) bool. Rows are grouped
+    by ``p = |P|``; each group's compact (p, p) systems are gathered with one ``take`` and
+    solved by :func:`_chol_solve_stacked` in blocks of :data:`_CHUNK` rows.
     """
-    p = passive.astype(np.float64)
-    A = (G if G.ndim == 3 else G[None]) * (p[:, :, None] * p[:, None, :])
-    idx = np.arange(G.shape[-1])
-    A[:, idx, idx] += 1.0 - p
-    return np.linalg.solve(A, (h * p)[..., None])[..., 0]
-
-
-def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: float = 1e-10,
-              passive: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Exact NNLS ``min_{w >= 0} w^T G w - 2 h^T w`` for many right-hand sides at once.
-
-    Block principal pivoting (Kim and Park 2011), an active-set method like
-    Lawson-Hanson's that exchanges every infeasible variable at once and falls
-    back to exchanging one (the largest index) when that stops reducing their
-    number; it ends at the point satisfying the KKT conditions ``w >= 0``,
-    ``y = G w - h >= 0``, ``w * y = 0``: the unique NNLS solution for
-    positive-definite ``G``, the one Lawson-Hanson (eq. 4, [Law74]) finds.
-
-    Parameters
-    ----------
-    G : (n_keys, n_keys) or (m, n_keys, n_keys)
-        Positive definite Gram matrix ``B B^T`` (one shared, or one per problem).
-    h : (m, n_keys)
-        Projections ``X B^T``.
-    max_iter : int, optional
-        Pivoting iterations (default ``10 * n_keys``).
-    tol : float
-        Relative feasibility tolerance.
-    passive : (m, n_keys) bool, optional
-        Initial guess of the positive weights (warm start); default: those
-        positive in the unconstrained solution.
-
-    Returns
-    -------
-    w : (m, n_keys) non-negative weights.
-    converged : (m,) bool.
-    """
-    G = np.asarray(G, dtype=np.float64)
-    h = np.atleast_2d(np.asarray(h, dtype=np.float64))
     m, k = h.shape
+    x = np.zeros((m, k))
+    Gf = np.ascontiguousarray(G).reshape(-1)
     batched = G.ndim == 3
-    max_iter = 10 * k if max_iter is None else max_iter
-    scale = max(float(np.abs(np.diagonal(G, axis1=-2, axis2=-1)).max()), 1e-300)
-    Gs = G / scale + np.eye(k) * 1e-13  # ridge guards exactly collinear keys; far below any meaningful weight
-    hs = h / scale
-    htol = tol * max(1.0, float(np.abs(hs).max(initial=0.0)))
-    if passive is None:
-        passive = np.linalg.solve(Gs, hs[..., None])[..., 0] > 0 if batched else np.linalg.solve(Gs, hs.T).T > 0
-    passive = np.array(passive, dtype=bool)
-    w = np.zeros((m, k))
-    converged = np.zeros(m, dtype=bool)
-    n_bad_best = np.full(m, k + 1)
-    backup = np.full(m, 3)
-    todo = np.arange(m)
+    cnt = passive.sum(axis=1)
+    for p in np.unique(cnt):
+        if p == 0:
+            continue
+        rows = np.flatnonzero(cnt == p)
+        idx = np.nonzero(passive[rows])[1].reshape(len(rows), p)
+        for c0 in range(0, len(rows), _CHUNK):
+            r = rows[c0:c0 + _CHUNK]
+            ii = idx[c0:c0 + _CHUNK].T                         # (p, n)
+            flat = ii[:, None, :] * k + ii[None, :, :]
+            if batched:
+                flat = flat + (r * (k * k))[None, None, :]
+            A = np.take(Gf, flat)
+            b = np.ascontiguousarray(np.take_along_axis(h[r], ii.T, axis=1).T)
+            x[r[:, None], ii.T] = _chol_solve_stacked(A, b).T
+    return x
+
+
+def _bpp(Gs: np.ndarray, hs: np.ndarray, passive: np.ndarray, htol: float, max_iter: int,
+         w: np.ndarray, converged: np.ndarray, todo: np.ndarray) -> None:
+    """Block principal pivoting (Kim and Park 2011) on rows ``todo``; fills ``w`` and ``converged``."""
+    k = hs.shape[1]
+    batched = Gs.ndim == 3
+    n_bad_best = np.full(len(hs), k + 1)
+    backup = np.full(len(hs), 3)
     for _ in range(max_iter):
         if not len(todo):
             break
         P = passive[todo]
         Gt = Gs[todo] if batched else Gs
-        x = _masked_solve(Gt, hs[todo], P)
+        x = _passive_solve(Gt, hs[todo], P)
         y = (np.einsum("mij,mj->mi", Gt, x) if batched else x @ Gs) - hs[todo]
-        infeasible = (P & (x < -htol)) | (~P & (y < -htol))
+        infeasible = (P & (x < -htol)) | (~P & (y < -1e-3 * htol))
         n_bad = infeasible.sum(axis=1)
         done = n_bad == 0
         w[todo[done]] = np.where(P[done], np.maximum(x[done], 0.0), 0.0)
@@ -170,8 +173,97 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: fl
         passive[todo] = P ^ np.where(full[:, None], infeasible, single)
         todo = todo[~done]
     if len(todo):  # not converged: best feasible point of the last passive set
-        x = _masked_solve(Gs[todo] if batched else Gs, hs[todo], passive[todo])
+        x = _passive_solve(Gs[todo] if batched else Gs, hs[todo], passive[todo])
         w[todo] = np.maximum(x, 0.0) * passive[todo]
+
+
+def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: float = 1e-10,
+              passive: np.ndarray | None = None, coarse: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Exact NNLS ``min_{w >= 0} w^T G w - 2 h^T w`` for many right-hand sides at once.
+
+    Block principal pivoting (Kim and Park 2011), an active-set method like
+    Lawson-Hanson's that exchanges every infeasible variable at once and falls
+    back to exchanging one (the largest index) when that stops reducing their
+    number; it ends at the point satisfying the KKT conditions ``w >= 0``,
+    ``y = G w - h >= 0``, ``w * y = 0``: the unique NNLS solution for
+    positive-definite ``G``, the one Lawson-Hanson (eq. 4, [Law74]) finds.
+
+    Every pivoting step solves the rows' passive systems ``G_PP w_P = h_P`` together:
+    rows are grouped by ``|P|`` and the compact systems are Cholesky-solved as one
+    vectorised stack (:func:`_passive_solve`), so there is no per-row LAPACK call, and
+    for a shared ``G`` nothing of size ``(m, k, k)`` is formed.
+
+    Warm start (shared ``G``, no ``passive`` given): rows are taken to be frames in time
+    order, whose neighbours have nearly the same passive sets. Every ``coarse``-th row is
+    solved first (from the unconstrained solution's signs), then the rows halfway between
+    solved ones, each starting from its solved predecessor's passive set, halving the
+    stride down to 1. On 100,000 frames x 24 keys this cuts the pivoting work from about 7
+    passive solves per row to about 3.6. The result does not depend on the order (every
+    row ends at its own KKT point); only the speed does. ``coarse=1`` turns it off.
+
+    Parameters
+    ----------
+    G : (n_keys, n_keys) or (m, n_keys, n_keys)
+        Positive definite Gram matrix ``B B^T`` (one shared, or one per problem).
+    h : (m, n_keys)
+        Projections ``X B^T``.
+    max_iter : int, optional
+        Pivoting iterations (default ``10 * n_keys``) per stage.
+    tol : float
+        Relative feasibility tolerance of the weights (``w_P > -tol``, then clipped at 0); the
+        gradient of the zero weights must satisfy the tighter ``y > -tol / 1000``, because with an
+        ill-conditioned basis a small negative ``y`` hides a weight that is not small (bench data,
+        condition number 7e4: ``y = -5e-11`` for a weight of 8e-8 that scipy finds).
+    passive : (m, n_keys) bool, optional
+        Initial guess of the positive weights (warm start); default: those
+        positive in the unconstrained solution (with the hierarchical warm start above
+        for a shared ``G``).
+    coarse : int
+        Stride of the first stage of the warm start (a power of two; 1 = off).
+
+    Returns
+    -------
+    w : (m, n_keys) non-negative weights.
+    converged : (m,) bool.
+    """
+    G = np.asarray(G, dtype=np.float64)
+    h = np.atleast_2d(np.asarray(h, dtype=np.float64))
+    k = h.shape[1]
+    max_iter = 10 * k if max_iter is None else max_iter
+    # Jacobi scaling: solve for v = D^-1 w with D = diag(G)^-1/2 (unit-diagonal Gram, same signs), so
+    # the ridge below is small against every key, however different their sizes; zero keys get w = 0
+    diag = np.diagonal(G, axis1=-2, axis2=-1)
+    dsc = np.where(diag > 0, 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), 0.0)
+    Gs = G * dsc[..., :, None] * dsc[..., None, :] + np.eye(k) * 1e-13  # ridge guards exactly collinear keys
+    hs = h * dsc
+    htol = tol * max(1.0, float(np.abs(hs).max(initial=0.0)))
+    w, converged = _nnls_scaled(Gs, hs, htol, max_iter, passive, coarse)
+    return w * dsc, converged
+
+
+def _nnls_scaled(Gs, hs, htol, max_iter, passive, coarse):
+    """:func:`nnls_gram` on the unit-diagonal problem."""
+    m, k = hs.shape
+    batched = Gs.ndim == 3
+    w = np.zeros((m, k))
+    converged = np.zeros(m, dtype=bool)
+    if passive is not None or batched or coarse <= 1 or m < 4 * coarse:
+        if passive is None:
+            passive = (np.linalg.solve(Gs, hs[..., None])[..., 0] > 0 if batched
+                       else np.linalg.solve(Gs, hs.T).T > 0)
+        passive = np.array(passive, dtype=bool)
+        _bpp(Gs, hs, passive, htol, max_iter, w, converged, np.arange(m))
+        return w, converged
+    stride = 1 << int(np.log2(coarse))
+    rows = np.arange(0, m, stride)
+    passive = np.zeros((m, k), dtype=bool)
+    passive[rows] = np.linalg.solve(Gs, hs[rows].T).T > 0
+    _bpp(Gs, hs, passive, htol, max_iter, w, converged, rows)
+    while stride > 1:
+        stride //= 2
+        rows = np.arange(stride, m, 2 * stride)
+        passive[rows] = w[rows - stride] > 0
+        _bpp(Gs, hs, passive, htol, max_iter, w, converged, rows)
     return w, converged
 
 
