@@ -5,7 +5,7 @@ same size (``np.linalg.lstsq`` of all frames at once, the paper's "bad example")
 Data: the toy low-rank performance (decompose.toy) tiled to 100,000 frames with
 fresh tracking noise, all 48 points, 24 key frames chosen by spread.
 
-Run: ``PYTHONPATH=. python bench/bench_decompose.py [--frames N]``
+Run: ``python bench/bench_decompose.py [--frames N] [--plain-admm]``
 """
 from __future__ import annotations
 
@@ -24,6 +24,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=100_000)
     ap.add_argument("--keys", type=int, default=24)
+    ap.add_argument("--plain-admm", action="store_true",
+                    help="also time the smooth solver without Anderson acceleration (the former default)")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     base = model_shapes(toy_tracks(2000, noise_px=0.0, rng=0))
@@ -42,6 +44,9 @@ def main() -> None:
     res = [timed("lstsq (baseline)", lambda: lstsq_weights(shapes, keys, neutral)),
            timed("nnls", lambda: nnls_weights(shapes, keys, neutral, return_converged=True)),
            timed("smooth (lambda 0.1)", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True))]
+    if args.plain_admm:
+        res.append(timed("smooth, plain ADMM", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True,
+                                                                      anderson=0)))
     base_t = res[0][1]
     for name, dt, out in res:
         extra = ""

@@ -130,10 +130,12 @@ def _compare(args) -> int:
 
     from keyshape.decompose.compare import compare, plot_errors, write_errors
 
+    from keyshape.base.progress import Progress
+
     tracks, scheme = _load(args)
-    rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
-                   amplitude=args.amplitude, rng=args.seed,
-                   progress=lambda r, m: print(f"  {r}: {m} done", flush=True))
+    with Progress(desc="keyshape compare", unit="rows") as bar:
+        rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
+                       amplitude=args.amplitude, rng=args.seed, progress=bar)
     out = Path(args.output)
     write_errors(out / "errors.csv", rows)
     plot_errors(out / "errors.png", rows)

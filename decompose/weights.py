@@ -142,6 +142,26 @@ def _passive_solve(G: np.ndarray, h: np.ndarray, passive: np.ndarray) -> np.ndar
     return x
 
 
+_TAIL = 64  # rows left to pivot below which each is finished by scipy's Lawson-Hanson instead
+
+
+def _lawson_hanson_rows(Gs: np.ndarray, hs: np.ndarray, w: np.ndarray, converged: np.ndarray,
+                        rows: np.ndarray) -> None:
+    """Finish a few rows exactly with :func:`scipy.optimize.nnls` (Lawson-Hanson) on the k-sized
+    problem ``min ||R v - R^-T h||`` with ``G = R^T R``: the long tail of the pivoting costs a few
+    Python-level iterations per row otherwise."""
+    from scipy.linalg import cholesky, solve_triangular
+    from scipy.optimize import nnls
+
+    k = hs.shape[1]
+    R = None if Gs.ndim == 3 else cholesky(Gs)
+    for r in rows:
+        Rr = cholesky(Gs[r]) if R is None else R
+        v, _ = nnls(Rr, solve_triangular(Rr, hs[r], trans="T"), maxiter=50 * k)
+        w[r] = v
+        converged[r] = True
+
+
 def _bpp(Gs: np.ndarray, hs: np.ndarray, passive: np.ndarray, htol: float, max_iter: int,
          w: np.ndarray, converged: np.ndarray, todo: np.ndarray) -> None:
     """Block principal pivoting (Kim and Park 2011) on rows ``todo``; fills ``w`` and ``converged``."""
@@ -150,8 +170,9 @@ def _bpp(Gs: np.ndarray, hs: np.ndarray, passive: np.ndarray, htol: float, max_i
     n_bad_best = np.full(len(hs), k + 1)
     backup = np.full(len(hs), 3)
     for _ in range(max_iter):
-        if not len(todo):
-            break
+        if len(todo) <= _TAIL:
+            _lawson_hanson_rows(Gs, hs, w, converged, todo)
+            return
         P = passive[todo]
         Gt = Gs[todo] if batched else Gs
         x = _passive_solve(Gt, hs[todo], P)
@@ -247,14 +268,14 @@ def _nnls_scaled(Gs, hs, htol, max_iter, passive, coarse):
     batched = Gs.ndim == 3
     w = np.zeros((m, k))
     converged = np.zeros(m, dtype=bool)
-    if passive is not None or batched or coarse <= 1 or m < 4 * coarse:
+    if passive is not None or batched or coarse <= 1 or m < 512:
         if passive is None:
             passive = (np.linalg.solve(Gs, hs[..., None])[..., 0] > 0 if batched
                        else np.linalg.solve(Gs, hs.T).T > 0)
         passive = np.array(passive, dtype=bool)
         _bpp(Gs, hs, passive, htol, max_iter, w, converged, np.arange(m))
         return w, converged
-    stride = 1 << int(np.log2(coarse))
+    stride = 1 << int(np.log2(min(coarse, m // 256)))     # the first stage keeps >= 256 rows
     rows = np.arange(0, m, stride)
     passive = np.zeros((m, k), dtype=bool)
     passive[rows] = np.linalg.solve(Gs, hs[rows].T).T > 0
@@ -316,7 +337,8 @@ def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
 
 def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
                    smooth_lambda: float = 0.1, observed: np.ndarray | None = None,
-                   max_iter: int = 3000, tol: float = 1e-5, return_info: bool = False, ridge: float = 0.0):
+                   max_iter: int = 3000, tol: float = 1e-5, return_info: bool = False, ridge: float = 0.0,
+                   anderson: int = 5):
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
@@ -419,6 +441,7 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     del LZ
     it, converged = 0, False
     relax = 1.6                                            # over-relaxation (Boyd et al. 2011, 3.4.3)
+    acc = _Anderson(anderson, Z.size)
     T = np.empty_like(Z)
     for it in range(1, max_iter + 1):
         np.subtract(Z, U, out=T)
@@ -430,23 +453,76 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
         T -= (relax - 1.0) * Z
         T += U
         Z_new = np.maximum(T, 0.0)
-        np.subtract(T, Z_new, out=U)
         ref = max(1.0, float(Z_new.max()))
-        np.subtract(W, Z_new, out=T)
-        r_primal = float(np.abs(T).max())
-        np.subtract(Z_new, Z, out=T)
-        r_dual = rho * float(np.abs(T).max())
-        Z = Z_new
+        r_primal = float(np.abs(W - Z_new).max())
+        r_dual = rho * float(np.abs(Z_new - Z).max())
         if r_primal < tol * ref and r_dual < tol * ref:
+            Z = Z_new
             converged = True
             break
+        # the state after a Z-step is S = Z + U (Z = max(S, 0), U = min(S, 0)); ADMM is the map S -> T,
+        # which Anderson acceleration extrapolates (the first step's start is not such a state)
+        S = acc.step(Z + U, T) if it > 1 else T
+        Z = np.maximum(S, 0.0)
+        U = np.minimum(S, 0.0)
         if it % 10 == 0 and (r_primal > 10 * r_dual or r_dual > 10 * r_primal):
             # residual balancing (Boyd et al. 2011, 3.4.1): rescale rho and the scaled dual U
             f = 2.0 if r_primal > r_dual else 0.5
             rho *= f
             U /= f
             factors = factor(rho)
+            acc.reset()                                    # a new map: forget the old differences
     return (Z, {"iterations": it, "converged": converged}) if return_info else Z
+
+
+class _Anderson:
+    """Type-II Anderson acceleration of a fixed-point map ``S -> T(S)`` (Walker and Ni 2011).
+
+    Keeps the last ``mem`` differences of residuals ``F = T(S) - S`` and of map values in
+    ring buffers (``mem`` x size) and returns ``T(S) - dG gamma`` with ``gamma`` the
+    least-squares fit of ``F`` by ``dF``; one matrix-vector product per buffer per step.
+    Safeguard: when the residual norm grows 10x over the best seen, the memory is cleared
+    and the plain step is taken.
+    """
+
+    def __init__(self, mem: int, size: int):
+        self.mem = int(mem)
+        self.dF = np.empty((self.mem, size)) if self.mem else None
+        self.dG = np.empty((self.mem, size)) if self.mem else None
+        self.reset()
+
+    def reset(self) -> None:
+        self.n = 0
+        self.pos = 0
+        self.M = np.zeros((self.mem, self.mem))
+        self.f = self.g = None
+        self.best = np.inf
+
+    def step(self, s: np.ndarray, g: np.ndarray) -> np.ndarray:
+        if not self.mem:
+            return g
+        f = (g - s).ravel()
+        g = g.ravel()
+        fn = float(f @ f)
+        if fn > 100.0 * self.best:                          # diverging: restart from the plain step
+            self.reset()
+        self.best = min(self.best, fn)
+        if self.f is not None:
+            i = self.pos
+            np.subtract(f, self.f, out=self.dF[i])
+            np.subtract(g, self.g, out=self.dG[i])
+            self.n = min(self.n + 1, self.mem)
+            self.pos = (i + 1) % self.mem
+            col = self.dF[:self.n] @ self.dF[i]
+            self.M[i, :self.n] = col
+            self.M[:self.n, i] = col
+        self.f, self.g = f.copy(), g.copy()
+        if not self.n:
+            return g.reshape(s.shape)
+        M = self.M[:self.n, :self.n]
+        rhs = self.dF[:self.n] @ f
+        gamma = np.linalg.lstsq(M + 1e-12 * np.trace(M) * np.eye(self.n), rhs, rcond=None)[0]
+        return (g - gamma @ self.dG[:self.n]).reshape(s.shape)
 
 
 SOLVERS = ("nnls", "lstsq", "smooth")
