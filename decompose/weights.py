@@ -356,20 +356,20 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     once per value of rho (:func:`scipy.linalg.cholesky_banded`) and solved with one LAPACK call per
     iteration (no Python loop over columns either way). The Z-step is clipping at zero
     (over-relaxed with 1.6; rho rebalanced from the residuals every 10 iterations when they differ
-    tenfold). Stops when the primal residual ``max|W - Z|`` and the dual residual
-    ``rho max|Z - Z_prev|`` both fall below ``tol * max(1, max Z)``; ``tol`` bounds these residuals,
-    not the distance to the exact solution. Measured on 20,000 frames x 24 keys (lambda 0.1)
-    against a ``tol=1e-9`` solution: the default ``tol=1e-5`` (458 iterations) leaves weights within
-    6.3e-3 (max) and 6.0e-4 (RMS); on 10,000 frames the objective is within 1e-6 relative and
-    ``1e-6`` (936 iterations) within 7e-4. ``tol=1e-10`` matches an exact NNLS of the whole QP
-    (scipy's Lawson-Hanson, tests) to 1e-6, and reproduces per-frame NNLS to 1e-7 when
-    ``smooth_lambda = 0``. Speed (100,000 frames x 48 points x 24 keys, a shared 2-core machine):
-    the iterates equal those of the former per-column loop (to 8e-14) at lower cost per
-    iteration: 122.8 s -> 44.8 s back to back in one process (2.7x; ``bench/bench_decompose.py``
-    measured 96 s under heavier load). It is still ~459 iterations of 4 passes over the (n, k)
-    array, i.e. tens of seconds (see docs/decompose.md), and the per-frame NNLS start costs
-    as much as ``nnls_weights``. With ``smooth_lambda = 0`` and every frame observed it
-    returns per-frame NNLS (eq. 4) directly. ``ridge`` adds the Tikhonov term of
+    tenfold). The ADMM map on the state ``S = Z + U`` is extrapolated by type-II Anderson
+    acceleration with memory ``anderson`` (default 5; 0 = plain ADMM), restarted when rho changes
+    or the residual grows a hundredfold. Stops when the primal residual ``max|W - Z|`` and the dual
+    residual ``rho max|Z - Z_prev|`` both fall below ``tol * max(1, max Z)``; ``tol`` bounds these
+    residuals, not the distance to the exact solution. ``tol=1e-10`` matches an exact NNLS of the
+    whole QP (scipy's Lawson-Hanson, tests) to 1e-6, and reproduces per-frame NNLS to 1e-7 when
+    ``smooth_lambda = 0``. Iterations at the default ``tol=1e-5`` (lambda 0.1, 24 keys): 5,000
+    frames 447 plain -> 161 accelerated (126 with memory 8), weights within 6e-3 of a tight
+    solution and the objective within 1e-8 relative either way; 100,000 frames
+    (``bench/bench_decompose.py --plain-admm``) 459 -> 258 iterations, 859 s -> 633 s on a
+    machine so loaded that lstsq took 15.8 s: 54x -> 40x lstsq, far from the 5x aimed at
+    (issue 16); each iteration is still a few passes over the (n, k) array plus the memory's
+    matrix-vector products. The per-frame NNLS start costs one :func:`nnls_gram`.
+    With ``smooth_lambda = 0`` and every frame observed it returns per-frame NNLS (eq. 4) directly. ``ridge`` adds the Tikhonov term of
     :func:`nnls_weights` on observed frames (``G`` becomes ``G + ridge * trace(G) / k * I``).
 
     Returns
