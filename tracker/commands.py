@@ -57,12 +57,72 @@ class TrackSummary:
     message: str
 
 
+class _Raised:
+    """An exception raised by :func:`_prefetched`'s producer, handed to the consumer."""
+
+    def __init__(self, exc: BaseException):
+        self.exc = exc
+
+
+def _prefetched(items, depth: int = 8):
+    """Iterate over ``items`` while a background thread produces up to ``depth`` of them ahead.
+
+    The producer's exceptions are re-raised in the consumer; leaving the loop early (``break``,
+    Ctrl-C, an error) stops the producer and closes ``items`` in its thread.
+    """
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(x) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(x, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce():
+        it = iter(items)
+        try:
+            for x in it:
+                if not put(x):
+                    break
+            else:
+                put(end)
+        except BaseException as exc:  # noqa: BLE001 - handed over to the consumer
+            put(_Raised(exc))
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()
+
+    thread = threading.Thread(target=produce, name="keyshape-decode", daemon=True)
+    thread.start()
+    try:
+        while True:
+            x = q.get()
+            if x is end:
+                break
+            if isinstance(x, _Raised):
+                raise x.exc
+            yield x
+    finally:
+        stop.set()
+        thread.join()
+
+
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
-                tracker_options: dict | None = None, scheme=None) -> TrackSummary:
+                tracker_options: dict | None = None, scheme=None, decode_thread: bool = True) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
 
     Frames are decoded, tracked, written and (with ``overlay``) drawn one at a
-    time. A truncated video yields the frames that decoded; Ctrl-C stops the
+    time; with ``decode_thread`` (default) a background thread decodes up to 8 frames
+    ahead (OpenCV's decoder releases the GIL, so decoding overlaps tracking). A truncated video yields the frames that decoded; Ctrl-C stops the
     loop and keeps the rows written so far (the summary says which).
     """
     import cv2
@@ -97,7 +157,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
                     vw.write(img)
 
         try:
-            for i, frame in reader:
+            for i, frame in _prefetched(reader) if decode_thread else reader:
                 res = tracker.step(frame, i)
                 n_lost += not res.success
                 emit(smoother.push(res.points, (res, frame if vw is not None else None)))
