@@ -338,7 +338,7 @@ def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
 def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
                    smooth_lambda: float = 0.1, observed: np.ndarray | None = None,
                    max_iter: int = 3000, tol: float = 1e-5, return_info: bool = False, ridge: float = 0.0,
-                   anderson: int = 5):
+                   anderson: int = 10):
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
@@ -355,19 +355,21 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     ``n_keys`` systems are stacked into one banded system of length ``n_keys * n``, Cholesky-factored
     once per value of rho (:func:`scipy.linalg.cholesky_banded`) and solved with one LAPACK call per
     iteration (no Python loop over columns either way). The Z-step is clipping at zero
-    (over-relaxed with 1.6; rho rebalanced from the residuals every 10 iterations when they differ
-    tenfold). The ADMM map on the state ``S = Z + U`` is extrapolated by type-II Anderson
-    acceleration with memory ``anderson`` (default 5; 0 = plain ADMM), restarted when rho changes
-    or the residual grows a hundredfold. Stops when the primal residual ``max|W - Z|`` and the dual
+    (rho rebalanced from the residuals every 10 iterations when they differ tenfold). The ADMM
+    map on the state ``S = Z + U`` is extrapolated by type-II Anderson acceleration with memory
+    ``anderson`` (default 10, i.e. 20 arrays of the weights' size; 0 = plain ADMM, over-relaxed
+    with 1.6 as before), restarted when rho changes or the residual grows a hundredfold. Stops when the primal residual ``max|W - Z|`` and the dual
     residual ``rho max|Z - Z_prev|`` both fall below ``tol * max(1, max Z)``; ``tol`` bounds these
     residuals, not the distance to the exact solution. ``tol=1e-10`` matches an exact NNLS of the
     whole QP (scipy's Lawson-Hanson, tests) to 1e-6, and reproduces per-frame NNLS to 1e-7 when
     ``smooth_lambda = 0``. Iterations at the default ``tol=1e-5`` (lambda 0.1, 24 keys): 5,000
-    frames 447 plain -> 161 accelerated (126 with memory 8), weights within 6e-3 of a tight
-    solution and the objective within 1e-8 relative either way; 100,000 frames
-    (``bench/bench_decompose.py --plain-admm``) 459 -> 258 iterations, 859 s -> 633 s on a
-    machine so loaded that lstsq took 15.8 s: 54x -> 40x lstsq, far from the 5x aimed at
-    (issue 16); each iteration is still a few passes over the (n, k) array plus the memory's
+    frames 447 plain; accelerated with over-relaxation 1.6: 161 (memory 5), 114 (memory 10);
+    without it: 137 and 107 (CPU 8.3 s -> 5.5 s from memory 5 with 1.6 to memory 10 without);
+    weights within 6e-3 of a tight solution and the objective within 1e-8 relative. 100,000
+    frames (``bench/bench_decompose.py --plain-admm``, memory 5 with 1.6): 459 -> 258
+    iterations, 859 s -> 633 s on a machine so loaded that lstsq took 15.8 s: 54x -> 40x lstsq,
+    far from the 5x aimed at (issue 16; docs/decompose.md has the current default's figure);
+    each iteration is still a few passes over the (n, k) array plus the memory's
     matrix-vector products. The per-frame NNLS start costs one :func:`nnls_gram`.
     With ``smooth_lambda = 0`` and every frame observed it returns per-frame NNLS (eq. 4) directly. ``ridge`` adds the Tikhonov term of
     :func:`nnls_weights` on observed frames (``G`` becomes ``G + ridge * trace(G) / k * I``).
@@ -440,7 +442,7 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     U = -(Z @ Gs * m[:, None] - H + mu * LZ) / rho
     del LZ
     it, converged = 0, False
-    relax = 1.6                                            # over-relaxation (Boyd et al. 2011, 3.4.3)
+    relax = 1.0 if anderson else 1.6                       # over-relaxation (Boyd et al. 2011, 3.4.3)
     acc = _Anderson(anderson, Z.size)
     T = np.empty_like(Z)
     for it in range(1, max_iter + 1):
