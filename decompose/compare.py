@@ -137,8 +137,9 @@ class _Basis:
 
     def lstsq(self, k: int) -> np.ndarray:
         r = self.r[:k, :k]
-        if np.abs(np.diagonal(r)).min() <= 1e-10 * max(np.abs(np.diagonal(r)).max(), 1e-300):
-            return np.linalg.lstsq(self.B[:k].T, self.X.T, rcond=None)[0].T   # rank-deficient: minimum norm
+        if k > self.r.shape[0] or np.abs(np.diagonal(r)).min() <= 1e-10 * max(np.abs(np.diagonal(r)).max(), 1e-300):
+            # more keys than coordinates, or dependent keys: minimum-norm least squares
+            return np.linalg.lstsq(self.B[:k].T, self.X.T, rcond=None)[0].T
         return solve_triangular(r, self.c[:, :k].T).T
 
 

@@ -443,6 +443,28 @@ def test_sheet_draws_key_frames(tmp_path):
 
 # ----------------------------------------------------------------------------- target-domain check
 
+def test_compare_reused_factorisation_equals_direct_solves(toy):
+    """compare's per-k leading blocks (one Gram / one QR at kmax) give the weights of solving each k
+    afresh, also where k exceeds the region's coordinates (pupils: 2 points, 4 numbers)."""
+    from keyshape.decompose.compare import _Basis
+
+    _, _, Q = toy
+    sel = SpreadSelector(8).fit(Q)
+    b = _Basis(Q, Q[sel.order_], Q.mean(0))
+    for k in (2, 5, 8):
+        keys = Q[sel.order_[:k]]
+        np.testing.assert_allclose(b.nnls(k), nnls_weights(Q, keys, Q.mean(0)), atol=1e-8)
+        np.testing.assert_allclose(b.lstsq(k), lstsq_weights(Q, keys, Q.mean(0)), atol=1e-8)
+    tracks = toy[0]
+    pupils = region_points(SCHEME, "pupils")
+    Qp = model_shapes(tracks)[:, pupils]
+    bp = _Basis(Qp, Qp[:6], Qp.mean(0))
+    w = bp.lstsq(6)                                   # 6 keys, 4 coordinates: minimum-norm solution
+    np.testing.assert_allclose(w, np.linalg.lstsq((Qp[:6] - Qp.mean(0)).reshape(6, -1).T,
+                                                  (Qp - Qp.mean(0)).reshape(len(Qp), -1).T, rcond=None)[0].T)
+    assert bp.nnls(6).min() >= 0.0
+
+
 def test_target_domain_measures(toy):
     from keyshape.decompose.compare import key_noise_amplification, pixel_errors, smooth_field, target_distortion
 
