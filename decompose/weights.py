@@ -209,6 +209,12 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: fl
     ``y = G w - h >= 0``, ``w * y = 0``: the unique NNLS solution for
     positive-definite ``G``, the one Lawson-Hanson (eq. 4, [Law74]) finds.
 
+    Accuracy: the Gram matrix squares the condition number of the key basis, so where nearly
+    dependent keys give huge weights the result is accurate to about ``eps * cond(B_P)^2``
+    relative to the weights (a Hypothesis case: 6 keys in 4 dimensions, weights ~2,300, residual
+    5.6e-7 where scipy's QR-based Lawson-Hanson fits exactly); on well-conditioned bases (tests:
+    condition numbers up to 1e6) the weights equal scipy's to 1e-9.
+
     Every pivoting step solves the rows' passive systems ``G_PP w_P = h_P`` together:
     rows are grouped by ``|P|`` and the compact systems are Cholesky-solved as one
     vectorised stack (:func:`_passive_solve`), so there is no per-row LAPACK call, and

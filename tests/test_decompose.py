@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import nnls
 
@@ -117,6 +117,7 @@ def test_nnls_rank_deficient_reaches_scipys_residual(case):
 
 
 @settings(max_examples=60, deadline=None)
+@example(seed=2301282, n_keys=6, n_dims=4, n_frames=1, log_cond=0.0)  # nearly dependent keys, weights ~2,300
 @given(seed=st.integers(0, 2**32 - 1), n_keys=st.integers(1, 10), n_dims=st.integers(1, 14),
        n_frames=st.integers(1, 300), log_cond=st.floats(0.0, 5.0))
 def test_nnls_gram_property_kkt_and_scipy(seed, n_keys, n_dims, n_frames, log_cond):
@@ -129,8 +130,11 @@ def test_nnls_gram_property_kkt_and_scipy(seed, n_keys, n_dims, n_frames, log_co
     assert ok.all() and w.min() >= 0.0
     ref = [nnls(B, x, maxiter=50 * n_keys) for x in X]
     r_ref = np.array([r[1] for r in ref])
-    scale = max(1.0, float(np.abs(X).max()))
-    np.testing.assert_allclose(np.linalg.norm(w @ B.T - X, axis=1), r_ref, rtol=1e-8, atol=1e-8 * scale)
+    # the Gram matrix squares the basis' condition number: where nearly dependent keys give huge
+    # weights (a hypothesis case: 6 keys in 4 dimensions, weights ~2,300) the residual agrees
+    # to 1e-9 of the weights' size times the basis norm, not absolutely
+    tol = 1e-8 * max(1.0, float(np.abs(X).max())) + 1e-9 * float(np.abs(w).max()) * float(np.linalg.norm(B, 2))
+    np.testing.assert_allclose(np.linalg.norm(w @ B.T - X, axis=1), r_ref, rtol=1e-8, atol=tol)
     s = np.linalg.svd(B, compute_uv=False)
     if n_dims >= n_keys and s[-1] > 1e-3 * s[0]:
         wr = np.array([r[0] for r in ref])
