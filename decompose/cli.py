@@ -243,15 +243,17 @@ def _compare(args) -> int:
     from keyshape.base.files import atomic_dir, check_output_dir
     from keyshape.decompose.compare import compare, plot_errors, write_errors
 
+    from keyshape.base.progress import Progress
+
     if not 1 <= args.kmin <= args.kmax:
         raise InputError(f"--kmin {args.kmin} --kmax {args.kmax}: need 1 <= kmin <= kmax")
     if not (math.isfinite(args.amplitude) and args.amplitude >= 0):
         raise InputError(f"--amplitude {args.amplitude}: must be a finite number >= 0")
     check_output_dir(args.output, args.overwrite, inputs=[args.tracks])
     tracks, scheme = _load(args)
-    rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
-                   amplitude=args.amplitude, rng=args.seed,
-                   progress=lambda r, m: print(f"  {r}: {m} done", flush=True))
+    with Progress(desc="keyshape compare", unit="rows") as bar:
+        rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
+                       amplitude=args.amplitude, rng=args.seed, progress=bar)
     out = Path(args.output)
     with atomic_dir(out, args.overwrite, inputs=[args.tracks]) as tmp:
         write_errors(tmp / "errors.csv", rows)

@@ -92,14 +92,76 @@ def train_model(video, labels_dir, scheme="contours48", n_components: int | None
     return model, time.perf_counter() - t0
 
 
+class _Raised:
+    """An exception raised by :func:`_prefetched`'s producer, handed to the consumer."""
+
+    def __init__(self, exc: BaseException):
+        self.exc = exc
+
+
+def _prefetched(items, depth: int = 8):
+    """Iterate over ``items`` while a background thread produces up to ``depth`` of them ahead.
+
+    The producer's exceptions are re-raised in the consumer; leaving the loop early (``break``,
+    Ctrl-C, an error) stops the producer and closes ``items`` in its thread.
+    """
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(x) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(x, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce():
+        it = iter(items)
+        try:
+            for x in it:
+                if not put(x):
+                    break
+            else:
+                put(end)
+        except BaseException as exc:  # noqa: BLE001 - handed over to the consumer
+            put(_Raised(exc))
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()
+
+    thread = threading.Thread(target=produce, name="keyshape-decode", daemon=True)
+    thread.start()
+    try:
+        while True:
+            x = q.get()
+            if x is end:
+                break
+            if isinstance(x, _Raised):
+                raise x.exc
+            yield x
+    finally:
+        stop.set()
+        thread.join()
+
+
 def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int = 0, stop: int | None = None,
-               tracker_options: dict | None = None, keep_frames: bool = False, reader: VideoReader | None = None):
+               tracker_options: dict | None = None, keep_frames: bool = False, reader: VideoReader | None = None,
+               decode_thread: bool = True):
     """Track frames ``start`` to ``stop`` (exclusive; None: the end) of ``video``, one at a time.
 
     Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the
     temporal smoothing ``smooth`` (which delays the output by its window). Frames before
     ``start`` are decoded and skipped; the tracker starts afresh at ``start``. On Ctrl-C the
     frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
+    With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead
+    (OpenCV's decoder releases the GIL, so decoding overlaps tracking; same frames, same order).
     """
     from keyshape.tracker.fitting import Tracker
     from keyshape.tracker.smoothing import StreamSmoother
@@ -109,7 +171,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
     try:
-        for i, frame in reader:
+        for i, frame in _prefetched(reader) if decode_thread else reader:
             if i < start:
                 continue
             if stop is not None and i >= stop:
@@ -181,7 +243,7 @@ class TrackSummary:
 
 
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
-                tracker_options: dict | None = None, scheme=None) -> TrackSummary:
+                tracker_options: dict | None = None, scheme=None, decode_thread: bool = True) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
 
     Frames are decoded, tracked, written and (with ``overlay``) drawn one at a
@@ -217,7 +279,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:
                 for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
-                                                  keep_frames=vw is not None, reader=reader):
+                                                  keep_frames=vw is not None, reader=reader,
+                                                  decode_thread=decode_thread):
                     n_lost += not res.success
                     writer.write(res.index, res.index / info.fps, res.confidence, res.success, pts, res.pose)
                     if vw is not None:
