@@ -24,7 +24,7 @@ from tracker.video import VideoReader, video_info
 
 
 def train_model(video, labels_dir, scheme="contours48", n_components: int | None = None, n_morphs: int = 120,
-                rng=0) -> tuple[AppearanceModel, float]:
+                rng=0, **model_options) -> tuple[AppearanceModel, float]:
     """Read the labelled frames of ``video`` and fit an :class:`AppearanceModel`; return it and the seconds taken."""
     t0 = time.perf_counter()
     sch = load_scheme(scheme)
@@ -42,7 +42,8 @@ def train_model(video, labels_dir, scheme="contours48", n_components: int | None
         f = int(frames[np.flatnonzero(outside.any(1))[0]])
         raise InputError(f"points far outside the {w}x{h} frame: are these labels for this video?",
                          Path(labels_dir) / f"{f:06d}.pts")
-    model = AppearanceModel(sch, n_components=n_components, n_morphs=n_morphs, rng=rng).fit(list(images), shapes)
+    model = AppearanceModel(sch, n_components=n_components, n_morphs=n_morphs, rng=rng,
+                            **model_options).fit(list(images), shapes)
     return model, time.perf_counter() - t0
 
 

@@ -15,10 +15,10 @@ import numpy as np
 
 from pipeline.errors import InputError, require_file
 from pipeline.files import atomic_path
-from tracker.eigenpoints import FORMAT, FORMAT_VERSION, AppearanceModel
+from tracker.eigenpoints import FORMAT, FORMAT_VERSION, AppearanceModel, RegionModel
 from tracker.schemes import Scheme, _validate, load_scheme
 
-_PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge")
+_PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge", "regions", "split_mouth")
 
 
 def _scheme_dict(s: Scheme) -> dict:
@@ -31,8 +31,13 @@ def save_model(path: str | Path, model: AppearanceModel) -> None:
     """Write ``model`` to ``path`` (.npz), atomically."""
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "scheme": _scheme_dict(model.scheme_),
             "params": {k: getattr(model, k) for k in _PARAMS}, "landmark_scale": model.landmark_scale_,
-            "patch_size": model.patch_size_, "n_samples": model.n_samples_}
+            "patch_size": model.patch_size_, "n_samples": model.n_samples_,
+            "region_models": [{"name": r.name, "landmark_scale": r.landmark_scale}
+                              for r in getattr(model, "region_models_", [])]}
     arrays = {k.rstrip("_"): getattr(model, k) for k in AppearanceModel._ARRAYS}
+    for i, r in enumerate(getattr(model, "region_models_", [])):
+        for k in RegionModel.ARRAYS:
+            arrays[f"region{i}_{k}"] = getattr(r, k)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
@@ -61,10 +66,15 @@ def load_model(path: str | Path, scheme: str | Scheme | None = None) -> Appearan
         if want.name != sch.name or want.n_points != sch.n_points:
             raise InputError(f"model was trained in scheme {sch.name!r} ({sch.n_points} points), "
                              f"not {want.name!r} ({want.n_points} points)", path)
-    model = AppearanceModel(sch, **meta["params"])
+    params = dict(meta["params"])
+    params.setdefault("regions", False)     # models written before region models existed
+    model = AppearanceModel(sch, **params)
     try:
         for k in AppearanceModel._ARRAYS:
             setattr(model, k, np.asarray(data[k.rstrip("_")]))
+        model.region_models_ = [
+            RegionModel(r["name"], *(np.asarray(data[f"region{i}_{k}"]) for k in RegionModel.ARRAYS),
+                        r["landmark_scale"]) for i, r in enumerate(meta.get("region_models", []))]
     except KeyError as exc:
         raise InputError(f"model file is missing array {exc}", path) from None
     model.mask_ = model.mask_.astype(bool)
@@ -77,7 +87,9 @@ def load_model(path: str | Path, scheme: str | Scheme | None = None) -> Appearan
     n_pix, n_pts = len(model._index), len(model.reference_)
     if (model.mask_.shape != (model.patch_size_,) * 2 or model.components_.shape[1] != n_pix + 2 * n_pts
             or model.mean_.shape != (n_pix + 2 * n_pts,) or n_pts != sch.n_points
-            or not np.isfinite(model.components_).all()):
+            or not np.isfinite(model.components_).all()
+            or any(r.index.max(initial=0) >= model.patch_size_ ** 2 or r.points.max(initial=0) >= n_pts
+                   or r.components.shape[1] != len(r.index) + 2 * len(r.points) for r in model.region_models_)):
         raise InputError("model file is inconsistent (array shapes do not match each other or the scheme)", path)
     model._precompute()
     return model

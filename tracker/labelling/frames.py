@@ -218,3 +218,153 @@ def spread_frames(n_frames: int, count: int, exclude=(), min_gap: int = 12, rng=
             raise InputError(f"cannot place {count} held-back frames {min_gap} apart in {n_frames} frames")
         out.append(int(g.choice(ok)))
     return np.array(out, dtype=np.intp)
+
+
+# ----------------------------------------------------------------------------- shape cues (dlib pre-fill)
+
+CUE_NAMES = ("eye_aperture", "mouth_aperture", "mouth_width", "brow_height", "yaw", "pitch", "roll")
+
+
+def shape_cues(points68: np.ndarray) -> np.ndarray:
+    """Per-frame expression and pose cues of iBUG-68 shapes ``(n, 68, 2)`` -> ``(n, 7)`` (see :data:`CUE_NAMES`).
+
+    Distances are in inter-ocular units (outer eye corners) in a face frame
+    rotated by the eye line: eye aperture (mean lid gap of both eyes), inner-lip
+    gap, mouth width, brow height above the eye centres, yaw (nose tip's
+    horizontal offset from the eyes' midpoint), pitch (nose tip's drop below
+    the eye line over the chin's), roll (eye-line angle, radians). NaN rows
+    stay NaN.
+    """
+    p = np.asarray(points68, np.float64)
+    eye = p[:, 45] - p[:, 36]
+    iod = np.linalg.norm(eye, axis=1)
+    ang = np.arctan2(eye[:, 1], eye[:, 0])
+    c, s = np.cos(-ang), np.sin(-ang)
+    mid = (p[:, 36] + p[:, 45]) / 2
+    d = p - mid[:, None]
+    q = np.stack([c[:, None] * d[..., 0] - s[:, None] * d[..., 1],
+                  s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1) / iod[:, None, None]
+
+    def gap(a, b):
+        return np.linalg.norm(q[:, a] - q[:, b], axis=-1)
+
+    eye_ap = (gap(37, 41) + gap(38, 40) + gap(43, 47) + gap(44, 46)) / 4
+    mouth_ap = gap(62, 66)
+    width = gap(48, 54)
+    eye_y = q[:, 36:48, 1].mean(1)
+    brow = eye_y - q[:, 17:27, 1].mean(1)
+    yaw = q[:, 30, 0]
+    pitch = q[:, 30, 1] / np.maximum(q[:, 8, 1], 1e-6)
+    return np.stack([eye_ap, mouth_ap, width, brow, yaw, pitch, ang], 1)
+
+
+def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, min_gap: int = 12,
+                          exclude=(), n_blinks: int | None = None, blink_ratio: float = 0.7,
+                          sharp_window: int = 3) -> np.ndarray:
+    """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
+
+    Features: robust z-scores of :func:`shape_cues` (eye closure counted
+    double) and the first principal components of the face-frame shapes.
+    Farthest-point sampling in that space, starting nearest the median face,
+    picks the extremes (mouth wide open, brows raised, head turned) and never
+    near-duplicates; then, when the video has blinks (eye aperture below
+    ``blink_ratio`` of its median) and too few chosen frames are blinks, the
+    most redundant chosen frames give way to the deepest blinks (``n_blinks``,
+    default ``max(1, count // 5)``): the person-specific model can only follow
+    eye closures it was shown. Frames without a face are never chosen.
+
+    Returns the chosen frame indices in time order.
+    """
+    p = np.asarray(points68, np.float64)
+    n = len(p)
+    count = int(count)
+    if count < 1:
+        raise InputError(f"--count must be at least 1, got {count}")
+    ok = np.isfinite(p).all(axis=(1, 2))
+    free = ok.copy()
+    for e in set(int(i) for i in exclude):
+        free[max(e - min_gap + 1, 0):e + min_gap] = False
+    if free.sum() < count:
+        raise InputError(f"cannot choose {count} frames: the pre-fill found a face in only {int(free.sum())} "
+                         f"free frames of {n}")
+    cues = shape_cues(np.where(ok[:, None, None], p, 0.0) + np.where(ok[:, None, None], 0.0, np.nan))
+    cv = cues[ok]
+    med = np.median(cv, 0)
+    iqr = np.subtract(*np.percentile(cv, [75, 25], 0)) / 1.35
+    z = np.clip((cues - med) / np.maximum(iqr, 1e-6), -8, 8)
+    z[:, 0] *= 2.0
+    # face-frame shapes (cues' normalisation) -> PCA, scaled so the first component has unit spread
+    eye = p[:, 45] - p[:, 36]
+    iod = np.linalg.norm(eye, axis=1)
+    ang = np.arctan2(eye[:, 1], eye[:, 0])
+    c, s = np.cos(-ang), np.sin(-ang)
+    d = p - ((p[:, 36] + p[:, 45]) / 2)[:, None]
+    q = np.stack([c[:, None] * d[..., 0] - s[:, None] * d[..., 1],
+                  s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1) / iod[:, None, None]
+    flat = q[:, 17:].reshape(n, -1)
+    mu = flat[ok].mean(0)
+    _, sv, vt = np.linalg.svd(flat[ok] - mu, full_matrices=False)
+    k = min(8, len(sv))
+    shp = np.zeros((n, k))
+    shp[ok] = (flat[ok] - mu) @ vt[:k].T / max(sv[0] / np.sqrt(ok.sum()), 1e-9)
+    X = np.hstack([z, np.clip(shp, -6, 6)])
+    X[~ok] = 0.0
+    cand = np.flatnonzero(free)
+    chosen: list[int] = [int(cand[np.argmin(np.linalg.norm(X[cand] - np.median(X[cand], 0), axis=1))])]
+    dist = np.linalg.norm(X[cand] - X[chosen[0]], axis=1)
+    blocked = np.abs(cand - chosen[0]) < min_gap
+    while len(chosen) < count:
+        score = np.where(blocked, -np.inf, dist)
+        if not np.isfinite(score.max()):
+            raise InputError(f"cannot choose {count} frames at least {min_gap} frames apart from {n} frames")
+        f = int(cand[np.argmax(score)])
+        chosen.append(f)
+        blocked |= np.abs(cand - f) < min_gap
+        dist = np.minimum(dist, np.linalg.norm(X[cand] - X[f], axis=1))
+    # blinks: make sure some chosen frames have the eyes closed
+    n_blinks = max(1, count // 5) if n_blinks is None else int(n_blinks)
+    eye_ap = cues[:, 0]
+    is_blink = free & (eye_ap < blink_ratio * med[0])
+    have = [f for f in chosen if is_blink[f]]
+    protected = set(have)
+    if is_blink.any() and len(have) < n_blinks and count > 1:
+        order = np.flatnonzero(is_blink)
+        order = order[np.argsort(eye_ap[order])]
+        for b in order:
+            if len(have) >= n_blinks:
+                break
+            others = [f for f in chosen]
+            if min(abs(b - f) for f in others) < min_gap:
+                continue
+            # drop the most redundant non-blink chosen frame (nearest to another chosen one)
+            cs = np.array(chosen)
+            dd = np.linalg.norm(X[cs][:, None] - X[cs][None], axis=2)
+            np.fill_diagonal(dd, np.inf)
+            nn = dd.min(1)
+            for j in np.argsort(nn):
+                if int(cs[j]) not in protected and j != 0:
+                    chosen[j] = int(b)
+                    break
+            have.append(int(b))
+            protected.add(int(b))
+    # sharpness: swap for a sharper neighbour with (nearly) the same cues, blinks kept as they are
+    if sharpness is not None:
+        sharp = np.asarray(sharpness, np.float64)
+        out = []
+        cs = np.array(chosen)
+        for f in chosen:
+            if f in protected:
+                out.append(f)
+                continue
+            nb = np.arange(max(f - sharp_window, 0), min(f + sharp_window + 1, n))
+            nb = nb[free[nb]]
+            d_self = np.linalg.norm(X[nb] - X[f], axis=1)
+            oth = cs[cs != f]
+            if len(oth):
+                d_other = np.min(np.linalg.norm(X[nb][:, None] - X[oth][None], axis=2), axis=1)
+                nb = nb[d_self < 0.25 * d_other]
+            nb = nb[[min((abs(int(x) - g) for g in out + [h for h in chosen if h != f]), default=min_gap)
+                     >= min_gap for x in nb]] if len(nb) else nb
+            out.append(int(nb[np.argmax(sharp[nb])]) if len(nb) else f)
+        chosen = out
+    return np.array(sorted(chosen), dtype=np.intp)

@@ -154,6 +154,19 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         session = {"scheme": scheme.name, "video": str(info.path.resolve()), "frames": frames,
                    "prefilled": landmarker is not None,
                    "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+    if session is None and landmarker is not None:
+        # whole-video cues from dlib (eye closure, mouth, brows, head pose): cover what the face does
+        from tracker.labelling.dlib_landmarker import landmark_video_chained  # noqa: PLC0415
+        from tracker.labelling.frames import choose_frames_by_cues  # noqa: PLC0415
+        with Progress(info.n_frames, "dlib over the video", enabled=not quiet) as prog:
+            pts68 = landmark_video_chained(video, landmarker, progress=lambda i, n: prog.update())
+        gap = max(1, int(round(info.fps / 2))) if info.fps > 0 else 12
+        gap = min(gap, max(1, len(pts68) // (2 * count)))
+        if np.isfinite(pts68).all(axis=(1, 2)).sum() >= count:
+            chosen = choose_frames_by_cues(pts68, count, min_gap=gap, exclude=exclude)
+            session = {"scheme": scheme.name, "video": str(info.path.resolve()),
+                       "frames": [int(f) for f in chosen], "chosen_by": "dlib cues",
+                       "prefilled": True, "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
     if session is None:
         box = None
         if landmarker is not None:
