@@ -14,10 +14,10 @@ import time
 
 import numpy as np
 
-from decompose.regions import model_shapes
-from decompose.selectors import SpreadSelector
-from decompose.toy import toy_tracks
-from decompose.weights import lstsq_weights, nnls_weights, smooth_weights
+from keyshape.decompose.regions import model_shapes
+from keyshape.decompose.selectors import SpreadSelector
+from keyshape.decompose.toy import toy_tracks
+from keyshape.decompose.weights import lstsq_weights, nnls_weights, smooth_weights
 
 
 def main() -> None:

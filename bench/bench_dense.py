@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from data_synth.dense import LANDMARKS68, PERFORMANCES, dense_sequence, realistic_face
-from retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
-from retarget.dense.registration import place_markers, register_mesh
-from retarget.dense.transfer import transfer_sequence
-from retarget.obj import read_obj, read_obj_vertices
+from keyshape.data_synth.dense import LANDMARKS68, PERFORMANCES, dense_sequence, realistic_face
+from keyshape.retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
+from keyshape.retarget.dense.registration import place_markers, register_mesh
+from keyshape.retarget.dense.transfer import transfer_sequence
+from keyshape.base.formats.obj import read_obj, read_obj_vertices
 
 ICT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ict-facekit"
 SKIN = np.arange(9409)

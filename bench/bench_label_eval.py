@@ -50,14 +50,14 @@ cv2.setNumThreads(1)
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from pipeline.files import atomic_write  # noqa: E402
-from tracker.io import read_labels  # noqa: E402
-from tracker.labelling.convert import ibug68_to_contours48  # noqa: E402
-from tracker.labelling.dlib_landmarker import DlibLandmarker, Timing  # noqa: E402
-from tracker.labelling.frames import spread_frames  # noqa: E402
-from tracker.labelling.prepare import prepare_label_folder  # noqa: E402
-from tracker.schemes import load_scheme  # noqa: E402
-from tracker.video import VideoReader, video_info  # noqa: E402
+from keyshape.base.files import atomic_write  # noqa: E402
+from keyshape.base.formats.tracks import read_labels  # noqa: E402
+from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: E402
+from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker, Timing  # noqa: E402
+from keyshape.tracker.labelling.frames import spread_frames  # noqa: E402
+from keyshape.tracker.labelling.prepare import prepare_label_folder  # noqa: E402
+from keyshape.base.schemes import load_scheme  # noqa: E402
+from keyshape.base.formats.video import VideoReader, video_info  # noqa: E402
 
 LABELS = REPO / "bench" / "labels"
 SCHEME = load_scheme("contours48")
@@ -146,8 +146,8 @@ def jitter(points: np.ndarray, runs: list[np.ndarray]) -> float:
 
 def tracker_available() -> bool:
     try:
-        import tracker.commands  # noqa: F401
-        import tracker.fitting  # noqa: F401
+        import keyshape.tracker.commands  # noqa: F401
+        import keyshape.tracker.fitting  # noqa: F401
     except ImportError:
         return False
     return True
@@ -162,8 +162,8 @@ def run_tracker(video: Path, train_dir: Path, seed: int) -> dict | None:
     """
     if not tracker_available():
         return None
-    from tracker.commands import train_model
-    from tracker.fitting import Tracker
+    from keyshape.tracker.commands import train_model
+    from keyshape.tracker.fitting import Tracker
     model, train_s = train_model(video, train_dir, "contours48", rng=seed)
     trk = Tracker(model)
     pts, cpu, wall, lost = [], 0.0, 0.0, 0

@@ -18,9 +18,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from retarget.mocap.planar_bones import PlanarBones  # noqa: E402
-from retarget.mocap.triangulate import triangulate_markers  # noqa: E402
-from retarget.obj import read_obj_vertices  # noqa: E402
+from keyshape.retarget.mocap.planar_bones import PlanarBones  # noqa: E402
+from keyshape.retarget.mocap.triangulate import triangulate_markers  # noqa: E402
+from keyshape.base.formats.obj import read_obj_vertices  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict-facekit"
 

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from retarget.blend import BlendBasis
+from keyshape.retarget.blend import BlendBasis
 
 
 def main() -> None:

@@ -21,8 +21,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--size", default="640x480")
     args = ap.parse_args()
-    from data_synth.video import SyntheticVideo, parse_size, synthesize
-    from tracker.video import video_writer
+    from keyshape.data_synth.video import SyntheticVideo, parse_size, synthesize
+    from keyshape.base.formats.video import video_writer
 
     size = parse_size(args.size)
     n = args.frames

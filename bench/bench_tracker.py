@@ -21,14 +21,14 @@ def main() -> None:
     ap.add_argument("--labels")
     ap.add_argument("--scheme", default="contours48")
     args = ap.parse_args()
-    from tracker.commands import track_video, train_model
-    from tracker.video import VideoReader
+    from keyshape.tracker.commands import track_video, train_model
+    from keyshape.base.formats.video import VideoReader
 
     with tempfile.TemporaryDirectory() as tmp:
         if args.video:
             video, labels = Path(args.video), Path(args.labels)
         else:
-            from data_synth.video import synthesize
+            from keyshape.data_synth.video import synthesize
 
             out = synthesize(Path(tmp) / "footage", frames=args.frames, seed=0)
             video, labels = out["video"], out["labels"]

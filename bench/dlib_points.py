@@ -54,7 +54,7 @@ def label_video(path, cache: Path | None = None) -> np.ndarray:
     """dlib points of every frame of a video ``(n_frames, 68, 2)``, cached as .npy."""
     if cache is not None and Path(cache).is_file():
         return np.load(cache)
-    from tracker.video import VideoReader
+    from keyshape.base.formats.video import VideoReader
 
     lm = DlibLandmarker()
     out = np.stack([lm(f) for _, f in VideoReader(path, gray=True)])

@@ -32,9 +32,9 @@ def longest_run(mask: np.ndarray) -> int:
 
 def evaluate(video=VIDEO, cache=None, n_labels: int = 12, sheet=None) -> dict:
     from dlib_points import label_video
-    from tracker.commands import track_video, train_model
-    from tracker.io import read_tracks, write_labels
-    from tracker.schemes import load_scheme
+    from keyshape.tracker.commands import track_video, train_model
+    from keyshape.base.formats.tracks import read_tracks, write_labels
+    from keyshape.base.schemes import load_scheme
 
     dl = label_video(video, cache)
     n = len(dl)
@@ -56,8 +56,8 @@ def evaluate(video=VIDEO, cache=None, n_labels: int = 12, sheet=None) -> dict:
     if sheet is not None:
         import cv2
 
-        from tracker.draw import contact_sheet, crop_around, draw_shape
-        from tracker.video import VideoReader
+        from keyshape.base.draw import contact_sheet, crop_around, draw_shape
+        from keyshape.base.formats.video import VideoReader
 
         picks = set(np.linspace(0, n - 1, 24).round().astype(int).tolist())
         picks |= set(np.argsort(-np.nan_to_num(out["nme"]["all"], nan=1.0))[:4].tolist())

@@ -18,9 +18,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data_synth.mocap import (FACE_SKIN, discontinuity_regions, identity_face, lip_vertices,  # noqa: E402
+from keyshape.data_synth.mocap import (FACE_SKIN, discontinuity_regions, identity_face, lip_vertices,  # noqa: E402
                               load_facekit, synthesize)
-from retarget.mocap.drive import drive_mesh  # noqa: E402
+from keyshape.retarget.mocap.drive import drive_mesh  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict-facekit"
 

@@ -16,10 +16,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data_synth.mocap import FACE_SKIN, animface_target_markers, load_facekit  # noqa: E402
-from retarget.mocap.clean import fill_gaps, remove_rigid_motion  # noqa: E402
-from retarget.mocap.drive import drive_mesh  # noqa: E402
-from retarget.mocap.markers_io import read_trc  # noqa: E402
+from keyshape.data_synth.mocap import FACE_SKIN, animface_target_markers, load_facekit  # noqa: E402
+from keyshape.retarget.mocap.clean import fill_gaps, remove_rigid_motion  # noqa: E402
+from keyshape.retarget.mocap.drive import drive_mesh  # noqa: E402
+from keyshape.base.formats.markers import read_trc  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -26,7 +26,7 @@ TOOL = SHARED / "tools" / "real_accuracy.py"
 
 def keyshape(*args) -> None:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    subprocess.run([sys.executable, "-c", "from pipeline.cli import main; import sys; sys.exit(main())",
+    subprocess.run([sys.executable, "-c", "from keyshape.cli import main; import sys; sys.exit(main())",
                     *map(str, args)], check=True, env=env)
 
 

@@ -19,11 +19,11 @@ import argparse
 
 import numpy as np
 
-from decompose.regions import available_regions, model_shapes, region_points
-from decompose.selectors import SpreadSelector
-from decompose.weights import reconstruct, solve_weights
-from tracker.io import read_tracks
-from tracker.schemes import scheme_for_n_points
+from keyshape.decompose.regions import available_regions, model_shapes, region_points
+from keyshape.decompose.selectors import SpreadSelector
+from keyshape.decompose.weights import reconstruct, solve_weights
+from keyshape.base.formats.tracks import read_tracks
+from keyshape.base.schemes import scheme_for_n_points
 
 
 def main() -> None:
@@ -38,7 +38,7 @@ def main() -> None:
     if args.tracks:
         items = [(p, read_tracks(p)) for p in args.tracks]
     else:
-        from decompose.toy import toy_tracks
+        from keyshape.decompose.toy import toy_tracks
         items = [(f"toy seed {s}", toy_tracks(600, noise_px=0.0, rng=s)) for s in (5, 6, 7)]
     print("file,region,still_pairs,jitter_nnls,jitter_smooth,jitter_ratio,rms_nnls_px,rms_smooth_px,error_ratio")
     for name, tracks in items:

@@ -28,10 +28,10 @@ def nme_table(points, truth, scheme) -> dict:
 
 
 def run_seed(seed: int, frames: int, workdir: Path) -> dict:
-    from data_synth.video import synthesize
-    from tracker.commands import track_video, train_model
-    from tracker.io import read_tracks
-    from tracker.schemes import load_scheme
+    from keyshape.data_synth.video import synthesize
+    from keyshape.tracker.commands import track_video, train_model
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.schemes import load_scheme
 
     out = synthesize(workdir / f"s{seed}", frames=frames, seed=seed)
     t0 = time.perf_counter()

@@ -24,9 +24,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def build(source: Path, out: Path) -> Path:
-    from pipeline.errors import require_dir
-    from pipeline.files import atomic_path
-    from retarget.obj import read_obj, read_obj_vertices
+    from keyshape.base.errors import require_dir
+    from keyshape.base.files import atomic_path
+    from keyshape.base.formats.obj import read_obj, read_obj_vertices
 
     source = require_dir(source, "ICT-FaceKit folder")
     mesh = read_obj(source / "generic_neutral_mesh.obj", require_faces=True)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_dir
-from retarget.obj import read_obj, read_obj_vertices
+from keyshape.base.errors import InputError, require_dir
+from keyshape.base.formats.obj import read_obj, read_obj_vertices
 
 #: performance name -> expressions it drives (three performances, as 002's Slap/Smile/Stretch)
 PERFORMANCES: dict[str, tuple[str, ...]] = {

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 #: The hidden expression components, in the column order of the weights.
 COMPONENTS: tuple[str, ...] = (

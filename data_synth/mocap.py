@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_dir, require_file
+from keyshape.base.errors import InputError, require_dir, require_file
 
 FACE_SKIN = 9409  # vertices 0..9408 are the face skin
 
@@ -79,7 +79,7 @@ class FaceKit:
 
 def load_facekit(folder, names=EXPRESSIONS) -> FaceKit:
     """Read the neutral, the expression deltas ``target - neutral`` and the 68 landmark vertices."""
-    from retarget.obj import read_obj, read_obj_vertices
+    from keyshape.base.formats.obj import read_obj, read_obj_vertices
 
     folder = require_dir(folder, "ICT-FaceKit folder")
     mesh = read_obj(require_file(folder / "generic_neutral_mesh.obj", "ICT-FaceKit neutral"))
@@ -245,7 +245,7 @@ def dense_frames(kit: FaceKit, weights: np.ndarray, base: np.ndarray | None = No
 
 def identity_face(kit: FaceKit, coeffs=(3.0, -2.0, 2.0, 1.5), scale: float = 1.05) -> np.ndarray:
     """A realistically different face with the same topology (data README's recipe)."""
-    from retarget.obj import read_obj_vertices
+    from keyshape.base.formats.obj import read_obj_vertices
 
     v = kit.neutral.copy()
     for i, c in enumerate(coeffs):
@@ -257,8 +257,8 @@ def identity_face(kit: FaceKit, coeffs=(3.0, -2.0, 2.0, 1.5), scale: float = 1.0
 
 def write_take(out_dir, kit: FaceKit, perf: Performance, formats=("c3d", "trc")) -> dict:
     """Write markers (C3D/TRC, mm, 120 Hz), target markers JSON, rigid names and ground truth .npz atomically."""
-    from pipeline.files import atomic_dir, atomic_path, atomic_write
-    from retarget.mocap.markers_io import Markers, write_markers
+    from keyshape.base.files import atomic_dir, atomic_path, atomic_write
+    from keyshape.base.formats.markers import Markers, write_markers
 
     out_dir = Path(out_dir)
     paths = {}
@@ -298,7 +298,7 @@ def discontinuity_regions(kit: FaceKit, labels, split: float = 0.3) -> list:
     the eye's centre the lower lid. Lower-lip vertices may not use bones touching
     upper-lip, nose or nasolabial markers and the reverse; lids likewise.
     """
-    from retarget.mocap.masks import Region
+    from keyshape.retarget.mocap.masks import Region
 
     labels = [str(s) for s in labels]
     known = set(labels)
@@ -350,7 +350,7 @@ def animface_target_markers(kit: FaceKit, labels, neutral_mm) -> dict:
     hand-matched landmarks (nose top and tip, eye and mouth corners, chin), then snapped to
     the nearest face-skin vertex: a stand-in for the hand placement of section 5.1.
     """
-    from retarget.mocap.clean import rigid_fit
+    from keyshape.retarget.mocap.clean import rigid_fit
 
     lm = kit.neutral[kit.landmarks]
     pairs = {"NoseTop": 27, "NoseHead": 30, "Leye_Outside": 45, "Reye_Outside": 36, "Mouth_Lend": 54,

@@ -27,8 +27,8 @@ def register(subparsers) -> None:
 
 
 def _synth_mocap(args) -> int:
-    from data_synth.mocap import discontinuity_regions, load_facekit, synthesize, write_take
-    from retarget.mocap.masks import write_masks
+    from keyshape.data_synth.mocap import discontinuity_regions, load_facekit, synthesize, write_take
+    from keyshape.retarget.mocap.masks import write_masks
 
     kit = load_facekit(args.facekit)
     perf = synthesize(kit, args.frames, args.rate, rng=args.seed, noise_mm=args.noise, n_gaps=args.gaps,

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from data_synth.face_model import COMPONENTS
+from keyshape.data_synth.face_model import COMPONENTS
 
 _C = {name: k for k, name in enumerate(COMPONENTS)}
 

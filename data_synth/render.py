@@ -23,8 +23,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from data_synth.face_model import COMPONENTS, FaceModel
-from data_synth.performance import Performance
+from keyshape.data_synth.face_model import COMPONENTS, FaceModel
+from keyshape.data_synth.performance import Performance
 
 _SHIFT = 4
 _ONE = 1 << _SHIFT

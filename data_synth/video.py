@@ -20,14 +20,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from data_synth.face_model import COMPONENTS, FaceModel
-from data_synth.performance import make_performance
-from data_synth.render import FaceRenderer
-from pipeline.errors import InputError
-from pipeline.files import atomic_dir, atomic_path, atomic_write
-from pipeline.progress import Progress
-from tracker.io import Tracks, write_labels, write_tracks
-from tracker.video import video_writer
+from keyshape.data_synth.face_model import COMPONENTS, FaceModel
+from keyshape.data_synth.performance import make_performance
+from keyshape.data_synth.render import FaceRenderer
+from keyshape.base.errors import InputError
+from keyshape.base.files import atomic_dir, atomic_path, atomic_write
+from keyshape.base.progress import Progress
+from keyshape.base.formats.tracks import Tracks, write_labels, write_tracks
+from keyshape.base.formats.video import video_writer
 
 #: Fraction of the frame interval the shutter is open (sets the motion blur length).
 SHUTTER = 0.6
@@ -286,8 +286,8 @@ def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray], tile_
     the lids, lips, brows and pupils; the caption names the frame and its
     strongest hidden weights.
     """
-    from tracker.draw import contact_sheet, crop_around, draw_shape
-    from tracker.schemes import load_scheme
+    from keyshape.base.draw import contact_sheet, crop_around, draw_shape
+    from keyshape.base.schemes import load_scheme
 
     path = Path(path)
     if path.suffix.lower() != ".png":

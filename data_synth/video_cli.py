@@ -23,7 +23,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from data_synth.video import parse_size, synthesize
+    from keyshape.data_synth.video import parse_size, synthesize
 
     t0 = time.perf_counter()
     out = synthesize(args.out_dir, frames=args.frames, seed=args.seed, size=parse_size(args.size), fps=args.fps,

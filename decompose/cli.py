@@ -49,9 +49,9 @@ def register(subparsers) -> None:
 
 
 def _load(args):
-    from tracker.io import read_tracks
-    from tracker.schemes import load_scheme, scheme_for_n_points
-    from pipeline.errors import InputError
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.schemes import load_scheme, scheme_for_n_points
+    from keyshape.base.errors import InputError
 
     tracks = read_tracks(args.tracks)
     scheme = load_scheme(args.scheme) if getattr(args, "scheme", None) else scheme_for_n_points(tracks.n_points)
@@ -64,9 +64,9 @@ def _load(args):
 def _select(args) -> int:
     from pathlib import Path
 
-    from pipeline.errors import InputError
-    from decompose.io import write_keys
-    from decompose.regions import available_regions, model_shapes, select_region
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.keys import write_keys
+    from keyshape.decompose.regions import available_regions, model_shapes, select_region
 
     tracks, scheme = _load(args)
     if args.k is None and args.method != "hull2":
@@ -84,8 +84,8 @@ def _select(args) -> int:
     for rk in chosen:
         print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}")
     if args.sheet:
-        from decompose.sheet import key_sheet
-        from pipeline.files import atomic_write
+        from keyshape.decompose.sheet import key_sheet
+        from keyshape.base.files import atomic_write
         import cv2
 
         suffix = Path(args.sheet).suffix.lower()
@@ -103,9 +103,9 @@ def _select(args) -> int:
 def _decompose(args) -> int:
     import numpy as np
 
-    from pipeline.errors import InputError
-    from decompose.io import read_keys, write_weights
-    from decompose.regions import decompose_region, model_shapes
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.keys import read_keys, write_weights
+    from keyshape.decompose.regions import decompose_region, model_shapes
 
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
@@ -128,7 +128,7 @@ def _decompose(args) -> int:
 def _compare(args) -> int:
     from pathlib import Path
 
-    from decompose.compare import compare, plot_errors, write_errors
+    from keyshape.decompose.compare import compare, plot_errors, write_errors
 
     tracks, scheme = _load(args)
     rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,

@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.errors import InputError
-from tracker.io import Tracks
-from tracker.schemes import Scheme
-from decompose.regions import RegionKeys, available_regions, model_shapes, region_points, to_image
-from decompose.selectors import METHODS, make_selector
-from decompose.weights import lstsq_weights, nnls_weights, reconstruct
+from keyshape.base.errors import InputError
+from keyshape.base.formats.tracks import Tracks
+from keyshape.base.schemes import Scheme
+from keyshape.decompose.regions import RegionKeys, available_regions, model_shapes, region_points, to_image
+from keyshape.decompose.selectors import METHODS, make_selector
+from keyshape.decompose.weights import lstsq_weights, nnls_weights, reconstruct
 
 NESTED = ("spread", "greedy")   # the first j keys of a fit with k are the fit with j
 
@@ -151,7 +151,7 @@ COLUMNS = ("method", "region", "k", "error", "rms_px", "target_nnls_px", "target
 
 def write_errors(path, rows: list[dict]) -> None:
     """errors.csv: one row per (method, region, k) with :data:`COLUMNS`."""
-    from pipeline.files import atomic_write
+    from keyshape.base.files import atomic_write
 
     with atomic_write(path) as f:
         f.write(",".join(COLUMNS) + "\n")
@@ -167,7 +167,7 @@ def plot_errors(path, rows: list[dict]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipeline.files import atomic_path
+    from keyshape.base.files import atomic_path
 
     regions = list(dict.fromkeys(r["region"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))

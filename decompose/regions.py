@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.errors import InputError
-from tracker.io import Tracks
-from tracker.schemes import Scheme
-from decompose.selectors import make_selector
-from decompose.weights import solve_weights
+from keyshape.base.errors import InputError
+from keyshape.base.formats.tracks import Tracks
+from keyshape.base.schemes import Scheme
+from keyshape.decompose.selectors import make_selector
+from keyshape.decompose.weights import solve_weights
 
 REGIONS = {"mouth": "mouth", "eyes": "eyes+brows", "pupils": "pupils"}
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.errors import InputError
-from decompose.weights import nnls_gram
+from keyshape.base.errors import InputError
+from keyshape.decompose.weights import nnls_gram
 
 METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipeline.errors import InputError
-from tracker.draw import contact_sheet, crop_around, draw_shape
-from tracker.io import Tracks
-from tracker.schemes import Scheme
-from decompose.regions import RegionKeys, to_image
+from keyshape.base.errors import InputError
+from keyshape.base.draw import contact_sheet, crop_around, draw_shape
+from keyshape.base.formats.tracks import Tracks
+from keyshape.base.schemes import Scheme
+from keyshape.decompose.regions import RegionKeys, to_image
 
 
 def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[RegionKeys],
@@ -52,7 +52,7 @@ def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[Re
 def key_sheet(video_path, tracks: Tracks, scheme: Scheme, regions: list[RegionKeys], columns: int = 4,
               tile_width: int = 280) -> np.ndarray:
     """The sheet image (BGR uint8) for ``regions``' keys, frames decoded from ``video_path``."""
-    from tracker.video import VideoReader
+    from keyshape.base.formats.video import VideoReader
 
     wanted = sorted({int(f) for rk in regions for f in rk.frames})
     images = VideoReader(video_path).read_frames(wanted)

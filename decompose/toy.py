@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tracker.io import Tracks
-from tracker.schemes import load_scheme
+from keyshape.base.formats.tracks import Tracks
+from keyshape.base.schemes import load_scheme
 
 
 def mean_face() -> np.ndarray:

@@ -20,7 +20,7 @@ import os
 from scipy.fft import dct, idct
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 _WORKERS = max(1, min(4, os.cpu_count() or 1))  # scipy.fft threads for the smoothed solver's DCTs
 

@@ -29,7 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 FORMS = ("absolute", "delta")
 

@@ -45,11 +45,11 @@ def register(subparsers) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from pipeline.errors import InputError
-    from retarget.export import export
-    from retarget.retargeter import Retargeter
-    from retarget.targets import load_targets, read_regions
-    from retarget.weights_io import read_weights
+    from keyshape.base.errors import InputError
+    from keyshape.retarget.export import export
+    from keyshape.retarget.retargeter import Retargeter
+    from keyshape.retarget.targets import load_targets, read_regions
+    from keyshape.base.formats.weights import read_weights
 
     frames, columns, weights = read_weights(args.weights)
     targets = args.targets[0] if len(args.targets) == 1 else args.targets
@@ -58,8 +58,8 @@ def run(args) -> int:
     rt = Retargeter(form=args.form, band=args.band, metric=args.metric).fit(ts, regions, args.regions or "regions")
     head, fps = None, args.fps
     if args.tracks:
-        from retarget.headpose import head_motion
-        from tracker.io import read_tracks
+        from keyshape.retarget.headpose import head_motion
+        from keyshape.base.formats.tracks import read_tracks
         tr = read_tracks(args.tracks)
         pos = {int(f): i for i, f in enumerate(tr.frame)}
         missing = [int(f) for f in frames if int(f) not in pos]
@@ -68,7 +68,7 @@ def run(args) -> int:
         rows = np.array([pos[int(f)] for f in frames])
         if args.reference_frame not in pos:
             raise InputError(f"reference frame {args.reference_frame} is not in the tracks", args.tracks)
-        from retarget.headpose import hold_invalid
+        from keyshape.retarget.headpose import hold_invalid
         full = hold_invalid(tr.pose, tr.success)
         pose = np.concatenate([full[rows], full[[pos[args.reference_frame]]]])
         head = head_motion(pose, reference=len(rows), units_per_model=args.head_units)

@@ -19,9 +19,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError, require_file
-from retarget.obj import Mesh
-from retarget.targets import TargetSet, name_key
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.formats.obj import Mesh
+from keyshape.retarget.targets import TargetSet, name_key
 
 DATA = Path(__file__).parent / "data" / "ict_face.npz"
 
@@ -132,8 +132,8 @@ def write_demo_targets(folder: str | Path, key_coeffs: Mapping[str, Mapping[str,
                        neutral_coeffs: Mapping[str, float] | None = None) -> Path:
     """Write one OBJ per key shape (``<column>.obj``) and ``neutral.obj`` into ``folder`` atomically,
     the input ``keyshape retarget --targets folder`` reads."""
-    from pipeline.files import atomic_dir
-    from retarget.obj import write_obj
+    from keyshape.base.files import atomic_dir
+    from keyshape.base.formats.obj import write_obj
     ts = demo_targets(key_coeffs, expressions, neutral_coeffs)
     with atomic_dir(folder) as tmp:
         write_obj(tmp / "neutral.obj", ts.mesh)

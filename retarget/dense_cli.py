@@ -49,10 +49,10 @@ def register(subparsers) -> None:
 
 
 def _register(args) -> int:
-    from pipeline.errors import InputError
-    from retarget.dense import io
-    from retarget.dense.registration import place_markers, register_mesh, transfer_masks
-    from retarget.obj import read_obj, write_obj
+    from keyshape.base.errors import InputError
+    from keyshape.retarget.dense import io
+    from keyshape.retarget.dense.registration import place_markers, register_mesh, transfer_masks
+    from keyshape.base.formats.obj import read_obj, write_obj
 
     if bool(args.markers) != bool(args.out_markers):
         raise InputError("--markers and --out-markers go together")
@@ -79,8 +79,8 @@ def _register(args) -> int:
 def _initial(spec: str, frames, seed: int):
     import numpy as np
 
-    from retarget.dense import io
-    from retarget.dense.keypoints import farthest_point_sample
+    from keyshape.retarget.dense import io
+    from keyshape.retarget.dense.keypoints import farthest_point_sample
 
     if spec.isdigit():
         return farthest_point_sample(frames[0], int(spec), np.random.default_rng(seed))
@@ -88,8 +88,8 @@ def _initial(spec: str, frames, seed: int):
 
 
 def _keypoints(args) -> int:
-    from retarget.dense import io
-    from retarget.dense.keypoints import KeyPointInserter
+    from keyshape.retarget.dense import io
+    from keyshape.retarget.dense.keypoints import KeyPointInserter
 
     frames, _ = io.read_sequence(args.sequence)
     init = _initial(args.initial, frames, args.seed)
@@ -105,11 +105,11 @@ def _keypoints(args) -> int:
 def _transfer(args) -> int:
     import numpy as np
 
-    from pipeline.errors import InputError
-    from retarget.dense import io
-    from retarget.dense.registration import resolve_landmarks
-    from retarget.dense.transfer import transfer_sequence
-    from retarget.obj import read_obj
+    from keyshape.base.errors import InputError
+    from keyshape.retarget.dense import io
+    from keyshape.retarget.dense.registration import resolve_landmarks
+    from keyshape.retarget.dense.transfer import transfer_sequence
+    from keyshape.base.formats.obj import read_obj
 
     frames, _ = io.read_sequence(args.sequence)
     tgt = read_obj(args.target, require_faces=True)

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.files import atomic_dir, atomic_write
-from retarget.headpose import HeadMotion
-from retarget.retargeter import Retargeter
-from retarget.targets import name_key
-from retarget.weights_io import write_weights
+from keyshape.base.errors import InputError
+from keyshape.base.files import atomic_dir, atomic_write
+from keyshape.retarget.headpose import HeadMotion
+from keyshape.retarget.retargeter import Retargeter
+from keyshape.retarget.targets import name_key
+from keyshape.base.formats.weights import write_weights
 
 VIDEO_SUFFIXES = (".mp4", ".avi")
 
@@ -101,7 +101,7 @@ def _draw_2d(points: np.ndarray, size=(480, 480), scheme=None):
         img = np.full((h, w, 3), 255, np.uint8)
         q = p * s + off
         if scheme is not None:
-            from tracker.draw import draw_shape
+            from keyshape.base.draw import draw_shape
             img = draw_shape(img, q, scheme, colour=(40, 40, 40), thickness=2)
         else:
             qi = np.round(q * 16).astype(np.int32)
@@ -110,7 +110,7 @@ def _draw_2d(points: np.ndarray, size=(480, 480), scheme=None):
 
 
 def _scheme_for(n_points: int, scheme):
-    from tracker.schemes import BUILTIN, load_scheme
+    from keyshape.base.schemes import BUILTIN, load_scheme
     if scheme is not None:
         return load_scheme(scheme)
     for name in BUILTIN:
@@ -158,7 +158,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         raise InputError(f"head motion has {head.n_frames} frames but the weights have {len(weights)}")
     info = {"kind": kind, "path": path, "n_clamped": 0}
     if kind == "glb":
-        from retarget.gltf import split_at_uv_seams, write_glb
+        from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
         base, deltas, names, mw, info["n_clamped"] = rt.morph_targets(weights, clamp=clamp)
         ids, uvs, tri = split_at_uv_seams(ts.mesh)
         if len(tri) == 0:
@@ -180,12 +180,12 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
                 wr.writerow(header)
                 wr.writerows(rows)
         else:
-            from retarget.retargeter import _unique
+            from keyshape.retarget.retargeter import _unique
             write_weights(path, frames, _unique(names, ts.columns), w)
         return info
     out = rt.transform(weights, chunk_frames=chunk_frames)
     if kind == "obj_frames":
-        from retarget.obj import write_obj
+        from keyshape.base.formats.obj import write_obj
         if bake_head and head is not None:
             out = head.apply(out)
         with atomic_dir(path) as tmp:
@@ -197,7 +197,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         pts = _head_2d(out, head) if (head is not None and bake_head) else out
         images = _draw_2d(pts, size, _scheme_for(ts.n_vertices, scheme))
     else:
-        from retarget.render import render_frames
+        from keyshape.retarget.render import render_frames
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
@@ -205,7 +205,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
             for fr, img in zip(frames, images):
                 cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
     else:
-        from tracker.video import video_writer
+        from keyshape.base.formats.video import video_writer
         with video_writer(path, fps, size) as wr:
             for img in images:
                 wr.write(img)

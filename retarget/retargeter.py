@@ -11,9 +11,9 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
-from retarget.blend import BlendBasis, _check_weights, mesh_edges, region_weights
-from retarget.targets import TargetSet, key_regions
+from keyshape.base.errors import InputError
+from keyshape.retarget.blend import BlendBasis, _check_weights, mesh_edges, region_weights
+from keyshape.retarget.targets import TargetSet, key_regions
 
 
 class Retargeter:
@@ -24,7 +24,7 @@ class Retargeter:
     form : {"auto", "absolute", "delta"}
         ``sum_i w_i B_i`` (the paper's literal Eq. 2) or ``N + sum_i w_i (B_i - N)``; "auto"
         (default) is "delta" when the targets have a neutral, else "absolute" (see
-        :mod:`retarget.blend`: use the form the weights were fitted in).
+        :mod:`keyshape.retarget.blend`: use the form the weights were fitted in).
     band : float or None
         Width of the region blending band in mesh units (default: 10% of the mesh's
         bounding-box diagonal).

@@ -17,8 +17,8 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError, MissingFileError, require_file
-from retarget.obj import Mesh, read_obj, read_obj_vertices
+from keyshape.base.errors import InputError, MissingFileError, require_file
+from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices
 
 TARGET_SUFFIXES = (".obj", ".pts", ".json")
 NEUTRAL_STEMS = ("neutral",)
@@ -66,7 +66,7 @@ def read_points(path: str | Path) -> np.ndarray:
     """Read a 2D drawing: ``.pts`` or JSON (``[[x, y], ...]`` or ``{"points": [[x, y], ...]}``)."""
     path = require_file(path, "target drawing")
     if path.suffix.lower() == ".pts":
-        from tracker.io import read_pts
+        from keyshape.base.formats.tracks import read_pts
         return read_pts(path)
     try:
         data = json.loads(path.read_text())

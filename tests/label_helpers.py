@@ -5,9 +5,9 @@ import json
 
 import numpy as np
 
-from tracker.io import write_pts
-from tracker.labelling.prepare import template_points
-from tracker.schemes import load_scheme
+from keyshape.base.formats.tracks import write_pts
+from keyshape.tracker.labelling.prepare import template_points
+from keyshape.base.schemes import load_scheme
 
 
 def make_folder(root, frames=(5, 40)):

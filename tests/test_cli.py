@@ -1,7 +1,7 @@
 import subprocess
 import sys
 
-from pipeline.cli import build_parser, main
+from keyshape.cli import build_parser, main
 
 
 def test_help_lists_commands():
@@ -23,5 +23,5 @@ def test_error_is_one_line_exit_2(tmp_path, capsys):
 
 
 def test_module_entry_runs():
-    r = subprocess.run([sys.executable, "-m", "pipeline", "--help"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "keyshape", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "keyshape" in r.stdout

@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from pipeline.cli import main
-from pipeline.errors import InputError, KeyshapeError
-from tracker.io import read_tracks, write_tracks
-from tracker.schemes import load_scheme
-from decompose.io import read_keys, read_weights, write_keys, write_weights
-from decompose.regions import decompose_region, model_shapes, region_points, select_region
-from decompose.selectors import (GreedySelector, HullSelector, KMeansSelector, RandomSelector, SpreadSelector,
+from keyshape.cli import main
+from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.formats.tracks import read_tracks, write_tracks
+from keyshape.base.schemes import load_scheme
+from keyshape.base.formats.keys import read_keys, read_weights, write_keys, write_weights
+from keyshape.decompose.regions import decompose_region, model_shapes, region_points, select_region
+from keyshape.decompose.selectors import (GreedySelector, HullSelector, KMeansSelector, RandomSelector, SpreadSelector,
                                  make_selector)
-from decompose.toy import toy_tracks
-from decompose.weights import (lstsq_weights, nnls_gram, nnls_weights, reconstruct, smooth_weights,
+from keyshape.decompose.toy import toy_tracks
+from keyshape.decompose.weights import (lstsq_weights, nnls_gram, nnls_weights, reconstruct, smooth_weights,
                                solve_weights)
 
 SCHEME = load_scheme("contours48")
@@ -145,7 +145,7 @@ def test_failed_frames_interpolated():
     w_obs = np.array([[0.0, 1.0], [1.0, 3.0]])
     obs = np.array([False, True, False, False, True, False])
     shapes = np.zeros((6, 3, 2))
-    from decompose.weights import interpolate_rows
+    from keyshape.decompose.weights import interpolate_rows
     w = interpolate_rows(w_obs, obs)
     np.testing.assert_allclose(w[:, 0], [0, 0, 1 / 3, 2 / 3, 1, 1])
     np.testing.assert_allclose(w[:, 1], [1, 1, 5 / 3, 7 / 3, 3, 3])
@@ -349,7 +349,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
 def test_sheet_draws_key_frames(tmp_path):
     import cv2
 
-    from tracker.video import video_writer
+    from keyshape.base.formats.video import video_writer
 
     tracks = toy_tracks(40, rng=0)
     tracks.points *= 0.8   # keep the face inside a 320x240 frame
@@ -370,7 +370,7 @@ def test_sheet_draws_key_frames(tmp_path):
 # ----------------------------------------------------------------------------- target-domain check
 
 def test_target_domain_measures(toy):
-    from decompose.compare import key_noise_amplification, pixel_errors, smooth_field, target_distortion
+    from keyshape.decompose.compare import key_noise_amplification, pixel_errors, smooth_field, target_distortion
 
     tracks, _, Q = toy
     pose = tracks.pose
@@ -396,8 +396,8 @@ def test_target_domain_measures(toy):
 @pytest.mark.slow
 def test_on_synthetic_video_truth(tmp_path):
     """Greedy >= 20% below spread at k = 8, 12, 16 and NNLS below lstsq on independent key errors."""
-    from data_synth.video import synthesize
-    from decompose.compare import compare
+    from keyshape.data_synth.video import synthesize
+    from keyshape.decompose.compare import compare
 
     paths = synthesize(tmp_path / "s", frames=300, seed=0, labels=1)
     tracks = read_tracks(paths["truth"])

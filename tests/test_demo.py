@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pygltflib
 
-from pipeline.cli import main
+from keyshape.cli import main
 
 
 def test_demo_runs_end_to_end_and_beats_a_still_face(tmp_path, capsys):

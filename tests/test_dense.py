@@ -6,15 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.errors import InputError
-from retarget.dense import io
-from retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
-from retarget.dense.meshcheck import TriangleSurface, check_mesh, closest_on_triangles
-from retarget.dense.rbf_face import FaceSpaceRBF
-from retarget.dense.registration import (MeshEnergy, place_markers, register_mesh, resolve_landmarks,
+from keyshape.cli import main
+from keyshape.base.errors import InputError
+from keyshape.retarget.dense import io
+from keyshape.retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
+from keyshape.retarget.dense.meshcheck import TriangleSurface, check_mesh, closest_on_triangles
+from keyshape.retarget.dense.rbf_face import FaceSpaceRBF
+from keyshape.retarget.dense.registration import (MeshEnergy, place_markers, register_mesh, resolve_landmarks,
                                          transfer_masks)
-from retarget.dense.transfer import transfer_sequence
+from keyshape.retarget.dense.transfer import transfer_sequence
 
 
 def grid(n=21, size=10.0):
@@ -124,8 +124,8 @@ def test_transfer_onto_own_neutral_reproduces_the_sequence():
 
 def _ict_case(ict, step=3, n_frames=6):
     """A decimated ICT "talk" case: every ``step``-th face-skin vertex, ``n_frames`` frames, 68 landmarks as keys."""
-    from data_synth.dense import dense_sequence
-    from retarget.obj import read_obj_vertices
+    from keyshape.data_synth.dense import dense_sequence
+    from keyshape.base.formats.obj import read_obj_vertices
     frames, _ = dense_sequence(ict, "talk", n_frames, rng=0)
     lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
     keep = np.union1d(np.arange(0, 9409, step), lm68[lm68 < 9409])
@@ -153,8 +153,8 @@ def test_ict_transfer_identity_and_onto_identity000(shared_data):
 @pytest.mark.slow
 @pytest.mark.parametrize("target", ["self", "identity000", "identity003"])
 def test_ict_transfer_full_size(shared_data, target):
-    from data_synth.dense import dense_sequence
-    from retarget.obj import read_obj_vertices
+    from keyshape.data_synth.dense import dense_sequence
+    from keyshape.base.formats.obj import read_obj_vertices
     ict = shared_data / "ict-facekit"
     frames, _ = dense_sequence(ict, "talk", 8, rng=0)
     lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
@@ -265,7 +265,7 @@ def test_sequence_roundtrip_and_errors(tmp_path):
 
 
 def test_cli_register_and_keypoints(tmp_path, capsys):
-    from retarget.obj import Mesh, read_obj, write_obj
+    from keyshape.base.formats.obj import Mesh, read_obj, write_obj
     v, t = grid(11)
     write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
     write_obj(tmp_path / "tgt.obj", Mesh(curved(v, 0.8), list(t)))
@@ -309,8 +309,8 @@ def test_cli_register_and_keypoints(tmp_path, capsys):
         "and under the chin, far from the 12 frontal landmarks (docs/keypoints.md)"))),
 ])
 def test_ict_registration_halves_error_and_places_markers(shared_data, target):
-    from data_synth.dense import LANDMARKS68, realistic_face
-    from retarget.obj import read_obj, read_obj_vertices
+    from keyshape.data_synth.dense import LANDMARKS68, realistic_face
+    from keyshape.base.formats.obj import read_obj, read_obj_vertices
     ict = shared_data / "ict-facekit"
     ref = read_obj(ict / "generic_neutral_mesh.obj")
     lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
@@ -330,7 +330,7 @@ def test_ict_registration_halves_error_and_places_markers(shared_data, target):
 @pytest.mark.slow
 @pytest.mark.parametrize("performance", ["talk", "stretch"])
 def test_ict_insertion_beats_random(shared_data, performance):
-    from data_synth.dense import dense_sequence
+    from keyshape.data_synth.dense import dense_sequence
     ict = shared_data / "ict-facekit"
     lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
     frames, _ = dense_sequence(ict, performance, 60, rng=0)
@@ -346,7 +346,7 @@ def test_ict_insertion_beats_random(shared_data, performance):
 
 @pytest.mark.slow
 def test_dense_sequences_are_deterministic(shared_data):
-    from data_synth.dense import dense_sequence
+    from keyshape.data_synth.dense import dense_sequence
     a, tri = dense_sequence(shared_data / "ict-facekit", "smile", 5, rng=3)
     b, _ = dense_sequence(shared_data / "ict-facekit", "smile", 5, rng=3)
     c, _ = dense_sequence(shared_data / "ict-facekit", "smile", 5, rng=4)
@@ -357,9 +357,9 @@ def test_dense_sequences_are_deterministic(shared_data):
 
 def test_register_outputs_feed_the_mocap_command(tmp_path):
     """``register --out-markers/--out-masks`` write what ``keyshape mocap --target-markers/--masks`` reads."""
-    from retarget.mocap.cli import read_target_markers
-    from retarget.mocap.masks import read_masks as read_mocap_masks
-    from retarget.obj import Mesh, write_obj
+    from keyshape.retarget.mocap.cli import read_target_markers
+    from keyshape.retarget.mocap.masks import read_masks as read_mocap_masks
+    from keyshape.base.formats.obj import Mesh, write_obj
     v, t = grid(11)
     write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
     write_obj(tmp_path / "tgt.obj", Mesh(v.copy(), list(t)))       # same face: masks must carry unchanged

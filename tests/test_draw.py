@@ -1,7 +1,7 @@
 import numpy as np
 
-from tracker.draw import contact_sheet, crop_around, draw_shape
-from tracker.schemes import load_scheme
+from keyshape.base.draw import contact_sheet, crop_around, draw_shape
+from keyshape.base.schemes import load_scheme
 
 
 def test_draw_marks_pixels_on_contours_only():

@@ -3,7 +3,7 @@ import stat
 
 import pytest
 
-from pipeline.files import atomic_dir, atomic_path, atomic_write
+from keyshape.base.files import atomic_dir, atomic_path, atomic_write
 
 
 def test_atomic_write_mode_follows_umask(tmp_path):

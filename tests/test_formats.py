@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from tracker.io import (Tracks, pts_name, read_labels, read_pts, read_tracks, write_labels, write_pts,
+from keyshape.base.errors import InputError
+from keyshape.base.formats.tracks import (Tracks, pts_name, read_labels, read_pts, read_tracks, write_labels, write_pts,
                         write_tracks)
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from label_helpers import make_folder
-from tracker.io import read_pts
-from tracker.labelling.server import LabelServer
+from keyshape.base.formats.tracks import read_pts
+from keyshape.tracker.labelling.server import LabelServer
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

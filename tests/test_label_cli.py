@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from tracker.io import read_pts, write_pts
+from keyshape.cli import main
+from keyshape.base.formats.tracks import read_pts, write_pts
 
 
 @pytest.fixture(scope="module")
@@ -15,7 +15,7 @@ def small_video(tmp_path_factory):
     import cv2
 
     from label_helpers import make_folder  # noqa: F401  (keeps the helper importable here too)
-    from tracker.video import video_writer
+    from keyshape.base.formats.video import video_writer
     path = tmp_path_factory.mktemp("vid") / "clip.avi"
     with video_writer(path, 25, (96, 80)) as w:
         for i in range(120):

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from tracker.labelling.convert import find_pupil, ibug68_to_contours48, resample_curve
-from tracker.labelling.prepare import mean_ibug68
-from tracker.schemes import load_scheme
+from keyshape.base.errors import InputError
+from keyshape.tracker.labelling.convert import find_pupil, ibug68_to_contours48, resample_curve
+from keyshape.tracker.labelling.prepare import mean_ibug68
+from keyshape.base.schemes import load_scheme
 
 
 def test_resample_straight_line_is_even():

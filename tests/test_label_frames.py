@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from tracker.labelling.frames import choose_frames, describe, spread_frames
+from keyshape.base.errors import InputError
+from keyshape.tracker.labelling.frames import choose_frames, describe, spread_frames
 
 
 def face(mouth: float, brow: float, blur: bool = False, rng=None) -> np.ndarray:

@@ -9,8 +9,8 @@ import threading
 import numpy as np
 import pytest
 
-from tracker.io import read_pts
-from tracker.labelling import server as srv_mod
+from keyshape.base.formats.tracks import read_pts
+from keyshape.tracker.labelling import server as srv_mod
 from label_helpers import make_folder
 
 
@@ -147,6 +147,6 @@ def test_is_loopback():
 
 
 def test_missing_session_named(tmp_path):
-    from pipeline.errors import MissingFileError
+    from keyshape.base.errors import MissingFileError
     with pytest.raises(MissingFileError, match="session.json"):
         srv_mod.LabelServer(tmp_path, 0)

@@ -6,9 +6,9 @@ import pytest
 from scipy.spatial import Delaunay
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import InputError
-from retarget.mocap.planar_bones import PlanarBones, bone_frames, closest_feature, triangle_min_angles
-from retarget.mocap.rbf import NotFittedError, RBFRetarget
+from keyshape.base.errors import InputError
+from keyshape.retarget.mocap.planar_bones import PlanarBones, bone_frames, closest_feature, triangle_min_angles
+from keyshape.retarget.mocap.rbf import NotFittedError, RBFRetarget
 
 
 def _surface(seed=0, n_ctrl=30, n_mesh=1500):

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import InputError
-from retarget.mocap.clean import (choose_rigid_set, fill_gaps, rebuild_inner_lips, remove_rigid_motion,
+from keyshape.base.errors import InputError
+from keyshape.retarget.mocap.clean import (choose_rigid_set, fill_gaps, rebuild_inner_lips, remove_rigid_motion,
                                   rigid_fit)
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError, MissingFileError
-from retarget.mocap.markers_io import Markers, read_c3d, read_markers, read_trc, unit_scale, write_markers
+from keyshape.base.errors import InputError, MissingFileError
+from keyshape.base.formats.markers import Markers, read_c3d, read_markers, read_trc, unit_scale, write_markers
 
 
 def _take(rng, n_frames=20, n_markers=5):

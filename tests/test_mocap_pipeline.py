@@ -6,17 +6,17 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.errors import InputError
-from retarget.mocap.masks import Region, allowed_matrix, read_masks, regions_from_image, render_mask_image
-from retarget.mocap.triangulate import cylindrical_projection, triangulate_markers
+from keyshape.cli import main
+from keyshape.base.errors import InputError
+from keyshape.retarget.mocap.masks import Region, allowed_matrix, read_masks, regions_from_image, render_mask_image
+from keyshape.retarget.mocap.triangulate import cylindrical_projection, triangulate_markers
 
 FEW = ["jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L"]
 
 
 @pytest.fixture(scope="module")
 def kit(shared_data):
-    from data_synth.mocap import load_facekit
+    from keyshape.data_synth.mocap import load_facekit
 
     return load_facekit(shared_data / "ict-facekit", FEW)
 
@@ -73,7 +73,7 @@ def test_mask_image_carries_to_another_face(kit, tmp_path):
     the same vertices of another face of the same topology."""
     import cv2
 
-    from data_synth.mocap import discontinuity_regions, identity_face, marker_layout
+    from keyshape.data_synth.mocap import discontinuity_regions, identity_face, marker_layout
 
     names, idx = marker_layout(kit)
     regions = {r.name: r.vertices for r in discontinuity_regions(kit, names)[:2]}
@@ -98,7 +98,7 @@ def test_mask_image_carries_to_another_face(kit, tmp_path):
 
 
 def test_synthetic_take(kit):
-    from data_synth.mocap import FACE_SKIN, RIGID_NAMES, dense_frames, marker_layout, synthesize
+    from keyshape.data_synth.mocap import FACE_SKIN, RIGID_NAMES, dense_frames, marker_layout, synthesize
 
     names, idx = marker_layout(kit)
     assert 55 <= len(names) <= 65 and idx.max() < FACE_SKIN and len(set(idx)) == len(idx)
@@ -117,8 +117,8 @@ def test_synthetic_take(kit):
 
 def test_drive_same_face_recovers_truth(kit):
     """Source = target: the planar-bone mesh follows the truth to about a millimetre."""
-    from data_synth.mocap import FACE_SKIN, discontinuity_regions, synthesize
-    from retarget.mocap.drive import drive_mesh
+    from keyshape.data_synth.mocap import FACE_SKIN, discontinuity_regions, synthesize
+    from keyshape.retarget.mocap.drive import drive_mesh
 
     p = synthesize(kit, 90, rng=1, long_gap=0)
     nface = len(p.marker_vertices)
@@ -138,8 +138,8 @@ def test_drive_same_face_recovers_truth(kit):
 def test_drive_rebuilds_never_seen_markers(kit):
     """All-NaN markers: inner lips from their outer sibling, the outer eye corner (the paper's
     example) from its neighbours' rigid motion."""
-    from data_synth.mocap import synthesize
-    from retarget.mocap.drive import drive_mesh
+    from keyshape.data_synth.mocap import synthesize
+    from keyshape.retarget.mocap.drive import drive_mesh
 
     p = synthesize(kit, 40, rng=2, n_gaps=0, long_gap=0)
     nface = len(p.marker_vertices)
@@ -162,7 +162,7 @@ def test_drive_rebuilds_never_seen_markers(kit):
 
 @pytest.mark.parametrize("out", ["take.npz", "objs", "take.glb"])
 def test_cli_end_to_end(kit, tmp_path, shared_data, out, capsys):
-    from data_synth.mocap import synthesize, write_take
+    from keyshape.data_synth.mocap import synthesize, write_take
 
     n = 12 if out.endswith(".npz") else 3
     p = synthesize(kit, n, rng=4, long_gap=0, n_gaps=1 if n > 10 else 0)
@@ -187,7 +187,7 @@ def test_cli_end_to_end(kit, tmp_path, shared_data, out, capsys):
 
 
 def test_cli_bad_target_markers(kit, tmp_path, shared_data, capsys):
-    from data_synth.mocap import synthesize, write_take
+    from keyshape.data_synth.mocap import synthesize, write_take
 
     p = synthesize(kit, 5, rng=5, long_gap=0, n_gaps=0)
     paths = write_take(tmp_path / "s", kit, p, formats=("trc",))
@@ -208,13 +208,13 @@ def test_cli_bad_target_markers(kit, tmp_path, shared_data, capsys):
 def test_real_animface_runs_onto_ict(kit, shared_data):
     """Real 41-marker take (no jig, mm) driven onto the ICT face: estimated rigid set, no NaN,
     and the estimated rigid set is the forehead/nose-top group the data notes name."""
-    from retarget.mocap.drive import drive_mesh
-    from retarget.mocap.markers_io import read_trc
+    from keyshape.retarget.mocap.drive import drive_mesh
+    from keyshape.base.formats.markers import read_trc
 
     take = read_trc(shared_data / "mocap/animface/jaw.trc")
     x = take.positions[::10]
     x[20:24, 5] = np.nan                                  # a gap to fill
-    from data_synth.mocap import animface_target_markers
+    from keyshape.data_synth.mocap import animface_target_markers
 
     tm = animface_target_markers(kit, take.labels, x[0])
     res = drive_mesh(x, take.labels, kit.neutral, tm, method="planar")
@@ -266,7 +266,7 @@ def test_synth_then_mocap_commands(shared_data, tmp_path, capsys):
 
 
 def test_cli_duplicate_labels_stop_or_rename(kit, tmp_path, shared_data, capsys):
-    from data_synth.mocap import synthesize, write_take
+    from keyshape.data_synth.mocap import synthesize, write_take
 
     p = synthesize(kit, 4, rng=6, long_gap=0, n_gaps=0)
     paths = write_take(tmp_path / "s", kit, p, formats=("trc",))

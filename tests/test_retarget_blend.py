@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from pipeline.errors import InputError
-from retarget.blend import BlendBasis, blend, mesh_edges, region_weights
-from retarget.headpose import head_motion, hold_invalid, similarity
-from retarget.retargeter import Retargeter
-from retarget.targets import TargetSet
+from keyshape.base.errors import InputError
+from keyshape.retarget.blend import BlendBasis, blend, mesh_edges, region_weights
+from keyshape.retarget.headpose import head_motion, hold_invalid, similarity
+from keyshape.retarget.retargeter import Retargeter
+from keyshape.retarget.targets import TargetSet
 
 
 def grid(nx=21, ny=11, h=1.0):
@@ -60,8 +60,8 @@ def test_blend_matches_reference_and_chunking_and_float32():
 def test_identity_2d_targets_equal_to_source_keys_reproduce_decomposed_frames(tmp_path):
     """Targets = the source key shapes (as .pts files): retargeting gives back sum w_i S_i, the
     decomposed source frames, and the source frames themselves where they lie in the keys' cone."""
-    from retarget.targets import load_targets
-    from tracker.io import read_pts, write_pts
+    from keyshape.retarget.targets import load_targets
+    from keyshape.base.formats.tracks import read_pts, write_pts
     rng = np.random.default_rng(4)
     cols = [f"mouth_{i}" for i in range(6)]
     for c in cols:
@@ -253,11 +253,11 @@ def test_identity_with_decompose_weights(tmp_path):
     """Weights written by keyshape decompose (NNLS relative to the mean shape, WEIGHTS.csv with an
     ``interpolated`` column), targets = its 2D key shapes and mean shape: the retargeted frames
     are decompose's own reconstruction (auto form = delta, as the neutral is given)."""
-    from decompose.io import write_weights as decompose_write_weights
-    from decompose.weights import nnls_weights, reconstruct
-    from retarget.targets import load_targets
-    from retarget.weights_io import read_weights
-    from tracker.io import read_pts, write_pts
+    from keyshape.base.formats.keys import write_weights as decompose_write_weights
+    from keyshape.decompose.weights import nnls_weights, reconstruct
+    from keyshape.retarget.targets import load_targets
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.base.formats.tracks import read_pts, write_pts
     rng = np.random.default_rng(11)
     keys = rng.normal(size=(5, 20, 2)) * 5 + 50
     shapes = np.einsum("fk,kpd->fpd", rng.dirichlet(np.ones(5), 30), keys) + rng.normal(scale=0.1, size=(30, 20, 2))

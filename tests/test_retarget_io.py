@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.errors import InputError, MissingFileError
-from retarget.obj import Mesh, read_obj_vertices, write_obj
-from retarget.targets import load_targets, name_key, read_regions
-from retarget.weights_io import read_weights, write_weights
+from keyshape.cli import main
+from keyshape.base.errors import InputError, MissingFileError
+from keyshape.base.formats.obj import Mesh, read_obj_vertices, write_obj
+from keyshape.retarget.targets import load_targets, name_key, read_regions
+from keyshape.base.formats.weights import read_weights, write_weights
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -76,9 +76,9 @@ def test_name_matching():
 
 def test_glb_roundtrip_with_head_motion(scene):
     tmp, d, m, shapes, w = scene
-    from retarget.export import export
-    from retarget.headpose import head_motion
-    from retarget.retargeter import Retargeter
+    from keyshape.retarget.export import export
+    from keyshape.retarget.headpose import head_motion
+    from keyshape.retarget.retargeter import Retargeter
     ts = load_targets(list(shapes), d)
     assert ts.neutral is not None                      # neutral.obj picked up from the folder
     rt = Retargeter(form="delta").fit(ts)
@@ -88,7 +88,7 @@ def test_glb_roundtrip_with_head_motion(scene):
     export(tmp / "o.glb", rt, np.arange(10), w, fps=25, head=hm)
     g = glb_arrays(tmp / "o.glb")
     assert g["names"] == ["MOUTH_0", "MOUTH_1", "EYES_0"]
-    from retarget.gltf import split_at_uv_seams
+    from keyshape.base.formats.gltf import split_at_uv_seams
     ids, uv, tri = split_at_uv_seams(ts.mesh)
     assert len(ids) == 8 and sorted(ids) == [0, 1, 1, 2, 2, 3, 4, 5]      # seam vertices 1, 2 split
     np.testing.assert_allclose(g["uv"], uv)
@@ -108,7 +108,7 @@ def test_absolute_form_glb_adds_sum_target(scene):
     g = glb_arrays(tmp / "a.glb")
     assert g["names"][-1] == "keyshape_sum"
     ts = load_targets(list(shapes), d)
-    from retarget.gltf import split_at_uv_seams
+    from keyshape.base.formats.gltf import split_at_uv_seams
     ts.shapes = ts.shapes[:, split_at_uv_seams(ts.mesh)[0]]
     ref = np.einsum("fk,kvd->fvd", w, ts.shapes)            # the paper's sum w_i B_i
     frames = g["base"] + np.einsum("fk,kvd->fvd", g["weights"].reshape(10, 4), g["deltas"])
@@ -146,7 +146,7 @@ def run_validator(path, tmp):
 def test_glb_passes_khronos_validator(scene, form):
     tmp, d, m, shapes, w = scene
     tracks = tmp / "tracks.csv"
-    from tracker.io import Tracks, write_tracks
+    from keyshape.base.formats.tracks import Tracks, write_tracks
     n = 10
     pose = np.tile(np.array([[1.0, 0, 0], [0, 1, 0]]), (n, 1, 1))
     pose[:, 0, 2] = np.arange(n)
@@ -186,7 +186,7 @@ def test_csv_outputs(scene):
 
 
 def test_livelink_csv(tmp_path):
-    from retarget.export import livelink_rows
+    from keyshape.retarget.export import livelink_rows
     names = ["jawOpen", "mouthSmile_L", "browInnerUp_L", "browInnerUp_R", "mouth_3"]
     w = np.array([[0.5, 0.25, 0.2, 0.4, 0.9]] * 3)
     header, rows = livelink_rows(names, w, fps=30)
@@ -211,8 +211,8 @@ def test_obj_frames_folder(scene):
 
 
 def test_2d_png_and_video(tmp_path):
-    from tracker.io import write_pts
-    from tracker.schemes import load_scheme
+    from keyshape.base.formats.tracks import write_pts
+    from keyshape.base.schemes import load_scheme
     s = load_scheme("contours48")
     rng = np.random.default_rng(1)
     base = rng.uniform(50, 150, size=(s.n_points, 2))
@@ -222,7 +222,7 @@ def test_2d_png_and_video(tmp_path):
     assert main(["retarget", str(tmp_path / "w.csv"), "--targets", str(tmp_path), "-o", str(tmp_path / "png")]) == 0
     assert len(list((tmp_path / "png").glob("frame_*.png"))) == 4
     assert main(["retarget", str(tmp_path / "w.csv"), "--targets", str(tmp_path), "-o", str(tmp_path / "v.mp4")]) == 0
-    from tracker.video import video_info
+    from keyshape.base.formats.video import video_info
     assert video_info(tmp_path / "v.mp4").n_frames == 4
     assert main(["retarget", str(tmp_path / "w.csv"), "--targets", str(tmp_path), "-o", str(tmp_path / "x.glb")]) == 2
     assert not (tmp_path / "x.glb").exists()
@@ -245,7 +245,7 @@ def test_regions_from_json_and_obj_groups(scene, tmp_path):
 
 def main_raise(argv):
     """Run the command's function directly so the error propagates (main() prints it)."""
-    from pipeline.cli import build_parser
+    from keyshape.cli import build_parser
     args = build_parser().parse_args(argv)
     return args.func(args)
 
@@ -317,7 +317,7 @@ def test_weights_csv_errors(tmp_path):
 
 def test_mixed_2d_3d_targets(scene):
     tmp, d, m, shapes, w = scene
-    from tracker.io import write_pts
+    from keyshape.base.formats.tracks import write_pts
     write_pts(d / "EYES_0.pts", np.zeros((6, 2)))
     (d / "EYES_0.obj").unlink()
     with pytest.raises(InputError, match="mix OBJ meshes and 2D drawings"):
@@ -327,7 +327,7 @@ def test_mixed_2d_3d_targets(scene):
 # ---------------------------------------------------------------- render and demo targets
 
 def test_render_covers_triangle_and_zbuffer():
-    from retarget.render import OrthoCamera, render
+    from keyshape.retarget.render import OrthoCamera, render
     v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 1], [10, 0, 1], [0, 10, 1.0]])
     cam = OrthoCamera(0, 10, 10.0, 100, 100)           # 10 px per unit, y up -> rows down
     img = render(v[:3], np.array([[0, 1, 2]]), cam, colour=(255, 255, 255), background=(0, 0, 0), ambient=1.0)
@@ -338,20 +338,20 @@ def test_render_covers_triangle_and_zbuffer():
 
 
 def test_side_by_side():
-    from retarget.render import side_by_side
+    from keyshape.retarget.render import side_by_side
     out = side_by_side(np.zeros((288, 360), np.uint8), np.full((320, 320, 3), 200, np.uint8), gap=4)
     assert out.shape == (288, 360 + 4 + 288, 3) and out[0, -1, 0] == 200
 
 
 def test_demo_targets_builder(tmp_path):
-    from retarget.demo_targets import demo_targets, load_expressions, write_demo_targets
+    from keyshape.retarget.demo_targets import demo_targets, load_expressions, write_demo_targets
     ex = load_expressions()
     assert ex.deltas.shape[1:] == ex.neutral.shape and "jawOpen" in ex.names
     ts = demo_targets({"mouth_0": {"jawOpen": 0.7, "mouthSmileLeft": 0.3}, "eyes_0": {"eyeBlink_L": 1.0}})
     j, s = ex.names.index("jawOpen"), ex.names.index("mouthSmile_L")
     np.testing.assert_allclose(ts.shapes[0], ex.neutral + 0.7 * ex.deltas[j] + 0.3 * ex.deltas[s], atol=1e-12)
-    from retarget.demo_targets import demo_regions
-    from retarget.retargeter import Retargeter
+    from keyshape.retarget.demo_targets import demo_regions
+    from keyshape.retarget.retargeter import Retargeter
     reg = demo_regions(ex)
     assert len(reg["mouth"]) == 20 and len(reg["eyes"]) == 22
     rt = Retargeter(band=2.0).fit(ts, reg)           # delta form (neutral), geodesic band on the face
@@ -393,7 +393,7 @@ def test_ict_facekit_weights_against_direct_blend(shared_data, tmp_path):
     np.testing.assert_allclose(got, direct, atol=2e-6)     # written with 6 decimals (cm)
     assert np.abs(direct - neutral).max() > 0.5             # the expressions really move (cm)
     # the shipped subset is the same data on the face skin (float16 deltas)
-    from retarget.demo_targets import load_expressions
+    from keyshape.retarget.demo_targets import load_expressions
     ex = load_expressions()
     np.testing.assert_allclose(ex.neutral, neutral[:len(ex.neutral)], atol=1e-5)
     j = ex.names.index("jawOpen")
@@ -404,5 +404,5 @@ def test_ict_facekit_weights_against_direct_blend(shared_data, tmp_path):
 def test_3d_video_preview(scene):
     tmp, d, m, shapes, w = scene
     assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "-o", str(tmp / "v.mp4")]) == 0
-    from tracker.video import video_info
+    from keyshape.base.formats.video import video_info
     assert video_info(tmp / "v.mp4").n_frames == 10

@@ -3,8 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError, MissingFileError
-from tracker.schemes import BUILTIN, load_scheme, scheme_for_n_points
+from keyshape.base.errors import InputError, MissingFileError
+from keyshape.base.schemes import BUILTIN, load_scheme, scheme_for_n_points
 
 
 @pytest.mark.parametrize("name,n,io", [("contours48", 48, (10, 22)), ("ibug68", 68, (36, 45))])

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from data_synth.face_model import COMPONENTS, FaceModel
-from data_synth.video import SyntheticVideo, parse_size, select_label_frames, synthesize
-from pipeline.cli import main
-from pipeline.errors import InputError
-from tracker.io import read_labels, read_tracks
-from tracker.schemes import load_scheme
-from tracker.video import VideoReader, video_info
+from keyshape.data_synth.face_model import COMPONENTS, FaceModel
+from keyshape.data_synth.video import SyntheticVideo, parse_size, select_label_frames, synthesize
+from keyshape.cli import main
+from keyshape.base.errors import InputError
+from keyshape.base.formats.tracks import read_labels, read_tracks
+from keyshape.base.schemes import load_scheme
+from keyshape.base.formats.video import VideoReader, video_info
 
 SCHEME = load_scheme("contours48")
 

@@ -6,15 +6,15 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.errors import InputError, KeyshapeError
-from tracker.eigenpoints import AppearanceModel
-from tracker.fitting import Tracker
-from tracker.io import read_tracks, write_labels, write_pts
-from tracker.schemes import load_scheme
-from tracker.smoothing import StreamSmoother, smooth
-from tracker.video import video_writer
-from tracker.warp import (PiecewiseAffine, apply_affine, compose_affine, fit_affine, fit_similarity,
+from keyshape.cli import main
+from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.tracker.eigenpoints import AppearanceModel
+from keyshape.tracker.fitting import Tracker
+from keyshape.base.formats.tracks import read_tracks, write_labels, write_pts
+from keyshape.base.schemes import load_scheme
+from keyshape.tracker.smoothing import StreamSmoother, smooth
+from keyshape.base.formats.video import video_writer
+from keyshape.base.warp import (PiecewiseAffine, apply_affine, compose_affine, fit_affine, fit_similarity,
                           invert_affine, morph, triangulate)
 
 SCHEME = load_scheme("contours48")

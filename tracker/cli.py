@@ -40,7 +40,7 @@ def register(subparsers) -> None:
 
 
 def _scheme(args) -> int:
-    from tracker.schemes import load_scheme
+    from keyshape.base.schemes import load_scheme
 
     s = load_scheme(args.name)
     print(f"{s.name}: {s.n_points} points; inter-ocular pair {s.inter_ocular}")
@@ -52,7 +52,7 @@ def _scheme(args) -> int:
 
 
 def _train(args) -> int:
-    from tracker.commands import train_model
+    from keyshape.tracker.commands import train_model
 
     model, seconds = train_model(args.video, args.labels, args.scheme, n_components=args.components,
                                  n_morphs=args.morphs, rng=args.seed)
@@ -64,7 +64,7 @@ def _train(args) -> int:
 
 
 def _track(args) -> int:
-    from tracker.commands import track_video
+    from keyshape.tracker.commands import track_video
 
     summary = track_video(args.video, args.model, args.output, overlay=args.overlay, smooth=args.smooth,
                           scheme=args.scheme, show_progress=not args.quiet)

@@ -1,6 +1,6 @@
 """File-level drivers of ``keyshape train`` and ``keyshape track`` (video and label files in, files out).
 
-The algorithms (:mod:`tracker.eigenpoints`, :mod:`tracker.fitting`) never open
+The algorithms (:mod:`keyshape.tracker.eigenpoints`, :mod:`keyshape.tracker.fitting`) never open
 files; this module does, streaming the video so that memory does not grow
 with its length, writing every output atomically, and keeping what was
 tracked when the video is truncated or the run is interrupted (Ctrl-C).
@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.files import atomic_write
-from pipeline.progress import Progress
-from tracker.eigenpoints import AppearanceModel
-from tracker.io import TracksWriter, read_labels
-from tracker.schemes import load_scheme
-from tracker.video import VideoReader, video_info
+from keyshape.base.errors import InputError
+from keyshape.base.files import atomic_write
+from keyshape.base.progress import Progress
+from keyshape.tracker.eigenpoints import AppearanceModel
+from keyshape.base.formats.tracks import TracksWriter, read_labels
+from keyshape.base.schemes import load_scheme
+from keyshape.base.formats.video import VideoReader, video_info
 
 
 def train_model(video, labels_dir, scheme="contours48", n_components: int | None = None, n_morphs: int = 120,
@@ -68,10 +68,10 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     """
     import cv2
 
-    from tracker.draw import draw_shape
-    from tracker.fitting import Tracker
-    from tracker.smoothing import StreamSmoother
-    from tracker.video import video_writer
+    from keyshape.base.draw import draw_shape
+    from keyshape.tracker.fitting import Tracker
+    from keyshape.tracker.smoothing import StreamSmoother
+    from keyshape.base.formats.video import video_writer
 
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)

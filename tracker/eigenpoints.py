@@ -18,9 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.errors import InputError, KeyshapeError
-from tracker.schemes import Scheme, load_scheme
-from tracker.warp import apply_affine, fit_affine, invert_affine, morph, procrustes_mean, triangulate
+from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.schemes import Scheme, load_scheme
+from keyshape.base.warp import apply_affine, fit_affine, invert_affine, morph, procrustes_mean, triangulate
 
 FORMAT = "keyshape-eigenpoints"
 FORMAT_VERSION = 1
@@ -603,7 +603,7 @@ class AppearanceModel:
 
     def save(self, path: str | Path) -> None:
         """Write the model as ``.npz`` (format name, version and scheme included), atomically."""
-        from tracker.model_io import save_model
+        from keyshape.tracker.model_io import save_model
 
         self._check_fitted()
         save_model(path, self)
@@ -611,7 +611,7 @@ class AppearanceModel:
     @classmethod
     def load(cls, path: str | Path, scheme: str | Scheme | None = None) -> "AppearanceModel":
         """Read a model written by :meth:`save`; ``scheme`` (optional) must match the model's."""
-        from tracker.model_io import load_model
+        from keyshape.tracker.model_io import load_model
 
         return load_model(path, scheme)
 

@@ -23,8 +23,8 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from tracker.eigenpoints import AppearanceModel, Pyramid, normalise, warp_patch, warp_patch_u8
-from tracker.warp import apply_affine, compose_affine, invert_affine
+from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, normalise, warp_patch, warp_patch_u8
+from keyshape.base.warp import apply_affine, compose_affine, invert_affine
 
 # polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
 _COL_GRAD = np.array([0, 1, 0, 1, 0, 1])

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_file
-from pipeline.files import atomic_path
-from tracker.eigenpoints import FORMAT, FORMAT_VERSION, AppearanceModel, RegionModel
-from tracker.schemes import Scheme, _validate, load_scheme
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.files import atomic_path
+from keyshape.tracker.eigenpoints import FORMAT, FORMAT_VERSION, AppearanceModel, RegionModel
+from keyshape.base.schemes import Scheme, _validate, load_scheme
 
 _PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge", "regions", "split_mouth")
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 METHODS = ("none", "savgol", "oneeuro")
 

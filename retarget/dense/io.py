@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_file
-from pipeline.files import atomic_path, atomic_write
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.files import atomic_path, atomic_write
 
 
 def _json(path: str | Path, what: str):

@@ -2,7 +2,7 @@
 
 A dense sequence ``F^t`` (n_frames, n_points, 3) is approximated by deforming
 the rest face ``F^0`` with the Gaussian-RBF face-space deformation of
-:mod:`retarget.dense.rbf_face` driven by a few key points. Key points are
+:mod:`keyshape.retarget.dense.rbf_face` driven by a few key points. Key points are
 added where that approximation is worst, and the loop repeats until the
 error falls by less than 1 % in a round (section 5.5).
 
@@ -25,8 +25,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from pipeline.errors import InputError
-from retarget.dense.rbf_face import FaceSpaceRBF
+from keyshape.base.errors import InputError
+from keyshape.retarget.dense.rbf_face import FaceSpaceRBF
 
 
 def check_sequence(frames: np.ndarray, name: str = "frames") -> np.ndarray:

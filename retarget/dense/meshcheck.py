@@ -6,7 +6,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 
 def check_mesh(vertices: np.ndarray, triangles: np.ndarray, name: str = "mesh", area_eps: float = 1e-12):

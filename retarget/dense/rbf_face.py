@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 
 def gaussian_kernel(r: np.ndarray, sigma: float) -> np.ndarray:

@@ -13,7 +13,7 @@ Control parametrisation
 The paper moves the vertices of its planar-bone control surface. Here (the
 planar-bone module being written on another branch) the control vertices
 are ``n_controls`` reference vertices spread by farthest-point sampling, and
-a Gaussian RBF (:mod:`retarget.dense.rbf_face`) carries their displacements
+a Gaussian RBF (:mod:`keyshape.retarget.dense.rbf_face`) carries their displacements
 ``D`` (n_controls, 3) to every vertex: ``V(D) = V_w + B D`` with the fixed
 (n_vertices, n_controls) matrix ``B = phi(V_w, C) (Phi + lambda I)^-1``,
 built once; each energy evaluation is one matmul. As in the paper, the
@@ -52,10 +52,10 @@ from scipy.optimize import minimize
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from pipeline.errors import InputError
-from retarget.dense.keypoints import farthest_point_sample
-from retarget.dense.meshcheck import TriangleSurface, check_mesh, component_of, edges, interior_edge_faces
-from retarget.dense.rbf_face import kernel_matrix
+from keyshape.base.errors import InputError
+from keyshape.retarget.dense.keypoints import farthest_point_sample
+from keyshape.retarget.dense.meshcheck import TriangleSurface, check_mesh, component_of, edges, interior_edge_faces
+from keyshape.retarget.dense.rbf_face import kernel_matrix
 
 
 def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.ndarray,

@@ -58,9 +58,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.errors import InputError
-from retarget.dense.keypoints import check_sequence
-from retarget.dense.rbf_face import FaceSpaceRBF
+from keyshape.base.errors import InputError
+from keyshape.retarget.dense.keypoints import check_sequence
+from keyshape.retarget.dense.rbf_face import FaceSpaceRBF
 
 
 def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.ndarray, target_keys: np.ndarray,

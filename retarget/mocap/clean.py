@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 
 def rigid_fit(ref: np.ndarray, frames: np.ndarray, weights: np.ndarray | None = None, scale: bool = False):

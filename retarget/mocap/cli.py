@@ -38,8 +38,8 @@ def read_target_markers(path, n_vertices: int, vertices=None) -> dict:
     (parsed by :func:`retarget.dense.io.read_markers`)."""
     import numpy as np
 
-    from pipeline.errors import InputError
-    from retarget.dense.io import read_markers
+    from keyshape.base.errors import InputError
+    from keyshape.retarget.dense.io import read_markers
 
     out, bad = {}, []
     for lab, val in read_markers(path, "target markers file").items():
@@ -58,11 +58,11 @@ def read_target_markers(path, n_vertices: int, vertices=None) -> dict:
 def _mocap(args) -> int:
     import numpy as np
 
-    from pipeline.errors import InputError
-    from pipeline.files import atomic_dir, atomic_path
-    from retarget.mocap.drive import drive_mesh
-    from retarget.mocap.markers_io import read_markers
-    from retarget.obj import read_obj, write_obj
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import atomic_dir, atomic_path
+    from keyshape.retarget.mocap.drive import drive_mesh
+    from keyshape.base.formats.markers import read_markers
+    from keyshape.base.formats.obj import read_obj, write_obj
 
     take = read_markers(args.markers, duplicates=args.duplicate_labels)
     mesh = read_obj(args.target, require_faces=True)
@@ -76,7 +76,7 @@ def _mocap(args) -> int:
     regions = None
     used = [s for s in take.labels if s in tm]
     if args.masks:
-        from retarget.mocap.masks import read_masks
+        from keyshape.retarget.mocap.masks import read_masks
 
         if args.method != "planar":
             raise InputError("--masks applies to --method planar only")
@@ -101,7 +101,7 @@ def _mocap(args) -> int:
                      rate=take.rate, triangles=mesh.triangles)
     elif out.suffix.lower() == ".glb":
         try:
-            from retarget.gltf import write_glb
+            from keyshape.base.formats.gltf import write_glb
         except ImportError:
             raise InputError(".glb output needs retarget.gltf (not in this build): use .npz or an OBJ folder") from None
         base = verts[0]

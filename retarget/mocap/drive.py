@@ -19,11 +19,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.errors import InputError
-from retarget.mocap.clean import GapReport, fill_gaps, rebuild_inner_lips, remove_rigid_motion
-from retarget.mocap.planar_bones import PlanarBones
-from retarget.mocap.rbf import RBFRetarget
-from retarget.mocap.triangulate import Triangulation, triangulate_markers
+from keyshape.base.errors import InputError
+from keyshape.retarget.mocap.clean import GapReport, fill_gaps, rebuild_inner_lips, remove_rigid_motion
+from keyshape.retarget.mocap.planar_bones import PlanarBones
+from keyshape.retarget.mocap.rbf import RBFRetarget
+from keyshape.retarget.mocap.triangulate import Triangulation, triangulate_markers
 
 METHODS = ("planar", "imq", "tps", "gaussian")
 
@@ -149,7 +149,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
         tri = triangulate_markers(mk[0], use, up, forward, forbid=forbid)
         masks = None
         if regions:
-            from retarget.mocap.masks import allowed_matrix
+            from keyshape.retarget.mocap.masks import allowed_matrix
 
             masks = allowed_matrix(regions, tri.triangles, use, len(tv))
         bones = PlanarBones.bind(tv, mk[0], tri.triangles, masks=masks, radius_scale=radius_scale,

@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_file
-from retarget.mocap.triangulate import CylinderFrame
+from keyshape.base.errors import InputError, require_file
+from keyshape.retarget.mocap.triangulate import CylinderFrame
 
 IMAGE_MARGIN = 0.25
 
@@ -196,7 +196,7 @@ def read_masks(path, labels, vertices=None, markers=None, mesh=None, up=(0.0, 1.
 
 def write_masks(path, regions: list, image: str | None = None, image_values: dict | None = None) -> None:
     """Write regions as a masks JSON (vertex lists, or image values when ``image`` is given), atomically."""
-    from pipeline.files import atomic_write
+    from keyshape.base.files import atomic_write
 
     items = []
     for r in regions:

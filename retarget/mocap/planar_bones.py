@@ -54,7 +54,7 @@ exceeds one: continuous everywhere, exact rigid reproduction wherever the summed
 weight reaches one (``rest_weight_`` is then 0).
 
 *Masks, section 4.3.* ``masks[v, j] = False`` forbids bone ``j`` to move vertex ``v``
-(e.g. lower-lip bones and upper-lip vertices); see :mod:`retarget.mocap.masks`.
+(e.g. lower-lip bones and upper-lip vertices); see :mod:`keyshape.retarget.mocap.masks`.
 
 Evaluation
 ----------
@@ -83,7 +83,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 try:  # out += A @ X for a CSC A, in place (scipy's own kernel behind ``A @ X``; no temporary)
     from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs

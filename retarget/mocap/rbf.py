@@ -51,7 +51,7 @@ import numpy as np
 from scipy.linalg import lu_factor, lu_solve
 from scipy.spatial.distance import cdist
 
-from pipeline.errors import InputError, KeyshapeError
+from keyshape.base.errors import InputError, KeyshapeError
 
 KERNELS = ("imq", "tps", "gaussian")
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import Delaunay
 
-from pipeline.errors import InputError
-from retarget.mocap.planar_bones import triangle_min_angles
+from keyshape.base.errors import InputError
+from keyshape.retarget.mocap.planar_bones import triangle_min_angles
 
 
 @dataclass

@@ -38,7 +38,7 @@ def _frame_list(text: str) -> list[int]:
 
 
 def _run(args) -> int:
-    from tracker.labelling.prepare import prepare_label_folder, write_contact_sheet  # noqa: PLC0415
+    from keyshape.tracker.labelling.prepare import prepare_label_folder, write_contact_sheet  # noqa: PLC0415
 
     session = prepare_label_folder(args.video, args.out, args.count, args.scheme,
                                    use_prefill=not args.no_prefill, rng=args.seed, quiet=args.quiet,
@@ -49,12 +49,12 @@ def _run(args) -> int:
         print(f"no face found by dlib in frames {session['no_face']}: they start from a generic shape")
     print(f"check {args.out}/contact_sheet.png")
     if args.serve:
-        from tracker.labelling.server import LabelServer  # noqa: PLC0415
-        from tracker.schemes import load_scheme  # noqa: PLC0415
+        from keyshape.tracker.labelling.server import LabelServer  # noqa: PLC0415
+        from keyshape.base.schemes import load_scheme  # noqa: PLC0415
         try:
             server = LabelServer(args.out, args.port)
         except OSError as exc:
-            from pipeline.errors import InputError  # noqa: PLC0415
+            from keyshape.base.errors import InputError  # noqa: PLC0415
             raise InputError(f"cannot listen on 127.0.0.1:{args.port} ({exc.strerror}): try --port 0") from None
         print(f"correct the points at {server.url} (Ctrl-C to stop)", flush=True)
         import signal  # noqa: PLC0415

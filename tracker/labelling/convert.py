@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 # iBUG-68 polylines in contours48 order (image-left first; eyes and lips start
 # at their image-left corner, upper curve to the right corner, then lower back).

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import KeyshapeError, MissingFileError
+from keyshape.base.errors import KeyshapeError, MissingFileError
 
 INSTALL_HINT = 'pip install "keyshape[label]"'
 MODEL_NAME = "shape_predictor_68_face_landmarks.dat"
@@ -196,7 +196,7 @@ def landmark_video(path: str | Path, landmarker: DlibLandmarker | None = None, f
     progress : callable, optional
         Called as ``progress(i, n)`` after each frame.
     """
-    from tracker.video import VideoReader  # noqa: PLC0415
+    from keyshape.base.formats.video import VideoReader  # noqa: PLC0415
 
     lm = landmarker if landmarker is not None else DlibLandmarker()
     reader = VideoReader(path, gray=True)
@@ -233,7 +233,7 @@ def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None =
     """
     import cv2  # noqa: PLC0415
 
-    from tracker.video import VideoReader  # noqa: PLC0415
+    from keyshape.base.formats.video import VideoReader  # noqa: PLC0415
 
     lm = landmarker if landmarker is not None else DlibLandmarker()
     reader = VideoReader(path, gray=True)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.errors import InputError
+from keyshape.base.errors import InputError
 
 DESC_SIZE = 24
 

@@ -1,8 +1,8 @@
 """Make a label folder: choose frames, save them as images, pre-fill their points, draw a contact sheet.
 
 This is the I/O side of ``keyshape label``; the algorithms live in
-:mod:`~tracker.labelling.frames` (frame choice), :mod:`~tracker.labelling.convert`
-(iBUG-68 to contours48) and :mod:`~tracker.labelling.dlib_landmarker`.
+:mod:`keyshape.tracker.labelling.frames` (frame choice), :mod:`keyshape.tracker.labelling.convert`
+(iBUG-68 to contours48) and :mod:`keyshape.tracker.labelling.dlib_landmarker`.
 
 Running it again on the same folder and video keeps the chosen frames and any
 ``.pts`` file already there (the user's corrections), and only redraws the
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.files import atomic_write
-from tracker.labelling.server import SESSION_FILE
+from keyshape.base.errors import InputError
+from keyshape.base.files import atomic_write
+from keyshape.tracker.labelling.server import SESSION_FILE
 
 MEAN_SHAPE = Path(__file__).parent / "ibug68_mean.json"
 
@@ -29,7 +29,7 @@ def mean_ibug68() -> np.ndarray:
 
 def template_points(scheme, width: int, height: int) -> np.ndarray:
     """A generic face in ``scheme``'s layout, centred in a ``width`` x ``height`` frame (no pre-fill)."""
-    from tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
+    from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
 
     p = mean_ibug68() * (0.3 * min(width, height)) + [width / 2, 0.4 * height]
     if scheme.n_points == 68:
@@ -59,7 +59,7 @@ def face_box(frames: np.ndarray, landmarker, margin: float = 0.15) -> tuple[int,
 
 def prefill(images: np.ndarray, scheme, landmarker) -> list[np.ndarray | None]:
     """dlib's points for each image (BGR) in ``scheme``'s layout; None where no face is found."""
-    from tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
+    from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
 
     out: list[np.ndarray | None] = []
     for im in images:
@@ -79,8 +79,8 @@ def write_contact_sheet(folder: Path, frames, scheme, path: Path | None = None) 
     """Draw each chosen frame's face, enlarged, with its current points into ``folder/contact_sheet.png``."""
     import cv2  # noqa: PLC0415
 
-    from tracker.draw import contact_sheet, crop_around, draw_shape  # noqa: PLC0415
-    from tracker.io import pts_name, read_pts  # noqa: PLC0415
+    from keyshape.base.draw import contact_sheet, crop_around, draw_shape  # noqa: PLC0415
+    from keyshape.base.formats.tracks import pts_name, read_pts  # noqa: PLC0415
 
     tiles, caps = [], []
     for f in frames:
@@ -121,11 +121,11 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
     """
     import cv2  # noqa: PLC0415
 
-    from pipeline.progress import Progress  # noqa: PLC0415
-    from tracker.io import pts_name, write_pts  # noqa: PLC0415
-    from tracker.labelling.frames import choose_frames, describe_video  # noqa: PLC0415
-    from tracker.schemes import load_scheme  # noqa: PLC0415
-    from tracker.video import VideoReader  # noqa: PLC0415
+    from keyshape.base.progress import Progress  # noqa: PLC0415
+    from keyshape.base.formats.tracks import pts_name, write_pts  # noqa: PLC0415
+    from keyshape.tracker.labelling.frames import choose_frames, describe_video  # noqa: PLC0415
+    from keyshape.base.schemes import load_scheme  # noqa: PLC0415
+    from keyshape.base.formats.video import VideoReader  # noqa: PLC0415
 
     if int(count) < 1:
         raise InputError(f"--count must be at least 1, got {count}")
@@ -136,11 +136,11 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
     sess_path = out / SESSION_FILE
     landmarker = None
     if use_prefill:
-        from tracker.labelling.dlib_landmarker import DlibLandmarker  # noqa: PLC0415
+        from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker  # noqa: PLC0415
         landmarker = DlibLandmarker()
     session = None
     if sess_path.is_file():
-        from tracker.labelling.server import read_session  # noqa: PLC0415
+        from keyshape.tracker.labelling.server import read_session  # noqa: PLC0415
         old = read_session(out)
         if Path(old.get("video", "")).name == info.path.name and old["scheme"] == scheme.name:
             session = old
@@ -156,8 +156,8 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
                    "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
     if session is None and landmarker is not None:
         # whole-video cues from dlib (eye closure, mouth, brows, head pose): cover what the face does
-        from tracker.labelling.dlib_landmarker import landmark_video_chained  # noqa: PLC0415
-        from tracker.labelling.frames import choose_frames_by_cues  # noqa: PLC0415
+        from keyshape.tracker.labelling.dlib_landmarker import landmark_video_chained  # noqa: PLC0415
+        from keyshape.tracker.labelling.frames import choose_frames_by_cues  # noqa: PLC0415
         with Progress(info.n_frames, "dlib over the video", enabled=not quiet) as prog:
             pts68 = landmark_video_chained(video, landmarker, progress=lambda i, n: prog.update())
         gap = max(1, int(round(info.fps / 2))) if info.fps > 0 else 12

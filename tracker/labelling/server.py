@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_dir, require_file
+from keyshape.base.errors import InputError, require_dir, require_file
 
 PAGE_DIR = Path(__file__).parent / "page"
 PAGE_FILES = {"/": ("index.html", "text/html; charset=utf-8"),
@@ -208,7 +208,7 @@ class LabelServer(ThreadingHTTPServer):
     daemon_threads = True
 
     def __init__(self, folder: str | Path, port: int = 0, verbose: bool = False):
-        from tracker.schemes import load_scheme  # noqa: PLC0415
+        from keyshape.base.schemes import load_scheme  # noqa: PLC0415
 
         self.folder = Path(folder).resolve()
         self.session = read_session(self.folder)
@@ -227,12 +227,12 @@ class LabelServer(ThreadingHTTPServer):
         return f"http://127.0.0.1:{self.port}/"
 
     def pts_path(self, frame: int) -> Path:
-        from tracker.io import pts_name  # noqa: PLC0415
+        from keyshape.base.formats.tracks import pts_name  # noqa: PLC0415
         return self.folder / pts_name(frame)
 
     def read_points(self, frame: int) -> np.ndarray:
         """Points of ``frame`` from its .pts file; NaN where the file is missing."""
-        from tracker.io import read_pts  # noqa: PLC0415
+        from keyshape.base.formats.tracks import read_pts  # noqa: PLC0415
         p = self.pts_path(frame)
         if p.is_file():
             return self.scheme.check_shapes(read_pts(p), str(p))
@@ -240,6 +240,6 @@ class LabelServer(ThreadingHTTPServer):
 
     def write_points(self, frame: int, points: np.ndarray) -> None:
         """Replace ``frame``'s .pts file atomically (the only write this server does)."""
-        from tracker.io import write_pts  # noqa: PLC0415
+        from keyshape.base.formats.tracks import write_pts  # noqa: PLC0415
         with self._lock:
             write_pts(self.pts_path(frame), points)

@@ -1,5 +1,5 @@
 import sys
 
-from pipeline.cli import main
+from keyshape.cli import main
 
 sys.exit(main())

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, MissingFileError
+from keyshape.base.errors import InputError, MissingFileError
 
 _HERE = Path(__file__).parent
 BUILTIN = ("contours48", "ibug68")

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_file
-from pipeline.files import atomic_write
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.files import atomic_write
 
 
 def read_weights(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:

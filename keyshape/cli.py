@@ -12,20 +12,20 @@ import importlib
 import sys
 from typing import Sequence
 
-from pipeline.errors import KeyshapeError
+from keyshape.base.errors import KeyshapeError
 
 # (module, group): group None registers top-level subcommands; "synth" registers
 # under ``keyshape synth ...``. Order is the order of ``keyshape --help``.
 COMMAND_MODULES: list[tuple[str, str | None]] = [
-    ("pipeline.demo", None),
-    ("data_synth.video_cli", "synth"),
-    ("data_synth.mocap_cli", "synth"),
-    ("tracker.labelling.cli", None),
-    ("tracker.cli", None),
-    ("decompose.cli", None),
-    ("retarget.cli", None),
-    ("retarget.mocap.cli", None),
-    ("retarget.dense_cli", None),
+    ("keyshape.demo", None),
+    ("keyshape.data_synth.video_cli", "synth"),
+    ("keyshape.data_synth.mocap_cli", "synth"),
+    ("keyshape.tracker.labelling.cli", None),
+    ("keyshape.tracker.cli", None),
+    ("keyshape.decompose.cli", None),
+    ("keyshape.retarget.cli", None),
+    ("keyshape.retarget.mocap.cli", None),
+    ("keyshape.retarget.dense_cli", None),
 ]
 
 

@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_dir, require_file
-from pipeline.files import atomic_write
+from keyshape.base.errors import InputError, require_dir, require_file
+from keyshape.base.files import atomic_write
 
 POSE_COLUMNS = ("pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty")
 _PTS_NAME = re.compile(r"^(\d+)\.pts$")

@@ -3,7 +3,7 @@
 Written with pygltflib. Layout (the conventions of glTF 2.0 morph targets):
 
 * node 0 ``head`` (root): carries the head motion as translation/rotation/scale
-  channels (see :mod:`retarget.headpose`); node 1 ``face`` (its child) holds the mesh.
+  channels (see :mod:`keyshape.retarget.headpose`); node 1 ``face`` (its child) holds the mesh.
 * mesh: one primitive, triangles (polygons fan-triangulated), ``POSITION`` of the base
   shape, ``TEXCOORD_0`` when the OBJ has UVs (vertices split at UV seams), ``targets[i].POSITION`` = target i minus the base (deltas), default
   ``mesh.weights`` and the target names in ``mesh.extras.targetNames`` (read by
@@ -24,8 +24,8 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.files import atomic_path
+from keyshape.base.errors import InputError
+from keyshape.base.files import atomic_path
 
 FLOAT, UINT = 5126, 5125
 

@@ -15,8 +15,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from pipeline.errors import InputError, require_file
-from pipeline.files import atomic_path
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.files import atomic_path
 
 
 @dataclass

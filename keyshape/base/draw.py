@@ -10,7 +10,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from tracker.schemes import Scheme
+from keyshape.base.schemes import Scheme
 
 # one colour (BGR) per contour family; unknown contours get the default
 _COLOURS = {"brow": (40, 200, 255), "eye": (255, 200, 40), "pupil": (60, 60, 255), "lip_outer": (80, 255, 80),

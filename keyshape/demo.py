@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from decompose.cli import METHODS, SOLVERS
-from pipeline.errors import KeyshapeError
+from keyshape.decompose.cli import METHODS, SOLVERS
+from keyshape.base.errors import KeyshapeError
 
 # synthetic components -> demo region (contours48 regions used by decompose)
 _REGION_OF = {"jaw": "mouth", "mouth": "mouth", "eye": "eyes", "brow": "eyes"}
@@ -45,7 +45,7 @@ def register(subparsers) -> None:
 
 
 def _stage(argv: list[str]) -> None:
-    from pipeline.cli import main
+    from keyshape.cli import main
 
     print(f"$ keyshape {' '.join(argv)}", flush=True)
     rc = main(argv)
@@ -56,7 +56,7 @@ def _stage(argv: list[str]) -> None:
 def _expand(ex, coeffs: dict[str, float]) -> dict[str, float]:
     """Map synthetic component names onto the expression set: a name the set has only with
     ``_L``/``_R`` suffixes (``browInnerUp``) drives both sides."""
-    from retarget.targets import name_key
+    from keyshape.retarget.targets import name_key
 
     have = {name_key(n) for n in ex.names}
     out: dict[str, float] = {}
@@ -87,11 +87,11 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
     (mean vertex error of the retargeted face against the hidden performance on the same
     face), ``target_motion_mm`` (mean vertex motion of that performance: a still face's error),
     ``seconds``."""
-    from decompose.io import read_keys
-    from pipeline.files import atomic_write
-    from retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
-    from tracker.io import read_tracks
-    from tracker.schemes import load_scheme
+    from keyshape.base.formats.keys import read_keys
+    from keyshape.base.files import atomic_write
+    from keyshape.retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.schemes import load_scheme
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -158,14 +158,14 @@ def _preview_and_errors(out: Path, video: Path, ex, names, hidden, key_coeffs, n
     the retargeted face against the hidden performance applied to the same target face."""
     import cv2
 
-    from retarget.demo_targets import demo_regions, demo_targets
-    from retarget.render import render_frames, side_by_side
-    from retarget.retargeter import Retargeter
-    from retarget.weights_io import read_weights
-    from tracker.draw import draw_shape
-    from tracker.io import read_tracks
-    from tracker.schemes import load_scheme
-    from tracker.video import VideoReader, video_writer
+    from keyshape.retarget.demo_targets import demo_regions, demo_targets
+    from keyshape.retarget.render import render_frames, side_by_side
+    from keyshape.retarget.retargeter import Retargeter
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.base.draw import draw_shape
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.schemes import load_scheme
+    from keyshape.base.formats.video import VideoReader, video_writer
 
     ts = demo_targets(key_coeffs, ex, neutral_coeffs)
     _, columns, weights = read_weights(out / "weights.csv")

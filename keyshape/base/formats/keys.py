@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import InputError, require_file
-from pipeline.files import atomic_write
-from decompose.regions import REGIONS, RegionKeys
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.files import atomic_write
+from keyshape.decompose.regions import REGIONS, RegionKeys
 
 FORMAT = "keyshape-keys"
 _NAME = re.compile(r"([a-z]+)_(\d+)")
