@@ -258,9 +258,37 @@ def shape_cues(points68: np.ndarray) -> np.ndarray:
     return np.stack([eye_ap, mouth_ap, width, brow, yaw, pitch, ang], 1)
 
 
+def eye_profile(gray: np.ndarray, points68: np.ndarray, width: int = 16, height: int = 10) -> np.ndarray:
+    """Vertical intensity profile of both eyes ``(2 * height,)``: a cheap eye-closure cue from the pixels.
+
+    Each eye's box (between its corners, as tall as half their distance, turned
+    with them) is sampled at ``width`` x ``height`` and averaged along the
+    rows; the profile is normalised to zero mean and unit variance. An open
+    eye has a dark band (iris, lashes) that a closed lid replaces by skin;
+    averaging along the rows makes it insensitive to where the eye looks.
+    dlib's lid points are not needed, only its eye corners (which it finds
+    far more reliably than the lids).
+    """
+    import cv2  # noqa: PLC0415
+
+    out = []
+    for a, b in ((36, 39), (42, 45)):
+        p, q = np.asarray(points68[a], np.float64), np.asarray(points68[b], np.float64)
+        u = (q - p) / width                         # model x step in image pixels
+        v = np.array([-u[1], u[0]]) * (0.5 * width / height)
+        origin = p - v * (height / 2)
+        m = np.array([[u[0], v[0], origin[0]], [u[1], v[1], origin[1]]])
+        patch = cv2.warpAffine(gray, m, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        out.append(patch.mean(1))
+    prof = np.concatenate(out)
+    prof -= prof.mean()
+    return prof / (prof.std() + 1e-6)
+
+
 def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, min_gap: int = 12,
                           exclude=(), n_blinks: int | None = None, blink_ratio: float = 0.7,
-                          sharp_window: int = 3) -> np.ndarray:
+                          sharp_window: int = 3, eye_profiles: np.ndarray | None = None) -> np.ndarray:
     """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
 
     Features: robust z-scores of :func:`shape_cues` (eye closure counted
@@ -272,6 +300,11 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     most redundant chosen frames give way to the deepest blinks (``n_blinks``,
     default ``max(1, count // 5)``): the person-specific model can only follow
     eye closures it was shown. Frames without a face are never chosen.
+
+    With ``eye_profiles`` ((n, d) from :func:`eye_profile`), a blink must
+    also show in the pixels: its profile far (robust z-score above 3) from
+    the video's median open-eye profile; dlib's lid points alone often close
+    an open eye by half.
 
     Returns the chosen frame indices in time order.
     """
@@ -325,26 +358,39 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     n_blinks = max(1, count // 5) if n_blinks is None else int(n_blinks)
     eye_ap = cues[:, 0]
     is_blink = free & (eye_ap < blink_ratio * med[0])
+    depth = -eye_ap
+    if eye_profiles is not None:
+        prof = np.asarray(eye_profiles, np.float64)
+        okp = ok & np.isfinite(prof).all(1)
+        dist = np.full(n, -np.inf)
+        dist[okp] = np.linalg.norm(prof[okp] - np.median(prof[okp], 0), axis=1)
+        dmed = np.median(dist[okp])
+        dmad = np.median(np.abs(dist[okp] - dmed)) / 0.6745 + 1e-9
+        zd = (dist - dmed) / dmad
+        is_blink = free & (zd > 3.0) & (eye_ap < med[0])
+        depth = np.where(okp, zd, -np.inf)
     have = [f for f in chosen if is_blink[f]]
     protected = set(have)
     if is_blink.any() and len(have) < n_blinks and count > 1:
         order = np.flatnonzero(is_blink)
-        order = order[np.argsort(eye_ap[order])]
+        order = order[np.argsort(-depth[order])]
         for b in order:
             if len(have) >= n_blinks:
                 break
-            others = [f for f in chosen]
-            if min(abs(b - f) for f in others) < min_gap:
+            near = [j for j, f in enumerate(chosen) if abs(int(b) - f) < min_gap]
+            if len(near) > 1 or any(chosen[j] in protected for j in near):
                 continue
-            # drop the most redundant non-blink chosen frame (nearest to another chosen one)
-            cs = np.array(chosen)
-            dd = np.linalg.norm(X[cs][:, None] - X[cs][None], axis=2)
-            np.fill_diagonal(dd, np.inf)
-            nn = dd.min(1)
-            for j in np.argsort(nn):
-                if int(cs[j]) not in protected and j != 0:
-                    chosen[j] = int(b)
+            if near:        # a chosen frame next to the blink gives way to it
+                j = near[0]
+            else:           # else the most redundant chosen frame (nearest to another chosen one)
+                cs = np.array(chosen)
+                dd = np.linalg.norm(X[cs][:, None] - X[cs][None], axis=2)
+                np.fill_diagonal(dd, np.inf)
+                js = [j for j in np.argsort(dd.min(1)) if chosen[j] not in protected]
+                if not js:
                     break
+                j = int(js[0])
+            chosen[j] = int(b)
             have.append(int(b))
             protected.add(int(b))
     # sharpness: swap for a sharper neighbour with (nearly) the same cues, blinks kept as they are
@@ -368,3 +414,32 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
             out.append(int(nb[np.argmax(sharp[nb])]) if len(nb) else f)
         chosen = out
     return np.array(sorted(chosen), dtype=np.intp)
+
+
+def worst_explained(confidence: np.ndarray, success: np.ndarray, count: int, exclude=(), min_gap: int = 12,
+                    frames: np.ndarray | None = None) -> np.ndarray:
+    """Active labelling: the ``count`` frames a first track explains worst, ``min_gap`` apart and from ``exclude``.
+
+    Lost frames (``success`` False) come first, then the lowest confidence
+    (the appearance residual of :class:`~keyshape.tracker.fitting.Tracker`).
+    Each pick blocks ``min_gap`` frames either side, so one hard stretch (a
+    laugh, a head turn) gives one frame, the next worst stretch the next.
+    ``frames`` are the video frame numbers of the rows (default 0..n-1).
+    """
+    conf = np.asarray(confidence, np.float64)
+    ok = np.asarray(success, bool)
+    idx = np.arange(len(conf)) if frames is None else np.asarray(frames, np.intp)
+    score = np.where(ok, 1.0 - np.nan_to_num(conf, nan=0.0), 2.0)
+    free = np.ones(len(conf), bool)
+    ex = np.array(sorted(set(int(e) for e in exclude)), np.intp)
+    if len(ex):
+        free &= np.min(np.abs(idx[:, None] - ex[None]), axis=1) >= min_gap
+    out: list[int] = []
+    while len(out) < int(count):
+        cand = np.flatnonzero(free)
+        if not len(cand):
+            break
+        j = int(cand[np.argmax(score[cand])])
+        out.append(int(idx[j]))
+        free &= np.abs(idx - idx[j]) >= min_gap
+    return np.array(sorted(out), np.intp)
