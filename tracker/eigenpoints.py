@@ -350,6 +350,12 @@ class AppearanceModel:
         an open mouth need not have been labelled). Regions follow the
         scheme's contours named ``eye_*``/``pupil_*``, ``brow_*``, ``lip_*``;
         the other points (jaw, nose) keep the global reading.
+    split_mouth : bool
+        Read the upper and the lower lip (corners in both) with separate region
+        models, each with its own translation (the jaw drops the lower lip).
+    region_grow : float
+        Border added around each region's points (fraction of ``face_width``):
+        the pixels a region model sees.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
 
@@ -371,7 +377,7 @@ class AppearanceModel:
     def __init__(self, scheme: str | Scheme = "contours48", n_components: int | None = None,
                  variance: float = 0.98, face_width: int = 64, margin: float = 0.22, n_morphs: int = 120,
                  landmark_weight: float = 1.0, ridge: float = 1.0, regions: bool = True, split_mouth: bool = True,
-                 rng=None):
+                 region_grow: float = 0.1, rng=None):
         self.scheme = scheme
         self.n_components = n_components
         self.variance = variance
@@ -382,6 +388,7 @@ class AppearanceModel:
         self.ridge = ridge
         self.regions = regions
         self.split_mouth = split_mouth
+        self.region_grow = region_grow
         self.rng = rng
 
     # ---------------------------------------------------------------- fitting
@@ -494,7 +501,7 @@ class AppearanceModel:
             for name, pts in groups.items():
                 self.region_models_.append(RegionModel.fit_region(
                     name, pts, ref, all_patches, all_shapes, src_of, n, self.variance,
-                    self.landmark_weight, grow=max(2, int(round(self.face_width * 0.06))),
+                    self.landmark_weight, grow=max(2, int(round(self.face_width * self.region_grow))),
                     n_components=self.n_components))
         self._precompute()
         return self

@@ -347,20 +347,21 @@ class Tracker:
         """
         x0, y0, w, h = rm.box.tolist()
         crop = rm.crop(patch)
-        t = np.zeros(2)
+        tx = ty = 0.0
         best = None
         lim = 0.08 * self.model.face_width
+        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
         for it in range(self.region_iter + 1):
             if it:
-                sub = pose.copy()
-                sub[:, 2] += pose[:, :2] @ np.array([x0 + t[0], y0 + t[1]])
+                bx, by = x0 + tx, y0 + ty
+                sub = np.array([[a00, a01, a02 + a00 * bx + a01 * by], [a10, a11, a12 + a10 * bx + a11 * by]])
                 crop = warp_patch_u8(pyr, sub, (w, h))
             e, sd = rm.error(crop)
             qe = rm.qt @ e
             r = float(e @ e) - float(qe @ qe)
             if best is not None and r >= best[0]:
                 break
-            best = (r, t.copy(), e)
+            best = (r, (tx, ty), e)
             if it == self.region_iter:
                 break
             gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
@@ -369,11 +370,19 @@ class Tracker:
             j[:, 1] = gy.ravel()[rm.index]
             j *= 1.0 / (8.0 * sd)
             qj = rm.qt @ j
-            hess = j.T @ j - qj.T @ qj + 1e-6 * np.eye(2)
+            hs = j.T @ j - qj.T @ qj
             g = j.T @ e - qj.T @ qe
-            step = -np.linalg.solve(hess, g)
-            t = np.clip(t + np.clip(step, -2.0, 2.0), -lim, lim)
+            h00, h01, h11 = float(hs[0, 0]) + 1e-6, float(hs[0, 1]), float(hs[1, 1]) + 1e-6
+            g0, g1 = float(g[0]), float(g[1])
+            det = h00 * h11 - h01 * h01
+            if det <= 0:
+                break
+            # Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px a step, |t| at most `lim`
+            s0 = max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))
+            s1 = max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))
+            tx, ty = max(-lim, min(lim, tx + s0)), max(-lim, min(lim, ty + s1))
         _, t, e = best
+        t = np.array(t)
         self._region_shift[rm.name] = t
         c = rm.pinv_i @ e
         self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))

@@ -18,7 +18,7 @@ from keyshape.base.files import atomic_path
 from keyshape.tracker.eigenpoints import FORMAT, FORMAT_VERSION, AppearanceModel, RegionModel
 from keyshape.base.schemes import Scheme, _validate, load_scheme
 
-_PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge", "regions", "split_mouth")
+_PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge", "regions", "split_mouth", "region_grow")
 
 
 def _scheme_dict(s: Scheme) -> dict:
@@ -68,6 +68,7 @@ def load_model(path: str | Path, scheme: str | Scheme | None = None) -> Appearan
                              f"not {want.name!r} ({want.n_points} points)", path)
     params = dict(meta["params"])
     params.setdefault("regions", False)     # models written before region models existed
+    params.setdefault("split_mouth", False)
     model = AppearanceModel(sch, **params)
     try:
         for k in AppearanceModel._ARRAYS:

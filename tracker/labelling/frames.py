@@ -19,6 +19,12 @@ raised brows, head turns) rather than K similar frames. Over the whole video:
    of the Laplacian) among its temporal neighbours (``sharp_window`` frames
    either side) that look more like it than like any other chosen frame, so a
    motion-blurred frame is replaced when a sharp look-alike is next to it.
+
+With dlib's points over the whole video (the default of ``keyshape label``),
+:func:`choose_frames_by_cues` chooses instead from expression and pose cues
+(:func:`shape_cues`) and makes sure blinks are among the chosen frames (an
+eye-closure cue from the pixels, :func:`eye_profile`); :func:`worst_explained`
+picks the frames a first track explains worst (``keyshape label --more``).
 """
 from __future__ import annotations
 
