@@ -297,8 +297,8 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
                           sharp_window: int = 3, eye_profiles: np.ndarray | None = None) -> np.ndarray:
     """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
 
-    Features: robust z-scores of :func:`shape_cues` (eye closure counted
-    double) and the first principal components of the face-frame shapes.
+    Features: robust z-scores of :func:`shape_cues` (eye aperture and
+    inner-lip gap counted double) and the first principal components of the face-frame shapes.
     Farthest-point sampling in that space, starting nearest the median face,
     picks the extremes (mouth wide open, brows raised, head turned) and never
     near-duplicates; then, when the video has blinks (eye aperture below
@@ -332,6 +332,7 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     iqr = np.subtract(*np.percentile(cv, [75, 25], 0)) / 1.35
     z = np.clip((cues - med) / np.maximum(iqr, 1e-6), -8, 8)
     z[:, 0] *= 2.0
+    z[:, 1] *= 2.0
     # face-frame shapes (cues' normalisation) -> PCA, scaled so the first component has unit spread
     eye = p[:, 45] - p[:, 36]
     iod = np.linalg.norm(eye, axis=1)
