@@ -51,7 +51,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from keyshape.base.files import atomic_write  # noqa: E402
-from keyshape.base.formats.tracks import read_labels  # noqa: E402
+from keyshape.base.formats.labels import read_labels  # noqa: E402
 from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: E402
 from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker, Timing  # noqa: E402
 from keyshape.tracker.labelling.frames import spread_frames  # noqa: E402

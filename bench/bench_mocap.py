@@ -48,8 +48,8 @@ def main(n_bones=100, n_frames=600, seed=0):
         d = np.minimum(d, np.linalg.norm(front - front[pick[-1]], axis=1))
     markers = front[pick]
     tri = triangulate_markers(markers).triangles
-    t_bind = best(lambda: PlanarBones.bind(v, markers, tri, radius_scale=1.5, unbound="fade"), 3)
-    bones = PlanarBones.bind(v, markers, tri, radius_scale=1.5, unbound="fade")
+    t_bind = best(lambda: PlanarBones(radius_scale=1.5, unbound="fade").fit(v, markers, tri), 3)
+    bones = PlanarBones(radius_scale=1.5, unbound="fade").fit(v, markers, tri)
     frames = markers + rng.normal(0, 0.2, (n_frames,) + markers.shape)
     t_one = best(lambda: [bones.deform(frames[i]) for i in range(50)]) / 50
     t_many = best(lambda: bones.deform_many(frames), 3) / n_frames

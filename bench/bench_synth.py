@@ -2,7 +2,7 @@
 
 Prints wall-clock and CPU milliseconds per frame and the ratio to a baseline
 measured in the same run (encoding the same number of ready-made frames with
-``tracker.video.video_writer``), so numbers from loaded machines stay comparable.
+``keyshape.base.formats.video.video_writer``), so numbers from loaded machines stay comparable.
 
     PYTHONPATH=. python bench/bench_synth.py [--frames 300] [--size 640x480]
 """

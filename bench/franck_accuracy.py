@@ -33,7 +33,8 @@ def longest_run(mask: np.ndarray) -> int:
 def evaluate(video=VIDEO, cache=None, n_labels: int = 12, sheet=None) -> dict:
     from dlib_points import label_video
     from keyshape.tracker.commands import track_video, train_model
-    from keyshape.base.formats.tracks import read_tracks, write_labels
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.formats.labels import write_labels
     from keyshape.base.schemes import load_scheme
 
     dl = label_video(video, cache)

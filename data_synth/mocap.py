@@ -120,8 +120,14 @@ def marker_layout(kit: FaceKit, vertices: np.ndarray | None = None) -> tuple[lis
     return names, idx
 
 
-def smooth_noise(rng: np.random.Generator, n: int, rate: float, hz: float, size=()) -> np.ndarray:
-    """Band-limited noise spanning [-1, 1]: a sum of random sinusoids up to ``hz``, scaled to peak 1."""
+def band_limited_noise(rng: np.random.Generator, n: int, rate: float, hz: float, size=()) -> np.ndarray:
+    """Band-limited noise spanning [-1, 1]: a sum of random sinusoids up to ``hz``, scaled to peak 1.
+
+    Not :func:`keyshape.data_synth.performance.smooth_noise` (Gaussian-filtered white noise of unit
+    standard deviation, smoothed over a number of frames): this one is limited in hertz, so a take's
+    motion does not depend on its frame rate; each synthetic data set keeps its own generator
+    (changing either would change every figure measured on it).
+    """
     t = np.arange(n) / rate
     k = 6
     f = rng.uniform(0.2 * hz, hz, size + (k,))
@@ -142,22 +148,22 @@ def expression_weights(n_frames: int, rate: float, rng: np.random.Generator, nam
             w[:, col[name]] = np.clip(value, 0.0, 1.0)
 
     syll = np.maximum(0.0, np.sin(2 * np.pi * 2.2 * t + rng.uniform(0, 6)))  # ~4.4 syllables/s
-    talk = 0.5 + 0.5 * smooth_noise(rng, n_frames, rate, 0.3)                    # loudness envelope
+    talk = 0.5 + 0.5 * band_limited_noise(rng, n_frames, rate, 0.3)                    # loudness envelope
     put("jawOpen", 0.75 * talk * syll ** 1.5)
     put("mouthLowerDown_L", 0.4 * talk * syll)
     put("mouthLowerDown_R", 0.4 * talk * syll)
     put("mouthUpperUp_L", 0.25 * talk * syll)
     put("mouthUpperUp_R", 0.25 * talk * syll)
-    put("mouthFunnel", 0.5 * np.maximum(0, smooth_noise(rng, n_frames, rate, 1.5)))
-    put("mouthPucker", 0.5 * np.maximum(0, smooth_noise(rng, n_frames, rate, 1.5)))
-    put("mouthClose", 0.3 * np.maximum(0, smooth_noise(rng, n_frames, rate, 1.0)) * (1 - syll))
+    put("mouthFunnel", 0.5 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 1.5)))
+    put("mouthPucker", 0.5 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 1.5)))
+    put("mouthClose", 0.3 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 1.0)) * (1 - syll))
     smile = 0.5 - 0.5 * np.cos(2 * np.pi * t / 3.0 + rng.uniform(0, 2))            # one smile every 3 s
     put("mouthSmile_L", 0.8 * smile ** 2)
     put("mouthSmile_R", 0.8 * (smile ** 2) * 0.9)
     put("cheekSquint_L", 0.4 * smile ** 2)
     put("cheekSquint_R", 0.4 * smile ** 2)
-    put("mouthStretch_L", 0.3 * np.maximum(0, smooth_noise(rng, n_frames, rate, 0.8)))
-    put("mouthStretch_R", 0.3 * np.maximum(0, smooth_noise(rng, n_frames, rate, 0.8)))
+    put("mouthStretch_L", 0.3 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 0.8)))
+    put("mouthStretch_R", 0.3 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 0.8)))
     brow = np.sin(2 * np.pi * t / 2.5 + rng.uniform(0, 6))                            # raise / frown
     put("browInnerUp_L", 0.8 * np.maximum(0, brow))
     put("browInnerUp_R", 0.8 * np.maximum(0, brow))
@@ -176,20 +182,22 @@ def expression_weights(n_frames: int, rate: float, rng: np.random.Generator, nam
     return w
 
 
-def head_motion(n_frames: int, rate: float, rng: np.random.Generator, degrees: float = 10.0,
+def random_head_motion(n_frames: int, rate: float, rng: np.random.Generator, degrees: float = 10.0,
                 shift_cm: float = 2.0):
-    """Smooth rigid head motion ``(rot (n_frames, 3, 3), trans (n_frames, 3))``: ``world = R x + t``."""
+    """Random smooth rigid head motion ``(rot (n_frames, 3, 3), trans (n_frames, 3))``: ``world = R x + t``
+    (the ground truth of a synthetic take; :func:`keyshape.retarget.headpose.head_motion` is the estimate
+    from a tracker's poses)."""
     from scipy.spatial.transform import Rotation
 
-    ang = np.deg2rad(degrees) * smooth_noise(rng, n_frames, rate, 0.4, (3,)).T
+    ang = np.deg2rad(degrees) * band_limited_noise(rng, n_frames, rate, 0.4, (3,)).T
     rot = Rotation.from_rotvec(ang).as_matrix()
     pivot = np.array([0.0, -8.0, -2.0])                      # about the neck
-    trans = shift_cm * smooth_noise(rng, n_frames, rate, 0.3, (3,)).T + pivot - np.einsum("fij,j->fi", rot, pivot)
+    trans = shift_cm * band_limited_noise(rng, n_frames, rate, 0.3, (3,)).T + pivot - np.einsum("fij,j->fi", rot, pivot)
     return rot, trans
 
 
 @dataclass
-class Performance:
+class MocapTake:
     """A synthetic take. Lengths: markers in mm (as a mocap system writes), mesh in cm."""
 
     labels: list
@@ -204,7 +212,7 @@ class Performance:
 
 
 def synthesize(kit: FaceKit, n_frames: int = 360, rate: float = 120.0, rng=None, noise_mm: float = 0.2,
-               n_gaps: int = 6, long_gap: int = 60, head_degrees: float = 10.0) -> Performance:
+               n_gaps: int = 6, long_gap: int = 60, head_degrees: float = 10.0) -> MocapTake:
     """Generate a take; see the module docstring. Deterministic for an int ``rng``."""
     rng = np.random.default_rng(rng)
     if n_frames < 2:
@@ -218,7 +226,7 @@ def synthesize(kit: FaceKit, n_frames: int = 360, rate: float = 120.0, rng=None,
     face = kit.neutral[vidx][None] + np.einsum("fe,evc->fvc", w, kit.deltas[:, vidx])
     jig = np.array(list(JIG.values()))
     head = np.concatenate([face, np.broadcast_to(jig, (n_frames,) + jig.shape)], axis=1)
-    rot, trans = head_motion(n_frames, rate, rng, head_degrees)
+    rot, trans = random_head_motion(n_frames, rate, rng, head_degrees)
     world = np.einsum("fij,fpj->fpi", rot, head) + trans[:, None]
     labels = names + RIGID_NAMES
     noisy = world * 10.0 + rng.normal(0.0, noise_mm, world.shape)
@@ -233,7 +241,7 @@ def synthesize(kit: FaceKit, n_frames: int = 360, rate: float = 120.0, rng=None,
         m = names.index("cheekL_mid")
         s = int(rng.integers(10, n_frames - long_gap - 5))
         noisy[s:s + long_gap, m] = np.nan
-    return Performance(labels, noisy, head * 10.0, w, list(kit.names), rot, trans, vidx, rate)
+    return MocapTake(labels, noisy, head * 10.0, w, list(kit.names), rot, trans, vidx, rate)
 
 
 def dense_frames(kit: FaceKit, weights: np.ndarray, base: np.ndarray | None = None, out_dtype=np.float32):
@@ -255,7 +263,7 @@ def identity_face(kit: FaceKit, coeffs=(3.0, -2.0, 2.0, 1.5), scale: float = 1.0
     return centre + scale * (v - centre)
 
 
-def write_take(out_dir, kit: FaceKit, perf: Performance, formats=("c3d", "trc")) -> dict:
+def write_take(out_dir, kit: FaceKit, perf: MocapTake, formats=("c3d", "trc")) -> dict:
     """Write markers (C3D/TRC, mm, 120 Hz), target markers JSON, rigid names and ground truth .npz atomically."""
     from keyshape.base.files import atomic_dir, atomic_path, atomic_write
     from keyshape.base.formats.markers import Markers, write_markers
@@ -350,7 +358,7 @@ def animface_target_markers(kit: FaceKit, labels, neutral_mm) -> dict:
     hand-matched landmarks (nose top and tip, eye and mouth corners, chin), then snapped to
     the nearest face-skin vertex: a stand-in for the hand placement of section 5.1.
     """
-    from keyshape.retarget.mocap.clean import rigid_fit
+    from keyshape.base.geometry import rigid_fit
 
     lm = kit.neutral[kit.landmarks]
     pairs = {"NoseTop": 27, "NoseHead": 30, "Leye_Outside": 45, "Reye_Outside": 36, "Mouth_Lend": 54,

@@ -26,7 +26,8 @@ from keyshape.data_synth.render import FaceRenderer
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir, atomic_path, atomic_write
 from keyshape.base.progress import Progress
-from keyshape.base.formats.tracks import Tracks, write_labels, write_tracks
+from keyshape.base.formats.tracks import Tracks, write_tracks
+from keyshape.base.formats.labels import write_labels
 from keyshape.base.formats.video import video_writer
 
 #: Fraction of the frame interval the shutter is open (sets the motion blur length).
@@ -146,7 +147,7 @@ class SyntheticVideo:
                                        perf.exposure[t], self.motion(t), rng)
 
     def tracks(self) -> Tracks:
-        """The ground truth as :class:`~tracker.io.Tracks` (confidence 1, success everywhere)."""
+        """The ground truth as :class:`~keyshape.base.formats.tracks.Tracks` (confidence 1, success everywhere)."""
         n = self.n_frames
         return Tracks(np.arange(n), np.arange(n) / self.fps, np.ones(n), np.ones(n, bool), self.points, self.pose)
 

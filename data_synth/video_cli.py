@@ -19,15 +19,33 @@ def register(subparsers) -> None:
     p.add_argument("--labels", type=int, default=12, help="suggested training frames written to labels/ (default 12)")
     p.add_argument("--preview", metavar="PNG", default=None,
                    help="also write a contact sheet of 12 frames with the ground truth drawn")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from keyshape.data_synth.video import parse_size, synthesize
+    from pathlib import Path
 
+    from keyshape.base.files import atomic_dir, check_output, check_output_dir
+    from keyshape.data_synth.video import _check_args, parse_size, synthesize
+
+    size = parse_size(args.size)
+    _check_args(args.frames, args.seed, size, args.fps, args.labels)
+    out_dir = Path(args.out_dir)
+    check_output_dir(out_dir, args.overwrite)
+    if args.preview:
+        check_output(args.preview)
     t0 = time.perf_counter()
-    out = synthesize(args.out_dir, frames=args.frames, seed=args.seed, size=parse_size(args.size), fps=args.fps,
-                     labels=args.labels, preview=args.preview, verbose=True)
+    with atomic_dir(out_dir, args.overwrite) as tmp:
+        preview = args.preview
+        inside = preview and Path(preview).resolve().parent == out_dir.resolve()
+        if inside:
+            preview = tmp / Path(args.preview).name
+        out = synthesize(tmp, frames=args.frames, seed=args.seed, size=size, fps=args.fps,
+                         labels=args.labels, preview=preview, verbose=True)
+    out = {k: (out_dir / Path(v).relative_to(tmp) if Path(v).is_relative_to(tmp) else Path(v))
+           for k, v in out.items()}
     dt = time.perf_counter() - t0
     print(f"keyshape synth video: {args.frames} frames in {dt:.1f} s ({1000 * dt / args.frames:.1f} ms/frame)")
     for name, path in out.items():

@@ -18,17 +18,17 @@ pose (``tracks.pose``) before anything is selected or decomposed.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from keyshape.base.errors import InputError
+from keyshape.base.formats.keys import REGIONS, RegionKeys
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
 from keyshape.decompose.selectors import make_selector
 from keyshape.decompose.weights import solve_weights
 
-REGIONS = {"mouth": "mouth", "eyes": "eyes+brows", "pupils": "pupils"}
+__all__ = ["REGIONS", "RegionKeys", "region_points", "available_regions", "model_shapes", "to_image",
+           "select_region", "decompose_region"]
 
 
 def region_points(scheme: Scheme, region: str) -> np.ndarray:
@@ -75,40 +75,8 @@ def to_image(model_pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.einsum("tij,tpj->tpi", pose[:, :, :2], model_pts) + pose[:, None, :, 2]
 
 
-@dataclass
-class RegionKeys:
-    """Key shapes of one region (model frame).
-
-    Attributes
-    ----------
-    region : str
-    method : str
-    points : (n,) point indices of the region in the scheme
-    frames : (n_keys,) video frame numbers of the key frames (``tracks.frame``)
-    keys : (n_keys, n, 2) key shapes
-    neutral : (n, 2) the mean shape weights are relative to
-    from_frame : (n_keys,) bool, False for keys that are cluster means rather than frames
-    """
-
-    region: str
-    method: str
-    points: np.ndarray
-    frames: np.ndarray
-    keys: np.ndarray
-    neutral: np.ndarray
-    from_frame: np.ndarray = field(default=None)
-
-    def __post_init__(self):
-        if self.from_frame is None:
-            self.from_frame = np.ones(len(self.frames), dtype=bool)
-
-    @property
-    def names(self) -> list[str]:
-        return [f"{self.region}_{i}" for i in range(len(self.keys))]
-
-
 def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | None, method: str = "spread",
-                  rng=None, shapes: np.ndarray | None = None) -> RegionKeys:
+                  rng=None, shapes: np.ndarray | None = None, progress: bool = False) -> RegionKeys:
     """Choose ``n_keys`` key shapes of ``region`` from the successful frames of ``tracks``.
 
     Failed frames (``success=0``) are never candidates. ``shapes`` may pass the
@@ -121,7 +89,8 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
         raise InputError(f"cannot choose {n_keys} key shapes from {len(ok)} successful frames "
                          f"({tracks.n_frames - len(ok)} of {tracks.n_frames} failed)")
     sub = shapes[ok][:, idx]
-    sel = make_selector(method, n_keys if n_keys is not None else 0, rng=rng).fit(sub)
+    sel = make_selector(method, n_keys if n_keys is not None else 0, rng=rng, progress=progress,
+                        desc=f"keyshape select {region}").fit(sub)
     from_frame = np.ones(len(sel.indices_), dtype=bool)
     if getattr(sel, "centre", "nearest") == "mean":
         from_frame[:] = False

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, NotFittedError
+from keyshape.base.progress import Progress
 from keyshape.decompose.weights import nnls_gram
 
 METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
@@ -37,14 +38,24 @@ def _check_shapes(shapes, n_keys: int | None) -> np.ndarray:
     return arr
 
 
-def _pca(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Scores (n_frames, r) and axes (r, d) of centred ``X``, signs fixed as scikit-learn's svd_flip."""
-    U, s, Vt = np.linalg.svd(X, full_matrices=False)
-    r = int((s > s[0] * 1e-10).sum()) if len(s) and s[0] > 0 else 0
-    U, s, Vt = U[:, :r], s[:r], Vt[:r]
-    signs = np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(r)])
+def _pca(X: np.ndarray) -> np.ndarray:
+    """PCA scores (n_frames, r) of ``X`` (scikit-learn's exact PCA), r the numerical rank.
+
+    Each axis' sign is fixed so that its largest-magnitude score is positive (the
+    frame-side ``svd_flip`` convention), so the order of spread's picks does not
+    depend on the library's sign convention.
+    """
+    from sklearn.decomposition import PCA
+
+    if len(X) < 2 or not np.abs(X - X.mean(0)).max() > 0:
+        return np.zeros((len(X), 0))
+    pca = PCA(svd_solver="full").fit(X)
+    s = pca.singular_values_
+    r = int((s > s[0] * 1e-10).sum())
+    scores = pca.transform(X)[:, :r]
+    signs = np.sign(scores[np.argmax(np.abs(scores), axis=0), np.arange(r)])
     signs[signs == 0] = 1
-    return U * s * signs, Vt * signs[:, None]
+    return scores * signs
 
 
 class _Selector:
@@ -68,7 +79,7 @@ class _Selector:
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "indices_"):
-            raise InputError(f"this {type(self).__name__} is not fitted yet: call fit(shapes) first")
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit(shapes) first")
 
     @property
     def n_keys_(self) -> int:
@@ -92,7 +103,7 @@ class SpreadSelector(_Selector):
     """
 
     def _select(self, X, arr):
-        scores, _ = _pca(X)
+        scores = _pca(X)
         if scores.shape[1] == 0:
             raise InputError("all shapes are identical: there is no variation to choose key shapes from")
         order_max = np.argsort(-scores, axis=0, kind="stable")
@@ -133,7 +144,7 @@ class KMeansSelector(_Selector):
         paper says); ``indices_`` then holds the frame nearest each centre, for display.
         ``"nearest"``: the key is that nearest frame itself.
     rng : None, int or Generator
-        Seeds the k-means initialisations.
+        Seeds the k-means initialisations (scikit-learn's ``KMeans``, k-means++, best of 4).
     """
 
     def __init__(self, n_keys: int = 8, n_dims: int = 2, centre: str = "mean", rng=None):
@@ -145,12 +156,15 @@ class KMeansSelector(_Selector):
     def _select(self, X, arr):
         if self.centre not in ("mean", "nearest"):
             raise InputError(f"centre must be 'mean' or 'nearest', got {self.centre!r}")
-        scores, _ = _pca(X)
+        scores = _pca(X)
         Y = scores[:, :self.n_dims]
         n_distinct = len(np.unique(Y.round(12), axis=0))
         if n_distinct < self.n_keys:
             raise InputError(f"cannot form {self.n_keys} clusters from {n_distinct} distinct shapes")
-        labels = kmeans_labels(Y, self.n_keys, rng=self.rng)
+        from sklearn.cluster import KMeans
+
+        seed = int(np.random.default_rng(self.rng).integers(2**31 - 1))
+        labels = KMeans(self.n_keys, init="k-means++", n_init=4, max_iter=100, random_state=seed).fit_predict(Y)
         counts = np.bincount(labels, minlength=self.n_keys)
         centres = np.einsum("tc,tpd->cpd", np.eye(self.n_keys)[labels], arr) / counts[:, None, None]
         d2 = ((X[None] - (centres - self.neutral_).reshape(self.n_keys, 1, -1)) ** 2).sum(-1)
@@ -159,64 +173,45 @@ class KMeansSelector(_Selector):
         return idx, (centres if self.centre == "mean" else None)
 
 
-def kmeans_labels(Y: np.ndarray, n_clusters: int, n_init: int = 4, max_iter: int = 100, rng=None) -> np.ndarray:
-    """Cluster labels of ``Y`` (n, dim) by Lloyd's k-means with k-means++ seeding; best of ``n_init``.
-
-    Every cluster keeps at least one member (an emptied cluster is re-seeded at the
-    point farthest from its centre).
-    """
-    rng = np.random.default_rng(rng)
-    n = len(Y)
-    best, best_inertia = None, np.inf
-    for _ in range(n_init):
-        c = [Y[rng.integers(n)]]
-        d2 = ((Y - c[0]) ** 2).sum(1)
-        for _ in range(1, n_clusters):
-            c.append(Y[rng.choice(n, p=d2 / d2.sum()) if d2.sum() > 0 else rng.integers(n)])
-            d2 = np.minimum(d2, ((Y - c[-1]) ** 2).sum(1))
-        C = np.array(c)
-        labels = np.full(n, -1)
-        for _ in range(max_iter):
-            D = ((Y[:, None] - C[None]) ** 2).sum(-1)
-            new = np.argmin(D, axis=1)
-            counts = np.bincount(new, minlength=n_clusters)
-            for j in np.flatnonzero(counts == 0):          # re-seed empty clusters (rare)
-                far = int(np.argmax(D[np.arange(n), new]))
-                new[far] = j
-                D[far] = 0
-            if np.array_equal(new, labels):
-                break
-            labels = new
-            C = (np.eye(n_clusters)[labels].T @ Y) / np.bincount(labels, minlength=n_clusters)[:, None]
-        inertia = ((Y - C[labels]) ** 2).sum()
-        if inertia < best_inertia:
-            best, best_inertia = labels, inertia
-    return best
-
-
 class HullSelector(_Selector):
     """Frames on the 2D convex hull of the first two PCA coordinates (section 4.2, "Convex hull").
 
-    ``n_keys`` is not a parameter: it is however many frames lie on the hull.
+    Parameters
+    ----------
+    n_keys : int or None
+        None (default, the paper's method): every frame on the hull is a key, however
+        many that is. An int keeps that many of them, farthest-point first in the PCA
+        plane (the hull frame farthest from the mean, then the one farthest from those
+        chosen...): ``order_`` is nested as spread's and greedy's.
     """
 
-    def __init__(self):
-        pass
-
-    def _needed_keys(self):
-        return None
+    def __init__(self, n_keys: int | None = None):
+        self.n_keys = n_keys
 
     def _select(self, X, arr):
         from scipy.spatial import ConvexHull, QhullError
 
-        scores, _ = _pca(X)
+        scores = _pca(X)
         if scores.shape[1] < 2:
             raise InputError("the shapes vary along fewer than two directions: no 2D hull")
         try:
             hull = ConvexHull(scores[:, :2])
         except QhullError as exc:
             raise InputError(f"convex hull failed ({str(exc).splitlines()[0]})") from None
-        return hull.vertices, None
+        if self.n_keys is None:
+            self.order_ = np.asarray(hull.vertices, dtype=np.intp)
+            return hull.vertices, None
+        if self.n_keys > len(hull.vertices):
+            raise InputError(f"cannot choose {self.n_keys} key shapes from the {len(hull.vertices)} frames on the hull")
+        Y = scores[hull.vertices, :2]
+        chosen = [int(np.argmax(np.linalg.norm(Y, axis=1)))]          # farthest from the mean
+        d = np.linalg.norm(Y - Y[chosen[0]], axis=1)
+        for _ in range(1, self.n_keys):
+            d[chosen] = -1.0
+            chosen.append(int(np.argmax(d)))
+            d = np.minimum(d, np.linalg.norm(Y - Y[chosen[-1]], axis=1))
+        self.order_ = np.asarray(hull.vertices, dtype=np.intp)[chosen]
+        return self.order_, None
 
 
 class RandomSelector(_Selector):
@@ -248,11 +243,14 @@ class GreedySelector(_Selector):
     ``order_`` is nested: the first j keys of a fit with k are the fit with j.
     """
 
-    def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None):
+    def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None,
+                 progress: bool = False, desc: str = "greedy"):
         self.n_keys = n_keys
         self.n_candidates = n_candidates
         self.max_eval = max_eval
         self.rng = rng
+        self.progress = progress
+        self.desc = desc
 
     def _select(self, X, arr):
         n = len(X)
@@ -264,6 +262,7 @@ class GreedySelector(_Selector):
         resid_nnls = (E ** 2).sum(axis=1)             # per evaluation frame, current NNLS residual
         Q = np.zeros((0, X.shape[1]))                 # orthonormal basis of the chosen keys' span
         w_prev = np.zeros((len(E), 0))
+        prog = Progress(self.n_keys, desc=self.desc, unit="keys", enabled=self.progress, min_seconds=2.0)
         for _ in range(self.n_keys):
             R = E - (E @ Q.T) @ Q                     # least-squares residuals
             C = X - (X @ Q.T) @ Q                     # candidates' parts outside the span
@@ -286,6 +285,8 @@ class GreedySelector(_Selector):
             w_prev = w_best[best]
             q = C[c] / np.sqrt(cn[c]) if cn[c] > 0 else np.zeros(X.shape[1])
             Q = np.vstack([Q, q])
+            prog.update()
+        prog.close()
         self.order_ = np.array(chosen, dtype=np.intp)
         return chosen, None
 
@@ -317,16 +318,17 @@ class GreedySelector(_Selector):
         return res.sum(axis=1), res, w
 
 
-def make_selector(method: str, n_keys: int, rng=None) -> _Selector:
-    """The selector named ``method`` (one of :data:`METHODS`) for ``n_keys`` keys."""
+def make_selector(method: str, n_keys: int, rng=None, progress: bool = False, desc: str = "greedy") -> _Selector:
+    """The selector named ``method`` (one of :data:`METHODS`) for ``n_keys`` keys (``progress``:
+    report the keys chosen so far on standard error, for the slow greedy selector)."""
     if method == "spread":
         return SpreadSelector(n_keys)
     if method in ("kmeans2", "kmeans3"):
         return KMeansSelector(n_keys, n_dims=int(method[-1]), rng=rng)
     if method == "hull2":
-        return HullSelector()
+        return HullSelector()                   # the whole hull, whatever n_keys (the paper's method)
     if method == "random":
         return RandomSelector(n_keys, rng=rng)
     if method == "greedy":
-        return GreedySelector(n_keys, rng=rng)
+        return GreedySelector(n_keys, rng=rng, progress=progress, desc=desc)
     raise InputError(f"unknown selection method {method!r}: use one of {', '.join(METHODS)}")

@@ -41,7 +41,7 @@ def _smooth_noise(rng, n: int, width: float, size: tuple) -> np.ndarray:
 
 def toy_tracks(n_frames: int = 600, n_modes: int = 6, noise_px: float = 0.5, static_fraction: float = 0.3,
                fail_fraction: float = 0.0, rng=None, return_truth: bool = False):
-    """A synthetic ``contours48`` performance as :class:`~tracker.io.Tracks`.
+    """A synthetic ``contours48`` performance as :class:`~keyshape.base.formats.tracks.Tracks`.
 
     Parameters
     ----------

@@ -2,13 +2,16 @@
 
 Each stage keeps its own command code (``tracker/cli.py``, ``decompose/cli.py``,
 ...) exposing ``register(subparsers)``; this module only collects them, runs the
-chosen one and turns :class:`~pipeline.errors.KeyshapeError` into a one-line
-message and exit status 2 (no traceback), and Ctrl-C into status 130.
+chosen one and turns :class:`~keyshape.base.errors.KeyshapeError` and every ``OSError``
+(unreadable or unwritable file, disk full) into a one-line message and exit status 2 (no
+traceback), Ctrl-C into status 130 and SIGTERM into 143 (cleanup runs for both).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import signal
 import sys
 from typing import Sequence
 
@@ -26,6 +29,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.retarget.cli", None),
     ("keyshape.retarget.mocap.cli", None),
     ("keyshape.retarget.dense_cli", None),
+    ("keyshape.batch", None),
 ]
 
 
@@ -50,22 +54,67 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that every ``finally``/cleanup runs (exit status 143)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """While active (main thread only), SIGTERM raises :class:`Terminated`, a KeyboardInterrupt."""
+    try:
+        old = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _command_name(args) -> str:
+    sub = getattr(args, "synth_command", None) if args.command == "synth" else None
+    return f"{args.command} {sub}" if sub else str(args.command)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``keyshape`` with ``argv`` (default ``sys.argv[1:]``); return the exit status."""
+    """Run ``keyshape`` with ``argv`` (default ``sys.argv[1:]``); return the exit status.
+
+    Exit statuses: 0 success, 1 usage without a command, 2 bad input or a file
+    that cannot be read or written (one line on standard error, no traceback),
+    130 interrupted by Ctrl-C, 143 terminated by SIGTERM. An interruption
+    keeps every earlier complete output and removes temporary files.
+    """
+    from keyshape.base.files import describe_os_error
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
+    name = _command_name(args)
     try:
-        rc = args.func(args)
+        with sigterm_as_interrupt():
+            rc = args.func(args)
     except KeyshapeError as exc:
-        print(f"keyshape {args.command}: error: {exc}", file=sys.stderr)
+        print(f"keyshape {name}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"\nkeyshape {args.command}: interrupted; finished outputs are kept, partial ones removed",
+    except OSError as exc:
+        print(f"keyshape {name}: error: {describe_os_error(exc)}", file=sys.stderr)
+        return 2
+    except UnicodeDecodeError as exc:
+        print(f"keyshape {name}: error: an input file is not UTF-8 text ({exc.reason} at byte {exc.start})",
               file=sys.stderr)
-        return 130
+        return 2
+    except KeyboardInterrupt as exc:
+        term = isinstance(exc, Terminated)
+        print(f"\nkeyshape {name}: {'terminated' if term else 'interrupted'}; earlier outputs are untouched, "
+              "temporary files removed", file=sys.stderr)
+        return 143 if term else 130
     return int(rc or 0)
 
 

@@ -1,14 +1,20 @@
 """``keyshape demo``: the whole video path on built-in synthetic footage, end to end.
 
-1. ``keyshape synth video``: camcorder-like footage of a talking face with exact
-   ground truth (landmarks, head pose, the hidden expression weights).
-2. ``keyshape train`` on the 20 suggested labelled frames, then ``keyshape track``.
-3. ``keyshape select`` (key shapes per region) and ``keyshape decompose`` (NNLS weights with
-   a small ridge against tracking noise).
+It calls the Python API (:mod:`keyshape.api`), the same functions the commands run:
+
+1. synthetic camcorder-like footage of a talking face with exact ground truth
+   (``keyshape synth video``: landmarks, head pose, the hidden expression weights).
+2. :func:`~keyshape.api.train` on the 20 suggested labelled frames, then
+   :func:`~keyshape.api.track`.
+3. :func:`~keyshape.api.select` (key shapes per region) and :func:`~keyshape.api.decompose`
+   (NNLS weights with a small ridge against tracking noise).
 4. The artist's targets: for each key frame, the ICT-FaceKit expressions combined as
    the key frame shows them (known here from the hidden weights, as an artist
-   would model a smiling target for a smiling key frame); then ``keyshape retarget``
-   writes the ``.glb`` and a side-by-side preview video.
+   would model a smiling target for a smiling key frame); then :func:`~keyshape.api.retarget`
+   and the ``.glb`` export, and a side-by-side preview video.
+
+Each step's result is also written where the commands would write it (model.npz, tracks.csv,
+keys.json, weights.csv, ...), so the demo's folder can be inspected or resumed by hand.
 
 Because the synthetic performance is made of ICT-FaceKit-named components, the
 ground-truth animation of the target face is known too: the demo reports the
@@ -23,7 +29,6 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.decompose.cli import METHODS, SOLVERS
-from keyshape.base.errors import KeyshapeError
 
 # synthetic components -> demo region (contours48 regions used by decompose)
 _REGION_OF = {"jaw": "mouth", "mouth": "mouth", "eye": "eyes", "brow": "eyes"}
@@ -41,16 +46,13 @@ def register(subparsers) -> None:
                    help="weight solver for keyshape decompose (default smooth)")
     p.add_argument("--ridge", type=float, default=0.03,
                    help="keyshape decompose --ridge (default 0.03; 0 is the paper's plain NNLS)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
     p.set_defaults(func=run)
 
 
-def _stage(argv: list[str]) -> None:
-    from keyshape.cli import main
-
-    print(f"$ keyshape {' '.join(argv)}", flush=True)
-    rc = main(argv)
-    if rc:
-        raise KeyshapeError(f"stage 'keyshape {argv[0]}' failed with status {rc}")
+def _step(text: str) -> None:
+    print(f"$ {text}", flush=True)
 
 
 def _expand(ex, coeffs: dict[str, float]) -> dict[str, float]:
@@ -76,67 +78,106 @@ def _region_coeffs(names, w, region: str) -> dict[str, float]:
 
 def run(args) -> int:
     run_demo(args.out_dir, frames=args.frames, seed=args.seed, keys=args.keys, method=args.method,
-             labels=args.labels, solver=args.solver, ridge=args.ridge)
+             labels=args.labels, solver=args.solver, ridge=args.ridge, overwrite=args.overwrite)
     return 0
 
 
 def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: str = "greedy", labels: int = 20,
-             solver: str = "smooth", ridge: float = 0.03) -> dict:
-    """Run the demo into ``out_dir``; print and return the measured figures (also written to
+             solver: str = "smooth", ridge: float = 0.03, overwrite: bool = False) -> dict:
+    """Run the demo into ``out_dir`` (see :func:`_run_demo`). Every stage works in a hidden
+    temporary folder inside ``out_dir``; the results replace an earlier demo's only when the
+    whole demo has finished, so an interrupted or failed demo leaves ``out_dir`` as it was, and
+    files keyshape did not write there are never touched."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import atomic_dir
+
+    if frames < 2 or keys < 1 or labels < 2:
+        raise InputError("--frames and --labels must be >= 2 and --keys >= 1")
+    with atomic_dir(out_dir, overwrite) as tmp:
+        figures = _run_demo(tmp, frames, seed, keys, method, labels, solver, ridge)
+    _print_summary(Path(out_dir), figures)
+    return figures
+
+
+def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels: int,
+              solver: str, ridge: float) -> dict:
+    """Run the demo into the folder ``out``; return the measured figures (also written to
     ``demo_report.json``): ``nme_mean``, ``nme_worst``, ``failed_frames``, ``target_error_mm``
     (mean vertex error of the retargeted face against the hidden performance on the same
     face), ``target_motion_mm`` (mean vertex motion of that performance: a still face's error),
     ``seconds``."""
-    from keyshape.base.formats.keys import read_keys
+    from keyshape import api
     from keyshape.base.files import atomic_write
-    from keyshape.retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
-    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.formats.tracks import read_tracks, write_tracks
+    from keyshape.data_synth.video import synthesize
+    from keyshape.decompose.cli import write_sheet
     from keyshape.base.schemes import load_scheme
+    from keyshape.retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     foot = out / "footage"
     video = foot / "video.mp4"
-    _stage(["synth", "video", str(foot), "--frames", str(frames), "--seed", str(seed), "--labels", str(labels),
-            "--preview", str(foot / "preview.png")])
-    _stage(["train", str(video), "--labels", str(foot / "labels"), "-o", str(out / "model.npz")])
-    _stage(["track", str(video), "--model", str(out / "model.npz"), "-o", str(out / "tracks.csv"), "--quiet"])
-    _stage(["select", str(out / "tracks.csv"), "-k", str(keys), "--method", method,
-            "--region", "mouth", "--region", "eyes", "-o", str(out / "keys.json"),
-            "--sheet", str(out / "keys.png"), "--video", str(video)])
-    _stage(["decompose", str(out / "tracks.csv"), "--keys", str(out / "keys.json"), "--solver", solver,
-            "--ridge", str(ridge), "-o", str(out / "weights.csv")])
+    _step(f"synthesize({str(foot)!r}, frames={frames}, seed={seed}, labels={labels})")
+    synthesize(foot, frames=frames, seed=seed, labels=labels, preview=foot / "preview.png", verbose=True)
+    _step(f"model = train({str(video)!r}, {str(foot / 'labels')!r})")
+    model = api.train(video, foot / "labels")
+    model.save(out / "model.npz")
+    print(f"  {len(model.train_poses_)} labelled frames + {model.n_samples_ - len(model.train_poses_)} morphs, "
+          f"{model.k_} components -> {out / 'model.npz'}")
+    _step("tracks = track(video, model)")
+    tracks = api.track(video, model)
+    write_tracks(out / "tracks.csv", tracks)
+    print(f"  {tracks.n_frames} frames, {int((~tracks.success).sum())} lost -> {out / 'tracks.csv'}")
+    _step(f"keys = select(tracks, k={keys}, method={method!r}, regions=['mouth', 'eyes'])")
+    key_set = api.select(tracks, keys, method, ["mouth", "eyes"])
+    key_set.save(out / "keys.json")
+    write_sheet(out / "keys.png", video, tracks, load_scheme(key_set.scheme), key_set.regions)
+    for rk in key_set.regions:
+        print(f"  {rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}")
+    _step(f"weights = decompose(tracks, keys, solver={solver!r}, ridge={ridge})")
+    weights = api.decompose(tracks, key_set, solver, ridge)
+    weights.save(out / "weights.csv")
+    print(f"  {len(weights.frames)} frames x {len(weights.names)} weights -> {out / 'weights.csv'}")
 
     # the artist's targets, one per key shape, from what each key frame shows
     truth = json.loads((foot / "truth.json").read_text())
     names, hidden = truth["components"], np.asarray(truth["weights"], dtype=np.float64)
     ex = load_expressions()
-    _, _, regions = read_keys(out / "keys.json")
     # decompose's weights are relative to the mean shape, so a key's target is the mean face
     # with that region's expressions as the key frame shows them
     mean = dict(zip(names, hidden.mean(axis=0)))
     key_coeffs = {}
-    for rk in regions:
+    for rk in key_set.regions:
         for name, frame in zip(rk.names, rk.frames):
             key_coeffs[name] = _expand(ex, {**mean, **_region_coeffs(names, hidden[int(frame)], rk.region)})
     neutral_coeffs = _expand(ex, mean)
     write_demo_targets(out / "targets", key_coeffs, ex, neutral_coeffs)
     regions_json = out / "targets_regions.json"
-    regions_json.write_text(json.dumps({k: v.tolist() for k, v in demo_regions(ex).items()}))
-    _stage(["retarget", str(out / "weights.csv"), "--targets", str(out / "targets"),
-            "--regions", str(regions_json), "--tracks", str(out / "tracks.csv"), "-o", str(out / "animation.glb")])
+    with atomic_write(regions_json) as f:
+        json.dump({k: v.tolist() for k, v in demo_regions(ex).items()}, f)
+    _step(f"retarget(weights, {str(out / 'targets')!r}, regions={str(regions_json)!r}, tracks=tracks)"
+          f".export({str(out / 'animation.glb')!r})")
+    anim = api.retarget(weights, out / "targets", regions_json, tracks=tracks)
+    info = anim.export(out / "animation.glb")
+    print(f"  {len(weights.frames)} frames x {len(weights.names)} key shapes ({anim.retargeter.form_} form) at "
+          f"{anim.fps:g} fps -> {info['path']}")
 
     # side-by-side preview and measured errors against the ground truth
-    report = _preview_and_errors(out, video, ex, names, hidden, key_coeffs, neutral_coeffs)
+    report = _preview_and_errors(out, video, tracks, weights, ex, names, hidden, key_coeffs, neutral_coeffs)
     scheme = load_scheme("contours48")
-    tracks, gt = read_tracks(out / "tracks.csv"), read_tracks(foot / "truth.csv")
+    gt = read_tracks(foot / "truth.csv")
     nme = np.linalg.norm(tracks.points - gt.points, axis=-1).mean(axis=-1) / scheme.interocular_distance(gt.points)
     figures = {"nme_mean": float(np.nanmean(nme)), "nme_worst": float(np.nanmax(nme)),
                "failed_frames": int((~tracks.success).sum()), "target_error_mm": report["mean_mm"],
                "target_motion_mm": report["motion_mm"], "seconds": time.perf_counter() - t0}
     with atomic_write(out / "demo_report.json", "w") as f:
         json.dump(figures, f, indent=1)
+    return figures
+
+
+def _print_summary(out: Path, figures: dict) -> None:
+    foot = out / "footage"
+    video = foot / "video.mp4"
     print(f"\nkeyshape demo: done in {figures['seconds']:.1f} s")
     print(f"  tracking NME vs ground truth: mean {figures['nme_mean']:.4f}, worst frame {figures['nme_worst']:.4f}; "
           f"{figures['failed_frames']} frames marked failed")
@@ -150,10 +191,10 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
                         ("animation", out / "animation.glb"), ("preview video", out / "preview.mp4"),
                         ("figures", out / "demo_report.json")]:
         print(f"  {label:14s} {path}")
-    return figures
 
 
-def _preview_and_errors(out: Path, video: Path, ex, names, hidden, key_coeffs, neutral_coeffs) -> dict:
+def _preview_and_errors(out: Path, video: Path, tracks, weights, ex, names, hidden, key_coeffs,
+                        neutral_coeffs) -> dict:
     """Write ``preview.mp4`` (source frame with tracked contours | rendered target face) and measure
     the retargeted face against the hidden performance applied to the same target face."""
     import cv2
@@ -161,21 +202,17 @@ def _preview_and_errors(out: Path, video: Path, ex, names, hidden, key_coeffs, n
     from keyshape.retarget.demo_targets import demo_regions, demo_targets
     from keyshape.retarget.render import render_frames, side_by_side
     from keyshape.retarget.retargeter import Retargeter
-    from keyshape.base.formats.weights import read_weights
     from keyshape.base.draw import draw_shape
-    from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.schemes import load_scheme
     from keyshape.base.formats.video import VideoReader, video_writer
 
     ts = demo_targets(key_coeffs, ex, neutral_coeffs)
-    _, columns, weights = read_weights(out / "weights.csv")
-    order = [columns.index(c) for c in ts.columns]
-    frames = Retargeter(band=1.5).fit(ts, demo_regions(ex)).transform(weights[:, order])
+    order = [weights.names.index(c) for c in ts.columns]
+    frames = Retargeter(band=1.5).fit(ts, demo_regions(ex)).transform(weights.values[:, order])
     truth_frames = ex.shapes([_expand(ex, dict(zip(names, w))) for w in hidden])
     err = np.linalg.norm(frames - truth_frames, axis=-1) * 10.0  # cm -> mm
     motion = np.linalg.norm(truth_frames - ex.shape(neutral_coeffs), axis=-1) * 10.0
     scheme = load_scheme("contours48")
-    tracks = read_tracks(out / "tracks.csv")
     reader = VideoReader(video)
     h = 360
     w_left = int(round(reader.info.width * h / reader.info.height))

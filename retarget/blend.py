@@ -29,9 +29,9 @@ from typing import Sequence
 
 import numpy as np
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, NotFittedError
 
-FORMS = ("absolute", "delta")
+FORMS = ("auto", "absolute", "delta")
 
 
 def _check_weights(weights: np.ndarray, n_keys: int, what: str = "weights") -> np.ndarray:
@@ -49,14 +49,17 @@ class BlendBasis:
 
     Parameters
     ----------
-    form : {"absolute", "delta"}
-        See the module docstring; "delta" needs a neutral.
+    form : {"auto", "absolute", "delta"}
+        See the module docstring; "delta" needs a neutral; "auto" (default, as
+        :class:`~keyshape.retarget.retargeter.Retargeter`) is "delta" when ``fit`` is given a
+        neutral, else "absolute".
     dtype : numpy dtype
         Dtype of the stored basis and of the output (float32 halves memory; the
         product accumulates in that dtype; use float64 for exactness tests).
 
     Attributes
     ----------
+    form_ : "absolute" or "delta", the form used
     offset_ : (n_vertices, dim) array, zero in absolute form, the neutral in delta form
     basis_ : (n_keys [+ 1], n_vertices * dim) array, row i is target i (minus the neutral in
         delta form) scaled per vertex by its region's weight; in delta form a last row holds
@@ -65,7 +68,7 @@ class BlendBasis:
     shape_ : (n_vertices, dim)
     """
 
-    def __init__(self, form: str = "absolute", dtype=np.float64):
+    def __init__(self, form: str = "auto", dtype=np.float64):
         self.form = form
         self.dtype = dtype
 
@@ -76,12 +79,15 @@ class BlendBasis:
         Parameters
         ----------
         targets : (n_keys, n_vertices, dim)
-        neutral : (n_vertices, dim), required for ``form="delta"``
+        neutral : (n_vertices, dim), required for ``form="delta"``, chooses delta for ``form="auto"``
         key_regions : (n_keys,) int, region index of each key shape (with ``region_weights``)
         region_weights : (n_regions, n_vertices), per-vertex weight of each region, columns sum to one
         """
         if self.form not in FORMS:
             raise InputError(f"form must be one of {FORMS}, got {self.form!r}")
+        form = self.form
+        if form == "auto":
+            form = "delta" if neutral is not None else "absolute"
         b = np.asarray(targets, dtype=np.float64)
         if b.ndim != 3:
             raise InputError(f"targets: expected shape (n_keys, n_vertices, dim), got {b.shape}")
@@ -89,7 +95,7 @@ class BlendBasis:
             raise InputError("targets contain non-finite coordinates")
         k, nv, dim = b.shape
         offset = np.zeros((nv, dim))
-        if self.form == "delta":
+        if form == "delta":
             if neutral is None:
                 raise InputError("the delta form needs a neutral (--neutral)")
             n = np.asarray(neutral, dtype=np.float64)
@@ -105,11 +111,12 @@ class BlendBasis:
             if kr.shape != (k,) or kr.min() < 0 or kr.max() >= len(rw):
                 raise InputError(f"key_regions: expected {k} indices into {len(rw)} regions")
             b = b * rw[kr][:, :, None]
+        self.form_ = form
         self.shape_ = (nv, dim)
         self.n_keys_ = k
         self.offset_ = offset.astype(self.dtype)
         rows = b.reshape(k, nv * dim)
-        if self.form == "delta":
+        if form == "delta":
             rows = np.concatenate([rows, offset.reshape(1, -1)])
         self.basis_ = np.ascontiguousarray(rows, dtype=self.dtype)
         return self
@@ -125,11 +132,11 @@ class BlendBasis:
         the basis dtype).
         """
         if not hasattr(self, "basis_"):
-            raise InputError("BlendBasis is not fitted: call fit(targets, ...) first")
+            raise NotFittedError("BlendBasis is not fitted: call fit(targets, ...) first")
         k = self.n_keys_
         w = _check_weights(weights, k)
         n = len(w)
-        if self.form == "delta":
+        if self.form_ == "delta":
             w = np.concatenate([w, np.ones((n, 1))], axis=1)
         w = w.astype(self.dtype, copy=False)
         if out is None:
@@ -149,10 +156,12 @@ class BlendBasis:
 
 
 def blend(weights: np.ndarray, targets: np.ndarray, neutral: np.ndarray | None = None,
-          form: str = "absolute", dtype=np.float64) -> np.ndarray:
+          form: str = "auto", dtype=np.float64) -> np.ndarray:
     """Blend ``targets`` (n_keys, n_vertices, dim) with ``weights`` (n_frames, n_keys) in one product.
 
-    ``form`` is "absolute" or "delta" (needs ``neutral``); see the module docstring.
+    ``form`` is "absolute", "delta" (needs ``neutral``) or "auto" (default: delta when
+    ``neutral`` is given, else absolute, as :class:`~keyshape.retarget.retargeter.Retargeter`);
+    see the module docstring.
 
     Examples
     --------
@@ -160,8 +169,8 @@ def blend(weights: np.ndarray, targets: np.ndarray, neutral: np.ndarray | None =
     >>> B = np.stack([np.zeros((2, 3)), np.ones((2, 3))])
     >>> blend(np.array([[0.25, 0.5]]), B)[0, 0]
     array([0.5, 0.5, 0.5])
-    >>> blend(np.array([[0.25, 0.5]]), B, neutral=np.zeros((2, 3)), form="delta")[0, 0]
-    array([0.5, 0.5, 0.5])
+    >>> blend(np.array([[0.25, 0.5]]), B, neutral=np.ones((2, 3)))[0, 0]       # delta: 1 + 0.25 * -1
+    array([0.75, 0.75, 0.75])
     """
     return BlendBasis(form, dtype).fit(targets, neutral).transform(weights)
 

@@ -39,47 +39,62 @@ def register(subparsers) -> None:
     p.add_argument("--scheme", help="landmark scheme to draw 2D targets (default: by point count)")
     p.add_argument("-o", "--output", required=True,
                    help="OUT.glb | OUT.csv | OUT.mp4 | folder (OBJ frames for meshes, PNG frames for drawings)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write frames into a non-empty folder keyshape did not make (only its own "
+                        "frame_NNNNNN files are written; nothing is deleted)")
+    p.add_argument("--accept-partial", action="store_true",
+                   help="read --tracks that an interrupted 'keyshape track' marked partial")
     p.set_defaults(func=run)
+
+
+def _input_files(args) -> list:
+    """Every file this run reads (an output may be none of them)."""
+    from pathlib import Path
+
+    files = [args.weights, args.mapping, args.neutral, args.regions, args.tracks]
+    for t in args.targets:
+        p = Path(t)
+        files += list(p.iterdir()) if p.is_dir() else [p]
+        if p.is_dir():
+            files.append(p)
+    return [f for f in files if f is not None]
 
 
 def run(args) -> int:
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.retarget.export import export
-    from keyshape.retarget.retargeter import Retargeter
-    from keyshape.retarget.targets import load_targets, read_regions
     from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.api import fit_retargeter, head_from_tracks
+    from keyshape.retarget.export import export
+    from keyshape.base.files import check_output, check_output_dir
 
-    frames, columns, weights = read_weights(args.weights)
-    targets = args.targets[0] if len(args.targets) == 1 else args.targets
-    ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
-    regions = read_regions(args.regions, ts.mesh) if args.regions else None
-    rt = Retargeter(form=args.form, band=args.band, metric=args.metric).fit(ts, regions, args.regions or "regions")
+    for name, v, lo in (("--head-units", args.head_units, 0.0), ("--fps", args.fps, 0.0), ("--band", args.band, 0.0)):
+        if v is not None and not (np.isfinite(v) and lo < v < 1e9):
+            raise InputError(f"{name} {v}: must be a finite number > {lo:g}")
+    if args.reference_frame < 0:
+        raise InputError(f"--reference-frame {args.reference_frame}: frames are numbered from 0")
+    inputs = _input_files(args)
+    from pathlib import Path as _P
+    out_is_dir = _P(args.output).suffix == "" or _P(args.output).is_dir()
+    if out_is_dir:
+        check_output_dir(args.output, args.overwrite, inputs)
+    else:
+        check_output(args.output, "file", inputs)
+    frames, columns, weights, _ = read_weights(args.weights)
+    rt = fit_retargeter(columns, args.targets, args.regions, mapping=args.mapping, neutral=args.neutral,
+                        form=args.form, band=args.band, metric=args.metric)
+    ts = rt.targets_
     head, fps = None, args.fps
     if args.tracks:
-        from keyshape.retarget.headpose import head_motion
         from keyshape.base.formats.tracks import read_tracks
-        tr = read_tracks(args.tracks)
-        pos = {int(f): i for i, f in enumerate(tr.frame)}
-        missing = [int(f) for f in frames if int(f) not in pos]
-        if missing:
-            raise InputError(f"weights frames {missing[:5]} are not in the tracks", args.tracks)
-        rows = np.array([pos[int(f)] for f in frames])
-        if args.reference_frame not in pos:
-            raise InputError(f"reference frame {args.reference_frame} is not in the tracks", args.tracks)
-        from keyshape.retarget.headpose import hold_invalid
-        full = hold_invalid(tr.pose, tr.success)
-        pose = np.concatenate([full[rows], full[[pos[args.reference_frame]]]])
-        head = head_motion(pose, reference=len(rows), units_per_model=args.head_units)
-        head = type(head)(head.translation[:-1], head.rotation[:-1], head.scale[:-1], head.angle[:-1])
-        if fps is None and len(tr.time) > 1:
-            dt = np.diff(tr.time)
-            dt = dt[np.isfinite(dt) & (dt > 0)]
-            fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
+
+        head, tracks_fps = head_from_tracks(read_tracks(args.tracks, accept_partial=args.accept_partial), frames,
+                                            args.reference_frame, args.head_units, args.tracks)
+        fps = fps or tracks_fps
     fps = fps or 30.0
     info = export(args.output, rt, frames, weights, fps=fps, head=head, clamp=args.clamp, livelink=args.livelink,
-                  bake_head=args.bake_head, scheme=args.scheme)
+                  bake_head=args.bake_head, scheme=args.scheme, overwrite=args.overwrite, inputs=inputs)
     extra = f", {info['n_clamped']} weights clamped to [0, 1]" if args.clamp else ""
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
           f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"

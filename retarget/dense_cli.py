@@ -48,9 +48,37 @@ def register(subparsers) -> None:
     p.set_defaults(func=_transfer)
 
 
+def _check_markers(markers, n_vertices: int, path) -> None:
+    """Refuse marker vertex indices outside the mesh and non-finite or implausible positions."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+
+    for k, m in (markers or {}).items():
+        if isinstance(m, int):
+            if not 0 <= m < n_vertices:
+                raise InputError(f"marker {k!r}: vertex {m} does not exist (0..{n_vertices - 1})", path)
+        elif not np.all(np.isfinite(m)) or np.abs(m).max() > 1e7:
+            raise InputError(f"marker {k!r}: position {m} is not finite or implausibly far", path)
+
+
+def _check_masks(masks, n_vertices: int, path) -> None:
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+
+    for k, idx in (masks or {}).items():
+        idx = np.asarray(idx)
+        if idx.size and (idx.min() < 0 or idx.max() >= n_vertices):
+            raise InputError(f"mask {k!r}: vertex indices outside 0..{n_vertices - 1}", path)
+
+
 def _register(args) -> int:
     from keyshape.base.errors import InputError
-    from keyshape.retarget.dense import io
+    from keyshape.base.files import check_outputs
+    from keyshape.base.formats.markers import read_mesh_markers, write_mesh_markers
+    from keyshape.base.formats.masks import read_masks, write_masks
+    from keyshape.base.formats.pairs import read_pairs
     from keyshape.retarget.dense.registration import place_markers, register_mesh, transfer_masks
     from keyshape.base.formats.obj import read_obj, write_obj
 
@@ -58,19 +86,30 @@ def _register(args) -> int:
         raise InputError("--markers and --out-markers go together")
     if bool(args.masks) != bool(args.out_masks):
         raise InputError("--masks and --out-masks go together")
+    if args.controls < 3 or args.max_evals < 1:
+        raise InputError("--controls must be >= 3 and --max-evals >= 1")
+    inputs = [args.reference, args.target, args.landmarks, args.markers, args.masks]
+    check_outputs([args.output, args.out_markers, args.out_masks], inputs=inputs)
     ref = read_obj(args.reference, require_faces=True)
     tgt = read_obj(args.target, require_faces=True)
-    pairs = io.read_pairs(args.landmarks)
-    markers = io.read_markers(args.markers) if args.markers else None
-    masks = io.read_masks(args.masks) if args.masks else None
+    pairs = read_pairs(args.landmarks)
+    markers = read_mesh_markers(args.markers) if args.markers else None
+    masks = read_masks(args.masks) if args.masks else None
+    if masks is not None and not masks.vertex_lists():
+        raise InputError("no region lists 'vertices' (image and vertex-group regions need no carrying)", args.masks)
+    _check_markers(markers, ref.n_vertices, args.markers)
+    _check_masks(masks.vertex_lists() if masks is not None else None, ref.n_vertices, args.masks)
     res = register_mesh(ref.vertices, ref.triangles, tgt.vertices, tgt.triangles, pairs, solver=args.solver,
                         n_controls=args.controls, max_evals=args.max_evals, source=args.landmarks)
+    # every output computed before any is written: a failure writes nothing
+    placed = None if markers is None else place_markers(markers, ref.vertices, ref.triangles, res.vertices,
+                                                        tgt.vertices, tgt.triangles, source=args.markers)
+    carried = None if masks is None else transfer_masks(masks.vertex_lists(), res.vertices, tgt.vertices, args.masks)
     write_obj(args.output, ref, res.vertices)
-    if markers is not None:
-        io.write_json(args.out_markers, place_markers(markers, ref.vertices, ref.triangles, res.vertices,
-                                                      tgt.vertices, tgt.triangles, source=args.markers))
-    if masks is not None:
-        io.write_masks(args.out_masks, transfer_masks(masks, res.vertices, tgt.vertices, args.masks), args.masks)
+    if placed is not None:
+        write_mesh_markers(args.out_markers, placed)
+    if carried is not None:
+        write_masks(args.out_masks, masks.with_vertex_lists(carried))
     print(f"registered in {res.seconds:.1f} s ({res.solver}, {res.n_evals} evaluations): "
           f"energy {res.energy_start:.3g} -> {res.energy:.3g}; wrote {args.output}")
     return 0
@@ -79,23 +118,32 @@ def _register(args) -> int:
 def _initial(spec: str, frames, seed: int):
     import numpy as np
 
-    from keyshape.retarget.dense import io
+    from keyshape.base.formats.keypoints import read_keypoints
     from keyshape.retarget.dense.keypoints import farthest_point_sample
 
     if spec.isdigit():
+        from keyshape.base.errors import InputError
+        if not 1 <= int(spec) <= frames.shape[1]:
+            raise InputError(f"--initial {spec}: need 1 to {frames.shape[1]} key points")
         return farthest_point_sample(frames[0], int(spec), np.random.default_rng(seed))
-    return io.read_keypoints(spec, frames.shape[1])
+    return read_keypoints(spec, frames.shape[1])
 
 
 def _keypoints(args) -> int:
-    from keyshape.retarget.dense import io
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import check_outputs
+    from keyshape.base.formats.keypoints import write_keypoints
+    from keyshape.base.formats.sequence import read_sequence
     from keyshape.retarget.dense.keypoints import KeyPointInserter
 
-    frames, _ = io.read_sequence(args.sequence)
+    if args.max_rounds < 0:
+        raise InputError(f"--max-rounds {args.max_rounds}: must be >= 0")
+    check_outputs([args.output], inputs=[args.sequence, None if args.initial.isdigit() else args.initial])
+    frames, _ = read_sequence(args.sequence)
     init = _initial(args.initial, frames, args.seed)
     ins = KeyPointInserter(max_rounds=args.max_rounds, correspondence=not args.no_correspondence,
                            rng=args.seed).fit(frames, init)
-    io.write_keypoints(args.output, ins.key_indices_, ins.history_)
+    write_keypoints(args.output, ins.key_indices_, ins.history_)
     h = ins.history_
     print(f"{len(init)} -> {len(ins.key_indices_)} key points in {len(h) - 1} round(s); "
           f"mean error {h[0]['mean_error']:.4g} -> {h[-1]['mean_error']:.4g}; wrote {args.output}")
@@ -106,15 +154,21 @@ def _transfer(args) -> int:
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.retarget.dense import io
+    from keyshape.base.formats.keypoints import read_keypoints
+    from keyshape.base.formats.pairs import read_pairs
+    from keyshape.base.formats.sequence import read_sequence, write_sequence
     from keyshape.retarget.dense.registration import resolve_landmarks
     from keyshape.retarget.dense.transfer import transfer_sequence
     from keyshape.base.formats.obj import read_obj
+    from keyshape.base.files import check_outputs
 
-    frames, _ = io.read_sequence(args.sequence)
+    if not (np.isfinite(args.gain) and abs(args.gain) < 1e6) or args.samples < 1:
+        raise InputError("--gain must be a finite number and --samples >= 1")
+    check_outputs([args.output], inputs=[args.sequence, args.target, args.keypoints, args.landmarks])
+    frames, _ = read_sequence(args.sequence)
     tgt = read_obj(args.target, require_faces=True)
     if args.landmarks:
-        pairs = io.read_pairs(args.landmarks)
+        pairs = read_pairs(args.landmarks)
         _, tk, _ = resolve_landmarks(pairs, frames[0], tgt.vertices, args.landmarks)
         sk = []
         for i, p in enumerate(pairs):
@@ -126,9 +180,9 @@ def _transfer(args) -> int:
         if tgt.n_vertices != frames.shape[1]:
             raise InputError(f"target has {tgt.n_vertices} vertices, the sequence {frames.shape[1]} points: "
                              "give --landmarks PAIRS.json to say which points correspond", args.target)
-        sk = io.read_keypoints(args.keypoints, frames.shape[1]) if args.keypoints else _initial("68", frames, args.seed)
+        sk = read_keypoints(args.keypoints, frames.shape[1]) if args.keypoints else _initial("68", frames, args.seed)
         tk = sk
     out = transfer_sequence(frames, sk, tgt.vertices, tk, gain=args.gain, n_samples=args.samples, rng=args.seed)
-    io.write_sequence(args.output, out, tgt.triangles)
+    write_sequence(args.output, out, tgt.triangles)
     print(f"transferred {len(out)} frames onto {Path(args.target).name}; wrote {args.output}")
     return 0

@@ -132,7 +132,8 @@ def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
 
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
            head: HeadMotion | None = None, clamp: bool = False, livelink: bool = False,
-           bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480)) -> dict:
+           bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480),
+           overwrite: bool = False, inputs=()) -> dict:
     """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
 
     Parameters
@@ -188,7 +189,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         from keyshape.base.formats.obj import write_obj
         if bake_head and head is not None:
             out = head.apply(out)
-        with atomic_dir(path) as tmp:
+        with atomic_dir(path, overwrite, inputs) as tmp:
             for fr, v in zip(frames, out):
                 write_obj(tmp / f"frame_{int(fr):06d}.obj", ts.mesh, v)
         return info
@@ -201,7 +202,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
-        with atomic_dir(path) as tmp:
+        with atomic_dir(path, overwrite, inputs) as tmp:
             for fr, img in zip(frames, images):
                 cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
     else:

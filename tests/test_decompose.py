@@ -8,10 +8,11 @@ import pytest
 from scipy.optimize import nnls
 
 from keyshape.cli import main
-from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.errors import InputError, KeyshapeError, NotFittedError
 from keyshape.base.formats.tracks import read_tracks, write_tracks
 from keyshape.base.schemes import load_scheme
-from keyshape.base.formats.keys import read_keys, read_weights, write_keys, write_weights
+from keyshape.base.formats.keys import read_keys, write_keys
+from keyshape.base.formats.weights import read_weights, write_weights
 from keyshape.decompose.regions import decompose_region, model_shapes, region_points, select_region
 from keyshape.decompose.selectors import (GreedySelector, HullSelector, KMeansSelector, RandomSelector, SpreadSelector,
                                  make_selector)
@@ -178,7 +179,7 @@ def test_spread_picks_extremes_of_principal_axes(toy):
 def test_selector_interface(toy, method):
     _, _, Q = toy
     sel = make_selector(method, 7, rng=0)
-    with pytest.raises(InputError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         sel.n_keys_
     assert sel.fit(Q) is sel
     assert sel.indices_.shape == (7,) and sel.keys_.shape == (7, *Q.shape[1:])
@@ -210,6 +211,33 @@ def test_hull_selects_the_2d_hull_vertices(toy):
     Y = X @ Vt[:2].T
     inside = Delaunay(Y[sel.indices_]).find_simplex(Y) >= 0
     assert inside.all() and 3 <= len(sel.indices_) < len(Q) // 2
+
+
+@pytest.mark.parametrize("n_dims", [2, 3])
+def test_kmeans_recovers_known_clusters(n_dims):
+    """Shapes drawn around 5 known expressions (well apart, small noise): k-means with k = 5 puts each
+    expression in its own cluster, its key (centre of mass) is that expression's mean, and the
+    nearest-frame index is a member of that cluster."""
+    rng = np.random.default_rng(5)
+    protos = rng.normal(scale=10.0, size=(5, 12, 2))
+    truth = rng.integers(0, 5, size=200)
+    truth[:5] = np.arange(5)                                     # every cluster populated
+    Q = protos[truth] + rng.normal(scale=0.3, size=(200, 12, 2))
+    sel = KMeansSelector(5, n_dims=n_dims, centre="mean", rng=0).fit(Q)
+    found = truth[sel.indices_]
+    assert sorted(found.tolist()) == [0, 1, 2, 3, 4]             # one key per true cluster
+    for key, c in zip(sel.keys_, found):
+        np.testing.assert_allclose(key, Q[truth == c].mean(0), atol=1e-9)
+
+
+def test_hull_selector_is_built_like_its_siblings(toy):
+    _, _, Q = toy
+    full = HullSelector().fit(Q)
+    some = HullSelector(4).fit(Q)
+    assert some.n_keys_ == 4 and set(some.indices_) <= set(full.indices_)
+    np.testing.assert_array_equal(HullSelector(3).fit(Q).indices_, some.indices_[:3])     # nested
+    with pytest.raises(InputError, match="on the hull"):
+        HullSelector(len(full.indices_) + 1).fit(Q)
 
 
 def test_random_selector_uses_rng(toy):
@@ -305,7 +333,7 @@ def test_format_errors_name_the_file(tmp_path):
     q = tmp_path / "w.csv"
     q.write_text("frame,mouth_0,blob\n0,1,2\n")
     with pytest.raises(InputError, match="w.csv.*REGION_K"):
-        read_weights(q)
+        read_weights(q, key_names=True)
     q.write_text("frame,mouth_0\n0,x\n")
     with pytest.raises(InputError, match="w.csv, line 2"):
         read_weights(q)
@@ -320,7 +348,8 @@ def test_cli_select_decompose_compare(tmp_path, capsys):
                  "--region", "eyes", "-o", str(tmp_path / "k.json")]) == 0
     assert main(["decompose", str(tmp_path / "t.csv"), "--keys", str(tmp_path / "k.json"), "--solver", "smooth",
                  "-o", str(tmp_path / "w.csv")]) == 0
-    fr, names, w, flag = read_weights(tmp_path / "w.csv")
+    fr, names, w, flag = read_weights(tmp_path / "w.csv", key_names=True)
+    np.testing.assert_array_equal(fr, tracks.frame)
     assert names == [f"mouth_{i}" for i in range(6)] + [f"eyes_{i}" for i in range(6)]
     np.testing.assert_array_equal(flag, ~tracks.success)
     assert w.min() >= 0
@@ -346,7 +375,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "k.json").exists()
 
 
-def test_sheet_draws_key_frames(tmp_path):
+def test_sheet_draws_key_frames(tmp_path, capsys):
     import cv2
 
     from keyshape.base.formats.video import video_writer
@@ -363,8 +392,11 @@ def test_sheet_draws_key_frames(tmp_path):
     img = cv2.imread(str(tmp_path / "s.png"))
     assert img is not None and img.shape[1] > 4 * 280
     assert (img[..., 1].astype(int) - img[..., 0] > 100).any()   # green lip contours drawn
-    with pytest.raises(KeyshapeError):
-        raise InputError("x")
+    (tmp_path / "bad.mp4").write_bytes(b"not a video")             # the sheet's own bad input fails cleanly
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "mouth", "-o", str(tmp_path / "k2.json"),
+                 "--sheet", str(tmp_path / "s2.png"), "--video", str(tmp_path / "bad.mp4")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.mp4" in err[0] and not (tmp_path / "s2.png").exists()
 
 
 # ----------------------------------------------------------------------------- target-domain check

@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 
 from keyshape.cli import main
-from keyshape.base.errors import InputError
-from keyshape.retarget.dense import io
+from keyshape.base.errors import InputError, NotFittedError
+from keyshape.base.formats.keypoints import read_keypoints
+from keyshape.base.formats.pairs import read_pairs
+from keyshape.base.formats.sequence import read_sequence, write_sequence
 from keyshape.retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
 from keyshape.retarget.dense.meshcheck import TriangleSurface, check_mesh, closest_on_triangles
-from keyshape.retarget.dense.rbf_face import FaceSpaceRBF
+from keyshape.retarget.dense.keypoints import face_rbf
 from keyshape.retarget.dense.registration import (MeshEnergy, place_markers, register_mesh, resolve_landmarks,
                                          transfer_masks)
 from keyshape.retarget.dense.transfer import transfer_sequence
@@ -41,7 +43,7 @@ def test_rbf_reproduces_keys_and_identity():
     rng = np.random.default_rng(0)
     k0 = rng.uniform(0, 10, (20, 3))
     kt = k0 + rng.normal(scale=0.5, size=(4, 20, 3))
-    rbf = FaceSpaceRBF(k0, smoothing=0.0)
+    rbf = face_rbf(None, 0.0).fit(k0)
     assert np.allclose(rbf.deform(k0, kt), kt, atol=1e-6)           # eq. 1: keys go exactly to K^t
     x = rng.uniform(0, 10, (50, 3))
     assert np.allclose(rbf.deform(x, k0), x)                        # K^t = K^0 is the identity
@@ -53,7 +55,7 @@ def test_rbf_reproduces_keys_and_identity():
 
 def test_rbf_rejects_coincident_keys():
     with pytest.raises(InputError, match="coincide"):
-        FaceSpaceRBF(np.zeros((3, 3)))
+        face_rbf(None, 1e-2).fit(np.zeros((3, 3)))
 
 
 # --- key-point insertion (section 5) --------------------------------------------------------------
@@ -82,12 +84,13 @@ def test_insertion_without_correspondence_runs_and_helps():
     frames, _ = bump_sequence()
     init = np.array([0, 24, 600, 624, 312])
     ins = KeyPointInserter(radius=1.5, n_candidates=400, max_new=6, sigma=1.0, correspondence=False, rng=0).fit(frames, init)
-    assert ins.history_[-1]["mean_error"] <= ins.history_[0]["mean_error"]
+    errs = [h["mean_error"] for h in ins.history_]      # measured 0.145 -> 0.076 (5 -> 9 keys)
+    assert errs[-1] < 0.7 * errs[0] and len(ins.key_indices_) > len(init)
 
 
 def test_inserter_errors():
     frames, _ = bump_sequence()
-    with pytest.raises(InputError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         KeyPointInserter().reconstruct(frames)
     with pytest.raises(InputError, match="must lie in"):
         KeyPointInserter().fit(frames, np.array([0, 10_000]))
@@ -253,15 +256,15 @@ def test_landmark_errors():
 # --- formats and commands ------------------------------------------------------------------------
 def test_sequence_roundtrip_and_errors(tmp_path):
     frames, t = bump_sequence(4, 6)
-    io.write_sequence(tmp_path / "s.npz", frames, t)
-    f2, t2 = io.read_sequence(tmp_path / "s.npz")
+    write_sequence(tmp_path / "s.npz", frames, t)
+    f2, t2 = read_sequence(tmp_path / "s.npz")
     assert np.array_equal(f2, frames) and np.array_equal(t2, t)
     np.savez(tmp_path / "bad.npz", points=frames)
     with pytest.raises(InputError, match=r"bad\.npz.*no 'vertices'"):
-        io.read_sequence(tmp_path / "bad.npz")
+        read_sequence(tmp_path / "bad.npz")
     (tmp_path / "p.json").write_text("{not json")
     with pytest.raises(InputError, match=r"p\.json.*not valid JSON"):
-        io.read_pairs(tmp_path / "p.json")
+        read_pairs(tmp_path / "p.json")
 
 
 def test_cli_register_and_keypoints(tmp_path, capsys):
@@ -286,16 +289,16 @@ def test_cli_register_and_keypoints(tmp_path, capsys):
                str(tmp_path / "pairs.json"), "-o", str(tmp_path / "x.obj")])
     assert rc == 2 and "nofaces.obj" in capsys.readouterr().err
     frames, tri = bump_sequence(8, 15)
-    io.write_sequence(tmp_path / "seq.npz", frames, tri)
+    write_sequence(tmp_path / "seq.npz", frames, tri)
     rc = main(["keypoints", str(tmp_path / "seq.npz"), "--initial", "6", "-o", str(tmp_path / "k.json")])
-    assert rc == 0 and len(io.read_keypoints(tmp_path / "k.json")) >= 6
+    assert rc == 0 and len(read_keypoints(tmp_path / "k.json")) >= 6
     rc = main(["transfer", str(tmp_path / "seq.npz"), "--target", str(tmp_path / "ref.obj"),
                "-o", str(tmp_path / "o.npz")])
     assert rc == 2 and "ref.obj" in capsys.readouterr().err        # different point counts, no landmarks
     write_obj(tmp_path / "self.obj", Mesh(frames[0], list(tri)))
     rc = main(["transfer", str(tmp_path / "seq.npz"), "--target", str(tmp_path / "self.obj"), "--keypoints",
                str(tmp_path / "k.json"), "--samples", "225", "-o", str(tmp_path / "o.npz")])
-    out, _ = io.read_sequence(tmp_path / "o.npz")
+    out, _ = read_sequence(tmp_path / "o.npz")
     assert rc == 0 and out.shape == frames.shape
     assert np.linalg.norm(out - frames, axis=2).mean() < 0.1 * np.linalg.norm(frames - frames[0], axis=2).mean()
 
@@ -358,7 +361,8 @@ def test_dense_sequences_are_deterministic(shared_data):
 def test_register_outputs_feed_the_mocap_command(tmp_path):
     """``register --out-markers/--out-masks`` write what ``keyshape mocap --target-markers/--masks`` reads."""
     from keyshape.retarget.mocap.cli import read_target_markers
-    from keyshape.retarget.mocap.masks import read_masks as read_mocap_masks
+    from keyshape.base.formats.masks import read_masks
+    from keyshape.retarget.mocap.masks import regions_from_masks
     from keyshape.base.formats.obj import Mesh, write_obj
     v, t = grid(11)
     write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
@@ -380,5 +384,5 @@ def test_register_outputs_feed_the_mocap_command(tmp_path):
     out = json.loads((tmp_path / "tmasks.json").read_text())
     assert out["note"] == "kept" and out["regions"][0]["exclude_markers"] == ["far"]
     assert out["regions"][0]["vertices"] == lower
-    regions = read_mocap_masks(tmp_path / "tmasks.json", ["tip", "corner", "edge", "far"], vertices=v)
+    regions = regions_from_masks(read_masks(tmp_path / "tmasks.json"), ["tip", "corner", "edge", "far"], vertices=v)
     assert regions[0].name == "lower" and regions[0].markers == {"tip", "corner", "edge"}

@@ -34,7 +34,7 @@ def test_failed_writes_leave_nothing(tmp_path):
     (tmp_path / "keep").mkdir()
     (tmp_path / "keep" / "old").write_text("old")
     with pytest.raises(RuntimeError):
-        with atomic_dir(tmp_path / "keep") as d:
+        with atomic_dir(tmp_path / "keep", overwrite=True) as d:
             raise RuntimeError
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"]
     assert (tmp_path / "keep" / "old").read_text() == "old"

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from keyshape.base.errors import InputError
-from keyshape.base.formats.tracks import (Tracks, pts_name, read_labels, read_pts, read_tracks, write_labels, write_pts,
-                        write_tracks)
+from keyshape.base.formats.labels import pts_name, read_labels, read_pts, write_labels, write_pts
+from keyshape.base.formats.tracks import Tracks, read_tracks, write_tracks
 
 
 def _tracks(n=5, p=48, rng=0):
@@ -90,10 +90,21 @@ def test_malformed_tracks(tmp_path, mutate, match):
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    """A tracks CSV that fails half-way, after rows reached the disk, leaves neither a partial file nor a
+    temporary, and the older file at the destination is kept as it was."""
+    from keyshape.base.files import atomic_write
+    from keyshape.base.formats.tracks import TracksWriter
+
     t = _tracks()
-    t.points = t.points[:, :10]  # mismatched columns -> savetxt still fine; force an error instead
-    bad = _tracks()
-    bad.pose = None  # type: ignore[assignment]
-    with pytest.raises(Exception):
-        write_tracks(tmp_path / "x.csv", bad)
-    assert list(tmp_path.iterdir()) == []
+    dest = tmp_path / "x.csv"
+    dest.write_text("older\n")
+    with pytest.raises(InputError, match="crashed at frame 3"):
+        with atomic_write(dest) as f:
+            w = TracksWriter(f, t.n_points)
+            for i in range(3):
+                w.write(t.frame[i], t.time[i], t.confidence[i], t.success[i], t.points[i], t.pose[i])
+            f.flush()
+            partial = [p for p in tmp_path.iterdir() if p != dest]
+            assert len(partial) == 1 and partial[0].read_text().count("\n") == 4   # header + 3 rows on disk
+            raise InputError("crashed at frame 3")                                 # e.g. the video ended early
+    assert sorted(tmp_path.iterdir()) == [dest] and dest.read_text() == "older\n"

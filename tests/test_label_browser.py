@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from label_helpers import make_folder
-from keyshape.base.formats.tracks import read_pts
+from keyshape.base.formats.labels import read_pts
 from keyshape.tracker.labelling.server import LabelServer
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)

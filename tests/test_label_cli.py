@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from keyshape.cli import main
-from keyshape.base.formats.tracks import read_pts, write_pts
+from keyshape.base.formats.labels import read_pts, write_pts
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from keyshape.base.formats.tracks import read_pts
+from keyshape.base.formats.labels import read_pts
 from keyshape.tracker.labelling import server as srv_mod
 from label_helpers import make_folder
 
@@ -150,3 +150,35 @@ def test_missing_session_named(tmp_path):
     from keyshape.base.errors import MissingFileError
     with pytest.raises(MissingFileError, match="session.json"):
         srv_mod.LabelServer(tmp_path, 0)
+
+
+def test_implausible_coordinates_refused(running):
+    server, root = running
+    before = snapshot(root)
+    pts = read_pts(server.folder / "000005.pts")
+    pts[3] = [1e300, 5.0]
+    st, body = request(server, "PUT", "/api/points/000005.pts", {"points": pts.tolist()})
+    assert st == 400 and b"beyond" in body and snapshot(root) == before
+
+
+def test_short_body_does_not_hold_a_thread(running, monkeypatch):
+    server, root = running
+    monkeypatch.setattr(srv_mod.LabelHandler, "timeout", 0.5)
+    before = snapshot(root)
+    s = socket.create_connection(("127.0.0.1", server.port), timeout=5)
+    s.sendall(b"PUT /api/points/000005.pts HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+              b"Content-Length: 500\r\n\r\n{\"points\": [")
+    s.settimeout(5)
+    assert s.recv(100) == b""          # the server gave up on the connection after its timeout
+    s.close()
+    st, _ = request(server, "GET", "/api/session")        # and still serves
+    assert st == 200 and snapshot(root) == before
+
+
+def test_corrupt_pts_gives_an_error_response(running):
+    server, _ = running
+    (server.folder / "000040.pts").write_text("version: 1\nn_points: 48\n{\n1 2\n")
+    st, body = request(server, "GET", "/api/points/000040.pts")
+    assert st == 422 and b"000040.pts" in body and b"closing brace" in body
+    st, _ = request(server, "GET", "/api/session")
+    assert st == 200

@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from keyshape.base.errors import InputError
 from keyshape.retarget.mocap.planar_bones import PlanarBones, bone_frames, closest_feature, triangle_min_angles
-from keyshape.retarget.mocap.rbf import NotFittedError, RBFRetarget
+from keyshape.base.errors import KeyshapeError, NotFittedError
+from keyshape.retarget.rbf import RBF
 
 
 def _surface(seed=0, n_ctrl=30, n_mesh=1500):
@@ -30,7 +31,7 @@ def _rigid(seed):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_planar_zero_motion_and_weights(seed, unbound):
     ctrl, tri, mesh, _ = _surface(seed)
-    b = PlanarBones.bind(mesh, ctrl, tri, unbound=unbound)
+    b = PlanarBones(unbound=unbound).fit(mesh, ctrl, tri)
     np.testing.assert_allclose(b.deform(ctrl), mesh, atol=1e-12)
     w = np.asarray(b.weights.sum(axis=1)).ravel()
     np.testing.assert_allclose(w + b.rest_weight_, 1.0, atol=1e-12)  # bones + rest position sum to one
@@ -47,7 +48,7 @@ def test_planar_zero_motion_and_weights(seed, unbound):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_planar_rigid_motion_moves_every_vertex_rigidly(seed):
     ctrl, tri, mesh, _ = _surface(seed)
-    b = PlanarBones.bind(mesh, ctrl, tri, unbound="nearest", radius_scale=1.5)
+    b = PlanarBones(unbound="nearest", radius_scale=1.5).fit(mesh, ctrl, tri)
     r, t = _rigid(seed)
     np.testing.assert_allclose(b.deform(ctrl @ r + t), mesh @ r + t, atol=1e-10)
     assert set(np.unique(b.pair_region_)) == set(range(7))  # every region kind exercised
@@ -55,7 +56,7 @@ def test_planar_rigid_motion_moves_every_vertex_rigidly(seed):
 
 def test_planar_deform_many_matches_deform_and_is_continuous():
     ctrl, tri, mesh, rng = _surface(3)
-    b = PlanarBones.bind(mesh, ctrl, tri)
+    b = PlanarBones().fit(mesh, ctrl, tri)
     frames = ctrl + rng.normal(0, 0.05, (7,) + ctrl.shape)
     many = b.deform_many(frames)
     for f in range(7):
@@ -63,18 +64,18 @@ def test_planar_deform_many_matches_deform_and_is_continuous():
     # continuity across region boundaries: a dense line of vertices moves smoothly
     x = np.linspace(-1.5, 1.5, 6001)
     line = np.column_stack([x, np.full(len(x), 0.1), 0.2 * np.sin(2 * x) + 0.05])  # leaves the surface's reach
-    bl = PlanarBones.bind(line, ctrl, tri, unbound="fade")
+    bl = PlanarBones(unbound="fade").fit(line, ctrl, tri)
     assert 0 < bl.rest_weight_.mean() < 1
     disp = bl.deform(frames[0]) - line
     jumps = np.linalg.norm(np.diff(disp, axis=0), axis=1)
     assert jumps.max() < 5e-3, jumps.max()  # displacement ~0.05; no step between neighbours 0.0005 apart
-    hard = PlanarBones.bind(line, ctrl, tri, unbound="still").deform(frames[0]) - line
+    hard = PlanarBones(unbound="still").fit(line, ctrl, tri).deform(frames[0]) - line
     assert np.linalg.norm(np.diff(hard, axis=0), axis=1).max() > 5e-3  # hard normalisation steps at the edge
 
 
 def _direct(b, ctrl_frame):
     """Eqs. (1), (9)-(11) pair by pair, without the sparse matrix."""
-    fr = bone_frames(ctrl_frame[b.triangles])[b.pair_bone_, b.pair_region_]      # (n_pairs, 4, 3)
+    fr = bone_frames(ctrl_frame[b.triangles_])[b.pair_bone_, b.pair_region_]      # (n_pairs, 4, 3)
     c = b.pair_coords_
     inplane = c[:, :1] * fr[:, 1] + c[:, 1:2] * fr[:, 2]
     wedge = b.pair_region_ >= 4
@@ -88,7 +89,7 @@ def _direct(b, ctrl_frame):
 @pytest.mark.parametrize("unbound", ["still", "nearest", "fade"])
 def test_planar_sparse_layout_matches_direct_evaluation_with_and_without_threads(unbound):
     ctrl, tri, mesh, rng = _surface(4)
-    b = PlanarBones.bind(mesh, ctrl, tri, unbound=unbound, radius_scale=1.5)
+    b = PlanarBones(unbound=unbound, radius_scale=1.5).fit(mesh, ctrl, tri)
     assert (b.pair_region_ >= 4).any()
     frames = ctrl + rng.normal(0, 0.08, (37,) + ctrl.shape)
     direct = np.stack([_direct(b, f) for f in frames])
@@ -126,12 +127,12 @@ def test_masks_keep_masked_vertices_still():
     moving = ctrl[:, 1] < -0.2          # only these markers move
     bone_touches_moving = moving[tri].any(axis=1)
     masks = ~(upper[:, None] & bone_touches_moving[None, :])
-    b = PlanarBones.bind(mesh, ctrl, tri, masks=masks)
+    b = PlanarBones().fit(mesh, ctrl, tri, masks=masks)
     moved = ctrl.copy()
     moved[moving] += rng.normal(0, 0.1, (moving.sum(), 3))
     out = b.deform(moved)
     np.testing.assert_allclose(out[upper], mesh[upper], atol=1e-12)
-    free = PlanarBones.bind(mesh, ctrl, tri).deform(moved)
+    free = PlanarBones().fit(mesh, ctrl, tri).deform(moved)
     assert np.abs(free[upper] - mesh[upper]).max() > 1e-3  # without the mask they would move
 
 
@@ -140,18 +141,18 @@ def test_planar_errors():
     bad = ctrl.copy()
     bad[tri[0, 2]] = 0.5 * (bad[tri[0, 0]] + bad[tri[0, 1]])
     with pytest.raises(InputError, match="degenerate .*collinear.*bone 0"):
-        PlanarBones.bind(mesh, bad, tri)
+        PlanarBones().fit(mesh, bad, tri)
     with pytest.raises(InputError, match="indices must lie"):
-        PlanarBones.bind(mesh, ctrl, tri + 100)
+        PlanarBones().fit(mesh, ctrl, tri + 100)
     with pytest.raises(InputError, match="masks"):
-        PlanarBones.bind(mesh, ctrl, tri, masks=np.ones((3, 3), bool))
-    b = PlanarBones.bind(mesh, ctrl, tri)
+        PlanarBones().fit(mesh, ctrl, tri, masks=np.ones((3, 3), bool))
+    b = PlanarBones().fit(mesh, ctrl, tri)
     nan = ctrl.copy()
     nan[0] = np.nan
     with pytest.raises(InputError, match="NaN"):
         b.deform(nan)
-    with pytest.raises(TypeError, match="bind"):
-        PlanarBones()
+    with pytest.raises(NotFittedError, match="not fitted"):
+        PlanarBones().deform(ctrl)
 
 
 @pytest.mark.parametrize("kernel", ["imq", "tps", "gaussian"])
@@ -159,16 +160,16 @@ def test_rbf_interpolates_centres_and_zero_motion(kernel):
     rng = np.random.default_rng(1)
     u = rng.normal(size=(25, 3))
     v = 1.3 * u + rng.normal(0, 0.1, u.shape)
-    f = RBFRetarget(kernel).fit(u, v)
+    f = RBF(kernel).fit(u, v)
     np.testing.assert_allclose(f(u), v, atol=1e-9)
     x = rng.normal(size=(200, 3))
-    np.testing.assert_allclose(RBFRetarget(kernel).fit(u, u)(x), x, atol=1e-9)
+    np.testing.assert_allclose(RBF(kernel).fit(u, u)(x), x, atol=1e-9)
     frames = v + rng.normal(0, 0.1, (4,) + v.shape)
-    fm = RBFRetarget(kernel).fit(u, frames)
+    fm = RBF(kernel).fit(u, frames)
     out = fm(u)
     assert out.shape == (4, 25, 3)
     np.testing.assert_allclose(out, frames, atol=1e-9)
-    np.testing.assert_allclose(fm(x)[2], RBFRetarget(kernel).fit(u, frames[2])(x), atol=1e-9)
+    np.testing.assert_allclose(fm(x)[2], RBF(kernel).fit(u, frames[2])(x), atol=1e-9)
 
 
 @pytest.mark.parametrize("kernel", ["imq", "tps", "gaussian"])
@@ -177,14 +178,14 @@ def test_rbf_affine_term_reproduces_rigid_motion(kernel):
     u = rng.normal(size=(25, 3))
     r, t = _rigid(2)
     x = 10 * rng.normal(size=(300, 3))  # far from the centres too
-    np.testing.assert_allclose(RBFRetarget(kernel, affine=True).fit(u, u @ r + t)(x), x @ r + t, atol=1e-8)
-    assert np.allclose(RBFRetarget("imq").fit(u, u @ r + t).coef_[:25], 0, atol=1e-10)
+    np.testing.assert_allclose(RBF(kernel, affine=True).fit(u, u @ r + t)(x), x @ r + t, atol=1e-8)
+    assert np.allclose(RBF("imq").fit(u, u @ r + t).coef_[:25], 0, atol=1e-10)
 
 
 def test_rbf_imq_radii_are_eq_16():
     rng = np.random.default_rng(3)
     u = rng.normal(size=(10, 3))
-    f = RBFRetarget("imq").fit(u, u)
+    f = RBF("imq").fit(u, u)
     d = np.linalg.norm(u[:, None] - u[None], axis=2) + np.diag(np.full(10, np.inf))
     np.testing.assert_allclose(f.radii_, d.min(axis=1))
 
@@ -195,18 +196,42 @@ def test_rbf_errors():
     dup = u.copy()
     dup[7] = dup[2]
     with pytest.raises(InputError, match=r"centres 2 \('m2'\) and 7 \('m7'\) coincide"):
-        RBFRetarget("imq", labels=[f"m{i}" for i in range(10)]).fit(dup, u)
+        RBF("imq", labels=[f"m{i}" for i in range(10)]).fit(dup, u)
     nan = u.copy()
     nan[3] = np.nan
     with pytest.raises(InputError, match=r"markers \[3\] are NaN"):
-        RBFRetarget().fit(nan, u)
+        RBF().fit(nan, u)
     with pytest.raises(InputError, match="expected 10 markers"):
-        RBFRetarget().fit(u, u[:5])
+        RBF().fit(u, u[:5])
     flat = u.copy()
     flat[:, 2] = 0
     with pytest.raises(InputError, match="plane"):
-        RBFRetarget("tps").fit(flat, flat)
+        RBF("tps").fit(flat, flat)
     with pytest.raises(InputError, match="kernel"):
-        RBFRetarget("cubic").fit(u, u)
+        RBF("cubic").fit(u, u)
     with pytest.raises(NotFittedError, match="not fitted"):
-        RBFRetarget()(u)
+        RBF()(u)
+    err = NotFittedError("x")
+    assert isinstance(err, KeyshapeError) and isinstance(err, ValueError)
+    with pytest.raises(NotFittedError, match="no target"):
+        RBF().fit(u)(u)                                   # factored, but no target to map to
+
+
+@pytest.mark.parametrize("kernel", ["imq", "gaussian"])
+def test_rbf_deform_and_interpolation_matrix_agree_with_fit(kernel):
+    """``fit(source).deform(x, target)`` = ``fit(source, target)(x)``; for the Gaussian without the
+    affine term (002's face-space deformation), ``x + M (target - source)`` with M the interpolation
+    matrix, and with a ridge the keys are only approached (smoothing)."""
+    rng = np.random.default_rng(5)
+    u = rng.uniform(0, 10, (30, 3))
+    frames = u + rng.normal(scale=0.5, size=(3, 30, 3))
+    x = rng.uniform(0, 10, (80, 3))
+    f = RBF(kernel).fit(u)
+    np.testing.assert_allclose(f.deform(x, frames), RBF(kernel).fit(u, frames)(x), atol=1e-9)
+    assert not hasattr(f, "coef_")
+    if kernel == "gaussian":
+        m = f.interpolation_matrix(x)
+        np.testing.assert_allclose(f.deform(x, frames[1]), x + m @ (frames[1] - u), atol=1e-9)
+        smooth = RBF(kernel, smoothing=0.1).fit(u)
+        miss = np.abs(smooth.deform(u, frames[0]) - frames[0]).max()
+        assert 1e-3 < miss < np.abs(frames[0] - u).max()

@@ -6,8 +6,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.mocap.clean import (choose_rigid_set, fill_gaps, rebuild_inner_lips, remove_rigid_motion,
-                                  rigid_fit)
+from keyshape.base.geometry import rigid_fit
+from keyshape.retarget.mocap.clean import choose_rigid_set, fill_gaps, rebuild_inner_lips, remove_rigid_motion
 
 
 def _head(seed=0, n_frames=50, n_rigid=5, n_soft=12):
@@ -29,6 +29,7 @@ def test_rigid_fit_batched_recovers_motion(scale):
     r, t, sc = rigid_fit(local[0, :5], s * world[:, :5], scale=scale)
     np.testing.assert_allclose(r, rot, atol=1e-10)
     np.testing.assert_allclose(sc, s, atol=1e-10)
+    np.testing.assert_allclose(t, s * trans, atol=1e-8)           # s * (R x + t) = s R x + s t
     assert np.allclose(np.linalg.det(r), 1.0)
 
 
@@ -99,3 +100,44 @@ def test_inner_lip_rebuilt_in_sibling_frame():
     x[:, 5] = np.nan
     out = rebuild_inner_lips(x, ref, {5: 0}, k=3)
     np.testing.assert_allclose(out, truth, atol=1e-8)
+
+
+def test_remove_rigid_motion_rejects_a_mislabelled_jig_marker():
+    """A jig marker that takes a face marker's place in some frames (a labelling fault) is
+    rejected there; the head pose stays exact; clean frames are the least-squares fit bit for bit."""
+    world, local, rot, trans = _head(6, n_frames=60, n_rigid=6)
+    x = world.copy()
+    bad = np.array([4, 18, 19, 41])
+    x[bad, 2] = world[bad, 9]                     # label of face marker 9 put on jig marker 2
+    x[50, 4] = np.nan
+    labels = [f"m{i}" for i in range(x.shape[1])]
+    plain = remove_rigid_motion(x, rigid=range(6), outlier_threshold=np.inf)
+    rr = remove_rigid_motion(x, rigid=range(6), labels=labels)
+    head = np.einsum("fij,kj->fik", rot, rot[0])                  # head_frame_from_ref, ref = frame 0
+    assert np.abs(plain.rot[bad] - head[bad]).max() > 1e-2        # the fault tilts the plain fit
+    np.testing.assert_allclose(rr.rot, head, atol=1e-9)
+    expect = np.einsum("fpj,ij->fpi", local, rot[0]) + trans[0]
+    expect[50, 4] = np.nan
+    good = np.ones(x.shape[:2], bool)
+    good[bad, 2] = False                                          # the faulty samples stay as they were measured
+    np.testing.assert_allclose(rr.positions[good], expect[good], atol=1e-7)
+    assert rr.rejected_report(labels) == [("m2", 4, 4)]
+    assert np.flatnonzero(rr.rejected[:, 2]).tolist() == bad.tolist() and rr.rejected.sum() == 4
+    assert rr.residual.max() < 1e-8                              # RMS over the markers kept
+    clean = np.setdiff1d(np.arange(len(x)), bad)
+    assert np.array_equal(rr.rot[clean], plain.rot[clean])
+    assert np.array_equal(rr.positions[clean], plain.positions[clean], equal_nan=True)
+    est = remove_rigid_motion(world)                             # estimated set: no rejection by default
+    assert not est.rejected.any() and est.threshold == np.inf
+
+
+def test_clean_take_reports_the_rejected_rigid_marker_by_label():
+    from keyshape.retarget.mocap.drive import clean_take
+    world, *_ = _head(7, n_frames=30, n_rigid=5)
+    x = world.copy()
+    x[[3, 8], 1] += 40.0
+    labels = [f"m{i}" for i in range(x.shape[1])]
+    _, used, _, notes = clean_take(x, labels, rigid_names=["m0", "m1", "m2", "m3", "m4"])
+    assert used == ["m0", "m1", "m2", "m3", "m4"]
+    assert len(notes) == 1 and notes[0].startswith("rigid set: m1 rejected as an outlier in 2 frame(s), first 3")
+    assert clean_take(world, labels, rigid_names=["m0", "m1", "m2", "m3", "m4"])[3] == []

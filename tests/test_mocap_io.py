@@ -26,7 +26,8 @@ def test_real_c3d(shared_data):
 
 def test_real_trc_files(shared_data):
     m = read_trc(shared_data / "mocap/pyomeca/markers.trc")     # comma-separated, header says 652 frames
-    assert m.positions.shape == (93, 51, 3)                     # the data rows win over the header
+    assert m.positions.shape == (93, 51, 3)                     # the data rows win over the header,
+    assert "header announces 652 frames but the file holds 93" in m.warnings[0]   # with a warning
     assert m.labels[:3] == ["ASISl", "ASISr", "PSISl"] and m.rate == 100.0
     np.testing.assert_allclose(m.positions[0, 0], [733.7041, 80.9832, 191.8668])
     a = read_trc(shared_data / "mocap/animface/jaw.trc")        # tab-separated

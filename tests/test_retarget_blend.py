@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, NotFittedError
 from keyshape.retarget.blend import BlendBasis, blend, mesh_edges, region_weights
 from keyshape.retarget.headpose import head_motion, hold_invalid, similarity
 from keyshape.retarget.retargeter import Retargeter
@@ -44,6 +44,23 @@ def test_absolute_and_delta_differ_by_unspent_weight_times_neutral():
     np.testing.assert_allclose(blend(w1, b, n, "absolute"), blend(w1, b, n, "delta"), atol=1e-12)
 
 
+def test_one_default_form_for_blend_basis_and_retargeter():
+    """``blend``, ``BlendBasis`` and ``Retargeter`` share the default "auto": delta when a neutral is
+    given (it is never silently ignored), absolute without one."""
+    from keyshape.retarget.targets import TargetSet
+    rng = np.random.default_rng(8)
+    b, n = rng.normal(size=(4, 20, 3)), rng.normal(size=(20, 3))
+    w = rng.uniform(0, 1, size=(6, 4))
+    np.testing.assert_array_equal(blend(w, b, neutral=n), blend(w, b, n, "delta"))
+    np.testing.assert_array_equal(blend(w, b), blend(w, b, form="absolute"))
+    assert np.abs(blend(w, b, neutral=n) - blend(w, b, n, "absolute")).max() > 0.1
+    assert BlendBasis().fit(b, n).form_ == "delta" and BlendBasis().fit(b).form_ == "absolute"
+    names = [f"k{i}" for i in range(4)]
+    rt = Retargeter().fit(TargetSet(names, names, b, [None] * 4, n))
+    assert rt.form_ == "delta"
+    np.testing.assert_allclose(rt.transform(w), blend(w, b, neutral=n), atol=1e-12)
+
+
 def test_blend_matches_reference_and_chunking_and_float32():
     rng = np.random.default_rng(3)
     b, w = rng.normal(size=(6, 40, 3)), rng.uniform(0, 1.3, size=(37, 6))
@@ -61,7 +78,7 @@ def test_identity_2d_targets_equal_to_source_keys_reproduce_decomposed_frames(tm
     """Targets = the source key shapes (as .pts files): retargeting gives back sum w_i S_i, the
     decomposed source frames, and the source frames themselves where they lie in the keys' cone."""
     from keyshape.retarget.targets import load_targets
-    from keyshape.base.formats.tracks import read_pts, write_pts
+    from keyshape.base.formats.labels import read_pts, write_pts
     rng = np.random.default_rng(4)
     cols = [f"mouth_{i}" for i in range(6)]
     for c in cols:
@@ -193,7 +210,7 @@ def test_clamp_counts_changed_weights():
 
 
 def test_unfitted_and_bad_weights():
-    with pytest.raises(InputError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         BlendBasis().transform(np.zeros((1, 1)))
     bb = BlendBasis().fit(np.zeros((2, 3, 3)))
     with pytest.raises(InputError, match="nan"):
@@ -253,11 +270,10 @@ def test_identity_with_decompose_weights(tmp_path):
     """Weights written by keyshape decompose (NNLS relative to the mean shape, WEIGHTS.csv with an
     ``interpolated`` column), targets = its 2D key shapes and mean shape: the retargeted frames
     are decompose's own reconstruction (auto form = delta, as the neutral is given)."""
-    from keyshape.base.formats.keys import write_weights as decompose_write_weights
     from keyshape.decompose.weights import nnls_weights, reconstruct
     from keyshape.retarget.targets import load_targets
-    from keyshape.base.formats.weights import read_weights
-    from keyshape.base.formats.tracks import read_pts, write_pts
+    from keyshape.base.formats.weights import read_weights, write_weights
+    from keyshape.base.formats.labels import read_pts, write_pts
     rng = np.random.default_rng(11)
     keys = rng.normal(size=(5, 20, 2)) * 5 + 50
     shapes = np.einsum("fk,kpd->fpd", rng.dirichlet(np.ones(5), 30), keys) + rng.normal(scale=0.1, size=(30, 20, 2))
@@ -269,9 +285,9 @@ def test_identity_with_decompose_weights(tmp_path):
     neutral = read_pts(tmp_path / "neutral.pts")
     w = nnls_weights(shapes, keys, neutral)
     assert np.ptp(w.sum(axis=1)) > 0.01                                      # rows do not sum to one
-    decompose_write_weights(tmp_path / "w.csv", np.arange(30), cols, w, np.zeros(30))
-    frames, names, w_read = read_weights(tmp_path / "w.csv")
-    assert names == cols
+    write_weights(tmp_path / "w.csv", np.arange(30), cols, w, np.zeros(30))
+    frames, names, w_read, _ = read_weights(tmp_path / "w.csv")
+    assert names == cols and frames.tolist() == list(range(30))
     rt = Retargeter().fit(load_targets(names, tmp_path))
     assert rt.form_ == "delta"
     np.testing.assert_allclose(rt.transform(w_read), reconstruct(w, keys, neutral), atol=1e-5)

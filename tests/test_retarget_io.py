@@ -169,13 +169,13 @@ def test_validator_catches_a_broken_glb(tmp_path):
 def test_csv_outputs(scene):
     tmp, d, m, shapes, w = scene
     assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--clamp", "-o", str(tmp / "c.csv")]) == 0
-    fr, names, ww = read_weights(tmp / "c.csv")
+    fr, names, ww, _ = read_weights(tmp / "c.csv")
     assert names == ["MOUTH_0", "MOUTH_1", "EYES_0"]
     np.testing.assert_allclose(ww, np.clip(w, 0, 1), atol=1e-5)
     arkit = {"MOUTH_0": "jawOpen", "MOUTH_1": "mouthSmile_L", "EYES_0": "eyeBlink_R"}
     for old, new in arkit.items():                      # ARKit-named targets for the Live Link layout
         (d / f"{old}.obj").rename(d / f"{new}.obj")
-    fr, names, w = read_weights(tmp / "w.csv")
+    fr, names, w, _ = read_weights(tmp / "w.csv")
     write_weights(tmp / "arkit.csv", fr, ["jawOpen", "mouthSmileLeft", "eyeBlinkRight"], w)
     assert main(["retarget", str(tmp / "arkit.csv"), "--targets", str(d), "--livelink", "--fps", "60",
                  "-o", str(tmp / "ll.csv")]) == 0
@@ -204,14 +204,14 @@ def test_obj_frames_folder(scene):
     tmp, d, m, shapes, w = scene
     out = tmp / "frames"
     assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--form", "absolute", "-o", str(out)]) == 0
-    files = sorted(out.iterdir())
+    files = sorted(out.glob("frame_*"))
     assert [f.name for f in files[:2]] == ["frame_000000.obj", "frame_000001.obj"] and len(files) == 10
     ts = load_targets(list(shapes), d)
     np.testing.assert_allclose(read_obj_vertices(files[3]), np.einsum("k,kvd->vd", w[3], ts.shapes), atol=1e-5)
 
 
 def test_2d_png_and_video(tmp_path):
-    from keyshape.base.formats.tracks import write_pts
+    from keyshape.base.formats.labels import write_pts
     from keyshape.base.schemes import load_scheme
     s = load_scheme("contours48")
     rng = np.random.default_rng(1)
@@ -317,7 +317,7 @@ def test_weights_csv_errors(tmp_path):
 
 def test_mixed_2d_3d_targets(scene):
     tmp, d, m, shapes, w = scene
-    from keyshape.base.formats.tracks import write_pts
+    from keyshape.base.formats.labels import write_pts
     write_pts(d / "EYES_0.pts", np.zeros((6, 2)))
     (d / "EYES_0.obj").unlink()
     with pytest.raises(InputError, match="mix OBJ meshes and 2D drawings"):
@@ -368,7 +368,7 @@ def test_demo_targets_builder(tmp_path):
     with pytest.raises(InputError, match="unknown expression 'tongueOut'"):
         demo_targets({"mouth_0": {"tongueOut": 1.0}})
     write_demo_targets(tmp_path / "t", {"mouth_0": {"jawOpen": 1.0}})
-    assert sorted(p.name for p in (tmp_path / "t").iterdir()) == ["mouth_0.obj", "neutral.obj"]
+    assert sorted(p.name for p in (tmp_path / "t").glob("*.obj")) == ["mouth_0.obj", "neutral.obj"]
     assert (REPO / "retarget" / "data" / "LICENSE-ICT-FaceKit.txt").read_text().startswith("MIT License")
     assert (REPO / "retarget" / "data" / "ict_face.npz").stat().st_size < 3e6
 

@@ -12,7 +12,8 @@ from keyshape.data_synth.face_model import COMPONENTS, FaceModel
 from keyshape.data_synth.video import SyntheticVideo, parse_size, select_label_frames, synthesize
 from keyshape.cli import main
 from keyshape.base.errors import InputError
-from keyshape.base.formats.tracks import read_labels, read_tracks
+from keyshape.base.formats.tracks import read_tracks
+from keyshape.base.formats.labels import read_labels
 from keyshape.base.schemes import load_scheme
 from keyshape.base.formats.video import VideoReader, video_info
 

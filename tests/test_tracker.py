@@ -7,15 +7,16 @@ import numpy as np
 import pytest
 
 from keyshape.cli import main
-from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.errors import InputError, KeyshapeError, NotFittedError
 from keyshape.tracker.eigenpoints import AppearanceModel
 from keyshape.tracker.fitting import Tracker
-from keyshape.base.formats.tracks import read_tracks, write_labels, write_pts
+from keyshape.base.formats.tracks import read_tracks
+from keyshape.base.formats.labels import write_labels, write_pts
 from keyshape.base.schemes import load_scheme
 from keyshape.tracker.smoothing import StreamSmoother, smooth
 from keyshape.base.formats.video import video_writer
-from keyshape.base.warp import (PiecewiseAffine, apply_affine, compose_affine, fit_affine, fit_similarity,
-                          invert_affine, morph, triangulate)
+from keyshape.base.geometry import apply_affine, compose_affine, fit_affine, fit_similarity, invert_affine
+from keyshape.base.warp import PiecewiseAffine, morph, triangulate
 
 SCHEME = load_scheme("contours48")
 H, W = 240, 320
@@ -125,7 +126,7 @@ def test_default_model_reads_training_labels_within_a_fraction_of_a_pixel(model,
 
 
 def test_unfitted_model_refuses():
-    with pytest.raises(KeyshapeError, match="not fitted"):
+    with pytest.raises(NotFittedError, match="not fitted"):
         AppearanceModel().predict(np.zeros((10, 10), np.uint8), np.eye(2, 3))
 
 
@@ -377,7 +378,13 @@ def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, ca
 
     monkeypatch.setattr(Tracker, "step", step)
     out = tmp_path / "t.csv"
+    out.write_text("earlier complete tracks\n")
     assert main(["track", str(video), "--model", str(model), "-o", str(out), "--smooth", "savgol", "--quiet"]) == 130
-    assert "interrupted: tracks written for frames 0-3 only" in capsys.readouterr().out
-    tr = read_tracks(out)
+    assert "interrupted: tracks written for frames 0-3 only, to " in capsys.readouterr().out
+    assert out.read_text() == "earlier complete tracks\n"          # the earlier output is untouched
+    part = tmp_path / "t.partial.csv"
+    with pytest.raises(InputError, match="partial tracks from an interrupted"):
+        read_tracks(part)
+    tr = read_tracks(part, accept_partial=True)
     np.testing.assert_array_equal(tr.frame, [0, 1, 2, 3])
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []

@@ -107,3 +107,14 @@ def test_head_turn_is_tracked_or_flagged(clip, model):
     assert (~ok[105:145]).sum() >= 10                                 # the extreme of the turn is flagged ...
     assert ok[165:].all() and np.nanmax(err[165:]) < 0.03             # ... and the track is back after it
     assert np.nanmax(np.where(ok & (err > 0.05), conf, 0)) < 0.5      # what is kept but off is not confident
+
+
+def test_region_models_survive_the_model_file(clip, model, tmp_path):
+    sv, frames, _ = clip
+    assert len(model.region_models_) == 6           # eyes (with pupils), brows, upper and lower lip
+    model.save(tmp_path / "m.npz")
+    back = AppearanceModel.load(tmp_path / "m.npz")
+    assert [r.name for r in back.region_models_] == [r.name for r in model.region_models_]
+    a = [r.points for r in Tracker(model).track(frames[:20])]
+    b = [r.points for r in Tracker(back).track(frames[:20])]
+    np.testing.assert_array_equal(np.array(a), np.array(b))

@@ -51,15 +51,33 @@ def _scheme(args) -> int:
     return 0
 
 
+#: fewer labelled frames than this train with a warning (README: 8-20 labelled frames)
+RECOMMENDED_LABELS = 8
+
+
 def _train(args) -> int:
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import check_outputs
     from keyshape.tracker.commands import train_model
 
+    if args.components is not None and args.components < 1:
+        raise InputError(f"--components {args.components}: need at least 1 (or leave it out: 98% of the variance)")
+    if args.morphs < 0:
+        raise InputError(f"--morphs {args.morphs}: must be >= 0")
+    check_outputs([args.output], inputs=[args.video])
     model, seconds = train_model(args.video, args.labels, args.scheme, n_components=args.components,
                                  n_morphs=args.morphs, rng=args.seed)
     model.save(args.output)
     print(f"keyshape train: {len(model.train_poses_)} labelled frames + {model.n_samples_ - len(model.train_poses_)} "
           f"morphs, {model.k_} components ({100 * model.explained_variance_ratio_.sum():.1f}% of the variance), "
           f"{seconds:.1f} s -> {args.output}")
+    n_labels = len(model.train_poses_)
+    if n_labels < RECOMMENDED_LABELS:
+        print(f"keyshape train: warning: only {n_labels} labelled frames; {RECOMMENDED_LABELS}-20 varied frames "
+              "are recommended (the model cannot track expressions it has not seen)", file=sys.stderr)
+    if args.components is not None and model.k_ < args.components:
+        print(f"keyshape train: warning: --components {args.components} but {n_labels} labelled frames and "
+              f"{args.morphs} morphs support only {model.k_}", file=sys.stderr)
     return 0
 
 
@@ -70,7 +88,7 @@ def _track(args) -> int:
                           scheme=args.scheme, show_progress=not args.quiet)
     print(summary.message)
     if summary.interrupted:
-        return 130
+        return 143 if summary.terminated else 130
     if summary.truncated:
         print(f"keyshape track: warning: {args.video} ended after {summary.n_frames} of the "
               f"{summary.expected} frames its header announces (truncated or damaged file); "

@@ -14,16 +14,17 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.errors import InputError, NotFittedError
+from keyshape.base.formats.model import ModelFile, read_model, write_model
 from keyshape.base.schemes import Scheme, load_scheme
-from keyshape.base.warp import apply_affine, fit_affine, invert_affine, morph, procrustes_mean, triangulate
+from keyshape.base.geometry import apply_affine, fit_affine, invert_affine, procrustes_mean
+from keyshape.base.warp import morph, triangulate
 
-FORMAT = "keyshape-eigenpoints"
-FORMAT_VERSION = 1
 
 
 # --------------------------------------------------------------------------- sampling
@@ -317,6 +318,21 @@ class RegionModel:
         return (self.mean_l + self.ul @ (self.pinv_i @ e)).reshape(-1, 2)
 
 
+class Reading(NamedTuple):
+    """Constant operators of a fitted model's reading (:attr:`AppearanceModel.reading_`).
+
+    ``c = pinv_i @ (e - mean_i)`` are the coefficients of normalised intensities ``e``,
+    ``basis_i @ c`` their intensity reconstruction and ``mean_l + basis_l @ c`` the
+    model-frame landmarks (flattened ``x0, y0, x1, ...``).
+    """
+
+    mean_i: np.ndarray
+    pinv_i: np.ndarray
+    basis_i: np.ndarray
+    mean_l: np.ndarray
+    basis_l: np.ndarray
+
+
 class AppearanceModel:
     """Person-specific eigen-points model (Covell 1996; section 3 of 004_119ba07521a9af0b.txt).
 
@@ -553,7 +569,7 @@ class AppearanceModel:
     # ---------------------------------------------------------------- use
     def _check_fitted(self) -> None:
         if not hasattr(self, "components_"):
-            raise KeyshapeError("this AppearanceModel is not fitted: call fit(frames, labels) or load a model")
+            raise NotFittedError("this AppearanceModel is not fitted: call fit(frames, labels) or load a model")
 
     @property
     def n_points(self) -> int:
@@ -604,21 +620,99 @@ class AppearanceModel:
         self._check_fitted()
         return self.train_poses_.mean(0)
 
+    @property
+    def reading_(self) -> "Reading":
+        """The constant operators of :meth:`project` and :meth:`landmarks` (for a fast tracker loop)."""
+        self._check_fitted()
+        return Reading(self._mean_i, self._pinv_i, self._ui, self._mean_l, self._ul)
+
     # ---------------------------------------------------------------- persistence
     _ARRAYS = ("reference_", "mask_", "mean_", "components_", "explained_variance_ratio_", "explained_variance_",
                "train_residuals_", "train_poses_", "train_shapes_")
+    _PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge", "regions",
+               "split_mouth", "region_grow")
+    _STATE = ("landmark_scale_", "patch_size_", "n_samples_")
+
+    def to_file(self) -> ModelFile:
+        """The model as plain arrays and metadata (:mod:`keyshape.base.formats.model`)."""
+        self._check_fitted()
+        state = {k.rstrip("_"): getattr(self, k) for k in self._STATE}
+        arrays = {k.rstrip("_"): getattr(self, k) for k in self._ARRAYS}
+        regions = getattr(self, "region_models_", [])
+        state["region_models"] = [{"name": r.name, "landmark_scale": r.landmark_scale} for r in regions]
+        for i, r in enumerate(regions):
+            for k in RegionModel.ARRAYS:
+                arrays[f"region{i}_{k}"] = getattr(r, k)
+        return ModelFile(self.scheme_, {k: getattr(self, k) for k in self._PARAMS}, state, arrays)
+
+    @classmethod
+    def from_file(cls, mf: ModelFile) -> "AppearanceModel":
+        """Rebuild a fitted model from :meth:`to_file`'s content; an inconsistent file is an
+        :class:`InputError` naming ``mf.path``."""
+        path = mf.path
+        try:
+            params = dict(mf.params)
+            for k, old in (("regions", False), ("split_mouth", False), ("region_grow", 0.06)):
+                params.setdefault(k, old)         # files written before region models existed
+            model = cls(mf.scheme, **params)
+            for k in cls._ARRAYS:
+                a = np.asarray(mf.arrays[k.rstrip("_")])
+                if a.dtype.kind not in "biuf" or a.size == 0 or (a.dtype.kind == "f" and not np.isfinite(a).all()):
+                    raise InputError(f"model file: array {k.rstrip('_')!r} is empty or holds NaN, infinity or "
+                                     "non-numbers", path)
+                setattr(model, k, a)
+            model.landmark_scale_ = float(mf.state["landmark_scale"])
+            model.patch_size_ = int(mf.state["patch_size"])
+            model.n_samples_ = int(mf.state["n_samples"])
+            model.region_models_ = [
+                RegionModel(str(r["name"]), *(np.asarray(mf.arrays[f"region{i}_{k}"]) for k in RegionModel.ARRAYS),
+                            float(r["landmark_scale"])) for i, r in enumerate(mf.state.get("region_models", []))]
+        except KeyError as exc:
+            raise InputError(f"model file is missing {exc}", path) from None
+        except (TypeError, ValueError, OverflowError) as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise InputError(f"model file has bad parameters ({exc})", path) from None
+        if not (np.isfinite(model.landmark_scale_) and model.landmark_scale_ > 0 and 3 <= model.patch_size_ <= 4096
+                and model.n_samples_ >= 1):
+            raise InputError("model file is inconsistent (landmark scale, patch size or sample count)", path)
+        bad = (model.mask_.ndim != 2 or model.reference_.ndim != 2 or model.reference_.shape[-1:] != (2,)
+               or model.components_.ndim != 2 or model.mean_.ndim != 1)
+        if bad:
+            raise InputError("model file is inconsistent (array dimensions)", path)
+        model.mask_ = model.mask_.astype(bool)
+        model.scheme_ = mf.scheme
+        model.k_ = len(model.components_)
+        model._index = np.flatnonzero(model.mask_.ravel())
+        n_pix, n_pts = len(model._index), len(model.reference_)
+        if (model.mask_.shape != (model.patch_size_,) * 2 or model.components_.shape[1] != n_pix + 2 * n_pts
+                or model.mean_.shape != (n_pix + 2 * n_pts,) or n_pts != mf.scheme.n_points or model.k_ < 1
+                or not np.isfinite(model.components_).all()):
+            raise InputError("model file is inconsistent (array shapes do not match each other or the scheme)", path)
+        for r in model.region_models_:
+            x0, y0, w, h = (r.box.tolist() + [0, 0, 0, 0])[:4] if r.box.ndim == 1 else (0, 0, 0, 0)
+            if (r.box.shape != (4,) or min(x0, y0) < 0 or w < 1 or h < 1 or x0 + w > model.patch_size_
+                    or y0 + h > model.patch_size_ or r.points.ndim != 1 or len(r.points) < 1
+                    or r.points.min() < 0 or r.points.max() >= n_pts or r.index.ndim != 1 or len(r.index) < 1
+                    or r.index.min() < 0 or r.index.max() >= w * h or r.components.ndim != 2
+                    or r.components.shape[1] != len(r.index) + 2 * len(r.points) or len(r.components) < 1
+                    or r.mean.shape != (r.components.shape[1],) or r.variance.shape != (len(r.components),)
+                    or not (np.isfinite(r.components).all() and np.isfinite(r.mean).all()
+                            and np.isfinite(r.variance).all() and np.isfinite(r.train_residuals).all())
+                    or not (np.isfinite(r.landmark_scale) and r.landmark_scale > 0)):
+                raise InputError(f"model file is inconsistent (region model {r.name!r})", path)
+        try:
+            with np.errstate(over="raise", invalid="raise", divide="raise"):
+                model._precompute()
+        except (ValueError, IndexError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            raise InputError(f"model file is inconsistent ({type(exc).__name__}: {exc})", path) from None
+        return model
 
     def save(self, path: str | Path) -> None:
         """Write the model as ``.npz`` (format name, version and scheme included), atomically."""
-        from keyshape.tracker.model_io import save_model
-
-        self._check_fitted()
-        save_model(path, self)
+        write_model(path, self.to_file())
 
     @classmethod
     def load(cls, path: str | Path, scheme: str | Scheme | None = None) -> "AppearanceModel":
         """Read a model written by :meth:`save`; ``scheme`` (optional) must match the model's."""
-        from keyshape.tracker.model_io import load_model
-
-        return load_model(path, scheme)
-
+        return cls.from_file(read_model(path, scheme))

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, normalise, warp_patch, warp_patch_u8
-from keyshape.base.warp import apply_affine, compose_affine, invert_affine
+from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
 # polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
 _COL_GRAD = np.array([0, 1, 0, 1, 0, 1])
@@ -182,9 +182,11 @@ class Tracker:
         self._ref_centre = ref.mean(0)
         self._template_cache: dict = {}
         # read(): coefficients and U_Iᵀe in one product, the Gram matrix for the residual
-        self._read_mat = np.vstack([m._pinv_i, m._ui.T])
-        self._read_gram = m._ui.T @ m._ui
-        self._read_ul = np.ascontiguousarray(m._ul)
+        rd = m.reading_
+        self._read_mat = np.vstack([rd.pinv_i, rd.basis_i.T])
+        self._read_gram = rd.basis_i.T @ rd.basis_i
+        self._read_ul = np.ascontiguousarray(rd.basis_l)
+        self._read_mean_i, self._read_mean_l = rd.mean_i, rd.mean_l
         self.reset()
 
     def reset(self) -> None:
@@ -318,12 +320,12 @@ class Tracker:
         sd = max(math.sqrt(float(e @ e) / n), 1e-6)
         self._contrast = sd
         e *= 1.0 / sd
-        e -= m._mean_i
+        e -= self._read_mean_i
         cu = self._read_mat @ e
         k = m.k_
         c, ue = cu[:k], cu[k:]
         r = max(float(e @ e) - 2.0 * float(c @ ue) + float(c @ (self._read_gram @ c)), 0.0) / n
-        shape = (m._mean_l + self._read_ul @ c).reshape(-1, 2)
+        shape = (self._read_mean_l + self._read_ul @ c).reshape(-1, 2)
         self._m2 = float(c @ (c / m.explained_variance_)) / k
         if m.region_models_ and self.region_iter >= 0:
             acc = np.zeros_like(shape)

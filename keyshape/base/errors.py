@@ -60,3 +60,7 @@ def require_dir(path: str | Path, what: str = "folder") -> Path:
     if not p.is_dir():
         raise MissingFileError(p, what)
     return p
+
+
+class NotFittedError(KeyshapeError, ValueError):
+    """An estimator was used before ``fit`` (the one "not fitted" error of every estimator)."""

@@ -1,17 +1,36 @@
-"""Atomic output: a crash never leaves a half-written file that looks complete.
+"""Safe outputs: a crash never leaves a half-written file that looks complete, and keyshape
+never deletes what it did not write.
 
-Everything keyshape writes goes to a temporary sibling first and is renamed
-over the destination only once complete (``os.replace`` is atomic on POSIX
-and Windows within one file system).
+* Every file keyshape writes goes to a temporary sibling first and is renamed
+  over the destination only once complete (``os.replace`` is atomic on POSIX
+  and Windows within one file system); on any error or interruption the
+  temporary file is removed and the destination is untouched.
+* A folder output (:func:`atomic_dir`) is filled in a hidden temporary folder
+  inside it and its files are moved in only when all are complete. Only the
+  files keyshape writes are touched: a small manifest (:data:`MANIFEST`)
+  records them, so a later run may replace and prune its own earlier outputs
+  but never anything else. A non-empty folder without a manifest is refused
+  unless ``overwrite`` is given (then still only keyshape's own file names are
+  written).
+* :func:`check_outputs` checks every output path before any computation
+  starts: parent a writable folder, output not a folder (or a file, for a
+  folder output) and not one of the inputs.
 """
 from __future__ import annotations
 
 import contextlib
+import errno
+import json
 import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO, Iterable, Iterator
+
+from keyshape.base.errors import InputError, require_file
+
+#: file recording, in a folder output, the files keyshape wrote there (relative paths)
+MANIFEST = ".keyshape-outputs.json"
 
 
 def _umask_mode(base: int = 0o666) -> int:
@@ -30,31 +49,6 @@ def _tmp_sibling(path: Path, suffix: str = "") -> Path:
     os.close(fd)
     os.chmod(name, _umask_mode())
     return Path(name)
-
-
-@contextlib.contextmanager
-def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[IO]:
-    """Open a temporary sibling of ``path`` for writing; rename it over ``path`` on success.
-
-    On any exception the temporary file is removed and ``path`` is untouched.
-
-    Examples
-    --------
-    >>> with atomic_write("out.csv") as f:  # doctest: +SKIP
-    ...     f.write("a,b\\n")
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_sibling(path)
-    try:
-        with open(tmp, mode, **open_kwargs) as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 @contextlib.contextmanager
@@ -77,25 +71,228 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary folder that replaces ``path`` (a folder of outputs) on success.
+def atomic_write(path: str | Path, mode: str = "w", **open_kwargs) -> Iterator[IO]:
+    """Open a temporary sibling of ``path`` for writing; rename it over ``path`` on success.
 
-    An existing folder at ``path`` is replaced only after the new one is
-    complete.
+    On any exception the temporary file is removed and ``path`` is untouched.
+
+    Examples
+    --------
+    >>> with atomic_write("out.csv") as f:  # doctest: +SKIP
+    ...     f.write("a,b\\n")
+    """
+    with atomic_path(path) as tmp:
+        with open(tmp, mode, **open_kwargs) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not p.exists() and not p.is_symlink() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output(path: str | Path, kind: str = "file", inputs: Iterable[str | Path | None] = (),
+                 what: str = "output") -> Path:
+    """Check that ``path`` can be written as a ``kind`` ("file" or "folder") output; return it.
+
+    Raises :class:`InputError` naming the path when a parent is a file or not
+    writable, when a file output is an existing folder (or a folder output an
+    existing file), or when the output is one of ``inputs`` (or, for a folder,
+    holds an input under a name keyshape would write: see :func:`atomic_dir`).
+    Nothing is created.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    if str(path) == "":
+        raise InputError(f"empty {what} path")
+    if kind == "file":
+        if path.is_dir():
+            raise InputError(f"is a folder; the {what} must be a file name", path)
+        if path.name in ("", ".", ".."):
+            raise InputError(f"not a file name; the {what} must be a file name", path)
+    elif path.exists() and not path.is_dir():
+        raise InputError(f"exists and is not a folder; the {what} must be a folder", path)
+    anc = _nearest_existing(path.parent if kind == "file" or not path.exists() else path)
+    if not anc.is_dir():
+        raise InputError(f"{anc} is not a folder, so {what} {path} cannot be written", path)
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise InputError(f"folder {anc} is not writable", path)
+    if kind == "file" and path.exists() and not os.access(path, os.W_OK) and not os.access(path.parent, os.W_OK):
+        raise InputError("not writable", path)
+    for inp in inputs:
+        if inp is None:
+            continue
+        inp = Path(inp)
+        if kind == "file" and _same(path, inp):
+            raise InputError(f"the {what} is one of the inputs ({inp}); choose another name", path)
+        if kind == "folder" and path.is_dir() and inp.exists() and _same(path, inp):
+            raise InputError(f"the {what} folder is an input folder ({inp}); choose another folder", path)
+    return path
+
+
+def check_outputs(files: Iterable[str | Path | None] = (), folders: Iterable[str | Path | None] = (),
+                  inputs: Iterable[str | Path | None] = ()) -> None:
+    """:func:`check_output` for every file and folder output (None entries skipped), and refuse
+    one path given twice as an output."""
+    inputs = [i for i in inputs if i is not None]
+    seen: dict[str, Path] = {}
+    for kind, paths in (("file", files), ("folder", folders)):
+        for p in paths:
+            if p is None:
+                continue
+            check_output(p, kind, inputs)
+            key = os.path.abspath(p)
+            if key in seen:
+                raise InputError("named twice as an output", p)
+            seen[key] = Path(p)
+
+
+def _read_manifest(folder: Path) -> set[str] | None:
+    m = folder / MANIFEST
+    if not m.is_file():
+        return None
+    try:
+        data = json.loads(m.read_text())
+        return {str(x) for x in data.get("files", [])}
+    except (OSError, ValueError, AttributeError, TypeError):
+        raise InputError(f"unreadable keyshape manifest {MANIFEST}: remove it or choose another folder",
+                         folder) from None
+
+
+def _is_hidden_temp(name: str) -> bool:
+    return name.startswith(".keyshape-") and name.endswith(".partial")
+
+
+def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = ()) -> Path:
+    """Check a folder output before any computation: :func:`check_output`, then refuse a
+    non-empty folder that keyshape did not make (no :data:`MANIFEST`) unless ``overwrite``."""
+    path = check_output(path, "folder", inputs)
+    if path.is_dir() and not overwrite and _read_manifest(path) is None:
+        others = [p.name for p in path.iterdir() if not _is_hidden_temp(p.name)]
+        if others:
+            raise InputError(f"folder is not empty and was not made by keyshape ({len(others)} entries, e.g. "
+                             f"{sorted(others)[0]!r}); choose an empty or new folder, or pass --overwrite "
+                             "(only the files keyshape writes are replaced, nothing is deleted)", path)
+    return path
+
+
+def _rel_files(root: Path) -> list[str]:
+    """Files under ``root`` (relative paths), without its own manifest (a nested run's stays)."""
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*")
+                  if (p.is_file() or p.is_symlink()) and p != root / MANIFEST)
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = ()) -> Iterator[Path]:
+    """Yield a hidden temporary folder whose files are moved into the folder ``path`` on success.
+
+    Only the files written into the temporary folder are placed in ``path``
+    (created if needed); files already there that keyshape did not write are
+    never deleted. Files that an earlier keyshape run wrote there (listed in
+    its :data:`MANIFEST`) and that this run does not write are removed, so the
+    folder holds one run's outputs. A non-empty folder without a manifest is
+    refused unless ``overwrite``; a file this run would write that is one of
+    ``inputs`` is always refused. On error or interruption the temporary folder
+    is removed and ``path`` is as it was (a folder created for the run is
+    removed again).
+    """
+    path = check_output_dir(path, overwrite, inputs)
+    inputs = [Path(i) for i in inputs if i is not None]
+    created = not path.exists()
+    path.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".keyshape-", suffix=".partial", dir=path))
+    os.chmod(path if created else tmp, _umask_mode(0o777))
     os.chmod(tmp, _umask_mode(0o777))
     try:
         yield tmp
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            os.replace(path, old / "x")
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        new = _rel_files(tmp)
+        old = _read_manifest(path) or set()
+        for rel in new:
+            dest = path / rel
+            for inp in inputs:
+                if _same(dest, inp):
+                    raise InputError(f"this run would overwrite its input {inp}; choose another folder", dest)
+            if dest.is_dir():
+                raise InputError(f"is a folder where keyshape writes a file; move it away", dest)
+        for rel in new:
+            dest = path / rel
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp / rel, dest)
+        for rel in sorted(old - set(new)):
+            stale = path / rel
+            if stale.is_file() and ".." not in Path(rel).parts:
+                stale.unlink()
+                parent = stale.parent
+                while parent != path and parent.is_dir() and not any(parent.iterdir()):
+                    parent.rmdir()
+                    parent = parent.parent
+        with atomic_write(path / MANIFEST) as f:
+            json.dump({"written_by": "keyshape", "files": new}, f, indent=0)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        if created:
+            with contextlib.suppress(OSError):
+                path.rmdir()
         raise
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def partial_name(path: str | Path) -> Path:
+    """Where an interrupted run puts its partial result: ``NAME.partial.SUFFIX`` beside ``path``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.partial{path.suffix}")
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for an :class:`OSError`: the file and what went wrong (disk full, read-only, ...)."""
+    name = exc.filename
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.ENOSPC:
+        reason = "no space left on the device (disk full); nothing was replaced"
+    elif exc.errno in (errno.EROFS,):
+        reason = "read-only file system"
+    if name is None:
+        return reason
+    extra = f" -> {exc.filename2}" if exc.filename2 else ""
+    return f"{name}{extra}: {reason}"
+
+
+def _json_number(text: str) -> float:
+    v = float(text)
+    if v != v or v in (float("inf"), float("-inf")):
+        raise ValueError(f"number {text} is out of range")
+    return v
+
+
+def _json_constant(name: str):
+    raise ValueError(f"{name} is not a number JSON allows")
+
+
+def read_json(path: str | Path, what: str = "JSON file"):
+    """Parse the JSON file ``path``; a missing file, bad JSON, ``NaN``/``Infinity`` or a number
+    beyond the float range (``1e999``) is a one-line error naming it."""
+    path = require_file(path, what)
+    try:
+        return json.loads(path.read_text(), parse_float=_json_number, parse_constant=_json_constant)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    except ValueError as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    except RecursionError:
+        raise InputError("not valid JSON (nested too deeply)", path) from None
+
+
+def write_json(path: str | Path, data, indent: int | None = 1) -> None:
+    """Write ``data`` as JSON (``indent`` 1, or compact with ``None``) atomically."""
+    with atomic_write(path) as f:
+        json.dump(data, f, indent=indent)

@@ -27,11 +27,15 @@ class Progress:
         False silences it (library use, tests).
     every : float
         Seconds between reports when standard error is not a terminal.
+    min_seconds : float
+        Report nothing until this many seconds have passed (quick runs stay silent).
     """
 
     def __init__(self, total: int | None = None, desc: str = "", unit: str = "frames",
-                 enabled: bool = True, every: float = 5.0):
+                 enabled: bool = True, every: float = 5.0, min_seconds: float = 0.0):
         self.total, self.desc, self.unit, self.enabled, self.every = total, desc, unit, enabled, every
+        self.min_seconds = min_seconds
+        self._shown = False
         self.n = 0
         self.start = time.perf_counter()
         self._last = 0.0
@@ -48,11 +52,14 @@ class Progress:
         if not self.enabled:
             return
         now = time.perf_counter()
+        if now - self.start < self.min_seconds:
+            return
         if now - self._last >= (0.2 if self._tty else self.every):
             self._last = now
             self._print(end="\r" if self._tty else "\n")
 
     def _print(self, end: str) -> None:
+        self._shown = True
         tot = f"/{self.total}" if self.total else ""
         pct = f" {100.0 * self.n / self.total:5.1f}%" if self.total else ""
         eta = ""
@@ -62,7 +69,7 @@ class Progress:
         sys.stderr.flush()
 
     def close(self) -> None:
-        if self.enabled:
+        if self.enabled and (self._shown or self.min_seconds <= 0):
             self._print(end="\n")
 
     def __enter__(self) -> "Progress":

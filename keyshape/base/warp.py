@@ -1,9 +1,14 @@
-"""Shape alignment and image warping: affine fits, Procrustes means, piecewise-affine morphing.
+"""Image warping: Delaunay triangulation, piecewise-affine warps and morphing.
 
-Coordinates are ``(x, y)`` float arrays of shape ``(n_points, 2)``, image pixels
-with OpenCV's pixel-centre convention. An affine transform is a ``(2, 3)``
-array named by the frames it maps between: ``image_from_model`` sends model
-coordinates to image coordinates, ``[x', y'] = A[:, :2] @ [x, y] + A[:, 2]``.
+Coordinates are ``(x, y)`` float arrays of shape ``(n_points, 2)``, image pixels with
+OpenCV's pixel-centre convention; affine maps and shape fits are :mod:`keyshape.base.geometry`.
+
+scikit-image (a dependency, used for RANSAC rigid fits in :mod:`keyshape.base.geometry`)
+has a ``PiecewiseAffineTransform``, not used here: it triangulates the points itself
+(here the triangulation is given, the same for every shape of a model), leaves pixels
+outside the mesh unmapped (here the nearest triangle extrapolates) and locates every
+pixel's triangle on each call, where :class:`PiecewiseAffine` does that once per
+destination shape and each warp is one ``cv2.remap``.
 """
 from __future__ import annotations
 
@@ -11,76 +16,6 @@ import cv2
 import numpy as np
 from scipy.spatial import Delaunay
 
-
-def apply_affine(affine: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Map ``points`` (..., 2) by the ``(2, 3)`` ``affine``."""
-    a = np.asarray(affine, dtype=np.float64)
-    return np.asarray(points, dtype=np.float64) @ a[:, :2].T + a[:, 2]
-
-
-def invert_affine(affine: np.ndarray) -> np.ndarray:
-    """Inverse of a ``(2, 3)`` affine (``model_from_image`` from ``image_from_model``)."""
-    a = np.asarray(affine, dtype=np.float64)
-    m = np.linalg.inv(a[:, :2])
-    return np.hstack([m, -(m @ a[:, 2])[:, None]])
-
-
-def compose_affine(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
-    """``outer ∘ inner``: first ``inner`` then ``outer`` (``c_from_a = compose(c_from_b, b_from_a)``)."""
-    o, i = np.asarray(outer, np.float64), np.asarray(inner, np.float64)
-    return np.hstack([o[:, :2] @ i[:, :2], (o[:, :2] @ i[:, 2] + o[:, 2])[:, None]])
-
-
-def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Least-squares affine ``dst_from_src`` (2, 3) with ``dst ≈ A @ src``.
-
-    Solves ``min_A sum_i w_i |A [src_i; 1] - dst_i|^2`` in float64 (exact for
-    three or more non-collinear points related by an affine map).
-    """
-    src = np.asarray(src, np.float64).reshape(-1, 2)
-    dst = np.asarray(dst, np.float64).reshape(-1, 2)
-    x = np.hstack([src, np.ones((len(src), 1))])
-    if weights is not None:
-        w = np.sqrt(np.asarray(weights, np.float64))[:, None]
-        x, dst = x * w, dst * w
-    sol, *_ = np.linalg.lstsq(x, dst, rcond=None)
-    return sol.T
-
-
-def fit_similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Least-squares similarity ``dst_from_src`` (rotation, uniform scale, translation; Umeyama 1991)."""
-    src = np.asarray(src, np.float64).reshape(-1, 2)
-    dst = np.asarray(dst, np.float64).reshape(-1, 2)
-    ms, md = src.mean(0), dst.mean(0)
-    s, d = src - ms, dst - md
-    cov = d.T @ s / len(src)
-    u, sig, vt = np.linalg.svd(cov)
-    e = np.diag([1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
-    r = u @ e @ vt
-    scale = np.trace(np.diag(sig) @ e) / max((s ** 2).sum() / len(src), 1e-300)
-    a = scale * r
-    return np.hstack([a, (md - a @ ms)[:, None]])
-
-
-def procrustes_mean(shapes: np.ndarray, n_iter: int = 10) -> np.ndarray:
-    """Generalised Procrustes mean of ``shapes`` (n, n_points, 2): unit size, centred at the origin."""
-    shapes = np.asarray(shapes, np.float64)
-    ref = shapes[0] - shapes[0].mean(0)
-    ref /= np.linalg.norm(ref)
-    for _ in range(n_iter):
-        aligned = np.stack([apply_affine(fit_similarity(s, ref), s) for s in shapes])
-        new = aligned.mean(0)
-        new -= new.mean(0)
-        new /= np.linalg.norm(new)
-        new = apply_affine(fit_similarity(new, ref), new)
-        if np.abs(new - ref).max() < 1e-10:
-            ref = new
-            break
-        ref = new
-    return ref
-
-
-# --------------------------------------------------------------------------- piecewise-affine warping
 
 def triangulate(points: np.ndarray) -> np.ndarray:
     """Delaunay triangles ``(n_triangles, 3)`` of ``points`` (n, 2)."""

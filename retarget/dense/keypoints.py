@@ -2,7 +2,7 @@
 
 A dense sequence ``F^t`` (n_frames, n_points, 3) is approximated by deforming
 the rest face ``F^0`` with the Gaussian-RBF face-space deformation of
-:mod:`keyshape.retarget.dense.rbf_face` driven by a few key points. Key points are
+:func:`face_rbf` (:class:`keyshape.retarget.rbf.RBF`, Gaussian) driven by a few key points. Key points are
 added where that approximation is worst, and the loop repeats until the
 error falls by less than 1 % in a round (section 5.5).
 
@@ -25,8 +25,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from keyshape.base.errors import InputError
-from keyshape.retarget.dense.rbf_face import FaceSpaceRBF
+from keyshape.base.errors import InputError, NotFittedError
+from keyshape.retarget.rbf import RBF
 
 
 def check_sequence(frames: np.ndarray, name: str = "frames") -> np.ndarray:
@@ -108,6 +108,12 @@ def refine_positions(rest: np.ndarray, deformed: np.ndarray, trees: list, indice
     return centre
 
 
+
+def face_rbf(sigma: float | None, smoothing: float) -> RBF:
+    """The face-space deformation of 002 section 4: a Gaussian RBF interpolating displacements,
+    sigma 1.25 x the keys' median nearest-neighbour distance unless given."""
+    return RBF("gaussian", affine=False, sigma=sigma, sigma_scale=1.25, smoothing=smoothing)
+
 class KeyPointInserter:
     """Insert key points where the face-space deformation fails (section 5 of 002).
 
@@ -127,7 +133,7 @@ class KeyPointInserter:
         Stop when a round lowers the mean error by less than this fraction (5.5).
     max_rounds : int
     sigma, smoothing : float, optional
-        RBF width and ridge (see :class:`FaceSpaceRBF`); sigma defaults to the initial keys' spacing and
+        RBF width and ridge (see :func:`face_rbf`); sigma defaults to the initial keys' spacing and
         stays fixed over the rounds (the paper's fixed sigma; shrinking it as keys are added undoes
         what the earlier keys interpolated).
     correspondence : bool
@@ -193,7 +199,7 @@ class KeyPointInserter:
     def deform(self, frames: np.ndarray, indices: np.ndarray, positions: np.ndarray) -> np.ndarray:
         """``D(F^0 -> F^t)`` for every frame: (n_frames, n_points, 3) (eq. 4)."""
         rest = frames[0]
-        rbf = FaceSpaceRBF(rest[indices], sigma=getattr(self, "sigma_", self.sigma), smoothing=self.smoothing)
+        rbf = face_rbf(getattr(self, "sigma_", self.sigma), self.smoothing).fit(rest[indices])
         return rbf.deform(rest, positions)
 
     def _candidates(self, rest, err_t, tree0, radius, rng):
@@ -245,7 +251,7 @@ class KeyPointInserter:
         radius = self._radius(rest)
         tree0 = cKDTree(rest)
         # one fixed kernel width for every round (section 4.1.1), from the initial keys unless given
-        self.sigma_ = FaceSpaceRBF(rest[idx], sigma=self.sigma, smoothing=self.smoothing).sigma
+        self.sigma_ = face_rbf(self.sigma, self.smoothing).fit(rest[idx]).sigma_
         if self.correspondence:
             trees = None
             def errors(d):
@@ -298,7 +304,7 @@ class KeyPointInserter:
 
     def _check_fitted(self):
         if not hasattr(self, "key_indices_"):
-            raise InputError("KeyPointInserter is not fitted: call fit(frames, initial) first")
+            raise NotFittedError("KeyPointInserter is not fitted: call fit(frames, initial) first")
 
     def reconstruct(self, frames: np.ndarray) -> np.ndarray:
         """The sequence rebuilt from ``frames[0]`` and the fitted key points: (n_frames, n_points, 3)."""
@@ -324,7 +330,7 @@ def random_insertion(frames: np.ndarray, initial: np.ndarray, n_new: int, radius
     else:
         trees = [cKDTree(f) for f in frames]
         rest = frames[0]
-        deformed = FaceSpaceRBF(rest[initial], sigma=sigma, smoothing=smoothing).deform(rest, frames[:, initial])
+        deformed = face_rbf(sigma, smoothing).fit(rest[initial]).deform(rest, frames[:, initial])
         new_pos = refine_positions(rest, deformed, trees, new, radius)
     return np.concatenate([initial, new]), np.concatenate([frames[:, initial], new_pos], 1)
 

@@ -13,7 +13,7 @@ Control parametrisation
 The paper moves the vertices of its planar-bone control surface. Here (the
 planar-bone module being written on another branch) the control vertices
 are ``n_controls`` reference vertices spread by farthest-point sampling, and
-a Gaussian RBF (:mod:`keyshape.retarget.dense.rbf_face`) carries their displacements
+a Gaussian RBF (:class:`keyshape.retarget.rbf.RBF`) carries their displacements
 ``D`` (n_controls, 3) to every vertex: ``V(D) = V_w + B D`` with the fixed
 (n_vertices, n_controls) matrix ``B = phi(V_w, C) (Phi + lambda I)^-1``,
 built once; each energy evaluation is one matmul. As in the paper, the
@@ -55,7 +55,7 @@ from scipy.spatial import cKDTree
 from keyshape.base.errors import InputError
 from keyshape.retarget.dense.keypoints import farthest_point_sample
 from keyshape.retarget.dense.meshcheck import TriangleSurface, check_mesh, component_of, edges, interior_edge_faces
-from keyshape.retarget.dense.rbf_face import kernel_matrix
+from keyshape.retarget.rbf import RBF
 
 
 def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.ndarray,
@@ -101,6 +101,19 @@ def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.nd
     if d.min() < 1e-9:
         i, j = np.unravel_index(np.argmin(d), d.shape)
         raise InputError(f"pairs {i} and {j} name the same reference point", source)
+    for side, pts in (("reference", r), ("target", t)):
+        c = pts - pts.mean(0)
+        sv = np.linalg.svd(c, compute_uv=False)
+        if sv[0] <= 1e-9 * max(1.0, np.abs(pts).max()):
+            raise InputError(f"all {len(pts)} {side} landmarks are on one point: they must spread over the face",
+                             source)
+        if sv[1] <= 1e-6 * sv[0]:
+            raise InputError(f"the {side} landmarks lie on one line: they must spread over the face", source)
+        dt = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+        np.fill_diagonal(dt, np.inf)
+        if side == "target" and dt.min() < 1e-9 * max(1.0, np.abs(pts).max()):
+            i, j = np.unravel_index(np.argmin(dt), dt.shape)
+            raise InputError(f"pairs {i} and {j} send two reference points to the same target point", source)
     return r, t, np.array(ref_idx, np.intp)
 
 
@@ -267,11 +280,8 @@ def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_verti
     ctrl = fit[farthest_point_sample(warped[fit], n_c, rng)]
     ctrl = np.unique(np.concatenate([lidx[lidx >= 0], ctrl]))
     cw = warped[ctrl]
-    dd = np.linalg.norm(cw[:, None] - cw[None], axis=2)
-    np.fill_diagonal(dd, np.inf)
-    sigma = 1.5 * float(np.median(dd.min(1)))
-    phi = kernel_matrix(cw, cw, sigma) + smoothing * np.eye(len(ctrl))
-    basis = np.ascontiguousarray(np.linalg.solve(phi, kernel_matrix(warped, cw, sigma).T).T)  # (n_vertices, n_controls)
+    rbf = RBF("gaussian", affine=False, sigma_scale=1.5, smoothing=smoothing).fit(cw)
+    basis = rbf.interpolation_matrix(warped)                                   # (n_vertices, n_controls)
     # start: control vertices projected onto the target surface
     d0 = surface.closest(cw)[0] - cw
     # the energy lives on the fitted shell only, re-indexed 0..len(fit)-1

@@ -59,8 +59,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.dense.keypoints import check_sequence
-from keyshape.retarget.dense.rbf_face import FaceSpaceRBF
+from keyshape.retarget.dense.keypoints import check_sequence, face_rbf
 
 
 def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.ndarray, target_keys: np.ndarray,
@@ -78,7 +77,7 @@ def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.nd
     n_samples : number ``N_k`` of target key points sampled for eqs. (7)-(9).
     gain : ``alpha / N_k`` of eq. (8).
     sigma : kernel width of eq. (9)'s deformation (default: ``spread`` x the sampled key points' spacing);
-        the morph of eq. (6) uses :class:`FaceSpaceRBF`'s default from the source keys.
+        the morph of eq. (6) uses :func:`keyshape.retarget.dense.keypoints.face_rbf`'s default from the source keys.
     smoothing : ridge of both RBF systems.
     rng : None, int or Generator (the random sampling of 6.2).
     chunk : target vertices deformed at a time (bounds the kernel matrix's memory).
@@ -112,7 +111,7 @@ def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.nd
         raise InputError(f"n_samples must be at least 1, got {n_samples}")
     rng = np.random.default_rng(rng)
     # (6) FT^t = D(F^t -> T^0): the one space deformation K^0 -> K^T, applied to every frame
-    morph = FaceSpaceRBF(frames[0, sk], smoothing=smoothing)
+    morph = face_rbf(None, smoothing).fit(frames[0, sk])
     ft0 = morph.deform(frames[0], tk)
     # (6.2) random target key points Kt_i, paired once on the neutrals with their nearest point of FT^0
     distinct = np.unique(target, axis=0, return_index=True)[1]  # meshes repeat positions at seams
@@ -131,7 +130,7 @@ def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.nd
     v = np.divide(disp, norm, out=np.zeros_like(disp), where=norm > 1e-12)   # (7)
     w = gain * norm                                                          # (8)
     moved = kt + w * v                                                       # (9)
-    rbf = FaceSpaceRBF(kt, sigma=sigma, smoothing=smoothing)
+    rbf = face_rbf(sigma, smoothing).fit(kt)
     out = np.empty((len(frames), len(target), 3))
     for s in range(0, len(target), chunk):
         out[:, s:s + chunk] = rbf.deform(target[s:s + chunk], moved)

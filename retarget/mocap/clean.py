@@ -3,10 +3,11 @@
 All functions take and return arrays ``(n_frames, n_markers, 3)`` with NaN gaps and
 never modify their input.
 
-Rigid motions are ``x_frame = x_ref @ R.T + t`` (``R`` a proper rotation, column-vector
-convention): ``frame_from_ref``. :func:`rigid_fit` solves the weighted least-squares
-(Kabsch/Umeyama) problem for every frame at once with one batched SVD; a marker
-hidden in a frame simply has weight 0 there.
+Rigid motions are ``x_frame = x_ref @ R.T + t`` (``frame_from_ref``), fitted by
+:func:`keyshape.base.geometry.rigid_fit` for every frame at once; a marker hidden in a
+frame simply has weight 0 there. A rigid marker that does not follow the others in a frame
+(mislabelled, swapped, knocked) is rejected there by RANSAC
+(:func:`keyshape.base.geometry.robust_rigid_fit`, scikit-image) instead of tilting the head.
 """
 from __future__ import annotations
 
@@ -15,62 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from keyshape.base.errors import InputError
-
-
-def rigid_fit(ref: np.ndarray, frames: np.ndarray, weights: np.ndarray | None = None, scale: bool = False):
-    """Weighted Kabsch/Umeyama fit of ``ref`` to every frame, vectorised over frames.
-
-    Parameters
-    ----------
-    ref : (n_points, 3) or (n_frames, n_points, 3)
-    frames : (n_frames, n_points, 3), NaN allowed (such points get weight 0)
-    weights : (n_points,) or (n_frames, n_points), optional
-    scale : bool
-        Also fit a uniform scale (Umeyama).
-
-    Returns
-    -------
-    rot : (n_frames, 3, 3), trans : (n_frames, 3), scale : (n_frames,)
-        ``frames ~= scale * ref @ rot.T + trans``; frames with fewer than 3 usable points
-        get NaN.
-    """
-    x = np.asarray(frames, dtype=np.float64)
-    r = np.broadcast_to(np.asarray(ref, dtype=np.float64), x.shape)
-    ok = np.isfinite(x).all(axis=2) & np.isfinite(r).all(axis=2)
-    w = np.ones(x.shape[:2]) if weights is None else np.broadcast_to(np.asarray(weights, np.float64), x.shape[:2])
-    w = np.where(ok, w, 0.0)
-    x0 = np.where(ok[..., None], x, 0.0)
-    r0 = np.where(ok[..., None], r, 0.0)
-    ws = w.sum(axis=1)
-    safe = np.maximum(ws, 1e-300)[:, None]
-    mx = np.einsum("fp,fpc->fc", w, x0) / safe
-    mr = np.einsum("fp,fpc->fc", w, r0) / safe
-    xc = (x0 - mx[:, None]) * ok[..., None]
-    rc = (r0 - mr[:, None]) * ok[..., None]
-    cov = np.einsum("fp,fpi,fpj->fij", w, xc, rc)            # sum w x r^T
-    u, s, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(u @ vt))
-    d = np.where(d == 0, 1.0, d)
-    dd = np.ones((len(x), 3))
-    dd[:, 2] = d
-    rot = np.einsum("fij,fj,fjk->fik", u, dd, vt)
-    if scale:
-        var = np.einsum("fp,fpc,fpc->f", w, rc, rc)
-        sc = np.einsum("fj,fj->f", s, dd) / np.maximum(var, 1e-300)
-    else:
-        sc = np.ones(len(x))
-    trans = mx - sc[:, None] * np.einsum("fij,fj->fi", rot, mr)
-    rank_ok = (ok & (w > 0)).sum(axis=1) >= 3
-    rot[~rank_ok] = np.nan
-    trans[~rank_ok] = np.nan
-    return rot, trans, sc
-
-
-def apply_rigid(points: np.ndarray, rot: np.ndarray, trans: np.ndarray, inverse: bool = False) -> np.ndarray:
-    """``points @ rot.T + trans`` per frame, or its inverse ``(points - trans) @ rot``."""
-    if inverse:
-        return np.einsum("fpj,fji->fpi", points - trans[:, None], rot)
-    return np.einsum("fpj,fij->fpi", points, rot) + trans[:, None]
+from keyshape.base.geometry import apply_rigid, rigid_fit, robust_rigid_fit
 
 
 def rigidity_scores(positions: np.ndarray) -> np.ndarray:
@@ -103,7 +49,10 @@ class RigidRemoval:
     positions : (n_frames, n_markers, 3) markers in the reference frame's head pose
     rot, trans : (n_frames, 3, 3), (n_frames, 3): ``head_frame_from_ref``
     rigid : (n_rigid,) marker indices used
-    residual : (n_frames,) RMS residual of the rigid set after the fit (file units)
+    residual : (n_frames,) RMS residual of the rigid markers kept in the fit (file units)
+    rejected : (n_frames, n_rigid) bool, rigid markers rejected as outliers in a frame
+        (columns follow ``rigid``)
+    threshold : the outlier distance used (file units)
     """
 
     positions: np.ndarray
@@ -111,10 +60,23 @@ class RigidRemoval:
     trans: np.ndarray
     rigid: np.ndarray
     residual: np.ndarray
+    rejected: np.ndarray | None = None
+    threshold: float = np.inf
+
+    def rejected_report(self, labels=None) -> list:
+        """``[(label, n_frames, first_frame), ...]`` for every rigid marker rejected at least once."""
+        if self.rejected is None:
+            return []
+        out = []
+        for j in np.flatnonzero(self.rejected.any(axis=0)):
+            m = int(self.rigid[j])
+            out.append((labels[m] if labels is not None else m, int(self.rejected[:, j].sum()),
+                        int(np.flatnonzero(self.rejected[:, j])[0])))
+        return out
 
 
 def remove_rigid_motion(positions, rigid=None, reference: int | np.ndarray = 0, robust_iters: int = 3,
-                        labels=None) -> RigidRemoval:
+                        labels=None, outlier_threshold: float | None = None) -> RigidRemoval:
     """Remove rigid head motion (001 section 5.1, last paragraph).
 
     With ``rigid`` (marker indices of a head jig or any rigid set) a least-squares rigid
@@ -123,12 +85,24 @@ def remove_rigid_motion(positions, rigid=None, reference: int | np.ndarray = 0, 
     twice the median residual of its frame is down-weighted), so one sliding marker
     does not tilt the head.
 
+    Then, for a named rigid set (or any set given an ``outlier_threshold``), a frame where a
+    rigid marker lies further than the outlier threshold from its fitted place is refitted by RANSAC
+    (:func:`keyshape.base.geometry.robust_rigid_fit`): the markers that do not follow the
+    consensus are left out there and listed in ``rejected``. Other frames keep the
+    least-squares fit unchanged.
+
     Parameters
     ----------
     positions : (n_frames, n_markers, 3)
     rigid : sequence of int, optional
     reference : int or (n_markers, 3)
         The frame (or pose) whose head pose the output keeps.
+    outlier_threshold : float, optional
+        Distance (file units) beyond which a rigid marker is an outlier in a frame. Default,
+        with a named ``rigid`` set: 4 times the median residual of the rigid markers over the
+        take (about 6 noise standard deviations for 3D Gaussian noise), at least 1e-6 of the
+        rigid set's RMS radius; for the estimated set: no rejection (its skin markers slide
+        by more than marker noise, the reweighting above handles that). ``np.inf``: off.
     """
     x = np.asarray(positions, dtype=np.float64)
     if x.ndim != 3 or x.shape[2] != 3:
@@ -148,19 +122,30 @@ def remove_rigid_motion(positions, rigid=None, reference: int | np.ndarray = 0, 
         ref = np.where(np.isfinite(ref), ref, np.nanmedian(np.where(dead[:, None], 0.0, sub), axis=0))
     w = np.ones(sub.shape[:2])
     for _ in range(robust_iters if robust else 1):
+        fit_w = w
         rot, trans, _s = rigid_fit(ref, sub, w)
         res = np.linalg.norm(apply_rigid(ref[None].repeat(len(x), 0), rot, trans) - sub, axis=2)
         if not robust:
             break
         med = np.nanmedian(res, axis=1, keepdims=True)
-        thr = 2.0 * np.maximum(med, 1e-12)
-        w = np.where(res > thr, thr / np.maximum(res, 1e-300), 1.0)
+        cut = 2.0 * np.maximum(med, 1e-12)
+        w = np.where(res > cut, cut / np.maximum(res, 1e-300), 1.0)
     bad = ~np.isfinite(rot).all(axis=(1, 2))
     if bad.any():
         raise InputError(f"rigid set: fewer than 3 visible markers in {bad.sum()} frame(s), first {np.flatnonzero(bad)[0]}; "
                          "fill gaps first or name a larger rigid set")
-    rms = np.sqrt(np.nanmean(res ** 2, axis=1))
-    return RigidRemoval(apply_rigid(x, rot, trans, inverse=True), rot, trans, idx, rms)
+    thr = np.inf if outlier_threshold is None and robust else outlier_threshold
+    if thr is None:
+        radius = np.sqrt(np.mean(np.sum((ref - ref.mean(0)) ** 2, axis=1)))
+        thr = max(4.0 * float(np.nanmedian(res)), 1e-6 * radius)
+    rejected = np.zeros(sub.shape[:2], dtype=bool)
+    if np.isfinite(thr) and (res > thr).any():
+        rot2, trans2, rejected = robust_rigid_fit(ref, sub, thr, fit_w)
+        redo = rejected.any(axis=1)
+        rot[redo], trans[redo] = rot2[redo], trans2[redo]
+        res[redo] = np.linalg.norm(apply_rigid(ref[None].repeat(redo.sum(), 0), rot[redo], trans[redo]) - sub[redo], axis=2)
+    rms = np.sqrt(np.nanmean(np.where(rejected, np.nan, res) ** 2, axis=1))
+    return RigidRemoval(apply_rigid(x, rot, trans, inverse=True), rot, trans, idx, rms, rejected, float(thr))
 
 
 # ------------------------------------------------------------------------------- missing markers

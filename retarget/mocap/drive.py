@@ -1,7 +1,8 @@
 """The marker path end to end: a cleaned take drives a dense target mesh (001 sections 4-5).
 
-1. rigid head motion out (:func:`~retarget.mocap.clean.remove_rigid_motion`, a named rigid set
-   or the most rigid markers), in the first frame's head pose;
+1. rigid head motion out (:func:`~retarget.mocap.clean.remove_rigid_motion`, a named rigid set,
+   whose markers that break rank in a frame are rejected there by RANSAC, or the most rigid
+   markers), in the first frame's head pose;
 2. gaps filled from neighbours' rigid motion, long gaps reported;
 3. markers never seen (e.g. inner lips) placed from the target by the inverse map and
    rebuilt per frame from their outer sibling's local frame (section 5.2);
@@ -22,7 +23,7 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.retarget.mocap.clean import GapReport, fill_gaps, rebuild_inner_lips, remove_rigid_motion
 from keyshape.retarget.mocap.planar_bones import PlanarBones
-from keyshape.retarget.mocap.rbf import RBFRetarget
+from keyshape.retarget.rbf import RBF
 from keyshape.retarget.mocap.triangulate import Triangulation, triangulate_markers
 
 METHODS = ("planar", "imq", "tps", "gaussian")
@@ -55,7 +56,10 @@ def lip_siblings(labels) -> dict:
 
 
 def clean_take(positions, labels, rigid_names=None, max_gap: int = 12):
-    """Steps 1-2: rigid removal then gap filling; returns (positions, rigid labels, GapReport)."""
+    """Steps 1-2: rigid removal then gap filling; returns (positions, rigid labels, GapReport, notes).
+
+    ``notes``: one line per rigid marker rejected as an outlier in some frames (named set only).
+    """
     x = np.asarray(positions, dtype=np.float64)
     labels = list(labels)
     dead = ~np.isfinite(x).all(axis=2).any(axis=0)
@@ -80,7 +84,9 @@ def clean_take(positions, labels, rigid_names=None, max_gap: int = 12):
     f, report = fill_gaps(stab[:, live], max_gap=max_gap, labels=[labels[i] for i in live])
     filled[:, live] = f
     report.unfillable += [(labels[i], 0, len(x)) for i in np.flatnonzero(dead)]
-    return filled, used, report
+    notes = [f"rigid set: {lab} rejected as an outlier in {n} frame(s), first {first} "
+             f"(more than {rr.threshold:.3g} from the others' rigid fit)" for lab, n, first in rr.rejected_report(labels)]
+    return filled, used, report, notes
 
 
 def drive_mesh(positions, labels, target_vertices, target_markers: dict, method: str = "planar",
@@ -112,7 +118,8 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
         notes.append(f"target markers not in the take (ignored): {missing_t}")
     if len(use) < 4:
         raise InputError(f"only {len(use)} marker label(s) of the take are in the target markers; need 4 or more")
-    x, rigid_used, gaps = clean_take(positions, labels, rigid_names, max_gap)
+    x, rigid_used, gaps, clean_notes = clean_take(positions, labels, rigid_names, max_gap)
+    notes += clean_notes
     idx = np.array([labels.index(s) for s in use])
     src = x[:, idx]
     tgt = np.array([target_markers[s] for s in use], dtype=np.float64)
@@ -121,7 +128,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
     rebuilt = []
     if dead.any():
         live = ~dead
-        inv = RBFRetarget("imq", labels=[use[i] for i in np.flatnonzero(live)]).fit(tgt[live], src[0, live])
+        inv = RBF("imq", labels=[use[i] for i in np.flatnonzero(live)]).fit(tgt[live], src[0, live])
         ref = src[0].copy()
         ref[dead] = inv(tgt[dead])
         sib = {i: o for i, o in lip_siblings(use).items() if dead[i] and not dead[o]}
@@ -138,7 +145,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
         f, m = np.argwhere(bad)[0]
         raise InputError(f"marker {use[m]!r} is still missing at frame {f} after gap filling "
                          f"({bad.sum()} marker-frames in all): too few visible neighbours")
-    retarget = RBFRetarget("imq", labels=use).fit(src[0], tgt)                 # eqs. (14)-(16)
+    retarget = RBF("imq", labels=use).fit(src[0], tgt)                 # eqs. (14)-(16)
     mk = retarget(src)                                                          # (n_frames, n_used, 3)
     tri = None
     if method == "planar":
@@ -152,11 +159,11 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
             from keyshape.retarget.mocap.masks import allowed_matrix
 
             masks = allowed_matrix(regions, tri.triangles, use, len(tv))
-        bones = PlanarBones.bind(tv, mk[0], tri.triangles, masks=masks, radius_scale=radius_scale,
-                                 unbound=unbound, labels=use)
+        bones = PlanarBones(radius_scale=radius_scale, unbound=unbound, labels=use).fit(tv, mk[0], tri.triangles,
+                                                                                        masks=masks)
         verts = bones.deform_many(mk)
     else:
-        deformer = RBFRetarget(method, labels=use).fit(mk[0], mk)
+        deformer = RBF(method, labels=use).fit(mk[0], mk)
         basis = deformer.basis(tv)
         verts = np.einsum("pk,fkc->fpc", basis, deformer.coef_)
         if not deformer.affine_:

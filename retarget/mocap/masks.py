@@ -5,16 +5,12 @@ markers its bones may use. A vertex inside a region may be moved only by bones w
 three corners are all among the region's markers (so lower-lip bones, which have a
 lower-lip corner, cannot drag upper-lip vertices); a vertex in several regions obeys
 all of them; a vertex in none is unrestricted. :func:`allowed_matrix` turns that into
-the ``(n_vertices, n_bones)`` boolean array :meth:`PlanarBones.bind` takes.
+the ``(n_vertices, n_bones)`` boolean array :meth:`PlanarBones.fit` takes.
 
-Regions come from a JSON file::
-
-    {"regions": [
-      {"name": "upper_lip", "vertices": [12, 13, ...],          # or "vertex_group": "lips_up"
-       "exclude_markers": ["lipOuterLo_C", ...]},                # or "markers": [...] (allowed)
-      {"name": "lower_lip", "image_value": 2, ...}],              # vertices from the mask image
-     "image": "mask.png",                                         # optional, beside the JSON
-     "image_markers": {"lipOuterUp_C": [x, y, z], ...}}           # optional: markers of the painted face
+Regions come from a masks JSON (the file and its layout: :mod:`keyshape.base.formats.masks`);
+:func:`regions_from_masks` gives its :class:`Region` objects: a region's vertices are listed,
+named by an OBJ vertex group, or painted in a label image; its markers are listed
+(``markers``) or all but some (``exclude_markers``).
 
 A mask image (section 4.3: "a texture in the cylindrical coordinate space") is read in
 the cylindrical projection normalised to the *markers'* extent: pixel column 0..W-1
@@ -30,13 +26,12 @@ strong one: the folded inner-lip surfaces that share pixels limit both.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from keyshape.base.errors import InputError, require_file
+from keyshape.base.errors import InputError
+from keyshape.base.formats.masks import Masks
 from keyshape.retarget.mocap.triangulate import CylinderFrame
 
 IMAGE_MARGIN = 0.25
@@ -128,59 +123,46 @@ def render_mask_image(vertices, markers, regions: dict, values: dict, shape=(256
     return img
 
 
-def read_masks(path, labels, vertices=None, markers=None, mesh=None, up=(0.0, 1.0, 0.0),
-               forward=(0.0, 0.0, 1.0)) -> list:
-    """Read a masks JSON (see module docstring) into :class:`Region` objects.
+def regions_from_masks(masks: Masks, labels, vertices=None, markers=None, mesh=None, up=(0.0, 1.0, 0.0),
+                       forward=(0.0, 0.0, 1.0)) -> list:
+    """The :class:`Region` objects of a masks file (:func:`keyshape.base.formats.masks.read_masks`).
 
     Parameters
     ----------
-    path : JSON file
+    masks : the file's content
     labels : all marker labels of the control surface (``exclude_markers`` is relative to them)
     vertices, markers : target mesh vertices and its (neutral) markers; needed for an image
-    mesh : :class:`retarget.obj.Mesh`, needed for ``vertex_group``
+    mesh : :class:`keyshape.base.formats.obj.Mesh`, needed for ``vertex_group``
     """
-    path = require_file(path, "masks file")
-    try:
-        spec = json.loads(path.read_text())
-        regions = spec["regions"]
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise InputError(f"expected a JSON object with a 'regions' list ({exc})", path) from None
+    path = masks.path
+    regions = masks.regions
     labels = [str(s) for s in labels]
     image_regions = None
-    if any("image_value" in r for r in regions):
-        if "image" not in spec:
-            raise InputError("a region uses 'image_value' but the file names no 'image'", path)
+    if masks.image is not None:
         if vertices is None or markers is None:
             raise InputError("an image mask needs the target vertices and markers", path)
-        import cv2
-
-        ip = require_file(path.parent / spec["image"], "mask image")
-        img = cv2.imread(str(ip), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise InputError("not a readable image", ip)
         ref = None
-        if "image_markers" in spec:                       # {label: [x, y, z]} on the painted face
-            missing = [s for s in labels if s not in spec["image_markers"]]
+        if "image_markers" in masks.spec:                 # {label: [x, y, z]} on the painted face
+            missing = [s for s in labels if s not in masks.spec["image_markers"]]
             if missing:
                 raise InputError(f"image_markers lacks marker(s) {missing}", path)
-            ref = np.array([spec["image_markers"][s] for s in labels], dtype=np.float64)
-        image_regions = regions_from_image(img, vertices, markers,
-                                           {r["name"]: r["image_value"] for r in regions if "image_value" in r},
+            ref = np.array([masks.spec["image_markers"][s] for s in labels], dtype=np.float64)
+        image_regions = regions_from_image(masks.image, vertices, markers,
+                                           {masks.region_name(k): r["image_value"] for k, r in enumerate(regions)
+                                            if "image_value" in r},
                                            up, forward, reference_markers=ref)
     out = []
     known = set(labels)
     for k, r in enumerate(regions):
-        name = r.get("name", f"region{k}")
+        name = masks.region_name(k)
         if "vertices" in r:
             v = np.asarray(r["vertices"], dtype=np.intp)
         elif "vertex_group" in r:
             if mesh is None:
                 raise InputError(f"region {name!r}: a vertex_group needs the target mesh", path)
             v = mesh.group_vertices(r["vertex_group"])
-        elif "image_value" in r:
-            v = image_regions[name]
         else:
-            raise InputError(f"region {name!r}: give 'vertices', 'vertex_group' or 'image_value'", path)
+            v = image_regions[name]
         if "markers" in r:
             ms = set(map(str, r["markers"]))
         elif "exclude_markers" in r:
@@ -194,10 +176,9 @@ def read_masks(path, labels, vertices=None, markers=None, mesh=None, up=(0.0, 1.
     return out
 
 
-def write_masks(path, regions: list, image: str | None = None, image_values: dict | None = None) -> None:
-    """Write regions as a masks JSON (vertex lists, or image values when ``image`` is given), atomically."""
-    from keyshape.base.files import atomic_write
-
+def masks_from_regions(regions: list, image: str | None = None, image_values: dict | None = None) -> Masks:
+    """Regions as a masks file (vertex lists, or image values when ``image`` is given), for
+    :func:`keyshape.base.formats.masks.write_masks`."""
     items = []
     for r in regions:
         d = {"name": r.name, "markers": sorted(r.markers)}
@@ -209,5 +190,4 @@ def write_masks(path, regions: list, image: str | None = None, image_values: dic
     spec = {"regions": items}
     if image is not None:
         spec["image"] = str(image)
-    with atomic_write(Path(path)) as f:
-        json.dump(spec, f)
+    return Masks(spec)

@@ -1,6 +1,6 @@
 """Planar-bone deformation of a dense mesh by a triangulated control surface (section 4 of 001_7296bf6ea73cabea.txt).
 
-``bones = PlanarBones.bind(mesh_vertices, control_points, triangles, masks=None)``
+``bones = PlanarBones().fit(mesh_vertices, control_points, triangles, masks=None)``
 runs once; ``bones.deform(control_points_frame)`` then costs only the per-bone
 frames and one sparse product, and ``bones.deform_many(frames)`` does the same for
 a whole take.
@@ -25,7 +25,7 @@ The distance ``d_ij`` of eq. (12) is ``|S - closest point|``.
 *Frames, eqs. (1), (7)-(10).* Each region has an origin corner and a frame whose
 rows are: ``R_A``: ``(e_0, V_2 - V_0, n)`` at ``V_0`` (eq. 2); ``R_B,i``:
 ``(e_i, m_i, n)`` at ``V_i`` (eq. 7); ``R_C,i``: ``(m_i, m_{i-1}, n)`` at ``V_i`` (eq. 8).
-A vertex's local coordinates ``c = (S - origin) F^{-1}`` are fixed at bind time and
+A vertex's local coordinates ``c = (S - origin) F^{-1}`` are fixed at fit (bind) time and
 the deformed vertex is ``origin' + c F'``: eqs. (1) and (9). In ``R_B,i`` only the
 edge row is unnormalised, so the bone may stretch along the edge but not across
 it. In ``R_C,i`` eq. (10) rescales the in-plane part so its length is kept:
@@ -63,7 +63,7 @@ every origin and frame row is a control point, a difference of two, or one of th
 vectors ``n, m_0, m_1, m_2`` of its bone. So for frame ``t``, with
 ``Y = [control points; n of every bone; m_i of every bone corner; m_i again; m_{i-1}]``
 (``n_controls + 10 n_bones`` rows), ``deform = T @ Y + still`` where the sparse ``T``
-(n_vertices x that, CSC) is built once at bind time (a vertex's entries on a shared control
+(n_vertices x that, CSC) is built once at fit (bind) time (a vertex's entries on a shared control
 point merged). The wedge entries (``w c_1 D/d`` and ``w c_2 D/d`` of eq. 10) live on the two
 extra copies of the ``m`` rows, with the pairs sorted by bone corner, so they form the last
 two blocks of ``T``'s data in the same pair order: per frame one dot product per bone corner,
@@ -83,7 +83,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, NotFittedError
 
 try:  # out += A @ X for a CSC A, in place (scipy's own kernel behind ``A @ X``; no temporary)
     from scipy.sparse._sparsetools import csc_matvecs as _csc_matvecs
@@ -180,12 +180,14 @@ def closest_feature(points: np.ndarray, corners: np.ndarray):
 class PlanarBones:
     """A mesh bound to a planar-bone control surface (eqs. 1-12 of 001).
 
-    Build with :meth:`bind`; see the module docstring for the maths.
+    ``PlanarBones(radius_scale, unbound).fit(mesh_vertices, control_points, triangles, masks)``
+    binds the mesh once; :meth:`deform` then moves it with the control points. See the
+    module docstring for the maths and :meth:`fit` for the parameters.
 
     Attributes
     ----------
-    n_vertices, n_bones, n_controls : int
-    triangles : (n_bones, 3) int control-point indices of every bone
+    n_vertices_, n_bones_, n_controls_ : int
+    triangles_ : (n_bones, 3) int control-point indices of every bone
     radii_ : (n_bones,) affection radius ``R_j`` (eq. 12)
     pair_vertex_, pair_bone_, pair_region_ : (n_pairs,) one row per (vertex, bone) binding;
         the region is an index into ``REGION_NAMES`` (A, B0, B1, B2, C0, C1, C2)
@@ -195,13 +197,16 @@ class PlanarBones:
     rest_weight_ : (n_vertices,) weight of the rest position (1 unbound, 0 fully bound)
     """
 
-    def __init__(self):
-        raise TypeError("build a PlanarBones with PlanarBones.bind(mesh_vertices, control_points, triangles)")
+    def __init__(self, radius_scale: float = 1.0, unbound: str = "still", labels=None,
+                 min_angle_deg: float = 1.0, threads: bool = True):
+        self.threads = threads
+        self.radius_scale = radius_scale
+        self.unbound = unbound
+        self.labels = labels
+        self.min_angle_deg = min_angle_deg
 
     # ------------------------------------------------------------------------------------------
-    @classmethod
-    def bind(cls, mesh_vertices, control_points, triangles, masks=None, *, radius_scale: float = 1.0,
-             unbound: str = "still", labels=None, min_angle_deg: float = 1.0) -> "PlanarBones":
+    def fit(self, mesh_vertices, control_points, triangles, masks=None) -> "PlanarBones":
         """Bind every mesh vertex to the bones whose affection volume holds it.
 
         Parameters
@@ -211,6 +216,9 @@ class PlanarBones:
         triangles : (n_bones, 3) int, control-point indices of each bone
         masks : (n_vertices, n_bones) bool array or sparse matrix, optional
             ``False`` where bone ``j`` may not move vertex ``v`` (section 4.3).
+
+        Parameters of the constructor
+        -----------------------------
         radius_scale : float
             ``R_j`` as a multiple of the shortest control edge touching bone ``j``.
         unbound : {"still", "nearest", "fade"}
@@ -222,13 +230,15 @@ class PlanarBones:
             Control-point names for error messages.
         min_angle_deg : float
             Bones with a smaller corner angle are degenerate (collinear) and refused.
+        threads : bool
+            Use a helper thread for :meth:`deform`/:meth:`deform_many` where there is a second core.
 
         Raises
         ------
         InputError
             Bad shapes, NaNs, indices out of range, degenerate (collinear) bones, bad masks.
         """
-        self = object.__new__(cls)
+        radius_scale, unbound, labels, min_angle_deg = self.radius_scale, self.unbound, self.labels, self.min_angle_deg
         x = np.asarray(mesh_vertices, dtype=np.float64)
         c = np.asarray(control_points, dtype=np.float64)
         tri = np.asarray(triangles)
@@ -395,12 +405,11 @@ class PlanarBones:
             raise RuntimeError("wedge matrices must share their data")
         self._fixed_csc = sp.csc_matrix((fdata, frows, findptr), shape=(nv, n_fixed_cols))
         self._fixed_csr = self._fixed_csc.tocsr()
-        self.threads = True                          # use a helper thread where there is a second core
         self._Tw_spare = None
         self._still = rest_w[:, None] * x
         self.rest_weight_ = rest_w
-        self.triangles = tri.astype(np.intp)
-        self.n_vertices, self.n_bones, self.n_controls = nv, nb, len(c)
+        self.triangles_ = tri.astype(np.intp)
+        self.n_vertices_, self.n_bones_, self.n_controls_ = nv, nb, len(c)
         self.radii_ = radii
         self.pair_vertex_, self.pair_bone_, self.pair_region_ = pv, pb, region
         self.pair_weight_, self.pair_coords_ = w, coords
@@ -414,12 +423,14 @@ class PlanarBones:
     def weights(self) -> sp.csr_matrix:
         """(n_vertices, n_bones) normalised blend weights ``w_ij`` of eq. (11)."""
         return sp.csr_matrix((self.pair_weight_, (self.pair_vertex_, self.pair_bone_)),
-                             shape=(self.n_vertices, self.n_bones))
+                             shape=(self.n_vertices_, self.n_bones_))
 
     def _check_controls(self, control_points) -> np.ndarray:
+        if not hasattr(self, "pair_weight_"):
+            raise NotFittedError("this PlanarBones is not fitted: call fit(mesh_vertices, control_points, triangles)")
         c = np.asarray(control_points, dtype=np.float64)
-        if c.shape[-2:] != (self.n_controls, 3):
-            raise InputError(f"`control_points`: expected shape (..., {self.n_controls}, 3), got {c.shape}")
+        if c.shape[-2:] != (self.n_controls_, 3):
+            raise InputError(f"`control_points`: expected shape (..., {self.n_controls_}, 3), got {c.shape}")
         if not np.all(np.isfinite(c)):
             raise InputError("`control_points`: NaN or infinite coordinates; rebuild missing markers first "
                              "(retarget.mocap.clean)")
@@ -431,7 +442,7 @@ class PlanarBones:
         Y's rows: control points, then ``n`` of every bone, then ``m_i`` of every bone corner
         ``3 b + i`` twice, then ``m_{i-1}`` of every bone corner (eqs. 2, 7).
         """
-        corners = c[..., self.triangles, :]
+        corners = c[..., self.triangles_, :]
         e = np.roll(corners, -1, axis=-2) - corners                                # eq. (6)
         n = _unit(np.cross(e[..., 0, :], corners[..., 2, :] - corners[..., 0, :]))  # eq. (2)
         m = _unit(np.cross(e, n[..., None, :]))                                    # eq. (7)
@@ -494,7 +505,7 @@ class PlanarBones:
     def _deform_range(self, y, g, out, start, stop, chunk, tw) -> None:
         """Frames ``start:stop`` of ``deform_many`` into ``out``, refilling the wedge block ``tw``."""
         nfc = self._fixed_csr.shape[1]
-        nv = self.n_vertices
+        nv = self.n_vertices_
         for f0 in range(start, stop, chunk):
             f1 = min(f0 + chunk, stop)
             yb = np.ascontiguousarray(y[f0:f1, :nfc].transpose(1, 0, 2)).reshape(nfc, -1)
@@ -519,7 +530,7 @@ class PlanarBones:
         if c.ndim != 3:
             raise InputError(f"`control_points`: expected (n_frames, n_controls, 3), got {c.shape}")
         y, g = self._y(c)
-        out = np.empty((len(c), self.n_vertices, 3))
+        out = np.empty((len(c), self.n_vertices_, 3))
         pool = _worker() if self.threads else None
         if pool is None or len(c) < 2 * chunk:
             self._deform_range(y, g, out, 0, len(c), chunk, self._Tw)

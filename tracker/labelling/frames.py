@@ -65,7 +65,7 @@ def describe(gray: np.ndarray, box=None) -> tuple[np.ndarray, float]:
 def describe_video(frames, box=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
     """Descriptors (n_frames, DESC_SIZE**2) and sharpness (n_frames,) of an iterable of gray frames.
 
-    ``frames`` yields ``(index, gray)`` pairs (a gray :class:`~tracker.video.VideoReader`).
+    ``frames`` yields ``(index, gray)`` pairs (a gray :class:`~keyshape.base.formats.video.VideoReader`).
     """
     desc, sharp = [], []
     for i, gray in frames:

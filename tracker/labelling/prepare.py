@@ -80,7 +80,7 @@ def write_contact_sheet(folder: Path, frames, scheme, path: Path | None = None) 
     import cv2  # noqa: PLC0415
 
     from keyshape.base.draw import contact_sheet, crop_around, draw_shape  # noqa: PLC0415
-    from keyshape.base.formats.tracks import pts_name, read_pts  # noqa: PLC0415
+    from keyshape.base.formats.labels import pts_name, read_pts  # noqa: PLC0415
 
     tiles, caps = [], []
     for f in frames:
@@ -122,7 +122,7 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
     import cv2  # noqa: PLC0415
 
     from keyshape.base.progress import Progress  # noqa: PLC0415
-    from keyshape.base.formats.tracks import pts_name, write_pts  # noqa: PLC0415
+    from keyshape.base.formats.labels import pts_name, write_pts  # noqa: PLC0415
     from keyshape.tracker.labelling.frames import choose_frames, describe_video  # noqa: PLC0415
     from keyshape.base.schemes import load_scheme  # noqa: PLC0415
     from keyshape.base.formats.video import VideoReader  # noqa: PLC0415

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from keyshape.base.errors import InputError, require_dir, require_file
+from keyshape.base.errors import InputError, KeyshapeError, require_dir, require_file
 
 PAGE_DIR = Path(__file__).parent / "page"
 PAGE_FILES = {"/": ("index.html", "text/html; charset=utf-8"),
@@ -74,11 +74,17 @@ def is_loopback(address: str) -> bool:
     return ip.is_loopback
 
 
+#: largest coordinate saved (pixels): far beyond any frame, still refusing 1e300
+MAX_COORDINATE = 1e5
+
+
 class LabelHandler(BaseHTTPRequestHandler):
     """Request handler; the server object carries ``folder``, ``scheme``, ``frames``."""
 
     server_version = "keyshape-label"
     protocol_version = "HTTP/1.1"
+    #: seconds a connection may stay silent (a body shorter than its Content-Length must not hold a thread)
+    timeout = 10.0
 
     def log_message(self, fmt, *args):  # quiet unless asked
         if getattr(self.server, "verbose", False):
@@ -147,7 +153,11 @@ class LabelHandler(BaseHTTPRequestHandler):
         elif path.startswith("/api/points/"):
             f = self._frame_of(path[len("/api/points/"):], PTS_RE)
             if f is not None:
-                pts = srv.read_points(f)
+                try:
+                    pts = srv.read_points(f)
+                except (KeyshapeError, OSError) as exc:   # a damaged .pts in the folder: say so, keep serving
+                    self._error(HTTPStatus.UNPROCESSABLE_ENTITY, str(exc))
+                    return
                 self._json(HTTPStatus.OK, {"points": [[float(x), float(y)] if np.isfinite(x + y) else [None, None]
                                                       for x, y in pts]})
         else:
@@ -175,14 +185,26 @@ class LabelHandler(BaseHTTPRequestHandler):
                         "body must be JSON under 1 MB with a Content-Length")
             return
         try:
-            body = json.loads(self.rfile.read(length))
+            raw = self.rfile.read(length)
+        except OSError:                           # timed out: the client sent less than it announced
+            self.close_connection = True
+            return
+        if len(raw) < length:
+            self.close_connection = True
+            self._error(HTTPStatus.BAD_REQUEST, f"body shorter than its Content-Length ({len(raw)} < {length})")
+            return
+        try:
+            body = json.loads(raw)
             pts = np.asarray(body["points"], dtype=np.float64)
-        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError, RecursionError):
             self._error(HTTPStatus.BAD_REQUEST, 'expected {"points": [[x, y], ...]}')
             return
         n = self.server.scheme.n_points
         if pts.shape != (n, 2) or not np.all(np.isfinite(pts)):
             self._error(HTTPStatus.BAD_REQUEST, f"expected {n} finite (x, y) points, got shape {pts.shape}")
+            return
+        if np.abs(pts).max() > MAX_COORDINATE:
+            self._error(HTTPStatus.BAD_REQUEST, f"coordinates beyond {MAX_COORDINATE:g} pixels are not image points")
             return
         self.server.write_points(f, pts)
         self._json(HTTPStatus.OK, {"saved": f"{f:06d}.pts"})
@@ -227,12 +249,12 @@ class LabelServer(ThreadingHTTPServer):
         return f"http://127.0.0.1:{self.port}/"
 
     def pts_path(self, frame: int) -> Path:
-        from keyshape.base.formats.tracks import pts_name  # noqa: PLC0415
+        from keyshape.base.formats.labels import pts_name  # noqa: PLC0415
         return self.folder / pts_name(frame)
 
     def read_points(self, frame: int) -> np.ndarray:
         """Points of ``frame`` from its .pts file; NaN where the file is missing."""
-        from keyshape.base.formats.tracks import read_pts  # noqa: PLC0415
+        from keyshape.base.formats.labels import read_pts  # noqa: PLC0415
         p = self.pts_path(frame)
         if p.is_file():
             return self.scheme.check_shapes(read_pts(p), str(p))
@@ -240,6 +262,6 @@ class LabelServer(ThreadingHTTPServer):
 
     def write_points(self, frame: int, points: np.ndarray) -> None:
         """Replace ``frame``'s .pts file atomically (the only write this server does)."""
-        from keyshape.base.formats.tracks import write_pts  # noqa: PLC0415
+        from keyshape.base.formats.labels import write_pts  # noqa: PLC0415
         with self._lock:
             write_pts(self.pts_path(frame), points)

@@ -1,4 +1,4 @@
-"""KEYS.json (key shapes per region) and WEIGHTS.csv (per-frame weights): readers and writers.
+"""KEYS.json: key shapes per region (:class:`RegionKeys`); reader and writer.
 
 KEYS.json::
 
@@ -13,27 +13,55 @@ KEYS.json::
 ``frame`` is the video frame number (the tracks file's ``frame`` column) the key
 was taken from (for k-means centres of mass, ``from_frame`` is false and
 ``frame`` is the nearest frame). ``neutral`` is the mean shape the weights are
-relative to: a frame is ``neutral + sum_i w_i (key_i - neutral)``.
-
-WEIGHTS.csv: header ``frame,mouth_0,...,mouth_7,eyes_0,...,interpolated``; one row
-per frame of the tracks file; ``interpolated`` is 1 where the tracker failed on
-that frame (``success=0``) and the weights were filled in from neighbouring frames.
+relative to: a frame is ``neutral + sum_i w_i (key_i - neutral)``. The weights of
+the key shapes per frame are WEIGHTS.csv (:mod:`keyshape.base.formats.weights`).
 """
 from __future__ import annotations
 
-import io as _io
 import json
-import re
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_write
-from keyshape.decompose.regions import REGIONS, RegionKeys
+from keyshape.base.files import atomic_write, read_json
 
 FORMAT = "keyshape-keys"
-_NAME = re.compile(r"([a-z]+)_(\d+)")
+#: face regions (section 5 of the paper) and the scheme regions they are built from
+REGIONS = {"mouth": "mouth", "eyes": "eyes+brows", "pupils": "pupils"}
+
+
+@dataclass
+class RegionKeys:
+    """Key shapes of one region (model frame).
+
+    Attributes
+    ----------
+    region : str
+    method : str
+    points : (n,) point indices of the region in the scheme
+    frames : (n_keys,) video frame numbers of the key frames (``tracks.frame``)
+    keys : (n_keys, n, 2) key shapes
+    neutral : (n, 2) the mean shape weights are relative to
+    from_frame : (n_keys,) bool, False for keys that are cluster means rather than frames
+    """
+
+    region: str
+    method: str
+    points: np.ndarray
+    frames: np.ndarray
+    keys: np.ndarray
+    neutral: np.ndarray
+    from_frame: np.ndarray = field(default=None)
+
+    def __post_init__(self):
+        if self.from_frame is None:
+            self.from_frame = np.ones(len(self.frames), dtype=bool)
+
+    @property
+    def names(self) -> list[str]:
+        return [f"{self.region}_{i}" for i in range(len(self.keys))]
 
 
 def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[RegionKeys]) -> None:
@@ -54,10 +82,7 @@ def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[
 def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
     """Read a KEYS.json file: (scheme name, n_points, [RegionKeys, ...]); errors name the file."""
     path = require_file(path, "key-shapes file")
-    try:
-        data = json.loads(Path(path).read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid JSON ({exc})", path) from None
+    data = read_json(path, "key-shapes file")
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"not a key-shapes file: expected \"format\": \"{FORMAT}\" "
                          f"(write one with 'keyshape select')", path)
@@ -84,65 +109,19 @@ def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
             if names != expected:
                 raise InputError(f"region {region!r}: key names must be {expected[0]}..{expected[-1]} in "
                                  f"order, got {names[:3]}...", path)
+            if not (np.isfinite(keys).all() and np.isfinite(neutral).all()):
+                raise InputError(f"region {region!r}: non-finite coordinates", path)
+            if np.abs(keys).max() > 1e5 or np.abs(neutral).max() > 1e5:
+                raise InputError(f"region {region!r}: implausible coordinates (beyond 1e5 pixels)", path)
+            if len(np.unique(pts)) != len(pts):
+                raise InputError(f"region {region!r} names a point twice", path)
             out.append(RegionKeys(region, str(r.get("method", "")), pts, frames, keys, neutral, ff))
-    except (KeyError, TypeError, ValueError) as exc:
+            if len({rk.region for rk in out}) != len(out):
+                raise InputError(f"region {region!r} twice", path)
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"malformed key-shapes file (missing or bad field: {exc})", path) from None
     if not out:
         raise InputError("no regions in key-shapes file", path)
     return scheme, n_points, out
-
-
-def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weights: np.ndarray,
-                  interpolated: np.ndarray | None = None) -> None:
-    """Write WEIGHTS.csv: ``frame``, one column per key shape (``REGION_K``), ``interpolated``."""
-    frames = np.asarray(frames)
-    weights = np.asarray(weights, dtype=np.float64)
-    if weights.shape != (len(frames), len(names)):
-        raise InputError(f"weights: expected shape ({len(frames)}, {len(names)}), got {weights.shape}")
-    for n in names:
-        if not _NAME.fullmatch(n):
-            raise InputError(f"weight column name {n!r} is not REGION_K (e.g. mouth_0)")
-    interp = np.zeros(len(frames)) if interpolated is None else np.asarray(interpolated, dtype=float)
-    buf = _io.StringIO()
-    np.savetxt(buf, np.column_stack([frames, weights, interp]),
-               fmt=["%d"] + ["%.6f"] * len(names) + ["%d"], delimiter=",")
-    with atomic_write(path) as f:
-        f.write(",".join(["frame", *names, "interpolated"]) + "\n")
-        f.write(buf.getvalue())
-
-
-def read_weights(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray, np.ndarray]:
-    """Read WEIGHTS.csv: (frames (n,), names, weights (n, n_keys), interpolated (n,) bool)."""
-    path = require_file(path, "weights file")
-    lines = Path(path).read_text().splitlines()
-    if not lines:
-        raise InputError("empty file: expected a header 'frame,mouth_0,...'", path, 1)
-    header = [h.strip() for h in lines[0].split(",")]
-    if header[0] != "frame":
-        raise InputError(f"first column must be 'frame', got {header[0]!r}", path, 1)
-    has_flag = header[-1] == "interpolated"
-    names = header[1:-1] if has_flag else header[1:]
-    bad = [n for n in names if not _NAME.fullmatch(n)]
-    if bad or not names:
-        raise InputError(f"weight columns must be named REGION_K (e.g. mouth_0); got {bad[:3] or 'none'}", path, 1)
-    rows = []
-    for ln, line in enumerate(lines[1:], start=2):
-        if not line.strip():
-            continue
-        parts = line.split(",")
-        if len(parts) != len(header):
-            raise InputError(f"{len(parts)} fields, expected {len(header)}", path, ln)
-        try:
-            rows.append([float(v) for v in parts])
-        except ValueError:
-            raise InputError(f"not a number in {line[:60]!r}", path, ln) from None
-    if not rows:
-        raise InputError("no data rows", path, 2)
-    a = np.array(rows)
-    if not np.isfinite(a).all():
-        raise InputError("NaN or infinite weights", path)
-    w = a[:, 1:1 + len(names)]
-    flag = a[:, -1] != 0 if has_flag else np.zeros(len(a), dtype=bool)
-    return a[:, 0].astype(np.int64), names, w, flag

@@ -16,17 +16,24 @@ Conventions
 
 CSV layout (read and written): a header ``frame,time,<label>_x,<label>_y,<label>_z,...``
 and optional first comment lines ``# rate=120`` and ``# units=mm``.
+
+Markers on a mesh (JSON, :func:`read_mesh_markers` / :func:`write_mesh_markers`): where each
+marker sits on a face mesh, ``{"name": vertex index or [x, y, z], ...}`` (a bare list is
+named ``"0"``, ``"1"``...); ``keyshape register --out-markers`` writes placed markers as
+``{"name": {"position": [x, y, z], "vertex": nearest target vertex}}``, read back by position.
 """
 from __future__ import annotations
 
+import os
 import re
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_path, atomic_write
+from keyshape.base.files import atomic_path, atomic_write, read_json, write_json
 
 
 @dataclass
@@ -39,12 +46,15 @@ class Markers:
     labels : list of str, one per marker, unique
     rate : float, frames per second
     units : str, e.g. ``"mm"``
+    warnings : list of str, the reader's warnings (commands print them)
     """
 
     positions: np.ndarray
     labels: list
     rate: float
     units: str = "mm"
+    #: what the reader found suspicious but kept (e.g. fewer frames than the header announces)
+    warnings: list = field(default_factory=list, compare=False)
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64)
@@ -128,6 +138,70 @@ def _fix_labels(labels: list, n: int, path, duplicates: str) -> list:
     return labels
 
 
+#: half-size of the largest plausible capture volume, metres (a facial-mocap stage is a few metres)
+MAX_METRES = 20.0
+
+
+def coincident_pairs(points: np.ndarray, tol: float) -> list[tuple[int, int]]:
+    """Index pairs of ``points`` (n, 3) closer than ``tol`` (NaN rows ignored)."""
+    from scipy.spatial import cKDTree
+
+    ok = np.isfinite(points).all(axis=1)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 2:
+        return []
+    pairs = cKDTree(points[idx]).query_pairs(tol)
+    return sorted((int(idx[a]), int(idx[b])) for a, b in pairs)
+
+
+def check_take(m: "Markers", path, n_expected: int | None = None) -> "Markers":
+    """Sense checks of a marker take read from ``path``; return it or raise :class:`InputError`.
+
+    Refuses: infinite values, a rate outside (0, 100 kHz], unknown units, a
+    position beyond :data:`MAX_METRES` from the origin (corrupt bytes, wrong
+    units), a take whose every marker is missing, and a marker set collapsed
+    onto one point (more than 2 and more than 10% of the markers coinciding in
+    every frame). Warns (``m.warnings``, printed by the commands) of a frame
+    count other than the header's ``n_expected`` (a truncated file: the frames
+    present are kept) and of a pair of markers coinciding in every frame.
+    """
+    pos = m.positions
+    if m.n_frames == 0:
+        raise InputError("no frames", path)
+    if n_expected is not None and n_expected != m.n_frames:
+        m.warnings.append(f"{path}: the header announces {n_expected} frames but the file holds {m.n_frames} "
+                          f"(truncated or damaged file?); using the {m.n_frames} frames present")
+    if not (np.isfinite(m.rate) and 0 < m.rate <= 1e5):
+        raise InputError(f"frame rate {m.rate}: expected a positive rate up to 100 kHz", path)
+    scale = unit_scale(m.units, "m")
+    if np.isinf(pos).any():
+        raise InputError("infinite coordinates", path)
+    far = np.abs(np.nan_to_num(pos)) * scale > MAX_METRES
+    if far.any():
+        f, k, _ = np.argwhere(far)[0]
+        raise InputError(f"marker {m.labels[k]!r} at frame {f} is {np.abs(pos[f, k]).max() * scale:.3g} m from "
+                         f"the origin, beyond any capture volume ({MAX_METRES:g} m): damaged file or wrong units "
+                         f"({m.units})", path)
+    empty = ~np.isfinite(pos).all(axis=2).any(axis=0)
+    if empty.all():
+        raise InputError("every marker is missing in every frame", path)
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)       # markers missing in every frame: NaN
+        med = np.nanmedian(pos, axis=0) if m.n_frames > 1 else pos[0]
+    pairs = coincident_pairs(med * scale, 1e-6)
+    if pairs:
+        same = [(a, b) for a, b in pairs
+                if np.nanmax(np.linalg.norm(pos[:, a] - pos[:, b], axis=-1) * scale, initial=0.0) < 1e-6]
+        if same:
+            names = sorted({m.labels[i] for ab in same for i in ab})
+            text = (f"{len(names)} markers coincide in every frame ({', '.join(names[:6])}"
+                    f"{', ...' if len(names) > 6 else ''})")
+            if len(names) > max(2, 0.1 * m.n_markers):
+                raise InputError(text + ": a collapsed marker set (damaged file?)", path)
+            m.warnings.append(f"{path}: {text}: duplicated markers, they drive the same point")
+    return m
+
+
 def _gaps_to_nan(p: np.ndarray) -> np.ndarray:
     p = p.copy()
     p[np.all(p == 0.0, axis=-1)] = np.nan
@@ -135,38 +209,119 @@ def _gaps_to_nan(p: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------- C3D
-def read_c3d(path, duplicates: str = "error") -> Markers:
-    """Read the 3D points of a C3D file (analogs are ignored)."""
+def _c3d_contents(path: str) -> dict:
+    """What keyshape needs of a C3D file, read with ezc3d (plain arrays and strings)."""
     import ezc3d
 
-    path = require_file(path, "C3D file")
-    try:
-        c = ezc3d.c3d(str(path))
-    except Exception as exc:  # ezc3d raises bare RuntimeError/IOError
-        raise InputError(f"not a readable C3D file ({exc})", path) from None
+    c = ezc3d.c3d(path)
     params = c["parameters"]["POINT"]
-    pts = np.asarray(c["data"]["points"], dtype=np.float64)  # (4, n_markers, n_frames)
-    n = pts.shape[1]
-    if n == 0:
-        raise InputError("the C3D file holds no 3D points", path)
     labels = list(params.get("LABELS", {}).get("value", []))
     k = 2
     while f"LABELS{k}" in params:
         labels += list(params[f"LABELS{k}"]["value"])
         k += 1
-    labels = _fix_labels(labels, n, path, duplicates)
-    xyz = pts[:3].transpose(2, 1, 0)
     meta = c["data"].get("meta_points", {})
-    if "residuals" in meta:
-        res = np.asarray(meta["residuals"])[0].T
-        xyz[res < 0] = np.nan
+    hp = c["header"]["points"]
+    return {"points": np.asarray(c["data"]["points"], dtype=np.float64), "labels": [str(s) for s in labels],
+            "residuals": np.asarray(meta["residuals"]) if "residuals" in meta else None,
+            "rate": np.ravel(params.get("RATE", {}).get("value", [hp["frame_rate"]])).astype(np.float64),
+            "units": [str(u) for u in params.get("UNITS", {}).get("value", ["mm"])],
+            "first": int(hp["first_frame"]), "last": int(hp["last_frame"])}
+
+
+def _limit_memory(extra: int) -> None:  # pragma: no cover (runs in the child process)
+    """Cap the address space at its current size plus ``extra`` bytes (a damaged header can make a
+    C library try to allocate terabytes)."""
+    try:
+        import resource
+
+        with open("/proc/self/statm") as f:
+            vm = int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+        want = vm + extra
+        if hard == resource.RLIM_INFINITY or want < hard:
+            resource.setrlimit(resource.RLIMIT_AS, (want, hard))
+    except (OSError, ValueError, ImportError):
+        pass
+
+
+def _child_read(conn, fn, arg, extra) -> None:  # pragma: no cover (runs in the child process)
+    try:
+        _limit_memory(extra)
+        conn.send(("ok", fn(arg)))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent as text
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def _isolated(fn, arg, memory: int = 1 << 30, timeout: float = 300.0):
+    """``fn(arg)`` in a forked child process, so that a crash of a C library on a damaged file
+    (ezc3d segfaults on some corrupt C3D files) becomes an error instead of killing keyshape.
+    The child may allocate ``memory`` bytes more than it starts with and run ``timeout`` seconds.
+    Returns ``("ok", result)``, ``("error", text)`` or ``("crash", exit code)``."""
+    import multiprocessing as mp
+
+    if "fork" not in mp.get_all_start_methods():       # Windows: no isolation
+        try:
+            return "ok", fn(arg)
+        except Exception as exc:  # noqa: BLE001
+            return "error", f"{type(exc).__name__}: {exc}"
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child_read, args=(send, fn, arg, memory), daemon=True)
+    proc.start()
+    send.close()
+    try:
+        try:
+            out = recv.recv() if recv.poll(timeout) else ("error", f"no answer in {timeout:.0f} s: damaged file?")
+        except EOFError:
+            out = None
+        proc.join(5.0)
+    finally:
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+        recv.close()
+    return out if out is not None else ("crash", proc.exitcode)
+
+
+#: seconds ezc3d may take on a C3D file (plus 1 s per 5 MB) before the file is called damaged
+#: (some damaged headers send it into an endless loop)
+C3D_SECONDS = 30.0
+
+
+def read_c3d(path, duplicates: str = "error") -> Markers:
+    """Read the 3D points of a C3D file (analogs are ignored).
+
+    ezc3d parses the file in a child process: a damaged file that crashes it is
+    reported as an :class:`InputError` like any other unreadable file.
+    """
+    path = require_file(path, "C3D file")
+    size = path.stat().st_size
+    status, c = _isolated(_c3d_contents, str(path), memory=(1 << 30) + 64 * size,
+                          timeout=C3D_SECONDS + size / 5e6)
+    if status == "crash":
+        raise InputError(f"not a readable C3D file (damaged: the C3D reader crashed, exit {c})", path)
+    if status == "error":
+        raise InputError(f"not a readable C3D file ({c})", path)
+    pts = c["points"]  # (4, n_markers, n_frames)
+    if pts.ndim != 3 or pts.shape[0] < 3:
+        raise InputError(f"not a readable C3D file (points of shape {pts.shape})", path)
+    n = pts.shape[1]
+    if n == 0:
+        raise InputError("the C3D file holds no 3D points", path)
+    labels = _fix_labels(c["labels"], n, path, duplicates)
+    xyz = pts[:3].transpose(2, 1, 0)
+    res = c["residuals"]
+    if res is not None and res.ndim == 3 and res.shape[1:] == pts.shape[1:]:
+        xyz[res[0].T < 0] = np.nan
     xyz = _gaps_to_nan(xyz)
-    rate = float(np.ravel(params.get("RATE", {}).get("value", [c["header"]["points"]["frame_rate"]]))[0])
-    units = params.get("UNITS", {}).get("value", ["mm"])
-    units = (units[0] if len(units) else "mm").strip() or "mm"
+    rate = float(c["rate"][0]) if len(c["rate"]) else float("nan")
+    units = (c["units"][0] if len(c["units"]) else "mm").strip() or "mm"
     if not rate > 0:
         raise InputError(f"POINT:RATE is {rate}: expected a positive frame rate", path)
-    return Markers(xyz, labels, rate, units)
+    return check_take(Markers(xyz, labels, rate, units), path, c["last"] - c["first"] + 1)
 
 
 def write_c3d(path, markers: Markers) -> None:
@@ -202,8 +357,11 @@ def read_trc(path, duplicates: str = "error") -> Markers:
     try:
         rate = float(head.get("DataRate") or head["CameraRate"])
         n_markers = int(head["NumMarkers"])
+        n_frames = int(head["NumFrames"]) if head.get("NumFrames") else None
     except (KeyError, ValueError):
         raise InputError("header needs DataRate and NumMarkers values", path, 3) from None
+    if not 0 < n_markers <= 100000:
+        raise InputError(f"NumMarkers {n_markers}: expected 1 to 100000", path, 3)
     units = head.get("Units", "mm") or "mm"
     cells = [s.strip() for s in lines[3].split(sep)[2:]]
     names = [cells[3 * k] if 3 * k < len(cells) else "" for k in range(n_markers)]   # X column of each
@@ -229,8 +387,13 @@ def read_trc(path, duplicates: str = "error") -> Markers:
         except ValueError:
             raise InputError(f"broken data row: expected {width} numbers (Frame#, Time, X/Y/Z per marker)",
                              path, ln) from None
+    fr = data[:, 0]
+    if not np.isfinite(fr).all() or (np.diff(fr) != 1).any():
+        bad = int(np.flatnonzero(~np.isfinite(fr[1:]) | (np.diff(fr) != 1))[0]) + 1 if len(fr) > 1 else 0
+        raise InputError(f"Frame# {fr[bad]:g} after {fr[bad - 1]:g}: frame numbers must be unique, sorted and "
+                         "contiguous", path, row_ln[bad])
     xyz = _gaps_to_nan(data[:, 2:].reshape(len(rows), n_markers, 3))
-    return Markers(xyz, labels, rate, units)
+    return check_take(Markers(xyz, labels, rate, units), path, n_frames)
 
 
 def _fmt(a: np.ndarray) -> np.ndarray:
@@ -298,8 +461,11 @@ def read_csv(path, rate: float | None = None, units: str | None = None, duplicat
             1.0 / float(np.median(np.diff(data[:, 1]))) if len(rows) > 1 else None)
     if not rate or not rate > 0:
         raise InputError("frame rate unknown: add '# rate=120' or a time column", path)
+    fr = data[:, 0]
+    if not np.isfinite(fr).all() or (np.diff(fr) != 1).any():
+        raise InputError("frame numbers must be unique, sorted and contiguous", path)
     xyz = _gaps_to_nan(data[:, 2:].reshape(len(rows), -1, 3))
-    return Markers(xyz, labels, float(rate), units or meta.get("units", "mm"))
+    return check_take(Markers(xyz, labels, float(rate), units or meta.get("units", "mm")), path)
 
 
 READERS = {".c3d": read_c3d, ".trc": read_trc, ".csv": read_csv}
@@ -320,3 +486,34 @@ def write_markers(path, markers: Markers) -> None:
     if ext not in WRITERS:
         raise InputError(f"unknown marker format {ext!r}: expected .c3d, .trc or .csv", path)
     WRITERS[ext](path, markers)
+
+
+# --------------------------------------------------------------------------- markers on a mesh (JSON)
+
+def read_mesh_markers(path, what: str = "markers") -> dict:
+    """Read a mesh-markers JSON -> ``{name: vertex index (int) or [x, y, z]}``.
+
+    Values may also be ``{"position": [x, y, z], "vertex": i}`` as
+    :func:`write_mesh_markers` writes them (``keyshape register --out-markers``); the position is used.
+    """
+    data = read_json(path, what)
+    if isinstance(data, list):
+        data = {str(i): m for i, m in enumerate(data)}
+    if not isinstance(data, dict) or not data:
+        raise InputError("expected {\"name\": vertex index or [x, y, z], ...}", path)
+    out = {}
+    for k, m in data.items():
+        if isinstance(m, dict) and "position" in m:
+            m = m["position"]
+        ok = (isinstance(m, int) and not isinstance(m, bool)) or (
+            isinstance(m, list) and len(m) == 3 and all(isinstance(c, (int, float)) for c in m))
+        if not ok:
+            raise InputError(f"marker {k!r}: expected a vertex index or [x, y, z], got {m!r:.60}", path)
+        out[str(k)] = m
+    return out
+
+
+def write_mesh_markers(path, placed: dict) -> None:
+    """Write placed markers ``{name: {"position": [x, y, z], "vertex": i}}`` (or plain
+    ``{name: vertex or [x, y, z]}``) as a mesh-markers JSON, atomically."""
+    write_json(path, placed)

@@ -60,6 +60,10 @@ class Mesh:
         return Mesh(v, self.polygons, self.uvs, self.polygon_uvs, self.groups)
 
 
+#: largest plausible vertex coordinate, mesh units (a face in micrometres is 2e5 wide)
+MAX_COORDINATE = 1e7
+
+
 def _floats(rows: list[str], path: Path, first_line: list[int], width: int, what: str) -> np.ndarray:
     try:
         arr = np.array([r.split()[1:width + 1] for r in rows], dtype=np.float64)
@@ -78,6 +82,11 @@ def _floats(rows: list[str], path: Path, first_line: list[int], width: int, what
     if not np.all(np.isfinite(arr)):
         bad = int(np.flatnonzero(~np.isfinite(arr).all(axis=1))[0])
         raise InputError(f"non-finite {what} coordinate", path, first_line[bad])
+    big = np.abs(arr) > MAX_COORDINATE
+    if big.any():
+        bad = int(np.flatnonzero(big.any(axis=1))[0])
+        raise InputError(f"implausible {what} coordinate {arr[bad].tolist()} (beyond +-{MAX_COORDINATE:g} "
+                         "mesh units): damaged file?", path, first_line[bad])
     return arr
 
 
@@ -128,6 +137,10 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
             raise InputError(f"broken face line {line.strip()!r}", path, ln) from None
         if len(vi) < 3:
             raise InputError(f"face with {len(vi)} vertices (need at least 3)", path, ln)
+        if any(not -nv <= i <= nv or i == 0 for i in vi):       # before numpy: no int64 overflow
+            raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
+        if any(not -nt <= i <= nt for i in ti):
+            raise InputError(f"face names a texture coordinate outside 1..{nt}", path, ln)
         vi = np.array([i - 1 if i > 0 else nv + i for i in vi], dtype=np.intp)
         if vi.min() < 0 or vi.max() >= nv:
             raise InputError(f"face names a vertex outside 1..{nv}", path, ln)

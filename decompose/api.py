@@ -1,0 +1,70 @@
+"""The decompose stage's part of the Python API (:mod:`keyshape.api`): in-memory steps.
+
+``keyshape select`` and ``keyshape decompose`` (``decompose/cli.py``), :mod:`keyshape.api` and
+``keyshape batch`` all call these functions; they take and return arrays and never open files.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from keyshape.base.errors import InputError
+from keyshape.base.formats.tracks import Tracks
+from keyshape.base.schemes import Scheme, load_scheme, scheme_for_n_points
+from keyshape.decompose.regions import RegionKeys, available_regions, decompose_region, model_shapes, select_region
+
+
+def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:
+    """Several takes' tracks as one sequence (frames renumbered 0..n-1 in the given order)."""
+    tracks = list(tracks)
+    if not tracks:
+        raise InputError("no tracks to select key shapes from")
+    n_points = {t.n_points for t in tracks}
+    if len(n_points) > 1:
+        raise InputError(f"tracks of different point counts {sorted(n_points)} cannot share one key set")
+    n = sum(t.n_frames for t in tracks)
+    cat = [np.concatenate([getattr(t, a) for t in tracks]) for a in ("time", "confidence", "success", "points",
+                                                                      "pose")]
+    return Tracks(np.arange(n), *cat)
+
+
+def tracks_scheme(tracks: Tracks, scheme: str | Scheme | None = None, source=None) -> Scheme:
+    """``scheme`` (default: the built-in scheme with as many points as ``tracks``), checked against it."""
+    sch = load_scheme(scheme) if scheme is not None else scheme_for_n_points(tracks.n_points)
+    if sch.n_points != tracks.n_points:
+        raise InputError(f"scheme {sch.name!r} has {sch.n_points} points, the tracks {tracks.n_points}", source)
+    return sch
+
+
+def select_keys(tracks: Tracks, k: int | None, method: str = "spread", regions: Sequence[str] | None = None,
+                scheme: str | Scheme | None = None, seed: int = 0, source=None,
+                progress: bool = False) -> tuple[Scheme, list[RegionKeys]]:
+    """Choose ``k`` key shapes per region from ``tracks`` (see :func:`~keyshape.decompose.regions.select_region`).
+
+    ``regions`` default to all the scheme can form; ``source`` names the tracks file in errors;
+    ``progress`` shows the greedy selector's progress on stderr.
+    """
+    sch = tracks_scheme(tracks, scheme, source)
+    if k is None and method != "hull2":
+        raise InputError(f"-k is required for --method {method}")
+    shapes = model_shapes(tracks, source)
+    try:
+        chosen = [select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes, progress=progress)
+                  for r in (regions or available_regions(sch))]
+    except InputError as exc:
+        if source is None:
+            raise
+        raise InputError(str(exc), source) from None
+    return sch, chosen
+
+
+def decompose_keys(tracks: Tracks, regions: Sequence[RegionKeys], solver: str = "nnls", smooth_lambda: float = 0.1,
+                   ridge: float = 0.0, source=None) -> tuple[list[str], np.ndarray]:
+    """Per-frame weights of every region's key shapes: (column names ``REGION_K``, weights (n_frames, n_keys))."""
+    shapes = model_shapes(tracks, source)
+    names, cols = [], []
+    for rk in regions:
+        cols.append(decompose_region(tracks, rk, solver, smooth_lambda, shapes=shapes, ridge=ridge))
+        names += rk.names
+    return names, np.concatenate(cols, axis=1)

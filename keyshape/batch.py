@@ -1,0 +1,487 @@
+"""``keyshape batch MANIFEST -o OUT_DIR``: a footage library through the video path on Dask distributed.
+
+The graph (one Dask task per box; the arrows are futures)::
+
+    model(actor)  ->  track(take) ... track(take)  ->  keys(actor)  ->  finish(take) ... finish(take)  ->  report
+
+- ``model``: train the actor's tracker once from its labelled footage (or take the model file given).
+- ``track``: every take in parallel -> ``OUT_DIR/<actor>/<take>/tracks.csv``.
+- ``keys``: one key selection per actor over all of its takes' tracks -> ``OUT_DIR/<actor>/keys.json``.
+- ``finish``: decompose and retarget every take in parallel -> ``weights.csv``, ``animation.glb``, ...
+- the report ``OUT_DIR/report.json`` (per take: frames, lost frames, confidence, seconds, outputs).
+
+Tasks hand each other files, not objects: a track task loads ``model.npz``, the keys task reads
+the ``tracks.csv`` files, a finish task reads ``tracks.csv`` and ``keys.json`` and retargets the
+``weights.csv`` it wrote. A resumed run therefore computes from exactly what a fresh run does, and
+each take's results are what the commands give run one after another (``keyshape train``,
+``track``, ``decompose``, ``retarget``; the key selection is ``keyshape.api.select`` over the
+actor's takes). The files must be reachable from every worker (one machine, or a shared file
+system; see docs/scale.md).
+
+Resuming: each take folder holds ``batch.json``, the record of what its outputs were computed
+from (content hashes of the video, the model, the tracks, the key set, the targets, and the
+settings), written after the outputs. A rerun recomputes a stage only where that record no
+longer matches; a video's hash is reused while its size and modification time are unchanged.
+A failing take is reported and the others go on; Ctrl-C leaves only complete outputs (every file
+is written atomically, and stale temporary files of an interrupted run are removed).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+from keyshape import __version__
+from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.files import atomic_write
+from keyshape.manifest import OUTPUT_FILES, Actor, Manifest, Settings, Take, read_manifest
+
+RECORD = "batch.json"
+_PARTIAL = re.compile(r"^\..+\.[A-Za-z0-9_]+\.partial(\.[A-Za-z0-9]+)?$")
+
+
+# ---------------------------------------------------------------- hashing and records
+
+def digest(obj) -> str:
+    """sha256 of a JSON-able value (sorted keys)."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def file_sha(path: Path, known: dict | None = None) -> dict:
+    """``{path, size, mtime_ns, sha256}`` of a file; ``known`` (an earlier result) is reused when
+    the size and modification time are unchanged, so an untouched video is not read again."""
+    st = Path(path).stat()
+    if known and known.get("size") == st.st_size and known.get("mtime_ns") == st.st_mtime_ns \
+            and known.get("path") == str(path):
+        return known
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": h.hexdigest()}
+
+
+def tree_sha(path: Path | None) -> str | None:
+    """sha256 over a file, or over a folder's files (relative names and contents); None for None."""
+    if path is None:
+        return None
+    path = Path(path)
+    if path.is_file():
+        return file_sha(path)["sha256"]
+    if not path.is_dir():
+        from keyshape.base.errors import MissingFileError
+        raise MissingFileError(path)
+    return digest([(str(p.relative_to(path)), file_sha(p)["sha256"])
+                   for p in sorted(path.rglob("*")) if p.is_file() and not p.name.startswith(".")])
+
+
+def read_record(path: Path) -> dict:
+    try:
+        rec = json.loads(Path(path).read_text())
+        return rec if isinstance(rec, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def write_record(path: Path, rec: dict) -> None:
+    with atomic_write(path) as f:
+        json.dump(rec, f, indent=1, sort_keys=True)
+        f.write("\n")
+
+
+def _failure(exc: BaseException) -> dict:
+    if isinstance(exc, KeyshapeError):
+        msg = str(exc)
+    else:   # a bug, not bad input: keep the place it happened
+        tb = traceback.extract_tb(exc.__traceback__)[-1]
+        msg = f"{type(exc).__name__}: {exc} ({Path(tb.filename).name}:{tb.lineno})"
+    return {"ok": False, "error": msg}
+
+
+def _one_thread() -> None:
+    """A worker is one core: keep OpenCV's own thread pool to one thread too (Dask already sets
+    OMP/MKL/OpenBLAS to one thread in the worker processes it starts). Results do not depend on it."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _max_rss_mb() -> float | None:
+    """Peak resident memory of this worker process so far (MiB; None where unknown)."""
+    try:
+        import resource
+        kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return round(kb / (1 << 20 if sys.platform == "darwin" else 1 << 10), 1)
+    except (ImportError, OSError):
+        return None
+
+
+def actor_dir(out: Path, actor: str) -> Path:
+    return Path(out) / actor
+
+
+def take_dir(out: Path, take: Take) -> Path:
+    return Path(out) / take.actor / take.name
+
+
+# ---------------------------------------------------------------- the tasks (run on the workers)
+
+def task_model(actor: Actor, out: str) -> dict:
+    """Train the actor's model once (or take its model file); skip when the record matches."""
+    _one_thread()
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        adir = actor_dir(Path(out), actor.name)
+        rec_path = adir / RECORD
+        rec = read_record(rec_path)
+        if actor.model is not None:
+            sha = file_sha(actor.model, rec.get("model_file"))
+            from keyshape.tracker.eigenpoints import AppearanceModel
+            AppearanceModel.load(actor.model, actor.scheme)    # fail here, once, on a bad model file
+            rec.update(model_file=sha, model_key=digest(["file", sha["sha256"], __version__]))
+            write_record(rec_path, rec)
+            return {"ok": True, "path": str(actor.model), "key": rec["model_key"], "status": "given",
+                    "seconds": time.perf_counter() - t0}
+        video = file_sha(actor.video, rec.get("video"))
+        settings = [actor.scheme, actor.components, actor.morphs, actor.seed]
+        key = digest(["train", video["sha256"], tree_sha(actor.labels), settings, __version__])
+        path = adir / "model.npz"
+        if rec.get("model_key") == key and path.is_file() and \
+                file_sha(path)["sha256"] == rec.get("model_sha256"):
+            return {"ok": True, "path": str(path), "key": key, "status": "skipped", "seconds": 0.0}
+        from keyshape import api
+        model = api.train(actor.video, actor.labels, scheme=actor.scheme, components=actor.components,
+                          morphs=actor.morphs, seed=actor.seed)
+        model.save(path)
+        rec.update(video=video, model_key=key, model_sha256=file_sha(path)["sha256"])
+        write_record(rec_path, rec)
+        return {"ok": True, "path": str(path), "key": key, "status": "trained", "seconds": time.perf_counter() - t0,
+                "cpu_seconds": time.process_time() - c0}
+    except Exception as exc:  # noqa: BLE001 - reported per actor, the batch goes on
+        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+
+
+def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: str) -> dict:
+    """Track one take with its actor's model -> tracks.csv; skip when video, model and settings are unchanged."""
+    _one_thread()
+    t0, c0 = time.perf_counter(), time.process_time()
+    if not model["ok"]:
+        return {"ok": False, "error": f"actor {actor.name!r}: {model['error']}", "seconds": 0.0}
+    try:
+        tdir = take_dir(Path(out), take)
+        rec_path = tdir / RECORD
+        rec = read_record(rec_path)
+        video = file_sha(take.video, rec.get("video"))
+        key = digest(["track", video["sha256"], model["key"], settings.smooth, take.start, take.stop, __version__])
+        path = tdir / OUTPUT_FILES["tracks"]
+        if rec.get("track_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("tracks_sha256"):
+            return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["tracks_sha256"],
+                    "stats": rec["stats"], "seconds": 0.0}
+        from keyshape import api
+        from keyshape.base.formats.tracks import write_tracks
+        from keyshape.tracker.eigenpoints import AppearanceModel
+
+        m = AppearanceModel.load(model["path"], actor.scheme)
+        tracks = api.track(take.video, m, smooth=settings.smooth, start=take.start, stop=take.stop)
+        write_tracks(path, tracks)
+        seconds = time.perf_counter() - t0
+        stats = {"frames": int(tracks.n_frames), "lost_frames": int((~tracks.success).sum()),
+                 "confidence": float(np.mean(tracks.confidence)), "track_seconds": round(seconds, 3),
+                 "track_cpu_seconds": round(time.process_time() - c0, 3),
+                 "worker_max_rss_mb": _max_rss_mb()}
+        # a re-tracked take invalidates its later stages: keep only what still holds
+        rec = {"video": video, "track_key": key, "tracks_sha256": file_sha(path)["sha256"], "stats": stats}
+        write_record(rec_path, rec)
+        return {"ok": True, "status": "tracked", "path": str(path), "sha256": rec["tracks_sha256"], "stats": stats,
+                "seconds": seconds}
+    except Exception as exc:  # noqa: BLE001
+        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+
+
+def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) -> dict:
+    """One key selection for the actor over all its successfully tracked takes (in manifest order)."""
+    _one_thread()
+    t0, c0 = time.perf_counter(), time.process_time()
+    used = [(t, r) for t, r in zip(takes, tracked) if r["ok"]]
+    if not used:
+        return {"ok": False, "error": f"actor {actor.name!r}: no take was tracked", "seconds": 0.0}
+    try:
+        adir = actor_dir(Path(out), actor.name)
+        rec_path = adir / RECORD
+        rec = read_record(rec_path)
+        key = digest(["keys", [(t.name, r["sha256"]) for t, r in used], actor.keys, actor.selector, actor.regions,
+                      actor.seed, actor.scheme, __version__])
+        path = adir / "keys.json"
+        names = [t.name for t, _ in used]
+        if rec.get("keys_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("keys_sha256"):
+            return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["keys_sha256"],
+                    "takes": names, "offsets": rec.get("keys_offsets"), "seconds": 0.0}
+        from keyshape import api
+        from keyshape.base.formats.tracks import read_tracks
+
+        tracks = [read_tracks(r["path"]) for _, r in used]
+        keys = api.select(tracks, actor.keys, actor.selector, actor.regions, scheme=actor.scheme, seed=actor.seed)
+        keys.save(path)
+        offsets = np.concatenate([[0], np.cumsum([t.n_frames for t in tracks])[:-1]]).tolist()
+        rec.update(keys_key=key, keys_sha256=file_sha(path)["sha256"], keys_takes=names, keys_offsets=offsets)
+        write_record(rec_path, rec)
+        return {"ok": True, "status": "selected", "path": str(path), "sha256": rec["keys_sha256"], "takes": names,
+                "offsets": offsets, "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+    except Exception as exc:  # noqa: BLE001
+        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+
+
+def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: Path, outputs: list[str]) -> dict:
+    """Decompose one take with the actor's key set and retarget it; write the outputs; return their paths.
+
+    The serial reference of the batch: exactly what the finish task runs.
+    """
+    from keyshape import api
+    from keyshape.base.formats.tracks import read_tracks
+
+    tracks = read_tracks(tracks_path)
+    keys = api.Keys.load(keys_path)
+    weights = api.decompose(tracks, keys, settings.solver, settings.ridge, settings.smooth_lambda)
+    files = {"tracks": str(tracks_path)}
+    wpath = tdir / OUTPUT_FILES["weights"]
+    weights.save(wpath)
+    files["weights"] = str(wpath)
+    wanted = [o for o in outputs if o not in ("tracks", "weights")]
+    if actor.targets is not None and wanted:
+        # the rest head pose: the take's first frame (frame 0 unless the take has a frame range)
+        anim = api.retarget(api.Weights.load(wpath), actor.targets, actor.target_regions, tracks=tracks,
+                            neutral=actor.neutral, mapping=actor.map, reference_frame=int(tracks.frame[0]))
+        for o in wanted:
+            p = tdir / OUTPUT_FILES[o]
+            anim.export(p, livelink=(o == "livelink"))
+            files[o] = str(p)
+    return files
+
+
+def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, keys: dict, out: str) -> dict:
+    """Decompose and retarget one take; skip when tracks, key set, targets and settings are unchanged."""
+    _one_thread()
+    t0, c0 = time.perf_counter(), time.process_time()
+    base = {"actor": take.actor, "take": take.name, "video": str(take.video)}
+    if not tracked["ok"]:
+        return {**base, "ok": False, "error": tracked["error"], "seconds": tracked.get("seconds", 0.0)}
+    stages = {"track": tracked["status"]}
+    if not keys["ok"]:
+        return {**base, "ok": False, "error": keys["error"], "stats": tracked["stats"], "stages": stages,
+                "seconds": tracked["seconds"]}
+    try:
+        tdir = take_dir(Path(out), take)
+        rec_path = tdir / RECORD
+        rec = read_record(rec_path)
+        outputs = settings.outputs if actor.targets is not None else ["tracks", "weights"]
+        key = digest(["finish", tracked["sha256"], keys["sha256"], settings.solver, settings.ridge,
+                      settings.smooth_lambda, outputs, [tree_sha(p) for p in (actor.targets, actor.neutral, actor.map,
+                                                                              actor.target_regions)], __version__])
+        files = {o: str(tdir / OUTPUT_FILES[o]) for o in outputs}
+        if rec.get("finish_key") == key and all(Path(p).exists() for p in files.values()):
+            stages["finish"] = "skipped"
+        else:
+            files = finish_take(tracked["path"], keys["path"], actor, settings, tdir, outputs)
+            rec["finish_key"] = key
+            rec["outputs"] = files
+            write_record(rec_path, rec)
+            stages["finish"] = "done"
+        finish = time.perf_counter() - t0
+        return {**base, "ok": True, "stats": tracked["stats"], "outputs": files, "stages": stages,
+                "seconds": tracked["seconds"] + finish, "finish_seconds": finish,
+                "finish_cpu_seconds": time.process_time() - c0}
+    except Exception as exc:  # noqa: BLE001
+        return {**base, **_failure(exc), "stats": tracked["stats"], "stages": stages,
+                "seconds": tracked["seconds"] + time.perf_counter() - t0}
+
+
+# ---------------------------------------------------------------- the driver
+
+def remove_partials(out: Path, manifest: Manifest) -> int:
+    """Remove temporary files an interrupted run left in the folders the batch writes (only keyshape's own
+    ``.NAME.XXXX.partial`` files); return how many."""
+    n = 0
+    dirs = {actor_dir(out, a) for a in manifest.actors} | {take_dir(out, t) for t in manifest.takes} | {Path(out)}
+    for d in dirs:
+        if d.is_dir():
+            for p in d.iterdir():
+                if _PARTIAL.match(p.name) and p.is_file():
+                    p.unlink(missing_ok=True)
+                    n += 1
+    return n
+
+
+def _client(scheduler: str | None, workers: int | None, processes: bool):
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        return Client(scheduler, timeout="20s"), None
+    n = workers or os.cpu_count() or 1
+    # worker processes talk over TCP on this machine only; threads of this process use inproc://
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
+                           **({"host": "127.0.0.1"} if processes else {}))
+    return Client(cluster), cluster
+
+
+def _dashboard(client) -> str | None:
+    try:
+        services = client.scheduler_info().get("services", {})
+    except Exception:  # noqa: BLE001
+        return None
+    return client.dashboard_link if "dashboard" in services else None
+
+
+def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: str | None = None,
+              workers: int | None = None, processes: bool = True, show_progress: bool = True) -> dict:
+    """Run the manifest's library into ``out_dir`` on Dask; return the report (also ``report.json``).
+
+    Parameters
+    ----------
+    manifest : a manifest path or a read :class:`~keyshape.manifest.Manifest`
+    scheduler : address of a running Dask scheduler (``tcp://HOST:PORT``); None starts a LocalCluster
+    workers : LocalCluster workers (default: the machine's cores), one thread each
+    processes : LocalCluster workers as processes (default) or threads of this process
+    """
+    from keyshape.base.progress import Progress
+
+    m = manifest if isinstance(manifest, Manifest) else read_manifest(manifest)
+    out = Path(out_dir).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    remove_partials(out, m)
+    t0 = time.perf_counter()
+    say = (lambda *a: print(*a, file=sys.stderr, flush=True)) if show_progress else (lambda *a: None)
+    client, cluster = _client(scheduler, workers, processes)
+    try:
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        say(f"keyshape batch: {len(m.takes)} takes of {len(m.actors)} actors on "
+            f"{scheduler or 'a local cluster'} ({n_workers} workers)")
+        link = _dashboard(client)
+        say(f"keyshape batch: Dask dashboard {link}" if link else
+            "keyshape batch: no Dask dashboard (install bokeh where the scheduler runs to get one)")
+        o = str(out)
+        models = {a: client.submit(task_model, actor, o, key=f"model-{a}", pure=False)
+                  for a, actor in m.actors.items()}
+        tracks = [client.submit(task_track, t, m.actors[t.actor], m.settings, models[t.actor], o,
+                                key=f"track-{t.actor}-{t.name}", pure=False) for t in m.takes]
+        keys = {}
+        for a, actor in m.actors.items():
+            idx = [i for i, t in enumerate(m.takes) if t.actor == a]
+            if idx:
+                keys[a] = client.submit(task_keys, actor, [m.takes[i] for i in idx], [tracks[i] for i in idx], o,
+                                        key=f"keys-{a}", pure=False)
+        finals = [client.submit(task_finish, t, m.actors[t.actor], m.settings, tracks[i], keys[t.actor], o,
+                                key=f"finish-{t.actor}-{t.name}", pure=False) for i, t in enumerate(m.takes)]
+        from distributed import as_completed
+
+        results: dict[str, dict] = {}
+        n_frames = n_failed = 0
+        with Progress(len(finals), desc="keyshape batch", unit="takes", enabled=show_progress, every=10.0) as prog:
+            for fut in as_completed(finals):
+                r = fut.result()
+                results[fut.key] = r
+                n_frames += r.get("stats", {}).get("frames", 0)
+                n_failed += not r["ok"]
+                prog.desc = f"keyshape batch ({n_frames} frames, {n_failed} failed)"
+                prog.update()
+        model_res = {a: f.result() for a, f in models.items()}
+        keys_res = {a: f.result() for a, f in keys.items()}
+    except KeyboardInterrupt:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+        remove_partials(out, m)
+        raise
+    finally:
+        if client.status != "closed":
+            client.close()
+        if cluster is not None:
+            cluster.close()
+    report = _report(m, out, scheduler, n_workers, processes, [results[f.key] for f in finals], model_res, keys_res,
+                     time.perf_counter() - t0)
+    with atomic_write(out / "report.json") as f:
+        json.dump(report, f, indent=1)
+        f.write("\n")
+    return report
+
+
+def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, models, keys, seconds) -> dict:
+    rows = []
+    for r in takes:
+        st = r.get("stats", {})
+        row = {"actor": r["actor"], "take": r["take"], "video": r["video"],
+               "status": "failed" if not r["ok"] else ("skipped" if all(
+                   s == "skipped" for s in r.get("stages", {}).values()) else "done"),
+               "frames": st.get("frames"), "lost_frames": st.get("lost_frames"),
+               "confidence": None if st.get("confidence") is None else round(st["confidence"], 4),
+               "track_seconds": st.get("track_seconds"), "worker_max_rss_mb": st.get("worker_max_rss_mb"),
+               "seconds": round(r.get("seconds", 0.0), 3),
+               "finish_seconds": round(r.get("finish_seconds", 0.0), 3),
+               "track_cpu_seconds": st.get("track_cpu_seconds"),
+               "finish_cpu_seconds": round(r.get("finish_cpu_seconds", 0.0), 3), "stages": r.get("stages", {}),
+               "outputs": r.get("outputs", {})}
+        if not r["ok"]:
+            row["error"] = r["error"]
+        rows.append(row)
+    actors = {}
+    for a in m.actors:
+        mr, kr = models[a], keys.get(a, {"ok": False, "error": "no takes"})
+        actors[a] = {"model": mr.get("path"), "model_status": mr.get("status", "failed"),
+                     "keys": kr.get("path"), "keys_status": kr.get("status", "failed"),
+                     "keys_takes": kr.get("takes"), "keys_frame_offsets": kr.get("offsets"),
+                     "model_seconds": round(mr.get("seconds", 0.0), 3), "keys_seconds": round(kr.get("seconds", 0.0), 3),
+                     "model_cpu_seconds": round(mr.get("cpu_seconds", 0.0), 3),
+                     "keys_cpu_seconds": round(kr.get("cpu_seconds", 0.0), 3)}
+        for name, res in (("model_error", mr), ("keys_error", kr)):
+            if not res["ok"]:
+                actors[a][name] = res["error"]
+    failed = [r for r in rows if r["status"] == "failed"]
+    return {"format": "keyshape-batch-report", "version": 1, "manifest": str(m.path), "out_dir": str(out),
+            "scheduler": scheduler or ("LocalCluster (processes)" if processes else "LocalCluster (threads)"),
+            "workers": n_workers, "seconds": round(seconds, 3), "takes": rows, "actors": actors,
+            "n_takes": len(rows), "n_done": sum(r["status"] == "done" for r in rows),
+            "n_skipped": sum(r["status"] == "skipped" for r in rows), "n_failed": len(failed),
+            "frames": int(sum(r["frames"] or 0 for r in rows))}
+
+
+# ---------------------------------------------------------------- the command
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "batch", help="run a footage library (TOML manifest) through the video path on Dask, resumably",
+        description="Train each actor's tracker once, track every take in parallel, choose one key set per "
+                    "actor over all its takes, decompose and retarget every take in parallel; outputs in "
+                    "OUT_DIR/<actor>/<take>/, key sets in OUT_DIR/<actor>/keys.json, the summary in "
+                    "OUT_DIR/report.json. A rerun skips what has not changed. See README: Batch.")
+    p.add_argument("manifest", help="project manifest (TOML)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="use a running Dask scheduler (default: a local cluster on this machine)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local cluster workers, one thread each (default: the number of cores)")
+    p.add_argument("--threads", action="store_true",
+                   help="local cluster workers as threads of one process instead of processes")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
+    if args.scheduler and (args.workers or args.threads):
+        raise InputError("--workers and --threads are for the local cluster; not with --scheduler")
+    rep = run_batch(args.manifest, args.output, scheduler=args.scheduler, workers=args.workers,
+                    processes=not args.threads, show_progress=not args.quiet)
+    print(f"keyshape batch: {rep['n_takes']} takes ({rep['n_done']} done, {rep['n_skipped']} skipped, "
+          f"{rep['n_failed']} failed), {rep['frames']} frames in {rep['seconds']:.1f} s -> "
+          f"{Path(rep['out_dir']) / 'report.json'}")
+    for r in rep["takes"]:
+        if r["status"] == "failed":
+            print(f"keyshape batch: {r['actor']}/{r['take']} failed: {r['error']}", file=sys.stderr)
+    return 1 if rep["n_failed"] else 0

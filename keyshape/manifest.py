@@ -1,0 +1,259 @@
+"""The project manifest of ``keyshape batch`` (TOML, read with :mod:`tomllib`), checked against its schema.
+
+A studio's footage library: actors (each with the footage its labels belong to, or a trained
+model) and takes (videos of one actor). Everything but the two ``actors`` keys and the two
+``takes`` keys shown here is optional::
+
+    [settings]                      # all optional; the defaults are shown
+    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink", "preview"
+    smooth = "none"                 # tracker smoothing: none, savgol, oneeuro
+    solver = "smooth"               # nnls, lstsq, smooth
+    ridge = 0.03
+    smooth_lambda = 0.1
+
+    [actors.anna]
+    video = "anna/rom.mp4"          # the footage the labels belong to
+    labels = "anna/labels"          # .pts folder (or: model = "anna/model.npz")
+    keys = 8                        # key shapes per region, one key set over all her takes
+    selector = "greedy"             # spread, kmeans2, kmeans3, hull2, random, greedy
+    regions = ["mouth", "eyes"]     # key regions (default: all the scheme has)
+    targets = "anna/targets"        # the artist's target key shapes (mouth_0.obj, ..., neutral.obj)
+    target_regions = "anna/regions.json"
+
+    [[takes]]
+    actor = "anna"
+    video = "anna/take01.mp4"
+    frames = [0, 600]               # optional frame range [start, stop)
+    name = "take01"                 # optional; default the video's file stem
+
+Paths are relative to the manifest's folder. A mistake (unknown key, wrong type, unknown
+actor, duplicate take) raises :class:`~keyshape.base.errors.InputError` naming the manifest
+and the line. Missing or broken footage is not a manifest mistake: it fails that take (or
+that actor's takes) in the batch and the others go on.
+"""
+from __future__ import annotations
+
+import difflib
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from keyshape.base.errors import InputError, require_file
+from keyshape.decompose.cli import METHODS, SOLVERS
+
+OUTPUTS = ("tracks", "weights", "glb", "curves", "livelink", "preview")
+#: file name of each output inside ``OUT_DIR/<actor>/<take>/``
+OUTPUT_FILES = {"tracks": "tracks.csv", "weights": "weights.csv", "glb": "animation.glb", "curves": "curves.csv",
+                "livelink": "livelink.csv", "preview": "preview.mp4"}
+SMOOTHERS = ("none", "savgol", "oneeuro")
+REGION_NAMES = ("mouth", "eyes", "pupils")
+
+
+@dataclass
+class Settings:
+    outputs: list[str] = field(default_factory=lambda: ["tracks", "weights", "glb"])
+    smooth: str = "none"
+    solver: str = "smooth"
+    ridge: float = 0.03
+    smooth_lambda: float = 0.1
+
+
+@dataclass
+class Actor:
+    name: str
+    video: Path | None = None
+    labels: Path | None = None
+    model: Path | None = None
+    scheme: str = "contours48"
+    components: int | None = None
+    morphs: int = 120
+    seed: int = 0
+    keys: int = 8
+    selector: str = "greedy"
+    regions: list[str] | None = None
+    targets: Path | None = None
+    neutral: Path | None = None
+    map: Path | None = None
+    target_regions: Path | None = None
+    line: int | None = None
+
+
+@dataclass
+class Take:
+    actor: str
+    video: Path
+    name: str
+    start: int = 0
+    stop: int | None = None
+    line: int | None = None
+
+
+@dataclass
+class Manifest:
+    path: Path
+    settings: Settings
+    actors: dict[str, Actor]
+    takes: list[Take]
+
+
+# key -> (python types, description for errors); paths are str in TOML
+_ACTOR = {"video": (str, "a path"), "labels": (str, "a path"), "model": (str, "a path"),
+          "scheme": (str, "a scheme name or JSON path"), "components": (int, "an integer"),
+          "morphs": (int, "an integer"), "seed": (int, "an integer"), "keys": (int, "an integer"),
+          "selector": (str, "a selector name"), "regions": (list, "a list of region names"),
+          "targets": (str, "a path"), "neutral": (str, "a path"), "map": (str, "a path"),
+          "target_regions": (str, "a path")}
+_TAKE = {"actor": (str, "an actor name"), "video": (str, "a path"), "name": (str, "a name"),
+         "frames": (list, "[start, stop]")}
+_SETTINGS = {"outputs": (list, "a list of output names"), "smooth": (str, "a smoother name"),
+             "solver": (str, "a solver name"), "ridge": ((int, float), "a number"),
+             "smooth_lambda": ((int, float), "a number")}
+_PATH_KEYS = {"video", "labels", "model", "targets", "neutral", "map", "target_regions"}
+
+
+class _Lines:
+    """Line numbers of tables and keys in the manifest text (tomllib gives none)."""
+
+    _HEADER = re.compile(r"^\s*(\[\[?)\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
+    _KEY = re.compile(r"^\s*([A-Za-z0-9_\-\"']+)\s*=")
+
+    def __init__(self, text: str):
+        self.tables: dict[tuple, int] = {}
+        self.keys: dict[tuple, int] = {}
+        current: tuple = ()
+        n_takes = -1
+        for ln, line in enumerate(text.splitlines(), start=1):
+            m = self._HEADER.match(line)
+            if m:
+                parts = tuple(p.strip().strip("\"'") for p in m.group(2).split("."))
+                if m.group(1) == "[[":
+                    if parts == ("takes",):
+                        n_takes += 1
+                        parts = ("takes", n_takes)
+                current = parts
+                self.tables.setdefault(current, ln)
+                continue
+            m = self._KEY.match(line)
+            if m:
+                self.keys.setdefault(current + (m.group(1).strip("\"'"),), ln)
+
+    def of(self, *where) -> int | None:
+        return self.keys.get(tuple(where)) or self.tables.get(tuple(where)) or \
+            (self.tables.get(tuple(where[:-1])) if len(where) > 1 else None)
+
+
+def _unknown(key: str, allowed) -> str:
+    close = difflib.get_close_matches(key, list(allowed), n=1)
+    return f"unknown key {key!r}" + (f" (did you mean {close[0]!r}?)" if close else "") + \
+        f"; expected one of {', '.join(allowed)}"
+
+
+def _check_table(table: dict, schema: dict, err, where: tuple) -> None:
+    for key, value in table.items():
+        if key not in schema:
+            if key == "rig":
+                err("'rig' (driving an existing rig) is not supported by keyshape batch yet: give 'targets'",
+                    *where, key)
+            err(_unknown(key, schema), *where, key)
+        types, what = schema[key]
+        if isinstance(value, bool) or not isinstance(value, types):
+            err(f"{key!r} must be {what}, got {value!r}", *where, key)
+
+
+def read_manifest(path: str | Path) -> Manifest:
+    """Read and check a manifest; paths come back absolute (relative ones resolved against its folder)."""
+    path = require_file(path, "manifest")
+    text = path.read_text()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        m = re.search(r"at line (\d+)", str(exc))
+        raise InputError(f"not valid TOML: {exc}", path, int(m.group(1)) if m else None) from None
+    lines = _Lines(text)
+    base = path.parent
+
+    def err(message, *where):
+        raise InputError(message, path, lines.of(*where))
+
+    for key in data:
+        if key not in ("actors", "takes", "settings"):
+            err(_unknown(key, ("actors", "takes", "settings")), key)
+
+    raw = data.get("settings", {})
+    if not isinstance(raw, dict):
+        err("'settings' must be a table [settings]", "settings")
+    _check_table(raw, _SETTINGS, err, ("settings",))
+    settings = Settings(**{k: (float(v) if k in ("ridge", "smooth_lambda") else v) for k, v in raw.items()})
+    bad = [o for o in settings.outputs if o not in OUTPUTS]
+    if bad or not all(isinstance(o, str) for o in settings.outputs):
+        err(f"unknown output {bad[0]!r}: expected some of {', '.join(OUTPUTS)}", "settings", "outputs")
+    for o in ("tracks", "weights"):      # always written: the batch resumes from them
+        if o not in settings.outputs:
+            settings.outputs.insert(0, o)
+    if settings.smooth not in SMOOTHERS:
+        err(f"smooth {settings.smooth!r}: expected one of {', '.join(SMOOTHERS)}", "settings", "smooth")
+    if settings.solver not in SOLVERS:
+        err(f"solver {settings.solver!r}: expected one of {', '.join(SOLVERS)}", "settings", "solver")
+    if settings.ridge < 0 or settings.smooth_lambda < 0:
+        err("ridge and smooth_lambda must be >= 0", "settings", "ridge" if settings.ridge < 0 else "smooth_lambda")
+
+    actors_raw = data.get("actors")
+    if not isinstance(actors_raw, dict) or not actors_raw:
+        err("no actors: add a table [actors.NAME] with video and labels (or model)", "actors")
+    actors: dict[str, Actor] = {}
+    for name, a in actors_raw.items():
+        if not isinstance(a, dict):
+            err(f"actors.{name} must be a table [actors.{name}]", "actors", name)
+        if not re.fullmatch(r"[A-Za-z0-9_.\-]+", name) or name in (".", ".."):
+            err(f"actor name {name!r}: use letters, digits, '_', '-', '.' (it names a folder)", "actors", name)
+        _check_table(a, _ACTOR, err, ("actors", name))
+        kw = {k: (base / v if k in _PATH_KEYS else v) for k, v in a.items()}
+        actor = Actor(name, line=lines.of("actors", name), **kw)
+        if (actor.model is None) == (actor.labels is None):
+            err(f"actor {name!r}: give labels (with video) or model, not {'both' if actor.model else 'neither'}",
+                "actors", name)
+        if actor.labels is not None and actor.video is None:
+            err(f"actor {name!r}: labels need the video they belong to ('video = ...')", "actors", name, "labels")
+        if actor.selector not in METHODS:
+            err(f"selector {actor.selector!r}: expected one of {', '.join(METHODS)}", "actors", name, "selector")
+        if actor.keys < 1:
+            err(f"keys must be >= 1, got {actor.keys}", "actors", name, "keys")
+        if actor.regions is not None and (not actor.regions or any(r not in REGION_NAMES for r in actor.regions)):
+            err(f"regions must be some of {', '.join(REGION_NAMES)}, got {actor.regions!r}", "actors", name,
+                "regions")
+        if actor.targets is None and any(k in a for k in ("neutral", "map", "target_regions")):
+            err(f"actor {name!r}: neutral, map and target_regions need targets", "actors", name)
+        actors[name] = actor
+
+    takes_raw = data.get("takes")
+    if not isinstance(takes_raw, list) or not takes_raw:
+        err("no takes: add [[takes]] tables with actor and video", "takes")
+    takes: list[Take] = []
+    seen: dict[tuple, int] = {}
+    for i, t in enumerate(takes_raw):
+        _check_table(t, _TAKE, err, ("takes", i))
+        for key in ("actor", "video"):
+            if key not in t:
+                err(f"take {i + 1} has no {key!r}", "takes", i)
+        if t["actor"] not in actors:
+            err(f"unknown actor {t['actor']!r}: the manifest has {', '.join(actors)}", "takes", i, "actor")
+        video = base / t["video"]
+        name = t.get("name", video.stem)
+        if not re.fullmatch(r"[A-Za-z0-9_.\-]+", name) or name in (".", ".."):
+            err(f"take name {name!r}: use letters, digits, '_', '-', '.' (it names a folder)", "takes", i,
+                "name" if "name" in t else "video")
+        start, stop = 0, None
+        if "frames" in t:
+            fr = t["frames"]
+            if len(fr) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in fr) \
+                    or not 0 <= fr[0] < fr[1]:
+                err(f"frames must be [start, stop] with 0 <= start < stop, got {fr!r}", "takes", i, "frames")
+            start, stop = fr
+        key = (t["actor"], name)
+        if key in seen:
+            err(f"take {name!r} of actor {t['actor']!r} is already line {seen[key]}: outputs would collide "
+                f"(give one a 'name')", "takes", i)
+        seen[key] = lines.of("takes", i) or 0
+        takes.append(Take(t["actor"], video, name, start, stop, lines.of("takes", i)))
+    return Manifest(path, settings, actors, takes)

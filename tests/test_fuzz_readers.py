@@ -1,0 +1,331 @@
+"""Property tests of every file reader: any bytes either parse into finite, validated data or raise a
+:class:`~keyshape.base.errors.KeyshapeError` (one line, naming the file); never another exception.
+
+Each reader gets byte strings built from a valid file of its format: random bytes, truncations,
+flipped bytes, numbers replaced by ``1e300``/``nan``/``inf``/huge integers, deleted spans and
+duplicated lines (a few hundred examples each in the default suite, a few thousand in the slow one).
+The model file is also fuzzed structurally (arrays replaced by NaN, wrong shapes, missing keys).
+"""
+from __future__ import annotations
+
+import io
+import json
+import re
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from keyshape.base.errors import KeyshapeError
+
+TOKENS = [b"1e300", b"-1e300", b"nan", b"NaN", b"inf", b"-inf", b"Infinity", b"1e999", b"", b"0", b"-1", b"1e-320",
+          b"99999999999999999999999", b"\xff\xfe\x00", b",", b"\n", b"{", b"}", b"[", b"]", b'"', b"null", b"true",
+          b" ", b"\t", b"1.5", b"-0", b"\x00", b"# keyshape partial tracks:", b"version: 1", b"n_points: 3"]
+NUMBER = re.compile(rb"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+
+
+@st.composite
+def mutated(draw, seed: bytes):
+    """Bytes near ``seed``: the valid file with a few edits (or, once in ten, random bytes)."""
+    if draw(st.integers(0, 9)) == 0:
+        return draw(st.binary(max_size=300))
+    data = bytearray(seed)
+    for _ in range(draw(st.integers(1, 4))):
+        op = draw(st.integers(0, 6))
+        i = draw(st.integers(0, max(len(data) - 1, 0)))
+        if op == 0 and data:
+            data[i] = draw(st.integers(0, 255))
+        elif op == 1:
+            del data[draw(st.integers(0, len(data))):]
+        elif op == 2:
+            data[i:i] = draw(st.sampled_from(TOKENS))
+        elif op in (3, 4):
+            spans = [m.span() for m in NUMBER.finditer(bytes(data))]
+            if spans:
+                a, b = spans[draw(st.integers(0, len(spans) - 1))]
+                data[a:b] = draw(st.sampled_from(TOKENS))
+        elif op == 5:
+            j = draw(st.integers(i, min(len(data), i + 40)))
+            del data[i:j]
+        else:
+            lines = bytes(data).split(b"\n")
+            k = draw(st.integers(0, len(lines) - 1))
+            lines.insert(draw(st.integers(0, len(lines))), lines[k])
+            data = bytearray(b"\n".join(lines))
+    return bytes(data)
+
+
+def _finite(*arrays) -> None:
+    for a in arrays:
+        a = np.asarray(a)
+        if a.dtype.kind == "f":
+            assert not np.isinf(a).any(), "reader returned infinity"
+
+
+# ------------------------------------------------------------------ seeds: one valid file per format
+def _seed_pts(d: Path) -> bytes:
+    from keyshape.base.formats.labels import write_pts
+    write_pts(d / "s.pts", np.random.default_rng(0).uniform(10, 300, (12, 2)))
+    return (d / "s.pts").read_bytes()
+
+
+def _seed_tracks(d: Path) -> bytes:
+    from keyshape.base.formats.tracks import Tracks, write_tracks
+    rng = np.random.default_rng(1)
+    n, p = 5, 4
+    pose = np.tile([[1.0, 0, 3], [0, 1.0, 4]], (n, 1, 1))
+    write_tracks(d / "s.csv", Tracks(np.arange(n), np.arange(n) / 30, np.ones(n), np.ones(n, bool),
+                                     rng.uniform(0, 200, (n, p, 2)), pose))
+    return (d / "s.csv").read_bytes()
+
+
+def _seed_weights(d: Path) -> bytes:
+    from keyshape.base.formats.weights import write_weights
+    write_weights(d / "w.csv", np.arange(4), ["mouth_0", "mouth_1", "eyes_0"],
+                  np.random.default_rng(2).uniform(0, 1, (4, 3)), np.array([0, 1, 0, 0]))
+    return (d / "w.csv").read_bytes()
+
+
+def _seed_keys(d: Path) -> bytes:
+    from keyshape.base.formats.keys import RegionKeys, write_keys
+    rng = np.random.default_rng(3)
+    pts = np.array([0, 1, 2])
+    rk = RegionKeys("mouth", "spread", pts, np.array([0, 5]), rng.normal(size=(2, 3, 2)), rng.normal(size=(3, 2)),
+                    np.array([True, True]))
+    write_keys(d / "k.json", "contours48", 48, [rk])
+    return (d / "k.json").read_bytes()
+
+
+def _seed_regions(d: Path) -> bytes:
+    return json.dumps({"mouth": [0, 1, 2, 5], "eyes": [3, 4]}).encode()
+
+
+def _seed_obj(d: Path) -> bytes:
+    return (b"# cube corner\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1.5\nvt 0 0\nvt 1 0\nvt 0 1\n"
+            b"g mouth\nf 1/1 2/2 3/3\ng eyes\nf 1 2 4\nf 1 3 4\n")
+
+
+def _take():
+    from keyshape.base.formats.markers import Markers
+    rng = np.random.default_rng(4)
+    pos = rng.normal(0, 50, (6, 4, 3))
+    pos[2, 1] = np.nan
+    return Markers(pos, ["a", "b", "c", "d"], 120.0, "mm")
+
+
+def _seed_trc(d: Path) -> bytes:
+    from keyshape.base.formats.markers import write_trc
+    write_trc(d / "t.trc", _take())
+    return (d / "t.trc").read_bytes()
+
+
+def _seed_c3d(d: Path) -> bytes:
+    from keyshape.base.formats.markers import write_c3d
+    write_c3d(d / "t.c3d", _take())
+    return (d / "t.c3d").read_bytes()
+
+
+def _seed_mesh_markers(d: Path) -> bytes:
+    return json.dumps({"lip": 3, "chin": [0.5, 1.0, -2.0], "nose": {"position": [0.0, 1.0, 2.0], "vertex": 1}}).encode()
+
+
+# ------------------------------------------------------------------ readers and what a success must satisfy
+def _read_pts(p):
+    from keyshape.base.formats.labels import read_pts
+    _finite(read_pts(p))
+
+
+def _read_tracks(p):
+    from keyshape.base.formats.tracks import read_tracks
+    t = read_tracks(p)
+    _finite(t.points, t.pose, t.time, t.confidence)
+    assert (np.diff(t.frame) == 1).all()
+
+
+def _read_weights(p):
+    from keyshape.base.formats.weights import read_weights
+    fr, names, w, flag = read_weights(p)
+    assert np.isfinite(w).all() and (np.diff(fr) == 1).all() and len(names) == w.shape[1]
+
+
+def _read_keys(p):
+    from keyshape.base.formats.keys import read_keys
+    _, n, regions = read_keys(p)
+    for rk in regions:
+        assert np.isfinite(rk.keys).all() and np.isfinite(rk.neutral).all()
+        assert ((rk.points >= 0) & (rk.points < n)).all()
+
+
+def _read_regions(p):
+    from keyshape.retarget.targets import read_regions
+    for idx in read_regions(p).values():
+        assert np.asarray(idx).dtype.kind in "iu" and (np.asarray(idx) >= 0).all()
+
+
+def _read_obj(p):
+    from keyshape.base.formats.obj import read_obj
+    m = read_obj(p)
+    assert np.isfinite(m.vertices).all() and np.isfinite(m.uvs).all()
+    for poly in m.polygons:
+        assert ((poly >= 0) & (poly < m.n_vertices)).all()
+
+
+def _read_take(p):
+    from keyshape.base.formats.markers import read_markers
+    m = read_markers(p)
+    _finite(m.positions)
+    assert np.isfinite(m.rate) and m.rate > 0
+
+
+def _read_mesh_markers(p):
+    from keyshape.base.formats.markers import read_mesh_markers
+    for v in read_mesh_markers(p).values():
+        assert isinstance(v, int) or np.isfinite(np.asarray(v, float)).all()
+
+
+READERS = {
+    "pts": (_seed_pts, ".pts", _read_pts),
+    "tracks": (_seed_tracks, ".csv", _read_tracks),
+    "weights": (_seed_weights, ".csv", _read_weights),
+    "keys": (_seed_keys, ".json", _read_keys),
+    "regions": (_seed_regions, ".json", _read_regions),
+    "obj": (_seed_obj, ".obj", _read_obj),
+    "trc": (_seed_trc, ".trc", _read_take),
+    "c3d": (_seed_c3d, ".c3d", _read_take),
+    "marker_json": (_seed_mesh_markers, ".json", _read_mesh_markers),
+}
+
+
+def _fuzz(name: str, n: int, monkeypatch) -> None:
+    import keyshape.base.formats.markers as mk
+
+    monkeypatch.setattr(mk, "C3D_SECONDS", 3.0)     # ezc3d loops on some damaged files: give up sooner
+    seed_fn, suffix, read = READERS[name]
+    d = Path(tempfile.mkdtemp(prefix=f"fuzz-{name}-"))
+    seed = seed_fn(d)
+    read(_write(d, suffix, seed))                   # the seed itself is valid
+
+    @settings(max_examples=n, deadline=None, database=None, derandomize=n < 1000,
+              suppress_health_check=list(HealthCheck))
+    @given(mutated(seed))
+    def run(data):
+        p = _write(d, suffix, data)
+        try:
+            read(p)
+        except KeyshapeError as exc:
+            assert "\n" not in str(exc).strip(), "error message is more than one line"
+
+    run()
+
+
+def _write(d: Path, suffix: str, data: bytes) -> Path:
+    p = d / f"f{suffix}"
+    p.write_bytes(data)
+    return p
+
+
+@pytest.mark.parametrize("name", sorted(READERS))
+def test_reader_fuzz(name, monkeypatch):
+    _fuzz(name, 60 if name == "c3d" else 250, monkeypatch)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(READERS))
+def test_reader_fuzz_long(name, monkeypatch):
+    _fuzz(name, 600 if name == "c3d" else 3000, monkeypatch)
+
+
+# ------------------------------------------------------------------ the model file, structurally
+@pytest.fixture(scope="module")
+def model_arrays():
+    from keyshape.data_synth.video import SyntheticVideo
+    from keyshape.tracker.eigenpoints import AppearanceModel
+
+    sv = SyntheticVideo(8, 0, (160, 120), 30.0)
+    idx = [0, 2, 4, 6]
+    m = AppearanceModel("contours48", n_morphs=4, rng=0).fit([sv.frame(i) for i in idx], sv.points[idx])
+    buf = io.BytesIO()
+    mf = m.to_file()
+    from keyshape.base.formats.model import write_model
+    d = Path(tempfile.mkdtemp(prefix="fuzz-model-"))
+    write_model(d / "m.npz", mf)
+    with np.load(d / "m.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    del buf
+    return d, arrays
+
+
+@st.composite
+def model_edits(draw, keys):
+    edits = []
+    for _ in range(draw(st.integers(1, 3))):
+        k = draw(st.sampled_from(keys))
+        op = draw(st.sampled_from(["nan", "inf", "big", "drop", "shape", "empty", "text", "meta"]))
+        edits.append((k, op, draw(st.integers(0, 10 ** 6)), draw(st.sampled_from(TOKENS))))
+    return edits
+
+
+def _apply(arrays: dict, edits) -> dict:
+    a = dict(arrays)
+    for k, op, r, tok in edits:
+        if k not in a:
+            continue
+        v = np.array(a[k])
+        if op == "meta" or k == "meta":
+            text = str(a["meta"])
+            spans = [m.span() for m in re.finditer(r"-?\d+(?:\.\d+)?", text)]
+            if spans:
+                s, e = spans[r % len(spans)]
+                text = text[:s] + tok.decode("latin-1") + text[e:]
+            a["meta"] = np.array(text)
+        elif op == "drop":
+            del a[k]
+        elif op == "empty":
+            a[k] = v.reshape(-1)[:0]
+        elif op == "text":
+            a[k] = np.array("x")
+        elif op == "shape" and v.size:
+            a[k] = v.reshape(-1)[: max(1, v.size - 1 - r % max(v.size, 1))]
+        elif v.size and v.dtype.kind == "f":
+            v.reshape(-1)[r % v.size] = {"nan": np.nan, "inf": np.inf, "big": 1e300}[op] if op in ("nan", "inf", "big") else 0
+            a[k] = v
+    return a
+
+
+def _fuzz_model(model_arrays, n):
+    from keyshape.tracker.eigenpoints import AppearanceModel
+
+    d, arrays = model_arrays
+    AppearanceModel.load(d / "m.npz")
+
+    @settings(max_examples=n, deadline=None, database=None, derandomize=n < 1000,
+              suppress_health_check=list(HealthCheck))
+    @given(st.one_of(model_edits(sorted(arrays)), mutated((d / "m.npz").read_bytes()).map(lambda b: b)))
+    def run(edit):
+        p = d / "f.npz"
+        if isinstance(edit, bytes):
+            p.write_bytes(edit)
+        else:
+            with open(p, "wb") as f:
+                np.savez(f, **_apply(arrays, edit))
+        try:
+            m = AppearanceModel.load(p)
+        except KeyshapeError as exc:
+            assert "\n" not in str(exc).strip()
+            return
+        assert np.isfinite(m.components_).all() and np.isfinite(m.mean_).all()
+
+    run()
+
+
+@pytest.mark.filterwarnings("ignore::hypothesis.errors.HypothesisWarning")
+def test_model_fuzz(model_arrays):
+    _fuzz_model(model_arrays, 250)
+
+
+@pytest.mark.slow
+def test_model_fuzz_long(model_arrays):
+    _fuzz_model(model_arrays, 3000)
