@@ -690,6 +690,9 @@ class AppearanceModel:
                 or not np.isfinite(model.components_).all()):
             raise InputError("model file is inconsistent (array shapes do not match each other or the scheme)", path)
         for r in model.region_models_:
+            if any(np.asarray(getattr(r, k)).dtype.kind not in "biuf" for k in RegionModel.ARRAYS) or \
+                    r.train_residuals.ndim != 1 or len(r.train_residuals) < 1:
+                raise InputError(f"model file is inconsistent (region model {r.name!r})", path)
             x0, y0, w, h = (r.box.tolist() + [0, 0, 0, 0])[:4] if r.box.ndim == 1 else (0, 0, 0, 0)
             if (r.box.shape != (4,) or min(x0, y0) < 0 or w < 1 or h < 1 or x0 + w > model.patch_size_
                     or y0 + h > model.patch_size_ or r.points.ndim != 1 or len(r.points) < 1
