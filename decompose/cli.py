@@ -11,15 +11,25 @@ SOLVERS = ("nnls", "lstsq", "smooth")
 
 def register(subparsers) -> None:
     """Add this stage's subcommands to ``subparsers``."""
-    p = subparsers.add_parser("select", help="choose key shapes (key frames) from a tracks file")
-    p.add_argument("tracks", help="tracks CSV (keyshape track, or truth.csv of keyshape synth video)")
+    p = subparsers.add_parser("select", help="choose key shapes (key frames) from one or more tracks files")
+    p.add_argument("tracks", nargs="+",
+                   help="tracks CSV (keyshape track, or truth.csv of keyshape synth video); several files of one "
+                        "actor and one model give one key set for all of them")
     p.add_argument("-k", "--keys", dest="k", type=int, default=None,
                    help="key shapes per region (required but for --method hull2)")
-    p.add_argument("--method", choices=METHODS, default="spread", help="selector (default: spread, the paper's)")
+    p.add_argument("--method", choices=METHODS, default="greedy",
+                   help="selector (default: greedy, best in the project's measurements; spread is the paper's)")
+    p.add_argument("--neutral-frame", default="auto", metavar="F|auto|mean",
+                   help="what the weights are relative to: the actor's neutral, frame F or 'auto' (the most "
+                        "relaxed frame, the default), or 'mean' (the take's mean shape, the paper's centring). "
+                        "The actor's neutral is recorded in KEYS.json either way (for keyshape pose)")
     p.add_argument("--region", action="append", default=None,
                    help="mouth, eyes (with brows) or pupils; repeat for several (default: all the scheme has)")
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
     p.add_argument("--seed", type=int, default=0, help="seed of kmeans/random/greedy (default 0)")
+    p.add_argument("--min-key-distance", type=float, default=0.1,
+                   help="drop near-duplicate keys: a key closer to an earlier key than this fraction of the "
+                        "median key-to-neutral distance (default 0.1; 0 keeps all)")
     p.add_argument("-o", "--output", required=True, help="KEYS.json to write")
     p.add_argument("--sheet", default=None, help="also write a key-frame sheet, .png or .jpg (needs --video)")
     p.add_argument("--video", default=None, help="the video the tracks came from (for --sheet)")
@@ -36,6 +46,8 @@ def register(subparsers) -> None:
     p.add_argument("--ridge", type=float, default=0.0,
                    help="shrink weights towards 0 against tracking noise: Tikhonov term, dimensionless "
                         "(0 = the paper's NNLS, the default; 0.01-0.1 on noisy tracks)")
+    p.add_argument("--allow-foreign-keys", action="store_true",
+                   help="use keys chosen from tracks of another tracker model (refused by default)")
     p.add_argument("-o", "--output", required=True, help="WEIGHTS.csv to write")
     _partial_option(p)
     p.set_defaults(func=_decompose)
@@ -62,19 +74,49 @@ def _partial_option(p) -> None:
                    help="read tracks an interrupted 'keyshape track' marked partial (NAME.partial.csv)")
 
 
-def _load(args):
+def _load(args, path=None):
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.decompose.api import tracks_scheme
 
-    tracks = read_tracks(args.tracks, accept_partial=getattr(args, "accept_partial", False))
-    return tracks, tracks_scheme(tracks, getattr(args, "scheme", None), args.tracks)
+    path = args.tracks if path is None else path
+    tracks = read_tracks(path, accept_partial=getattr(args, "accept_partial", False))
+    return tracks, tracks_scheme(tracks, getattr(args, "scheme", None), path)
+
+
+def _load_many(args):
+    """Several tracks files of one actor: concatenated, with the file index of every row."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.tracks import Tracks
+
+    loaded = [_load(args, p) for p in args.tracks]
+    tracks, scheme = loaded[0]
+    models = {t.meta.get("model") for t, _ in loaded}
+    if len(models) > 1:
+        which = ", ".join(f"{p}: {t.meta.get('model', 'unknown')}" for p, (t, _) in zip(args.tracks, loaded))
+        raise InputError(f"the tracks come from different tracker models ({which}); one key set needs "
+                         "one actor's model")
+    if len({t.n_points for t, _ in loaded}) > 1:
+        raise InputError("the tracks files have different point counts", args.tracks[1])
+    take = np.concatenate([np.full(t.n_frames, i) for i, (t, _) in enumerate(loaded)])
+    orig_frame = np.concatenate([t.frame for t, _ in loaded])
+    if len(loaded) > 1:             # one sequence; frame numbers repeat across files, so rows number them
+        ts = [t for t, _ in loaded]
+        tracks = Tracks(np.arange(len(take)), *(np.concatenate([getattr(t, k) for t in ts]) for k in
+                                                ("time", "confidence", "success", "points", "pose")),
+                        dict(ts[0].meta))
+    source = {"scheme": scheme.name, "tracks": [str(p) for p in args.tracks]}
+    if tracks.meta.get("model"):
+        source["model"] = tracks.meta["model"]
+    return tracks, scheme, take, orig_frame, source
 
 
 def _select(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import write_keys
     from keyshape.base.files import check_outputs
-    from keyshape.decompose.api import select_keys
+    from keyshape.decompose.regions import available_regions, model_shapes, select_region
 
     # everything that can be checked before any work or any output
     if args.k is None and args.method != "hull2":
@@ -83,10 +125,20 @@ def _select(args) -> int:
         raise InputError(f"-k {args.k}: need at least 1 key shape per region")
     if args.sheet and not args.video:
         raise InputError("--sheet needs --video (the video the tracks came from)")
+    if args.sheet and len(args.tracks) > 1:
+        raise InputError("--sheet works with one tracks file (and its --video)")
     if args.sheet and Path(args.sheet).suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise InputError(f"--sheet {args.sheet}: use a .png or .jpg file name")
-    check_outputs([args.output, args.sheet], inputs=[args.tracks, args.video])
-    tracks, _ = _load(args)
+    nf = None if args.neutral_frame == "mean" else args.neutral_frame
+    if nf is not None and nf != "auto" and len(args.tracks) > 1:
+        raise InputError("--neutral-frame F is ambiguous with several tracks files: use auto")
+    if nf is not None and nf != "auto":
+        try:
+            nf = int(nf)
+        except ValueError:
+            raise InputError(f"--neutral-frame must be a frame number, 'auto' or 'mean', got {nf!r}") from None
+    check_outputs([args.output, args.sheet], inputs=[*args.tracks, args.video])
+    tracks, scheme, take, orig_frame, source = _load_many(args)
     if args.video:
         from keyshape.base.formats.video import video_info
         info = video_info(args.video)
@@ -94,13 +146,27 @@ def _select(args) -> int:
         if info.n_frames > 0 and last >= info.n_frames:
             raise InputError(f"the tracks go to frame {last} but the video has {info.n_frames} frames: "
                              "is this the video the tracks came from?", args.video)
-    scheme, chosen = select_keys(tracks, args.k, args.method, args.region, args.scheme, args.seed, args.tracks,
-                                 progress=True)
+    shapes = model_shapes(tracks, args.tracks[0])
+    regions = args.region or available_regions(scheme)
+    try:
+        chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes,
+                                neutral_frame=nf, min_distance=args.min_key_distance, progress=True)
+                  for r in regions]
+    except InputError as exc:
+        raise InputError(str(exc), args.tracks[0]) from None
+    if len(args.tracks) > 1:          # rows were numbered 0..N-1: back to (file, frame)
+        for rk in chosen:
+            rk.takes = take[rk.frames]
+            rk.frames = orig_frame[rk.frames]
+            rk.rest_frame = int(orig_frame[rk.rest_frame])
     # the sheet is made (video decoded) before any output is written: a failure writes nothing
     sheet = encode_sheet(args.sheet, args.video, tracks, scheme, chosen) if args.sheet else None
-    write_keys(args.output, scheme.name, scheme.n_points, chosen)
+    write_keys(args.output, scheme.name, scheme.n_points, chosen, source)
     for rk in chosen:
-        print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}")
+        dropped = f" ({args.k - len(rk.keys)} near-duplicate keys dropped)" if args.k and len(rk.keys) < args.k \
+            else ""
+        print(f"{rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}; "
+              f"neutral frame {rk.rest_frame}{dropped}")
     if sheet is not None:
         from keyshape.base.files import atomic_write
 
@@ -150,6 +216,13 @@ def _decompose(args) -> int:
     check_outputs([args.output], inputs=[args.tracks, args.keys])
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
+    from keyshape.base.formats.keys import read_keys_source
+    src = read_keys_source(args.keys)
+    mk, mt = src.get("model"), tracks.meta.get("model")
+    if mk and mt and mk != mt and not args.allow_foreign_keys:
+        raise InputError(f"these keys were chosen from tracks of another tracker model ({mk}; these tracks: {mt}): "
+                         "keys belong to one actor's model. Select keys from this model's tracks, or pass "
+                         "--allow-foreign-keys", args.keys)
     if n_points != tracks.n_points:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)
@@ -170,15 +243,17 @@ def _compare(args) -> int:
     from keyshape.base.files import atomic_dir, check_output_dir
     from keyshape.decompose.compare import compare, plot_errors, write_errors
 
+    from keyshape.base.progress import Progress
+
     if not 1 <= args.kmin <= args.kmax:
         raise InputError(f"--kmin {args.kmin} --kmax {args.kmax}: need 1 <= kmin <= kmax")
     if not (math.isfinite(args.amplitude) and args.amplitude >= 0):
         raise InputError(f"--amplitude {args.amplitude}: must be a finite number >= 0")
     check_output_dir(args.output, args.overwrite, inputs=[args.tracks])
     tracks, scheme = _load(args)
-    rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
-                   amplitude=args.amplitude, rng=args.seed,
-                   progress=lambda r, m: print(f"  {r}: {m} done", flush=True))
+    with Progress(desc="keyshape compare", unit="rows") as bar:
+        rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
+                       amplitude=args.amplitude, rng=args.seed, progress=bar)
     out = Path(args.output)
     with atomic_dir(out, args.overwrite, inputs=[args.tracks]) as tmp:
         write_errors(tmp / "errors.csv", rows)

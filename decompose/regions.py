@@ -76,11 +76,18 @@ def to_image(model_pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 
 def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | None, method: str = "spread",
-                  rng=None, shapes: np.ndarray | None = None, progress: bool = False) -> RegionKeys:
+                  rng=None, shapes: np.ndarray | None = None, neutral_frame: int | str | None = None,
+                  min_distance: float = 0.0, progress: bool = False) -> RegionKeys:
     """Choose ``n_keys`` key shapes of ``region`` from the successful frames of ``tracks``.
 
     Failed frames (``success=0``) are never candidates. ``shapes`` may pass the
-    already computed :func:`model_shapes`.
+    already computed :func:`model_shapes`. The actor's neutral (``rest``) is always
+    recorded: frame ``neutral_frame`` when it is a frame number, else the most relaxed
+    frame (:func:`relaxed_frame`). With ``neutral_frame`` given (a frame number or
+    ``"auto"``) the weights are relative to that neutral; without it, to the take's mean
+    (the paper's centring). ``min_distance`` > 0 drops near-duplicate keys: a key closer to
+    an earlier key than ``min_distance`` times the median distance of the keys from the
+    neutral (RMS point distance) is left out (so fewer than ``n_keys`` may come back).
     """
     idx = region_points(scheme, region)
     shapes = model_shapes(tracks) if shapes is None else shapes
@@ -89,12 +96,65 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
         raise InputError(f"cannot choose {n_keys} key shapes from {len(ok)} successful frames "
                          f"({tracks.n_frames - len(ok)} of {tracks.n_frames} failed)")
     sub = shapes[ok][:, idx]
+    if neutral_frame is None or neutral_frame == "auto":
+        row = relaxed_frame(shapes[:, idx][ok])
+        row = int(ok[row])
+    else:
+        hit = np.flatnonzero(tracks.frame == int(neutral_frame))
+        if not len(hit) or not tracks.success[hit[0]]:
+            raise InputError(f"neutral frame {neutral_frame} is not a successfully tracked frame of the tracks")
+        row = int(hit[0])
+    rest = shapes[row, idx].copy()
+    # keys are chosen around the take's mean either way (measured: centring the greedy search on
+    # the neutral frame gave worse rig curves on a synthetic take); only the weights' origin moves
     sel = make_selector(method, n_keys if n_keys is not None else 0, rng=rng, progress=progress,
                         desc=f"keyshape select {region}").fit(sub)
     from_frame = np.ones(len(sel.indices_), dtype=bool)
     if getattr(sel, "centre", "nearest") == "mean":
         from_frame[:] = False
-    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_]], sel.keys_, sel.neutral_, from_frame)
+    neutral = sel.neutral_ if neutral_frame is None else rest
+    keep = near_duplicates(sel.keys_, rest, min_distance) if min_distance > 0 else np.arange(len(sel.keys_))
+    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_[keep]]], sel.keys_[keep], neutral,
+                      from_frame[keep], rest, int(tracks.frame[row]))
+
+
+def near_duplicates(keys: np.ndarray, ref: np.ndarray, min_distance: float) -> np.ndarray:
+    """Indices of the keys to keep: each key farther than ``min_distance`` x the median key-to-``ref``
+    distance from every key kept before it (RMS point distances; a loop over keys, not frames)."""
+    k = np.asarray(keys, float)
+    rms = lambda a: np.sqrt((a ** 2).sum(-1).mean(-1))  # noqa: E731
+    scale = float(np.median(rms(k - ref)))
+    d = rms(k[:, None] - k[None])
+    kept: list[int] = []
+    for i in range(len(k)):
+        if all(d[i, j] >= min_distance * scale for j in kept):
+            kept.append(i)
+    return np.array(kept, dtype=np.intp)
+
+
+def relaxed_frame(shapes: np.ndarray, max_frames: int = 1500) -> int:
+    """Row of the most relaxed frame of ``shapes`` (n_frames, n, 2): the densest, most typical shape.
+
+    A performance returns to its relaxed face between expressions, so the shape
+    with the smallest mean distance to its ``max(5, n / 50)`` nearest neighbours
+    (the mode of the shape distribution) is taken as the actor's neutral. NaN rows
+    (failed frames) are never chosen; at most ``max_frames`` evenly spaced rows
+    are compared (one distance matrix, no loop over frames).
+    """
+    X = np.asarray(shapes, float).reshape(len(shapes), -1)
+    ok = np.flatnonzero(np.isfinite(X).all(axis=1))
+    if not len(ok):
+        raise InputError("no successful frame to take the neutral from")
+    rows = ok[np.linspace(0, len(ok) - 1, min(len(ok), max_frames)).round().astype(int)]
+    rows = np.unique(rows)
+    Y = X[rows]
+    sq = (Y ** 2).sum(1)
+    D = np.sqrt(np.maximum(sq[:, None] + sq[None] - 2 * Y @ Y.T, 0))
+    k = min(max(5, len(rows) // 50), len(rows) - 1)
+    if k < 1:
+        return int(rows[0])
+    score = np.sort(D, axis=1)[:, 1:k + 1].mean(axis=1)
+    return int(rows[np.argmin(score)])
 
 
 def decompose_region(tracks: Tracks, keys: RegionKeys, solver: str = "nnls", smooth_lambda: float = 0.1,

@@ -64,10 +64,14 @@ class _Selector:
     def __init__(self, n_keys: int = 8):
         self.n_keys = n_keys
 
-    def fit(self, shapes: np.ndarray) -> "_Selector":
-        """Choose key shapes from ``shapes`` (n_frames, n_points, dim); returns ``self``."""
+    def fit(self, shapes: np.ndarray, neutral: np.ndarray | None = None) -> "_Selector":
+        """Choose key shapes from ``shapes`` (n_frames, n_points, dim); returns ``self``.
+
+        ``neutral`` (n_points, dim): the shape the keys and weights are relative to
+        (default: the mean shape, the paper's centring; the actor's neutral frame makes
+        the NNLS cone start at the relaxed face)."""
         arr = _check_shapes(shapes, self._needed_keys())
-        self.neutral_ = arr.mean(axis=0)
+        self.neutral_ = arr.mean(axis=0) if neutral is None else np.asarray(neutral, dtype=np.float64)
         X = (arr - self.neutral_).reshape(len(arr), -1)
         idx, keys = self._select(X, arr)
         self.indices_ = np.asarray(idx, dtype=np.intp)

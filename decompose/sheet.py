@@ -2,8 +2,9 @@
 
 This is what the artist models the target key shapes from, so each tile shows
 the face enlarged, the key's region drawn bold in the scheme's colours over the
-rest of the face drawn thin and grey, and the key's name (``mouth_3``) and frame
-number in a caption.
+rest of the face drawn thin and grey, and the key's name (``mouth_3``), frame
+number and distance from the actor's neutral (``d``: RMS point distance in model
+units) in a caption. Each region starts with its neutral frame (tile ``N``).
 """
 from __future__ import annotations
 
@@ -26,7 +27,11 @@ def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[Re
         sub = Scheme(scheme.name, scheme.n_points,
                      {n: c for n, c in scheme.contours.items() if set(c) <= set(rk.points.tolist())},
                      scheme.closed, scheme.regions, scheme.inter_ocular)
-        for name, f, key, exact in zip(rk.names, rk.frames, rk.keys, rk.from_frame):
+        ref = rk.rest if rk.rest is not None else rk.neutral
+        items = list(zip(rk.names, rk.frames, rk.keys, rk.from_frame))
+        if rk.rest is not None and rk.rest_frame is not None:          # the actor's neutral first
+            items.insert(0, (f"{rk.region}_neutral", rk.rest_frame, rk.rest, True))
+        for name, f, key, exact in items:
             if int(f) not in row_of:
                 raise InputError(f"key {name} names frame {f}, which the tracks file does not have")
             r = row_of[int(f)]
@@ -40,12 +45,14 @@ def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[Re
             big = draw_shape(big, p, scheme, colour=(150, 150, 150), thickness=1)
             big = draw_shape(big, np.where(np.isin(np.arange(len(p)), rk.points)[:, None], p, np.nan), sub,
                              thickness=2)
-            num = name.rsplit("_", 1)[1]
+            num = name.rsplit("_", 1)[1][:1].upper() if name.endswith("neutral") else name.rsplit("_", 1)[1]
             cv2.putText(big, num, (8, big.shape[0] - 10), cv2.FONT_HERSHEY_DUPLEX, 1.2, (0, 0, 0), 4, cv2.LINE_AA)
             cv2.putText(big, num, (8, big.shape[0] - 10), cv2.FONT_HERSHEY_DUPLEX, 1.2, (255, 255, 255), 1,
                         cv2.LINE_AA)
             tiles.append(big)
-            captions.append(f"{name}  frame {int(f)}" + ("" if exact else " (cluster mean)"))
+            dist = float(np.sqrt(((key - ref) ** 2).sum(axis=1).mean()))       # RMS point distance, model units
+            captions.append(f"{name}  frame {int(f)}" + ("" if exact else " (cluster mean)")
+                            + ("" if name.endswith("neutral") else f"  d={dist:.1f}"))
     return tiles, captions
 
 
@@ -54,7 +61,8 @@ def key_sheet(video_path, tracks: Tracks, scheme: Scheme, regions: list[RegionKe
     """The sheet image (BGR uint8) for ``regions``' keys, frames decoded from ``video_path``."""
     from keyshape.base.formats.video import VideoReader
 
-    wanted = sorted({int(f) for rk in regions for f in rk.frames})
+    wanted = sorted({int(f) for rk in regions for f in rk.frames}
+                    | {int(rk.rest_frame) for rk in regions if rk.rest_frame is not None})
     images = VideoReader(video_path).read_frames(wanted)
     tiles, captions = key_tiles(dict(zip(wanted, images)), tracks, scheme, regions, tile_width)
     return contact_sheet(tiles, captions, columns=columns, tile_width=tile_width)

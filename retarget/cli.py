@@ -12,8 +12,14 @@ def register(subparsers) -> None:
                     "per-frame key-shape weights; write .glb, .csv, a folder of OBJ/PNG frames or a video.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("weights", help="weights CSV: frame,REGION_K,... (from keyshape decompose)")
-    p.add_argument("--targets", nargs="+", required=True, metavar="DIR|FILE",
-                   help="folder or files of target key shapes (.obj, .pts, .json)")
+    p.add_argument("--targets", nargs="+", metavar="DIR|FILE",
+                   help="folder or files of target key shapes (.obj, .pts, .json): one sculpted target per key "
+                        "(the paper's route); or use --poses with --rig")
+    p.add_argument("--poses", help="POSES.json from keyshape pose: drive an existing blendshape rig (--rig) "
+                                   "and write the rig's own curves")
+    p.add_argument("--rig", nargs="+", metavar="DIR|FILE",
+                   help="with --poses: the rig, a folder of shape OBJs (or a list of OBJ files); its neutral is "
+                        "--neutral or the folder's neutral.*/generic_neutral_mesh.obj")
     p.add_argument("--map", dest="mapping", help='mapping JSON {"REGION_K": "target file"} '
                                                  "(default: match column names to file stems)")
     p.add_argument("--neutral", help="neutral mesh/drawing (needed for --form delta; base of the .glb)")
@@ -22,15 +28,22 @@ def register(subparsers) -> None:
                         "decompose's, relative to the sequence's mean shape); absolute: sum w_i B_i (the paper's "
                         "literal form); auto: delta when a neutral is given or found, else absolute")
     p.add_argument("--regions", help="region vertex groups: JSON {region: [vertex indices] | 'OBJ group'} "
-                                     "or an OBJ with groups; columns REGION_K use region REGION")
+                                     "or an OBJ with groups; columns REGION_K use region REGION; 'auto': from "
+                                     "the targets' own support (each vertex to the region whose targets move "
+                                     "it most)")
     p.add_argument("--band", type=float, default=None,
                    help="region blending band width in mesh units (default 10%% of the bounding-box diagonal)")
     p.add_argument("--metric", choices=("geodesic", "euclidean"), default="geodesic",
                    help="distance for the region band")
     p.add_argument("--tracks", help="tracks CSV: its 2D pose gives the head motion (root transform)")
     p.add_argument("--reference-frame", type=int, default=0, help="tracks frame taken as the rest head pose")
-    p.add_argument("--head-units", type=float, default=1.0,
-                   help="mesh units per tracker model unit, scales the head translation")
+    p.add_argument("--head-units", type=float, default=None,
+                   help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
+                        "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
+                        "with --targets, 1)")
+    p.add_argument("--landmarks", default=None,
+                   help="with --rig: rig landmark JSON (default: the shipped one for ICT-FaceKit rigs); used for "
+                        "the head translation's units")
     p.add_argument("--bake-head", action="store_true", help="apply head motion to OBJ/PNG/video frames")
     p.add_argument("--fps", type=float, default=None,
                    help="frame rate (default: from the tracks' timestamps, else 30)")
@@ -51,29 +64,31 @@ def _input_files(args) -> list:
     """Every file this run reads (an output may be none of them)."""
     from pathlib import Path
 
-    files = [args.weights, args.mapping, args.neutral, args.regions, args.tracks]
-    for t in args.targets:
+    files = [args.weights, args.mapping, args.neutral, args.regions, args.tracks, args.poses, args.landmarks]
+    for t in (args.targets or []) + (args.rig or []):
         p = Path(t)
         files += list(p.iterdir()) if p.is_dir() else [p]
         if p.is_dir():
             files.append(p)
-    return [f for f in files if f is not None]
+    return [f for f in files if f is not None and f != "auto"]
 
 
 def run(args) -> int:
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.base.formats.weights import read_weights
-    from keyshape.retarget.api import fit_retargeter, head_from_tracks
-    from keyshape.retarget.export import export
     from keyshape.base.files import check_output, check_output_dir
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.api import fit_retargeter
+    from keyshape.retarget.export import export
 
     for name, v, lo in (("--head-units", args.head_units, 0.0), ("--fps", args.fps, 0.0), ("--band", args.band, 0.0)):
         if v is not None and not (np.isfinite(v) and lo < v < 1e9):
             raise InputError(f"{name} {v}: must be a finite number > {lo:g}")
     if args.reference_frame < 0:
         raise InputError(f"--reference-frame {args.reference_frame}: frames are numbered from 0")
+    if not (args.targets or args.poses or args.rig):
+        raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
     inputs = _input_files(args)
     from pathlib import Path as _P
     out_is_dir = _P(args.output).suffix == "" or _P(args.output).is_dir()
@@ -81,17 +96,27 @@ def run(args) -> int:
         check_output_dir(args.output, args.overwrite, inputs)
     else:
         check_output(args.output, "file", inputs)
+    if args.poses or args.rig:
+        return run_rig(args, inputs)
     frames, columns, weights, _ = read_weights(args.weights)
-    rt = fit_retargeter(columns, args.targets, args.regions, mapping=args.mapping, neutral=args.neutral,
-                        form=args.form, band=args.band, metric=args.metric)
-    ts = rt.targets_
-    head, fps = None, args.fps
-    if args.tracks:
-        from keyshape.base.formats.tracks import read_tracks
+    regions = args.regions
+    if regions == "auto":
+        from keyshape.retarget.rig import support_regions
+        from keyshape.retarget.targets import load_targets
 
-        head, tracks_fps = head_from_tracks(read_tracks(args.tracks, accept_partial=args.accept_partial), frames,
-                                            args.reference_frame, args.head_units, args.tracks)
-        fps = fps or tracks_fps
+        targets = args.targets[0] if len(args.targets) == 1 else args.targets
+        ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
+        if ts.neutral is None:
+            raise InputError("--regions auto needs a neutral (--neutral or neutral.* among the targets)")
+        regions = support_regions(ts.shapes, ts.neutral, ts.columns)
+        print("keyshape retarget: regions from the targets' own support: "
+              + ", ".join(f"{r} {len(g)} vertices" for r, g in regions.items()))
+        rt = fit_retargeter(columns, ts, regions, form=args.form, band=args.band, metric=args.metric)
+    else:
+        rt = fit_retargeter(columns, args.targets, regions, mapping=args.mapping, neutral=args.neutral,
+                            form=args.form, band=args.band, metric=args.metric)
+    ts = rt.targets_
+    head, fps = _head(args, frames)
     fps = fps or 30.0
     info = export(args.output, rt, frames, weights, fps=fps, head=head, clamp=args.clamp, livelink=args.livelink,
                   bake_head=args.bake_head, scheme=args.scheme, overwrite=args.overwrite, inputs=inputs)
@@ -101,3 +126,69 @@ def run(args) -> int:
           f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"
           f"{extra} -> {info['path']} ({info['kind']})")
     return 0
+
+
+def run_rig(args, inputs: list) -> int:
+    """``retarget --poses POSES.json --rig RIG``: the rig's own curves from key weights."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.poses import read_poses
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.poses import curves_from_library
+    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig_export import export_rig
+
+    if not (args.poses and args.rig):
+        raise InputError("--poses and --rig go together (drive a rig with a pose library)")
+    if args.targets:
+        raise InputError("--targets is for one sculpted target per key; with --poses give --rig only")
+    frames, columns, weights, _ = read_weights(args.weights)
+    needs_mesh = not str(args.output).lower().endswith(".csv")
+    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    lib = read_poses(args.poses, rig.names)
+    curves = curves_from_library(weights, columns, lib, rig.names, args.poses)
+    head, fps = _head(args, frames, rig)
+    fps = fps or 30.0
+    info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
+                      overwrite=args.overwrite, inputs=inputs)
+    used = int((np.abs(curves).max(axis=0) > 0).sum())
+    print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key weights -> {used} of {rig.n_shapes} rig "
+          f"shapes moving at {fps:g} fps -> {info['path']} ({info['kind']})")
+    return 0
+
+
+def rig_head_units(rig, tracks, landmarks=None) -> float:
+    """Rig units per tracker model unit: the rig's inter-ocular distance over the actor's (median, model frame)."""
+    import numpy as np
+
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.regions import model_shapes
+    from keyshape.retarget.rig import rig_landmarks
+    scheme = scheme_for_n_points(tracks.n_points)
+    W, _ = rig_landmarks(rig, scheme.name, landmarks)
+    a, b = scheme.inter_ocular
+    rig_iod = float(np.linalg.norm((W[a] - W[b]) @ rig.neutral))
+    iod = scheme.interocular_distance(model_shapes(tracks)[tracks.success])
+    return rig_iod / float(np.median(iod))
+
+
+def _head(args, frames, rig=None):
+    """Head motion from ``--tracks`` (or None) and the frame rate from its timestamps (or ``--fps``).
+
+    The translation's units: ``--head-units``, else with a rig the rig's inter-ocular distance
+    over the actor's, else 1."""
+    if not args.tracks:
+        return None, args.fps
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.retarget.api import head_from_tracks
+
+    tr = read_tracks(args.tracks, accept_partial=args.accept_partial)
+    units = args.head_units
+    if units is None:
+        units = 1.0 if rig is None else rig_head_units(rig, tr, args.landmarks)
+        if rig is not None:
+            print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
+                  "(rig inter-ocular distance / actor's)")
+    head, tracks_fps = head_from_tracks(tr, frames, args.reference_frame, units, args.tracks)
+    return head, args.fps or tracks_fps

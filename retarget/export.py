@@ -164,7 +164,13 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         ids, uvs, tri = split_at_uv_seams(ts.mesh)
         if len(tri) == 0:
             raise InputError("the target meshes have no faces: .glb needs faces", ts.files[0])
-        write_glb(path, base[ids], tri, deltas[:, ids], names, mw, fps, head, uvs=uvs)
+        from keyshape.retarget.rig import material_parts, vertex_normals
+        mt = ts.mesh.triangles
+        n0 = vertex_normals(base, mt)
+        nd = np.stack([vertex_normals(base + d, mt) - n0 for d in deltas]) if len(deltas) else None
+        write_glb(path, base[ids], tri, deltas[:, ids], names, mw, fps, head, uvs=uvs, normals=n0[ids],
+                  normal_deltas=None if nd is None else nd[:, ids], parts=material_parts(ts.mesh),
+                  first_frame=int(frames[0]) if len(frames) else 0)
         info["n_morph_targets"] = len(names)
         return info
     if kind == "csv":

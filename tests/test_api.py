@@ -69,7 +69,8 @@ def test_api_matches_the_commands(footage, tmp_path):
     np.testing.assert_allclose(from_file.points, tracks.points, atol=5e-5)
 
     keys = api.select(from_file, 4, "spread", ["mouth"])
-    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "mouth",
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "mouth", "--method", "spread",
+                 "--neutral-frame", "mean", "--min-key-distance", "0",
                  "-o", str(tmp_path / "k.json")]) == 0
     np.testing.assert_array_equal(api.Keys.load(tmp_path / "k.json").regions[0].frames, keys.regions[0].frames)
     # keys.json stores shapes to 6 decimals: decompose with the keys as the command reads them

@@ -5,6 +5,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 from scipy.optimize import nnls
 
 from keyshape.cli import main
@@ -62,6 +64,82 @@ def test_nnls_gram_batched_matrices_equal_shared():
     w2, ok = nnls_gram(np.broadcast_to(G, (len(X), 6, 6)), X @ B.T)
     assert ok.all()
     np.testing.assert_allclose(w1, w2, atol=1e-12)
+
+
+def _hard_problem(seed, n_frames=1500, d=40, n_keys=16, cond=1e4):
+    """Keys with a chosen condition number; frames a slow random walk of mixed keys plus noise
+    (temporal coherence, many weights at zero: exercises the coarse-to-fine warm start)."""
+    rng = np.random.default_rng(seed)
+    U, _ = np.linalg.qr(rng.normal(size=(d, n_keys)))
+    V, _ = np.linalg.qr(rng.normal(size=(n_keys, n_keys)))
+    B = (U * np.geomspace(1.0, 1.0 / np.sqrt(cond), n_keys)) @ V.T          # (d, n_keys)
+    walk = np.cumsum(rng.normal(scale=0.05, size=(n_frames, n_keys)), axis=0) + rng.normal(size=n_keys)
+    X = walk @ B.T + rng.normal(scale=0.05, size=(n_frames, d))
+    return B, X
+
+
+@pytest.mark.parametrize("seed,cond", [(0, 1e2), (1, 1e4), (2, 1e6)])
+def test_nnls_gram_equals_scipy_on_ill_conditioned_sequences(seed, cond):
+    B, X = _hard_problem(seed, cond=cond)
+    G, h = B.T @ B, X @ B
+    w, ok = nnls_gram(G, h)
+    assert ok.all() and w.min() >= 0.0
+    assert 0.1 < (w == 0).mean() < 0.9                     # the constraints matter
+    ref = np.array([nnls(B, x, maxiter=2000)[0] for x in X])
+    np.testing.assert_allclose(w, ref, atol=1e-9 * max(1.0, np.abs(ref).max()))
+    # the result does not depend on the row order (only the warm start's speed does)
+    perm = np.random.default_rng(seed).permutation(len(X))
+    w_perm, _ = nnls_gram(G, h[perm])
+    np.testing.assert_allclose(w_perm, w[perm], atol=1e-12 * max(1.0, np.abs(ref).max()))
+    w_cold, _ = nnls_gram(G, h, coarse=1)
+    np.testing.assert_allclose(w_cold, w, atol=1e-12 * max(1.0, np.abs(ref).max()))
+
+
+@pytest.mark.parametrize("case", ["duplicate_keys", "more_keys_than_dims", "zero_key"])
+def test_nnls_rank_deficient_reaches_scipys_residual(case):
+    # the minimiser is not unique here: compare the residual (unique), not the weights
+    rng = np.random.default_rng(5)
+    d, k = 12, 8
+    B = rng.normal(size=(d, k))
+    if case == "duplicate_keys":
+        B[:, 3] = B[:, 1]
+        B[:, 6] = 2.0 * B[:, 0]
+    elif case == "more_keys_than_dims":
+        B = rng.normal(size=(5, k))
+        d = 5
+    else:
+        B[:, 2] = 0.0
+    X = np.cumsum(rng.normal(size=(600, d)), axis=0) * 0.3
+    w, ok = nnls_gram(B.T @ B, X @ B)
+    assert ok.all() and w.min() >= 0.0 and np.isfinite(w).all()
+    r_ours = np.linalg.norm(w @ B.T - X, axis=1)
+    r_ref = np.array([nnls(B, x, maxiter=2000)[1] for x in X])
+    np.testing.assert_allclose(r_ours, r_ref, rtol=1e-9, atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@example(seed=2301282, n_keys=6, n_dims=4, n_frames=1, log_cond=0.0)  # nearly dependent keys, weights ~2,300
+@given(seed=st.integers(0, 2**32 - 1), n_keys=st.integers(1, 10), n_dims=st.integers(1, 14),
+       n_frames=st.integers(1, 300), log_cond=st.floats(0.0, 5.0))
+def test_nnls_gram_property_kkt_and_scipy(seed, n_keys, n_dims, n_frames, log_cond):
+    """Any basis (rank-deficient too), any frames: KKT holds, the residual is scipy's, and where
+    the basis has full column rank the weights are scipy's."""
+    rng = np.random.default_rng(seed)
+    B = rng.normal(size=(n_dims, n_keys)) * np.geomspace(1.0, 10.0 ** -log_cond, n_keys)
+    X = np.cumsum(rng.normal(size=(n_frames, n_dims)), axis=0) * 0.2 + rng.normal(size=n_dims)
+    w, ok = nnls_gram(B.T @ B, X @ B, coarse=4)
+    assert ok.all() and w.min() >= 0.0
+    ref = [nnls(B, x, maxiter=50 * n_keys) for x in X]
+    r_ref = np.array([r[1] for r in ref])
+    # the Gram matrix squares the basis' condition number: where nearly dependent keys give huge
+    # weights (a hypothesis case: 6 keys in 4 dimensions, weights ~2,300) the residual agrees
+    # to 1e-9 of the weights' size times the basis norm, not absolutely
+    tol = 1e-8 * max(1.0, float(np.abs(X).max())) + 1e-9 * float(np.abs(w).max()) * float(np.linalg.norm(B, 2))
+    np.testing.assert_allclose(np.linalg.norm(w @ B.T - X, axis=1), r_ref, rtol=1e-8, atol=tol)
+    s = np.linalg.svd(B, compute_uv=False)
+    if n_dims >= n_keys and s[-1] > 1e-3 * s[0]:
+        wr = np.array([r[0] for r in ref])
+        np.testing.assert_allclose(w, wr, atol=1e-9 * max(1.0, np.abs(wr).max()))
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -400,6 +478,28 @@ def test_sheet_draws_key_frames(tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- target-domain check
+
+def test_compare_reused_factorisation_equals_direct_solves(toy):
+    """compare's per-k leading blocks (one Gram / one QR at kmax) give the weights of solving each k
+    afresh, also where k exceeds the region's coordinates (pupils: 2 points, 4 numbers)."""
+    from keyshape.decompose.compare import _Basis
+
+    _, _, Q = toy
+    sel = SpreadSelector(8).fit(Q)
+    b = _Basis(Q, Q[sel.order_], Q.mean(0))
+    for k in (2, 5, 8):
+        keys = Q[sel.order_[:k]]
+        np.testing.assert_allclose(b.nnls(k), nnls_weights(Q, keys, Q.mean(0)), atol=1e-8)
+        np.testing.assert_allclose(b.lstsq(k), lstsq_weights(Q, keys, Q.mean(0)), atol=1e-8)
+    tracks = toy[0]
+    pupils = region_points(SCHEME, "pupils")
+    Qp = model_shapes(tracks)[:, pupils]
+    bp = _Basis(Qp, Qp[:6], Qp.mean(0))
+    w = bp.lstsq(6)                                   # 6 keys, 4 coordinates: minimum-norm solution
+    np.testing.assert_allclose(w, np.linalg.lstsq((Qp[:6] - Qp.mean(0)).reshape(6, -1).T,
+                                                  (Qp - Qp.mean(0)).reshape(len(Qp), -1).T, rcond=None)[0].T)
+    assert bp.nnls(6).min() >= 0.0
+
 
 def test_target_domain_measures(toy):
     from keyshape.decompose.compare import key_noise_amplification, pixel_errors, smooth_field, target_distortion

@@ -388,3 +388,29 @@ def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, ca
     tr = read_tracks(part, accept_partial=True)
     np.testing.assert_array_equal(tr.frame, [0, 1, 2, 3])
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_prefetched_decode_thread_keeps_order_errors_and_early_stop():
+    from keyshape.tracker.commands import _prefetched
+
+    assert list(_prefetched(iter(range(100)), depth=3)) == list(range(100))
+    closed = []
+
+    def gen():
+        try:
+            for i in range(10):
+                yield i
+            raise ValueError("broken frame")
+        finally:
+            closed.append(True)
+
+    got = []
+    with pytest.raises(ValueError, match="broken frame"):
+        for x in _prefetched(gen(), depth=2):
+            got.append(x)
+    assert got == list(range(10)) and closed == [True]
+    closed.clear()
+    for x in _prefetched(gen(), depth=2):
+        if x == 3:
+            break
+    assert closed == [True]  # the producer stopped and closed the generator in its thread

@@ -69,6 +69,21 @@ def fit_model(video, labels, scheme="contours48", n_components: int | None = Non
     return AppearanceModel(sch, n_components=n_components, n_morphs=n_morphs, rng=rng).fit(list(images), shapes)
 
 
+def model_fingerprint(model: AppearanceModel) -> str:
+    """A short, stable identity of a trained model: ``sha256:`` of its learnt arrays (16 hex digits).
+
+    Written into the tracks it makes (``# keyshape-tracks`` line) and from there into
+    KEYS.json, so ``keyshape decompose`` can refuse keys chosen with another model.
+    """
+    import hashlib
+
+    h = hashlib.sha256()
+    for k in AppearanceModel._ARRAYS:
+        a = np.ascontiguousarray(getattr(model, k))
+        h.update(k.encode() + str(a.shape).encode() + a.astype(np.float64).tobytes())
+    return "sha256:" + h.hexdigest()[:16]
+
+
 def train_model(video, labels_dir, scheme="contours48", n_components: int | None = None, n_morphs: int = 120,
                 rng=0) -> tuple[AppearanceModel, float]:
     """:func:`fit_model` from a labels folder; return the model and the seconds taken."""
@@ -77,14 +92,76 @@ def train_model(video, labels_dir, scheme="contours48", n_components: int | None
     return model, time.perf_counter() - t0
 
 
+class _Raised:
+    """An exception raised by :func:`_prefetched`'s producer, handed to the consumer."""
+
+    def __init__(self, exc: BaseException):
+        self.exc = exc
+
+
+def _prefetched(items, depth: int = 8):
+    """Iterate over ``items`` while a background thread produces up to ``depth`` of them ahead.
+
+    The producer's exceptions are re-raised in the consumer; leaving the loop early (``break``,
+    Ctrl-C, an error) stops the producer and closes ``items`` in its thread.
+    """
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(x) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(x, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce():
+        it = iter(items)
+        try:
+            for x in it:
+                if not put(x):
+                    break
+            else:
+                put(end)
+        except BaseException as exc:  # noqa: BLE001 - handed over to the consumer
+            put(_Raised(exc))
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()
+
+    thread = threading.Thread(target=produce, name="keyshape-decode", daemon=True)
+    thread.start()
+    try:
+        while True:
+            x = q.get()
+            if x is end:
+                break
+            if isinstance(x, _Raised):
+                raise x.exc
+            yield x
+    finally:
+        stop.set()
+        thread.join()
+
+
 def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int = 0, stop: int | None = None,
-               tracker_options: dict | None = None, keep_frames: bool = False, reader: VideoReader | None = None):
+               tracker_options: dict | None = None, keep_frames: bool = False, reader: VideoReader | None = None,
+               decode_thread: bool = True):
     """Track frames ``start`` to ``stop`` (exclusive; None: the end) of ``video``, one at a time.
 
     Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the
     temporal smoothing ``smooth`` (which delays the output by its window). Frames before
     ``start`` are decoded and skipped; the tracker starts afresh at ``start``. On Ctrl-C the
     frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
+    With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead
+    (OpenCV's decoder releases the GIL, so decoding overlaps tracking; same frames, same order).
     """
     from keyshape.tracker.fitting import Tracker
     from keyshape.tracker.smoothing import StreamSmoother
@@ -94,7 +171,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
     try:
-        for i, frame in reader:
+        for i, frame in _prefetched(reader) if decode_thread else reader:
             if i < start:
                 continue
             if stop is not None and i >= stop:
@@ -131,7 +208,8 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
         raise InputError(f"no frames from {start} on (the video has {reader.n_read} frames)", video)
     frame = np.array([r[0] for r in rows], dtype=np.int64)
     return Tracks(frame, frame / fps, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                  np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]))
+                  np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]),
+                  {"model": model_fingerprint(model), "scheme": model.scheme_.name})
 
 
 def check_label_geometry(frames: np.ndarray, shapes: np.ndarray, labels_dir) -> None:
@@ -165,7 +243,7 @@ class TrackSummary:
 
 
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
-                tracker_options: dict | None = None, scheme=None) -> TrackSummary:
+                tracker_options: dict | None = None, scheme=None, decode_thread: bool = True) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
 
     Frames are decoded, tracked, written and (with ``overlay``) drawn one at a
@@ -197,11 +275,12 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     try:
         with contextlib.ExitStack() as stack:
             f = stack.enter_context(open(tmp_csv, "w"))
-            writer = TracksWriter(f, model.n_points)
+            writer = TracksWriter(f, model.n_points, {"model": model_fingerprint(model), "scheme": model.scheme_.name})
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:
                 for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
-                                                  keep_frames=vw is not None, reader=reader):
+                                                  keep_frames=vw is not None, reader=reader,
+                                                  decode_thread=decode_thread):
                     n_lost += not res.success
                     writer.write(res.index, res.index / info.fps, res.confidence, res.success, pts, res.pose)
                     if vw is not None:

@@ -4,7 +4,8 @@ Written with pygltflib. Layout (the conventions of glTF 2.0 morph targets):
 
 * node 0 ``head`` (root): carries the head motion as translation/rotation/scale
   channels (see :mod:`keyshape.retarget.headpose`); node 1 ``face`` (its child) holds the mesh.
-* mesh: one primitive, triangles (polygons fan-triangulated), ``POSITION`` of the base
+* mesh: one primitive per material (all sharing the vertex attributes and targets),
+  triangles (polygons fan-triangulated), ``NORMAL`` when given, ``POSITION`` of the base
   shape, ``TEXCOORD_0`` when the OBJ has UVs (vertices split at UV seams), ``targets[i].POSITION`` = target i minus the base (deltas), default
   ``mesh.weights`` and the target names in ``mesh.extras.targetNames`` (read by
   Blender's importer, three.js and glTFast).
@@ -90,7 +91,9 @@ def split_at_uv_seams(mesh) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
 
 def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, names: Sequence[str],
                weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-               default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None):
+               default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
+               normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
+               parts: Sequence | None = None, first_frame: int = 0):
     """Build a :class:`pygltflib.GLTF2` in memory (see :func:`write_glb`)."""
     import pygltflib as g
     base = np.asarray(base, dtype=np.float64)
@@ -113,25 +116,53 @@ def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, name
     gltf = g.GLTF2(asset=g.Asset(version="2.0", generator="keyshape"))
     blob = _Blob(gltf)
     pos = blob.add(base.astype(np.float32), "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)
-    idx = blob.add(tri.astype(np.uint32).reshape(-1), "SCALAR", UINT, g.ELEMENT_ARRAY_BUFFER, minmax=False)
-    tgt = [{"POSITION": blob.add(d, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)} for d in tg.astype(np.float32)]
+    if parts is None:
+        parts = [("skin", np.arange(len(tri)), (0.8, 0.72, 0.66, 1.0))]
+    nd = None
+    if normals is not None:
+        if np.shape(normals) != base.shape:
+            raise InputError(f"normals: expected {base.shape}, got {np.shape(normals)}")
+        if normal_deltas is not None:
+            nd = np.asarray(normal_deltas, np.float32)
+            if nd.shape != tg.shape:
+                raise InputError(f"normal deltas: expected {tg.shape}, got {nd.shape}")
+    tgt = []
+    for i, d in enumerate(tg.astype(np.float32)):
+        t = {"POSITION": blob.add(d, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)}
+        if nd is not None:
+            t["NORMAL"] = blob.add(nd[i], "VEC3", FLOAT, g.ARRAY_BUFFER)
+        tgt.append(t)
     dw = np.zeros(len(tg)) if default_weights is None else np.asarray(default_weights, dtype=np.float64)
     attrs = g.Attributes(POSITION=pos)
+    if normals is not None:
+        attrs.NORMAL = blob.add(np.asarray(normals, np.float32), "VEC3", FLOAT, g.ARRAY_BUFFER)
     if uvs is not None:
         if np.shape(uvs) != (len(base), 2):
             raise InputError(f"uvs: expected ({len(base)}, 2), got {np.shape(uvs)}")
         attrs.TEXCOORD_0 = blob.add(np.asarray(uvs, np.float32), "VEC2", FLOAT, g.ARRAY_BUFFER)
-    gltf.materials.append(g.Material(name="skin", pbrMetallicRoughness=g.PbrMetallicRoughness(
-        baseColorFactor=[0.8, 0.72, 0.66, 1.0], metallicFactor=0.0, roughnessFactor=0.7)))
-    prim = g.Primitive(attributes=attrs, indices=idx, targets=tgt, mode=4, material=0)
-    gltf.meshes.append(g.Mesh(name="face", primitives=[prim], weights=[float(x) for x in dw],
+    prims = []
+    for name, sel, rgba in parts:
+        if not len(sel):
+            continue
+        idx = blob.add(tri[np.asarray(sel)].astype(np.uint32).reshape(-1), "SCALAR", UINT,
+                       g.ELEMENT_ARRAY_BUFFER, minmax=False)
+        gltf.materials.append(g.Material(name=str(name), pbrMetallicRoughness=g.PbrMetallicRoughness(
+            baseColorFactor=[float(x) for x in rgba], metallicFactor=0.0, roughnessFactor=0.7),
+            alphaMode="BLEND" if rgba[3] < 1 else "OPAQUE"))
+        prims.append(g.Primitive(attributes=attrs, indices=idx, targets=tgt, mode=4,
+                                 material=len(gltf.materials) - 1))
+    gltf.meshes.append(g.Mesh(name="face", primitives=prims, weights=[float(x) for x in dw],
                               extras={"targetNames": [str(n) for n in names]}))
     gltf.nodes.append(g.Node(name="head", children=[1]))
     gltf.nodes.append(g.Node(name="face", mesh=0))
-    gltf.scenes.append(g.Scene(name="scene", nodes=[0]))
+    n_frames = 0 if weights is None else len(weights)
+    extras = {"fps": float(fps)}
+    if n_frames:
+        extras.update(frame_start=int(first_frame), frame_end=int(first_frame + n_frames - 1))
+    gltf.scenes.append(g.Scene(name="scene", nodes=[0], extras=extras))
     gltf.scene = 0
     if weights is not None and len(weights):
-        times = (np.arange(len(weights)) / fps).astype(np.float32)
+        times = ((first_frame + np.arange(len(weights))) / fps).astype(np.float32)
         t_acc = blob.add(times, "SCALAR", FLOAT, minmax=True)
         samplers = [g.AnimationSampler(input=t_acc, output=blob.add(weights.astype(np.float32).reshape(-1),
                                                                     "SCALAR", FLOAT), interpolation="LINEAR")]
@@ -154,7 +185,9 @@ def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, name
 
 def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray,
               names: Sequence[str], weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-              default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None) -> None:
+              default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
+              normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
+              parts: Sequence | None = None, first_frame: int = 0) -> None:
     """Write a .glb atomically.
 
     Parameters
@@ -168,10 +201,20 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas:
     head : :class:`retarget.headpose.HeadMotion` or None
     default_weights : (n_targets,) ``mesh.weights`` (default zeros)
     uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
+    normals : (n_vertices, 3) unit vertex normals (``NORMAL``; smooth shading), or None
+    normal_deltas : (n_targets, n_vertices, 3) ``NORMAL`` of each morph target (the change of the
+        normals), or None
+    parts : [(material name, triangle indices, (r, g, b, a)), ...]: one primitive per material
+        sharing the vertex attributes and morph targets (default one ``skin`` primitive)
+    first_frame : frame number of the first weight row; the sampler times are ``frame / fps`` and
+        the scene's ``extras`` hold ``fps``, ``frame_start`` and ``frame_end`` (Blender keeps
+        scene extras as custom properties; ``bench/blender_import_curves.py`` sets the scene's
+        frame range from them; Blender's own importer does not set the scene range)
 
     See :func:`retarget.export.morph_targets` for how target shapes, regions and the
     absolute form become glTF deltas and weights exactly.
     """
-    gltf = build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs)
+    gltf = build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs, normals,
+                      normal_deltas, parts, first_frame)
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))

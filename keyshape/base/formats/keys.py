@@ -12,8 +12,14 @@ KEYS.json::
 
 ``frame`` is the video frame number (the tracks file's ``frame`` column) the key
 was taken from (for k-means centres of mass, ``from_frame`` is false and
-``frame`` is the nearest frame). ``neutral`` is the mean shape the weights are
-relative to: a frame is ``neutral + sum_i w_i (key_i - neutral)``. The weights of
+``frame`` is the nearest frame). ``neutral`` is the shape the weights are
+relative to (the take's mean, or the actor's neutral with ``select --neutral-frame``):
+a frame is ``neutral + sum_i w_i (key_i - neutral)``. Optional ``rest`` /
+``rest_frame``: the actor's neutral (most relaxed) shape of the region and its frame,
+which ``keyshape pose`` measures key motion from. Optional top-level ``source``:
+``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``, the tracker model the keys'
+tracks came from (``keyshape decompose`` refuses keys of another model); with several
+tracks files each key has ``"take"``, the index of its file. The weights of
 the key shapes per frame are WEIGHTS.csv (:mod:`keyshape.base.formats.weights`).
 """
 from __future__ import annotations
@@ -43,8 +49,13 @@ class RegionKeys:
     points : (n,) point indices of the region in the scheme
     frames : (n_keys,) video frame numbers of the key frames (``tracks.frame``)
     keys : (n_keys, n, 2) key shapes
-    neutral : (n, 2) the mean shape weights are relative to
+    neutral : (n, 2) the shape weights are relative to (the take's mean, or the actor's neutral frame)
     from_frame : (n_keys,) bool, False for keys that are cluster means rather than frames
+    rest : (n, 2) or None, the actor's neutral (most relaxed) shape of the region, what a rig
+        pose's motion is measured from (``keyshape pose``)
+    rest_frame : int or None, the video frame ``rest`` was taken from
+    takes : (n_keys,) int or None, for keys chosen from several tracks files: which file
+        (index into KEYS.json's ``source.tracks``) each key's frame is in
     """
 
     region: str
@@ -54,6 +65,9 @@ class RegionKeys:
     keys: np.ndarray
     neutral: np.ndarray
     from_frame: np.ndarray = field(default=None)
+    rest: np.ndarray | None = None
+    rest_frame: int | None = None
+    takes: np.ndarray | None = None
 
     def __post_init__(self):
         if self.from_frame is None:
@@ -64,16 +78,28 @@ class RegionKeys:
         return [f"{self.region}_{i}" for i in range(len(self.keys))]
 
 
-def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[RegionKeys]) -> None:
-    """Write key shapes of one or more regions to a KEYS.json file, atomically."""
+def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[RegionKeys],
+               source: dict | None = None) -> None:
+    """Write key shapes of one or more regions to a KEYS.json file, atomically.
+
+    ``source``: where the keys came from, ``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``
+    (``keyshape decompose`` refuses keys of another model)."""
     data = {"format": FORMAT, "version": 1, "scheme": scheme_name, "n_points": int(n_points),
             "coordinates": "model frame (head pose removed)", "regions": {}}
+    if source:
+        data["source"] = source
     for rk in regions:
         data["regions"][rk.region] = {
             "method": rk.method, "points": [int(i) for i in rk.points],
             "neutral": np.round(rk.neutral, 6).tolist(),
             "keys": [{"name": name, "frame": int(f), "from_frame": bool(ff), "shape": np.round(s, 6).tolist()}
                      for name, f, ff, s in zip(rk.names, rk.frames, rk.from_frame, rk.keys)]}
+        if rk.rest is not None:
+            data["regions"][rk.region]["rest"] = np.round(rk.rest, 6).tolist()
+            data["regions"][rk.region]["rest_frame"] = int(rk.rest_frame)
+        if rk.takes is not None:
+            for k, t in zip(data["regions"][rk.region]["keys"], rk.takes):
+                k["take"] = int(t)
     with atomic_write(path) as f:
         json.dump(data, f, indent=1)
         f.write("\n")
@@ -115,7 +141,15 @@ def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
                 raise InputError(f"region {region!r}: implausible coordinates (beyond 1e5 pixels)", path)
             if len(np.unique(pts)) != len(pts):
                 raise InputError(f"region {region!r} names a point twice", path)
-            out.append(RegionKeys(region, str(r.get("method", "")), pts, frames, keys, neutral, ff))
+            rest = np.array(r["rest"], dtype=np.float64) if "rest" in r else None
+            if rest is not None and (rest.shape != (len(pts), 2) or not np.isfinite(rest).all()
+                                     or np.abs(rest).max() > 1e5):
+                raise InputError(f"region {region!r}: rest must be {len(pts)} finite points", path)
+            rest_frame = int(r["rest_frame"]) if "rest_frame" in r else None
+            takes = [k.get("take") for k in r["keys"]]
+            takes = None if any(t is None for t in takes) else np.array([int(t) for t in takes])
+            out.append(RegionKeys(region, str(r.get("method", "")), pts, frames, keys, neutral, ff,
+                                  rest, rest_frame, takes))
             if len({rk.region for rk in out}) != len(out):
                 raise InputError(f"region {region!r} twice", path)
     except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
@@ -125,3 +159,14 @@ def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:
     if not out:
         raise InputError("no regions in key-shapes file", path)
     return scheme, n_points, out
+
+
+def read_keys_source(path: str | Path) -> dict:
+    """The ``source`` of a KEYS.json file (``{}`` when it has none): model, scheme and tracks files."""
+    path = require_file(path, "key-shapes file")
+    try:
+        data = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    src = data.get("source", {}) if isinstance(data, dict) else {}
+    return src if isinstance(src, dict) else {}

@@ -27,6 +27,9 @@ class Mesh:
     uvs : (n_uvs, 2) float64, may be empty
     polygon_uvs : list of (k,) int arrays or None per face (zero-based ``vt`` indices)
     groups : dict of group name -> (n,) int array of face indices (``g`` lines)
+    materials : dict of material name -> (n,) int array of face indices (``usemtl`` lines)
+    material_colours : dict of material name -> (r, g, b) diffuse colour ``Kd`` from the ``mtllib``
+        file beside the OBJ (only materials it defines)
     """
 
     vertices: np.ndarray
@@ -34,6 +37,8 @@ class Mesh:
     uvs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     polygon_uvs: list = field(default_factory=list)
     groups: dict = field(default_factory=dict)
+    materials: dict = field(default_factory=dict)
+    material_colours: dict = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:
@@ -57,7 +62,8 @@ class Mesh:
         v = np.asarray(vertices, dtype=np.float64)
         if v.shape != self.vertices.shape:
             raise InputError(f"vertices: expected shape {self.vertices.shape}, got {v.shape}")
-        return Mesh(v, self.polygons, self.uvs, self.polygon_uvs, self.groups)
+        return Mesh(v, self.polygons, self.uvs, self.polygon_uvs, self.groups, self.materials,
+                    self.material_colours)
 
 
 #: largest plausible vertex coordinate, mesh units (a face in micrometres is 2e5 wide)
@@ -107,7 +113,10 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
     v_rows, v_ln, vt_rows, vt_ln = [], [], [], []
     polygons, polygon_uvs = [], []
     groups: dict[str, list[int]] = {}
+    materials: dict[str, list[int]] = {}
     current: list[int] | None = None
+    current_mtl: list[int] | None = None
+    mtllibs: list[str] = []
     face_lines = []
     for ln, line in enumerate(lines, start=1):
         if line.startswith("v "):
@@ -120,6 +129,12 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
             face_lines.append((ln, line))
             if current is not None:
                 current.append(len(face_lines) - 1)
+            if current_mtl is not None:
+                current_mtl.append(len(face_lines) - 1)
+        elif line.startswith("usemtl"):
+            current_mtl = materials.setdefault(line[6:].strip() or "default", [])
+        elif line.startswith("mtllib "):
+            mtllibs += line[7:].split()
         elif line.startswith("g ") or line.strip() == "g":
             name = line[1:].strip() or "default"
             current = groups.setdefault(name, [])
@@ -154,7 +169,27 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
             polygon_uvs.append(None)
     if require_faces and not polygons:
         raise InputError("mesh has no faces ('f' lines)", path)
-    return Mesh(vertices, polygons, uvs, polygon_uvs, {k: np.array(v, dtype=np.intp) for k, v in groups.items()})
+    return Mesh(vertices, polygons, uvs, polygon_uvs, {k: np.array(v, dtype=np.intp) for k, v in groups.items()},
+                {k: np.array(v, dtype=np.intp) for k, v in materials.items() if v},
+                _material_colours([path.parent / m for m in mtllibs]))
+
+
+def _material_colours(files) -> dict:
+    """``Kd`` of every ``newmtl`` in the given .mtl files that exist (others are skipped)."""
+    out, name = {}, None
+    for f in files:
+        if not Path(f).is_file():
+            continue
+        for line in Path(f).read_text(errors="replace").splitlines():
+            parts = line.split()
+            if len(parts) >= 2 and parts[0] == "newmtl":
+                name = " ".join(parts[1:])
+            elif len(parts) >= 4 and parts[0] == "Kd" and name is not None:
+                try:
+                    out[name] = tuple(float(x) for x in parts[1:4])
+                except ValueError:
+                    pass
+    return out
 
 
 def read_obj_vertices(path: str | Path, n_vertices: int | None = None) -> np.ndarray:

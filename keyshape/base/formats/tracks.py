@@ -11,13 +11,19 @@ Tracks CSV, one row per frame::
 
 The pose is the 2x3 affine map ``image_from_model``: ``[x_img, y_img] =
 A @ [x_model, y_model] + t``.
+
+``keyshape track`` writes one metadata line before the header,
+``# keyshape-tracks {"model": "sha256:...", "scheme": "contours48"}`` (JSON): which model
+and scheme made the tracks (``Tracks.meta``). Readers skip leading ``#`` lines; files
+without one read with empty metadata.
 """
 from __future__ import annotations
 
 import io as _io
+import json
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +50,7 @@ class Tracks:
     success : (n_frames,) bool; False where tracking failed (points are then NaN or not to be trusted)
     points : (n_frames, n_points, 2) float64, image pixels
     pose : (n_frames, 2, 3) float64, affine ``image_from_model``
+    meta : dict, e.g. ``{"model": "sha256:...", "scheme": "contours48"}`` (empty when unknown)
     """
 
     frame: np.ndarray
@@ -52,6 +59,7 @@ class Tracks:
     success: np.ndarray
     points: np.ndarray
     pose: np.ndarray
+    meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -78,7 +86,7 @@ class Tracks:
 
     def __getitem__(self, idx) -> "Tracks":
         return Tracks(self.frame[idx], self.time[idx], self.confidence[idx], self.success[idx],
-                      self.points[idx], self.pose[idx])
+                      self.points[idx], self.pose[idx], dict(self.meta))
 
 
 def tracks_header(n_points: int) -> list[str]:
@@ -96,8 +104,17 @@ def write_tracks(path: str | Path, tracks: Tracks) -> None:
     np.savetxt(buf, data, fmt=fmt, delimiter=",")
     text = buf.getvalue().replace("nan", "")
     with atomic_write(path) as f:
+        f.write(meta_line(tracks.meta))
         f.write(",".join(tracks_header(p)) + "\n")
         f.write(text)
+
+
+META_PREFIX = "# keyshape-tracks "
+
+
+def meta_line(meta: dict | None) -> str:
+    """The metadata line of a tracks CSV ('' for no metadata)."""
+    return META_PREFIX + json.dumps(meta, sort_keys=True) + "\n" if meta else ""
 
 
 def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
@@ -119,8 +136,19 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
             raise InputError("partial tracks from an interrupted 'keyshape track' "
                              f"({lines[0][len(PARTIAL_MARK):].strip()}); pass --accept-partial to use them anyway",
                              path, 1)
-        lines = lines[1:]
-    first = 2 if len(text.splitlines()) != len(lines) else 1   # line number of the header
+    meta: dict = {}
+    skip = 0
+    while skip < len(lines) and lines[skip].startswith("#"):
+        if lines[skip].startswith(META_PREFIX):
+            try:
+                meta = json.loads(lines[skip][len(META_PREFIX):])
+            except json.JSONDecodeError:
+                raise InputError("broken '# keyshape-tracks' metadata line (not JSON)", path, skip + 1) from None
+            if not isinstance(meta, dict):
+                raise InputError("broken '# keyshape-tracks' metadata line (not a JSON object)", path, skip + 1)
+        skip += 1
+    lines = lines[skip:]
+    first = skip + 1   # line number of the header
     if not lines or not lines[0].strip():
         raise InputError("empty file: expected a header row 'frame,time,confidence,success,x_0,...'", path, first)
     header = [h.strip() for h in lines[0].split(",")]
@@ -161,7 +189,7 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     pose = a[:, -6:].reshape(n, 2, 3) if with_pose else np.broadcast_to(
         np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 2, 3)).copy()
     pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:4 + 2 * n_points]], axis=-1)
-    return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose)
+    return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose, meta)
 
 
 #: largest plausible pixel coordinate or pose translation (no video is 100 000 pixels wide)
@@ -219,10 +247,11 @@ class TracksWriter:
     leaves a file that looks complete unless it is finished deliberately.
     """
 
-    def __init__(self, f, n_points: int):
+    def __init__(self, f, n_points: int, meta: dict | None = None):
         self.f = f
         self.n_points = n_points
         self.n_rows = 0
+        f.write(meta_line(meta))
         f.write(",".join(tracks_header(n_points)) + "\n")
 
     def write(self, frame: int, time: float, confidence: float, success: bool, points: np.ndarray,

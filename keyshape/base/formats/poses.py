@@ -1,0 +1,164 @@
+"""POSES.json (a pose library: rig weights per key shape) and rig landmark JSON: readers and writers.
+
+POSES.json, written by ``keyshape pose`` and corrected by hand::
+
+    {"format": "keyshape-poses", "version": 1,
+     "keys": {"file": "keys.json", "scheme": "contours48", "model": "sha256:..."},
+     "rig": {"n_vertices": 26719, "shapes": ["browDown_L", ...]},
+     "range": [0.0, 1.0],
+     "regions": {"mouth": {"shapes": ["jawOpen", "mouthSmile_L", ...],
+                           "neutral": {"jawOpen": 0.12},
+                           "keys": {"mouth_0": {"jawOpen": 0.41, "mouthSmile_L": 0.3}, ...}},
+                 "eyes": {...}}}
+
+Each key's pose is a sparse ``{rig shape: weight}`` object (absent shapes are 0);
+``neutral`` is the pose of the shape the key weights are relative to (the take's
+mean by default; empty when the keys were selected relative to the actor's neutral
+frame). A region's keys drive only the region's ``shapes``. Every weight lies in
+``range`` (the rig shapes' range, [0, 1] for blendshapes).
+
+Rig landmark JSON (which rig vertices the scheme's points are)::
+
+    {"format": "keyshape-rig-landmarks", "version": 1, "scheme": "contours48", "n_vertices": 26719,
+     "points": [1225, [[1888, 0.5], [1052, 0.5]], ...]}
+
+one entry per scheme point: a vertex index, or ``[[vertex, weight], ...]`` (a point
+between vertices; weights sum to 1).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.files import atomic_write
+
+FORMAT = "keyshape-poses"
+LANDMARKS_FORMAT = "keyshape-rig-landmarks"
+
+
+def _load_json(path: Path, what: str):
+    path = require_file(path, what)
+    try:
+        return json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+
+
+def write_poses(path: str | Path, data: dict) -> None:
+    """Write a pose library (the dict layout of the module docstring) atomically."""
+    out = dict(data)
+    out["format"], out["version"] = FORMAT, 1
+    regions = {}
+    for r, reg in data["regions"].items():
+        regions[r] = {"shapes": list(reg["shapes"]),
+                      "neutral": {k: round(float(v), 5) for k, v in reg.get("neutral", {}).items() if v != 0},
+                      "keys": {k: {s: round(float(v), 5) for s, v in pose.items() if v != 0}
+                               for k, pose in reg["keys"].items()}}
+    out["regions"] = regions
+    with atomic_write(path) as f:
+        json.dump(out, f, indent=1)
+        f.write("\n")
+
+
+def read_poses(path: str | Path, rig_shapes: list[str] | None = None) -> dict:
+    """Read and check a POSES.json file.
+
+    Parameters
+    ----------
+    rig_shapes : names of the rig's shapes; when given every shape the file names must be one.
+
+    Raises
+    ------
+    InputError
+        Naming the file: wrong format, a weight that is not a number or lies outside
+        ``range``, a key pose naming a shape outside its region's ``shapes`` or the rig.
+    """
+    path = Path(path)
+    data = _load_json(path, "poses file")
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise InputError(f"not a poses file: expected \"format\": \"{FORMAT}\" (write one with 'keyshape pose')",
+                         path)
+    try:
+        lo, hi = (float(x) for x in data.get("range", [0.0, 1.0]))
+        regions = data["regions"]
+        if not isinstance(regions, dict) or not regions:
+            raise InputError("no regions", path)
+        known = set(rig_shapes) if rig_shapes is not None else None
+        for r, reg in regions.items():
+            shapes = [str(s) for s in reg["shapes"]]
+            if known is not None:
+                bad = [s for s in shapes if s not in known]
+                if bad:
+                    raise InputError(f"region {r!r} names shape(s) {bad[:5]} the rig lacks "
+                                     f"(rig shapes: {', '.join(sorted(known)[:8])}...)", path)
+            allowed = set(shapes)
+            poses = {"neutral": reg.get("neutral", {}), **reg["keys"]}
+            for key, pose in poses.items():
+                if not isinstance(pose, dict):
+                    raise InputError(f"region {r!r}, {key!r}: expected an object {{shape: weight}}", path)
+                for s, v in pose.items():
+                    if s not in allowed:
+                        where = "the rig lacks" if known is not None and s not in known else \
+                            f"is not among region {r!r}'s shapes"
+                        raise InputError(f"region {r!r}, {key!r}: shape {s!r} {where}", path)
+                    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                        raise InputError(f"region {r!r}, {key!r}: weight of {s!r} is not a finite number: {v!r}",
+                                         path)
+                    if not lo - 1e-9 <= v <= hi + 1e-9:
+                        raise InputError(f"region {r!r}, {key!r}: weight {v} of {s!r} is outside the rig's "
+                                         f"range [{lo:g}, {hi:g}]", path)
+            reg["shapes"] = shapes
+        data["range"] = [lo, hi]
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"malformed poses file (missing or bad field: {exc})", path) from None
+    return data
+
+
+def write_rig_landmarks(path: str | Path, scheme: str, n_vertices: int, points: list) -> None:
+    """Write a rig landmark JSON (see the module docstring)."""
+    data = {"format": LANDMARKS_FORMAT, "version": 1, "scheme": scheme, "n_vertices": int(n_vertices),
+            "points": points}
+    with atomic_write(path) as f:
+        json.dump(data, f)
+        f.write("\n")
+
+
+def read_rig_landmarks(path: str | Path, n_vertices: int | None = None) -> tuple[str, np.ndarray]:
+    """Read a rig landmark JSON: (scheme name, (n_points, n_vertices_used) sparse as a dense weight matrix).
+
+    Returns
+    -------
+    scheme : str
+    W : (n_points, n_vertices) float64 with rows summing to 1: ``points = W @ vertices``.
+        (n_vertices from the file's ``n_vertices``.)
+    """
+    path = Path(path)
+    data = _load_json(path, "rig landmark file")
+    if not isinstance(data, dict) or data.get("format") != LANDMARKS_FORMAT:
+        raise InputError(f"not a rig landmark file: expected \"format\": \"{LANDMARKS_FORMAT}\"", path)
+    try:
+        nv = int(data["n_vertices"])
+        scheme = str(data["scheme"])
+        pts = data["points"]
+        if n_vertices is not None and nv != n_vertices:
+            raise InputError(f"landmarks are for a rig of {nv} vertices, this rig has {n_vertices}", path)
+        W = np.zeros((len(pts), nv))
+        for i, p in enumerate(pts):
+            pairs = [[p, 1.0]] if isinstance(p, int) else p
+            for v, w in pairs:
+                if not 0 <= int(v) < nv:
+                    raise InputError(f"point {i}: vertex {v} outside 0..{nv - 1}", path)
+                W[i, int(v)] += float(w)
+        s = W.sum(axis=1)
+        if np.any(np.abs(s - 1) > 1e-6):
+            raise InputError(f"point {int(np.argmax(np.abs(s - 1)))}: vertex weights must sum to 1", path)
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"malformed rig landmark file (missing or bad field: {exc})", path) from None
+    return scheme, W

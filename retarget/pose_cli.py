@@ -1,0 +1,71 @@
+"""``keyshape pose``: suggest each key shape's pose on an artist's blendshape rig (a pose library)."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+    """Add ``pose`` to ``subparsers``."""
+    p = subparsers.add_parser(
+        "pose", help="suggest a rig pose (rig shape weights) for every key shape -> POSES.json",
+        description="For every key of every region of KEYS.json, find non-negative, sparse weights of the rig's "
+                    "shapes (within their range) whose projected landmark motion best matches the key's 2D "
+                    "motion from the actor's neutral. Correct POSES.json by hand, then "
+                    "'keyshape retarget WEIGHTS.csv --poses POSES.json --rig RIG -o OUT'.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("keys", help="KEYS.json from keyshape select")
+    p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE",
+                   help="rig: folder of shape OBJs (or a list of OBJ files) of one topology")
+    p.add_argument("--neutral", default=None,
+                   help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
+    p.add_argument("--landmarks", default=None,
+                   help="rig landmark JSON: the rig vertices of the scheme's points (default: the shipped "
+                        "correspondence for ICT-FaceKit rigs)")
+    p.add_argument("--sparsity", type=float, default=0.01,
+                   help="L1 weight (dimensionless): larger gives fewer shapes per pose")
+    p.add_argument("--nuisance", choices=("auto", "translation", "similarity", "none"), default="auto",
+                   help="region motions fitted freely besides the rig shapes (left by 2D head-pose removal): "
+                        "auto = translation of the mouth, similarity of the eyes and brows")
+    p.add_argument("-o", "--output", required=True, help="POSES.json to write")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from keyshape.base.formats.keys import read_keys, read_keys_source
+    from keyshape.base.formats.poses import write_poses
+    from keyshape.base.schemes import load_scheme
+    from keyshape.decompose.regions import available_regions, region_points
+    from keyshape.retarget.poses import pose_library
+    from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
+
+    scheme_name, n_points, regions = read_keys(args.keys)
+    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=False)
+    W, lm_path = rig_landmarks(rig, scheme_name, args.landmarks)
+    scheme = load_scheme(scheme_name)
+    lm_neutral = project(W @ rig.neutral)
+    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
+    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
+    lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, args.sparsity,
+                       args.nuisance)
+    fit = lib.pop("_fit")
+    data = {"keys": {"file": str(args.keys), "scheme": scheme_name},
+            "rig": {"neutral": str(rig.neutral_file), "n_vertices": rig.n_vertices, "shapes": rig.names,
+                    "landmarks": str(lm_path)},
+            "range": list(rig.value_range), "regions": lib}
+    src = read_keys_source(args.keys)
+    if src.get("model"):
+        data["keys"]["model"] = src["model"]
+    write_poses(args.output, data)
+    for r, reg in lib.items():
+        print(f"{r}: {len(reg['keys'])} keys onto {len(reg['shapes'])} rig shapes")
+        for k, pose in reg["keys"].items():
+            top = sorted(pose.items(), key=lambda kv: -kv[1])[:4]
+            print(f"  {k}: " + (", ".join(f"{s} {v:.2f}" for s, v in top) or "(rest)")
+                  + f"  [residual {100 * fit[k]:.0f}%]")
+    print(f"wrote {Path(args.output)}")
+    return 0

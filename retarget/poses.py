@@ -1,0 +1,247 @@
+"""A pose library: each key shape as a mix of an artist's rig shapes, and rig curves from key weights.
+
+The paper (section 5 of 004_119ba07521a9af0b.txt) replaces each source key shape
+``S_i`` by an artist's target ``T_i`` and keeps the weights (Eq. 2). With an
+existing rig, the target of key ``i`` is itself a rig pose ``T_i = N + D p_i``
+(``D`` the rig's shape deltas, ``p_i`` its weights), so the retargeted frame
+
+    ``N + sum_i w_i (T_i - T_n) + (T_n - N) = N + D (p_n + sum_i w_i (p_i - p_n))``
+
+is the rig driven by the curves ``c = p_n + W (P - p_n)`` (:func:`rig_curves`), where
+``p_n`` is the pose of the shape the key weights are relative to (the take's mean,
+or nothing when keys were chosen relative to the actor's neutral frame).
+
+:func:`fit_pose` suggests ``p_i``: non-negative rig weights within the shapes'
+range, sparse, whose projected landmark motion matches the key's 2D motion from
+the actor's neutral (bounded least squares with an L1 term), after mapping the
+2D motion into the rig's frame with a similarity fitted between the actor's
+neutral and the rig's neutral landmarks (:func:`fit_similarity`).
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+from scipy.optimize import minimize
+
+from keyshape.base.errors import InputError
+
+
+def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama, no reflection).
+
+    Parameters
+    ----------
+    src, dst : (n, 2) corresponding points (n >= 2, not all equal)
+
+    Returns
+    -------
+    s : float, R : (2, 2) rotation, t : (2,)
+    """
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    var = (a ** 2).sum()
+    if var < 1e-12:
+        raise InputError("cannot fit a similarity: the neutral points are all equal")
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    R = U @ np.diag([1.0, d]) @ Vt
+    s = float((S * [1.0, d]).sum() / var)
+    return s, R, md - s * R @ ms
+
+
+def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
+             sparsity: float = 0.02, scale: float | None = None, free: np.ndarray | None = None) -> np.ndarray:
+    """Bounded, sparse least squares: ``argmin ||A p + F q - b||^2 / scale^2 + sparsity * sum_j p_j``.
+
+    Parameters
+    ----------
+    A : (m, n_shapes) motion of the landmarks (flattened) per unit of each rig shape, in the
+        same frame and units as ``b``
+    b : (m,) the key's landmark motion from the neutral
+    bounds : the shapes' range ``[lo, hi]`` with ``lo >= 0`` (so the L1 term is linear)
+    sparsity : weight of the L1 term on the rig weights (0: plain bounded least squares). Every
+        unit of rig weight costs the same, the usual blendshape-solver prior: fewer, stronger
+        shapes are preferred to many weak ones that together move the points alike
+    scale : size of a typical key motion (default ``||b||``); a common scale for all keys of a
+        region keeps a key that barely moves (noise) at the rest pose instead of fitting its noise
+    free : (m, k) nuisance motions with unbounded, unpenalised coefficients ``q`` (e.g. a common
+        translation of the region's points, which 2D head-pose removal leaves behind)
+
+    Returns
+    -------
+    (n_shapes,) weights within ``bounds`` (``q`` is not returned).
+    """
+    A, b = np.asarray(A, float), np.asarray(b, float)
+    lo, hi = bounds
+    if lo < 0:
+        raise InputError(f"fit_pose needs a non-negative range, got {bounds}")
+    n = A.shape[1]
+    if n == 0:
+        return np.zeros(0)
+    scale = float(np.linalg.norm(b)) if scale is None else float(scale)
+    if scale < 1e-12:
+        return np.zeros(n)
+    F = np.zeros((len(b), 0)) if free is None else np.asarray(free, float)
+    k = F.shape[1]
+    As = np.hstack([A, F]) / scale                         # keep the objective O(1)
+    bs = b / scale
+    G, h = As.T @ As, As.T @ bs
+    l1 = np.concatenate([np.full(n, sparsity), np.zeros(k)])
+
+    def f(x):
+        r = As @ x - bs
+        return r @ r + l1 @ x, 2 * (G @ x - h) + l1
+
+    x0 = np.concatenate([np.full(n, lo), np.zeros(k)])
+    res = minimize(f, x0, jac=True, method="L-BFGS-B", bounds=[(lo, hi)] * n + [(None, None)] * k,
+                   options={"maxiter": 5000, "ftol": 1e-15, "gtol": 1e-11})
+    p = np.clip(res.x[:n], lo, hi)
+    p[p < lo + 1e-4 * (hi - lo)] = lo
+    return p
+
+
+def landmark_motion(deltas_2d: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(2 * len(points), n_shapes) matrix ``A`` of :func:`fit_pose` from per-shape 2D point motion."""
+    return deltas_2d[:, points].reshape(len(deltas_2d), -1).T
+
+
+def rig_curves(weights: np.ndarray, poses: np.ndarray, neutral_pose: np.ndarray | None = None,
+               bounds: tuple[float, float] | None = (0.0, 1.0)) -> np.ndarray:
+    """Rig curves from key weights: ``c = p_n + W (P - p_n)``, clipped to the rig's range.
+
+    Parameters
+    ----------
+    weights : (n_frames, n_keys) key-shape weights (``keyshape decompose``)
+    poses : (n_keys, n_shapes) each key's rig pose
+    neutral_pose : (n_shapes,) pose of the shape the weights are relative to (default 0)
+    bounds : clip to this range (None: no clipping)
+
+    Returns
+    -------
+    (n_frames, n_shapes)
+    """
+    W = np.asarray(weights, float)
+    P = np.asarray(poses, float)
+    if W.ndim != 2 or P.ndim != 2 or W.shape[1] != P.shape[0]:
+        raise InputError(f"weights {W.shape} and poses {P.shape} do not match (n_keys)")
+    pn = np.zeros(P.shape[1]) if neutral_pose is None else np.asarray(neutral_pose, float)
+    c = pn + W @ (P - pn)
+    return c if bounds is None else np.clip(c, *bounds)
+
+
+def curves_from_library(weights: np.ndarray, columns: Sequence[str], library: Mapping,
+                        shape_names: Sequence[str], source=None) -> np.ndarray:
+    """Rig curves (n_frames, n_shapes) for weight ``columns`` from a pose library dict (POSES.json layout).
+
+    Each region's keys drive only that region's shapes; shapes of no region stay 0.
+    Raises :class:`InputError` (naming ``source``) for a column without a pose.
+    """
+    index = {n: j for j, n in enumerate(shape_names)}
+    W = np.asarray(weights, float)
+    out = np.zeros((len(W), len(shape_names)))
+    lo, hi = library.get("range", (0.0, 1.0))
+    col = {c: i for i, c in enumerate(columns)}
+    known = {k for reg in library["regions"].values() for k in reg["keys"]}
+    missing = [c for c in columns if c not in known]
+    if missing:
+        raise InputError(f"weight column(s) {missing[:5]} have no pose in the pose library", source)
+    for r, reg in library["regions"].items():
+        keys = [k for k in reg["keys"] if k in col]
+        if not keys:
+            continue
+        shapes = [index[s] for s in reg["shapes"]]
+        local = {s: i for i, s in enumerate(reg["shapes"])}
+        P = np.zeros((len(keys), len(shapes)))
+        for i, k in enumerate(keys):
+            for s, v in reg["keys"][k].items():
+                P[i, local[s]] = v
+        pn = np.zeros(len(shapes))
+        for s, v in reg.get("neutral", {}).items():
+            pn[local[s]] = v
+        out[:, shapes] += rig_curves(W[:, [col[k] for k in keys]], P, pn, None)
+    return np.clip(out, lo, hi)
+
+
+def nuisance_motions(points: np.ndarray, kind: str = "translation") -> np.ndarray | None:
+    """(2n, k) flattened motions of ``points`` (n, 2) a pose fit ignores: ``"none"`` (None),
+    ``"translation"`` (k=2) or ``"similarity"`` (k=4: translation, scale and rotation about the centroid)."""
+    if kind == "none":
+        return None
+    n = len(points)
+    cols = [np.tile([1.0, 0.0], n), np.tile([0.0, 1.0], n)]
+    if kind == "similarity":
+        c = points - points.mean(axis=0)
+        cols += [c.ravel(), np.stack([-c[:, 1], c[:, 0]], 1).ravel()]
+    elif kind != "translation":
+        raise InputError(f"unknown nuisance {kind!r}: use none, translation or similarity")
+    return np.stack(cols, axis=1)
+
+
+def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
+                 region_shapes: Mapping[str, np.ndarray], bounds: tuple[float, float] = (0.0, 1.0),
+                 sparsity: float = 0.01, nuisance: str = "auto") -> dict:
+    """Suggest a rig pose for every key of every region (the ``regions`` part of POSES.json).
+
+    Parameters
+    ----------
+    regions : list of :class:`~keyshape.decompose.regions.RegionKeys` (model frame), each with ``rest``
+        (the actor's neutral; the region's ``neutral`` is used when it has none)
+    shape_names : the rig's shape names
+    landmark_neutral : (n_points, 2) the rig's neutral scheme points, projected (:func:`~keyshape.retarget.rig.project`)
+    landmark_deltas : (n_shapes, n_points, 2) projected motion of the scheme points per rig shape
+    region_shapes : {region: indices of the rig shapes it may drive} (:func:`~keyshape.retarget.rig.shape_regions`)
+    bounds, sparsity : see :func:`fit_pose`; the L1 scale is the region's largest key motion
+    nuisance : "auto" (default), "translation", "similarity" or "none": motions of each region's
+        points fitted freely besides the rig shapes (:func:`nuisance_motions`). 2D head-pose
+        removal shifts a region when another one moves (an open jaw lifts the tracked upper
+        lip) and its rotation/scale errors show across the wide eyes-and-brows region; "auto"
+        frees a translation of the mouth (whose own widening, a smile, is a scale) and a
+        similarity of the other regions. A rig shape that only translates (or scales) a
+        region is then lost.
+
+    Returns
+    -------
+    dict ``{region: {"shapes": [...], "neutral": {shape: w}, "keys": {key: {shape: w}}}}`` plus, under
+    ``"_fit"``, per key the relative residual ``||A p - b|| / ||b||`` of the fit.
+
+    Notes
+    -----
+    The actor's 2D motion is mapped into the rig's frame by the similarity that best
+    maps the actor's neutral points (all regions together) onto the rig's neutral
+    points (:func:`fit_similarity`); each key's pose then solves :func:`fit_pose` on its
+    region's points.
+    """
+    rest = {rk.region: (rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
+    pts = np.concatenate([rk.points for rk in regions])
+    src = np.concatenate([rest[rk.region] for rk in regions])
+    s, R, _ = fit_similarity(src, landmark_neutral[pts])
+    M = s * R
+    out: dict = {}
+    fit: dict = {}
+    for rk in regions:
+        shapes = np.asarray(region_shapes.get(rk.region, []), dtype=np.intp)
+        names = [shape_names[j] for j in shapes]
+        A = landmark_motion(landmark_deltas[shapes], rk.points) if len(shapes) else np.zeros((2 * len(rk.points), 0))
+        kind = nuisance if nuisance != "auto" else ("translation" if rk.region == "mouth" else "similarity")
+        F = nuisance_motions(rest[rk.region] @ M.T, kind)
+        motions = [((x - rest[rk.region]) @ M.T).ravel() for x in [*rk.keys, rk.neutral]]
+        scale = max(float(np.linalg.norm(m)) for m in motions)
+        entry = {"shapes": names, "neutral": {}, "keys": {}}
+
+        def solve(b):
+            p = fit_pose(A, b, bounds, sparsity, scale, F)
+            r = A @ p - b
+            if F is not None:
+                r = r - F @ np.linalg.lstsq(F, r, rcond=None)[0]
+            res = float(np.linalg.norm(r) / max(np.linalg.norm(b), 1e-12))
+            return {names[j]: float(p[j]) for j in np.flatnonzero(p)}, res
+
+        if rk.rest is not None and np.abs(rk.neutral - rk.rest).max() > 1e-9:
+            entry["neutral"], fit[f"{rk.region}_neutral"] = solve(motions[-1])
+        for name, b in zip(rk.names, motions[:-1]):
+            entry["keys"][name], fit[name] = solve(b)
+        out[rk.region] = entry
+    out["_fit"] = fit
+    return out

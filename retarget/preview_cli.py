@@ -1,0 +1,154 @@
+"""``keyshape preview``: a take's footage with its contours beside the shaded rig driven by its curves."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+    """Add ``preview`` to ``subparsers``."""
+    p = subparsers.add_parser(
+        "preview", help="side-by-side video of a take: footage with contours | the shaded rig (and a contact sheet)",
+        description="Render the footage with its tracked contours beside the rig driven by the take's curves "
+                    "(a curves CSV from 'keyshape retarget ... --poses ... -o curves.csv', or key weights with "
+                    "--poses), with a progress bar.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("video", help="the take's video")
+    p.add_argument("--tracks", required=True, help="the take's tracks CSV (contours drawn on the footage)")
+    p.add_argument("--curves", help="rig curves CSV (frame,<rig shape>,...)")
+    p.add_argument("--weights", help="key weights CSV (keyshape decompose), with --poses")
+    p.add_argument("--poses", help="POSES.json (keyshape pose), with --weights")
+    p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE", help="the rig (folder of shape OBJs)")
+    p.add_argument("--neutral", default=None, help="the rig's neutral OBJ (default: found in the folder)")
+    p.add_argument("--frames", default=None, metavar="A:B", help="frame range, B exclusive (default: all)")
+    p.add_argument("--size", type=int, default=None,
+                   help="height of the output in pixels (default: the video's height)")
+    p.add_argument("--sheet", default=None, help="also write a contact sheet (actor | character), .jpg or .png")
+    p.add_argument("--sheet-frames", type=int, default=12, help="frames in the contact sheet, spread over the range")
+    p.add_argument("-o", "--output", default=None, help="OUT.mp4 / .avi (optional with --sheet)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import time
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import atomic_write
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.formats.video import VideoReader
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.base.progress import Progress
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.retarget.preview import RigRenderer, actor_panel, parse_frames
+    from keyshape.retarget.render import side_by_side
+    from keyshape.retarget.rig import load_rig
+
+    if not args.output and not args.sheet:
+        raise InputError("give -o OUT.mp4 and/or --sheet SHEET.jpg")
+    if args.output and Path(args.output).suffix.lower() not in (".mp4", ".avi"):
+        raise InputError("preview output must end in .mp4 or .avi", args.output)
+    if args.sheet and Path(args.sheet).suffix.lower() not in (".jpg", ".jpeg", ".png"):
+        raise InputError("--sheet must end in .jpg or .png", args.sheet)
+    if bool(args.curves) == bool(args.weights or args.poses):
+        raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
+    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    if args.curves:
+        frames, names, c, _ = read_weights(args.curves)
+        missing = [n for n in rig.names if n not in names]
+        if missing and len(missing) == rig.n_shapes:
+            raise InputError("no column names a rig shape", args.curves)
+        curves = np.zeros((len(frames), rig.n_shapes))
+        for j, n in enumerate(rig.names):
+            if n in names:
+                curves[:, j] = c[:, names.index(n)]
+    else:
+        if not (args.weights and args.poses):
+            raise InputError("--weights and --poses go together")
+        from keyshape.base.formats.poses import read_poses
+        from keyshape.retarget.poses import curves_from_library
+        frames, cols, w, _ = read_weights(args.weights)
+        curves = curves_from_library(w, cols, read_poses(args.poses, rig.names), rig.names, args.poses)
+    tracks = read_tracks(args.tracks)
+    scheme = scheme_for_n_points(tracks.n_points)
+    pos = {int(f): i for i, f in enumerate(tracks.frame)}
+    rows = parse_frames(args.frames, frames)
+    reader = VideoReader(args.video)
+    h = args.size or reader.info.height
+    renderer = RigRenderer(rig, size=(h, h)).fit(curves[rows])
+    fps = reader.info.fps or 30.0
+    sheet_rows = set(rows[np.linspace(0, len(rows) - 1, min(args.sheet_frames, len(rows))).round().astype(int)]
+                     .tolist()) if args.sheet else set()
+    want = {int(frames[r]): r for r in rows}
+    last = max(want)
+    tiles, captions = [], []
+    t0 = time.perf_counter()
+    t_render = 0.0
+    n = 0
+    with _maybe_writer(args.output, fps) as wr:
+        prog = Progress(len(rows), desc="keyshape preview")
+        for i, img in reader:
+            if i > last:
+                break
+            r = want.get(i)
+            if r is None or (wr is None and r not in sheet_rows):     # a sheet alone renders only its frames
+                if r is not None:
+                    n += 1
+                    prog.update()
+                continue
+            k = pos.get(i)
+            left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
+                               bool(tracks.success[k]) if k is not None else False, h)
+            t1 = time.process_time()
+            right = renderer.render(rig.evaluate(curves[r:r + 1])[0])
+            t_render += time.process_time() - t1
+            out = side_by_side(left, right)
+            if wr is not None:
+                wr(out)
+            if r in sheet_rows:
+                tiles.append(out)
+                captions.append(f"frame {i}")
+            n += 1
+            prog.update()
+        prog.close()
+    if n < len(rows):
+        raise InputError(f"the video ended after frame {reader.n_read - 1}; the curves go on to frame {last}",
+                         args.video)
+    if args.sheet:
+        from keyshape.base.draw import contact_sheet
+        sheet = contact_sheet(tiles, captions, columns=3, tile_width=2 * h + 4)
+        ok, buf = cv2.imencode(Path(args.sheet).suffix.lower(), sheet,
+                               [cv2.IMWRITE_JPEG_QUALITY, 85] if not args.sheet.lower().endswith(".png") else [])
+        with atomic_write(args.sheet, "wb") as f:
+            f.write(buf.tobytes())
+    dt = time.perf_counter() - t0
+    print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
+          f"{n / max(t_render, 1e-9):.1f} frames per CPU second, {rig.n_vertices} vertices)"
+          + (f" -> {args.output}" if args.output else "") + (f"; sheet {args.sheet}" if args.sheet else ""))
+    return 0
+
+
+class _maybe_writer:
+    """Context manager: a frame sink writing a video at ``path`` (sized from the first frame), or None."""
+
+    def __init__(self, path, fps):
+        self.path, self.fps, self.cm, self.wr = path, fps, None, None
+
+    def __enter__(self):
+        if self.path is None:
+            return None
+        return self._write
+
+    def _write(self, img):
+        if self.wr is None:
+            from keyshape.base.formats.video import video_writer
+            self.cm = video_writer(self.path, self.fps, (img.shape[1], img.shape[0]))
+            self.wr = self.cm.__enter__()
+        self.wr.write(img)
+
+    def __exit__(self, *exc):
+        if self.cm is not None:
+            return self.cm.__exit__(*exc)
+        return False

@@ -1,0 +1,284 @@
+"""An artist's blendshape rig: a neutral mesh plus named shapes of one topology (ARKit, FACS, ICT-FaceKit).
+
+Unlike the paper's route (section 5 of 004_119ba07521a9af0b.txt: one sculpted
+target per key shape), a rig's shapes are not tied to key shapes; a pose library
+(:mod:`keyshape.retarget.poses`) says which mix of rig shapes each key is, and the
+rig is then driven by its own curves.
+
+A rig is given as a folder of OBJ files (``--rig DIR``) or a list of OBJ files.
+The neutral is ``--neutral FILE``, else the folder's ``neutral.*`` or
+``generic_neutral_mesh.obj`` (ICT-FaceKit's name). Every other OBJ is a shape named
+by its file stem, except in a folder with ICT-FaceKit's ``vertex_indices.json``,
+whose ``expressions`` list names the shapes (so ``identity*.obj`` are not shapes).
+The scheme points' rig vertices come from ``--landmarks FILE`` (see
+:mod:`keyshape.base.formats.poses`) or, for a rig of ICT-FaceKit's 26,719 vertices,
+from the correspondence shipped in ``retarget/data/``.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from keyshape.base.errors import InputError, require_file
+from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices
+
+DATA = Path(__file__).parent / "data"
+NEUTRAL_NAMES = ("neutral", "generic_neutral_mesh")
+ICT_N_VERTICES = 26719
+#: Vertices 0..9408 of ICT-FaceKit are the face skin (see ../shared/data/README.md).
+ICT_FACE_SKIN = 9409
+
+
+@dataclass
+class Rig:
+    """A blendshape rig.
+
+    Attributes
+    ----------
+    names : list of n_shapes shape names
+    neutral : (n_vertices, 3) float64
+    deltas : (n_shapes, n_vertices, 3) float64, ``shape - neutral``
+    mesh : Mesh, the neutral's topology (faces, UVs, groups)
+    files : list of n_shapes Paths
+    neutral_file : Path
+    value_range : (lo, hi) weights a shape takes (blendshapes: 0..1)
+    """
+
+    names: list
+    neutral: np.ndarray
+    deltas: np.ndarray
+    mesh: Mesh | None = None
+    files: list = field(default_factory=list)
+    neutral_file: Path | None = None
+    value_range: tuple = (0.0, 1.0)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.neutral.shape[0])
+
+    @property
+    def n_shapes(self) -> int:
+        return len(self.names)
+
+    def evaluate(self, curves: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:
+        """``neutral + sum_j c_j delta_j`` for (n_frames, n_shapes) curves: (n_frames, n_vertices, 3),
+        one matrix product (``vertices`` restricts it to a subset of vertices)."""
+        c = np.asarray(curves, dtype=np.float64)
+        if c.ndim != 2 or c.shape[1] != self.n_shapes:
+            raise InputError(f"rig curves: expected (n_frames, {self.n_shapes}), got {c.shape}")
+        d = self.deltas if vertices is None else self.deltas[:, vertices]
+        n = self.neutral if vertices is None else self.neutral[vertices]
+        return n + (c @ d.reshape(self.n_shapes, -1)).reshape(len(c), *n.shape)
+
+
+def _rig_files(sources: Sequence[str | Path] | str | Path, neutral: str | Path | None):
+    if isinstance(sources, (str, Path)):
+        sources = [sources]
+    files: list[Path] = []
+    folder = None
+    for s in sources:
+        p = Path(s)
+        if p.is_dir():
+            folder = p
+            files += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() == ".obj")
+        else:
+            files.append(require_file(p, "rig shape"))
+    if neutral is None:
+        for f in files:
+            if f.stem.lower() in NEUTRAL_NAMES:
+                neutral = f
+                break
+    if neutral is None:
+        raise InputError("no neutral mesh: give --neutral FILE or put neutral.obj in the rig folder",
+                         folder or (files[0] if files else None))
+    neutral = require_file(neutral, "rig neutral mesh")
+    shapes = [f for f in files if f.resolve() != neutral.resolve() and f.stem.lower() not in NEUTRAL_NAMES]
+    if folder is not None and (folder / "vertex_indices.json").is_file():     # ICT-FaceKit layout
+        try:
+            names = json.loads((folder / "vertex_indices.json").read_text())["expressions"]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            names = None
+        if names:
+            keep = set(names)
+            shapes = [f for f in shapes if f.stem in keep or f.parent != folder]
+    if not shapes:
+        raise InputError("no rig shapes (OBJ files besides the neutral) found", folder or neutral)
+    return shapes, neutral
+
+
+def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | None = None,
+             with_mesh: bool = True) -> Rig:
+    """Load a rig from a folder or a list of OBJ files (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        No neutral, no shapes, or a shape whose vertex count differs from the neutral's
+        (naming that file); duplicate shape names.
+    """
+    files, neutral = _rig_files(sources, neutral)
+    mesh = read_obj(neutral) if with_mesh else None
+    base = mesh.vertices if mesh is not None else read_obj_vertices(neutral)
+    names = [f.stem for f in files]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"rig shape names {dup} appear twice", files[names.index(dup[0])])
+    deltas = np.empty((len(files), len(base), 3))
+    for i, f in enumerate(files):
+        v = read_obj_vertices(f)
+        if len(v) != len(base):
+            raise InputError(f"{len(v)} vertices, but the rig's neutral {neutral.name} has {len(base)} "
+                             "(rig shapes must share one topology)", f)
+        deltas[i] = v - base
+    return Rig(names, base, deltas, mesh, files, neutral)
+
+
+def default_landmarks(n_vertices: int, scheme: str) -> Path | None:
+    """The shipped landmark correspondence for a rig of this size and scheme, or None."""
+    if n_vertices == ICT_N_VERTICES:
+        p = DATA / f"ict_landmarks_{scheme}.json"
+        return p if p.is_file() else None
+    return None
+
+
+def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None) -> tuple[np.ndarray, Path]:
+    """The (n_points, n_vertices) weight matrix taking rig vertices to the scheme's points.
+
+    ``path`` is a rig landmark JSON; default: the shipped one for ICT-FaceKit rigs.
+    Raises :class:`InputError` when there is none or it is for another scheme.
+    """
+    from keyshape.base.formats.poses import read_rig_landmarks
+    if path is None:
+        path = default_landmarks(rig.n_vertices, scheme)
+        if path is None:
+            raise InputError(f"no landmark correspondence for this rig ({rig.n_vertices} vertices) and scheme "
+                             f"{scheme!r}: give --landmarks FILE (a keyshape-rig-landmarks JSON)", rig.neutral_file)
+    s, W = read_rig_landmarks(path, rig.n_vertices)
+    if s != scheme:
+        raise InputError(f"landmarks are for scheme {s!r}, the keys for {scheme!r}", path)
+    return W, Path(path)
+
+
+def project(points3d: np.ndarray) -> np.ndarray:
+    """Orthographic front view of rig points (x right, y up, z to the viewer) in image axes (y down)."""
+    p = np.asarray(points3d)
+    return np.stack([p[..., 0], -p[..., 1]], axis=-1)
+
+
+#: ARKit gaze shapes: driven by the pupils region whatever they move (ICT-FaceKit turns its eyeballs
+#: with bones, so its ``eyeLook*`` shapes move only the lids, and a lid fit would mistake a blink for gaze).
+GAZE_PREFIX = "eyelook"
+
+
+def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarray],
+                  min_fraction: float = 0.05, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """Regions of rig shapes from their own support: each shape goes to the region whose points it moves most.
+
+    Parameters
+    ----------
+    landmark_deltas : (n_shapes, n_points, 2) projected motion of the scheme's points per shape
+    region_points : {region: point indices}
+    min_fraction : a shape whose largest region motion (RMS over the region's points) is below
+        this fraction of the largest over all shapes drives no region (e.g. ``PupilDilate``)
+
+    names : the shapes' names; ARKit gaze shapes (``eyeLook*``) go to the ``pupils`` region
+        (and to no region when there is none)
+
+    Returns
+    -------
+    {region: indices of the shapes it drives}
+    """
+    regions = list(region_points)
+    rms = np.stack([np.sqrt((landmark_deltas[:, region_points[r]] ** 2).sum(-1).mean(-1)) for r in regions], 1)
+    best = np.argmax(rms, axis=1)
+    keep = rms.max(axis=1) >= min_fraction * rms.max()
+    if names is not None:
+        gaze = np.array([n.lower().startswith(GAZE_PREFIX) for n in names])
+        if "pupils" in regions:
+            best[gaze] = regions.index("pupils")
+            keep |= gaze
+        else:
+            keep &= ~gaze
+    return {r: np.flatnonzero(keep & (best == i)) for i, r in enumerate(regions)}
+
+
+#: Base colours (r, g, b, a) by material-name keyword, for OBJ materials without an .mtl ``Kd``;
+#: ICT-FaceKit's shading-only shells (lacrimal fluid, eye blend, eye occlusion) are transparent.
+MATERIAL_COLOURS = (("teeth", (0.92, 0.9, 0.84, 1.0)), ("sclera", (0.94, 0.94, 0.92, 1.0)),
+                    ("iris", (0.22, 0.3, 0.38, 1.0)), ("gum", (0.72, 0.36, 0.36, 1.0)),
+                    ("tongue", (0.72, 0.36, 0.36, 1.0)), ("lash", (0.08, 0.06, 0.05, 1.0)),
+                    ("lacrimal", (0.9, 0.9, 0.9, 0.0)), ("occlusion", (0.0, 0.0, 0.0, 0.0)),
+                    ("blend", (0.8, 0.7, 0.65, 0.0)))
+SKIN = (0.8, 0.66, 0.58, 1.0)
+
+
+def material_colour(mesh: Mesh, name: str) -> tuple:
+    """RGBA base colour of material ``name``: the .mtl ``Kd`` when there is one, else by keyword."""
+    if name in mesh.material_colours:
+        return (*mesh.material_colours[name], 1.0)
+    low = name.lower()
+    for key, rgba in MATERIAL_COLOURS:
+        if key in low:
+            return rgba
+    return SKIN
+
+
+def triangle_polygons(mesh: Mesh) -> np.ndarray:
+    """Polygon index of every triangle of ``mesh.triangles`` (fan triangulation order)."""
+    sizes = np.array([len(p) for p in mesh.polygons])
+    ok = np.flatnonzero(sizes >= 3)
+    return np.repeat(ok, sizes[ok] - 2)
+
+
+def material_parts(mesh: Mesh) -> list[tuple[str, np.ndarray, tuple]]:
+    """[(material, triangle indices, rgba)] covering every triangle (unassigned ones as ``default``)."""
+    tp = triangle_polygons(mesh)
+    mat = np.full(len(mesh.polygons), -1)
+    names = list(mesh.materials)
+    for i, n in enumerate(names):
+        mat[mesh.materials[n]] = i
+    tm = mat[tp]
+    parts = [(n, np.flatnonzero(tm == i), material_colour(mesh, n)) for i, n in enumerate(names)]
+    if (tm < 0).any():
+        parts.append(("default", np.flatnonzero(tm < 0), SKIN))
+    return [p for p in parts if len(p[1])]
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (n_vertices, 3) (``np.bincount``, no loop over faces)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b, c = (v[triangles[:, k]] for k in range(3))
+    fn = np.cross(b - a, c - a)
+    idx = np.concatenate([triangles[:, 0], triangles[:, 1], triangles[:, 2]])
+    n = np.stack([np.bincount(idx, np.tile(fn[:, d], 3), minlength=len(v)) for d in range(3)], axis=1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def support_regions(shapes: np.ndarray, neutral: np.ndarray, columns: Sequence[str],
+                    min_fraction: float = 0.02) -> dict[str, np.ndarray]:
+    """Region vertex groups from the targets' own support (no hand-made regions file).
+
+    A vertex belongs to the region whose targets move it most (largest displacement
+    over that region's targets), if that displacement is at least ``min_fraction`` of
+    the largest displacement of any target; columns are ``REGION_K`` (``mouth_3``).
+    Regions come out disjoint; :func:`~keyshape.retarget.blend.region_weights` blends
+    them across a band.
+    """
+    from keyshape.retarget.targets import column_region
+    names: list[str] = []
+    for c in columns:
+        if column_region(c) not in names:
+            names.append(column_region(c))
+    disp = np.linalg.norm(np.asarray(shapes) - neutral, axis=2)          # (n_keys, n_vertices)
+    per = np.stack([disp[[i for i, c in enumerate(columns) if column_region(c) == r]].max(axis=0) for r in names])
+    best = np.argmax(per, axis=0)
+    moved = per.max(axis=0) >= min_fraction * per.max()
+    out = {r: np.flatnonzero(moved & (best == i)) for i, r in enumerate(names)}
+    empty = [r for r, g in out.items() if not len(g)]
+    if empty:
+        raise InputError(f"the targets of region(s) {empty} move no vertex: give --regions REGIONS.json")
+    return out

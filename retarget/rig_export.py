@@ -1,0 +1,78 @@
+"""Write a rig's own curves (from a pose library) by the output's extension.
+
+=================  ==========================================================
+``OUT.csv``        ``frame,<rig shape names>`` (what DCC import scripts read), or the
+                   Live Link Face layout with ``livelink=True``
+``OUT.glb``        the rig's neutral with every rig shape as a morph target, the curves
+                   as the weight animation (and the head motion)
+``OUT.mp4/.avi``   the shaded rig
+``OUT`` (folder)   one OBJ per frame
+=================  ==========================================================
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from keyshape.base.errors import InputError
+from keyshape.base.files import atomic_dir, atomic_write
+from keyshape.retarget.headpose import HeadMotion
+from keyshape.retarget.rig import Rig
+
+
+def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarray, fps: float = 30.0,
+               head: HeadMotion | None = None, livelink: bool = False,
+               size=(480, 480), chunk_frames: int = 64, overwrite: bool = False, inputs=()) -> dict:
+    """Write rig curves (n_frames, n_shapes) to ``path``; returns ``{"kind", "path"}``. Nothing is left on error."""
+    from keyshape.retarget.export import livelink_rows, output_kind
+    path = Path(path)
+    curves = np.asarray(curves, dtype=np.float64)
+    if curves.shape != (len(frames), rig.n_shapes):
+        raise InputError(f"curves: expected ({len(frames)}, {rig.n_shapes}), got {curves.shape}")
+    if head is not None and head.n_frames != len(curves):
+        raise InputError(f"head motion has {head.n_frames} frames but the curves have {len(curves)}")
+    kind = output_kind(path, 3)
+    info = {"kind": kind, "path": path}
+    if kind == "csv":
+        if livelink:
+            header, rows = livelink_rows(list(rig.names), curves, fps, head)
+            with atomic_write(path, newline="") as f:
+                wr = csv.writer(f)
+                wr.writerow(header)
+                wr.writerows(rows)
+        else:
+            from keyshape.base.formats.weights import write_weights
+            write_weights(path, frames, list(rig.names), curves)
+        return info
+    if rig.mesh is None or not rig.mesh.polygons:
+        raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)
+    if kind == "glb":
+        from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
+        from keyshape.retarget.rig import material_parts, vertex_normals
+        ids, uvs, tri = split_at_uv_seams(rig.mesh)
+        mt = rig.mesh.triangles
+        n0 = vertex_normals(rig.neutral, mt)
+        nd = np.stack([vertex_normals(rig.neutral + d, mt) - n0 for d in rig.deltas])
+        write_glb(path, rig.neutral[ids], tri, rig.deltas[:, ids], list(rig.names), curves, fps, head, uvs=uvs,
+                  normals=n0[ids], normal_deltas=nd[:, ids], parts=material_parts(rig.mesh),
+                  first_frame=int(frames[0]) if len(frames) else 0)
+        return info
+    if kind == "obj_frames":
+        from keyshape.base.formats.obj import write_obj
+        with atomic_dir(path, overwrite, inputs) as tmp:
+            for s in range(0, len(curves), chunk_frames):
+                for fr, v in zip(frames[s:s + chunk_frames], rig.evaluate(curves[s:s + chunk_frames])):
+                    write_obj(tmp / f"frame_{int(fr):06d}.obj", rig.mesh, v)
+        return info
+    if kind == "video":
+        from keyshape.base.formats.video import video_writer
+        from keyshape.retarget.preview import RigRenderer
+        r = RigRenderer(rig, size=size).fit(curves)
+        with video_writer(path, fps, size) as wr:
+            for s in range(0, len(curves), chunk_frames):
+                for img in r.render_many(curves[s:s + chunk_frames]):
+                    wr.write(img)
+        return info
+    raise InputError(f"rig output {kind} not supported", path)

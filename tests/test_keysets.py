@@ -1,0 +1,117 @@
+"""One key set per actor (issue 14): model identity in tracks and KEYS.json, several takes, the actor's neutral."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from keyshape.base.formats.keys import read_keys, read_keys_source
+from keyshape.base.formats.weights import read_weights
+from keyshape.base.formats.tracks import read_tracks, write_tracks
+from keyshape.cli import main
+from keyshape.decompose.regions import model_shapes, region_points, relaxed_frame
+from keyshape.decompose.toy import toy_tracks
+from keyshape.base.schemes import load_scheme
+
+SCHEME = load_scheme("contours48")
+
+
+def _take(path, seed, model="sha256:aaaa"):
+    t = toy_tracks(240, rng=seed)
+    t.meta = {"model": model, "scheme": "contours48"} if model else {}
+    write_tracks(path, t)
+    return path
+
+
+def test_tracks_metadata_line_roundtrips_and_plain_files_still_read(tmp_path):
+    p = _take(tmp_path / "a.csv", 1)
+    assert p.read_text().startswith('# keyshape-tracks {"model": "sha256:aaaa"')
+    t = read_tracks(p)
+    assert t.meta == {"model": "sha256:aaaa", "scheme": "contours48"} and t.n_frames == 240
+    q = _take(tmp_path / "b.csv", 1, model=None)
+    assert q.read_text().startswith("frame,") and read_tracks(q).meta == {}
+    np.testing.assert_array_equal(read_tracks(q).points, t.points)
+
+
+def test_select_several_takes_records_model_and_takes(tmp_path):
+    a, b = _take(tmp_path / "a.csv", 1), _take(tmp_path / "b.csv", 2)
+    assert main(["select", str(a), str(b), "-k", "6", "--region", "mouth", "-o", str(tmp_path / "k.json")]) == 0
+    src = read_keys_source(tmp_path / "k.json")
+    assert src["model"] == "sha256:aaaa" and src["scheme"] == "contours48" and len(src["tracks"]) == 2
+    d = json.loads((tmp_path / "k.json").read_text())
+    keys = d["regions"]["mouth"]["keys"]
+    takes = {k["take"] for k in keys}
+    assert takes <= {0, 1}
+    _, _, regs = read_keys(tmp_path / "k.json")
+    shapes = {0: model_shapes(read_tracks(a)), 1: model_shapes(read_tracks(b))}
+    for k, key in zip(keys, regs[0].keys):      # every key is the frame its take and frame number name
+        np.testing.assert_allclose(shapes[k["take"]][k["frame"], regs[0].points], key, atol=1e-6)
+
+
+def test_select_refuses_takes_of_different_models(tmp_path, capsys):
+    a, b = _take(tmp_path / "a.csv", 1), _take(tmp_path / "b.csv", 2, model="sha256:bbbb")
+    out = tmp_path / "k.json"
+    assert main(["select", str(a), str(b), "-k", "4", "-o", str(out)]) == 2
+    assert "different tracker models" in capsys.readouterr().err and not out.exists()
+
+
+def test_decompose_refuses_keys_of_another_model_unless_allowed(tmp_path, capsys):
+    a, b = _take(tmp_path / "a.csv", 1), _take(tmp_path / "b.csv", 2, model="sha256:bbbb")
+    assert main(["select", str(a), "-k", "4", "--region", "mouth", "-o", str(tmp_path / "k.json")]) == 0
+    out = tmp_path / "w.csv"
+    assert main(["decompose", str(b), "--keys", str(tmp_path / "k.json"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "k.json" in err and "another tracker model" in err and not out.exists()
+    assert main(["decompose", str(b), "--keys", str(tmp_path / "k.json"), "--allow-foreign-keys",
+                 "-o", str(out)]) == 0
+    assert main(["decompose", str(a), "--keys", str(tmp_path / "k.json"), "-o", str(out)]) == 0
+
+
+def test_neutral_frame_makes_weights_relative_to_the_actor_neutral(tmp_path):
+    a = _take(tmp_path / "a.csv", 3)
+    t = read_tracks(a)
+    assert main(["select", str(a), "-k", "5", "--region", "mouth", "--neutral-frame", "17",
+                 "-o", str(tmp_path / "k.json")]) == 0
+    _, _, regs = read_keys(tmp_path / "k.json")
+    rk = regs[0]
+    assert rk.rest_frame == 17
+    np.testing.assert_allclose(rk.neutral, model_shapes(t)[17, rk.points], atol=1e-6)
+    assert main(["decompose", str(a), "--keys", str(tmp_path / "k.json"), "-o", str(tmp_path / "w.csv")]) == 0
+    _, _, w, _ = read_weights(tmp_path / "w.csv")
+    assert np.abs(w[17]).max() < 1e-6                    # the neutral frame has no key weight
+    assert main(["select", str(a), "-k", "5", "--region", "mouth", "--neutral-frame", "mean",
+                 "-o", str(tmp_path / "m.json")]) == 0
+    _, _, regs = read_keys(tmp_path / "m.json")
+    np.testing.assert_allclose(regs[0].neutral, np.nanmean(model_shapes(t)[:, rk.points], axis=0), atol=1e-5)
+
+
+def test_relaxed_frame_is_the_mode_of_the_shapes():
+    rng = np.random.default_rng(0)
+    rest = rng.normal(size=(10, 2))
+    frames = rest + 0.01 * rng.normal(size=(300, 10, 2))          # mostly at rest
+    frames[::3] += rng.uniform(0.5, 2.0, (100, 1, 1)) * rng.normal(size=(100, 10, 2))   # expressions
+    frames[5] = np.nan                                            # a failed frame is never chosen
+    i = relaxed_frame(frames)
+    assert i % 3 != 0 and np.abs(frames[i] - rest).max() < 0.05
+
+
+def test_near_duplicate_keys_are_dropped():
+    from keyshape.decompose.regions import near_duplicates
+    ref = np.zeros((4, 2))
+    keys = np.stack([np.full((4, 2), 1.0), np.full((4, 2), 1.02), np.full((4, 2), -1.0), np.full((4, 2), 2.0)])
+    assert near_duplicates(keys, ref, 0.1).tolist() == [0, 2, 3]
+    assert near_duplicates(keys, ref, 0.0).tolist() == [0, 1, 2, 3]
+
+
+def test_select_sheet_shows_the_neutral_and_key_distances(tmp_path):
+    from keyshape.base.formats.video import video_writer
+    from keyshape.decompose.sheet import key_tiles
+    a = _take(tmp_path / "a.csv", 4)
+    t = read_tracks(a)
+    assert main(["select", str(a), "-k", "3", "--region", "mouth", "-o", str(tmp_path / "k.json")]) == 0
+    _, _, regs = read_keys(tmp_path / "k.json")
+    frames = {int(f): np.zeros((480, 640, 3), np.uint8) for f in t.frame}
+    tiles, captions = key_tiles(frames, t, SCHEME, regs, tile_width=120)
+    assert captions[0].startswith(f"mouth_neutral  frame {regs[0].rest_frame}")
+    assert len(captions) == len(regs[0].keys) + 1 and all(" d=" in c for c in captions[1:])

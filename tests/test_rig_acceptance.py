@@ -1,0 +1,54 @@
+"""Issue 14 acceptance (slow): a synthetic take through the default chain onto the full ICT-FaceKit rig.
+
+Seed 11 (no other test uses it), 600 frames. From the exact contours (truth.csv) the pose route
+must recover the hidden ARKit curves (r >= 0.9 for jawOpen and both blinks, mean r >= 0.8, rig
+vertex error <= 0.65 x the hidden motion). From the trained tracker's tracks these targets are
+**not** met today (see bench/rig_accuracy.py: the tracks themselves carry pucker/funnel at
+r < 0.6 under any linear map); the tracked run is held to a regression floor and the issue's
+targets are a strict xfail, so meeting them is noticed.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory, shared_data):
+    import importlib.util
+    from pathlib import Path
+    spec = importlib.util.spec_from_file_location("rig_accuracy", Path(__file__).parents[1] / "bench" /
+                                                  "rig_accuracy.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    from keyshape.retarget.rig import load_rig
+    rigdir = shared_data / "ict-facekit"
+    rig = load_rig(rigdir, with_mesh=False)
+    work = tmp_path_factory.mktemp("rig_acceptance")
+    tracked = bench.score(bench.run_chain(work, 11, rigdir), rig)
+    exact = bench.score(bench.run_chain(work, 11, rigdir, tracks=work / "take" / "truth.csv"), rig)
+    print(bench.table({"tracked": tracked, "exact contours": exact}))
+    return tracked, exact
+
+
+def test_exact_contours_meet_the_issue_targets(chain):
+    _, s = chain
+    assert s["r"]["jawOpen"] >= 0.9 and s["r"]["eyeBlink_L"] >= 0.9 and s["r"]["eyeBlink_R"] >= 0.9, s["r"]
+    assert s["mean_r"] >= 0.8 and s["error_ratio"] <= 0.65, (s["mean_r"], s["error_ratio"])
+
+
+def test_tracked_chain_regression_floor(chain):
+    s, _ = chain
+    assert s["mean_r"] >= 0.5 and s["r"]["jawOpen"] >= 0.6 and s["r"]["browInnerUp"] >= 0.8, s["r"]
+    assert s["error_ratio"] < 1.0                          # closer to the truth than a still face
+
+
+@pytest.mark.xfail(strict=True, reason="issue 14 targets on tracked footage not met (tracker noise on the lips)")
+def test_tracked_chain_meets_the_issue_targets(chain):
+    s, _ = chain
+    assert s["r"]["jawOpen"] >= 0.9 and s["r"]["eyeBlink_L"] >= 0.9 and s["r"]["eyeBlink_R"] >= 0.9
+    assert s["mean_r"] >= 0.8 and s["error_ratio"] <= 0.65

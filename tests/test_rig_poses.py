@@ -1,0 +1,382 @@
+"""Pose library onto an existing blendshape rig: `keyshape pose`, `retarget --poses --rig` (issue 14)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from keyshape.base.errors import InputError
+from keyshape.base.formats.obj import Mesh, write_obj
+from keyshape.base.formats.poses import read_poses, write_rig_landmarks
+from keyshape.base.schemes import load_scheme
+from keyshape.cli import main
+from keyshape.decompose.regions import RegionKeys, region_points
+from keyshape.retarget.poses import (curves_from_library, fit_pose, fit_similarity, pose_library, rig_curves)
+from keyshape.retarget.rig import load_rig, project, shape_regions
+
+SCHEME = load_scheme("contours48")
+
+
+# ----------------------------------------------------------------------------------------- pure functions
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.05, 20), st.floats(-np.pi, np.pi), st.floats(-50, 50), st.floats(-50, 50),
+       st.integers(0, 10_000))
+def test_fit_similarity_recovers_a_similarity(s, ang, tx, ty, seed):
+    src = np.random.default_rng(seed).normal(size=(12, 2)) * 30
+    R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    dst = s * src @ R.T + [tx, ty]
+    s2, R2, t2 = fit_similarity(src, dst)
+    assert s2 == pytest.approx(s, rel=1e-8)
+    np.testing.assert_allclose(R2, R, atol=1e-8)
+    np.testing.assert_allclose(t2, [tx, ty], atol=1e-6 * max(1, s * 100))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_fit_pose_recovers_sparse_bounded_weights(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(40, 12))
+    p = np.zeros(12)
+    on = rng.choice(12, 3, replace=False)
+    p[on] = rng.uniform(0.2, 1.0, 3)
+    got = fit_pose(A, A @ p, sparsity=0.0)
+    np.testing.assert_allclose(got, p, atol=1e-4)
+    # a target beyond the range is met at the bound, never past it
+    big = fit_pose(A[:, :1], 3 * A[:, 0], sparsity=0.0)
+    assert big[0] == pytest.approx(1.0)
+
+
+def test_fit_pose_sparsity_prefers_one_strong_shape_and_ignores_free_translation():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=20)
+    # shape 0 moves the points like shapes 1 + 2 together, at half their weight
+    A = np.stack([a, 0.5 * a + 0.01 * rng.normal(size=20), 0.5 * a + 0.01 * rng.normal(size=20)], 1)
+    free = np.tile(np.eye(2), (10, 1))
+    b = 0.6 * a + free @ [3.0, -2.0]                     # plus a common shift of all points
+    p = fit_pose(A, b, sparsity=0.01, free=free)
+    assert p[0] > 0.5 and p[1:].max() < 0.05
+    assert fit_pose(A, b, sparsity=0.01)[0] < 0.5        # without the free shift the fit is spoiled
+
+
+def test_rig_curves_is_the_linear_map_of_the_paper():
+    rng = np.random.default_rng(0)
+    W = rng.uniform(0, 1, (30, 4))
+    P = rng.uniform(0, 1, (4, 6))
+    pn = rng.uniform(0, 0.2, 6)
+    c = rig_curves(W, P, pn, bounds=None)
+    for t in (0, 7, 29):                                  # frame = neutral + sum_i w_i (key_i - neutral)
+        np.testing.assert_allclose(c[t], pn + sum(W[t, i] * (P[i] - pn) for i in range(4)))
+    assert rig_curves(W * 5, P, pn).max() <= 1.0 and rig_curves(-W, P, pn).min() >= 0.0
+    with pytest.raises(InputError, match="do not match"):
+        rig_curves(W[:, :3], P)
+
+
+def test_curves_from_library_each_region_drives_only_its_shapes():
+    names = ["jawOpen", "mouthSmile_L", "eyeBlink_L", "eyeBlink_R"]
+    lib = {"range": [0, 1], "regions": {
+        "mouth": {"shapes": ["jawOpen", "mouthSmile_L"], "neutral": {},
+                  "keys": {"mouth_0": {"jawOpen": 0.8}, "mouth_1": {"mouthSmile_L": 0.5, "jawOpen": 0.1}}},
+        "eyes": {"shapes": ["eyeBlink_L", "eyeBlink_R"], "neutral": {},
+                 "keys": {"eyes_0": {"eyeBlink_L": 1.0, "eyeBlink_R": 1.0}}}}}
+    W = np.array([[1.0, 0.0, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 0.7]])
+    c = curves_from_library(W, ["mouth_0", "mouth_1", "eyes_0"], lib, names)
+    np.testing.assert_allclose(c, [[0.8, 0, 0, 0], [0.5, 0.5, 0, 0], [0, 0, 0.7, 0.7]])
+    with pytest.raises(InputError, match="no pose"):
+        curves_from_library(W, ["mouth_0", "mouth_1", "pupils_0"], lib, names)
+
+
+# ----------------------------------------------------------------------------------------- a toy rig
+
+SHAPES = {  # contours48 point motions (image axes, y down) of each toy rig shape, per unit weight
+    "jawOpen": {p: (0, 6.0) for p in (35, 36, 37, 38, 39, 45, 46, 47)} | {28: (0, 3.0), 34: (0, 3.0)},
+    "mouthSmile_L": {34: (4.0, -4.0), 44: (3.0, -3.0), 33: (1.5, -2.0)},
+    "mouthSmile_R": {28: (-4.0, -4.0), 40: (-3.0, -3.0), 29: (-1.5, -2.0)},
+    "mouthPucker": {28: (4.0, 0), 34: (-4.0, 0), 40: (3.0, 0), 44: (-3.0, 0)},
+    "eyeBlink_L": {p: (0, 5.0) for p in (19, 20, 21)},
+    "eyeBlink_R": {p: (0, 5.0) for p in (11, 12, 13)},
+    "browInnerUp_L": {5: (0, -4.0), 6: (0, -3.0)},
+    "browInnerUp_R": {4: (0, -4.0), 3: (0, -3.0)},
+    "PupilDilate_L": {},
+}
+
+
+def toy_rig_arrays():
+    """Rig vertices = the 48 contours48 points of a mean face (+ 2 off-face vertices), z = 0."""
+    from keyshape.data_synth.face_model import FaceModel
+    neutral2d, _ = FaceModel(rng=3).basis()
+    neutral2d = np.asarray(neutral2d).reshape(-1, 2)[:48] / 20.0     # rig units ~ cm
+    v2d = np.concatenate([neutral2d, [[0, -6], [0, 8]]])
+    verts = np.column_stack([v2d[:, 0], -v2d[:, 1], np.zeros(len(v2d))])   # y up in the rig
+    deltas = np.zeros((len(SHAPES), len(verts), 3))
+    for j, motion in enumerate(SHAPES.values()):
+        for p, (dx, dy) in motion.items():
+            deltas[j, p] = [dx / 20.0, -dy / 20.0, 0.0]
+    return verts, deltas
+
+
+def write_toy_rig(folder, n_bad: int | None = None):
+    verts, deltas = toy_rig_arrays()
+    polys = [np.array([i, i + 1, 48]) for i in range(0, 47)]
+    mesh = Mesh(verts, polys)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_obj(folder / "neutral.obj", mesh)
+    for name, d in zip(SHAPES, deltas):
+        write_obj(folder / f"{name}.obj", mesh, verts + d)
+    if n_bad is not None:
+        write_obj(folder / "broken.obj", Mesh(verts[:n_bad], []))
+    lm = folder.parent / "toy_landmarks.json"
+    write_rig_landmarks(lm, "contours48", len(verts), list(range(48)))
+    return folder, lm
+
+
+def actor_keys(true_poses: dict[str, dict[str, float]], s=3.0, ang=0.1, shift=(5.0, -2.0)):
+    """Keys of an 'actor' whose face is the toy rig seen through a similarity: rest + S (rig pose motion)."""
+    verts, deltas = toy_rig_arrays()
+    names = list(SHAPES)
+    R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    to_actor = lambda p2: s * p2 @ R.T + shift  # noqa: E731
+    rest = to_actor(project(verts[:48]))
+    regions = []
+    for region in ("mouth", "eyes"):
+        idx = region_points(SCHEME, region)
+        keys = []
+        knames = [k for k in true_poses if k.startswith(region)]
+        for k in knames:
+            c = np.zeros(len(names))
+            for n, v in true_poses[k].items():
+                c[names.index(n)] = v
+            keys.append(to_actor(project(verts[:48] + np.tensordot(c, deltas[:, :48], 1)))[idx])
+        regions.append(RegionKeys(region, "greedy", idx, np.arange(len(keys)), np.array(keys), rest[idx],
+                                  None, rest[idx], 0))
+    return regions
+
+
+TRUE = {"mouth_0": {"jawOpen": 0.7}, "mouth_1": {"mouthSmile_L": 0.6, "mouthSmile_R": 0.5},
+        "mouth_2": {"mouthPucker": 0.8, "jawOpen": 0.2}, "eyes_0": {"eyeBlink_L": 1.0, "eyeBlink_R": 0.9},
+        "eyes_1": {"browInnerUp_L": 0.5, "browInnerUp_R": 0.5}}
+
+
+def test_pose_library_recovers_the_poses_of_keys_made_from_the_rig():
+    verts, deltas = toy_rig_arrays()
+    ld = project(deltas[:, :48])
+    groups = {r: region_points(SCHEME, r) for r in ("mouth", "eyes", "pupils")}
+    rs = shape_regions(ld, groups, names=list(SHAPES))
+    names = list(SHAPES)
+    assert [names[j] for j in rs["mouth"]] == ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthPucker"]
+    assert "PupilDilate_L" not in [names[j] for r in rs.values() for j in r]        # moves nothing
+    lib = pose_library(actor_keys(TRUE), names, project(verts[:48]), ld, rs, sparsity=0.001, nuisance="none")
+    fit = lib.pop("_fit")
+    for k, pose in TRUE.items():
+        region = k.split("_")[0]
+        got = lib[region]["keys"][k]
+        for n in names:
+            assert got.get(n, 0.0) == pytest.approx(pose.get(n, 0.0), abs=0.01), (k, n, got)
+        assert fit[k] < 0.01
+
+
+def test_pose_and_retarget_commands_end_to_end(tmp_path):
+    from keyshape.base.formats.keys import write_keys
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.base.formats.weights import write_weights as write_key_weights
+    rig, lm = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "--nuisance", "none", "-o", str(tmp_path / "poses.json")]) == 0
+    poses = read_poses(tmp_path / "poses.json", list(SHAPES))
+    assert poses["regions"]["mouth"]["keys"]["mouth_0"]["jawOpen"] == pytest.approx(0.7, abs=0.03)
+    cols = list(TRUE)
+    W = np.zeros((5, len(cols)))
+    W[np.arange(5), np.arange(5)] = [1.0, 0.5, 1.0, 0.25, 3.0]
+    write_key_weights(tmp_path / "w.csv", np.arange(5), cols, W)
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                 "-o", str(tmp_path / "curves.csv")]) == 0
+    frames, names, C, _ = read_weights(tmp_path / "curves.csv")
+    assert set(names) == set(SHAPES)
+    col = {n: i for i, n in enumerate(names)}
+    assert C[0, col["jawOpen"]] == pytest.approx(0.7, abs=0.03)
+    assert C[3, col["eyeBlink_L"]] == pytest.approx(0.25, abs=0.02)
+    assert C[4, col["browInnerUp_L"]] == pytest.approx(1.0, abs=1e-6)         # 3 x 0.5: clipped to the range
+    assert C[:, col["PupilDilate_L"]].max() == 0
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                 "--livelink", "-o", str(tmp_path / "ll.csv")]) == 0
+    header = (tmp_path / "ll.csv").read_text().splitlines()[0].split(",")
+    assert header[:3] == ["Timecode", "BlendShapeCount", "EyeBlinkLeft"]
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                 "-o", str(tmp_path / "take.glb")]) == 0
+    import pygltflib
+    g = pygltflib.GLTF2().load(str(tmp_path / "take.glb"))
+    assert g.meshes[0].extras["targetNames"] == load_rig(rig).names
+
+
+# ----------------------------------------------------------------------------------------- bad input
+
+def _setup(tmp_path):
+    from keyshape.base.formats.keys import write_keys
+    rig, lm = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "-o", str(tmp_path / "poses.json")]) == 0
+    from keyshape.base.formats.weights import write_weights as write_key_weights
+    write_key_weights(tmp_path / "w.csv", np.arange(3), list(TRUE), np.full((3, len(TRUE)), 0.5))
+    return rig, lm
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["regions"]["mouth"]["keys"]["mouth_0"].update({"tongueOut": 0.5}), "tongueOut"),
+    (lambda d: d["regions"]["mouth"]["shapes"].append("cheekPuff"), "lacks"),
+    (lambda d: d["regions"]["mouth"]["keys"]["mouth_0"].update({"jawOpen": 1.7}), "outside the rig's range"),
+    (lambda d: d["regions"]["eyes"]["keys"]["eyes_0"].update({"eyeBlink_L": -0.2}), "outside the rig's range"),
+    (lambda d: d["regions"]["eyes"]["keys"]["eyes_0"].update({"eyeBlink_L": "x"}), "not a finite number"),
+])
+def test_bad_poses_file_is_refused_naming_it_and_nothing_written(tmp_path, capsys, edit, message):
+    rig, _ = _setup(tmp_path)
+    p = tmp_path / "poses.json"
+    d = json.loads(p.read_text())
+    edit(d)
+    p.write_text(json.dumps(d))
+    out = tmp_path / "curves.csv"
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(p), "--rig", str(rig), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(p) in err and message in err
+    assert not out.exists()
+
+
+def test_rig_with_a_shape_of_another_vertex_count_is_refused(tmp_path, capsys):
+    rig, lm = write_toy_rig(tmp_path / "rig", n_bad=20)
+    with pytest.raises(InputError, match="broken.obj.*20 vertices"):
+        load_rig(rig)
+    from keyshape.base.formats.keys import write_keys
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    out = tmp_path / "poses.json"
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "-o", str(out)]) == 2
+    assert "broken.obj" in capsys.readouterr().err and not out.exists()
+
+
+def test_rig_without_landmarks_asks_for_them(tmp_path, capsys):
+    from keyshape.base.formats.keys import write_keys
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "-o", str(tmp_path / "p.json")]) == 2
+    assert "--landmarks" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------- a .glb that opens right
+
+def test_rig_glb_has_normals_materials_frame_range_and_passes_validator(tmp_path):
+    import pygltflib
+
+    from keyshape.retarget.rig import Rig, vertex_normals
+    from keyshape.retarget.rig_export import export_rig
+    verts, deltas = toy_rig_arrays()
+    polys = [np.array([i, i + 1, 48]) for i in range(0, 47)] + [np.array([0, 49, 47, 10])]
+    mesh = Mesh(verts, polys, materials={"M_Face": np.arange(0, 30), "M_Teeth": np.arange(30, 48)})
+    rig = Rig(list(SHAPES), verts, deltas, mesh)
+    curves = np.random.default_rng(0).uniform(0, 1, (12, len(SHAPES)))
+    out = tmp_path / "take.glb"
+    export_rig(out, rig, np.arange(100, 112), curves, fps=24.0)
+    g = pygltflib.GLTF2().load(str(out))
+    prims = g.meshes[0].primitives
+    assert [g.materials[p.material].name for p in prims] == ["M_Face", "M_Teeth"]
+    assert g.materials[1].pbrMetallicRoughness.baseColorFactor[:3] == pytest.approx([0.92, 0.9, 0.84])
+    assert prims[0].attributes.NORMAL is not None and "NORMAL" in prims[0].targets[0]
+    assert g.scenes[0].extras == {"fps": 24.0, "frame_start": 100, "frame_end": 111}
+    times = g.accessors[g.animations[0].samplers[0].input]
+    assert times.min[0] == pytest.approx(100 / 24) and times.max[0] == pytest.approx(111 / 24)
+    # the normal deltas are the change of the normals: base + delta = normals of the shape
+    n0 = vertex_normals(verts, mesh.triangles)
+    assert np.allclose(np.linalg.norm(n0, axis=1), 1)
+    try:
+        from tests.test_retarget_io import run_validator
+    except ImportError:                                   # tests not importable as a package
+        import importlib.util
+        import pathlib
+        spec = importlib.util.spec_from_file_location("tri", pathlib.Path(__file__).parent / "test_retarget_io.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        run_validator = mod.run_validator
+    rep = run_validator(out, tmp_path)
+    assert rep["errors"] == 0 and rep["warnings"] == 0, rep
+
+
+# ----------------------------------------------------------------------------------------- preview
+
+def test_preview_renders_range_and_sheet(tmp_path):
+    from keyshape.base.formats.tracks import write_tracks
+    from keyshape.base.formats.video import video_info, video_writer
+    from keyshape.base.formats.weights import write_weights
+    from keyshape.decompose.toy import toy_tracks
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    tr = toy_tracks(30, rng=1)
+    write_tracks(tmp_path / "t.csv", tr)
+    with video_writer(tmp_path / "v.mp4", 10, (160, 120)) as wr:
+        for i in range(30):
+            wr.write(np.full((120, 160, 3), 8 * i, np.uint8))
+    c = np.zeros((30, len(SHAPES)))
+    c[:, 0] = np.linspace(0, 1, 30)
+    write_weights(tmp_path / "c.csv", np.arange(30), list(SHAPES), c)
+    out, sheet = tmp_path / "p.mp4", tmp_path / "s.jpg"
+    assert main(["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
+                 str(tmp_path / "c.csv"), "--rig", str(rig), "--frames", "5:17", "--sheet", str(sheet),
+                 "--sheet-frames", "4", "-o", str(out)]) == 0
+    info = video_info(out)
+    assert info.n_frames == 12 and info.height == 120 and info.width > 2 * 120
+    import cv2
+    assert cv2.imread(str(sheet)) is not None
+    assert main(["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
+                 str(tmp_path / "c.csv"), "--rig", str(rig), "--frames", "40:50", "-o",
+                 str(tmp_path / "q.mp4")]) == 2
+    assert not (tmp_path / "q.mp4").exists()
+
+
+def test_rig_renderer_draws_the_face_and_moves_with_the_curves(tmp_path):
+    from keyshape.retarget.preview import RigRenderer
+    from keyshape.retarget.rig import Rig
+    # a square of two triangles facing the camera, one shape moving it right
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    d = np.zeros((1, 4, 3))
+    d[0, :, 0] = 1.0
+    rig = Rig(["right"], v, d, Mesh(v, [np.array([0, 1, 2, 3])]))
+    r = RigRenderer(rig, size=(64, 64), background=(0, 0, 0)).fit(np.array([[0.0], [1.0]]))
+    a = r.render(rig.evaluate(np.array([[0.0]]))[0]).sum(axis=2) > 0
+    b = r.render(rig.evaluate(np.array([[1.0]]))[0]).sum(axis=2) > 0
+    assert 0.15 < a.mean() < 0.5 and abs(a.mean() - b.mean()) < 0.05
+    cols_a, cols_b = np.flatnonzero(a.any(0)), np.flatnonzero(b.any(0))
+    assert cols_b.mean() > cols_a.mean() + 10                       # moved to the image-right
+    back = Rig(["right"], v, d, Mesh(v, [np.array([3, 2, 1, 0])]))   # facing away: culled
+    rb = RigRenderer(back, size=(64, 64), background=(0, 0, 0)).fit(None)
+    assert rb.render(v).sum() == 0
+
+
+def test_support_regions_from_the_targets_themselves(tmp_path):
+    from keyshape.retarget.rig import support_regions
+    verts, deltas = toy_rig_arrays()
+    names = list(SHAPES)
+    cols = ["mouth_0", "mouth_1", "eyes_0", "eyes_1"]
+    shapes = verts + deltas[[names.index("jawOpen"), names.index("mouthSmile_L"), names.index("eyeBlink_L"),
+                             names.index("browInnerUp_L")]]
+    reg = support_regions(shapes, verts, cols)
+    mouth, eyes = set(region_points(SCHEME, "mouth").tolist()), set(region_points(SCHEME, "eyes").tolist())
+    assert set(reg["mouth"].tolist()) <= mouth and set(reg["eyes"].tolist()) <= eyes
+    assert {34, 45}.issubset(set(reg["mouth"].tolist())) and {5, 19}.issubset(set(reg["eyes"].tolist()))
+    with pytest.raises(InputError, match="move no vertex"):
+        support_regions(np.stack([shapes[0], verts]), verts, ["mouth_0", "eyes_0"])
+    # the command: --regions auto blends each region's targets on its own vertices
+    from keyshape.base.formats.weights import write_weights
+    tdir = tmp_path / "t"
+    tdir.mkdir()
+    mesh = Mesh(verts, [np.array([i, i + 1, 48]) for i in range(0, 47)])
+    write_obj(tdir / "neutral.obj", mesh)
+    for c, sh in zip(cols, shapes):
+        write_obj(tdir / f"{c}.obj", mesh, sh)
+    write_weights(tmp_path / "w.csv", np.arange(2), cols, np.array([[1.0, 0, 1.0, 0], [0, 0, 0, 0]]))
+    assert main(["retarget", str(tmp_path / "w.csv"), "--targets", str(tdir), "--regions", "auto",
+                 "-o", str(tmp_path / "f")]) == 0
+    from keyshape.base.formats.obj import read_obj_vertices
+    v = read_obj_vertices(tmp_path / "f" / "frame_000000.obj")
+    np.testing.assert_allclose(v[37], shapes[0][37], atol=1e-5)          # jaw moved the lower lip
+    np.testing.assert_allclose(v[20], shapes[2][20], atol=1e-5)          # blink moved the upper lid
