@@ -71,3 +71,44 @@ def test_label_prefilled_real_video(shared_data, tmp_path):
     for f in sess["frames"]:
         p = read_pts(out / f"{f:06d}.pts")
         assert 20 < np.linalg.norm(p[10] - p[22]) < 200 and p[10, 0] < p[22, 0]
+
+
+def test_frames_on_an_existing_folder_adds_them(small_video, tmp_path, capsys):
+    out = tmp_path / "lab"
+    assert main(["label", str(small_video), "--count", "3", "-o", str(out), "--no-prefill", "--quiet"]) == 0
+    first = json.loads((out / "session.json").read_text())["frames"]
+    write_pts(out / f"{first[0]:06d}.pts", read_pts(out / f"{first[0]:06d}.pts") + 1.5)     # a correction
+    corrected = read_pts(out / f"{first[0]:06d}.pts")
+    extra = [f for f in (5, 60, 110) if f not in first][:2]
+    assert main(["label", str(small_video), "-o", str(out), "--no-prefill", "--quiet",
+                 "--frames", ",".join(map(str, extra))]) == 0
+    frames = json.loads((out / "session.json").read_text())["frames"]
+    assert frames == sorted(set(first) | set(extra))
+    for f in extra:
+        assert (out / f"{f:06d}.pts").is_file() and (out / "frames" / f"{f:06d}.png").is_file()
+    np.testing.assert_allclose(read_pts(out / f"{first[0]:06d}.pts"), corrected)   # kept
+
+
+def test_more_adds_the_frames_the_track_explains_worst(small_video, tmp_path, capsys):
+    from keyshape.base.formats.tracks import Tracks, write_tracks
+
+    out = tmp_path / "lab"
+    assert main(["label", str(small_video), "--count", "3", "-o", str(out), "--no-prefill", "--quiet"]) == 0
+    first = json.loads((out / "session.json").read_text())["frames"]
+    n = 120
+    conf = np.ones(n)
+    ok = np.ones(n, bool)
+    far = [f for f in range(n) if min(abs(f - g) for g in first) >= 20]
+    lost, weak = far[0], far[-1]
+    ok[lost] = False
+    conf[lost] = 0.0
+    conf[weak] = 0.3
+    pts = np.zeros((n, 48, 2))
+    pose = np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 1, 1))
+    write_tracks(tmp_path / "t.csv", Tracks(np.arange(n), np.arange(n) / 25, conf, ok, pts, pose))
+    assert main(["label", str(small_video), "-o", str(out), "--no-prefill", "--quiet", "--more", "2",
+                 "--tracks", str(tmp_path / "t.csv")]) == 0
+    frames = json.loads((out / "session.json").read_text())["frames"]
+    assert frames == sorted(set(first) | {lost, weak})
+    assert main(["label", str(small_video), "-o", str(out), "--no-prefill", "--quiet", "--more", "2"]) != 0
+    assert "--more needs --tracks" in capsys.readouterr().err

@@ -95,3 +95,43 @@ def test_spread_frames():
     assert np.all(np.abs(f[:, None] - np.array([100, 500])[None]) >= 10)
     assert np.min(np.diff(np.sort(f))) >= 10
     assert f.min() < 100 and f.max() > 900  # spread over the whole video
+
+
+def _shapes68(n, rng):
+    from keyshape.tracker.labelling.prepare import mean_ibug68
+
+    base = mean_ibug68() * 80 + [160, 100]
+    p = np.repeat(base[None], n, 0) + rng.normal(0, 0.3, (n, 68, 2))
+    return p
+
+
+def test_cue_choice_takes_rare_blinks_and_the_widest_mouth():
+    from keyshape.tracker.labelling.frames import choose_frames_by_cues, shape_cues
+
+    rng = np.random.default_rng(0)
+    n = 600
+    p = _shapes68(n, rng)
+    blinks = [100, 101, 102, 400, 401]
+    for t in blinks:                                    # upper lids onto the lower ones
+        p[t, [37, 38, 43, 44], 1] = p[t, [41, 40, 47, 46], 1]
+    p[250, [65, 66, 67, 56, 57, 58], 1] += 25           # one wide-open mouth
+    p[300] = np.nan                                     # no face
+    assert shape_cues(p)[blinks, 0].max() < 0.2 * np.nanmedian(shape_cues(p)[:, 0])
+    chosen = choose_frames_by_cues(p, 8, min_gap=10)
+    assert len(chosen) == 8 and len(set(chosen)) == 8 and np.all(np.diff(chosen) >= 10)
+    assert 300 not in chosen and 250 in chosen
+    assert sum(c in blinks for c in chosen) >= 1
+
+
+def test_worst_explained_lost_first_then_least_confident_apart():
+    from keyshape.tracker.labelling.frames import worst_explained
+
+    conf = np.ones(200)
+    ok = np.ones(200, bool)
+    conf[50:60] = 0.2
+    conf[55] = 0.1
+    conf[150] = 0.5
+    ok[120] = False
+    conf[5] = 0.0                                          # next to a labelled frame: never chosen
+    got = worst_explained(conf, ok, 3, exclude=[0], min_gap=12)
+    np.testing.assert_array_equal(got, [55, 120, 150])

@@ -30,7 +30,11 @@ def test_synthetic_footage_nme(seed, tmp_path):
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_franck_against_dlib(shared_data, tmp_path):
-    """Real footage, ibug68, 12 dlib-labelled frames: mean NME vs dlib <= 0.05, no lost run over 10 frames."""
+    """Real footage, ibug68, 12 dlib-labelled frames: mean NME vs dlib <= 0.05, no lost run over 25 frames.
+
+    Measured (issue 13): NME mean 0.0158; 18 frames lost, 3825-3842, the head-down laugh with closed
+    eyes that none of the 12 evenly spread labels shows (before issue 13 they were marked good at
+    NME 0.06-0.09: now flagged instead of silently wrong)."""
     if importlib.util.find_spec("dlib") is None:
         pytest.skip("dlib not installed (optional extra keyshape[label])")
     sys.path.insert(0, str(BENCH))
@@ -42,5 +46,5 @@ def test_franck_against_dlib(shared_data, tmp_path):
     r = evaluate(shared_data / "video" / "franck.mp4", cache=None, sheet=tmp_path / "sheet.png")
     e = r["nme"]["all"]
     assert np.nanmean(e) <= 0.05, np.nanmean(e)
-    assert r["longest_lost_run"] <= 10
+    assert r["longest_lost_run"] <= 25
     assert (tmp_path / "sheet.png").is_file()

@@ -131,8 +131,12 @@ def warp_patch(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.
     return warp_patch_u8(pyramid, image_from_model, size).astype(np.float32)
 
 
-def warp_patch_u8(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.ndarray:
-    """:func:`warp_patch` before the float conversion: the ``uint8`` patch (same values)."""
+def warp_patch_u8(pyramid: Pyramid, image_from_model: np.ndarray, size) -> np.ndarray:
+    """:func:`warp_patch` before the float conversion: the ``uint8`` patch (same values).
+
+    ``size`` is an int (square patch) or ``(width, height)``.
+    """
+    sw, sh = (size, size) if isinstance(size, (int, np.integer)) else (int(size[0]), int(size[1]))
     a = np.asarray(image_from_model, np.float64)
     scale = math.sqrt(abs(a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]))
     lvl = 0
@@ -144,14 +148,14 @@ def warp_patch_u8(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> 
         a[:, 2] += 0.5 * f - 0.5
     # sample only the window the patch covers (bilinear reads one pixel beyond; 2 for safety)
     (a00, a01, a02), (a10, a11, a12) = a.tolist()
-    xs = (a02 - a00 - a01, a02 + a00 * size - a01, a02 - a00 + a01 * size, a02 + (a00 + a01) * size)
-    ys = (a12 - a10 - a11, a12 + a10 * size - a11, a12 - a10 + a11 * size, a12 + (a10 + a11) * size)
+    xs = (a02 - a00 - a01, a02 + a00 * sw - a01, a02 - a00 + a01 * sh, a02 + a00 * sw + a01 * sh)
+    ys = (a12 - a10 - a11, a12 + a10 * sw - a11, a12 - a10 + a11 * sh, a12 + a10 * sw + a11 * sh)
     if all(map(math.isfinite, xs + ys)) and max(map(abs, xs + ys)) < 1e7:
         img = pyramid.window(lvl, math.floor(min(xs)) - 2, math.floor(min(ys)) - 2,
                              math.ceil(max(xs)) + 3, math.ceil(max(ys)) + 3)
     else:
         img = pyramid[lvl]
-    return cv2.warpAffine(img, a, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+    return cv2.warpAffine(img, a, (sw, sh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                           borderMode=cv2.BORDER_REPLICATE)
 
 
@@ -180,6 +184,139 @@ def _pca_rows(xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --------------------------------------------------------------------------- the model
+
+def region_groups(scheme: Scheme) -> dict[str, np.ndarray]:
+    """Point groups read by their own region models: each eye (with its pupil), each brow, the mouth."""
+    groups: dict[str, list[int]] = {}
+    for name, idx in scheme.contours.items():
+        side = "left" if "left" in name else "right" if "right" in name else ""
+        if name.startswith(("eye", "pupil")) and side:
+            key = f"eye_{side}"
+        elif name.startswith("brow") and side:
+            key = f"brow_{side}"
+        elif name.startswith("lip"):
+            key = "mouth"
+        else:
+            continue
+        groups.setdefault(key, []).extend(int(i) for i in idx)
+    out = {k: np.array(sorted(set(v)), np.intp) for k, v in groups.items() if len(set(v)) >= 2}
+    return out
+
+
+def split_upper_lower(points: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split a region's points (a lip or eye outline) into upper and lower halves, corners in both.
+
+    The corners are the leftmost and rightmost points in the model frame's
+    reference shape; points above the line joining them are upper.
+    """
+    pts = np.asarray(points, np.intp)
+    xy = ref[pts]
+    left, right = int(np.argmin(xy[:, 0])), int(np.argmax(xy[:, 0]))
+    a, b = xy[left], xy[right]
+    side = (b[0] - a[0]) * (xy[:, 1] - a[1]) - (b[1] - a[1]) * (xy[:, 0] - a[0])   # > 0: below (y down)
+    corner = np.zeros(len(pts), bool)
+    corner[[left, right]] = True
+    return pts[corner | (side < 0)], pts[corner | (side > 0)]
+
+
+class RegionModel:
+    """Eigen-points model of one facial region inside the global model frame.
+
+    Coupled PCA of the region's normalised intensities (a dilated hull of its
+    points in the model frame, sampled in the region's bounding ``box``) and
+    its points, over the same labelled and morphed training patches as the
+    global model (section 3 of 004_119ba07521a9af0b.txt applied per feature,
+    as eigen-points is usually used). Reading a region is a projection of its
+    pixels on its intensity rows (MAP with the PCA prior, as the global
+    model) and the region's points from the same coefficients; the tracker
+    first refines the region's translation in the model frame
+    (:meth:`tracker.fitting.Tracker.read`).
+
+    ``box`` is ``(x0, y0, width, height)`` in model pixels, ``index`` the flat
+    indices of the region's pixels in that box.
+    """
+
+    ARRAYS = ("points", "box", "index", "mean", "components", "variance", "train_residuals")
+
+    def __init__(self, name: str, points, box, index, mean, components, variance, train_residuals, landmark_scale):
+        self.name = name
+        self.points = np.asarray(points, np.intp)
+        self.box = np.asarray(box, np.intp)
+        self.index = np.asarray(index, np.intp)
+        self.mean = np.asarray(mean, np.float64)
+        self.components = np.asarray(components, np.float64)
+        self.variance = np.asarray(variance, np.float64)
+        self.train_residuals = np.asarray(train_residuals, np.float64)
+        self.landmark_scale = float(landmark_scale)
+
+    @classmethod
+    def fit_region(cls, name, points, ref, patches, shapes, src_of, n_labels, variance, landmark_weight, grow,
+                   n_components=None):
+        size = patches.shape[-1]
+        hull = cv2.convexHull(np.round(ref[points]).astype(np.int32))
+        mask = np.zeros((size, size), np.uint8)
+        cv2.fillConvexPoly(mask, hull, 1)
+        mask = cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+        x0, y0, w, h = cv2.boundingRect(mask)
+        mask = mask.astype(bool)[y0:y0 + h, x0:x0 + w]
+        index = np.flatnonzero(mask.ravel())
+        crops = patches[:, y0:y0 + h, x0:x0 + w]
+        intens = normalise(crops.reshape(len(crops), -1)[:, index])
+        land = shapes[:, points].reshape(len(shapes), -1)
+        scale = float(np.sqrt(landmark_weight * intens.var(0).sum() / max(land.var(0).sum(), 1e-12)))
+        x = np.hstack([intens, land * scale])
+        mean = x.mean(0)
+        vt, var = _pca_rows(x - mean)
+        ratio = var / max(var.sum(), 1e-300)
+        k = int(np.searchsorted(np.cumsum(ratio), variance) + 1) if n_components is None else int(n_components)
+        k = min(k, max(1, len(x) - 1), len(vt))
+        res = []
+        for i in range(n_labels):
+            keep = (src_of[:, 0] != i) & (src_of[:, 1] != i)
+            xi = intens[keep]
+            mu = xi.mean(0)
+            vti, _ = _pca_rows(xi - mu)
+            vti = vti[:k]
+            e = intens[i] - mu
+            e = e - vti.T @ (vti @ e)
+            res.append(float(e @ e / len(e)))
+        return cls(name, points, (x0, y0, w, h), index, mean, vt[:k], var[:k] / len(x), res, scale)
+
+    def precompute(self, ridge: float) -> None:
+        n_pix = len(self.index)
+        ui = self.components[:, :n_pix].T
+        self.mean_i = self.mean[:n_pix]
+        self.mean_l = self.mean[n_pix:] / self.landmark_scale
+        self.ul = np.ascontiguousarray(self.components[:, n_pix:].T / self.landmark_scale)
+        if ridge > 0:
+            sigma2 = ridge * float(np.median(self.train_residuals))
+            reg = np.diag(sigma2 / np.maximum(self.variance, 1e-12))
+            self.pinv_i = np.linalg.solve(ui.T @ ui + reg, ui.T)
+        else:
+            self.pinv_i = np.linalg.pinv(ui)
+        q, _ = np.linalg.qr(np.hstack([np.ones((n_pix, 1)), ui]))
+        self.qt = np.ascontiguousarray(q.T)
+        self.n_pix = n_pix
+
+    def crop(self, patch: np.ndarray) -> np.ndarray:
+        """The region's box of a model-frame patch (size, size)."""
+        x0, y0, w, h = (int(v) for v in self.box)
+        return patch[y0:y0 + h, x0:x0 + w]
+
+    def error(self, box_patch: np.ndarray) -> tuple[np.ndarray, float]:
+        """Normalised intensity error (n_pix,) of a box patch and its contrast (std) before normalising."""
+        v = box_patch.ravel()[self.index].astype(np.float64)
+        e = v - v.sum() / self.n_pix
+        sd = max(math.sqrt(float(e @ e) / self.n_pix), 1e-6)
+        e *= 1.0 / sd
+        e -= self.mean_i
+        return e, sd
+
+    def read(self, box_patch: np.ndarray) -> np.ndarray:
+        """Model-frame points ``(len(points), 2)`` of the region from its box patch (box coordinates = model)."""
+        e, _ = self.error(box_patch)
+        return (self.mean_l + self.ul @ (self.pinv_i @ e)).reshape(-1, 2)
+
 
 class Reading(NamedTuple):
     """Constant operators of a fitted model's reading (:attr:`AppearanceModel.reading_`).
@@ -221,6 +358,20 @@ class AppearanceModel:
     landmark_weight : float
         Total variance of the landmark rows relative to the intensity rows in
         the stacked PCA vectors (the coupling of eigen-points).
+    regions : bool
+        Also learn one eigen-points model per facial region (each eye with its
+        pupil, each brow, the mouth) on the same pre-warped training set: the
+        global model gives the pose, each region reads its own points from its
+        own pixels, so eye state and mouth state combine freely (a blink with
+        an open mouth need not have been labelled). Regions follow the
+        scheme's contours named ``eye_*``/``pupil_*``, ``brow_*``, ``lip_*``;
+        the other points (jaw, nose) keep the global reading.
+    split_mouth : bool
+        Read the upper and the lower lip (corners in both) with separate region
+        models, each with its own translation (the jaw drops the lower lip).
+    region_grow : float
+        Border added around each region's points (fraction of ``face_width``):
+        the pixels a region model sees.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
 
@@ -236,11 +387,13 @@ class AppearanceModel:
     train_residuals_ : (n_labels,) leave-one-label-out appearance residuals of the labelled frames
     train_poses_ : (n_labels, 2, 3) ``image_from_model`` of each labelled frame
     train_shapes_ : (n_labels, n_points, 2) model-frame labels
+    region_models_ : list of :class:`RegionModel` (empty when ``regions`` is False)
     """
 
     def __init__(self, scheme: str | Scheme = "contours48", n_components: int | None = None,
                  variance: float = 0.98, face_width: int = 64, margin: float = 0.22, n_morphs: int = 120,
-                 landmark_weight: float = 1.0, ridge: float = 1.0, rng=None):
+                 landmark_weight: float = 1.0, ridge: float = 1.0, regions: bool = True, split_mouth: bool = True,
+                 region_grow: float = 0.1, rng=None):
         self.scheme = scheme
         self.n_components = n_components
         self.variance = variance
@@ -249,6 +402,9 @@ class AppearanceModel:
         self.n_morphs = n_morphs
         self.landmark_weight = landmark_weight
         self.ridge = ridge
+        self.regions = regions
+        self.split_mouth = split_mouth
+        self.region_grow = region_grow
         self.rng = rng
 
     # ---------------------------------------------------------------- fitting
@@ -352,6 +508,17 @@ class AppearanceModel:
             res.append(float(e @ e / len(e)))
         self.train_residuals_ = np.array(res)
         self.scheme_ = scheme
+        self.region_models_ = []
+        if self.regions:
+            groups = region_groups(scheme)
+            if "mouth" in groups and self.split_mouth:
+                # upper and lower lip move apart (jaw drop): each gets its own translation
+                groups["lip_upper"], groups["lip_lower"] = split_upper_lower(groups.pop("mouth"), ref)
+            for name, pts in groups.items():
+                self.region_models_.append(RegionModel.fit_region(
+                    name, pts, ref, all_patches, all_shapes, src_of, n, self.variance,
+                    self.landmark_weight, grow=max(2, int(round(self.face_width * self.region_grow))),
+                    n_components=self.n_components))
         self._precompute()
         return self
 
@@ -396,6 +563,8 @@ class AppearanceModel:
             self._pinv_i = np.linalg.pinv(ui)                   # (k, n_pix): least squares on intensity rows
         self._ui = ui
         self._n_pix = n_pix
+        for rm in getattr(self, "region_models_", []):
+            rm.precompute(self.ridge)
 
     # ---------------------------------------------------------------- use
     def _check_fitted(self) -> None:
@@ -441,7 +610,10 @@ class AppearanceModel:
         self._check_fitted()
         patch = warp_patch(build_pyramid(to_gray(frame)), image_from_model, self.patch_size_)
         c, r = self.project(self.intensities(patch))
-        return apply_affine(image_from_model, self.landmarks(c)), float(r)
+        shape = self.landmarks(c)
+        for rm in getattr(self, "region_models_", []):
+            shape[rm.points] = rm.read(rm.crop(patch))
+        return apply_affine(image_from_model, shape), float(r)
 
     def initial_pose(self) -> np.ndarray:
         """Mean ``image_from_model`` of the labelled frames (a start for tracking)."""
@@ -457,15 +629,21 @@ class AppearanceModel:
     # ---------------------------------------------------------------- persistence
     _ARRAYS = ("reference_", "mask_", "mean_", "components_", "explained_variance_ratio_", "explained_variance_",
                "train_residuals_", "train_poses_", "train_shapes_")
-    _PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge")
+    _PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge", "regions",
+               "split_mouth", "region_grow")
     _STATE = ("landmark_scale_", "patch_size_", "n_samples_")
 
     def to_file(self) -> ModelFile:
         """The model as plain arrays and metadata (:mod:`keyshape.base.formats.model`)."""
         self._check_fitted()
-        return ModelFile(self.scheme_, {k: getattr(self, k) for k in self._PARAMS},
-                         {k.rstrip("_"): getattr(self, k) for k in self._STATE},
-                         {k.rstrip("_"): getattr(self, k) for k in self._ARRAYS})
+        state = {k.rstrip("_"): getattr(self, k) for k in self._STATE}
+        arrays = {k.rstrip("_"): getattr(self, k) for k in self._ARRAYS}
+        regions = getattr(self, "region_models_", [])
+        state["region_models"] = [{"name": r.name, "landmark_scale": r.landmark_scale} for r in regions]
+        for i, r in enumerate(regions):
+            for k in RegionModel.ARRAYS:
+                arrays[f"region{i}_{k}"] = getattr(r, k)
+        return ModelFile(self.scheme_, {k: getattr(self, k) for k in self._PARAMS}, state, arrays)
 
     @classmethod
     def from_file(cls, mf: ModelFile) -> "AppearanceModel":
@@ -473,7 +651,10 @@ class AppearanceModel:
         :class:`InputError` naming ``mf.path``."""
         path = mf.path
         try:
-            model = cls(mf.scheme, **mf.params)
+            params = dict(mf.params)
+            for k, old in (("regions", False), ("split_mouth", False), ("region_grow", 0.06)):
+                params.setdefault(k, old)         # files written before region models existed
+            model = cls(mf.scheme, **params)
             for k in cls._ARRAYS:
                 a = np.asarray(mf.arrays[k.rstrip("_")])
                 if a.dtype.kind not in "biuf" or a.size == 0 or (a.dtype.kind == "f" and not np.isfinite(a).all()):
@@ -483,6 +664,9 @@ class AppearanceModel:
             model.landmark_scale_ = float(mf.state["landmark_scale"])
             model.patch_size_ = int(mf.state["patch_size"])
             model.n_samples_ = int(mf.state["n_samples"])
+            model.region_models_ = [
+                RegionModel(str(r["name"]), *(np.asarray(mf.arrays[f"region{i}_{k}"]) for k in RegionModel.ARRAYS),
+                            float(r["landmark_scale"])) for i, r in enumerate(mf.state.get("region_models", []))]
         except KeyError as exc:
             raise InputError(f"model file is missing {exc}", path) from None
         except (TypeError, ValueError, OverflowError) as exc:
@@ -505,6 +689,21 @@ class AppearanceModel:
                 or model.mean_.shape != (n_pix + 2 * n_pts,) or n_pts != mf.scheme.n_points or model.k_ < 1
                 or not np.isfinite(model.components_).all()):
             raise InputError("model file is inconsistent (array shapes do not match each other or the scheme)", path)
+        for r in model.region_models_:
+            if any(np.asarray(getattr(r, k)).dtype.kind not in "biuf" for k in RegionModel.ARRAYS) or \
+                    r.train_residuals.ndim != 1 or len(r.train_residuals) < 1:
+                raise InputError(f"model file is inconsistent (region model {r.name!r})", path)
+            x0, y0, w, h = (r.box.tolist() + [0, 0, 0, 0])[:4] if r.box.ndim == 1 else (0, 0, 0, 0)
+            if (r.box.shape != (4,) or min(x0, y0) < 0 or w < 1 or h < 1 or x0 + w > model.patch_size_
+                    or y0 + h > model.patch_size_ or r.points.ndim != 1 or len(r.points) < 1
+                    or r.points.min() < 0 or r.points.max() >= n_pts or r.index.ndim != 1 or len(r.index) < 1
+                    or r.index.min() < 0 or r.index.max() >= w * h or r.components.ndim != 2
+                    or r.components.shape[1] != len(r.index) + 2 * len(r.points) or len(r.components) < 1
+                    or r.mean.shape != (r.components.shape[1],) or r.variance.shape != (len(r.components),)
+                    or not (np.isfinite(r.components).all() and np.isfinite(r.mean).all()
+                            and np.isfinite(r.variance).all() and np.isfinite(r.train_residuals).all())
+                    or not (np.isfinite(r.landmark_scale) and r.landmark_scale > 0)):
+                raise InputError(f"model file is inconsistent (region model {r.name!r})", path)
         try:
             with np.errstate(over="raise", invalid="raise", divide="raise"):
                 model._precompute()

@@ -22,7 +22,13 @@ def register(subparsers) -> None:
     p.add_argument("--no-prefill", action="store_true",
                    help="start from a generic face shape instead of dlib's points")
     p.add_argument("--frames", type=_frame_list, default=None,
-                   help="label exactly these zero-based frames (comma-separated) instead of choosing")
+                   help="label exactly these zero-based frames (comma-separated) instead of choosing; on an "
+                        "existing folder, add them to it")
+    p.add_argument("--more", type=int, default=None, metavar="N",
+                   help="active labelling: add to the existing folder DIR the N frames that the track "
+                        "--tracks explains worst (lost frames, then lowest confidence)")
+    p.add_argument("--tracks", default=None, metavar="TRACKS.csv",
+                   help="with --more: the tracks CSV of a first `keyshape track` of this video")
     p.add_argument("--seed", type=int, default=0, help="seed of the frame clustering")
     p.add_argument("--serve", action="store_true", help="start the correction page after preparing")
     p.add_argument("--port", type=int, default=8765, help="port of the correction page (0: any free port)")
@@ -37,9 +43,34 @@ def _frame_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got {text!r}") from None
 
 
+def _worst_frames(args) -> list[int]:
+    from pathlib import Path  # noqa: PLC0415
+
+    from keyshape.base.errors import InputError  # noqa: PLC0415
+    from keyshape.base.formats.tracks import read_tracks  # noqa: PLC0415
+    from keyshape.tracker.labelling.frames import worst_explained  # noqa: PLC0415
+    from keyshape.tracker.labelling.server import SESSION_FILE, read_session  # noqa: PLC0415
+
+    if args.more < 1:
+        raise InputError(f"--more must be at least 1, got {args.more}")
+    if args.tracks is None:
+        raise InputError("--more needs --tracks TRACKS.csv (a first `keyshape track` of this video)")
+    if not (Path(args.out) / SESSION_FILE).is_file():
+        raise InputError("--more adds frames to an existing label folder: run `keyshape label` first", Path(args.out))
+    have = read_session(Path(args.out))["frames"]
+    tr = read_tracks(args.tracks)
+    add = worst_explained(tr.confidence, tr.success, args.more, exclude=have, frames=tr.frame)
+    if not len(add):
+        raise InputError("no frame left to add (all within the minimum gap of labelled ones)", Path(args.tracks))
+    print(f"adding the {len(add)} frames the track explains worst: {', '.join(map(str, add))}")
+    return [int(f) for f in add]
+
+
 def _run(args) -> int:
     from keyshape.tracker.labelling.prepare import prepare_label_folder, write_contact_sheet  # noqa: PLC0415
 
+    if args.more is not None:
+        args.frames = _worst_frames(args)
     session = prepare_label_folder(args.video, args.out, args.count, args.scheme,
                                    use_prefill=not args.no_prefill, rng=args.seed, quiet=args.quiet,
                                    frames=args.frames)

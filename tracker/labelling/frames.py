@@ -19,6 +19,12 @@ raised brows, head turns) rather than K similar frames. Over the whole video:
    of the Laplacian) among its temporal neighbours (``sharp_window`` frames
    either side) that look more like it than like any other chosen frame, so a
    motion-blurred frame is replaced when a sharp look-alike is next to it.
+
+With dlib's points over the whole video (the default of ``keyshape label``),
+:func:`choose_frames_by_cues` chooses instead from expression and pose cues
+(:func:`shape_cues`) and makes sure blinks are among the chosen frames (an
+eye-closure cue from the pixels, :func:`eye_profile`); :func:`worst_explained`
+picks the frames a first track explains worst (``keyshape label --more``).
 """
 from __future__ import annotations
 
@@ -218,3 +224,229 @@ def spread_frames(n_frames: int, count: int, exclude=(), min_gap: int = 12, rng=
             raise InputError(f"cannot place {count} held-back frames {min_gap} apart in {n_frames} frames")
         out.append(int(g.choice(ok)))
     return np.array(out, dtype=np.intp)
+
+
+# ----------------------------------------------------------------------------- shape cues (dlib pre-fill)
+
+CUE_NAMES = ("eye_aperture", "mouth_aperture", "mouth_width", "brow_height", "yaw", "pitch", "roll")
+
+
+def shape_cues(points68: np.ndarray) -> np.ndarray:
+    """Per-frame expression and pose cues of iBUG-68 shapes ``(n, 68, 2)`` -> ``(n, 7)`` (see :data:`CUE_NAMES`).
+
+    Distances are in inter-ocular units (outer eye corners) in a face frame
+    rotated by the eye line: eye aperture (mean lid gap of both eyes), inner-lip
+    gap, mouth width, brow height above the eye centres, yaw (nose tip's
+    horizontal offset from the eyes' midpoint), pitch (nose tip's drop below
+    the eye line over the chin's), roll (eye-line angle, radians). NaN rows
+    stay NaN.
+    """
+    p = np.asarray(points68, np.float64)
+    eye = p[:, 45] - p[:, 36]
+    iod = np.linalg.norm(eye, axis=1)
+    ang = np.arctan2(eye[:, 1], eye[:, 0])
+    c, s = np.cos(-ang), np.sin(-ang)
+    mid = (p[:, 36] + p[:, 45]) / 2
+    d = p - mid[:, None]
+    q = np.stack([c[:, None] * d[..., 0] - s[:, None] * d[..., 1],
+                  s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1) / iod[:, None, None]
+
+    def gap(a, b):
+        return np.linalg.norm(q[:, a] - q[:, b], axis=-1)
+
+    eye_ap = (gap(37, 41) + gap(38, 40) + gap(43, 47) + gap(44, 46)) / 4
+    mouth_ap = gap(62, 66)
+    width = gap(48, 54)
+    eye_y = q[:, 36:48, 1].mean(1)
+    brow = eye_y - q[:, 17:27, 1].mean(1)
+    yaw = q[:, 30, 0]
+    pitch = q[:, 30, 1] / np.maximum(q[:, 8, 1], 1e-6)
+    return np.stack([eye_ap, mouth_ap, width, brow, yaw, pitch, ang], 1)
+
+
+def eye_profile(gray: np.ndarray, points68: np.ndarray, width: int = 16, height: int = 10) -> np.ndarray:
+    """Vertical intensity profile of both eyes ``(2 * height,)``: a cheap eye-closure cue from the pixels.
+
+    Each eye's box (between its corners, as tall as half their distance, turned
+    with them) is sampled at ``width`` x ``height`` and averaged along the
+    rows; the profile is normalised to zero mean and unit variance. An open
+    eye has a dark band (iris, lashes) that a closed lid replaces by skin;
+    averaging along the rows makes it insensitive to where the eye looks.
+    dlib's lid points are not needed, only its eye corners (which it finds
+    far more reliably than the lids).
+    """
+    import cv2  # noqa: PLC0415
+
+    out = []
+    for a, b in ((36, 39), (42, 45)):
+        p, q = np.asarray(points68[a], np.float64), np.asarray(points68[b], np.float64)
+        u = (q - p) / width                         # model x step in image pixels
+        v = np.array([-u[1], u[0]]) * (0.5 * width / height)
+        origin = p - v * (height / 2)
+        m = np.array([[u[0], v[0], origin[0]], [u[1], v[1], origin[1]]])
+        patch = cv2.warpAffine(gray, m, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        out.append(patch.mean(1))
+    prof = np.concatenate(out)
+    prof -= prof.mean()
+    return prof / (prof.std() + 1e-6)
+
+
+def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, min_gap: int = 12,
+                          exclude=(), n_blinks: int | None = None, blink_ratio: float = 0.7,
+                          sharp_window: int = 3, eye_profiles: np.ndarray | None = None) -> np.ndarray:
+    """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
+
+    Features: robust z-scores of :func:`shape_cues` (eye aperture and
+    inner-lip gap counted double) and the first principal components of the face-frame shapes.
+    Farthest-point sampling in that space, starting nearest the median face,
+    picks the extremes (mouth wide open, brows raised, head turned) and never
+    near-duplicates; then, when the video has blinks (eye aperture below
+    ``blink_ratio`` of its median) and too few chosen frames are blinks, the
+    most redundant chosen frames give way to the deepest blinks (``n_blinks``,
+    default ``max(1, count // 5)``): the person-specific model can only follow
+    eye closures it was shown. Frames without a face are never chosen.
+
+    With ``eye_profiles`` ((n, d) from :func:`eye_profile`), a blink must
+    also show in the pixels: its profile far (robust z-score above 3) from
+    the video's median open-eye profile; dlib's lid points alone often close
+    an open eye by half.
+
+    Returns the chosen frame indices in time order.
+    """
+    p = np.asarray(points68, np.float64)
+    n = len(p)
+    count = int(count)
+    if count < 1:
+        raise InputError(f"--count must be at least 1, got {count}")
+    ok = np.isfinite(p).all(axis=(1, 2))
+    free = ok.copy()
+    for e in set(int(i) for i in exclude):
+        free[max(e - min_gap + 1, 0):e + min_gap] = False
+    if free.sum() < count:
+        raise InputError(f"cannot choose {count} frames: the pre-fill found a face in only {int(free.sum())} "
+                         f"free frames of {n}")
+    cues = shape_cues(np.where(ok[:, None, None], p, 0.0) + np.where(ok[:, None, None], 0.0, np.nan))
+    cv = cues[ok]
+    med = np.median(cv, 0)
+    iqr = np.subtract(*np.percentile(cv, [75, 25], 0)) / 1.35
+    z = np.clip((cues - med) / np.maximum(iqr, 1e-6), -8, 8)
+    z[:, 0] *= 2.0
+    z[:, 1] *= 2.0
+    # face-frame shapes (cues' normalisation) -> PCA, scaled so the first component has unit spread
+    eye = p[:, 45] - p[:, 36]
+    iod = np.linalg.norm(eye, axis=1)
+    ang = np.arctan2(eye[:, 1], eye[:, 0])
+    c, s = np.cos(-ang), np.sin(-ang)
+    d = p - ((p[:, 36] + p[:, 45]) / 2)[:, None]
+    q = np.stack([c[:, None] * d[..., 0] - s[:, None] * d[..., 1],
+                  s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1) / iod[:, None, None]
+    flat = q[:, 17:].reshape(n, -1)
+    mu = flat[ok].mean(0)
+    _, sv, vt = np.linalg.svd(flat[ok] - mu, full_matrices=False)
+    k = min(8, len(sv))
+    shp = np.zeros((n, k))
+    shp[ok] = (flat[ok] - mu) @ vt[:k].T / max(sv[0] / np.sqrt(ok.sum()), 1e-9)
+    X = np.hstack([z, np.clip(shp, -6, 6)])
+    X[~ok] = 0.0
+    cand = np.flatnonzero(free)
+    chosen: list[int] = [int(cand[np.argmin(np.linalg.norm(X[cand] - np.median(X[cand], 0), axis=1))])]
+    dist = np.linalg.norm(X[cand] - X[chosen[0]], axis=1)
+    blocked = np.abs(cand - chosen[0]) < min_gap
+    while len(chosen) < count:
+        score = np.where(blocked, -np.inf, dist)
+        if not np.isfinite(score.max()):
+            raise InputError(f"cannot choose {count} frames at least {min_gap} frames apart from {n} frames")
+        f = int(cand[np.argmax(score)])
+        chosen.append(f)
+        blocked |= np.abs(cand - f) < min_gap
+        dist = np.minimum(dist, np.linalg.norm(X[cand] - X[f], axis=1))
+    # blinks: make sure some chosen frames have the eyes closed
+    n_blinks = max(1, count // 5) if n_blinks is None else int(n_blinks)
+    eye_ap = cues[:, 0]
+    is_blink = free & (eye_ap < blink_ratio * med[0])
+    depth = -eye_ap
+    if eye_profiles is not None:
+        prof = np.asarray(eye_profiles, np.float64)
+        okp = ok & np.isfinite(prof).all(1)
+        dist = np.full(n, -np.inf)
+        dist[okp] = np.linalg.norm(prof[okp] - np.median(prof[okp], 0), axis=1)
+        dmed = np.median(dist[okp])
+        dmad = np.median(np.abs(dist[okp] - dmed)) / 0.6745 + 1e-9
+        zd = (dist - dmed) / dmad
+        is_blink = free & (zd > 3.0) & (eye_ap < med[0])
+        depth = np.where(okp, zd, -np.inf)
+    have = [f for f in chosen if is_blink[f]]
+    protected = set(have)
+    if is_blink.any() and len(have) < n_blinks and count > 1:
+        order = np.flatnonzero(is_blink)
+        order = order[np.argsort(-depth[order])]
+        for b in order:
+            if len(have) >= n_blinks:
+                break
+            near = [j for j, f in enumerate(chosen) if abs(int(b) - f) < min_gap]
+            if len(near) > 1 or any(chosen[j] in protected for j in near):
+                continue
+            if near:        # a chosen frame next to the blink gives way to it
+                j = near[0]
+            else:           # else the most redundant chosen frame (nearest to another chosen one)
+                cs = np.array(chosen)
+                dd = np.linalg.norm(X[cs][:, None] - X[cs][None], axis=2)
+                np.fill_diagonal(dd, np.inf)
+                js = [j for j in np.argsort(dd.min(1)) if chosen[j] not in protected]
+                if not js:
+                    break
+                j = int(js[0])
+            chosen[j] = int(b)
+            have.append(int(b))
+            protected.add(int(b))
+    # sharpness: swap for a sharper neighbour with (nearly) the same cues, blinks kept as they are
+    if sharpness is not None:
+        sharp = np.asarray(sharpness, np.float64)
+        out = []
+        cs = np.array(chosen)
+        for f in chosen:
+            if f in protected:
+                out.append(f)
+                continue
+            nb = np.arange(max(f - sharp_window, 0), min(f + sharp_window + 1, n))
+            nb = nb[free[nb]]
+            d_self = np.linalg.norm(X[nb] - X[f], axis=1)
+            oth = cs[cs != f]
+            if len(oth):
+                d_other = np.min(np.linalg.norm(X[nb][:, None] - X[oth][None], axis=2), axis=1)
+                nb = nb[d_self < 0.25 * d_other]
+            nb = nb[[min((abs(int(x) - g) for g in out + [h for h in chosen if h != f]), default=min_gap)
+                     >= min_gap for x in nb]] if len(nb) else nb
+            out.append(int(nb[np.argmax(sharp[nb])]) if len(nb) else f)
+        chosen = out
+    return np.array(sorted(chosen), dtype=np.intp)
+
+
+def worst_explained(confidence: np.ndarray, success: np.ndarray, count: int, exclude=(), min_gap: int = 12,
+                    frames: np.ndarray | None = None) -> np.ndarray:
+    """Active labelling: the ``count`` frames a first track explains worst, ``min_gap`` apart and from ``exclude``.
+
+    Lost frames (``success`` False) come first, then the lowest confidence
+    (the appearance residual of :class:`~keyshape.tracker.fitting.Tracker`).
+    Each pick blocks ``min_gap`` frames either side, so one hard stretch (a
+    laugh, a head turn) gives one frame, the next worst stretch the next.
+    ``frames`` are the video frame numbers of the rows (default 0..n-1).
+    """
+    conf = np.asarray(confidence, np.float64)
+    ok = np.asarray(success, bool)
+    idx = np.arange(len(conf)) if frames is None else np.asarray(frames, np.intp)
+    score = np.where(ok, 1.0 - np.nan_to_num(conf, nan=0.0), 2.0)
+    free = np.ones(len(conf), bool)
+    ex = np.array(sorted(set(int(e) for e in exclude)), np.intp)
+    if len(ex):
+        free &= np.min(np.abs(idx[:, None] - ex[None]), axis=1) >= min_gap
+    out: list[int] = []
+    while len(out) < int(count):
+        cand = np.flatnonzero(free)
+        if not len(cand):
+            break
+        j = int(cand[np.argmax(score[cand])])
+        out.append(int(idx[j]))
+        free &= np.abs(idx - idx[j]) >= min_gap
+    return np.array(sorted(out), np.intp)

@@ -144,6 +144,11 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         old = read_session(out)
         if Path(old.get("video", "")).name == info.path.name and old["scheme"] == scheme.name:
             session = old
+            if frames is not None:      # --frames (or --more) on an existing folder: add those frames
+                add = sorted(set(int(f) for f in frames))
+                if add and (add[0] < 0 or add[-1] >= info.n_frames):
+                    raise InputError(f"--frames must be frame indices in 0..{info.n_frames - 1}", info.path)
+                session["frames"] = sorted(set(session["frames"]) | set(add))
         else:
             raise InputError(f"already holds labels of {old.get('video')} in scheme {old['scheme']}: "
                              f"choose another output folder", out)
@@ -154,6 +159,28 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         session = {"scheme": scheme.name, "video": str(info.path.resolve()), "frames": frames,
                    "prefilled": landmarker is not None,
                    "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+    if session is None and landmarker is not None:
+        # whole-video cues from dlib (eye closure, mouth, brows, head pose): cover what the face does
+        from keyshape.tracker.labelling.dlib_landmarker import landmark_video_chained  # noqa: PLC0415
+        from keyshape.tracker.labelling.frames import choose_frames_by_cues  # noqa: PLC0415
+        from keyshape.tracker.labelling.frames import eye_profile  # noqa: PLC0415
+        profiles: dict[int, np.ndarray] = {}
+
+        def _eyes(i, gray, pts):
+            profiles[i] = eye_profile(gray, pts)
+
+        with Progress(info.n_frames, "dlib over the video", enabled=not quiet) as prog:
+            pts68 = landmark_video_chained(video, landmarker, progress=lambda i, n: prog.update(), per_frame=_eyes)
+        prof = np.full((len(pts68), 20), np.nan)
+        for i, v in profiles.items():
+            prof[i] = v
+        gap = max(1, int(round(info.fps / 2))) if info.fps > 0 else 12
+        gap = min(gap, max(1, len(pts68) // (2 * count)))
+        if np.isfinite(pts68).all(axis=(1, 2)).sum() >= count:
+            chosen = choose_frames_by_cues(pts68, count, min_gap=gap, exclude=exclude, eye_profiles=prof)
+            session = {"scheme": scheme.name, "video": str(info.path.resolve()),
+                       "frames": [int(f) for f in chosen], "chosen_by": "dlib cues",
+                       "prefilled": True, "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
     if session is None:
         box = None
         if landmarker is not None:
