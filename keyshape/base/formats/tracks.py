@@ -206,10 +206,6 @@ def _check_track_values(a: np.ndarray, header: list[str], path, lns: list[int]) 
     if inf.any():
         r, c = np.argwhere(inf)[0]
         fail(r, c, "not a finite number")
-    fr = a[:, 0]
-    bad = (fr != np.round(fr)) | (fr < 0) | (fr > 1e9)
-    if bad.any():
-        fail(int(np.flatnonzero(bad)[0]), 0, "frame numbers must be whole numbers from 0")
     if ((a[:, 3] != 0) & (a[:, 3] != 1)).any():
         fail(int(np.flatnonzero((a[:, 3] != 0) & (a[:, 3] != 1))[0]), 3, "success must be 0 or 1")
     big = np.abs(np.nan_to_num(a[:, 4:])) > MAX_PIXELS
@@ -219,17 +215,28 @@ def _check_track_values(a: np.ndarray, header: list[str], path, lns: list[int]) 
     t = a[:, 1]
     if (np.abs(np.nan_to_num(t)) > 1e7).any():
         fail(int(np.flatnonzero(np.abs(np.nan_to_num(t)) > 1e7)[0]), 1, "implausible time (seconds)")
+    check_frame_numbers(a[:, 0], path, lns, "keyshape needs one row per frame (write the missing frames "
+                        "with success=0 and empty coordinates)")
+
+
+def check_frame_numbers(fr: np.ndarray, path, lines: list[int], gap_hint: str) -> None:
+    """Frame numbers whole, from 0, unique, increasing and contiguous (one row per frame), else an
+    :class:`InputError` naming ``path`` and the line (``lines[i]`` of row ``i``); ``gap_hint`` says
+    what a gap breaks. Shared by the tracks and WEIGHTS.csv readers."""
+    bad = (fr != np.round(fr)) | (fr < 0) | (fr > 1e9)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"frame {fr[i]:g}: frame numbers must be whole numbers from 0", path, lines[i])
     step = np.diff(fr)
     if (step <= 0).any():
-        i = int(np.flatnonzero(step <= 0)[0])
-        why = "repeated" if step[i] == 0 else f"out of order (after frame {int(fr[i])})"
-        fail(i + 1, 0, f"frame numbers must be unique and increasing: frame {why}")
+        i = int(np.flatnonzero(step <= 0)[0]) + 1
+        why = "repeated" if step[i - 1] == 0 else f"out of order (after frame {int(fr[i - 1])})"
+        raise InputError(f"frame {int(fr[i])} {why}: frame numbers must be unique and increasing", path, lines[i])
     if (step > 1).any():
         gaps = np.flatnonzero(step > 1)
         i = int(gaps[0])
         raise InputError(f"frame numbers jump from {int(fr[i])} to {int(fr[i + 1])} ({len(gaps)} gap(s), "
-                         f"{int((step[gaps] - 1).sum())} frames missing): keyshape needs one row per frame "
-                         "(write the missing frames with success=0 and empty coordinates)", path, lns[i + 1])
+                         f"{int((step[gaps] - 1).sum())} frames missing): {gap_hint}", path, lines[i + 1])
 
 
 def _is_float(v: str) -> bool:

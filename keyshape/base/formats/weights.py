@@ -26,6 +26,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.base.files import atomic_write
+from keyshape.base.formats.tracks import check_frame_numbers
 
 FLAG = "interpolated"
 KEY_NAME = re.compile(r"([a-z]+)_(\d+)")
@@ -66,25 +67,6 @@ def _check_names(names, path, line=None, key_names: bool = False) -> None:
 
 #: largest plausible weight magnitude (weights are about 0..1; far beyond is a damaged file)
 MAX_WEIGHT = 1e6
-
-
-def _check_frames(fr: np.ndarray, path, lines: list[int]) -> None:
-    """Frame numbers whole, from 0, unique, increasing and contiguous (one row per frame)."""
-    bad = (fr != np.round(fr)) | (fr < 0) | (fr > 1e9)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise InputError(f"frame {fr[i]:g}: frame numbers must be whole numbers from 0", path, lines[i])
-    step = np.diff(fr)
-    if (step <= 0).any():
-        i = int(np.flatnonzero(step <= 0)[0]) + 1
-        why = "repeated" if step[i - 1] == 0 else f"out of order (after frame {int(fr[i - 1])})"
-        raise InputError(f"frame {int(fr[i])} {why}: frame numbers must be unique and increasing", path, lines[i])
-    if (step > 1).any():
-        gaps = np.flatnonzero(step > 1)
-        i = int(gaps[0])
-        raise InputError(f"frame numbers jump from {int(fr[i])} to {int(fr[i + 1])} ({len(gaps)} gap(s), "
-                         f"{int((step[gaps] - 1).sum())} frames missing): one row per frame is needed for "
-                         "an animation at a steady rate", path, lines[i + 1])
 
 
 def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
@@ -145,7 +127,8 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     if flag and not np.isin(a[:, -1], (0, 1)).all():
         i = int(np.flatnonzero(~np.isin(a[:, -1], (0, 1)))[0])
         raise InputError(f"'{FLAG}' must be 0 or 1, got {a[i, -1]:g}", path, body[i][0])
-    _check_frames(a[:, 0], path, [ln for ln, _ in body])
+    check_frame_numbers(a[:, 0], path, [ln for ln, _ in body],
+                        "one row per frame is needed for an animation at a steady rate")
     interp = a[:, -1] != 0 if flag else np.zeros(len(a), dtype=bool)
     return WeightsTable(a[:, 0].astype(np.int64), names, a[:, 1:1 + len(names)], interp)
 
