@@ -370,7 +370,7 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
 
 # --------------------------------------------------------------------------- offline tracking
 
-def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int = 5, passes: int = 2,
+def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int = 5, passes: int = 3,
                 start_pose=None):
     """Track a whole video offline, ``batch`` frames per tensor call (the GPU path).
 
@@ -380,7 +380,14 @@ def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int 
     previous batch and runs the coarse-to-fine alignment and the polish; each
     further pass starts frame ``i`` from the refined pose of frame ``i - 1``
     (the previous frame's pose, as the CPU tracker does sequentially) and runs
-    the full-resolution polish only. Finally all frames are read at once.
+    the full-resolution polish only (the tracker's fast path; a step is kept
+    only if it lowers the residual). Information thus travels one frame per
+    pass from the previous batch: on the 300-frame synthetic clip (seed 0) the
+    NME is 0.0087 with batch 64 and 2 passes, 0.0078 with 3 passes and 0.0075
+    with batch 16 and 2 passes, against 0.0074 for the CPU tracker
+    (docs/tracker.md). Passing the coarse level in the later passes as well
+    was measured worse (NME 0.20 with batch 64: a frame whose pass-1 pose
+    diverged hands its error on).
 
     Unlike :class:`Tracker`, there is no lost-track detection or recovery
     here: a frame whose residual is above the tracker's lost threshold is
