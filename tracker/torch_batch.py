@@ -67,7 +67,7 @@ class _Frames:
     without repeating the edge, every second pixel, rounded), in integer-exact float32.
     """
 
-    def __init__(self, torch, frames, device, levels: int = 4):
+    def __init__(self, torch, frames, device, levels: int = 4, full_size=None):
         self.torch = torch
         if isinstance(frames, torch.Tensor):
             t = frames.to(device)
@@ -85,7 +85,7 @@ class _Frames:
         else:
             raise InputError(f"frames: expected (B, height, width) or (B, height, width, 3), got {tuple(t.shape)}")
         self.levels = [g[:, None]]
-        h, w = g.shape[-2:]
+        h, w = g.shape[-2:] if full_size is None else full_size
         n = 1
         while n < levels and min(h, w) >= 64:       # the same level count as Pyramid
             h, w = (h + 1) // 2, (w + 1) // 2
@@ -104,6 +104,37 @@ class _Frames:
             s = F.conv2d(x, self._kernel, stride=2)
             self.levels.append(self.torch.floor((s + 128.0) / 256.0))
         return self.levels[lvl]
+
+
+def _crop(torch, frames, poses: np.ndarray, size: int, device, margin: float = 0.5, levels: int = 4):
+    """The frames cut to the region the patches of ``poses`` can reach, as :class:`_Frames`.
+
+    Only the face region is converted and downsampled (as :meth:`Pyramid.window` does on
+    the CPU): the crop's corner is a multiple of the coarsest level's pixel and it keeps
+    a margin of ``margin`` times the face's extent plus the pyrDown kernels' reach, so the pixels a
+    warp reads are those of the whole frame's levels. Returns ``(frames, (x0, y0))``;
+    poses and points are shifted by the corner.
+    """
+    arr = np.asarray(frames) if not isinstance(frames, (list, tuple)) else np.stack([np.asarray(f) for f in frames])
+    if arr.ndim not in (3, 4) or len(arr) != len(poses) or not np.isfinite(poses).all():
+        return _Frames(torch, arr, device, levels), (0, 0)
+    H, W = arr.shape[1:3]
+    n = 1
+    h, w = H, W
+    while n < levels and min(h, w) >= 64:
+        h, w = (h + 1) // 2, (w + 1) // 2
+        n += 1
+    corners = np.array([[0, 0, 1], [size, 0, 1], [0, size, 1], [size, size, 1]], np.float64)
+    pts = np.einsum("bij,kj->bki", poses, corners).reshape(-1, 2)
+    lo, hi = pts.min(0), pts.max(0)
+    step = 2 ** (n - 1)
+    m = margin * (hi - lo) + 6 * step
+    x0 = max(int(math.floor((lo[0] - m[0]) / step)) * step, 0)
+    y0 = max(int(math.floor((lo[1] - m[1]) / step)) * step, 0)
+    x1, y1 = min(int(math.ceil(hi[0] + m[0])), W), min(int(math.ceil(hi[1] + m[1])), H)
+    if x1 - x0 < 64 or y1 - y0 < 64:
+        return _Frames(torch, arr, device, levels), (0, 0)
+    return _Frames(torch, arr[:, y0:y1, x0:x1], device, levels, full_size=(H, W)), (x0, y0)
 
 
 def _warp(torch, kornia, frames: _Frames, poses, size: int):
@@ -187,11 +218,13 @@ def read_batch(model, frames, poses, device: str = "cpu") -> tuple[np.ndarray, n
     torch, kornia = require_torch()
     model._check_fitted()
     dev = _device(torch, device)
+    poses = np.array(poses, np.float64)
     with torch.no_grad():
-        fr = _Frames(torch, frames, dev)
+        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev)
         p = _as_poses(torch, poses, len(fr), dev)
+        p[:, :, 2] -= torch.tensor([x0, y0], dtype=torch.float64, device=dev)
         _, pts, r = _read(torch, kornia, model, fr, p)
-    return pts.cpu().numpy(), r.cpu().numpy()
+    return pts.cpu().numpy() + (x0, y0), r.cpu().numpy()
 
 
 # --------------------------------------------------------------------------- refinement
@@ -361,17 +394,21 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
         tracker = Tracker(model, n_iter=n_iter, n_polish=n_polish, search=False)
     tracker.n_polish = int(n_polish)
     dev = _device(torch, device)
+    poses = np.array(poses, np.float64)
     with torch.no_grad():
-        fr = _Frames(torch, frames, dev)
+        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev)
         p = _as_poses(torch, poses, len(fr), dev)
+        p[:, :, 2] -= torch.tensor([x0, y0], dtype=torch.float64, device=dev)
         a, its = _refine(torch, kornia, tracker, fr, p, tuple(levels), int(n_iter), dev)
-    return a.cpu().numpy(), its.cpu().numpy()
+    a = a.cpu().numpy()
+    a[:, :, 2] += (x0, y0)
+    return a, its.cpu().numpy()
 
 
 # --------------------------------------------------------------------------- offline tracking
 
 def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int = 5, passes: int = 3,
-                start_pose=None):
+                start_pose=None, crop_margin: float = 1.0):
     """Track a whole video offline, ``batch`` frames per tensor call (the GPU path).
 
     The first frame is found by the CPU tracker (its whole-frame search) unless
@@ -403,6 +440,9 @@ def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int 
     n_iter : alignment steps per level in pass 1
     passes : refinement passes per batch (>= 1)
     start_pose : (2, 3) ``image_from_model`` of the first frame (None: found by the CPU tracker)
+    crop_margin : each batch is processed in a crop of its frames around the previous batch's
+        last face, with this fraction of the face's extent added on each side (a face that
+        moves further within one batch leaves the crop: use a larger margin or smaller batches)
 
     Returns
     -------
@@ -444,16 +484,23 @@ def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int 
                 if not res.success:
                     raise KeyshapeError("track_batch: the CPU tracker did not find the face in the first frame")
                 last = res.pose
-            fr = _Frames(torch, np.stack(chunk), dev)
-            b = len(fr)
+            b = len(chunk)
+            # only the face region (with a margin for the motion within the batch) is converted,
+            # downsampled and warped; poses are in that crop's pixels until they are returned
+            fr, off = _crop(torch, np.stack(chunk), np.repeat(last[None], b, 0), model.patch_size_, dev,
+                            margin=crop_margin)
+            last = last.copy()
+            last[:, 2] -= off
             start = torch.as_tensor(last, dtype=torch.float64, device=dev).expand(b, 2, 3).contiguous()
             a, _ = _refine(torch, kornia, tracker, fr, start, (0,), n_iter, dev)
             first = torch.as_tensor(last, dtype=torch.float64, device=dev)[None]
             for _ in range(passes - 1):
                 a, _ = _refine(torch, kornia, tracker, fr, torch.cat([first, a[:-1]]), (), n_iter, dev)
             _, pts, r = _read(torch, kornia, model, fr, a)
-            pts_all.append(pts.cpu().numpy())
-            poses_all.append(a.cpu().numpy())
+            pts_all.append(pts.cpu().numpy() + off)
+            a = a.cpu().numpy()
+            a[:, :, 2] += off
+            poses_all.append(a)
             res_all.append(r.cpu().numpy())
             last = poses_all[-1][-1]
     if not pts_all:
