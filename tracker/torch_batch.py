@@ -92,7 +92,7 @@ class _Frames:
             n += 1
         self.n_levels = n
         k = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], device=g.device)
-        self._kernel = (k[:, None] * k[None, :])[None, None]
+        self._kx, self._ky = k[None, None, None, :], k[None, None, :, None]     # separable 5x5 binomial
 
     def __len__(self) -> int:
         return self.levels[0].shape[0]
@@ -101,7 +101,7 @@ class _Frames:
         F = self.torch.nn.functional
         while len(self.levels) <= lvl:
             x = F.pad(self.levels[-1], (2, 2, 2, 2), mode="reflect")
-            s = F.conv2d(x, self._kernel, stride=2)
+            s = F.conv2d(F.conv2d(x, self._kx, stride=(1, 2)), self._ky, stride=(2, 1))   # integer sums: exact
             self.levels.append(self.torch.floor((s + 128.0) / 256.0))
         return self.levels[lvl]
 
@@ -128,7 +128,7 @@ def _crop(torch, frames, poses: np.ndarray, size: int, device, margin: float = 0
     pts = np.einsum("bij,kj->bki", poses, corners).reshape(-1, 2)
     lo, hi = pts.min(0), pts.max(0)
     step = 2 ** (n - 1)
-    m = margin * (hi - lo) + 6 * step
+    m = margin * (hi - lo) + 6 * step + 4
     x0 = max(int(math.floor((lo[0] - m[0]) / step)) * step, 0)
     y0 = max(int(math.floor((lo[1] - m[1]) / step)) * step, 0)
     x1, y1 = min(int(math.ceil(hi[0] + m[0])), W), min(int(math.ceil(hi[1] + m[1])), H)
@@ -220,7 +220,7 @@ def read_batch(model, frames, poses, device: str = "cpu") -> tuple[np.ndarray, n
     dev = _device(torch, device)
     poses = np.array(poses, np.float64)
     with torch.no_grad():
-        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev)
+        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev, margin=0.0)
         p = _as_poses(torch, poses, len(fr), dev)
         p[:, :, 2] -= torch.tensor([x0, y0], dtype=torch.float64, device=dev)
         _, pts, r = _read(torch, kornia, model, fr, p)
@@ -396,7 +396,7 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
     dev = _device(torch, device)
     poses = np.array(poses, np.float64)
     with torch.no_grad():
-        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev)
+        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev, margin=0.2)
         p = _as_poses(torch, poses, len(fr), dev)
         p[:, :, 2] -= torch.tensor([x0, y0], dtype=torch.float64, device=dev)
         a, its = _refine(torch, kornia, tracker, fr, p, tuple(levels), int(n_iter), dev)
@@ -408,7 +408,7 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
 # --------------------------------------------------------------------------- offline tracking
 
 def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int = 5, passes: int = 3,
-                start_pose=None, crop_margin: float = 1.0):
+                start_pose=None, crop_margin: float = 0.5):
     """Track a whole video offline, ``batch`` frames per tensor call (the GPU path).
 
     The first frame is found by the CPU tracker (its whole-frame search) unless
