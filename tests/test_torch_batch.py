@@ -70,6 +70,8 @@ def test_read_batch_gives_the_cpu_reading(clip):
     # gray frames read the same as BGR ones
     gray = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames[:4]])
     np.testing.assert_allclose(tb.read_batch(m, gray, poses[:4])[0], pts[:4], atol=5e-3)   # another crop: float32 offsets
+    # frames already on the device (a tensor) are used whole, not cropped
+    np.testing.assert_allclose(tb.read_batch(m, torch.from_numpy(frames[:4]), poses[:4])[0], pts[:4], atol=5e-3)
 
 
 @pytest.mark.parametrize("levels", [(0,), ()])

@@ -115,6 +115,8 @@ def _crop(torch, frames, poses: np.ndarray, size: int, device, margin: float = 0
     warp reads are those of the whole frame's levels. Returns ``(frames, (x0, y0))``;
     poses and points are shifted by the corner.
     """
+    if isinstance(frames, torch.Tensor):                  # already on the device: used whole
+        return _Frames(torch, frames, device, levels), (0, 0)
     arr = np.asarray(frames) if not isinstance(frames, (list, tuple)) else np.stack([np.asarray(f) for f in frames])
     if arr.ndim not in (3, 4) or len(arr) != len(poses) or not np.isfinite(poses).all():
         return _Frames(torch, arr, device, levels), (0, 0)
@@ -248,7 +250,9 @@ def _compose(outer, inner):
     """Batched ``compose_affine``: (B, 2, 3) or (2, 3) operands."""
     lin = outer[..., :2] @ inner[..., :2]
     tr = outer[..., :2] @ inner[..., 2:] + outer[..., 2:]
-    return __import__("torch").cat([lin, tr], dim=-1)
+    import torch
+
+    return torch.cat([lin, tr], dim=-1)
 
 
 def _clamp(torch, a, max_aniso: float):
