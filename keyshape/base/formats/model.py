@@ -15,6 +15,7 @@ writes plain arrays and metadata.
 from __future__ import annotations
 
 import json
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -78,7 +79,8 @@ def read_model(path: str | Path, scheme: str | Scheme | None = None) -> ModelFil
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error, KeyError, NotImplementedError,
-            MemoryError, OverflowError) as exc:
+            MemoryError, OverflowError, SyntaxError, tokenize.TokenError, TypeError, RecursionError,
+            AttributeError, IndexError) as exc:   # numpy parses each array's header with ast/tokenize
         raise InputError(f"not a keyshape model file (cannot read it as .npz: {exc})", path) from None
     try:
         meta = json.loads(str(data.pop("meta")), parse_constant=_no_constant, parse_float=_finite)

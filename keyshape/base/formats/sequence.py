@@ -6,6 +6,9 @@
 """
 from __future__ import annotations
 
+import tokenize
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +26,8 @@ def read_sequence(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
                 raise InputError(f"no 'vertices' array (found: {', '.join(z.files) or 'none'})", path)
             v = np.asarray(z["vertices"], np.float64)
             f = np.asarray(z["faces"]) if "faces" in z else None
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error, KeyError, MemoryError, OverflowError,
+            SyntaxError, tokenize.TokenError, TypeError, RecursionError, AttributeError, IndexError) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"not a readable .npz file ({exc})", path) from None
