@@ -17,6 +17,11 @@ matrix, all frames of a chunk side by side) and the wedge part of eq. (10) (its 
 is nonlinear in each frame's corner angles, so it is refilled and multiplied per frame).
 
     PYTHONPATH=. python bench/bench_mocap.py [--bones 100] [--frames 600] [--repeat 5] [--threads 1|0]
+        [--compare OLD_planar_bones.py]
+
+``--compare`` times another version of ``planar_bones.py`` (e.g. ``git show
+34d62c1:retarget/mocap/planar_bones.py > /tmp/old.py``) in the same run, interleaved, on the
+same frames, and prints its largest difference from the float64 rows.
 """
 from __future__ import annotations
 
@@ -63,7 +68,7 @@ def head_and_markers(n_bones=100, seed=0):
     return v, markers, triangulate_markers(markers).triangles, rng
 
 
-def linear_part(bones, frames, chunk=16):
+def linear_part(bones, frames, chunk=32):
     """The batched linear part alone: fixed columns for ``chunk`` frames at once, into (frame, vertex)."""
     y, _ = bones._y(frames)
     nfc, nv = bones._fixed_csr.shape[1], bones.n_vertices_
@@ -88,12 +93,25 @@ def wedge_part(bones, frames):
     return out
 
 
-def main(n_bones=100, n_frames=600, repeat=5, threads=True, seed=0):
+def load_module(path):
+    """Another version of planar_bones.py, imported from a file (for ``--compare``)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("planar_bones_compare", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def main(n_bones=100, n_frames=600, repeat=5, threads=True, seed=0, compare=None):
     v, markers, tri, rng = head_and_markers(n_bones, seed)
     t_bind = best(lambda: PlanarBones(radius_scale=1.5, unbound="fade").fit(v, markers, tri), 3)[0]
     bones = {dt: PlanarBones(radius_scale=1.5, unbound="fade", threads=threads, dtype=dt).fit(v, markers, tri)
              for dt in ("float64", "float32")}
     b64 = bones["float64"]
+    if compare:
+        old = load_module(compare).PlanarBones(radius_scale=1.5, unbound="fade", threads=threads).fit(v, markers, tri)
+        bones = {"compared file": old, **bones}
     frames = markers + rng.normal(0, 0.2, (n_frames,) + markers.shape)
     a = rng.normal(size=(len(v), 28))
     b = rng.normal(size=(28, 3))
@@ -119,6 +137,9 @@ def main(n_bones=100, n_frames=600, repeat=5, threads=True, seed=0):
     rows["  float32 batched: wedge part alone (eq. 10)"] = (best(lambda: wedge_part(b32, frames), max(2, repeat // 2),
                                                                  n_frames), plain())
     err = np.abs(b32.deform_many(frames[:20]) - b64.deform_many(frames[:20])).max()
+    if compare:
+        err_old = np.abs(bones["compared file"].deform_many(frames[:20]) - b64.deform_many(frames[:20])).max()
+        print(f"compared file: {compare}; its largest difference from the float64 rows {err_old:.2g}")
     print(f"mesh {len(v)} vertices, {len(markers)} markers, {len(tri)} bones, "
           f"{len(b64.pair_weight_)} vertex-bone pairs ({b64.bound_.sum()} vertices bound, "
           f"{len(b64._wedge_corner)} of the pairs in wedges); helper thread: {threads}")
@@ -138,5 +159,6 @@ if __name__ == "__main__":
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1, help="1: a helper thread where there is a second core")
+    ap.add_argument("--compare", default=None, help="another planar_bones.py to time in the same run")
     args = ap.parse_args()
-    main(args.bones, args.frames, args.repeat, bool(args.threads))
+    main(args.bones, args.frames, args.repeat, bool(args.threads), compare=args.compare)
