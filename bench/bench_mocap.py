@@ -11,7 +11,7 @@ on this small product, which would flatter the ratios).
 
 Rows: ``deform`` (one frame at a time, what a live tool does) and ``deform_many`` (a whole
 take), each in float64 (the default, equal to a pair-by-pair evaluation of eqs. 1, 9-11 to
-rounding) and float32 (what ``keyshape mocap`` uses; 1e-7 of the mesh's extent), then what the
+rounding) and float32 (what ``keyshape mocap`` uses; within 5e-7 of the mesh's extent), then what the
 batched float32 frame is made of: the linear part alone (the fixed columns of the one sparse
 matrix, all frames of a chunk side by side) and the wedge part of eq. (10) (its factor ``D/d``
 is nonlinear in each frame's corner angles, so it is refilled and multiplied per frame).

@@ -159,7 +159,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
             from keyshape.retarget.mocap.masks import allowed_matrix
 
             masks = allowed_matrix(regions, tri.triangles, use, len(tv))
-        # float32: what the command stores; 1e-7 of the mesh's extent from the float64 map, ~1.5x faster
+        # float32: what the command stores; within 5e-7 of the mesh's extent from the float64 map, ~1.5x faster
         bones = PlanarBones(radius_scale=radius_scale, unbound=unbound, labels=use,
                             dtype="float32").fit(tv, mk[0], tri.triangles, masks=masks)
         verts = bones.deform_many(mk)

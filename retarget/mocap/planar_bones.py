@@ -83,7 +83,7 @@ with 3 columns) and only the wedge block per frame, the two halves of the take i
 is ``still + T_fixed Y_rest`` (the same sum regrouped, formed in float64 at bind time), so the
 product never cancels large absolute coordinates; the wedge length uses the form above, which
 has no cancellation where a deformed corner closes. ``dtype="float32"`` (what the command uses;
-it stores float32) then agrees with the float64 map to about 1e-7 of the mesh's extent.
+it stores float32) then agrees with the float64 map to within about 5e-7 of the mesh's extent.
 """
 from __future__ import annotations
 
@@ -247,8 +247,8 @@ class PlanarBones:
         dtype : {"float64", "float32"}
             Precision of the bound matrices and of the output. ``float64`` (default) agrees with a
             pair-by-pair evaluation of eqs. (1), (9)-(11) to rounding (1e-12); ``float32`` agrees to
-            about 1e-7 of the mesh's extent, halves the memory and makes :meth:`deform_many` about
-            1.5-2x faster (the command stores float32 vertices anyway, so it binds in float32).
+            within about 5e-7 of the mesh's extent, halves the memory and makes :meth:`deform_many` about
+            1.5x faster (the command stores float32 vertices anyway, so it binds in float32).
 
         Raises
         ------
