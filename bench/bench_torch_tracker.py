@@ -14,20 +14,17 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
+from footage import add_footage_args, footage
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--frames", type=int, default=300)
+    add_footage_args(ap, frames=300)
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--passes", type=int, default=3)
-    ap.add_argument("--video")
-    ap.add_argument("--labels")
-    ap.add_argument("--scheme", default="contours48")
     args = ap.parse_args()
     import torch
 
@@ -39,13 +36,7 @@ def main() -> None:
 
     sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)
     with tempfile.TemporaryDirectory() as tmp:
-        if args.video:
-            video, labels = Path(args.video), Path(args.labels)
-        else:
-            from keyshape.data_synth.video import synthesize
-
-            out = synthesize(Path(tmp) / "footage", frames=args.frames, seed=0)
-            video, labels = out["video"], out["labels"]
+        video, labels, truth_path = footage(args, tmp)
         model, _ = train_model(video, labels, args.scheme)
         t0 = time.perf_counter()
         frames = np.stack([f for _, f in VideoReader(video)])
@@ -79,11 +70,11 @@ def main() -> None:
         diff = np.abs(np.concatenate(got) - np.stack(cpu_read)).max()
         cpu_pts = np.stack([r.points for r in cpu])
         nme = ""
-        if not args.video:
+        if truth_path is not None:
             from keyshape.base.formats.tracks import read_tracks
             from keyshape.base.schemes import load_scheme
 
-            truth = read_tracks(out["truth"]).points
+            truth = read_tracks(truth_path).points
             iod = load_scheme("contours48").interocular_distance(truth)[:, None]
             nme = (f"; NME vs truth: CPU {np.nanmean(np.linalg.norm(cpu_pts - truth, axis=-1) / iod):.4f}, "
                    f"track_batch {np.nanmean(np.linalg.norm(pts - truth, axis=-1) / iod):.4f}")

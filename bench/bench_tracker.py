@@ -14,25 +14,18 @@ import tempfile
 import time
 from pathlib import Path
 
+from footage import add_footage_args, footage
+
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--frames", type=int, default=600)
-    ap.add_argument("--video")
-    ap.add_argument("--labels")
-    ap.add_argument("--scheme", default="contours48")
+    add_footage_args(ap, frames=600)
     args = ap.parse_args()
     from keyshape.tracker.commands import track_video, train_model
     from keyshape.base.formats.video import VideoReader
 
     with tempfile.TemporaryDirectory() as tmp:
-        if args.video:
-            video, labels = Path(args.video), Path(args.labels)
-        else:
-            from keyshape.data_synth.video import synthesize
-
-            out = synthesize(Path(tmp) / "footage", frames=args.frames, seed=0)
-            video, labels = out["video"], out["labels"]
+        video, labels, _ = footage(args, tmp)
         t0 = time.perf_counter()
         model, _ = train_model(video, labels, args.scheme)
         t_train = time.perf_counter() - t0
