@@ -83,3 +83,30 @@ def test_bad_input_named():
     p[3] = np.nan
     with pytest.raises(InputError, match="NaN"):
         ibug68_to_contours48(p)
+
+
+def test_mid_lip_points_are_ibug_mid_points_under_a_head_turn():
+    """The lips' middle points stay on the face's mid-lip feature (iBUG 51, 57, 62, 66) when the head
+    turns: with plain arc-length spacing the nearer, longer-looking half of the lip pulls them sideways."""
+    p = face68()
+    mouth = np.arange(48, 68)
+    x0 = p[48, 0]
+    w = p[54, 0] - x0
+    u = (p[mouth, 0] - x0) / w
+    p[mouth, 0] = x0 + w * u ** 1.6          # yaw-like foreshortening: the image-left half looks shorter
+    q = ibug68_to_contours48(p)
+    for c48, c68 in ((31, 51), (37, 57), (42, 62), (46, 66)):
+        np.testing.assert_allclose(q[c48], p[c68], atol=1e-9, err_msg=f"contours48 {c48} vs ibug {c68}")
+    # the other lip points evenly spaced by arc length on each side of the middle point
+    for half in ([28, 29, 30, 31], [31, 32, 33, 34], [34, 35, 36, 37], [37, 38, 39, 28]):
+        d = np.linalg.norm(np.diff(q[half], axis=0), axis=1)
+        assert d.max() / d.min() < 1.2, half
+    # without the anchor, the middle point slides towards the longer-looking half (by 10% of the width)
+    plain = resample_curve(p[[48, 49, 50, 51, 52, 53, 54]], 7)
+    assert plain[3, 0] > p[51, 0] + 0.05 * w
+
+
+def test_resample_anchor_keeps_the_anchor_in_the_middle():
+    pts = np.array([[0.0, 0], [1, 0], [2, 0], [8, 0], [10, 0]])
+    out = resample_curve(pts, 5, anchor=2)
+    np.testing.assert_allclose(out, [[0, 0], [1, 0], [2, 0], [6, 0], [10, 0]], atol=1e-6)

@@ -135,3 +135,18 @@ def test_worst_explained_lost_first_then_least_confident_apart():
     conf[5] = 0.0                                          # next to a labelled frame: never chosen
     got = worst_explained(conf, ok, 3, exclude=[0], min_gap=12)
     np.testing.assert_array_equal(got, [55, 120, 150])
+
+
+@pytest.mark.parametrize("clip", ["cap12_edit", "franck"])
+def test_cue_choice_labels_the_widest_mouth_of_real_footage(clip, shared_data):
+    """On real footage whose mouth is closed most of the time (cap12_edit: inner-lip gap IQR 0.006
+    inter-ocular distances), every opening used to clip at the same z-score, so the 12 frames stopped at
+    a half-open mouth (MediaPipe's gap 0.16 where the clip reaches 0.28) and the tracker read every
+    wider opening as half open. Judged by MediaPipe, independent of the dlib points the choice uses."""
+    from keyshape.tracker.labelling.frames import choose_frames_by_cues
+
+    ref = np.load(shared_data / "video" / "references" / f"{clip}_references.npz")
+    dlib68, mp = ref["dlib68"].astype(float), ref["mediapipe478"].astype(float)
+    chosen = choose_frames_by_cues(dlib68, 12, min_gap=12)
+    gap = np.linalg.norm(mp[:, 13] - mp[:, 14], axis=1) / np.linalg.norm(mp[:, 263] - mp[:, 33], axis=1)
+    assert gap[chosen].max() >= 0.85 * np.percentile(gap, 99.5), (gap[chosen].round(3), np.percentile(gap, 99.5))

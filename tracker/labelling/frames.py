@@ -294,7 +294,8 @@ def eye_profile(gray: np.ndarray, points68: np.ndarray, width: int = 16, height:
 
 def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, min_gap: int = 12,
                           exclude=(), n_blinks: int | None = None, blink_ratio: float = 0.7,
-                          sharp_window: int = 3, eye_profiles: np.ndarray | None = None) -> np.ndarray:
+                          sharp_window: int = 3, eye_profiles: np.ndarray | None = None,
+                          extreme_tol: float = 0.15) -> np.ndarray:
     """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
 
     Features: robust z-scores of :func:`shape_cues` (eye aperture and
@@ -306,6 +307,15 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     most redundant chosen frames give way to the deepest blinks (``n_blinks``,
     default ``max(1, count // 5)``): the person-specific model can only follow
     eye closures it was shown. Frames without a face are never chosen.
+
+    The mouth's extremes come next (with ``count`` >= 6): when no chosen frame
+    comes within ``extreme_tol`` of the cue's range of the widest-open mouth,
+    the widest mouth (smile) or the narrowest (pucker), that frame (a 5-frame
+    running median of the cue, so one glitch of dlib is not an extreme)
+    replaces the most redundant chosen frame: the model cannot read an opening
+    wider than those it was shown. Each cue's z-score scale is at least an
+    eighth of its 1-99% range, so that a mouth closed most of the time does not
+    make every opening look equally extreme.
 
     With ``eye_profiles`` ((n, d) from :func:`eye_profile`), a blink must
     also show in the pixels: its profile far (robust z-score above 3) from
@@ -330,7 +340,12 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     cv = cues[ok]
     med = np.median(cv, 0)
     iqr = np.subtract(*np.percentile(cv, [75, 25], 0)) / 1.35
-    z = np.clip((cues - med) / np.maximum(iqr, 1e-6), -8, 8)
+    # a cue that is nearly constant most of the time (a mouth closed in 80% of the frames) has a tiny
+    # IQR: every opening would then clip at the same z and the widest one could not be told from a
+    # slight one. The scale is at least an eighth of the cue's 1-99% range.
+    span = np.subtract(*np.percentile(cv, [99, 1], 0))
+    scale = np.maximum(np.maximum(iqr, span / 8.0), 1e-6)
+    z = np.clip((cues - med) / scale, -8, 8)
     z[:, 0] *= 2.0
     z[:, 1] *= 2.0
     # face-frame shapes (cues' normalisation) -> PCA, scaled so the first component has unit spread
@@ -378,28 +393,60 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
         depth = np.where(okp, zd, -np.inf)
     have = [f for f in chosen if is_blink[f]]
     protected = set(have)
+
+    def swap_in(b: int) -> bool | None:
+        """Put frame ``b`` among the chosen (protected); False: not possible here, None: nothing left to swap."""
+        near = [j for j, f in enumerate(chosen) if abs(int(b) - f) < min_gap]
+        if len(near) > 1 or any(chosen[j] in protected for j in near):
+            return False
+        if near:        # a chosen frame next to it gives way to it
+            j = near[0]
+        else:           # else the most redundant chosen frame (nearest to another chosen one)
+            cs = np.array(chosen)
+            dd = np.linalg.norm(X[cs][:, None] - X[cs][None], axis=2)
+            np.fill_diagonal(dd, np.inf)
+            js = [j for j in np.argsort(dd.min(1)) if chosen[j] not in protected]
+            if not js:
+                return None
+            j = int(js[0])
+        chosen[j] = int(b)
+        protected.add(int(b))
+        return True
+
     if is_blink.any() and len(have) < n_blinks and count > 1:
         order = np.flatnonzero(is_blink)
         order = order[np.argsort(-depth[order])]
         for b in order:
             if len(have) >= n_blinks:
                 break
-            near = [j for j, f in enumerate(chosen) if abs(int(b) - f) < min_gap]
-            if len(near) > 1 or any(chosen[j] in protected for j in near):
+            done = swap_in(int(b))
+            if done is None:
+                break
+            if done:
+                have.append(int(b))
+    # mouth extremes: the widest-open mouth, the widest (smile) and the narrowest (pucker) mouth. A
+    # person-specific model cannot read a lip shape beyond those it was shown: labels that stop at a
+    # half-open mouth make every wider opening read as half open (measured on cap12_edit).
+    if count >= 6:
+        from scipy.ndimage import median_filter  # noqa: PLC0415
+
+        for col, sign in ((1, 1.0), (2, 1.0), (2, -1.0)):
+            v = np.where(ok, cues[:, col], np.nan)
+            # a 5-frame running median: one frame of dlib glitch is not an extreme
+            vm = median_filter(np.nan_to_num(v, nan=float(med[col])), size=5, mode="nearest") * sign
+            vm[~free] = -np.inf
+            lo, hi = np.percentile(cv[:, col] * sign, [1, 100])
+            if not np.isfinite(vm).any() or hi - lo <= 1e-9:
                 continue
-            if near:        # a chosen frame next to the blink gives way to it
-                j = near[0]
-            else:           # else the most redundant chosen frame (nearest to another chosen one)
-                cs = np.array(chosen)
-                dd = np.linalg.norm(X[cs][:, None] - X[cs][None], axis=2)
-                np.fill_diagonal(dd, np.inf)
-                js = [j for j in np.argsort(dd.min(1)) if chosen[j] not in protected]
-                if not js:
+            best = float(np.max(vm[chosen]))
+            if best >= vm.max() - extreme_tol * (hi - lo):
+                continue
+            for b in np.argsort(-vm)[:4 * min_gap]:
+                if vm[b] < best or not np.isfinite(vm[b]):
                     break
-                j = int(js[0])
-            chosen[j] = int(b)
-            have.append(int(b))
-            protected.add(int(b))
+                done = swap_in(int(b))
+                if done is not False:
+                    break
     # sharpness: swap for a sharper neighbour with (nearly) the same cues, blinks kept as they are
     if sharpness is not None:
         sharp = np.asarray(sharpness, np.float64)
