@@ -62,11 +62,8 @@ def main() -> None:
             keyshape("track", video, "--model", model, "-o", tracks, "--quiet")
             t2 = time.perf_counter()
             print(f"== {clip} / {which} labels (train {t1 - t0:.1f} s, track {t2 - t1:.1f} s)", flush=True)
-            # the tool reads a plain CSV: drop keyshape's '# keyshape-tracks' metadata line
-            plain = work / f"{clip}_{which}_plain.csv"
-            with open(tracks) as src, open(plain, "w") as dst:
-                dst.writelines(line for line in src if not line.startswith("#"))
-            subprocess.run([sys.executable, str(TOOL), plain, refs, "--labels", labels], check=True)
+            # the tracks CSV is plain OpenFace-style (metadata in the .meta.json sidecar): the tool reads it as is
+            subprocess.run([sys.executable, str(TOOL), tracks, refs, "--labels", labels], check=True)
 
 
 if __name__ == "__main__":

@@ -24,14 +24,43 @@ def _take(path, seed, model="sha256:aaaa"):
     return path
 
 
-def test_tracks_metadata_line_roundtrips_and_plain_files_still_read(tmp_path):
+def test_tracks_metadata_sidecar_roundtrips_and_the_csv_stays_plain(tmp_path):
+    import csv
+    import warnings
+
     p = _take(tmp_path / "a.csv", 1)
-    assert p.read_text().startswith('# keyshape-tracks {"model": "sha256:aaaa"')
+    # the CSV is what OpenFace-style readers expect: header first, every row numeric
+    with open(p) as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 240 and float(rows[0]["x_0"]) == pytest.approx(read_tracks(p).points[0, 0, 0], abs=1e-4)
+    side = json.loads((tmp_path / "a.meta.json").read_text())
+    assert side["model"] == "sha256:aaaa" and side["keyshape_tracks"] == 1
     t = read_tracks(p)
     assert t.meta == {"model": "sha256:aaaa", "scheme": "contours48"} and t.n_frames == 240
-    q = _take(tmp_path / "b.csv", 1, model=None)
-    assert q.read_text().startswith("frame,") and read_tracks(q).meta == {}
+    # without metadata: no sidecar, and the stale one keyshape wrote is removed
+    q = _take(tmp_path / "a.csv", 1, model=None)
+    assert not (tmp_path / "a.meta.json").exists() and read_tracks(q).meta == {}
     np.testing.assert_array_equal(read_tracks(q).points, t.points)
+    # a CSV edited after tracking no longer vouches for the model: metadata ignored, with a warning
+    p = _take(tmp_path / "b.csv", 1)
+    lines = p.read_text().splitlines()
+    lines[1] = lines[1].replace(lines[1].split(",")[2], "0.5000", 1)
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.warns(UserWarning, match="b.meta.json: written for another version of b.csv"):
+        assert read_tracks(p).meta == {}
+    # a file of that name that keyshape did not write is neither read nor removed
+    (tmp_path / "c.meta.json").write_text('{"author": "someone"}')
+    r = _take(tmp_path / "c.csv", 1, model=None)
+    assert (tmp_path / "c.meta.json").read_text() == '{"author": "someone"}' and read_tracks(r).meta == {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_tracks(_take(tmp_path / "d.csv", 3))
+
+
+def test_old_metadata_line_still_reads(tmp_path):
+    p = _take(tmp_path / "a.csv", 1, model=None)
+    p.write_text('# keyshape-tracks {"model": "sha256:bbbb", "scheme": "contours48"}\n' + p.read_text())
+    assert read_tracks(p).meta == {"model": "sha256:bbbb", "scheme": "contours48"}
 
 
 def test_select_several_takes_records_model_and_takes(tmp_path):

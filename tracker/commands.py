@@ -18,7 +18,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
 from keyshape.base.progress import Progress
 from keyshape.tracker.eigenpoints import AppearanceModel
-from keyshape.base.formats.tracks import PARTIAL_MARK, Tracks, TracksWriter
+from keyshape.base.formats.tracks import PARTIAL_MARK, Tracks, TracksWriter, meta_line, meta_path, write_meta
 from keyshape.base.formats.labels import read_labels
 from keyshape.base.schemes import load_scheme
 from keyshape.base.formats.video import VideoReader, video_info
@@ -242,6 +242,17 @@ class TrackSummary:
     terminated: bool = False
 
 
+def _sha256_file(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MiB blocks."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
                 tracker_options: dict | None = None, scheme=None, decode_thread: bool = True) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
@@ -260,7 +271,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
 
     from keyshape.base.files import _tmp_sibling, check_outputs, partial_name
 
-    check_outputs([output, overlay], inputs=[video, model if not isinstance(model, AppearanceModel) else None])
+    check_outputs([output, meta_path(output), overlay],
+                  inputs=[video, model if not isinstance(model, AppearanceModel) else None])
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)
     reader = VideoReader(video)
@@ -274,8 +286,9 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     tmp_vid = _tmp_sibling(Path(overlay), suffix=Path(overlay).suffix) if overlay else None
     try:
         with contextlib.ExitStack() as stack:
-            f = stack.enter_context(open(tmp_csv, "w"))
-            writer = TracksWriter(f, model.n_points, {"model": model_fingerprint(model), "scheme": model.scheme_.name})
+            f = stack.enter_context(open(tmp_csv, "w", newline="\n"))
+            meta = {"model": model_fingerprint(model), "scheme": model.scheme_.name}
+            writer = TracksWriter(f, model.n_points)
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:
                 for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
@@ -296,6 +309,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             os.fsync(f.fileno())
         n = writer.n_rows
         if interrupted is None:
+            write_meta(output, meta, _sha256_file(tmp_csv))
             os.replace(tmp_csv, output)
             if overlay:
                 os.replace(tmp_vid, overlay)
@@ -304,7 +318,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             part = partial_name(output)
             with atomic_write(part) as pf, open(tmp_csv) as src:
                 pf.write(f"{PARTIAL_MARK} interrupted after {n} of {info.n_frames or '?'} frames; "
-                         "read it with --accept-partial\n")
+                         "read it with --accept-partial\n" + meta_line(meta))
                 shutil.copyfileobj(src, pf)
             if overlay:
                 os.replace(tmp_vid, partial_name(overlay))

@@ -12,15 +12,24 @@ Tracks CSV, one row per frame::
 The pose is the 2x3 affine map ``image_from_model``: ``[x_img, y_img] =
 A @ [x_model, y_model] + t``.
 
-``keyshape track`` writes one metadata line before the header,
-``# keyshape-tracks {"model": "sha256:...", "scheme": "contours48"}`` (JSON): which model
-and scheme made the tracks (``Tracks.meta``). Readers skip leading ``#`` lines; files
-without one read with empty metadata.
+The CSV itself is plain (its first line is the header), so OpenFace-style readers,
+``csv.DictReader`` and pandas read it unchanged. Which model and scheme made the
+tracks (``Tracks.meta``) goes into a sidecar ``NAME.meta.json`` beside ``NAME.csv``::
+
+    {"keyshape_tracks": 1, "csv_sha256": "...", "model": "sha256:...", "scheme": "contours48"}
+
+``csv_sha256`` ties the sidecar to one version of the CSV: a CSV edited or replaced
+afterwards reads with empty metadata and a warning. Files without a sidecar read with
+empty metadata. Leading ``#`` lines are skipped, and a
+``# keyshape-tracks {...}`` line there (files of keyshape 0.x before the sidecar, and
+``NAME.partial.csv`` of an interrupted run) is read as the metadata.
 """
 from __future__ import annotations
 
+import hashlib
 import io as _io
 import json
+import warnings
 import math
 import re
 from dataclasses import dataclass, field
@@ -29,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_write
+from keyshape.base.files import atomic_write, read_json, write_json
 
 POSE_COLUMNS = ("pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty")
 #: first line of a tracks file an interrupted ``keyshape track`` wrote (``NAME.partial.csv``)
@@ -102,14 +111,56 @@ def write_tracks(path: str | Path, tracks: Tracks) -> None:
     buf = _io.StringIO()
     fmt = ["%d", "%.6f", "%.4f", "%d"] + ["%.4f"] * (2 * p) + ["%.8g"] * 6
     np.savetxt(buf, data, fmt=fmt, delimiter=",")
-    text = buf.getvalue().replace("nan", "")
-    with atomic_write(path) as f:
-        f.write(meta_line(tracks.meta))
-        f.write(",".join(tracks_header(p)) + "\n")
+    text = ",".join(tracks_header(p)) + "\n" + buf.getvalue().replace("nan", "")
+    write_meta(path, tracks.meta, hashlib.sha256(text.encode()).hexdigest())
+    with atomic_write(path, newline="\n") as f:      # the bytes on disk are the text hashed
         f.write(text)
 
 
 META_PREFIX = "# keyshape-tracks "
+#: key that marks a JSON file as a tracks sidecar written by keyshape
+META_KEY = "keyshape_tracks"
+
+
+def meta_path(path: str | Path) -> Path:
+    """The metadata sidecar of a tracks CSV: ``NAME.csv`` -> ``NAME.meta.json``."""
+    path = Path(path)
+    return path.with_name(path.stem + ".meta.json")
+
+
+def write_meta(path: str | Path, meta: dict | None, csv_sha256: str) -> None:
+    """Write the sidecar of the tracks CSV ``path`` (whose text hashes to ``csv_sha256``), atomically.
+
+    With no metadata, a sidecar keyshape wrote earlier is removed (it would describe
+    other tracks); a file of that name that keyshape did not write is left alone.
+    """
+    side = meta_path(path)
+    if meta:
+        write_json(side, {META_KEY: 1, "csv_sha256": csv_sha256, **meta})
+    elif side.is_file():
+        try:
+            old = json.loads(side.read_text())
+        except (OSError, ValueError, UnicodeDecodeError):
+            return
+        if isinstance(old, dict) and META_KEY in old:
+            side.unlink(missing_ok=True)
+
+
+def _read_meta(path: Path) -> dict:
+    """The sidecar's metadata for the CSV ``path`` ({} if none, not keyshape's, or stale)."""
+    side = meta_path(path)
+    if not side.is_file():
+        return {}
+    meta = read_json(side, "tracks metadata sidecar")
+    if not isinstance(meta, dict) or META_KEY not in meta:
+        return {}                              # not ours: some other file of that name
+    digest = meta.pop("csv_sha256", None)
+    meta.pop(META_KEY)
+    if digest != hashlib.sha256(path.read_bytes()).hexdigest():
+        warnings.warn(f"{side}: written for another version of {path.name} (the CSV changed since); "
+                      "its metadata (model fingerprint) is ignored", stacklevel=3)
+        return {}
+    return meta
 
 
 def meta_line(meta: dict | None) -> str:
@@ -131,12 +182,12 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     except UnicodeDecodeError:
         raise InputError("not a text CSV file", path) from None
     lines = text.splitlines()
+    meta: dict = {} if lines and lines[0].startswith("#") else _read_meta(path)
     if lines and lines[0].startswith(PARTIAL_MARK):
         if not accept_partial:
             raise InputError("partial tracks from an interrupted 'keyshape track' "
                              f"({lines[0][len(PARTIAL_MARK):].strip()}); pass --accept-partial to use them anyway",
                              path, 1)
-    meta: dict = {}
     skip = 0
     while skip < len(lines) and lines[skip].startswith("#"):
         if lines[skip].startswith(META_PREFIX):
@@ -254,11 +305,10 @@ class TracksWriter:
     leaves a file that looks complete unless it is finished deliberately.
     """
 
-    def __init__(self, f, n_points: int, meta: dict | None = None):
+    def __init__(self, f, n_points: int):
         self.f = f
         self.n_points = n_points
         self.n_rows = 0
-        f.write(meta_line(meta))
         f.write(",".join(tracks_header(n_points)) + "\n")
 
     def write(self, frame: int, time: float, confidence: float, success: bool, points: np.ndarray,
