@@ -7,7 +7,10 @@ ARKit curves are compared with truth.json's hidden components (Pearson r per com
 targets r >= 0.9 for jawOpen and both blinks, mean >= 0.8) and the rig driven by the
 recovered curves with the rig driven by the hidden weights (mean face-skin vertex error,
 target <= 0.65 x the hidden motion). Diagnostic rows: the same from the exact contours
-(truth.csv instead of the tracks) and the best linear map from key weights (an upper bound).
+(truth.csv instead of the tracks), the best linear map from key weights (an upper bound), and
+"oracle poses": the same key weights with each key's pose set to the hidden weights at its frame
+(relative to the neutral frame's), which separates what the pose fit loses from what the keys
+and their weights lose.
 
     python bench/rig_accuracy.py [--seed 11] [--work DIR] [--rig ../shared/data/ict-facekit]
 """
@@ -59,11 +62,29 @@ def score(paths: dict, rig) -> dict:
     _, names, curves, _ = read_weights(paths["curves.csv"])
     order = [names.index(n) for n in rig.names]
     s = score_curves(rig, curves[:, order], truth["components"], hidden, np.arange(ICT_FACE_SKIN))
-    _, _, w, _ = read_weights(paths["weights.csv"])
+    _, cols, w, _ = read_weights(paths["weights.csv"])
+    s["oracle"] = score_curves(rig, oracle_curves(paths, rig, cols, w, truth["components"], hidden),
+                               truth["components"], hidden, np.arange(ICT_FACE_SKIN))
     X = np.column_stack([w, np.ones(len(w))])
     s["linear_bound"] = {c: float(np.corrcoef(X @ np.linalg.lstsq(X, hidden[:, i], rcond=None)[0],
                                               hidden[:, i])[0, 1]) for i, c in enumerate(truth["components"])}
     return s
+
+
+def oracle_curves(paths: dict, rig, cols, w, components, hidden) -> np.ndarray:
+    """Rig curves from the key weights with oracle poses: each key's pose is the hidden weights at
+    its frame minus those at the region's neutral frame, on the region's shapes (POSES.json)."""
+    from keyshape.base.formats.keys import read_keys
+    from keyshape.data_synth.rig_truth import truth_curves
+    _, _, regions = read_keys(paths["keys.json"])
+    lib = json.loads(Path(paths["poses.json"]).read_text())["regions"]
+    out = np.zeros((len(w), rig.n_shapes))
+    for rk in regions:
+        shapes = [rig.names.index(n) for n in lib[rk.region]["shapes"]]
+        P = truth_curves(rig.names, components, hidden[np.asarray(rk.frames)])[:, shapes]
+        pr = truth_curves(rig.names, components, hidden[[int(rk.rest_frame)]])[0, shapes]
+        out[:, shapes] += pr + w[:, [cols.index(n) for n in rk.names]] @ (P - pr)
+    return np.clip(out, 0.0, 1.0)
 
 
 def table(rows: dict[str, dict]) -> str:
@@ -74,6 +95,8 @@ def table(rows: dict[str, dict]) -> str:
     out.append(f"{'mean r':16s}" + "".join(f"{v['mean_r']:>10.3f} (lin {np.mean(list(v['linear_bound'].values())):5.3f})"
                                            for v in rows.values()))
     out.append(f"{'err / motion':16s}" + "".join(f"{v['error_ratio']:>10.3f}".ljust(22) for v in rows.values()))
+    out.append(f"{'oracle poses':16s}" + "".join(f"{v['oracle']['mean_r']:>10.3f} r, {v['oracle']['error_ratio']:.3f} err".ljust(22)
+                                                 for v in rows.values()))
     out.append(f"{'  err, motion cm':16s}" + "".join(f"{v['vertex_error']:>10.3f}, {v['hidden_motion']:.3f}".ljust(22)
                                                      for v in rows.values()))
     return "\n".join(out)

@@ -25,7 +25,7 @@ from scipy.linalg import solve_triangular
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
-from keyshape.decompose.regions import RegionKeys, available_regions, model_shapes, region_points, to_image
+from keyshape.decompose.regions import RegionKeys, available_regions, head_pose, model_shapes, region_points, to_image
 from keyshape.decompose.selectors import METHODS, make_selector
 from keyshape.decompose.weights import lstsq_weights, nnls_gram, nnls_weights, reconstruct
 
@@ -164,7 +164,7 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
     if kmin < 1 or kmin > kmax:
         raise InputError(f"need 1 <= kmin <= kmax, got {kmin}..{kmax}")
     regions = available_regions(scheme) if regions is None else list(regions)
-    pose = tracks.pose[ok]
+    pose = head_pose(tracks.pose[ok])
     if progress is not None:
         progress.total = len(regions) * sum(1 if m == "hull2" else kmax - kmin + 1 for m in methods)
     rows = []

@@ -27,7 +27,25 @@ def register(subparsers) -> None:
                    help="region motions fitted freely besides the rig shapes (left by 2D head-pose removal): "
                         "auto = translation of the mouth, similarity of the eyes and brows")
     p.add_argument("-o", "--output", required=True, help="POSES.json to write")
+    p.add_argument("--edit", action="store_true",
+                   help="then serve a local page (127.0.0.1) to correct the poses by hand; Ctrl-C stops it")
+    p.add_argument("--port", type=int, default=8766, help="port of the --edit page (0: any free port)")
     p.set_defaults(func=run)
+
+    e = subparsers.add_parser(
+        "pose-edit", help="correct a POSES.json by hand in a local web page (sliders per rig shape)",
+        description="Serve a page on 127.0.0.1 showing each key: the actor's key contour over the neutral "
+                    "(from KEYS.json), the rig rendered in the key's pose and one slider per rig shape of the "
+                    "key's region. Every change is checked and saved to POSES.json at once. Ctrl-C stops it.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    e.add_argument("poses", help="POSES.json from keyshape pose")
+    e.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE",
+                   help="the rig the poses are for: folder of shape OBJs (or a list of OBJ files)")
+    e.add_argument("--neutral", default=None, help="the rig's neutral OBJ (default: as for keyshape pose)")
+    e.add_argument("--keys", default=None,
+                   help="KEYS.json the poses were fitted from (default: the one POSES.json names, if found)")
+    e.add_argument("--port", type=int, default=8766, help="port on 127.0.0.1 (0: any free port)")
+    e.set_defaults(func=run_edit)
 
 
 def run(args) -> int:
@@ -68,4 +86,17 @@ def run(args) -> int:
             print(f"  {k}: " + (", ".join(f"{s} {v:.2f}" for s, v in top) or "(rest)")
                   + f"  [residual {100 * fit[k]:.0f}%]")
     print(f"wrote {Path(args.output)}")
+    if args.edit:
+        from keyshape.retarget.pose_edit import serve
+        serve(args.output, load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral),
+              args.keys, args.port)
+    return 0
+
+
+def run_edit(args) -> int:
+    from keyshape.retarget.pose_edit import serve
+    from keyshape.retarget.rig import load_rig
+
+    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    serve(args.poses, rig, args.keys, args.port)
     return 0

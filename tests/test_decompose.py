@@ -596,3 +596,22 @@ def test_smooth_matches_tight_bounded_least_squares(partial):
     assert info["converged"] and w.min() >= 0.0
     assert np.abs(w - ref).max() < 1e-2 and np.sqrt(np.mean((w - ref) ** 2)) < 2e-3
     assert objective(w) <= f_ref * (1 + 1e-5) and abs(objective(ref) - f_ref) < 1e-8 * f_ref
+
+
+def test_head_pose_is_the_nearest_similarity_and_model_shapes_round_trip():
+    from keyshape.decompose.regions import head_pose, to_image
+    rng = np.random.default_rng(5)
+    tracks = toy_tracks(40, noise_px=0.5, rng=2)
+    sim = tracks.pose.copy()
+    np.testing.assert_allclose(head_pose(sim), sim, atol=1e-12)          # a similarity is kept as it is
+    # the tracker's affine: similarity x (shear, anisotropic scale)
+    tracks.pose[:, :, :2] = np.einsum("tij,tjk->tik", sim[:, :, :2], np.eye(2) + 0.05 * rng.normal(size=(40, 2, 2)))
+    S = head_pose(tracks.pose)
+    np.testing.assert_allclose(S[:, :, 2], tracks.pose[:, :, 2])
+    D = tracks.pose[:, :, :2] - S[:, :, :2]                              # orthogonal to every similarity
+    for M in (np.eye(2), np.array([[0.0, -1.0], [1.0, 0.0]])):
+        np.testing.assert_allclose(np.einsum("tij,ij->t", D, M), 0, atol=1e-12)
+    assert np.allclose(S[:, 0, 0], S[:, 1, 1]) and np.allclose(S[:, 0, 1], -S[:, 1, 0])
+    # model shapes and to_image use the same head pose: the tracked points come back exactly
+    np.testing.assert_allclose(to_image(model_shapes(tracks), tracks.pose)[tracks.success],
+                               tracks.points[tracks.success], atol=1e-9)

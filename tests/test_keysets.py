@@ -125,6 +125,19 @@ def test_relaxed_frame_is_the_mode_of_the_shapes():
     assert i % 3 != 0 and np.abs(frames[i] - rest).max() < 0.05
 
 
+def test_relaxed_frame_prefers_the_face_returned_to_over_a_held_expression():
+    # 30 frames of one held expression (no noise: a tight cluster) against 200 relaxed frames
+    # spread by tracking noise: the neutral is the relaxed face, not the held expression
+    rng = np.random.default_rng(1)
+    rest = rng.normal(size=(10, 2))
+    held = rest + 0.5 * rng.normal(size=(10, 2))
+    frames = np.concatenate([rest + 0.05 * rng.normal(size=(200, 10, 2)),
+                             held + 0.002 * rng.normal(size=(30, 10, 2)),
+                             rest + rng.uniform(0.3, 1.5, (170, 1, 1)) * rng.normal(size=(170, 10, 2))])
+    i = relaxed_frame(frames)
+    assert i < 200, i
+
+
 def test_near_duplicate_keys_are_dropped():
     from keyshape.decompose.regions import near_duplicates
     ref = np.zeros((4, 2))

@@ -2,9 +2,11 @@
 
 Seed 11 (no other test uses it), 600 frames. From the exact contours (truth.csv) the pose route
 must recover the hidden ARKit curves (r >= 0.9 for jawOpen and both blinks, mean r >= 0.8, rig
-vertex error <= 0.65 x the hidden motion). From the trained tracker's tracks these targets are
-**not** met today (see bench/rig_accuracy.py: the tracks themselves carry pucker/funnel at
-r < 0.6 under any linear map); the tracked run is held to a regression floor and the issue's
+vertex error <= 0.65 x the hidden motion). From the trained tracker's tracks jawOpen (0.906), the
+blinks (0.907 / 0.933) and the mean r (0.867) are met since the actor's neutral is the mode over
+n/10 neighbours (it was a held brow raise: mean r 0.714) and head pose is removed as the nearest
+similarity of the tracker's affine (its shear moved with the jaw: jawOpen 0.868); the rig vertex
+error is not (0.660 x > 0.65). The tracked run is held to a regression floor and the issue's
 targets are a strict xfail, so meeting them is noticed.
 """
 from __future__ import annotations
@@ -43,11 +45,14 @@ def test_exact_contours_meet_the_issue_targets(chain):
 
 def test_tracked_chain_regression_floor(chain):
     s, _ = chain
-    assert s["mean_r"] >= 0.5 and s["r"]["jawOpen"] >= 0.6 and s["r"]["browInnerUp"] >= 0.8, s["r"]
-    assert s["error_ratio"] < 1.0                          # closer to the truth than a still face
+    assert s["mean_r"] >= 0.8 and s["r"]["jawOpen"] >= 0.85 and s["r"]["browInnerUp"] >= 0.9, s["r"]
+    # a held expression taken for the actor's neutral loses that component (browOuterUp_L 0.28 with n/50)
+    assert min(s["r"][c] for c in ("browOuterUp_L", "browOuterUp_R", "eyeBlink_L", "eyeBlink_R")) >= 0.85, s["r"]
+    assert s["error_ratio"] < 0.75                         # closer to the truth than a still face (1.0)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 14 targets on tracked footage not met (tracker noise on the lips)")
+@pytest.mark.xfail(strict=True, reason="issue 14 targets on tracked footage: rig vertex error 0.660 x > 0.65 "
+                          "(jawOpen 0.906, blinks 0.907/0.933, mean r 0.867 are met)")
 def test_tracked_chain_meets_the_issue_targets(chain):
     s, _ = chain
     assert s["r"]["jawOpen"] >= 0.9 and s["r"]["eyeBlink_L"] >= 0.9 and s["r"]["eyeBlink_R"] >= 0.9

@@ -1,0 +1,298 @@
+"""A tiny local web page for correcting a pose library (POSES.json) by hand.
+
+``keyshape pose ... --edit`` (after fitting) or ``keyshape pose-edit POSES.json --rig RIG``
+serves, on 127.0.0.1 only, a page listing every key of every region: the actor's key
+contour over the actor's neutral (from KEYS.json, when it can be found), the rig rendered
+in the key's pose (:class:`~keyshape.retarget.preview.RigRenderer`), and one slider per
+rig shape of the key's region. A slider change is sent as ``PUT /api/poses/<key>`` with
+``{"pose": {shape: weight}}``; the server checks it (the key exists, every shape is one
+of its region's shapes, every weight a finite number within the rig's range) and rewrites
+POSES.json atomically. Nothing else is ever written.
+
+The label-correction server (:mod:`keyshape.tracker.labelling.server`) is the model and
+lends its safety rules: loopback peers and ``Host`` names only (no DNS rebinding), JSON
+bodies under 1 MB with ``Content-Type: application/json`` (no cross-site form can send
+one without a CORS preflight, which is never granted), names checked against the
+library (no path is ever built from a request).
+"""
+from __future__ import annotations
+
+import json
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from urllib.parse import unquote
+
+import numpy as np
+
+from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.tracker.labelling.server import LOCAL_HOSTS, MAX_BODY, is_loopback
+
+PAGE_DIR = Path(__file__).parent / "pose_page"
+PAGE_FILES = {"/": ("index.html", "text/html; charset=utf-8"),
+              "/index.html": ("index.html", "text/html; charset=utf-8"),
+              "/app.js": ("app.js", "text/javascript; charset=utf-8"),
+              "/style.css": ("style.css", "text/css; charset=utf-8")}
+
+
+def check_pose(library: dict, key: str, pose, source=None) -> tuple[str, dict]:
+    """Validate a hand-edited pose of ``key``: returns (region, {shape: weight}) without zeros.
+
+    Raises :class:`InputError` for an unknown key, a shape outside the key's region, or a
+    weight that is not a finite number within the library's ``range``.
+    """
+    region = next((r for r, reg in library["regions"].items() if key in reg["keys"]), None)
+    if region is None:
+        raise InputError(f"no key {key!r} in the pose library", source)
+    if not isinstance(pose, dict):
+        raise InputError(f"{key}: expected a pose object {{shape: weight}}", source)
+    lo, hi = library.get("range", (0.0, 1.0))
+    allowed = set(library["regions"][region]["shapes"])
+    out = {}
+    for s, v in pose.items():
+        if s not in allowed:
+            raise InputError(f"{key}: shape {s!r} is not among region {region!r}'s shapes", source)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise InputError(f"{key}: weight of {s!r} is not a finite number: {v!r}", source)
+        if not lo - 1e-9 <= v <= hi + 1e-9:
+            raise InputError(f"{key}: weight {v} of {s!r} is outside the rig's range [{lo:g}, {hi:g}]", source)
+        if v != 0:
+            out[str(s)] = float(v)
+    return region, out
+
+
+def find_keys_file(poses_path: Path, library: dict) -> Path | None:
+    """The KEYS.json the library was fitted from (its ``keys.file``, as given or next to POSES.json)."""
+    name = (library.get("keys") or {}).get("file")
+    if not name:
+        return None
+    for p in (Path(name), poses_path.parent / Path(name).name):
+        if p.is_file():
+            return p
+    return None
+
+
+class PoseHandler(BaseHTTPRequestHandler):
+    """Request handler; the server object carries the library, the rig and the renderer."""
+
+    server_version = "keyshape-pose"
+    protocol_version = "HTTP/1.1"
+    timeout = 10.0
+
+    def log_message(self, fmt, *args):  # quiet unless asked
+        if getattr(self.server, "verbose", False):
+            super().log_message(fmt, *args)
+
+    def _send(self, status: int, body: bytes, ctype: str = "application/json") -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _json(self, status: int, obj) -> None:
+        self._send(status, json.dumps(obj).encode())
+
+    def _error(self, status: int, message: str) -> None:
+        self._json(status, {"error": message})
+
+    def _local(self) -> bool:
+        if not is_loopback(self.client_address[0]):
+            self._error(HTTPStatus.FORBIDDEN, "only local connections are served")
+            return False
+        host = (self.headers.get("Host") or "").strip().lower()
+        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+        if name not in LOCAL_HOSTS:
+            self._error(HTTPStatus.FORBIDDEN, f"Host {host!r} is not local")
+            return False
+        return True
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+        if not self._local():
+            return
+        path = self.path.split("?", 1)[0]
+        srv = self.server
+        if path in PAGE_FILES:
+            name, ctype = PAGE_FILES[path]
+            self._send(HTTPStatus.OK, (PAGE_DIR / name).read_bytes(), ctype)
+        elif path == "/api/library":
+            with srv.lock:
+                self._json(HTTPStatus.OK, srv.page_data())
+        elif path.startswith("/api/render/") and path.endswith(".png"):
+            key = unquote(path[len("/api/render/"):-len(".png")])
+            if not srv.has_key(key):
+                self._error(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
+            elif srv.renderer is None:
+                self._error(HTTPStatus.NOT_FOUND, "the rig has no faces to render")
+            else:
+                self._send(HTTPStatus.OK, srv.render_png(key), "image/png")
+        else:
+            self._error(HTTPStatus.NOT_FOUND, "not found")
+
+    def do_PUT(self) -> None:  # noqa: N802
+        if not self._local():
+            return
+        path = self.path.split("?", 1)[0]
+        if not path.startswith("/api/poses/"):
+            self._error(HTTPStatus.METHOD_NOT_ALLOWED, "only key poses can be written")
+            return
+        key = unquote(path[len("/api/poses/"):])
+        if not self.server.has_key(key):
+            self._error(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
+            return
+        if (self.headers.get("Content-Type") or "").split(";")[0].strip() != "application/json":
+            self._error(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "send the pose as application/json")
+            return
+        try:
+            length = int(self.headers.get("Content-Length") or -1)
+        except ValueError:
+            length = -1
+        if not 0 < length <= MAX_BODY:
+            self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if length > MAX_BODY else HTTPStatus.LENGTH_REQUIRED,
+                        "body must be JSON under 1 MB with a Content-Length")
+            return
+        try:
+            raw = self.rfile.read(length)
+        except OSError:
+            self.close_connection = True
+            return
+        if len(raw) < length:
+            self.close_connection = True
+            self._error(HTTPStatus.BAD_REQUEST, f"body shorter than its Content-Length ({len(raw)} < {length})")
+            return
+        try:
+            pose = json.loads(raw)["pose"]
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, RecursionError):
+            self._error(HTTPStatus.BAD_REQUEST, 'expected {"pose": {"shape": weight, ...}}')
+            return
+        try:
+            saved = self.server.set_pose(key, pose)
+        except KeyshapeError as exc:
+            self._error(HTTPStatus.BAD_REQUEST, str(exc))
+            return
+        self._json(HTTPStatus.OK, {"saved": key, "pose": saved})
+
+    def _refuse(self) -> None:
+        if self._local():
+            self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method not allowed")
+
+    do_POST = do_DELETE = do_PATCH = _refuse  # noqa: N815
+
+
+class PoseServer(ThreadingHTTPServer):
+    """The pose-correction server for one POSES.json (see the module docstring).
+
+    Parameters
+    ----------
+    poses : path of the POSES.json to correct (read and checked against the rig's shapes)
+    rig : :class:`~keyshape.retarget.rig.Rig`, with its mesh for the rendered preview
+    keys : KEYS.json the library came from (default: its ``keys.file`` when that exists);
+        gives the actor's key contours shown beside each pose
+    port : TCP port on 127.0.0.1 (0: any free port; see :attr:`port`)
+    size : side of the rendered rig image in pixels
+    """
+
+    daemon_threads = True
+
+    def __init__(self, poses: str | Path, rig, keys: str | Path | None = None, port: int = 0, size: int = 320,
+                 verbose: bool = False):
+        from keyshape.base.formats.poses import read_poses
+
+        self.path = Path(poses).resolve()
+        self.library = read_poses(self.path, rig.names)
+        self.rig = rig
+        self.verbose = verbose
+        self.lock = threading.Lock()
+        self.actor = self._actor_shapes(keys)
+        self.renderer = None
+        if rig.mesh is not None and rig.mesh.polygons:
+            from keyshape.retarget.preview import RigRenderer
+            self.renderer = RigRenderer(rig, (size, size)).fit(np.eye(rig.n_shapes))
+        self._index = {n: j for j, n in enumerate(rig.names)}
+        super().__init__(("127.0.0.1", int(port)), PoseHandler)
+
+    def _actor_shapes(self, keys) -> dict:
+        from keyshape.base.formats.keys import read_keys
+        from keyshape.base.schemes import load_scheme
+        path = Path(keys) if keys is not None else find_keys_file(self.path, self.library)
+        if path is None:
+            return {}
+        scheme_name, _, regions = read_keys(path)
+        scheme = load_scheme(scheme_name)
+        out = {}
+        for rk in regions:
+            rest = rk.rest if rk.rest is not None else rk.neutral
+            # the scheme's contours restricted to the region's points, as index pairs into the region
+            local = {int(p): i for i, p in enumerate(rk.points)}
+            lines = [[local[int(p)] for p in c if int(p) in local] for c in scheme.contours.values()]
+            closed = [bool(scheme.closed.get(name, False)) for name in scheme.contours]
+            for name, shape in zip(rk.names, rk.keys):
+                out[name] = {"rest": np.round(rest, 3).tolist(), "shape": np.round(shape, 3).tolist(),
+                             "lines": [ln for ln in lines if len(ln) > 1],
+                             "closed": [c for c, ln in zip(closed, lines) if len(ln) > 1]}
+        return out
+
+    @property
+    def port(self) -> int:
+        return self.server_address[1]
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/"
+
+    def has_key(self, key: str) -> bool:
+        return any(key in reg["keys"] for reg in self.library["regions"].values())
+
+    def page_data(self) -> dict:
+        """What the page needs: the library, the rig range, the actor's key contours."""
+        return {"file": self.path.name, "range": self.library.get("range", [0.0, 1.0]),
+                "regions": {r: {"shapes": reg["shapes"], "keys": reg["keys"]}
+                            for r, reg in self.library["regions"].items()},
+                "actor": self.actor, "render": self.renderer is not None}
+
+    def set_pose(self, key: str, pose) -> dict:
+        """Replace ``key``'s pose after checking it, and rewrite POSES.json atomically."""
+        from keyshape.base.formats.poses import write_poses
+        region, clean = check_pose(self.library, key, pose, self.path)
+        with self.lock:
+            self.library["regions"][region]["keys"][key] = clean
+            write_poses(self.path, self.library)
+        return clean
+
+    def render_png(self, key: str) -> bytes:
+        """The rig in ``key``'s current pose, as PNG bytes."""
+        import cv2
+        c = np.zeros((1, self.rig.n_shapes))
+        with self.lock:
+            pose = next(reg["keys"][key] for reg in self.library["regions"].values() if key in reg["keys"])
+            for s, v in pose.items():
+                c[0, self._index[s]] = v
+        img = self.renderer.render(self.rig.evaluate(c)[0])
+        ok, buf = cv2.imencode(".png", img)
+        return buf.tobytes()
+
+
+def serve(poses: str | Path, rig, keys: str | Path | None = None, port: int = 8766) -> None:
+    """Serve the page until Ctrl-C (or SIGTERM); prints the address."""
+    import signal
+    try:
+        server = PoseServer(poses, rig, keys, port)
+    except OSError as exc:
+        raise InputError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror}): try --port 0") from None
+    print(f"correct the poses at {server.url} (Ctrl-C to stop); every change is saved to {server.path}",
+          flush=True)
+
+    def _stop(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, _stop)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        server.server_close()
