@@ -596,3 +596,33 @@ def test_smooth_matches_tight_bounded_least_squares(partial):
     assert info["converged"] and w.min() >= 0.0
     assert np.abs(w - ref).max() < 1e-2 and np.sqrt(np.mean((w - ref) ** 2)) < 2e-3
     assert objective(w) <= f_ref * (1 + 1e-5) and abs(objective(ref) - f_ref) < 1e-8 * f_ref
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(2, 9), st.integers(1, 60), st.sampled_from([0.01, 0.1, 1.0]),
+       st.booleans(), st.sampled_from([0.0, 0.05]))
+def test_smooth_active_set_solution_satisfies_kkt(seed, k, n, lam, partial, ridge):
+    # the active-set (PDAS) smooth solver ends at the KKT point of its QP: w >= 0, the gradient of the
+    # objective zero on positive weights and >= 0 on zero weights (to rounding), on random problems
+    rng = np.random.default_rng(seed)
+    neutral = rng.normal(size=(6, 2))
+    keys = neutral + rng.normal(size=(k, 6, 2))
+    shapes = neutral + rng.normal(size=(n, 6, 2))
+    obs = rng.random(n) > 0.3 if partial else np.ones(n, bool)
+    obs[rng.integers(n)] = True
+    w, info = smooth_weights(np.where(obs[:, None, None], shapes, neutral), keys, neutral, lam, observed=obs,
+                             tol=1e-10, ridge=ridge, return_info=True)
+    assert info["converged"] and info["method"] == "pdas"
+    assert w.min() >= 0.0
+    X = (shapes - neutral).reshape(n, -1)
+    B = (keys - neutral).reshape(k, -1)
+    G = B @ B.T
+    mu = lam * float(np.trace(G)) / k
+    Gr = G + ridge * float(np.trace(G)) / k * np.eye(k)
+    grad = obs[:, None] * (w @ Gr - X @ B.T)
+    d = np.diff(w, axis=0) * mu
+    grad[:-1] -= d
+    grad[1:] += d
+    scale = float(np.trace(G)) / k * max(1.0, np.abs(w).max())
+    assert np.abs(grad[w > 0]).max(initial=0.0) < 1e-7 * scale
+    assert grad[w == 0].min(initial=0.0) > -1e-7 * scale
