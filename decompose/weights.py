@@ -63,10 +63,13 @@ def reconstruct(weights: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
     """Eq. (3): ``neutral + sum_i w_i (S_i - neutral)`` for every frame; (n_frames, n_points, dim)."""
     keys = np.asarray(keys, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
+    shape = (len(w),) + keys.shape[1:]
     if neutral is None:
-        return np.einsum("tk,kpd->tpd", w, keys)
+        return (w @ keys.reshape(len(keys), -1)).reshape(shape)
     neutral = np.asarray(neutral, dtype=np.float64)
-    return neutral + np.einsum("tk,kpd->tpd", w, keys - neutral)
+    out = (w @ (keys - neutral).reshape(len(keys), -1)).reshape(shape)   # one BLAS product, not einsum
+    out += neutral
+    return out
 
 
 # --------------------------------------------------------------------------- least squares
