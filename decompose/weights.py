@@ -356,38 +356,39 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     a unit weight step costs as much as the mean key shape's squared size), ``m_t`` = 1 for
     observed frames and 0 for failed ones (whose weights the penalty then interpolates).
 
-    Method: ADMM on ``W = Z, Z >= 0``, started from per-frame NNLS with a consistent dual. The
-    W-step's matrix ``diag(m) (x) G + mu L (x) I + rho I`` (``L`` the path-graph Laplacian with
-    Neumann ends) becomes, in the eigenbasis ``V`` of ``G``, ``n_keys`` independent tridiagonal
+    Method (``method="pdas"``, the default since issue 16): the QP's Hessian
+    ``diag(m) (x) G + mu L (x) I`` (``L`` the path-graph Laplacian) is, frame-major, a band matrix
+    of half-bandwidth ``n_keys``, and the primal-dual active-set method of Hintermueller, Ito and
+    Kunisch (2002) solves the QP exactly with one banded Cholesky factorisation per iteration
+    (:func:`_smooth_pdas`), started from the per-frame NNLS fit of the unconstrained smoothed
+    weights. It ends at the KKT point (no infeasible weight, free weights' gradients below
+    ``tol * max(1, max|h|)``, sign tests at 1e-10): the exact QP solution up to rounding whatever
+    ``tol``, which only bounds the stationarity left by windowed re-solves. 100,000 frames x 24 keys
+    (``bench/bench_decompose.py --admm``): 14 iterations, 5.2x lstsq in CPU time against 21.9x for
+    ADMM in the same run. ``max_iter`` caps the iterations (at most 200 for this method).
+
+    ``method="admm"`` (the former default, also the fallback should a factorisation fail or the
+    active set stop shrinking): ADMM on ``W = Z, Z >= 0``, started from per-frame NNLS with a consistent dual. The
+    W-step's matrix ``diag(m) (x) G + mu L (x) I + rho I`` becomes, in the eigenbasis ``V`` of ``G``, ``n_keys`` independent tridiagonal
     systems. When every frame is observed they share ``L``, which the DCT-II diagonalises
     (eigenvalues ``2 - 2 cos(pi q / n)``), so all columns are solved at once by one
     :func:`scipy.fft.dct` / ``idct`` pair and an elementwise division; with unobserved frames the
     ``n_keys`` systems are stacked into one banded system of length ``n_keys * n``, Cholesky-factored
     once per value of rho (:func:`scipy.linalg.cholesky_banded`) and solved with one LAPACK call per
-    iteration (no Python loop over columns either way). The Z-step is clipping at zero
-    (rho rebalanced from the residuals every 10 iterations when they differ tenfold). The ADMM
-    map on the state ``S = Z + U`` is extrapolated by type-II Anderson acceleration with memory
-    ``anderson`` (default 10, i.e. 20 arrays of the weights' size; 0 = plain ADMM, over-relaxed
-    with 1.6 as before), restarted when rho changes or the residual grows a hundredfold. Stops when the primal residual ``max|W - Z|`` and the dual
-    residual ``rho max|Z - Z_prev|`` both fall below ``tol * max(1, max Z)``; ``tol`` bounds these
-    residuals, not the distance to the exact solution. ``tol=1e-10`` matches an exact NNLS of the
-    whole QP (scipy's Lawson-Hanson, tests) to 1e-6, and reproduces per-frame NNLS to 1e-7 when
-    ``smooth_lambda = 0``. Iterations at the default ``tol=1e-5`` (lambda 0.1, 24 keys): 5,000
-    frames 447 plain; accelerated with over-relaxation 1.6: 161 (memory 5), 114 (memory 10);
-    without it: 137 and 107 (CPU 8.3 s -> 5.5 s from memory 5 with 1.6 to memory 10 without);
-    weights within 6e-3 of a tight solution and the objective within 1e-8 relative. 100,000
-    frames (``bench/bench_decompose.py --plain-admm``, memory 5 with 1.6): 459 -> 258
-    iterations, 859 s -> 633 s on a machine so loaded that lstsq took 15.8 s: 54x -> 40x lstsq,
-    far from the 5x aimed at (issue 16; docs/decompose.md has the current default's figure);
-    each iteration is still a few passes over the (n, k) array plus the memory's
-    matrix-vector products. The per-frame NNLS start costs one :func:`nnls_gram`.
+    iteration. The Z-step is clipping at zero (rho rebalanced from the residuals every 10 iterations
+    when they differ tenfold). The ADMM map on the state ``S = Z + U`` is extrapolated by type-II
+    Anderson acceleration with memory ``anderson`` (default 10; 0 = plain ADMM, over-relaxed with
+    1.6), restarted when rho changes or the residual grows a hundredfold. Stops when the primal
+    residual ``max|W - Z|`` and the dual residual ``rho max|Z - Z_prev|`` both fall below
+    ``tol * max(1, max Z)``; ``tol`` bounds these residuals, not the distance to the exact solution
+    (``tol=1e-10`` matches the exact QP to 1e-6). 100,000 frames: 114 iterations.
     With ``smooth_lambda = 0`` and every frame observed it returns per-frame NNLS (eq. 4) directly. ``ridge`` adds the Tikhonov term of
     :func:`nnls_weights` on observed frames (``G`` becomes ``G + ridge * trace(G) / k * I``).
 
     Returns
     -------
-    (n_frames, n_keys) non-negative weights (and a dict with ``iterations``, ``converged``
-    if ``return_info``).
+    (n_frames, n_keys) non-negative weights (and a dict with ``iterations``, ``converged``,
+    ``method`` if ``return_info``).
     """
     X, B = _flatten(shapes, keys, neutral)
     n, k = len(X), len(B)
@@ -430,6 +431,7 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
                 Z[obs] = nnls_gram(Gs, H[obs])[0]
             W, it2, converged = _smooth_admm(Gs, H, m, mu, Z, max_iter, tol, anderson)
             it += it2
+            method = "pdas, then admm"
     else:
         W, it, converged = _smooth_admm(Gs, H, m, mu, Z, max_iter, tol, anderson)
     return (W, {"iterations": it, "converged": converged, "method": method}) if return_info else W
@@ -447,9 +449,11 @@ def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.
     Cholesky factorisation (LAPACK ``dpbtrf``/``dpbtrs``, single-threaded: OpenBLAS's threads make
     its many tiny level-2 calls ~30x slower) and exchanges every infeasible weight: a free one gone
     negative becomes active, an active one with a negative gradient becomes free. When the
-    infeasible weights lie in few frames, only the frames within ``window`` of them are re-solved
-    (the rest held fixed as boundary values); the loop ends with a solve of all frames that leaves
-    nothing infeasible, i.e. at the KKT point of the QP (exact up to rounding). Returns
+    infeasible weights lie in frames covering under half the take (:data:`_COVER`), only the frames
+    within ``window`` of them are re-solved, the rest held fixed as boundary values; free weights
+    left off their equations next to those windows (gradient above ``tol``) are re-solved the same
+    way (after three such sweeps, all frames). It ends when no weight is infeasible and no free
+    weight's gradient exceeds ``tol``: the KKT point of the QP (exact up to rounding). Returns
     ``(W, iterations, converged)``; ``converged`` False on a failed factorisation or when the count
     of infeasible weights stops falling (the caller then falls back to ADMM).
     """
@@ -485,63 +489,69 @@ def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.
     def solve(idx, act):
         """New weights of frames ``idx`` (sorted) with the others fixed; active ones at zero."""
         ns = len(idx)
+        at = slice(None) if ns == n else idx   # all frames: views, no gathers
         ab = buf[:ns]
         ab[...] = tpl
         if unobserved.any():
-            ab[unobserved[idx], :, 1:] = 0.0
-        ab[:, :, k] += (mu * deg[idx] + eps)[:, None] + penalty * act[idx]
+            ab[unobserved[at], :, 1:] = 0.0
+        ab[:, :, k] += (mu * deg[at] + eps)[:, None] + penalty * act[at]
         link = np.zeros(ns, dtype=bool)
         link[1:] = np.diff(idx) == 1
         ab[~link, :, 0] = 0.0
-        rhs = H[idx].copy()
-        before = (idx > 0) & ~link             # a fixed frame just before: its weights enter the rhs
-        rhs[before] += mu * W[idx[before] - 1]
-        nlink = np.zeros(ns, dtype=bool)
-        nlink[:-1] = link[1:]
-        after = (idx < n - 1) & ~nlink
-        rhs[after] += mu * W[idx[after] + 1]
-        rhs[act[idx]] = 0.0
-        with threadpool_limits(1):
-            c, info = dpbtrf(ab.reshape(ns * k, k + 1).T, lower=0, overwrite_ab=1)
-            if info != 0:
-                return None
-            x, info = dpbtrs(c, rhs.reshape(-1, 1), lower=0, overwrite_b=1)
+        rhs = H[idx]                           # a copy (fancy indexing)
+        if ns < n:
+            before = (idx > 0) & ~link         # a fixed frame just before: its weights enter the rhs
+            rhs[before] += mu * W[idx[before] - 1]
+            nlink = np.zeros(ns, dtype=bool)
+            nlink[:-1] = link[1:]
+            after = (idx < n - 1) & ~nlink
+            rhs[after] += mu * W[idx[after] + 1]
+        actf = act[at]
+        rhs[actf] = 0.0
+        c, info = dpbtrf(ab.reshape(ns * k, k + 1).T, lower=0, overwrite_ab=1)
+        if info != 0:
+            return None
+        x, info = dpbtrs(c, rhs.reshape(-1, 1), lower=0, overwrite_b=1)
         x = x.reshape(ns, k)
-        x[act[idx]] = 0.0
+        x[actf] = 0.0
         return x
 
-    everything = np.arange(n)
-    g = qmul(W) - H
-    act = (W <= 0) & (g > 0)
-    idx = everything
-    best, stall, sweeps = np.inf, 0, 0
-    kernel = np.ones(2 * window + 1)
-    for it in range(1, max_iter + 1):
-        x = solve(idx, act)
-        if x is None:
-            return W, it, False
-        W[idx] = x
+    def iterate(W):
+        everything = np.arange(n)
         g = qmul(W) - H
-        bad = (act & (g < -htol)) | (~act & (W < -htol))
-        # free weights off their equations: next to frames that a windowed solve held fixed
-        off = ~act & (np.abs(g) > ktol)
-        n_bad = int(bad.sum())
-        if n_bad == 0 and not off.any():
-            return np.maximum(W, 0.0), it, True
-        if n_bad == 0:
-            sweeps += 1
-        else:
-            sweeps = 0
-            if n_bad < best:
-                best, stall = n_bad, 0
+        act = (W <= 0) & (g > 0)
+        idx = everything
+        best, stall, sweeps = np.inf, 0, 0
+        kernel = np.ones(2 * window + 1)
+        for it in range(1, max_iter + 1):
+            x = solve(idx, act)
+            if x is None:
+                return W, it, False
+            W[idx if len(idx) < n else slice(None)] = x
+            g = qmul(W) - H
+            bad = (act & (g < -htol)) | (~act & (W < -htol))
+            # free weights off their equations: next to frames that a windowed solve held fixed
+            off = ~act & (np.abs(g) > ktol)
+            n_bad = int(bad.sum())
+            if n_bad == 0 and not off.any():
+                return np.maximum(W, 0.0), it, True
+            if n_bad == 0:
+                sweeps += 1
             else:
-                stall += 1
-                if stall >= 5:
-                    return np.maximum(W, 0.0), it, False
-        act ^= bad
-        near = np.convolve((bad | off).any(axis=1), kernel, mode="same") > 0.5
-        idx = np.flatnonzero(near) if near.sum() < _COVER * n and sweeps < 3 else everything
-    return np.maximum(W, 0.0), max_iter, False
+                sweeps = 0
+                if n_bad < best:
+                    best, stall = n_bad, 0
+                else:
+                    stall += 1
+                    if stall >= 5:
+                        return np.maximum(W, 0.0), it, False
+            act ^= bad
+            near = np.convolve((bad | off).any(axis=1), kernel, mode="same") > 0.5
+            idx = np.flatnonzero(near) if near.sum() < _COVER * n and sweeps < 3 else everything
+        return np.maximum(W, 0.0), max_iter, False
+
+    with threadpool_limits(1):   # OpenBLAS threads make dpbtrf's many tiny level-2 calls ~35x slower
+        return iterate(W)
 
 
 def _smooth_admm(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, Z0: np.ndarray, max_iter: int,
