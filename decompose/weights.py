@@ -454,8 +454,12 @@ def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.
     left off their equations next to those windows (gradient above ``tol``) are re-solved the same
     way (after three such sweeps, all frames). It ends when no weight is infeasible and no free
     weight's gradient exceeds ``tol``: the KKT point of the QP (exact up to rounding). Returns
-    ``(W, iterations, converged)``; ``converged`` False on a failed factorisation or when the count
-    of infeasible weights stops falling (the caller then falls back to ADMM).
+    ``(W, iterations, converged)``. PDAS can cycle when ``Q`` is not an M-matrix (seen on toy
+    tracks with failed frames: one frame's weights exchanged back and forth); as in block principal
+    pivoting, after three exchanges that do not lower the count of infeasible weights only the last
+    infeasible weight is exchanged (Murty's rule, which terminates), over all frames, until the
+    count falls below its best. ``converged`` is False on a failed factorisation or after
+    ``max_iter`` iterations (the caller then falls back to ADMM).
     """
     from scipy.linalg.lapack import dpbtrf, dpbtrs
     from threadpoolctl import threadpool_limits
@@ -521,7 +525,7 @@ def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.
         g = qmul(W) - H
         act = (W <= 0) & (g > 0)
         idx = everything
-        best, stall, sweeps = np.inf, 0, 0
+        best, stall, sweeps, windows = np.inf, 0, 0, True
         kernel = np.ones(2 * window + 1)
         for it in range(1, max_iter + 1):
             x = solve(idx, act)
@@ -543,11 +547,16 @@ def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.
                     best, stall = n_bad, 0
                 else:
                     stall += 1
-                    if stall >= 5:
-                        return np.maximum(W, 0.0), it, False
-            act ^= bad
+            if stall < 3:
+                act ^= bad                           # exchange every infeasible weight
+            else:
+                # the count stopped falling (PDAS can cycle when Q is not an M-matrix): as block
+                # principal pivoting does, exchange only the last infeasible weight (Murty's rule,
+                # finite), over all frames from now on, until the count falls below its best
+                windows = False
+                act.ravel()[np.flatnonzero(bad.ravel())[-1]] ^= True
             near = np.convolve((bad | off).any(axis=1), kernel, mode="same") > 0.5
-            idx = np.flatnonzero(near) if near.sum() < _COVER * n and sweeps < 3 else everything
+            idx = np.flatnonzero(near) if windows and near.sum() < _COVER * n and sweeps < 3 else everything
         return np.maximum(W, 0.0), max_iter, False
 
     with threadpool_limits(1):   # OpenBLAS threads make dpbtrf's many tiny level-2 calls ~35x slower

@@ -626,3 +626,25 @@ def test_smooth_active_set_solution_satisfies_kkt(seed, k, n, lam, partial, ridg
     scale = float(np.trace(G)) / k * max(1.0, np.abs(w).max())
     assert np.abs(grad[w > 0]).max(initial=0.0) < 1e-7 * scale
     assert grad[w == 0].min(initial=0.0) > -1e-7 * scale
+
+
+def test_smooth_active_set_does_not_cycle_on_failed_frames():
+    # toy tracks where plain PDAS exchanged one frame's weights back and forth forever (the solver
+    # fell back to ADMM); the single-exchange backup rule ends at the KKT point
+    Q = model_shapes(toy_tracks(1500, noise_px=1.0, rng=3))
+    sel = RandomSelector(16, rng=0).fit(Q)
+    obs = np.ones(len(Q), bool)
+    obs[100:140] = False
+    obs[700] = False
+    F = np.where(obs[:, None, None], Q, sel.neutral_)
+    w, info = smooth_weights(F, sel.keys_, sel.neutral_, 0.01, observed=obs, tol=1e-10, return_info=True)
+    assert info["converged"] and info["method"] == "pdas", info
+    X = (Q - sel.neutral_).reshape(len(Q), -1)
+    B = (sel.keys_ - sel.neutral_).reshape(16, -1)
+    G = B @ B.T
+    grad = obs[:, None] * (w @ G - X @ B.T)
+    d = np.diff(w, axis=0) * 0.01 * float(np.trace(G)) / 16
+    grad[:-1] -= d
+    grad[1:] += d
+    scale = float(np.trace(G)) / 16 * max(1.0, w.max())
+    assert w.min() >= 0 and np.abs(grad[w > 0]).max() < 1e-7 * scale and grad[w == 0].min() > -1e-7 * scale
