@@ -5,7 +5,7 @@ same size (``np.linalg.lstsq`` of all frames at once, the paper's "bad example")
 Data: the toy low-rank performance (decompose.toy) tiled to 100,000 frames with
 fresh tracking noise, all 48 points, 24 key frames chosen by spread.
 
-Run: ``python bench/bench_decompose.py [--frames N] [--plain-admm]``. Wall-clock ratios, and
+Run: ``python bench/bench_decompose.py [--frames N] [--admm] [--plain-admm]``. Wall-clock ratios, and
 process CPU-time ratios beside them (steadier on a shared machine; they add up all threads).
 """
 from __future__ import annotations
@@ -25,8 +25,10 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=100_000)
     ap.add_argument("--keys", type=int, default=24)
+    ap.add_argument("--admm", action="store_true",
+                    help="also time the smooth solver's former default (Anderson-accelerated ADMM)")
     ap.add_argument("--plain-admm", action="store_true",
-                    help="also time the smooth solver without Anderson acceleration (the former default)")
+                    help="also time ADMM without Anderson acceleration (the default before that)")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     base = model_shapes(toy_tracks(2000, noise_px=0.0, rng=0))
@@ -44,16 +46,21 @@ def main() -> None:
     res = [timed("lstsq (baseline)", lambda: lstsq_weights(shapes, keys, neutral)),
            timed("nnls", lambda: nnls_weights(shapes, keys, neutral, return_converged=True)),
            timed("smooth (lambda 0.1)", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True))]
+    if args.admm:
+        res.append(timed("smooth, ADMM", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True,
+                                                                method="admm")))
     if args.plain_admm:
         res.append(timed("smooth, plain ADMM", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True,
-                                                                      anderson=0)))
+                                                                      method="admm", anderson=0)))
     base_t, base_c = res[0][1]
     for name, (dt, dc), out in res:
         extra = ""
         if name == "nnls":
             extra = f"  all converged: {bool(out[1].all())}, min weight {out[0].min():.3g}"
         if name.startswith("smooth"):
-            extra = f"  ADMM iterations: {out[1]['iterations']}, converged: {out[1]['converged']}"
+            extra = f"  {out[1]['method']} iterations: {out[1]['iterations']}, converged: {out[1]['converged']}"
+            if name != "smooth (lambda 0.1)":
+                extra += f", max |w - active-set w| {np.abs(out[0] - res[2][2][0]).max():.2g}"
         print(f"{name:22s} {dt:8.2f} s   ratio to lstsq {dt / base_t:6.2f}   (CPU time {dc:7.2f} s, ratio "
               f"{dc / base_c:6.2f}){extra}")
 

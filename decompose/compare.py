@@ -27,7 +27,7 @@ from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
 from keyshape.decompose.regions import RegionKeys, available_regions, head_pose, model_shapes, region_points, to_image
 from keyshape.decompose.selectors import METHODS, make_selector
-from keyshape.decompose.weights import lstsq_weights, nnls_gram, nnls_weights, reconstruct
+from keyshape.decompose.weights import nnls_gram, reconstruct
 
 NESTED = ("spread", "greedy")   # the first j keys of a fit with k are the fit with j
 
@@ -124,12 +124,13 @@ class _Basis:
     leading block of the full ones (NNLS, eq. 4, by :func:`nnls_gram`), and least squares is the leading block of one QR of the key basis.
     """
 
-    def __init__(self, Q: np.ndarray, keys: np.ndarray, neutral: np.ndarray):
+    def __init__(self, Q: np.ndarray, keys: np.ndarray, neutral: np.ndarray, qr_gram: bool = False):
         self.X = (Q - neutral).reshape(len(Q), -1)
         self.B = (keys - neutral).reshape(len(keys), -1)
-        self.G = self.B @ self.B.T
         self.H = self.X @ self.B.T
         self.q, self.r = np.linalg.qr(self.B.T)
+        # qr_gram: R^T R, the Gram matrix nnls_weights forms (same weights as it, to the last bit)
+        self.G = self.r.T @ self.r if qr_gram and len(self.B) <= self.B.shape[1] else self.B @ self.B.T
         self.c = self.X @ self.q
 
     def nnls(self, k: int) -> np.ndarray:
@@ -156,6 +157,14 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
     solvers. ``progress`` (a :class:`keyshape.base.progress.Progress`, or None) counts rows,
     its total set here, so it shows an ETA.
     """
+    from threadpoolctl import threadpool_limits
+
+    # many small products and factorisations: BLAS/OpenMP threads only add spinning (CPU time 2x on 2 cores)
+    with threadpool_limits(1):
+        return _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress)
+
+
+def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress) -> list[dict]:
     rng = np.random.default_rng(rng)
     shapes_all = model_shapes(tracks)
     ok = np.flatnonzero(tracks.success)
@@ -189,10 +198,11 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
                     sel = make_selector(method, k, rng=rng).fit(Q)
                     fits.append((k, sel.indices_, sel.keys_))
             for k, _, keys in fits:
-                if basis is not None:
-                    w, wl = basis.nnls(k), basis.lstsq(k)
+                if basis is None:
+                    b = _Basis(Q, keys, neutral, qr_gram=True)   # one factorisation for both solvers
+                    w, wl = b.nnls(len(keys)), b.lstsq(len(keys))
                 else:
-                    w, wl = nnls_weights(Q, keys, neutral), lstsq_weights(Q, keys, neutral)
+                    w, wl = basis.nnls(k), basis.lstsq(k)
                 e, rms = pixel_errors(Q, reconstruct(w, keys, neutral), pose)
                 row = {"method": method, "region": region, "k": int(k), "error": e, "rms_px": rms}
                 for name, ww in (("nnls", w), ("lstsq", wl)):

@@ -12,6 +12,8 @@ Swap one for another in one line: ``SpreadSelector(12).fit(shapes).indices_``.
 """
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from keyshape.base.errors import InputError, NotFittedError
@@ -38,6 +40,9 @@ def _check_shapes(shapes, n_keys: int | None) -> np.ndarray:
     return arr
 
 
+_PCA_CACHE: dict = {}   # the last few PCA scores, keyed by the data's shape and hash
+
+
 def _pca(X: np.ndarray) -> np.ndarray:
     """PCA scores (n_frames, r) of ``X`` (scikit-learn's exact PCA), r the numerical rank.
 
@@ -49,13 +54,20 @@ def _pca(X: np.ndarray) -> np.ndarray:
 
     if len(X) < 2 or not np.abs(X - X.mean(0)).max() > 0:
         return np.zeros((len(X), 0))
+    key = (X.shape, hashlib.blake2b(np.ascontiguousarray(X).view(np.uint8), digest_size=16).digest())
+    if key in _PCA_CACHE:                        # keyshape compare fits many selectors to one region
+        return _PCA_CACHE[key].copy()
     pca = PCA(svd_solver="full").fit(X)
     s = pca.singular_values_
     r = int((s > s[0] * 1e-10).sum())
     scores = pca.transform(X)[:, :r]
     signs = np.sign(scores[np.argmax(np.abs(scores), axis=0), np.arange(r)])
     signs[signs == 0] = 1
-    return scores * signs
+    scores = scores * signs
+    if len(_PCA_CACHE) >= 4:
+        _PCA_CACHE.pop(next(iter(_PCA_CACHE)))
+    _PCA_CACHE[key] = scores
+    return scores.copy()
 
 
 class _Selector:
@@ -168,7 +180,11 @@ class KMeansSelector(_Selector):
         from sklearn.cluster import KMeans
 
         seed = int(np.random.default_rng(self.rng).integers(2**31 - 1))
-        labels = KMeans(self.n_keys, init="k-means++", n_init=4, max_iter=100, random_state=seed).fit_predict(Y)
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1):   # tiny problems: OpenMP threads only spin (3x the CPU time on 2 cores)
+            labels = KMeans(self.n_keys, init="k-means++", n_init=4, max_iter=100,
+                            random_state=seed).fit_predict(Y)
         counts = np.bincount(labels, minlength=self.n_keys)
         centres = np.einsum("tc,tpd->cpd", np.eye(self.n_keys)[labels], arr) / counts[:, None, None]
         d2 = ((X[None] - (centres - self.neutral_).reshape(self.n_keys, 1, -1)) ** 2).sum(-1)

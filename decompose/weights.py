@@ -63,10 +63,13 @@ def reconstruct(weights: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
     """Eq. (3): ``neutral + sum_i w_i (S_i - neutral)`` for every frame; (n_frames, n_points, dim)."""
     keys = np.asarray(keys, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
+    shape = (len(w),) + keys.shape[1:]
     if neutral is None:
-        return np.einsum("tk,kpd->tpd", w, keys)
+        return (w @ keys.reshape(len(keys), -1)).reshape(shape)
     neutral = np.asarray(neutral, dtype=np.float64)
-    return neutral + np.einsum("tk,kpd->tpd", w, keys - neutral)
+    out = (w @ (keys - neutral).reshape(len(keys), -1)).reshape(shape)   # one BLAS product, not einsum
+    out += neutral
+    return out
 
 
 # --------------------------------------------------------------------------- least squares
@@ -142,6 +145,7 @@ def _passive_solve(G: np.ndarray, h: np.ndarray, passive: np.ndarray) -> np.ndar
     return x
 
 
+_COVER = 0.5  # smoothed NNLS: re-solve only the frames near infeasible weights while they cover less
 _TAIL = 64  # rows left to pivot below which each is finished by scipy's Lawson-Hanson instead
 
 
@@ -344,7 +348,7 @@ def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
 def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
                    smooth_lambda: float = 0.1, observed: np.ndarray | None = None,
                    max_iter: int = 3000, tol: float = 1e-5, return_info: bool = False, ridge: float = 0.0,
-                   anderson: int = 10):
+                   anderson: int = 10, method: str = "pdas"):
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
@@ -352,41 +356,44 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     a unit weight step costs as much as the mean key shape's squared size), ``m_t`` = 1 for
     observed frames and 0 for failed ones (whose weights the penalty then interpolates).
 
-    Method: ADMM on ``W = Z, Z >= 0``, started from per-frame NNLS with a consistent dual. The
-    W-step's matrix ``diag(m) (x) G + mu L (x) I + rho I`` (``L`` the path-graph Laplacian with
-    Neumann ends) becomes, in the eigenbasis ``V`` of ``G``, ``n_keys`` independent tridiagonal
+    Method (``method="pdas"``, the default since issue 16): the QP's Hessian
+    ``diag(m) (x) G + mu L (x) I`` (``L`` the path-graph Laplacian) is, frame-major, a band matrix
+    of half-bandwidth ``n_keys``, and the primal-dual active-set method of Hintermueller, Ito and
+    Kunisch (2002) solves the QP exactly with one banded Cholesky factorisation per iteration
+    (:func:`_smooth_pdas`), started from the per-frame NNLS fit of the unconstrained smoothed
+    weights. It ends at the KKT point (no infeasible weight, free weights' gradients below
+    ``tol * max(1, max|h|)``, sign tests at 1e-10): the exact QP solution up to rounding whatever
+    ``tol``, which only bounds the stationarity left by windowed re-solves. 100,000 frames x 24 keys
+    (``bench/bench_decompose.py --admm``): 14 iterations, 5.2x lstsq in CPU time against 21.9x for
+    ADMM in the same run. ``max_iter`` caps the iterations (at most 200 for this method).
+
+    ``method="admm"`` (the former default, also the fallback should a factorisation fail or the
+    active set stop shrinking): ADMM on ``W = Z, Z >= 0``, started from per-frame NNLS with a consistent dual. The
+    W-step's matrix ``diag(m) (x) G + mu L (x) I + rho I`` becomes, in the eigenbasis ``V`` of ``G``, ``n_keys`` independent tridiagonal
     systems. When every frame is observed they share ``L``, which the DCT-II diagonalises
     (eigenvalues ``2 - 2 cos(pi q / n)``), so all columns are solved at once by one
     :func:`scipy.fft.dct` / ``idct`` pair and an elementwise division; with unobserved frames the
     ``n_keys`` systems are stacked into one banded system of length ``n_keys * n``, Cholesky-factored
     once per value of rho (:func:`scipy.linalg.cholesky_banded`) and solved with one LAPACK call per
-    iteration (no Python loop over columns either way). The Z-step is clipping at zero
-    (rho rebalanced from the residuals every 10 iterations when they differ tenfold). The ADMM
-    map on the state ``S = Z + U`` is extrapolated by type-II Anderson acceleration with memory
-    ``anderson`` (default 10, i.e. 20 arrays of the weights' size; 0 = plain ADMM, over-relaxed
-    with 1.6 as before), restarted when rho changes or the residual grows a hundredfold. Stops when the primal residual ``max|W - Z|`` and the dual
-    residual ``rho max|Z - Z_prev|`` both fall below ``tol * max(1, max Z)``; ``tol`` bounds these
-    residuals, not the distance to the exact solution. ``tol=1e-10`` matches an exact NNLS of the
-    whole QP (scipy's Lawson-Hanson, tests) to 1e-6, and reproduces per-frame NNLS to 1e-7 when
-    ``smooth_lambda = 0``. Iterations at the default ``tol=1e-5`` (lambda 0.1, 24 keys): 5,000
-    frames 447 plain; accelerated with over-relaxation 1.6: 161 (memory 5), 114 (memory 10);
-    without it: 137 and 107 (CPU 8.3 s -> 5.5 s from memory 5 with 1.6 to memory 10 without);
-    weights within 6e-3 of a tight solution and the objective within 1e-8 relative. 100,000
-    frames (``bench/bench_decompose.py --plain-admm``, memory 5 with 1.6): 459 -> 258
-    iterations, 859 s -> 633 s on a machine so loaded that lstsq took 15.8 s: 54x -> 40x lstsq,
-    far from the 5x aimed at (issue 16; docs/decompose.md has the current default's figure);
-    each iteration is still a few passes over the (n, k) array plus the memory's
-    matrix-vector products. The per-frame NNLS start costs one :func:`nnls_gram`.
+    iteration. The Z-step is clipping at zero (rho rebalanced from the residuals every 10 iterations
+    when they differ tenfold). The ADMM map on the state ``S = Z + U`` is extrapolated by type-II
+    Anderson acceleration with memory ``anderson`` (default 10; 0 = plain ADMM, over-relaxed with
+    1.6), restarted when rho changes or the residual grows a hundredfold. Stops when the primal
+    residual ``max|W - Z|`` and the dual residual ``rho max|Z - Z_prev|`` both fall below
+    ``tol * max(1, max Z)``; ``tol`` bounds these residuals, not the distance to the exact solution
+    (``tol=1e-10`` matches the exact QP to 1e-6). 100,000 frames: 114 iterations.
     With ``smooth_lambda = 0`` and every frame observed it returns per-frame NNLS (eq. 4) directly. ``ridge`` adds the Tikhonov term of
     :func:`nnls_weights` on observed frames (``G`` becomes ``G + ridge * trace(G) / k * I``).
 
     Returns
     -------
-    (n_frames, n_keys) non-negative weights (and a dict with ``iterations``, ``converged``
-    if ``return_info``).
+    (n_frames, n_keys) non-negative weights (and a dict with ``iterations``, ``converged``,
+    ``method`` if ``return_info``).
     """
     X, B = _flatten(shapes, keys, neutral)
     n, k = len(X), len(B)
+    if method not in ("pdas", "admm"):
+        raise InputError(f"unknown smooth method {method!r}: use pdas or admm")
     if smooth_lambda < 0 or not np.isfinite(smooth_lambda):
         raise InputError(f"smooth_lambda must be a non-negative number, got {smooth_lambda}")
     m = np.ones(n) if observed is None else np.asarray(observed, dtype=np.float64)
@@ -399,6 +406,168 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
     Gs = _ridged(G, ridge) / scale
     H = (X @ B.T) / scale * m[:, None]          # (n, k) linear term
     mu = float(smooth_lambda)
+    # start from per-frame NNLS on the observed frames (exact when mu = 0)
+    Z = np.zeros((n, k))
+    obs = m > 0
+    if obs.any() and (mu == 0 or method == "admm" or not obs.all()):
+        Z[obs] = nnls_gram(Gs, H[obs])[0]
+    if mu == 0:
+        # per-frame NNLS (eq. 4); unobserved frames have no data and no penalty: weights 0
+        return (Z, {"iterations": 0, "converged": True, "method": method}) if return_info else Z
+    if method == "pdas":
+        W0 = Z
+        if obs.all():
+            # warm start nearer the smoothed solution: per-frame NNLS fit of the unconstrained smoothed
+            # weights (one DCT solve, see _smooth_admm) instead of the data; saves ~2 PDAS iterations
+            s_, V = np.linalg.eigh(Gs)
+            lam = 2.0 - 2.0 * np.cos(np.pi * np.arange(n) / n)
+            c = dct(H @ V, type=2, norm="ortho", axis=0, workers=_WORKERS)
+            c /= lam[:, None] * mu + np.maximum(s_, 1e-12 * s_.max())[None, :]
+            u = idct(c, type=2, norm="ortho", axis=0, workers=_WORKERS) @ V.T
+            W0 = nnls_gram(Gs, u @ Gs)[0]
+        W, it, converged = _smooth_pdas(Gs, H, m, mu, W0.copy(), min(max_iter, 200), tol=tol)
+        if not converged:                       # safety net: ADMM from the per-frame start
+            if not Z.any() and obs.any():
+                Z[obs] = nnls_gram(Gs, H[obs])[0]
+            W, it2, converged = _smooth_admm(Gs, H, m, mu, Z, max_iter, tol, anderson)
+            it += it2
+            method = "pdas, then admm"
+    else:
+        W, it, converged = _smooth_admm(Gs, H, m, mu, Z, max_iter, tol, anderson)
+    return (W, {"iterations": it, "converged": converged, "method": method}) if return_info else W
+
+
+def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.ndarray, max_iter: int,
+                 window: int = 32, tol: float = 1e-10):
+    """Exact active-set solution of the smoothed-NNLS QP (primal-dual active set, Hintermueller,
+    Ito and Kunisch 2002), started from ``W`` (per-frame NNLS); see :func:`smooth_weights`.
+
+    The QP is ``min_{W >= 0} 1/2 vec(W)^T Q vec(W) - vec(H)^T vec(W)`` with the block-tridiagonal
+    ``Q = diag(m) (x) Gs + mu L (x) I`` (frame-major: a band matrix of half-bandwidth ``k``). Each
+    iteration fixes the active weights at zero (a penalty ``1e12`` on their diagonal entries, which
+    leaves the free weights' system exact to ~1e-12), solves the free weights with one banded
+    Cholesky factorisation (LAPACK ``dpbtrf``/``dpbtrs``, single-threaded: OpenBLAS's threads make
+    its many tiny level-2 calls ~30x slower) and exchanges every infeasible weight: a free one gone
+    negative becomes active, an active one with a negative gradient becomes free. When the
+    infeasible weights lie in frames covering under half the take (:data:`_COVER`), only the frames
+    within ``window`` of them are re-solved, the rest held fixed as boundary values; free weights
+    left off their equations next to those windows (gradient above ``tol``) are re-solved the same
+    way (after three such sweeps, all frames). It ends when no weight is infeasible and no free
+    weight's gradient exceeds ``tol``: the KKT point of the QP (exact up to rounding). Returns
+    ``(W, iterations, converged)``. PDAS can cycle when ``Q`` is not an M-matrix (seen on toy
+    tracks with failed frames: one frame's weights exchanged back and forth); as in block principal
+    pivoting, after three exchanges that do not lower the count of infeasible weights only the last
+    infeasible weight is exchanged (Murty's rule, which terminates), over all frames, until the
+    count falls below its best. ``converged`` is False on a failed factorisation or after
+    ``max_iter`` iterations (the caller then falls back to ADMM).
+    """
+    from scipy.linalg.lapack import dpbtrf, dpbtrs
+    from threadpoolctl import threadpool_limits
+
+    n, k = H.shape
+    deg = np.full(n, 2.0)
+    deg[[0, -1]] = 1.0 if n > 1 else 0.0
+    dg = np.diagonal(Gs).copy()
+    eps = 1e-12 * max(1.0, float(dg.max()))     # guards a singular Gram matrix (dependent keys)
+    penalty = 1e12 * max(1.0, float(dg.max()) + 2.0 * mu)
+    # one frame's columns of the band (upper storage, column j = (t, b) holds rows k - d for
+    # Q[(t, b - d), (t, b)] and row 0 for the link -mu to (t - 1, b)); frames are filled from it
+    tpl = np.zeros((k, k + 1))
+    for d in range(k):
+        tpl[d:, k - d] = np.diagonal(Gs, d)
+    tpl[:, 0] = -mu
+    htol = min(tol, 1e-10) * max(1.0, float(np.abs(H).max(initial=0.0)))   # sign decisions
+    ktol = max(tol, 1e-10) * max(1.0, float(np.abs(H).max(initial=0.0)))   # stationarity of free weights
+    unobserved = m == 0
+    buf = np.empty((n, k, k + 1))              # LAPACK band storage in Fortran order, reused
+
+    def qmul(W):
+        out = (W @ Gs) * m[:, None]
+        if n > 1:
+            d = np.diff(W, axis=0)
+            d *= mu
+            out[:-1] -= d
+            out[1:] += d
+        return out
+
+    def solve(idx, act):
+        """New weights of frames ``idx`` (sorted) with the others fixed; active ones at zero."""
+        ns = len(idx)
+        at = slice(None) if ns == n else idx   # all frames: views, no gathers
+        ab = buf[:ns]
+        ab[...] = tpl
+        if unobserved.any():
+            ab[unobserved[at], :, 1:] = 0.0
+        ab[:, :, k] += (mu * deg[at] + eps)[:, None] + penalty * act[at]
+        link = np.zeros(ns, dtype=bool)
+        link[1:] = np.diff(idx) == 1
+        ab[~link, :, 0] = 0.0
+        rhs = H[idx]                           # a copy (fancy indexing)
+        if ns < n:
+            before = (idx > 0) & ~link         # a fixed frame just before: its weights enter the rhs
+            rhs[before] += mu * W[idx[before] - 1]
+            nlink = np.zeros(ns, dtype=bool)
+            nlink[:-1] = link[1:]
+            after = (idx < n - 1) & ~nlink
+            rhs[after] += mu * W[idx[after] + 1]
+        actf = act[at]
+        rhs[actf] = 0.0
+        c, info = dpbtrf(ab.reshape(ns * k, k + 1).T, lower=0, overwrite_ab=1)
+        if info != 0:
+            return None
+        x, info = dpbtrs(c, rhs.reshape(-1, 1), lower=0, overwrite_b=1)
+        x = x.reshape(ns, k)
+        x[actf] = 0.0
+        return x
+
+    def iterate(W):
+        everything = np.arange(n)
+        g = qmul(W) - H
+        act = (W <= 0) & (g > 0)
+        idx = everything
+        best, stall, sweeps, windows = np.inf, 0, 0, True
+        kernel = np.ones(2 * window + 1)
+        for it in range(1, max_iter + 1):
+            x = solve(idx, act)
+            if x is None:
+                return W, it, False
+            W[idx if len(idx) < n else slice(None)] = x
+            g = qmul(W) - H
+            bad = (act & (g < -htol)) | (~act & (W < -htol))
+            # free weights off their equations: next to frames that a windowed solve held fixed
+            off = ~act & (np.abs(g) > ktol)
+            n_bad = int(bad.sum())
+            if n_bad == 0 and not off.any():
+                return np.maximum(W, 0.0), it, True
+            if n_bad == 0:
+                sweeps += 1
+            else:
+                sweeps = 0
+                if n_bad < best:
+                    best, stall = n_bad, 0
+                else:
+                    stall += 1
+            if stall < 3:
+                act ^= bad                           # exchange every infeasible weight
+            else:
+                # the count stopped falling (PDAS can cycle when Q is not an M-matrix): as block
+                # principal pivoting does, exchange only the last infeasible weight (Murty's rule,
+                # finite), over all frames from now on, until the count falls below its best
+                windows = False
+                act.ravel()[np.flatnonzero(bad.ravel())[-1]] ^= True
+            near = np.convolve((bad | off).any(axis=1), kernel, mode="same") > 0.5
+            idx = np.flatnonzero(near) if windows and near.sum() < _COVER * n and sweeps < 3 else everything
+        return np.maximum(W, 0.0), max_iter, False
+
+    with threadpool_limits(1):   # OpenBLAS threads make dpbtrf's many tiny level-2 calls ~35x slower
+        return iterate(W)
+
+
+def _smooth_admm(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, Z0: np.ndarray, max_iter: int,
+                 tol: float, anderson: int):
+    """The smoothed-NNLS QP by ADMM (the solver before the active-set method; ``method="admm"``):
+    see :func:`smooth_weights`. Returns ``(W, iterations, converged)``."""
+    n, k = H.shape
     s, V = np.linalg.eigh(Gs)
     s = np.maximum(s, 0.0)
     rho = float(np.sqrt(max(s.min(), 1e-6 * s.max()) * s.max())) + mu
@@ -432,13 +601,7 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
             return x.reshape(k, n).T
 
     factors = factor(rho)
-    # start from per-frame NNLS on the observed frames (exact when mu = 0)
-    Z = np.zeros((n, k))
-    obs = m > 0
-    if obs.any():
-        Z[obs] = nnls_gram(Gs, H[obs])[0]
-    if mu == 0 and obs.all():
-        return (Z, {"iterations": 0, "converged": True}) if return_info else Z
+    Z = Z0.copy()
     # dual warm start consistent with Z: U = -grad f(Z) / rho, f the smooth part of the objective
     LZ = np.zeros_like(Z)
     if n > 1:
@@ -480,7 +643,7 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
             U /= f
             factors = factor(rho)
             acc.reset()                                    # a new map: forget the old differences
-    return (Z, {"iterations": it, "converged": converged}) if return_info else Z
+    return Z, it, converged
 
 
 class _Anderson:

@@ -615,3 +615,55 @@ def test_head_pose_is_the_nearest_similarity_and_model_shapes_round_trip():
     # model shapes and to_image use the same head pose: the tracked points come back exactly
     np.testing.assert_allclose(to_image(model_shapes(tracks), tracks.pose)[tracks.success],
                                tracks.points[tracks.success], atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(2, 9), st.integers(1, 60), st.sampled_from([0.01, 0.1, 1.0]),
+       st.booleans(), st.sampled_from([0.0, 0.05]))
+def test_smooth_active_set_solution_satisfies_kkt(seed, k, n, lam, partial, ridge):
+    # the active-set (PDAS) smooth solver ends at the KKT point of its QP: w >= 0, the gradient of the
+    # objective zero on positive weights and >= 0 on zero weights (to rounding), on random problems
+    rng = np.random.default_rng(seed)
+    neutral = rng.normal(size=(6, 2))
+    keys = neutral + rng.normal(size=(k, 6, 2))
+    shapes = neutral + rng.normal(size=(n, 6, 2))
+    obs = rng.random(n) > 0.3 if partial else np.ones(n, bool)
+    obs[rng.integers(n)] = True
+    w, info = smooth_weights(np.where(obs[:, None, None], shapes, neutral), keys, neutral, lam, observed=obs,
+                             tol=1e-10, ridge=ridge, return_info=True)
+    assert info["converged"] and info["method"] == "pdas"
+    assert w.min() >= 0.0
+    X = (shapes - neutral).reshape(n, -1)
+    B = (keys - neutral).reshape(k, -1)
+    G = B @ B.T
+    mu = lam * float(np.trace(G)) / k
+    Gr = G + ridge * float(np.trace(G)) / k * np.eye(k)
+    grad = obs[:, None] * (w @ Gr - X @ B.T)
+    d = np.diff(w, axis=0) * mu
+    grad[:-1] -= d
+    grad[1:] += d
+    scale = float(np.trace(G)) / k * max(1.0, np.abs(w).max())
+    assert np.abs(grad[w > 0]).max(initial=0.0) < 1e-7 * scale
+    assert grad[w == 0].min(initial=0.0) > -1e-7 * scale
+
+
+def test_smooth_active_set_does_not_cycle_on_failed_frames():
+    # toy tracks where plain PDAS exchanged one frame's weights back and forth forever (the solver
+    # fell back to ADMM); the single-exchange backup rule ends at the KKT point
+    Q = model_shapes(toy_tracks(1500, noise_px=1.0, rng=3))
+    sel = RandomSelector(16, rng=0).fit(Q)
+    obs = np.ones(len(Q), bool)
+    obs[100:140] = False
+    obs[700] = False
+    F = np.where(obs[:, None, None], Q, sel.neutral_)
+    w, info = smooth_weights(F, sel.keys_, sel.neutral_, 0.01, observed=obs, tol=1e-10, return_info=True)
+    assert info["converged"] and info["method"] == "pdas", info
+    X = (Q - sel.neutral_).reshape(len(Q), -1)
+    B = (sel.keys_ - sel.neutral_).reshape(16, -1)
+    G = B @ B.T
+    grad = obs[:, None] * (w @ G - X @ B.T)
+    d = np.diff(w, axis=0) * 0.01 * float(np.trace(G)) / 16
+    grad[:-1] -= d
+    grad[1:] += d
+    scale = float(np.trace(G)) / 16 * max(1.0, w.max())
+    assert w.min() >= 0 and np.abs(grad[w > 0]).max() < 1e-7 * scale and grad[w == 0].min() > -1e-7 * scale
