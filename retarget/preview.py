@@ -13,7 +13,11 @@ lacrimal shells) and eyelashes (cards that, drawn opaque, hide the eyes) are not
 """
 from __future__ import annotations
 
-from typing import Iterable
+import os
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -138,10 +142,55 @@ class RigRenderer:
                 cv2.fillPoly(img, pts[s + grp], col, lineType=cv2.LINE_8, shift=4)
         return img
 
-    def render_many(self, curves: np.ndarray) -> Iterable[np.ndarray]:
-        """Yield one frame per row of ``curves`` (n_frames, n_shapes)."""
-        for v in self.rig.evaluate(curves):
-            yield self.render(v)
+    def render_curves(self, curves: np.ndarray) -> np.ndarray:
+        """One frame of the rig driven by ``curves`` (n_shapes,)."""
+        return self.render(self.rig.evaluate(np.asarray(curves)[None])[0])
+
+    def render_many(self, curves: np.ndarray, workers: int | None = None) -> Iterator[np.ndarray]:
+        """Yield one frame per row of ``curves`` (n_frames, n_shapes), in order, rendered on ``workers`` threads."""
+        for _, img, _ in ordered_map(self.render_curves, ((None, c) for c in np.asarray(curves)), workers):
+            yield img
+
+
+def default_workers() -> int:
+    """Rendering threads: one per core, at most 4 (OpenCV's ``fillPoly`` and numpy release the GIL)."""
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+def ordered_map(fn: Callable[[Any], Any], jobs: Iterable[tuple[Any, Any]], workers: int | None = None
+                ) -> Iterator[tuple[Any, Any, float]]:
+    """Apply ``fn`` to each ``(tag, x)`` of ``jobs`` on a thread pool; yield ``(tag, fn(x), cpu_seconds)`` in order.
+
+    At most ``2 * workers`` results are pending, so memory stays bounded on long takes and
+    a Ctrl-C stops the work within a few frames. ``cpu_seconds`` is the thread CPU time of
+    the call (what a progress line reports as the render's own cost).
+    """
+    workers = default_workers() if workers is None else max(1, int(workers))
+
+    def timed(x):
+        t = time.thread_time()
+        y = fn(x)
+        return y, time.thread_time() - t
+
+    if workers == 1:
+        for tag, x in jobs:
+            y, dt = timed(x)
+            yield tag, y, dt
+        return
+    pending: deque = deque()
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="keyshape-render") as pool:
+        try:
+            for tag, x in jobs:
+                pending.append((tag, pool.submit(timed, x)))
+                if len(pending) >= 2 * workers:
+                    tag0, fut = pending.popleft()
+                    yield (tag0, *fut.result())
+            while pending:
+                tag0, fut = pending.popleft()
+                yield (tag0, *fut.result())
+        finally:
+            for _, fut in pending:
+                fut.cancel()
 
 
 def parse_frames(spec: str | None, frames: np.ndarray) -> np.ndarray:

@@ -24,6 +24,8 @@ def register(subparsers) -> None:
                    help="height of the output in pixels (default: the video's height)")
     p.add_argument("--sheet", default=None, help="also write a contact sheet (actor | character), .jpg or .png")
     p.add_argument("--sheet-frames", type=int, default=12, help="frames in the contact sheet, spread over the range")
+    p.add_argument("--threads", type=int, default=None,
+                   help="rendering threads (default: one per core, at most 4)")
     p.add_argument("-o", "--output", default=None, help="OUT.mp4 / .avi (optional with --sheet)")
     p.set_defaults(func=run)
 
@@ -42,7 +44,7 @@ def run(args) -> int:
     from keyshape.base.formats.weights import read_weights
     from keyshape.base.progress import Progress
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.retarget.preview import RigRenderer, actor_panel, parse_frames
+    from keyshape.retarget.preview import RigRenderer, actor_panel, ordered_map, parse_frames
     from keyshape.retarget.render import side_by_side
     from keyshape.retarget.rig import load_rig
 
@@ -87,8 +89,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     t_render = 0.0
     n = 0
-    with _maybe_writer(args.output, fps) as wr:
-        prog = Progress(len(rows), desc="keyshape preview")
+    def jobs():
+        """(frame, row, actor panel) for each frame to render, as the video is read."""
+        nonlocal n
         for i, img in reader:
             if i > last:
                 break
@@ -101,9 +104,13 @@ def run(args) -> int:
             k = pos.get(i)
             left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
                                bool(tracks.success[k]) if k is not None else False, h)
-            t1 = time.process_time()
-            right = renderer.render(rig.evaluate(curves[r:r + 1])[0])
-            t_render += time.process_time() - t1
+            yield (i, r, left), curves[r]
+
+    with _maybe_writer(args.output, fps) as wr:
+        prog = Progress(len(rows), desc="keyshape preview")
+        # the rig is rendered on a few threads (fillPoly and numpy release the GIL), written in order
+        for (i, r, left), right, cpu in ordered_map(renderer.render_curves, jobs(), args.threads):
+            t_render += cpu
             out = side_by_side(left, right)
             if wr is not None:
                 wr(out)

@@ -352,6 +352,25 @@ def test_rig_renderer_draws_the_face_and_moves_with_the_curves(tmp_path):
     assert rb.render(v).sum() == 0
 
 
+def test_threaded_rendering_gives_the_same_frames_in_order(tmp_path):
+    from keyshape.retarget.preview import RigRenderer, ordered_map
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    from keyshape.retarget.rig import load_rig
+    rig = load_rig(rig)
+    curves = np.random.default_rng(3).uniform(0, 1, (23, rig.n_shapes))
+    r = RigRenderer(rig, size=(96, 96)).fit(curves)
+    one = list(r.render_many(curves, workers=1))
+    three = list(r.render_many(curves, workers=3))
+    assert len(one) == len(three) == 23
+    for a, b in zip(one, three):
+        np.testing.assert_array_equal(a, b)
+    assert len({a.tobytes() for a in one}) > 10                      # the frames differ: order is tested
+    # tags come back in submission order even when late jobs finish first
+    import time
+    out = list(ordered_map(lambda x: (time.sleep(0.02 * (5 - x)), x)[1], ((i, i % 5) for i in range(12)), 4))
+    assert [t for t, _, _ in out] == list(range(12)) and [y for _, y, _ in out] == [i % 5 for i in range(12)]
+
+
 def test_support_regions_from_the_targets_themselves(tmp_path):
     from keyshape.retarget.rig import support_regions
     verts, deltas = toy_rig_arrays()
