@@ -16,6 +16,7 @@ needed). Lost frames are returned with ``success = False`` and NaN landmarks.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import Iterable, Iterator
@@ -38,6 +39,37 @@ _JTE_MONO = np.array([3, 3, 4, 4, 5, 5])                     # x, x, y, y, 1, 1
 _JTE_PROD = 3 + _COL_GRAD                                    # gx e, gy e
 _DIAG6 = np.diag_indices(6)
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
+
+_BLAS = None        # threadpoolctl's controller of the loaded BLAS libraries (False: not available)
+
+
+@contextlib.contextmanager
+def single_threaded():
+    """Run OpenCV's and the BLAS libraries' parallel loops on the calling thread only; restored after.
+
+    A tracked frame is hundreds of small operations (warps of a 93 px patch or a 50 x 28 box,
+    products of a few thousand numbers): handing each to a thread pool costs more than it
+    saves, and the pools' waiting threads take CPU from the decode thread and from other
+    processes. Results are unchanged up to rounding. The settings are process-wide: a
+    program that tracks in several threads at once should call :meth:`Tracker.step` itself.
+    """
+    global _BLAS
+    if _BLAS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS = ThreadpoolController().select(user_api="blas")
+        except Exception:          # threadpoolctl missing or unable to inspect the libraries: leave BLAS be
+            _BLAS = False
+    n_cv = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        if _BLAS:
+            with _BLAS.limit(limits=1):
+                yield
+        else:
+            yield
+    finally:
+        cv2.setNumThreads(n_cv)
 
 
 @dataclass
