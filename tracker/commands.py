@@ -163,7 +163,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead
     (OpenCV's decoder releases the GIL, so decoding overlaps tracking; same frames, same order).
     """
-    from keyshape.tracker.fitting import Tracker
+    from keyshape.tracker.fitting import Tracker, single_threaded
     from keyshape.tracker.smoothing import StreamSmoother
 
     reader = reader or VideoReader(video)
@@ -171,14 +171,17 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
     try:
-        for i, frame in _prefetched(reader) if decode_thread else reader:
-            if i < start:
-                continue
-            if stop is not None and i >= stop:
-                break
-            res = tracker.step(frame, i)
-            yield from ((pts, r, fr) for pts, (r, fr) in
-                        smoother.push(res.points, (res, frame if keep_frames else None)))
+        # OpenCV and BLAS single-threaded while tracking (issue 16: less CPU per frame, the
+        # same points); restored when the loop ends or the generator is closed
+        with single_threaded():
+            for i, frame in _prefetched(reader) if decode_thread else reader:
+                if i < start:
+                    continue
+                if stop is not None and i >= stop:
+                    break
+                res = tracker.step(frame, i)
+                yield from ((pts, r, fr) for pts, (r, fr) in
+                            smoother.push(res.points, (res, frame if keep_frames else None)))
     except KeyboardInterrupt as exc:
         interrupted = exc
     yield from ((pts, r, fr) for pts, (r, fr) in smoother.flush())

@@ -138,16 +138,28 @@ def warp_patch_u8(pyramid: Pyramid, image_from_model: np.ndarray, size) -> np.nd
     """
     sw, sh = (size, size) if isinstance(size, (int, np.integer)) else (int(size[0]), int(size[1]))
     a = np.asarray(image_from_model, np.float64)
-    scale = math.sqrt(abs(a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]))
-    lvl = 0
+    return warp_level(pyramid, pyramid_level(pyramid, a), a.tolist(), sw, sh)
+
+
+def pyramid_level(pyramid: Pyramid, image_from_model: np.ndarray) -> int:
+    """The pyramid level :func:`warp_patch_u8` samples for an affine (one model pixel covers at
+    most about 1.5 source pixels); it depends on the linear part only."""
+    (a00, a01, _), (a10, a11, _) = image_from_model.tolist()
+    scale = math.sqrt(abs(a00 * a11 - a01 * a10))
     if scale > 1.5:
-        lvl = min(max(int(math.floor(math.log2(scale / 1.5))) + 1, 0), len(pyramid) - 1)
+        return min(max(int(math.floor(math.log2(scale / 1.5))) + 1, 0), len(pyramid) - 1)
+    return 0
+
+
+def warp_level(pyramid: Pyramid, lvl: int, image_from_model: list, sw: int, sh: int) -> np.ndarray:
+    """:func:`warp_patch_u8` at a given level ``lvl``, the affine as nested lists of floats
+    ``[[a00, a01, a02], [a10, a11, a12]]`` (the tracker's per-region loop calls it directly)."""
+    (a00, a01, a02), (a10, a11, a12) = image_from_model
     if lvl:
         f = 0.5 ** lvl
-        a = a * f
-        a[:, 2] += 0.5 * f - 0.5
+        d = 0.5 * f - 0.5
+        a00, a01, a02, a10, a11, a12 = a00 * f, a01 * f, a02 * f + d, a10 * f, a11 * f, a12 * f + d
     # sample only the window the patch covers (bilinear reads one pixel beyond; 2 for safety)
-    (a00, a01, a02), (a10, a11, a12) = a.tolist()
     xs = (a02 - a00 - a01, a02 + a00 * sw - a01, a02 - a00 + a01 * sh, a02 + a00 * sw + a01 * sh)
     ys = (a12 - a10 - a11, a12 + a10 * sw - a11, a12 - a10 + a11 * sh, a12 + a10 * sw + a11 * sh)
     if all(map(math.isfinite, xs + ys)) and max(map(abs, xs + ys)) < 1e7:
@@ -155,8 +167,8 @@ def warp_patch_u8(pyramid: Pyramid, image_from_model: np.ndarray, size) -> np.nd
                              math.ceil(max(xs)) + 3, math.ceil(max(ys)) + 3)
     else:
         img = pyramid[lvl]
-    return cv2.warpAffine(img, a, (sw, sh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpAffine(img, np.array([[a00, a01, a02], [a10, a11, a12]]), (sw, sh),
+                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
 
 def normalise(values: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ needed). Lost frames are returned with ``success = False`` and NaN landmarks.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import Iterable, Iterator
@@ -23,7 +24,8 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, normalise, warp_patch, warp_patch_u8
+from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
+                                          warp_patch, warp_patch_u8)
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
 # polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
@@ -37,6 +39,37 @@ _JTE_MONO = np.array([3, 3, 4, 4, 5, 5])                     # x, x, y, y, 1, 1
 _JTE_PROD = 3 + _COL_GRAD                                    # gx e, gy e
 _DIAG6 = np.diag_indices(6)
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
+
+_BLAS = None        # threadpoolctl's controller of the loaded BLAS libraries (False: not available)
+
+
+@contextlib.contextmanager
+def single_threaded():
+    """Run OpenCV's and the BLAS libraries' parallel loops on the calling thread only; restored after.
+
+    A tracked frame is hundreds of small operations (warps of a 93 px patch or a 50 x 28 box,
+    products of a few thousand numbers): handing each to a thread pool costs more than it
+    saves, and the pools' waiting threads take CPU from the decode thread and from other
+    processes. Results are unchanged up to rounding. The settings are process-wide: a
+    program that tracks in several threads at once should call :meth:`Tracker.step` itself.
+    """
+    global _BLAS
+    if _BLAS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS = ThreadpoolController().select(user_api="blas")
+        except Exception:          # threadpoolctl missing or unable to inspect the libraries: leave BLAS be
+            _BLAS = False
+    n_cv = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        if _BLAS:
+            with _BLAS.limit(limits=1):
+                yield
+        else:
+            yield
+    finally:
+        cv2.setNumThreads(n_cv)
 
 
 @dataclass
@@ -365,11 +398,14 @@ class Tracker:
         best = None
         lim = 0.08 * self.model.face_width
         (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
+        j = np.empty((2, rm.n_pix))
+        jx, jy = j
         for it in range(self.region_iter + 1):
             if it:
                 bx, by = x0 + tx, y0 + ty
-                sub = np.array([[a00, a01, a02 + a00 * bx + a01 * by], [a10, a11, a12 + a10 * bx + a11 * by]])
-                crop = warp_patch_u8(pyr, sub, (w, h))
+                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
+                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
             e, sd = rm.error(crop)
             qe = rm.qt @ e
             r = float(e @ e) - float(qe @ qe)
@@ -379,15 +415,17 @@ class Tracker:
             if it == self.region_iter:
                 break
             gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-            j = np.empty((rm.n_pix, 2))
-            j[:, 0] = gx.ravel()[rm.index]
-            j[:, 1] = gy.ravel()[rm.index]
+            jx[:] = gx.ravel()[rm.index]
+            jy[:] = gy.ravel()[rm.index]
             j *= 1.0 / (8.0 * sd)
-            qj = rm.qt @ j
-            hs = j.T @ j - qj.T @ qj
-            g = j.T @ e - qj.T @ qe
-            h00, h01, h11 = float(hs[0, 0]) + 1e-6, float(hs[0, 1]), float(hs[1, 1]) + 1e-6
-            g0, g1 = float(g[0]), float(g[1])
+            qx, qy = j @ rm.qt.T
+            # J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe, entry by entry (issue 16:
+            # ten dot products cost less than the two small matrix products)
+            h00 = float(jx @ jx) - float(qx @ qx) + 1e-6
+            h01 = float(jx @ jy) - float(qx @ qy)
+            h11 = float(jy @ jy) - float(qy @ qy) + 1e-6
+            g0 = float(jx @ e) - float(qx @ qe)
+            g1 = float(jy @ e) - float(qy @ qe)
             det = h00 * h11 - h01 * h01
             if det <= 0:
                 break

@@ -1,0 +1,126 @@
+"""The tracker's speed refactors of issue 16 keep its results: the per-region refinement and the
+warp helpers against the straightforward code they replaced (kept here as the reference)."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, pyramid_level, warp_level, warp_patch_u8
+from keyshape.tracker.fitting import Tracker, single_threaded
+from test_tracker import footage, model  # noqa: F401  (module fixtures)
+
+
+def _warp_reference(pyramid, image_from_model, size):
+    """warp_patch_u8 as it was before issue 16 (one function, numpy affine arithmetic)."""
+    sw, sh = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
+    a = np.asarray(image_from_model, np.float64)
+    scale = math.sqrt(abs(a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]))
+    lvl = 0
+    if scale > 1.5:
+        lvl = min(max(int(math.floor(math.log2(scale / 1.5))) + 1, 0), len(pyramid) - 1)
+    if lvl:
+        f = 0.5 ** lvl
+        a = a * f
+        a[:, 2] += 0.5 * f - 0.5
+    return cv2.warpAffine(pyramid[lvl], a, (sw, sh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+def _read_region_reference(tracker, pyr, pose, rm, patch):
+    """Tracker.read_region as it was before issue 16 (matrix products for the 2x2 system)."""
+    x0, y0, w, h = rm.box.tolist()
+    crop = rm.crop(patch)
+    tx = ty = 0.0
+    best = None
+    lim = 0.08 * tracker.model.face_width
+    (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+    for it in range(tracker.region_iter + 1):
+        if it:
+            bx, by = x0 + tx, y0 + ty
+            sub = np.array([[a00, a01, a02 + a00 * bx + a01 * by], [a10, a11, a12 + a10 * bx + a11 * by]])
+            crop = _warp_reference(pyr, sub, (w, h))
+        e, sd = rm.error(crop)
+        qe = rm.qt @ e
+        r = float(e @ e) - float(qe @ qe)
+        if best is not None and r >= best[0]:
+            break
+        best = (r, (tx, ty), e)
+        if it == tracker.region_iter:
+            break
+        gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
+        j = np.empty((rm.n_pix, 2))
+        j[:, 0] = gx.ravel()[rm.index]
+        j[:, 1] = gy.ravel()[rm.index]
+        j *= 1.0 / (8.0 * sd)
+        qj = rm.qt @ j
+        hs = j.T @ j - qj.T @ qj
+        g = j.T @ e - qj.T @ qe
+        h00, h01, h11 = float(hs[0, 0]) + 1e-6, float(hs[0, 1]), float(hs[1, 1]) + 1e-6
+        g0, g1 = float(g[0]), float(g[1])
+        det = h00 * h11 - h01 * h01
+        if det <= 0:
+            break
+        s0 = max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))
+        s1 = max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))
+        tx, ty = max(-lim, min(lim, tx + s0)), max(-lim, min(lim, ty + s1))
+    _, t, e = best
+    c = rm.pinv_i @ e
+    return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + np.array(t), float(c @ (c / rm.variance)) / len(c)
+
+
+def test_warp_level_is_bit_identical_to_the_old_warp():
+    rng = np.random.default_rng(3)
+    frame = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (5, 5), 1.5)
+    levels = set()
+    for _ in range(200):
+        s, ang = rng.uniform(0.4, 6.0), rng.uniform(-0.5, 0.5)
+        lin = s * np.array([[math.cos(ang), -math.sin(ang)], [math.sin(ang), math.cos(ang)]])
+        lin[0] *= rng.uniform(0.85, 1.15)
+        a = np.hstack([lin, rng.uniform([-50, -50], [600, 450])[:, None]])
+        size = (int(rng.integers(5, 100)), int(rng.integers(5, 100)))
+        pyr = Pyramid(frame)
+        lvl = pyramid_level(pyr, a)
+        levels.add(lvl)
+        got = warp_patch_u8(pyr, a, size)
+        assert np.array_equal(got, warp_level(pyr, lvl, a.tolist(), *size))
+        assert np.array_equal(got, _warp_reference(Pyramid(frame), a, size))
+    assert levels >= {0, 1, 2}
+
+
+def test_region_reading_equals_the_reference(model, footage):  # noqa: F811
+    frames, _ = footage
+    assert model.region_models_
+    tr = Tracker(model)
+    rng = np.random.default_rng(5)
+    worst = 0.0
+    for frame in frames[:6]:
+        tr.reset()
+        res = tr.step(frame)
+        assert res.success
+        for _ in range(3):      # the tracked pose and poses a little off it (other translations per region)
+            pose = res.pose + np.hstack([rng.normal(0, 0.01, (2, 2)), rng.normal(0, 1.5, (2, 1))])
+            pyr = Pyramid(frame)
+            patch = warp_patch_u8(pyr, pose, model.patch_size_)
+            for rm in model.region_models_:
+                tr._m2 = 0.0
+                got = tr.read_region(pyr, pose, rm, patch)
+                want, m2 = _read_region_reference(tr, pyr, pose, rm, patch)
+                worst = max(worst, float(np.abs(got - want).max()))
+                assert tr._m2 == pytest.approx(m2, rel=1e-9)
+    assert worst < 1e-9
+
+
+def test_single_threaded_restores_the_settings_and_keeps_the_points(model, footage):  # noqa: F811
+    frames, _ = footage
+    before = cv2.getNumThreads()
+    a = Tracker(model)
+    b = Tracker(model)
+    with single_threaded():
+        assert cv2.getNumThreads() == 1
+        inside = [a.step(f).points for f in frames[:4]]
+    assert cv2.getNumThreads() == before
+    outside = [b.step(f).points for f in frames[:4]]
+    assert np.abs(np.stack(inside) - np.stack(outside)).max() < 1e-9
