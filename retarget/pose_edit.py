@@ -9,31 +9,25 @@ rig shape of the key's region. A slider change is sent as ``PUT /api/poses/<key>
 of its region's shapes, every weight a finite number within the rig's range) and rewrites
 POSES.json atomically. Nothing else is ever written.
 
-The label-correction server (:mod:`keyshape.tracker.labelling.server`) is the model and
-lends its safety rules: loopback peers and ``Host`` names only (no DNS rebinding), JSON
+It follows the label-correction server (:mod:`keyshape.tracker.labelling.server`) and
+shares its safety rules (:mod:`keyshape.base.localserver`): loopback peers and ``Host`` names only (no DNS rebinding), JSON
 bodies under 1 MB with ``Content-Type: application/json`` (no cross-site form can send
 one without a CORS preflight, which is never granted), names checked against the
 library (no path is ever built from a request).
 """
 from __future__ import annotations
 
-import json
 import threading
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import unquote
 
 import numpy as np
 
 from keyshape.base.errors import InputError, KeyshapeError
-from keyshape.tracker.labelling.server import LOCAL_HOSTS, MAX_BODY, is_loopback
+from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, listen, page_files, serve_until_stopped
 
-PAGE_DIR = Path(__file__).parent / "pose_page"
-PAGE_FILES = {"/": ("index.html", "text/html; charset=utf-8"),
-              "/index.html": ("index.html", "text/html; charset=utf-8"),
-              "/app.js": ("app.js", "text/javascript; charset=utf-8"),
-              "/style.css": ("style.css", "text/css; charset=utf-8")}
+PAGE_FILES = page_files(Path(__file__).parent / "pose_page")
 
 
 def check_pose(library: dict, key: str, pose, source=None) -> tuple[str, dict]:
@@ -73,116 +67,60 @@ def find_keys_file(poses_path: Path, library: dict) -> Path | None:
     return None
 
 
-class PoseHandler(BaseHTTPRequestHandler):
+class PoseHandler(LocalHandler):
     """Request handler; the server object carries the library, the rig and the renderer."""
 
     server_version = "keyshape-pose"
-    protocol_version = "HTTP/1.1"
-    timeout = 10.0
-
-    def log_message(self, fmt, *args):  # quiet unless asked
-        if getattr(self.server, "verbose", False):
-            super().log_message(fmt, *args)
-
-    def _send(self, status: int, body: bytes, ctype: str = "application/json") -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.send_header("X-Content-Type-Options", "nosniff")
-        self.end_headers()
-        self.wfile.write(body)
-
-    def _json(self, status: int, obj) -> None:
-        self._send(status, json.dumps(obj).encode())
-
-    def _error(self, status: int, message: str) -> None:
-        self._json(status, {"error": message})
-
-    def _local(self) -> bool:
-        if not is_loopback(self.client_address[0]):
-            self._error(HTTPStatus.FORBIDDEN, "only local connections are served")
-            return False
-        host = (self.headers.get("Host") or "").strip().lower()
-        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
-        if name not in LOCAL_HOSTS:
-            self._error(HTTPStatus.FORBIDDEN, f"Host {host!r} is not local")
-            return False
-        return True
 
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
-        if not self._local():
+        if not self.is_local():
             return
         path = self.path.split("?", 1)[0]
         srv = self.server
-        if path in PAGE_FILES:
-            name, ctype = PAGE_FILES[path]
-            self._send(HTTPStatus.OK, (PAGE_DIR / name).read_bytes(), ctype)
+        if self.send_page_file(path, PAGE_FILES):
+            pass
         elif path == "/api/library":
             with srv.lock:
-                self._json(HTTPStatus.OK, srv.page_data())
+                self.send_json(HTTPStatus.OK, srv.page_data())
         elif path.startswith("/api/render/") and path.endswith(".png"):
             key = unquote(path[len("/api/render/"):-len(".png")])
             if not srv.has_key(key):
-                self._error(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
+                self.send_error_json(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
             elif srv.renderer is None:
-                self._error(HTTPStatus.NOT_FOUND, "the rig has no faces to render")
+                self.send_error_json(HTTPStatus.NOT_FOUND, "the rig has no faces to render")
             else:
-                self._send(HTTPStatus.OK, srv.render_png(key), "image/png")
+                self.send_body(HTTPStatus.OK, srv.render_png(key), "image/png")
         else:
-            self._error(HTTPStatus.NOT_FOUND, "not found")
+            self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
 
     def do_PUT(self) -> None:  # noqa: N802
-        if not self._local():
+        if not self.is_local():
             return
         path = self.path.split("?", 1)[0]
         if not path.startswith("/api/poses/"):
-            self._error(HTTPStatus.METHOD_NOT_ALLOWED, "only key poses can be written")
+            self.send_error_json(HTTPStatus.METHOD_NOT_ALLOWED, "only key poses can be written")
             return
         key = unquote(path[len("/api/poses/"):])
         if not self.server.has_key(key):
-            self._error(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
+            self.send_error_json(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
             return
-        if (self.headers.get("Content-Type") or "").split(";")[0].strip() != "application/json":
-            self._error(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "send the pose as application/json")
-            return
-        try:
-            length = int(self.headers.get("Content-Length") or -1)
-        except ValueError:
-            length = -1
-        if not 0 < length <= MAX_BODY:
-            self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if length > MAX_BODY else HTTPStatus.LENGTH_REQUIRED,
-                        "body must be JSON under 1 MB with a Content-Length")
+        body = self.read_json_body("the pose", 'expected {"pose": {"shape": weight, ...}}')
+        if body is NO_BODY:
             return
         try:
-            raw = self.rfile.read(length)
-        except OSError:
-            self.close_connection = True
-            return
-        if len(raw) < length:
-            self.close_connection = True
-            self._error(HTTPStatus.BAD_REQUEST, f"body shorter than its Content-Length ({len(raw)} < {length})")
-            return
-        try:
-            pose = json.loads(raw)["pose"]
-        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, RecursionError):
-            self._error(HTTPStatus.BAD_REQUEST, 'expected {"pose": {"shape": weight, ...}}')
+            pose = body["pose"]
+        except (KeyError, TypeError):
+            self.send_error_json(HTTPStatus.BAD_REQUEST, 'expected {"pose": {"shape": weight, ...}}')
             return
         try:
             saved = self.server.set_pose(key, pose)
         except KeyshapeError as exc:
-            self._error(HTTPStatus.BAD_REQUEST, str(exc))
+            self.send_error_json(HTTPStatus.BAD_REQUEST, str(exc))
             return
-        self._json(HTTPStatus.OK, {"saved": key, "pose": saved})
-
-    def _refuse(self) -> None:
-        if self._local():
-            self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method not allowed")
-
-    do_POST = do_DELETE = do_PATCH = _refuse  # noqa: N815
+        self.send_json(HTTPStatus.OK, {"saved": key, "pose": saved})
 
 
-class PoseServer(ThreadingHTTPServer):
+class PoseServer(LocalServer):
     """The pose-correction server for one POSES.json (see the module docstring).
 
     Parameters
@@ -194,8 +132,6 @@ class PoseServer(ThreadingHTTPServer):
     port : TCP port on 127.0.0.1 (0: any free port; see :attr:`port`)
     size : side of the rendered rig image in pixels
     """
-
-    daemon_threads = True
 
     def __init__(self, poses: str | Path, rig, keys: str | Path | None = None, port: int = 0, size: int = 320,
                  verbose: bool = False):
@@ -212,7 +148,7 @@ class PoseServer(ThreadingHTTPServer):
             from keyshape.retarget.preview import RigRenderer
             self.renderer = RigRenderer(rig, (size, size)).fit(np.eye(rig.n_shapes))
         self._index = {n: j for j, n in enumerate(rig.names)}
-        super().__init__(("127.0.0.1", int(port)), PoseHandler)
+        super().__init__(port, PoseHandler)
 
     def _actor_shapes(self, keys) -> dict:
         from keyshape.base.formats.keys import read_keys
@@ -234,14 +170,6 @@ class PoseServer(ThreadingHTTPServer):
                              "lines": [ln for ln in lines if len(ln) > 1],
                              "closed": [c for c, ln in zip(closed, lines) if len(ln) > 1]}
         return out
-
-    @property
-    def port(self) -> int:
-        return self.server_address[1]
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/"
 
     def has_key(self, key: str) -> bool:
         return any(key in reg["keys"] for reg in self.library["regions"].values())
@@ -277,22 +205,7 @@ class PoseServer(ThreadingHTTPServer):
 
 def serve(poses: str | Path, rig, keys: str | Path | None = None, port: int = 8766) -> None:
     """Serve the page until Ctrl-C (or SIGTERM); prints the address."""
-    import signal
-    try:
-        server = PoseServer(poses, rig, keys, port)
-    except OSError as exc:
-        raise InputError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror}): try --port 0") from None
+    server = listen(lambda: PoseServer(poses, rig, keys, port), port)
     print(f"correct the poses at {server.url} (Ctrl-C to stop); every change is saved to {server.path}",
           flush=True)
-
-    def _stop(signum, frame):
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, _stop)
-    try:
-        server.serve_forever()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        signal.signal(signal.SIGTERM, old)
-        server.server_close()
+    serve_until_stopped(server)

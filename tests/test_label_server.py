@@ -1,10 +1,8 @@
 """Label-correction server: serves the page and points, writes only NNNNNN.pts in the label folder."""
 from __future__ import annotations
 
-import http.client
 import json
 import socket
-import threading
 
 import numpy as np
 import pytest
@@ -12,6 +10,7 @@ import pytest
 from keyshape.base.formats.labels import read_pts
 from keyshape.tracker.labelling import server as srv_mod
 from label_helpers import make_folder
+from server_helpers import request, serving
 
 
 def snapshot(root):
@@ -21,24 +20,8 @@ def snapshot(root):
 @pytest.fixture
 def running(tmp_path):
     folder = make_folder(tmp_path)
-    server = srv_mod.LabelServer(folder, 0)
-    t = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True)
-    t.start()
-    yield server, tmp_path
-    server.shutdown()
-    server.server_close()
-
-
-def request(server, method, path, body=None, headers=None):
-    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=5)
-    h = {"Content-Type": "application/json"} if body is not None else {}
-    h.update(headers or {})
-    data = json.dumps(body).encode() if isinstance(body, (dict, list)) else body
-    conn.request(method, path, body=data, headers=h)
-    r = conn.getresponse()
-    out = r.status, r.read()
-    conn.close()
-    return out
+    with serving(srv_mod.LabelServer(folder, 0)) as server:
+        yield server, tmp_path
 
 
 def test_serves_page_session_points_and_frames(running):
@@ -115,7 +98,8 @@ def test_non_local_peer_refused(running, monkeypatch):
     server, root = running
     before = snapshot(root)
     good = read_pts(server.folder / "000005.pts").tolist()
-    monkeypatch.setattr(srv_mod, "is_loopback", lambda addr: False)  # as if the peer were remote
+    import keyshape.base.localserver as local_mod
+    monkeypatch.setattr(local_mod, "is_loopback", lambda addr: False)  # as if the peer were remote
     st, body = request(server, "GET", "/")
     assert st == 403 and b"only local" in body
     assert request(server, "PUT", "/api/points/000005.pts", {"points": good})[0] == 403

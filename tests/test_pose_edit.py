@@ -1,9 +1,7 @@
 """Pose-correction page (keyshape pose-edit): serves the library, renders poses, writes only POSES.json."""
 from __future__ import annotations
 
-import http.client
 import json
-import threading
 
 import numpy as np
 import pytest
@@ -13,6 +11,7 @@ from keyshape.base.formats.poses import read_poses
 from keyshape.cli import main
 from keyshape.retarget.pose_edit import PoseServer, check_pose
 from keyshape.retarget.rig import load_rig
+from server_helpers import request, serving
 from test_rig_poses import SHAPES, TRUE, actor_keys, write_toy_rig
 
 
@@ -22,24 +21,8 @@ def running(tmp_path):
     write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
     assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
                  "--nuisance", "none", "-o", str(tmp_path / "poses.json")]) == 0
-    server = PoseServer(tmp_path / "poses.json", load_rig(rig), port=0, size=96)
-    t = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True)
-    t.start()
-    yield server, tmp_path
-    server.shutdown()
-    server.server_close()
-
-
-def request(server, method, path, body=None, headers=None):
-    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=5)
-    h = {"Content-Type": "application/json"} if body is not None else {}
-    h.update(headers or {})
-    data = json.dumps(body).encode() if isinstance(body, (dict, list)) else body
-    conn.request(method, path, body=data, headers=h)
-    r = conn.getresponse()
-    out = r.status, r.read()
-    conn.close()
-    return out
+    with serving(PoseServer(tmp_path / "poses.json", load_rig(rig), port=0, size=96)) as server:
+        yield server, tmp_path
 
 
 def test_page_and_library_are_served_with_the_actor_keys(running):

@@ -82,25 +82,13 @@ def _run(args) -> int:
     if args.serve:
         from keyshape.tracker.labelling.server import LabelServer  # noqa: PLC0415
         from keyshape.base.schemes import load_scheme  # noqa: PLC0415
-        try:
-            server = LabelServer(args.out, args.port)
-        except OSError as exc:
-            from keyshape.base.errors import InputError  # noqa: PLC0415
-            raise InputError(f"cannot listen on 127.0.0.1:{args.port} ({exc.strerror}): try --port 0") from None
+        from keyshape.base.localserver import listen, serve_until_stopped  # noqa: PLC0415
+
+        server = listen(lambda: LabelServer(args.out, args.port), args.port)
         print(f"correct the points at {server.url} (Ctrl-C to stop)", flush=True)
-        import signal  # noqa: PLC0415
-
-        def _stop(signum, frame):
-            raise KeyboardInterrupt
-
-        old = signal.signal(signal.SIGTERM, _stop)  # a plain `kill` stops it cleanly too
         try:
-            server.serve_forever()
-        except KeyboardInterrupt:
-            pass
+            serve_until_stopped(server)
         finally:
-            signal.signal(signal.SIGTERM, old)
-            server.server_close()
             write_contact_sheet(server.folder, frames, load_scheme(session["scheme"]))
             print(f"contact sheet redrawn: {args.out}/contact_sheet.png")
     return 0

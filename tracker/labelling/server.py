@@ -6,7 +6,7 @@ write: ``PUT /api/points/NNNNNN.pts`` with a JSON body ``{"points": [[x, y],
 ...]}``, which replaces that frame's ``.pts`` file atomically. Nothing else is
 ever written.
 
-Safety:
+Safety (the rules of :mod:`keyshape.base.localserver`, shared with ``keyshape pose-edit``):
 
 * it binds to ``127.0.0.1`` only, and also refuses (403) any connection whose
   peer address is not a loopback address, or whose ``Host`` header is not a
@@ -26,27 +26,20 @@ Label folder layout (made by ``keyshape label``)::
 """
 from __future__ import annotations
 
-import ipaddress
 import json
 import re
 import threading
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError, KeyshapeError, require_dir, require_file
+from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, is_loopback, page_files  # noqa: F401
 
-PAGE_DIR = Path(__file__).parent / "page"
-PAGE_FILES = {"/": ("index.html", "text/html; charset=utf-8"),
-              "/index.html": ("index.html", "text/html; charset=utf-8"),
-              "/app.js": ("app.js", "text/javascript; charset=utf-8"),
-              "/style.css": ("style.css", "text/css; charset=utf-8")}
+PAGE_FILES = page_files(Path(__file__).parent / "page")
 PTS_RE = re.compile(r"^(\d{6})\.pts$")
 PNG_RE = re.compile(r"^(\d{6})\.png$")
-MAX_BODY = 1 << 20
-LOCAL_HOSTS = {"127.0.0.1", "localhost", "[::1]", "::1"}
 SESSION_FILE = "session.json"
 
 
@@ -63,79 +56,33 @@ def read_session(folder: str | Path) -> dict:
     return {**data, "frames": frames, "scheme": scheme}
 
 
-def is_loopback(address: str) -> bool:
-    """Whether ``address`` (an IP string) is a loopback address (127.0.0.0/8, ::1, ::ffff:127.x)."""
-    try:
-        ip = ipaddress.ip_address(address.split("%")[0])
-    except ValueError:
-        return False
-    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
-        ip = ip.ipv4_mapped
-    return ip.is_loopback
-
-
 #: largest coordinate saved (pixels): far beyond any frame, still refusing 1e300
 MAX_COORDINATE = 1e5
 
 
-class LabelHandler(BaseHTTPRequestHandler):
+class LabelHandler(LocalHandler):
     """Request handler; the server object carries ``folder``, ``scheme``, ``frames``."""
 
     server_version = "keyshape-label"
-    protocol_version = "HTTP/1.1"
-    #: seconds a connection may stay silent (a body shorter than its Content-Length must not hold a thread)
-    timeout = 10.0
-
-    def log_message(self, fmt, *args):  # quiet unless asked
-        if getattr(self.server, "verbose", False):
-            super().log_message(fmt, *args)
-
-    # ------------------------------------------------------------------ helpers
-    def _send(self, status: int, body: bytes, ctype: str = "application/json") -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.send_header("X-Content-Type-Options", "nosniff")
-        self.end_headers()
-        self.wfile.write(body)
-
-    def _json(self, status: int, obj) -> None:
-        self._send(status, json.dumps(obj).encode())
-
-    def _error(self, status: int, message: str) -> None:
-        self._json(status, {"error": message})
-
-    def _local(self) -> bool:
-        if not is_loopback(self.client_address[0]):
-            self._error(HTTPStatus.FORBIDDEN, "only local connections are served")
-            return False
-        host = (self.headers.get("Host") or "").strip().lower()
-        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
-        if name not in LOCAL_HOSTS:
-            self._error(HTTPStatus.FORBIDDEN, f"Host {host!r} is not local")
-            return False
-        return True
 
     def _frame_of(self, name: str, pattern: re.Pattern) -> int | None:
         m = pattern.match(name)
         if not m or int(m.group(1)) not in self.server.frames:
-            self._error(HTTPStatus.NOT_FOUND, f"no frame file {name!r} in this session")
+            self.send_error_json(HTTPStatus.NOT_FOUND, f"no frame file {name!r} in this session")
             return None
         return int(m.group(1))
 
     # ------------------------------------------------------------------ verbs
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
-        if not self._local():
+        if not self.is_local():
             return
         path = self.path.split("?", 1)[0]
         srv = self.server
-        if path in PAGE_FILES:
-            name, ctype = PAGE_FILES[path]
-            self._send(HTTPStatus.OK, (PAGE_DIR / name).read_bytes(), ctype)
+        if self.send_page_file(path, PAGE_FILES):
+            pass
         elif path == "/api/session":
             sch = srv.scheme
-            self._json(HTTPStatus.OK, {
+            self.send_json(HTTPStatus.OK, {
                 "scheme": {"name": sch.name, "n_points": sch.n_points,
                            "contours": {k: list(v) for k, v in sch.contours.items()},
                            "closed": sch.closed},
@@ -147,76 +94,52 @@ class LabelHandler(BaseHTTPRequestHandler):
             if f is not None:
                 img = srv.folder / "frames" / f"{f:06d}.png"
                 if img.is_file():
-                    self._send(HTTPStatus.OK, img.read_bytes(), "image/png")
+                    self.send_body(HTTPStatus.OK, img.read_bytes(), "image/png")
                 else:
-                    self._error(HTTPStatus.NOT_FOUND, "frame image missing")
+                    self.send_error_json(HTTPStatus.NOT_FOUND, "frame image missing")
         elif path.startswith("/api/points/"):
             f = self._frame_of(path[len("/api/points/"):], PTS_RE)
             if f is not None:
                 try:
                     pts = srv.read_points(f)
                 except (KeyshapeError, OSError) as exc:   # a damaged .pts in the folder: say so, keep serving
-                    self._error(HTTPStatus.UNPROCESSABLE_ENTITY, str(exc))
+                    self.send_error_json(HTTPStatus.UNPROCESSABLE_ENTITY, str(exc))
                     return
-                self._json(HTTPStatus.OK, {"points": [[float(x), float(y)] if np.isfinite(x + y) else [None, None]
+                self.send_json(HTTPStatus.OK, {"points": [[float(x), float(y)] if np.isfinite(x + y) else [None, None]
                                                       for x, y in pts]})
         else:
-            self._error(HTTPStatus.NOT_FOUND, "not found")
+            self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
 
     def do_PUT(self) -> None:  # noqa: N802
-        if not self._local():
+        if not self.is_local():
             return
         path = self.path.split("?", 1)[0]
         if not path.startswith("/api/points/"):
-            self._error(HTTPStatus.METHOD_NOT_ALLOWED, "only .pts files can be written")
+            self.send_error_json(HTTPStatus.METHOD_NOT_ALLOWED, "only .pts files can be written")
             return
         f = self._frame_of(path[len("/api/points/"):], PTS_RE)
         if f is None:
             return
-        if (self.headers.get("Content-Type") or "").split(";")[0].strip() != "application/json":
-            self._error(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "send the points as application/json")
+        body = self.read_json_body("the points", 'expected {"points": [[x, y], ...]}')
+        if body is NO_BODY:
             return
         try:
-            length = int(self.headers.get("Content-Length") or -1)
-        except ValueError:
-            length = -1
-        if not 0 < length <= MAX_BODY:
-            self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if length > MAX_BODY else HTTPStatus.LENGTH_REQUIRED,
-                        "body must be JSON under 1 MB with a Content-Length")
-            return
-        try:
-            raw = self.rfile.read(length)
-        except OSError:                           # timed out: the client sent less than it announced
-            self.close_connection = True
-            return
-        if len(raw) < length:
-            self.close_connection = True
-            self._error(HTTPStatus.BAD_REQUEST, f"body shorter than its Content-Length ({len(raw)} < {length})")
-            return
-        try:
-            body = json.loads(raw)
             pts = np.asarray(body["points"], dtype=np.float64)
-        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError, RecursionError):
-            self._error(HTTPStatus.BAD_REQUEST, 'expected {"points": [[x, y], ...]}')
+        except (KeyError, TypeError, ValueError, IndexError, RecursionError):
+            self.send_error_json(HTTPStatus.BAD_REQUEST, 'expected {"points": [[x, y], ...]}')
             return
         n = self.server.scheme.n_points
         if pts.shape != (n, 2) or not np.all(np.isfinite(pts)):
-            self._error(HTTPStatus.BAD_REQUEST, f"expected {n} finite (x, y) points, got shape {pts.shape}")
+            self.send_error_json(HTTPStatus.BAD_REQUEST, f"expected {n} finite (x, y) points, got shape {pts.shape}")
             return
         if np.abs(pts).max() > MAX_COORDINATE:
-            self._error(HTTPStatus.BAD_REQUEST, f"coordinates beyond {MAX_COORDINATE:g} pixels are not image points")
+            self.send_error_json(HTTPStatus.BAD_REQUEST, f"coordinates beyond {MAX_COORDINATE:g} pixels are not image points")
             return
         self.server.write_points(f, pts)
-        self._json(HTTPStatus.OK, {"saved": f"{f:06d}.pts"})
-
-    def _refuse(self) -> None:
-        if self._local():
-            self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method not allowed")
-
-    do_POST = do_DELETE = do_PATCH = _refuse  # noqa: N815
+        self.send_json(HTTPStatus.OK, {"saved": f"{f:06d}.pts"})
 
 
-class LabelServer(ThreadingHTTPServer):
+class LabelServer(LocalServer):
     """The label-correction server for one label folder (see module docstring).
 
     Parameters
@@ -227,8 +150,6 @@ class LabelServer(ThreadingHTTPServer):
         TCP port on 127.0.0.1 (0: any free port; see :attr:`port`).
     """
 
-    daemon_threads = True
-
     def __init__(self, folder: str | Path, port: int = 0, verbose: bool = False):
         from keyshape.base.schemes import load_scheme  # noqa: PLC0415
 
@@ -238,15 +159,7 @@ class LabelServer(ThreadingHTTPServer):
         self.frames = frozenset(self.session["frames"])
         self.verbose = verbose
         self._lock = threading.Lock()
-        super().__init__(("127.0.0.1", int(port)), LabelHandler)
-
-    @property
-    def port(self) -> int:
-        return self.server_address[1]
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/"
+        super().__init__(port, LabelHandler)
 
     def pts_path(self, frame: int) -> Path:
         from keyshape.base.formats.labels import pts_name  # noqa: PLC0415
