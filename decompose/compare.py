@@ -145,7 +145,7 @@ class _Basis:
 
 
 def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin: int = 2, kmax: int = 24,
-            amplitude: float = 3.0, rng=None, progress=None) -> list[dict]:
+            amplitude: float = 3.0, rng=None, progress=None, workers: int | None = None) -> list[dict]:
     """Rows of :data:`COLUMNS` for every method, region and k in kmin..kmax.
 
     Weights are NNLS (eq. 4), as in Figure 6. ``hull2`` gives one row at its own k.
@@ -154,17 +154,23 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
     Speed: the nested selectors (``spread``, ``greedy``) are fitted once at ``kmax`` and every k
     reuses one factorisation of the key basis (:class:`_Basis`); the target-domain fields and
     ``f(frames)`` are drawn once per region, and the per-key fields once per key set for both
-    solvers. ``progress`` (a :class:`keyshape.base.progress.Progress`, or None) counts rows,
-    its total set here, so it shows an ETA.
+    solvers. Each (region, method) is a job with its own random stream (drawn from ``rng`` in a
+    fixed order), run on ``workers`` processes (default: one per core, at most 4; 1 runs them
+    here), so the rows are the same whatever the number of workers. ``progress`` (a
+    :class:`keyshape.base.progress.Progress`, or None) counts rows, its total set here, so it
+    shows an ETA.
     """
     from threadpoolctl import threadpool_limits
 
     # many small products and factorisations: BLAS/OpenMP threads only add spinning (CPU time 2x on 2 cores)
     with threadpool_limits(1):
-        return _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress)
+        return _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress, workers)
 
 
-def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress) -> list[dict]:
+def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress, workers=None) -> list[dict]:
+    import os
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
     rng = np.random.default_rng(rng)
     shapes_all = model_shapes(tracks)
     ok = np.flatnonzero(tracks.success)
@@ -176,46 +182,80 @@ def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progr
     pose = head_pose(tracks.pose[ok])
     if progress is not None:
         progress.total = len(regions) * sum(1 if m == "hull2" else kmax - kmin + 1 for m in methods)
-    rows = []
+    # every (region, method) is an independent job with its own random stream, drawn here in a fixed
+    # order, so the rows do not depend on how many processes run them
+    jobs = []
     for region in regions:
-        idx = region_points(scheme, region)
-        Q = shapes_all[ok][:, idx]
+        Q = np.ascontiguousarray(shapes_all[ok][:, region_points(scheme, region)])
         field_seed = int(rng.integers(2**31 - 1))
-        neutral = Q.mean(axis=0)
-        fields = _field_cache(Q, amplitude, 3, field_seed)
         for method in methods:
-            basis = None
-            if method in NESTED:
-                sel = make_selector(method, kmax, rng=rng).fit(Q)
-                fits = [(k, sel.order_[:k], Q[sel.order_[:k]]) for k in range(kmin, kmax + 1)]
-                basis = _Basis(Q, Q[sel.order_[:kmax]], neutral)
-            elif method == "hull2":
-                sel = make_selector(method, 0).fit(Q)
-                fits = [(len(sel.indices_), sel.indices_, sel.keys_)]
-            else:
-                fits = []
-                for k in range(kmin, kmax + 1):
-                    sel = make_selector(method, k, rng=rng).fit(Q)
-                    fits.append((k, sel.indices_, sel.keys_))
-            for k, _, keys in fits:
-                if basis is None:
-                    b = _Basis(Q, keys, neutral, qr_gram=True)   # one factorisation for both solvers
-                    w, wl = b.nnls(len(keys)), b.lstsq(len(keys))
-                else:
-                    w, wl = basis.nnls(k), basis.lstsq(k)
-                e, rms = pixel_errors(Q, reconstruct(w, keys, neutral), pose)
-                row = {"method": method, "region": region, "k": int(k), "error": e, "rms_px": rms}
-                for name, ww in (("nnls", w), ("lstsq", wl)):
-                    row[f"target_{name}_px"] = float(np.mean(
-                        [pixel_errors(fQ, reconstruct(ww, f(keys), f(neutral)), pose)[1] for f, fQ in fields]))
-                kf = _key_fields(Q, keys, neutral, amplitude, 3, field_seed)
-                for name, ww in (("nnls", w), ("lstsq", wl)):
-                    rec0 = reconstruct(ww, keys, neutral)
-                    row[f"keynoise_{name}_px"] = float(np.mean(
-                        [pixel_errors(rec0, reconstruct(ww, fk[:-1], fk[-1]), pose)[1] for fk in kf]))
-                rows.append(row)
-                if progress is not None:
-                    progress.update()
+            jobs.append((region, method, Q, field_seed, pose, kmin, kmax, amplitude, int(rng.integers(2**63 - 1))))
+    size = [1 if j[1] == "hull2" else kmax - kmin + 1 for j in jobs]
+    workers = max(1, min(4, os.cpu_count() or 1, len(jobs))) if workers is None else int(workers)
+    if workers == 1:
+        out = []
+        for j, n in zip(jobs, size):
+            out.append(_compare_job(*j))
+            if progress is not None:
+                progress.update(n)
+        return [row for rows in out for row in rows]
+    # the jobs are many small batched solves that hold the GIL between calls: processes, not threads
+    out = [None] * len(jobs)
+    pool = ProcessPoolExecutor(max_workers=workers)
+    try:
+        futures = {pool.submit(_compare_job, *j): i for i, j in enumerate(jobs)}
+        for f in as_completed(futures):
+            i = futures[f]
+            out[i] = f.result()
+            if progress is not None:
+                progress.update(size[i])
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return [row for rows in out for row in rows]
+
+
+def _compare_job(region, method, Q, field_seed, pose, kmin, kmax, amplitude, seed) -> list[dict]:
+    """Rows of one method on one region, k = kmin..kmax (a process-pool job: plain arguments only)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        return _compare_rows(region, method, Q, field_seed, pose, kmin, kmax, amplitude, np.random.default_rng(seed))
+
+
+def _compare_rows(region, method, Q, field_seed, pose, kmin, kmax, amplitude, rng) -> list[dict]:
+    neutral = Q.mean(axis=0)
+    fields = _field_cache(Q, amplitude, 3, field_seed)
+    rows = []
+    basis = None
+    if method in NESTED:
+        sel = make_selector(method, kmax, rng=rng).fit(Q)
+        fits = [(k, sel.order_[:k], Q[sel.order_[:k]]) for k in range(kmin, kmax + 1)]
+        basis = _Basis(Q, Q[sel.order_[:kmax]], neutral)
+    elif method == "hull2":
+        sel = make_selector(method, 0).fit(Q)
+        fits = [(len(sel.indices_), sel.indices_, sel.keys_)]
+    else:
+        fits = []
+        for k in range(kmin, kmax + 1):
+            sel = make_selector(method, k, rng=rng).fit(Q)
+            fits.append((k, sel.indices_, sel.keys_))
+    for k, _, keys in fits:
+        if basis is None:
+            b = _Basis(Q, keys, neutral, qr_gram=True)   # one factorisation for both solvers
+            w, wl = b.nnls(len(keys)), b.lstsq(len(keys))
+        else:
+            w, wl = basis.nnls(k), basis.lstsq(k)
+        e, rms = pixel_errors(Q, reconstruct(w, keys, neutral), pose)
+        row = {"method": method, "region": region, "k": int(k), "error": e, "rms_px": rms}
+        for name, ww in (("nnls", w), ("lstsq", wl)):
+            row[f"target_{name}_px"] = float(np.mean(
+                [pixel_errors(fQ, reconstruct(ww, f(keys), f(neutral)), pose)[1] for f, fQ in fields]))
+        kf = _key_fields(Q, keys, neutral, amplitude, 3, field_seed)
+        for name, ww in (("nnls", w), ("lstsq", wl)):
+            rec0 = reconstruct(ww, keys, neutral)
+            row[f"keynoise_{name}_px"] = float(np.mean(
+                [pixel_errors(rec0, reconstruct(ww, fk[:-1], fk[-1]), pose)[1] for fk in kf]))
+        rows.append(row)
     return rows
 
 

@@ -13,6 +13,7 @@ Swap one for another in one line: ``SpreadSelector(12).fit(shapes).indices_``.
 from __future__ import annotations
 
 import hashlib
+import threading
 
 import numpy as np
 
@@ -41,6 +42,7 @@ def _check_shapes(shapes, n_keys: int | None) -> np.ndarray:
 
 
 _PCA_CACHE: dict = {}   # the last few PCA scores, keyed by the data's shape and hash
+_PCA_LOCK = threading.Lock()   # keyshape compare fits selectors on several threads
 
 
 def _pca(X: np.ndarray) -> np.ndarray:
@@ -55,8 +57,9 @@ def _pca(X: np.ndarray) -> np.ndarray:
     if len(X) < 2 or not np.abs(X - X.mean(0)).max() > 0:
         return np.zeros((len(X), 0))
     key = (X.shape, hashlib.blake2b(np.ascontiguousarray(X).view(np.uint8), digest_size=16).digest())
-    if key in _PCA_CACHE:                        # keyshape compare fits many selectors to one region
-        return _PCA_CACHE[key].copy()
+    with _PCA_LOCK:
+        if key in _PCA_CACHE:                    # keyshape compare fits many selectors to one region
+            return _PCA_CACHE[key].copy()
     pca = PCA(svd_solver="full").fit(X)
     s = pca.singular_values_
     r = int((s > s[0] * 1e-10).sum())
@@ -64,9 +67,10 @@ def _pca(X: np.ndarray) -> np.ndarray:
     signs = np.sign(scores[np.argmax(np.abs(scores), axis=0), np.arange(r)])
     signs[signs == 0] = 1
     scores = scores * signs
-    if len(_PCA_CACHE) >= 4:
-        _PCA_CACHE.pop(next(iter(_PCA_CACHE)))
-    _PCA_CACHE[key] = scores
+    with _PCA_LOCK:
+        if len(_PCA_CACHE) >= 4 and key not in _PCA_CACHE:
+            _PCA_CACHE.pop(next(iter(_PCA_CACHE)))
+        _PCA_CACHE[key] = scores
     return scores.copy()
 
 

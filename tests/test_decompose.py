@@ -479,6 +479,20 @@ def test_sheet_draws_key_frames(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- target-domain check
 
+def test_compare_rows_do_not_depend_on_the_number_of_worker_processes(toy):
+    """compare runs each (region, method) as a job with its own random stream: the same rows (random,
+    k-means and greedy included) in one process or in several."""
+    from keyshape.decompose.compare import compare
+
+    tracks = toy[0]
+    one = compare(tracks, SCHEME, regions=["mouth", "eyes"], kmin=2, kmax=5, rng=7, workers=1)
+    two = compare(tracks, SCHEME, regions=["mouth", "eyes"], kmin=2, kmax=5, rng=7, workers=2)
+    assert len(one) == 2 * (5 * 4 + 1) and one == two
+    other = compare(tracks, SCHEME, regions=["mouth", "eyes"], kmin=2, kmax=5, rng=8, workers=1)
+    assert [r["rms_px"] for r in other if r["method"] == "random"] != [r["rms_px"] for r in one
+                                                                      if r["method"] == "random"]
+
+
 def test_compare_reused_factorisation_equals_direct_solves(toy):
     """compare's per-k leading blocks (one Gram / one QR at kmax) give the weights of solving each k
     afresh, also where k exceeds the region's coordinates (pupils: 2 points, 4 numbers)."""
