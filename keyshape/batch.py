@@ -40,7 +40,7 @@ import numpy as np
 
 from keyshape import __version__
 from keyshape.base.errors import InputError, KeyshapeError
-from keyshape.base.files import atomic_write
+from keyshape.base.files import atomic_write, sha256_file
 from keyshape.manifest import OUTPUT_FILES, Actor, Manifest, Settings, Take, read_manifest
 
 RECORD = "batch.json"
@@ -61,11 +61,7 @@ def file_sha(path: Path, known: dict | None = None) -> dict:
     if known and known.get("size") == st.st_size and known.get("mtime_ns") == st.st_mtime_ns \
             and known.get("path") == str(path):
         return known
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": h.hexdigest()}
+    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": sha256_file(path)}
 
 
 def tree_sha(path: Path | None) -> str | None:

@@ -245,17 +245,6 @@ class TrackSummary:
     terminated: bool = False
 
 
-def _sha256_file(path: Path) -> str:
-    """Hex SHA-256 of a file's bytes, read in 1 MiB blocks."""
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
                 tracker_options: dict | None = None, scheme=None, decode_thread: bool = True) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
@@ -272,7 +261,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     import os
     import shutil
 
-    from keyshape.base.files import _tmp_sibling, check_outputs, partial_name
+    from keyshape.base.files import _tmp_sibling, check_outputs, partial_name, sha256_file
 
     check_outputs([output, meta_path(output), overlay],
                   inputs=[video, model if not isinstance(model, AppearanceModel) else None])
@@ -312,7 +301,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             os.fsync(f.fileno())
         n = writer.n_rows
         if interrupted is None:
-            write_meta(output, meta, _sha256_file(tmp_csv))
+            write_meta(output, meta, sha256_file(tmp_csv))
             os.replace(tmp_csv, output)
             if overlay:
                 os.replace(tmp_vid, overlay)

@@ -146,8 +146,8 @@ def write_meta(path: str | Path, meta: dict | None, csv_sha256: str) -> None:
             side.unlink(missing_ok=True)
 
 
-def _read_meta(path: Path) -> dict:
-    """The sidecar's metadata for the CSV ``path`` ({} if none, not keyshape's, or stale)."""
+def _read_meta(path: Path, data: bytes) -> dict:
+    """The sidecar's metadata for the CSV ``path`` whose bytes are ``data`` ({} if none, not keyshape's, or stale)."""
     side = meta_path(path)
     if not side.is_file():
         return {}
@@ -156,7 +156,7 @@ def _read_meta(path: Path) -> dict:
         return {}                              # not ours: some other file of that name
     digest = meta.pop("csv_sha256", None)
     meta.pop(META_KEY)
-    if digest != hashlib.sha256(path.read_bytes()).hexdigest():
+    if digest != hashlib.sha256(data).hexdigest():
         warnings.warn(f"{side}: written for another version of {path.name} (the CSV changed since); "
                       "its metadata (model fingerprint) is ignored", stacklevel=3)
         return {}
@@ -177,12 +177,13 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     :data:`PARTIAL_MARK`) is refused unless ``accept_partial``.
     """
     path = require_file(path, "tracks file")
+    data = path.read_bytes()                   # read once: parsed here, hashed against the sidecar
     try:
-        text = path.read_text()
+        text = data.decode()
     except UnicodeDecodeError:
         raise InputError("not a text CSV file", path) from None
     lines = text.splitlines()
-    meta: dict = {} if lines and lines[0].startswith("#") else _read_meta(path)
+    meta: dict = {} if lines and lines[0].startswith("#") else _read_meta(path, data)
     if lines and lines[0].startswith(PARTIAL_MARK):
         if not accept_partial:
             raise InputError("partial tracks from an interrupted 'keyshape track' "
