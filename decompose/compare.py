@@ -162,12 +162,13 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
     """
     from threadpoolctl import threadpool_limits
 
-    # many small products and factorisations: BLAS/OpenMP threads only add spinning (CPU time 2x on 2 cores)
+    # many small products and factorisations: BLAS/OpenMP threads only add spinning (CPU time 2x on 2 cores);
+    # forked workers start from this setting, and each job sets it again (spawned workers do not inherit it)
     with threadpool_limits(1):
         return _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress, workers)
 
 
-def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress, workers=None) -> list[dict]:
+def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progress, workers) -> list[dict]:
     import os
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -180,8 +181,6 @@ def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progr
         raise InputError(f"need 1 <= kmin <= kmax, got {kmin}..{kmax}")
     regions = available_regions(scheme) if regions is None else list(regions)
     pose = head_pose(tracks.pose[ok])
-    if progress is not None:
-        progress.total = len(regions) * sum(1 if m == "hull2" else kmax - kmin + 1 for m in methods)
     # every (region, method) is an independent job with its own random stream, drawn here in a fixed
     # order, so the rows do not depend on how many processes run them
     jobs = []
@@ -190,27 +189,29 @@ def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progr
         field_seed = int(rng.integers(2**31 - 1))
         for method in methods:
             jobs.append((region, method, Q, field_seed, pose, kmin, kmax, amplitude, int(rng.integers(2**63 - 1))))
-    size = [1 if j[1] == "hull2" else kmax - kmin + 1 for j in jobs]
+    size = [1 if j[1] == "hull2" else kmax - kmin + 1 for j in jobs]      # rows per job
+    if progress is not None:
+        progress.total = sum(size)
+    out = [None] * len(jobs)
+
+    def record(i, rows):
+        out[i] = rows
+        if progress is not None:
+            progress.update(size[i])
+
     workers = max(1, min(4, os.cpu_count() or 1, len(jobs))) if workers is None else int(workers)
     if workers == 1:
-        out = []
-        for j, n in zip(jobs, size):
-            out.append(_compare_job(*j))
-            if progress is not None:
-                progress.update(n)
-        return [row for rows in out for row in rows]
-    # the jobs are many small batched solves that hold the GIL between calls: processes, not threads
-    out = [None] * len(jobs)
-    pool = ProcessPoolExecutor(max_workers=workers)
-    try:
-        futures = {pool.submit(_compare_job, *j): i for i, j in enumerate(jobs)}
-        for f in as_completed(futures):
-            i = futures[f]
-            out[i] = f.result()
-            if progress is not None:
-                progress.update(size[i])
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        for i, j in enumerate(jobs):
+            record(i, _compare_job(*j))
+    else:
+        # the jobs are many small batched solves that hold the GIL between calls: processes, not threads
+        pool = ProcessPoolExecutor(max_workers=workers)
+        try:
+            futures = {pool.submit(_compare_job, *j): i for i, j in enumerate(jobs)}
+            for f in as_completed(futures):
+                record(futures[f], f.result())
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
     return [row for rows in out for row in rows]
 
 

@@ -42,7 +42,7 @@ def _check_shapes(shapes, n_keys: int | None) -> np.ndarray:
 
 
 _PCA_CACHE: dict = {}   # the last few PCA scores, keyed by the data's shape and hash
-_PCA_LOCK = threading.Lock()   # keyshape compare fits selectors on several threads
+_PCA_LOCK = threading.Lock()   # selectors may be fitted on several threads (keyshape batch with thread workers)
 
 
 def _pca(X: np.ndarray) -> np.ndarray:

@@ -89,8 +89,10 @@ def run(args) -> int:
     t0 = time.perf_counter()
     t_render = 0.0
     n = 0
-    def jobs():
-        """(frame, row, actor panel) for each frame to render, as the video is read."""
+
+    def jobs(wr, prog):
+        """(frame, row, actor panel) for each frame to render, as the video is read (frames not
+        rendered are counted here)."""
         nonlocal n
         for i, img in reader:
             if i > last:
@@ -109,7 +111,7 @@ def run(args) -> int:
     with _maybe_writer(args.output, fps) as wr:
         prog = Progress(len(rows), desc="keyshape preview")
         # the rig is rendered on a few threads (fillPoly and numpy release the GIL), written in order
-        for (i, r, left), right, cpu in ordered_map(renderer.render_curves, jobs(), args.threads):
+        for (i, r, left), right, cpu in ordered_map(renderer.render_curves, jobs(wr, prog), args.threads):
             t_render += cpu
             out = side_by_side(left, right)
             if wr is not None:
