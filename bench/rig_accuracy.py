@@ -10,7 +10,12 @@ target <= 0.65 x the hidden motion). Diagnostic rows: the same from the exact co
 (truth.csv instead of the tracks), the best linear map from key weights (an upper bound), and
 "oracle poses": the same key weights with each key's pose set to the hidden weights at its frame
 (relative to the neutral frame's), which separates what the pose fit loses from what the keys
-and their weights lose.
+and their weights lose. Where the error comes from: each component's gain (slope of the recovered
+curve on the hidden weight: < 1 under-driven), the gain a 2D fit of exactly the right rig shape
+would give (``component_gains``: the synthetic face's motion against the rig shape's projected
+motion; an amplitude difference between the two faces that no 2D fit can see), the error with the
+oracle poses scaled by those gains (the floor of a perfect 2D pose fit), and the error with only
+the mouth's or only the eyes' shapes fitted (the other region's from the oracle poses).
 
     python bench/rig_accuracy.py [--seed 11] [--work DIR] [--rig ../shared/data/ict-facekit]
 """
@@ -55,20 +60,44 @@ def run_chain(work: Path, seed: int, rig: Path, frames: int = 600, tracks: Path 
 
 def score(paths: dict, rig) -> dict:
     from keyshape.base.formats.weights import read_weights
-    from keyshape.data_synth.rig_truth import score_curves
+    from keyshape.data_synth.rig_truth import component_columns, score_curves
     from keyshape.retarget.rig import ICT_FACE_SKIN
     truth = json.loads(Path(paths["truth.json"]).read_text())
     hidden = np.asarray(truth["weights"])
     _, names, curves, _ = read_weights(paths["curves.csv"])
     order = [names.index(n) for n in rig.names]
     s = score_curves(rig, curves[:, order], truth["components"], hidden, np.arange(ICT_FACE_SKIN))
+    fitted = curves[:, order]
     _, cols, w, _ = read_weights(paths["weights.csv"])
-    s["oracle"] = score_curves(rig, oracle_curves(paths, rig, cols, w, truth["components"], hidden),
-                               truth["components"], hidden, np.arange(ICT_FACE_SKIN))
+    oracle = oracle_curves(paths, rig, cols, w, truth["components"], hidden)
+    s["oracle"] = score_curves(rig, oracle, truth["components"], hidden, np.arange(ICT_FACE_SKIN))
+    s["gain"] = {c: float(np.polyfit(hidden[:, i], fitted[:, component_columns(rig.names, c)].mean(axis=1), 1)[0])
+                 for i, c in enumerate(truth["components"])}
+    gains, cos = geometric_gains(truth, rig)
+    s["geometric_gain"] = dict(zip(truth["components"], gains.tolist()))
+    s["geometric_cos"] = dict(zip(truth["components"], cos.tolist()))
+    s["geometric_floor"] = score_curves(rig, oracle_curves(paths, rig, cols, w, truth["components"], hidden * gains),
+                                        truth["components"], hidden, np.arange(ICT_FACE_SKIN))
+    lib = json.loads(Path(paths["poses.json"]).read_text())["regions"]
+    for region in ("mouth", "eyes"):
+        cols_r = [rig.names.index(n) for n in lib.get(region, {}).get("shapes", [])]
+        mix = oracle.copy()
+        mix[:, cols_r] = fitted[:, cols_r]
+        s[f"only_{region}_fitted"] = score_curves(rig, mix, truth["components"], hidden,
+                                                  np.arange(ICT_FACE_SKIN))["error_ratio"]
     X = np.column_stack([w, np.ones(len(w))])
     s["linear_bound"] = {c: float(np.corrcoef(X @ np.linalg.lstsq(X, hidden[:, i], rcond=None)[0],
                                               hidden[:, i])[0, 1]) for i, c in enumerate(truth["components"])}
     return s
+
+
+def geometric_gains(truth: dict, rig) -> tuple[np.ndarray, np.ndarray]:
+    """Per hidden component: the weight of its rig shape(s) that best makes its 2D motion, and the cosine."""
+    from keyshape.data_synth.rig_truth import component_gains
+    from keyshape.retarget.rig import project, rig_landmarks
+    W, _ = rig_landmarks(rig, truth["scheme"])
+    return component_gains(truth["neutral"], truth["basis"], truth["components"], rig.names, project(W @ rig.neutral),
+                           project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True)))
 
 
 def oracle_curves(paths: dict, rig, cols, w, components, hidden) -> np.ndarray:
@@ -99,6 +128,17 @@ def table(rows: dict[str, dict]) -> str:
                                                  for v in rows.values()))
     out.append(f"{'  err, motion cm':16s}" + "".join(f"{v['vertex_error']:>10.3f}, {v['hidden_motion']:.3f}".ljust(22)
                                                      for v in rows.values()))
+    out.append(f"{'geometric floor':16s}" + "".join(f"{v['geometric_floor']['error_ratio']:>10.3f} err".ljust(22)
+                                                    for v in rows.values()))
+    for region in ("mouth", "eyes"):
+        out.append(f"{'only ' + region + ' fit':16s}"
+                   + "".join(f"{v[f'only_{region}_fitted']:>10.3f} err".ljust(22) for v in rows.values()))
+    first = next(iter(rows.values()))
+    out.append("")
+    out.append(f"{'gain (slope)':16s}" + "".join(f"{k:>22s}" for k in rows) + "   geometric gain (cos)")
+    for c in comps:
+        out.append(f"{c:16s}" + "".join(f"{v['gain'][c]:>22.2f}" for v in rows.values())
+                   + f"   {first['geometric_gain'][c]:8.2f} ({first['geometric_cos'][c]:.2f})")
     return "\n".join(out)
 
 

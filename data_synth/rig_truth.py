@@ -53,3 +53,45 @@ def score_curves(rig: Rig, curves: np.ndarray, components: Sequence[str], hidden
         motion += np.linalg.norm(vt - n0, axis=2).mean(axis=1).sum()
     return {"r": r, "mean_r": float(np.mean(list(r.values()))), "vertex_error": err / len(curves),
             "hidden_motion": motion / len(curves), "error_ratio": err / max(motion, 1e-12)}
+
+
+def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence[str], rig_names: Sequence[str],
+                    rig_neutral: np.ndarray, rig_deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How strongly the rig's own shape must be driven to make each hidden component's 2D motion.
+
+    Each component's landmark motion at weight 1 (``basis[k]``, model frame) is mapped into the
+    rig's frame by the similarity between the face's neutral and the rig's neutral landmarks
+    (:func:`~keyshape.retarget.poses.fit_similarity`, as ``keyshape pose`` maps key motion) and
+    compared with the projected landmark motion ``r_k`` of the component's rig shape(s) (both sides
+    of an unsided name): ``gain_k = <m_k, r_k> / <r_k, r_k>`` is the weight of that shape whose motion
+    best matches it (least squares), ``cos_k`` the cosine between the two motions. A 2D pose fit
+    that picked exactly the right shape would drive it at ``gain_k`` per unit of hidden weight, so
+    ``gain_k != 1`` is a difference of amplitude between the synthetic face and the rig that no
+    2D fit can see, and ``cos_k < 1`` a difference of shape.
+
+    Parameters
+    ----------
+    neutral : (n_points, 2) the face's neutral landmarks (truth.json ``neutral``)
+    basis : (n_components, n_points, 2) each component's landmark motion at weight 1 (truth.json ``basis``)
+    components : the components' names
+    rig_names : the rig's shape names
+    rig_neutral : (n_points, 2) the rig's projected neutral landmarks (:func:`~keyshape.retarget.rig.project`)
+    rig_deltas : (n_shapes, n_points, 2) projected landmark motion per rig shape
+
+    Returns
+    -------
+    gains, cos : (n_components,) each
+    """
+    from keyshape.retarget.poses import fit_similarity
+    basis = np.asarray(basis, float)
+    s, R, _ = fit_similarity(np.asarray(neutral, float), np.asarray(rig_neutral, float))
+    gains, cos = np.zeros(len(components)), np.zeros(len(components))
+    for k, c in enumerate(components):
+        m = (basis[k] @ (s * R).T).ravel()
+        r = np.asarray(rig_deltas, float)[component_columns(rig_names, c)].sum(axis=0).ravel()
+        rr = float(r @ r)
+        if rr < 1e-24 or float(m @ m) < 1e-24:
+            raise InputError(f"component {c!r}: no landmark motion in the face or the rig to compare")
+        gains[k] = float(m @ r) / rr
+        cos[k] = float(m @ r) / np.sqrt(rr * float(m @ m))
+    return gains, cos

@@ -2,12 +2,14 @@
 
 Seed 11 (no other test uses it), 600 frames. From the exact contours (truth.csv) the pose route
 must recover the hidden ARKit curves (r >= 0.9 for jawOpen and both blinks, mean r >= 0.8, rig
-vertex error <= 0.65 x the hidden motion). From the trained tracker's tracks jawOpen (0.906), the
-blinks (0.907 / 0.933) and the mean r (0.867) are met since the actor's neutral is the mode over
-n/10 neighbours (it was a held brow raise: mean r 0.714) and head pose is removed as the nearest
-similarity of the tracker's affine (its shear moved with the jaw: jawOpen 0.868); the rig vertex
-error is not (0.660 x > 0.65). The tracked run is held to a regression floor and the issue's
-targets are a strict xfail, so meeting them is noticed.
+vertex error <= 0.65 x the hidden motion). From the trained tracker's tracks (this code: jawOpen
+0.874, blinks 0.895 / 0.921, mean r 0.883, rig vertex error 0.718 x) the mean r is met, jawOpen,
+eyeBlink_L and the vertex error are not; before the tracker changes merged with f9ca570 the same
+chain gave 0.906 / 0.907 / 0.933 / 0.867 / 0.660. The mouth's pose fit is the loss (0.671 x with
+only the mouth's shapes fitted), much of it an amplitude difference between the synthetic face and
+the ICT head that no 2D fit can see (jawOpen's 2D motion is made by ICT's jawOpen at 0.44; a perfect
+2D pose fit would leave 0.490 x): see ``bench/rig_accuracy.py`` and the README. The tracked run is
+held to a regression floor and the issue's targets are a strict xfail, so meeting them is noticed.
 """
 from __future__ import annotations
 
@@ -51,8 +53,8 @@ def test_tracked_chain_regression_floor(chain):
     assert s["error_ratio"] < 0.75                         # closer to the truth than a still face (1.0)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 14 targets on tracked footage: rig vertex error 0.660 x > 0.65 "
-                          "(jawOpen 0.906, blinks 0.907/0.933, mean r 0.867 are met)")
+@pytest.mark.xfail(strict=True, reason="issue 14 targets on tracked footage: rig vertex error 0.718 x > 0.65, "
+                          "jawOpen 0.874 and eyeBlink_L 0.895 < 0.9 (eyeBlink_R 0.921, mean r 0.883 are met)")
 def test_tracked_chain_meets_the_issue_targets(chain):
     s, _ = chain
     assert s["r"]["jawOpen"] >= 0.9 and s["r"]["eyeBlink_L"] >= 0.9 and s["r"]["eyeBlink_R"] >= 0.9

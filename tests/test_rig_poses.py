@@ -399,3 +399,38 @@ def test_support_regions_from_the_targets_themselves(tmp_path):
     v = read_obj_vertices(tmp_path / "f" / "frame_000000.obj")
     np.testing.assert_allclose(v[37], shapes[0][37], atol=1e-5)          # jaw moved the lower lip
     np.testing.assert_allclose(v[20], shapes[2][20], atol=1e-5)          # blink moved the upper lid
+
+
+# ------------------------------------------------------------------ synthetic face vs rig: amplitude diagnostic
+
+def test_component_gains_against_a_rig_made_from_the_face_itself():
+    """A rig whose shapes are the synthetic face's own component motions, seen through a known
+    similarity and driven at known amplitudes, gives back those amplitudes (gain = 1 / amplitude)
+    with cosine 1; an unsided component split over _L/_R shapes counts both sides."""
+    from keyshape.data_synth.face_model import COMPONENTS, FaceModel
+    from keyshape.data_synth.rig_truth import component_gains
+    neutral, basis = FaceModel(rng=5).basis()
+    ang, s, t = 0.3, 0.07, np.array([2.0, -1.0])
+    R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    amp = np.linspace(0.5, 2.5, len(COMPONENTS))                  # rig shape k moves amp_k x the component
+    names, deltas = [], []
+    for k, c in enumerate(COMPONENTS):
+        d = amp[k] * basis[k] @ (s * R).T
+        if c == "browInnerUp":                                    # the rig splits it into sides
+            left = np.zeros_like(d)
+            left[5:10] = d[5:10]
+            names += ["browInnerUp_L", "browInnerUp_R"]
+            deltas += [left, d - left]
+        else:
+            names.append(c)
+            deltas.append(d)
+    gains, cos = component_gains(neutral, basis, COMPONENTS, names, neutral @ (s * R).T + t, np.stack(deltas))
+    np.testing.assert_allclose(gains, 1.0 / amp, rtol=1e-9)
+    np.testing.assert_allclose(cos, 1.0, atol=1e-9)
+    # a rig shape that moves the points another way: cosine below 1, gain its least-squares amplitude
+    other = np.stack(deltas).copy()
+    other[0] = np.roll(other[0], 3, axis=0)
+    g2, c2 = component_gains(neutral, basis, COMPONENTS, names, neutral @ (s * R).T + t, other)
+    assert c2[0] < 0.9 and abs(g2[0] - 1.0 / amp[0]) > 0.05
+    with pytest.raises(InputError, match="no landmark motion"):
+        component_gains(neutral, basis, COMPONENTS, names, neutral @ (s * R).T + t, np.zeros_like(other))
