@@ -309,6 +309,7 @@ class RegionModel:
         q, _ = np.linalg.qr(np.hstack([np.ones((n_pix, 1)), ui]))
         self.qt = np.ascontiguousarray(q.T)
         self.n_pix = n_pix
+        self.box_x = (self.index % int(self.box[2])).astype(np.float64)     # box x of each region pixel
 
     def crop(self, patch: np.ndarray) -> np.ndarray:
         """The region's box of a model-frame patch (size, size)."""
