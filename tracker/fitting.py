@@ -374,12 +374,15 @@ class Tracker:
         if m.region_models_ and self.region_iter >= 0:
             acc = np.zeros_like(shape)
             cnt = np.zeros(len(shape))
+            lips = [rm for rm in m.region_models_ if self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth"))]
             for rm in m.region_models_:
-                if self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth")):
-                    acc[rm.points] += self.read_lip_region(pyr, pose, rm, patch)
-                else:
+                if rm not in lips:
                     acc[rm.points] += self.read_region(pyr, pose, rm, patch)
-                cnt[rm.points] += 1
+                    cnt[rm.points] += 1
+            if lips:
+                for rm, pts in zip(lips, self.read_lips(pyr, pose, lips, patch)):
+                    acc[rm.points] += pts
+                    cnt[rm.points] += 1
             hit = cnt > 0
             reg = acc[hit] / cnt[hit, None]             # points shared by two regions (lip corners): mean
             w = self.global_weight
@@ -444,70 +447,86 @@ class Tracker:
         self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
         return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + t
 
-    def read_lip_region(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray) -> np.ndarray:
-        """:meth:`read_region` for a lip: the box also stretches horizontally and tilts.
+    def read_lips(self, pyr: Pyramid, pose: np.ndarray, rms: list, patch: np.ndarray) -> list[np.ndarray]:
+        """:meth:`read_region` for the lip regions together: each box has its own translation, and all
+        stretch horizontally and tilt together (one stretch ``s`` and one tilt ``k`` for the mouth).
 
-        The box's motion in the model frame is ``b -> box corner + b + t + (s (b_x - c_x), k (b_x - c_x))``
-        (``b`` box pixel coordinates, ``c`` the box centre): a translation ``t``, a horizontal
-        stretch ``s`` and a tilt ``k`` (the lip's far end higher or lower), Gauss-Newton on the same
-        distance from the region's appearance subspace as :meth:`read_region` (forward additive,
-        each step kept only if it lowers that distance; ``|s|, |k| <= lip_stretch``). The points
-        read in the box are mapped by the same motion. Why (``docs/tracker.md``): a smile or a
-        pucker widens or narrows the mouth beyond what twelve labelled frames span, and the lower
-        face shears against the global affine when the head turns and tilts; the region's PCA read
-        both as smaller changes of shape (on ``franck.mp4`` the track's mouth width moved 0.88
-        times as much as MediaPipe's, dlib's 0.97 times). The vertical stretch is left out: the
-        lip's opening is the shape modes' to read.
+        Each box moves in the model frame by ``b -> box corner + b + t_r + (s (b_x - c_x), k (b_x - c_x))``
+        (``b`` box pixel coordinates, ``c`` the box centre, ``t_r`` the region's translation): the
+        mouth widens or narrows and its far end rises or drops. Gauss-Newton on the sum of the regions'
+        distances from their appearance subspaces (as :meth:`read_region`: forward additive, each
+        step kept only if it lowers that sum; ``|s|, |k| <= lip_stretch``); the points read in each
+        box are mapped by the same motion. The upper and lower lip share the mouth's corners, so
+        they share its width and tilt (estimated apart on ``franck.mp4`` they correlate 0.95).
+        Why (``docs/tracker.md``): a smile or a pucker widens or narrows the mouth beyond what
+        twelve labelled frames span, and the lower face shears against the global affine when the
+        head turns and tilts; the regions' PCA read both as smaller changes of shape (on
+        ``franck.mp4`` the track's mouth width moved 0.88 times as much as MediaPipe's, dlib's
+        0.97). The vertical stretch is left out: the lips' opening is the shape modes' to read.
         """
-        x0, y0, w, h = rm.box.tolist()
-        crop = rm.crop(patch)
-        cx = (w - 1) / 2.0
-        xc = rm.box_x - cx                    # the region pixels' box x from the centre
-        tx = ty = st = kt = 0.0
-        best = None
+        n = len(rms)
+        npar = 2 * n + 2
         lim = 0.08 * self.model.face_width
         slim = self.lip_stretch
         lvl = pyramid_level(pyr, pose)
-        j = np.empty((4, rm.n_pix))
+        t = np.zeros((n, 2))
+        st = kt = 0.0
+        geo = []
+        for rm in rms:
+            x0, y0, w, h = rm.box.tolist()
+            cx = (w - 1) / 2.0
+            geo.append((x0, y0, w, h, cx, rm.box_x - cx))
+        crops = [rm.crop(patch) for rm in rms]
+        best = None
         for it in range(self.region_iter + 1):
             if it:
-                loc = np.array([[1.0 + st, 0.0, x0 + tx - st * cx], [kt, 1.0, y0 + ty - kt * cx]])
-                crop = warp_level(pyr, lvl, compose_affine(pose, loc).tolist(), w, h)
-            e, sd = rm.error(crop)
-            qe = rm.qt @ e
-            r = float(e @ e) - float(qe @ qe)
+                crops = []
+                for (x0, y0, w, h, cx, _), (tx, ty) in zip(geo, t.tolist()):
+                    loc = np.array([[1.0 + st, 0.0, x0 + tx - st * cx], [kt, 1.0, y0 + ty - kt * cx]])
+                    crops.append(warp_level(pyr, lvl, compose_affine(pose, loc).tolist(), w, h))
+            errs = [rm.error(c) for rm, c in zip(rms, crops)]
+            qes = [rm.qt @ e for rm, (e, _) in zip(rms, errs)]
+            r = sum(float(e @ e) - float(qe @ qe) for (e, _), qe in zip(errs, qes))
             if best is not None and r >= best[0]:
                 break
-            best = (r, (tx, ty, st, kt), e)
+            best = (r, t.copy(), st, kt, [e for e, _ in errs])
             if it == self.region_iter:
                 break
-            gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-            j[0] = gx.ravel()[rm.index]
-            j[1] = gy.ravel()[rm.index]
-            j[:2] *= 1.0 / (8.0 * sd)
-            np.multiply(j[0], xc, out=j[2])
-            np.multiply(j[1], xc, out=j[3])
-            qj = j @ rm.qt.T
-            # projected out as in read_region: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ), J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
-            hess = j @ j.T - qj @ qj.T
-            hess[np.diag_indices(4)] += 1e-6
-            ok, sol = cv2.solve(hess, (qj @ qe - j @ e)[:, None], flags=cv2.DECOMP_CHOLESKY)
+            hess = np.zeros((npar, npar))
+            grad = np.zeros(npar)
+            for i, (rm, crop, (e, sd), qe, g) in enumerate(zip(rms, crops, errs, qes, geo)):
+                gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
+                j = np.empty((4, rm.n_pix))
+                j[0] = gx.ravel()[rm.index]
+                j[1] = gy.ravel()[rm.index]
+                j[:2] *= 1.0 / (8.0 * sd)
+                np.multiply(j[0], g[5], out=j[2])
+                np.multiply(j[1], g[5], out=j[3])
+                qj = j @ rm.qt.T
+                # projected out as in read_region: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ), J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
+                idx = np.array([2 * i, 2 * i + 1, npar - 2, npar - 1])
+                hess[np.ix_(idx, idx)] += j @ j.T - qj @ qj.T
+                grad[idx] += j @ e - qj @ qe
+            hess[np.diag_indices(npar)] += 1e-6
+            ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
             if not ok:
                 break
-            s0, s1, s2, s3 = sol.ravel().tolist()
-            tx = max(-lim, min(lim, tx + max(-2.0, min(2.0, s0))))
-            ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, s1))))
-            st = max(-slim, min(slim, st + s2))
-            kt = max(-slim, min(slim, kt + s3))
-        _, (tx, ty, st, kt), e = best
-        self._region_shift[rm.name] = np.array([tx, ty])
-        c = rm.pinv_i @ e
-        self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
-        pts = (rm.mean_l + rm.ul @ c).reshape(-1, 2)
-        bx = pts[:, 0] - (x0 + cx)
-        pts[:, 0] += tx + st * bx
-        pts[:, 1] += ty + kt * bx
-        return pts
+            sol = sol.ravel()
+            t = np.clip(t + np.clip(sol[:-2].reshape(n, 2), -2.0, 2.0), -lim, lim)
+            st = max(-slim, min(slim, st + float(sol[-2])))
+            kt = max(-slim, min(slim, kt + float(sol[-1])))
+        _, t, st, kt, es = best
+        out = []
+        for rm, e, (x0, y0, w, h, cx, _), (tx, ty) in zip(rms, es, geo, t.tolist()):
+            self._region_shift[rm.name] = np.array([tx, ty, st, kt])
+            c = rm.pinv_i @ e
+            self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
+            pts = (rm.mean_l + rm.ul @ c).reshape(-1, 2)
+            bx = pts[:, 0] - (x0 + cx)
+            pts[:, 0] += tx + st * bx
+            pts[:, 1] += ty + kt * bx
+            out.append(pts)
+        return out
 
     def _sane(self, pose: np.ndarray, shape: np.ndarray, image_size: tuple[int, int]) -> bool:
         lin = pose[:, :2]
