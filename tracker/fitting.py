@@ -38,6 +38,7 @@ _JTJ_PROD = _GRAD_PAIR[_COL_GRAD[:, None], _COL_GRAD[None, :]]
 _JTE_MONO = np.array([3, 3, 4, 4, 5, 5])                     # x, x, y, y, 1, 1
 _JTE_PROD = 3 + _COL_GRAD                                    # gx e, gy e
 _DIAG6 = np.diag_indices(6)
+_DIAG = {k: np.diag_indices(k) for k in range(1, 9)}
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
 
 _BLAS = None        # threadpoolctl's controller of the loaded BLAS libraries (False: not available)
@@ -190,6 +191,7 @@ class Tracker:
         self.lip_stretch = float(lip_stretch)
         self.typical_shape_m2 = min(8.0, 0.5 * self.max_shape_m2)
         self._region_shift: dict = {}
+        self._jac_bufs: dict = {}          # read_lips' Jacobian work buffers, per tracker (trackers may share a model)
         self._m2 = 0.0
         m = model
         size = m.patch_size_
@@ -469,55 +471,68 @@ class Tracker:
         lim = 0.08 * self.model.face_width
         slim = self.lip_stretch
         lvl = pyramid_level(pyr, pose)
-        t = np.zeros((n, 2))
+        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        t = [[0.0, 0.0] for _ in rms]
         st = kt = 0.0
-        geo = []
-        for rm in rms:
-            x0, y0, w, h = rm.box.tolist()
-            cx = (w - 1) / 2.0
-            geo.append((x0, y0, w, h, cx, rm.box_x - cx))
+        geo = [(*rm.box.tolist(), (int(rm.box[2]) - 1) / 2.0) for rm in rms]
         crops = [rm.crop(patch) for rm in rms]
         best = None
+        hess = np.empty((npar, npar))
+        grad = np.empty(npar)
         for it in range(self.region_iter + 1):
             if it:
                 crops = []
-                for (x0, y0, w, h, cx, _), (tx, ty) in zip(geo, t.tolist()):
-                    loc = np.array([[1.0 + st, 0.0, x0 + tx - st * cx], [kt, 1.0, y0 + ty - kt * cx]])
-                    crops.append(warp_level(pyr, lvl, compose_affine(pose, loc).tolist(), w, h))
+                for (x0, y0, w, h, cx), (tx, ty) in zip(geo, t):
+                    # image_from_box = pose ∘ [[1 + s, 0, x0 + tx - s cx], [k, 1, y0 + ty - k cx]]
+                    bx, by = x0 + tx - st * cx, y0 + ty - kt * cx
+                    crops.append(warp_level(pyr, lvl, [[a00 * (1 + st) + a01 * kt, a01, a00 * bx + a01 * by + a02],
+                                                       [a10 * (1 + st) + a11 * kt, a11, a10 * bx + a11 * by + a12]],
+                                            w, h))
             errs = [rm.error(c) for rm, c in zip(rms, crops)]
             qes = [rm.qt @ e for rm, (e, _) in zip(rms, errs)]
             r = sum(float(e @ e) - float(qe @ qe) for (e, _), qe in zip(errs, qes))
             if best is not None and r >= best[0]:
                 break
-            best = (r, t.copy(), st, kt, [e for e, _ in errs])
+            best = (r, [list(v) for v in t], st, kt, [e for e, _ in errs])
             if it == self.region_iter:
                 break
-            hess = np.zeros((npar, npar))
-            grad = np.zeros(npar)
+            hess.fill(0.0)
+            grad.fill(0.0)
             for i, (rm, crop, (e, sd), qe, g) in enumerate(zip(rms, crops, errs, qes, geo)):
                 gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-                j = np.empty((4, rm.n_pix))
+                j = self._jac_bufs.get(rm.name)
+                if j is None or j.shape[1] != rm.n_pix:
+                    j = self._jac_bufs[rm.name] = np.empty((4, rm.n_pix))
                 j[0] = gx.ravel()[rm.index]
                 j[1] = gy.ravel()[rm.index]
                 j[:2] *= 1.0 / (8.0 * sd)
-                np.multiply(j[0], g[5], out=j[2])
-                np.multiply(j[1], g[5], out=j[3])
+                np.multiply(j[0], rm.box_xc, out=j[2])
+                np.multiply(j[1], rm.box_xc, out=j[3])
                 qj = j @ rm.qt.T
-                # projected out as in read_region: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ), J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
-                idx = np.array([2 * i, 2 * i + 1, npar - 2, npar - 1])
-                hess[np.ix_(idx, idx)] += j @ j.T - qj @ qj.T
-                grad[idx] += j @ e - qj @ qe
-            hess[np.diag_indices(npar)] += 1e-6
+                # projected out as in read_region: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ), J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe;
+                # rows/columns: this region's translation (2 i, 2 i + 1), the shared stretch and tilt (last two)
+                hr = j @ j.T - qj @ qj.T
+                gr = j @ e - qj @ qe
+                a = 2 * i
+                hess[a:a + 2, a:a + 2] += hr[:2, :2]
+                hess[a:a + 2, -2:] += hr[:2, 2:]
+                hess[-2:, a:a + 2] += hr[2:, :2]
+                hess[-2:, -2:] += hr[2:, 2:]
+                grad[a:a + 2] += gr[:2]
+                grad[-2:] += gr[2:]
+            hess[_DIAG[npar]] += 1e-6
             ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
             if not ok:
                 break
-            sol = sol.ravel()
-            t = np.clip(t + np.clip(sol[:-2].reshape(n, 2), -2.0, 2.0), -lim, lim)
-            st = max(-slim, min(slim, st + float(sol[-2])))
-            kt = max(-slim, min(slim, kt + float(sol[-1])))
+            sol = sol.ravel().tolist()
+            for i, v in enumerate(t):
+                v[0] = max(-lim, min(lim, v[0] + max(-2.0, min(2.0, sol[2 * i]))))
+                v[1] = max(-lim, min(lim, v[1] + max(-2.0, min(2.0, sol[2 * i + 1]))))
+            st = max(-slim, min(slim, st + sol[-2]))
+            kt = max(-slim, min(slim, kt + sol[-1]))
         _, t, st, kt, es = best
         out = []
-        for rm, e, (x0, y0, w, h, cx, _), (tx, ty) in zip(rms, es, geo, t.tolist()):
+        for rm, e, (x0, y0, w, h, cx), (tx, ty) in zip(rms, es, geo, t):
             self._region_shift[rm.name] = np.array([tx, ty, st, kt])
             c = rm.pinv_i @ e
             self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
