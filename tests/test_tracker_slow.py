@@ -73,7 +73,7 @@ def test_real_footage_default_workflow_beats_dlib(shared_data, tmp_path, clip):
     Before issue 13's lip work (labels stopping at a half-open mouth, mid-lip points sliding with the head,
     single dlib predictions, regions read alone): own error 1.71x / 1.30x dlib's (cap12_edit / franck),
     mouth r 0.885 / 0.934; before the lips' stretch and tilt (``Tracker(lip_stretch=0)``): 0.79x / 1.04x.
-    Measured now: 0.74x / 0.975x (franck's margin is small: 0.0076 against dlib's 0.0078).
+    Measured now: 0.75x / 0.976x (franck's margin is small: 0.00756 against dlib's 0.00774).
     franck takes about 1.5-2 minutes (dlib over 4,800 frames for the frame choice)."""
     pytest.importorskip("dlib")
     from keyshape.base.formats.labels import read_labels
