@@ -61,7 +61,7 @@ Evaluation
 Every (vertex, bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)``, and
 every origin and frame row is a control point, a difference of two, or one of the unit
 vectors ``n, m_0, m_1, m_2`` of its bone. So for frame ``t``, with
-``Y = [control points; n of every bone; m_i of every bone corner; m_i again; m_{i-1}]``
+``Y = [control points; n of every bone; m_i of every bone corner; m_i + m_{i-1}; m_{i-1}]``
 (``n_controls + 10 n_bones`` rows), ``deform = T @ Y + still`` where the sparse ``T``
 (n_vertices x that, CSC) is built once at fit (bind) time (a vertex's entries on a shared control
 point merged). This is the "fixed matrix of weighted local coordinates times each frame's bone
@@ -393,9 +393,9 @@ class PlanarBones:
         fdata = np.bincount(inv, weights=vals, minlength=len(uniq))
         frows = (uniq % nv).astype(np.int32)
         findptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // nv, minlength=n_fixed_cols))])
-        # The wedge entries (w c_1 D/d on m_i, w c_2 D/d on m_{i-1}; eq. 10) change every frame.
-        # Pairs sorted by (bone corner, vertex): the m_i copy's columns then hold them in that order
-        # and the m_{i-1} copy's columns hold them again in the same order, so the two blocks at
+        # The wedge entries (w c_1 D/d on m_i + m_{i-1}, w (c_2 - c_1) D/d on m_{i-1}; eq. 10) change every frame.
+        # Pairs sorted by (bone corner, vertex): the (m_i + m_{i-1}) rows' columns then hold them in that order
+        # and the m_{i-1} rows' columns hold them again in the same order, so the two blocks at
         # the end of the CSC data are refilled in place, no gather, from one factor per pair.
         wi = np.flatnonzero(wedge)
         wcorner = 3 * pb[wi] + side[wi]                                           # which (bone, corner)
@@ -411,7 +411,9 @@ class PlanarBones:
         self._wedge_data = (self._T.data[nf:nf + npw], self._T.data[nf + npw:])   # views, refilled
         D = self.pair_D_[wi]
         c1w, c2w = c1[wi], c2[wi]
-        self._wedge_num = ((w[wi] * c1w * D).astype(dt), (w[wi] * c2w * D).astype(dt))  # w c D, over d per frame
+        # w c D over d per frame, on the rows m_i + m_{i-1} and m_{i-1}: c_1 m_i + c_2 m_{i-1} =
+        # c_1 (m_i + m_{i-1}) + (c_2 - c_1) m_{i-1}, whose terms do not cancel where the corner closes
+        self._wedge_num = ((w[wi] * c1w * D).astype(dt), (w[wi] * (c2w - c1w) * D).astype(dt))
         self._wedge_corner = wcorner
         self._wedge_sq = ((c1w - c2w) ** 2).astype(dt)                   # d^2 = sq + cross * (1 + g), no cancellation
         self._wedge_cross = (2.0 * c1w * c2w).astype(dt)
@@ -475,7 +477,7 @@ class PlanarBones:
         """Y and the corner dot products ``g = m_i . m_{i-1}`` for frames ``c`` (..., n_controls, 3), float64.
 
         Y's rows: control points, then ``n`` of every bone, then ``m_i`` of every bone corner
-        ``3 b + i`` twice, then ``m_{i-1}`` of every bone corner (eqs. 2, 7).
+        ``3 b + i``, then ``m_i + m_{i-1}``, then ``m_{i-1}`` of every bone corner (eqs. 2, 7).
         """
         corners = c[..., self.triangles_, :]
         e = np.roll(corners, -1, axis=-2) - corners                                # eq. (6)
@@ -485,7 +487,8 @@ class PlanarBones:
         g = np.einsum("...i,...i->...", m, mp)
         lead = m.shape[:-3]
         m = m.reshape(lead + (-1, 3))
-        y = np.concatenate([c, n, m, m, mp.reshape(lead + (-1, 3))], axis=-2)
+        mp = mp.reshape(lead + (-1, 3))
+        y = np.concatenate([c, n, m, m + mp, mp], axis=-2)
         return y, g.reshape(lead + (-1,))
 
     def _inverse_d(self, g: np.ndarray) -> np.ndarray:
