@@ -15,13 +15,18 @@ from server_helpers import request, serving
 from test_rig_poses import SHAPES, TRUE, actor_keys, write_toy_rig
 
 
-@pytest.fixture
-def running(tmp_path):
+def pose_page_server(tmp_path) -> PoseServer:
+    """A pose page (not yet serving) on the toy rig's POSES.json, written by ``keyshape pose``."""
     rig, lm = write_toy_rig(tmp_path / "rig")
     write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
     assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
                  "--nuisance", "none", "-o", str(tmp_path / "poses.json")]) == 0
-    with serving(PoseServer(tmp_path / "poses.json", load_rig(rig), port=0, size=96)) as server:
+    return PoseServer(tmp_path / "poses.json", load_rig(rig), port=0, size=96)
+
+
+@pytest.fixture
+def running(tmp_path):
+    with serving(pose_page_server(tmp_path)) as server:
         yield server, tmp_path
 
 

@@ -1,31 +1,19 @@
 """The pose-correction page in a real browser: load, move a slider, the pose is saved and re-rendered."""
 from __future__ import annotations
 
-import threading
-
 import pytest
 
-from keyshape.base.formats.keys import write_keys
 from keyshape.base.formats.poses import read_poses
-from keyshape.cli import main
-from keyshape.retarget.pose_edit import PoseServer
-from keyshape.retarget.rig import load_rig
+from server_helpers import serving
 from test_label_browser import browser_page  # noqa: F401 (fixture: headless Chromium, skipped where absent)
-from test_rig_poses import SHAPES, TRUE, actor_keys, write_toy_rig
+from test_pose_edit import pose_page_server
+from test_rig_poses import SHAPES
 
 
 @pytest.fixture
 def server(tmp_path):
-    rig, lm = write_toy_rig(tmp_path / "rig")
-    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
-    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
-                 "--nuisance", "none", "-o", str(tmp_path / "poses.json")]) == 0
-    srv = PoseServer(tmp_path / "poses.json", load_rig(rig), port=0, size=96)
-    t = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True)
-    t.start()
-    yield srv
-    srv.shutdown()
-    srv.server_close()
+    with serving(pose_page_server(tmp_path)) as srv:
+        yield srv
 
 
 def test_slider_saves_the_pose_and_rerenders(browser_page, server):  # noqa: F811
