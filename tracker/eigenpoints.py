@@ -309,8 +309,9 @@ class RegionModel:
         q, _ = np.linalg.qr(np.hstack([np.ones((n_pix, 1)), ui]))
         self.qt = np.ascontiguousarray(q.T)
         self.n_pix = n_pix
-        # the lips' stretch and tilt (Tracker.read_lips): each pixel's box x from the box centre
-        self.box_xc = (self.index % int(self.box[2])).astype(np.float64) - (int(self.box[2]) - 1) / 2.0
+        # the lips' stretch and tilt (Tracker.read_lips): the box centre's x, and each pixel's x from it
+        self.box_cx = (int(self.box[2]) - 1) / 2.0
+        self.box_xc = (self.index % int(self.box[2])).astype(np.float64) - self.box_cx
 
     def crop(self, patch: np.ndarray) -> np.ndarray:
         """The region's box of a model-frame patch (size, size)."""

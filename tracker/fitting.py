@@ -38,7 +38,6 @@ _JTJ_PROD = _GRAD_PAIR[_COL_GRAD[:, None], _COL_GRAD[None, :]]
 _JTE_MONO = np.array([3, 3, 4, 4, 5, 5])                     # x, x, y, y, 1, 1
 _JTE_PROD = 3 + _COL_GRAD                                    # gx e, gy e
 _DIAG6 = np.diag_indices(6)
-_DIAG = {k: np.diag_indices(k) for k in range(1, 9)}
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
 
 _BLAS = None        # threadpoolctl's controller of the loaded BLAS libraries (False: not available)
@@ -480,7 +479,7 @@ class Tracker:
         (a00, a01, a02), (a10, a11, a12) = pose.tolist()
         t = [[0.0, 0.0] for _ in rms]
         st = kt = 0.0
-        geo = [(*rm.box.tolist(), (int(rm.box[2]) - 1) / 2.0) for rm in rms]
+        geo = [(*rm.box.tolist(), rm.box_cx) for rm in rms]
         crops = [rm.crop(patch) for rm in rms]
         best = None
         hess = np.empty((npar, npar))
@@ -526,7 +525,7 @@ class Tracker:
                 hess[-2:, -2:] += hr[2:, 2:]
                 grad[a:a + 2] += gr[:2]
                 grad[-2:] += gr[2:]
-            hess[_DIAG[npar]] += 1e-6
+            hess.flat[::npar + 1] += 1e-6
             ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
             if not ok:
                 break
