@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
+from keyshape.retarget.poses import fit_similarity
 from keyshape.retarget.rig import Rig
 from keyshape.retarget.targets import name_key
 
@@ -82,7 +83,6 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
     -------
     gains, cos : (n_components,) each
     """
-    from keyshape.retarget.poses import fit_similarity
     basis = np.asarray(basis, float)
     s, R, _ = fit_similarity(np.asarray(neutral, float), np.asarray(rig_neutral, float))
     gains, cos = np.zeros(len(components)), np.zeros(len(components))
