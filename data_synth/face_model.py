@@ -140,8 +140,9 @@ class FaceModel:
         P["up_inner"] = _param(0.6, jawOpen=-3.0, mouthFunnel=-3.0, mouthSmile_L=-1.0, mouthSmile_R=-1.0)
         P["open_jaw"] = _param(0.4, jawOpen=26.0, mouthSmile_L=1.0, mouthSmile_R=1.0)
         P["open_funnel"] = _param(0.0, mouthFunnel=11.0)
-        P["lo_thick"] = _param(lt, mouthPucker=3.0, mouthFunnel=2.0, mouthSmile_L=-1.5, mouthSmile_R=-1.5,
+        P["lo_thick"] = _param(lt, mouthPucker=3.0, mouthFunnel=2.0, mouthSmile_L=1.0, mouthSmile_R=1.0,
                                jawOpen=-1.0)
+        P["lip_bend"] = _param(0.0, mouthSmile_L=1.5, mouthSmile_R=1.5)
         self._param_names = list(P)
         self._param_matrix = np.stack([P[k] for k in self._param_names])     # (n_params, 1 + K)
         self._u = np.linspace(0.0, 1.0, N_SAMPLES)
@@ -213,7 +214,7 @@ class FaceModel:
         yl = my + p["corner_y_l"][:, None]
         yr = my + p["corner_y_r"][:, None]
         x_out = xl + (xr - xl) * u
-        line = yl + (yr - yl) * u
+        line = yl + (yr - yl) * u + p["lip_bend"][:, None] * bump(1.0)
         ins = self.inner_inset
         x_in = xl + ins + (xr - xl - 2 * ins) * u
         bow = self.bow_depth * np.exp(-((u - 0.5) / 0.07) ** 2)
