@@ -12,7 +12,8 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme, load_scheme, scheme_for_n_points
-from keyshape.decompose.regions import RegionKeys, available_regions, decompose_region, model_shapes, select_region
+from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, face_rest_frame, head_shapes,
+                                        select_region)
 
 
 def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:
@@ -38,31 +39,45 @@ def tracks_scheme(tracks: Tracks, scheme: str | Scheme | None = None, source=Non
 
 
 def select_keys(tracks: Tracks, k: int | None, method: str = "spread", regions: Sequence[str] | None = None,
-                scheme: str | Scheme | None = None, seed: int = 0, source=None,
-                progress: bool = False) -> tuple[Scheme, list[RegionKeys]]:
+                scheme: str | Scheme | None = None, seed: int = 0, source=None, progress: bool = False,
+                head: str = "rigid") -> tuple[Scheme, list[RegionKeys], dict]:
     """Choose ``k`` key shapes per region from ``tracks`` (see :func:`~keyshape.decompose.regions.select_region`).
 
     ``regions`` default to all the scheme can form; ``source`` names the tracks file in errors;
-    ``progress`` shows the greedy selector's progress on stderr.
+    ``progress`` shows the greedy selector's progress on stderr; ``head``: how the head pose is
+    taken out (:func:`~keyshape.decompose.regions.head_shapes`: ``rigid``, the default, or ``tracker``).
+    Returns the scheme, the keys and the KEYS.json ``head_pose`` entry that goes with them.
     """
     sch = tracks_scheme(tracks, scheme, source)
     if k is None and method != "hull2":
         raise InputError(f"-k is required for --method {method}")
-    shapes = model_shapes(tracks, source)
+    shapes, stab = head_shapes(tracks, sch, head, source)
+    regions = list(regions or available_regions(sch))
     try:
-        chosen = [select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes, progress=progress)
-                  for r in (regions or available_regions(sch))]
+        rest = face_rest_frame(tracks, shapes, sch, regions)
+        chosen = [select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes, progress=progress,
+                                rest_frame=rest)
+                  for r in regions]
     except InputError as exc:
         if source is None:
             raise
         raise InputError(str(exc), source) from None
-    return sch, chosen
+    return sch, chosen, head_pose_entry(stab)
+
+
+def head_pose_entry(stabilizer) -> dict:
+    """The KEYS.json ``head_pose`` entry of a stabiliser (``{"method": "tracker"}`` for None)."""
+    return {"method": "tracker"} if stabilizer is None else stabilizer.to_dict()
 
 
 def decompose_keys(tracks: Tracks, regions: Sequence[RegionKeys], solver: str = "nnls", smooth_lambda: float = 0.1,
-                   ridge: float = 0.0, source=None) -> tuple[list[str], np.ndarray]:
-    """Per-frame weights of every region's key shapes: (column names ``REGION_K``, weights (n_frames, n_keys))."""
-    shapes = model_shapes(tracks, source)
+                   ridge: float = 0.0, source=None, head_pose: dict | None = None) -> tuple[list[str], np.ndarray]:
+    """Per-frame weights of every region's key shapes: (column names ``REGION_K``, weights (n_frames, n_keys)).
+
+    ``head_pose``: the keys' KEYS.json ``head_pose`` entry; every frame's head is taken out the same
+    way the keys' was (default: the tracker's pose alone, what a key set without the entry means).
+    """
+    shapes, _ = head_shapes(tracks, tracks_scheme(tracks, None, source), head_pose or "tracker", source)
     names, cols = [], []
     for rk in regions:
         cols.append(decompose_region(tracks, rk, solver, smooth_lambda, shapes=shapes, ridge=ridge))

@@ -27,6 +27,10 @@ def register(subparsers) -> None:
                    help="mouth, eyes (with brows) or pupils; repeat for several (default: all the scheme has)")
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
     p.add_argument("--seed", type=int, default=0, help="seed of kmeans/random/greedy (default 0)")
+    p.add_argument("--head-pose", choices=("rigid", "tracker"), default="rigid",
+                   help="how the head's motion is taken out of the shapes: rigid (the tracker's pose, then "
+                        "stabilised on the points rigid with the skull, the eye corners; the default) or tracker "
+                        "(the tracker's pose alone). Recorded in KEYS.json; decompose does the same")
     p.add_argument("--min-key-distance", type=float, default=0.1,
                    help="drop near-duplicate keys: a key closer to an earlier key than this fraction of the "
                         "median key-to-neutral distance (default 0.1; 0 keeps all)")
@@ -116,7 +120,8 @@ def _select(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import write_keys
     from keyshape.base.files import check_outputs
-    from keyshape.decompose.regions import available_regions, model_shapes, select_region
+    from keyshape.decompose.api import head_pose_entry
+    from keyshape.decompose.regions import available_regions, face_rest_frame, head_shapes, select_region, stable_pose
 
     # everything that can be checked before any work or any output
     if args.k is None and args.method != "hull2":
@@ -146,11 +151,13 @@ def _select(args) -> int:
         if info.n_frames > 0 and last >= info.n_frames:
             raise InputError(f"the tracks go to frame {last} but the video has {info.n_frames} frames: "
                              "is this the video the tracks came from?", args.video)
-    shapes = model_shapes(tracks, args.tracks[0])
+    shapes, stab = head_shapes(tracks, scheme, args.head_pose, args.tracks[0])
     regions = args.region or available_regions(scheme)
     try:
+        rest = face_rest_frame(tracks, shapes, scheme, regions) if nf is None or nf == "auto" else None
         chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes,
-                                neutral_frame=nf, min_distance=args.min_key_distance, progress=True)
+                                neutral_frame=nf, min_distance=args.min_key_distance, progress=True,
+                                rest_frame=rest)
                   for r in regions]
     except InputError as exc:
         raise InputError(str(exc), args.tracks[0]) from None
@@ -160,8 +167,9 @@ def _select(args) -> int:
             rk.frames = orig_frame[rk.frames]
             rk.rest_frame = int(orig_frame[rk.rest_frame])
     # the sheet is made (video decoded) before any output is written: a failure writes nothing
-    sheet = encode_sheet(args.sheet, args.video, tracks, scheme, chosen) if args.sheet else None
-    write_keys(args.output, scheme.name, scheme.n_points, chosen, source)
+    sheet = encode_sheet(args.sheet, args.video, tracks, scheme, chosen, stable_pose(tracks, stab)) \
+        if args.sheet else None
+    write_keys(args.output, scheme.name, scheme.n_points, chosen, source, head_pose_entry(stab))
     for rk in chosen:
         dropped = f" ({args.k - len(rk.keys)} near-duplicate keys dropped)" if args.k and len(rk.keys) < args.k \
             else ""
@@ -177,8 +185,9 @@ def _select(args) -> int:
     return 0
 
 
-def encode_sheet(path, video, tracks, scheme, chosen) -> bytes:
-    """The key-frame sheet of ``chosen``, encoded for ``path``'s suffix (.png or .jpg)."""
+def encode_sheet(path, video, tracks, scheme, chosen, poses=None) -> bytes:
+    """The key-frame sheet of ``chosen``, encoded for ``path``'s suffix (.png or .jpg); ``poses``: the
+    head poses the keys' frame goes with (default the tracks' own)."""
     import cv2
 
     from keyshape.base.errors import InputError
@@ -187,18 +196,18 @@ def encode_sheet(path, video, tracks, scheme, chosen) -> bytes:
     suffix = Path(path).suffix.lower()
     if suffix not in (".png", ".jpg", ".jpeg"):
         raise InputError(f"--sheet {path}: use a .png or .jpg file name")
-    img = key_sheet(video, tracks, scheme, chosen)
+    img = key_sheet(video, tracks, scheme, chosen, poses=poses)
     ok, buf = cv2.imencode(suffix, img, [cv2.IMWRITE_JPEG_QUALITY, 88] if suffix != ".png" else [])
     if not ok:
         raise InputError("OpenCV could not encode the sheet", path)
     return buf.tobytes()
 
 
-def write_sheet(path, video, tracks, scheme, chosen) -> None:
+def write_sheet(path, video, tracks, scheme, chosen, poses=None) -> None:
     """Write the key-frame sheet of ``chosen`` (.png or .jpg) atomically."""
     from keyshape.base.files import atomic_write
 
-    data = encode_sheet(path, video, tracks, scheme, chosen)
+    data = encode_sheet(path, video, tracks, scheme, chosen, poses)
     with atomic_write(path, "wb") as f:
         f.write(data)
 
@@ -216,8 +225,9 @@ def _decompose(args) -> int:
     check_outputs([args.output], inputs=[args.tracks, args.keys])
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
-    from keyshape.base.formats.keys import read_keys_source
+    from keyshape.base.formats.keys import read_keys_head_pose, read_keys_source
     src = read_keys_source(args.keys)
+    head = read_keys_head_pose(args.keys)
     mk, mt = src.get("model"), tracks.meta.get("model")
     if mk and mt and mk != mt and not args.allow_foreign_keys:
         raise InputError(f"these keys were chosen from tracks of another tracker model ({mk}; these tracks: {mt}): "
@@ -226,7 +236,7 @@ def _decompose(args) -> int:
     if n_points != tracks.n_points:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)
-    names, w = decompose_keys(tracks, regions, args.solver, args.smooth_lambda, args.ridge, args.tracks)
+    names, w = decompose_keys(tracks, regions, args.solver, args.smooth_lambda, args.ridge, args.tracks, head)
     write_weights(args.output, tracks.frame, names, w, ~tracks.success)
     n_fail = int((~tracks.success).sum())
     print(f"wrote {args.output}: {tracks.n_frames} frames x {len(names)} weights ({args.solver})"

@@ -25,7 +25,7 @@ from scipy.linalg import solve_triangular
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
-from keyshape.decompose.regions import RegionKeys, available_regions, head_pose, model_shapes, region_points, to_image
+from keyshape.decompose.regions import available_regions, head_shapes, region_points, stable_pose
 from keyshape.decompose.selectors import METHODS, make_selector
 from keyshape.decompose.weights import nnls_gram, reconstruct
 
@@ -173,14 +173,14 @@ def _compare(tracks, scheme, methods, regions, kmin, kmax, amplitude, rng, progr
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     rng = np.random.default_rng(rng)
-    shapes_all = model_shapes(tracks)
+    shapes_all, stab = head_shapes(tracks, scheme)              # as keyshape select does by default
     ok = np.flatnonzero(tracks.success)
     if kmax > len(ok):
         raise InputError(f"--kmax {kmax} is larger than the {len(ok)} successful frames")
     if kmin < 1 or kmin > kmax:
         raise InputError(f"need 1 <= kmin <= kmax, got {kmin}..{kmax}")
     regions = available_regions(scheme) if regions is None else list(regions)
-    pose = head_pose(tracks.pose[ok])
+    pose = stable_pose(tracks, stab)[ok]
     # every (region, method) is an independent job with its own random stream, drawn here in a fixed
     # order, so the rows do not depend on how many processes run them
     jobs = []

@@ -18,7 +18,10 @@ is selected or decomposed. The head pose is the nearest similarity of the tracke
 ``image_from_model`` affine (:func:`head_pose`; the paper's "scaled 2D translation and
 rotation"): the affine's shear and anisotropic scale are not head motion for a frontal
 2D tracker but expression that image alignment absorbed (an opening jaw stretches the
-face vertically), and removing them took it from the shapes.
+face vertically), and removing them took it from the shapes. By default the head is then
+stabilised on the scheme's rigid points (:func:`head_shapes`,
+:class:`~keyshape.decompose.stabilize.RigidStabilizer`), since the tracker's pose also
+moves with the expression; :func:`stable_pose` is the head pose that goes with those shapes.
 """
 from __future__ import annotations
 
@@ -29,10 +32,15 @@ from keyshape.base.formats.keys import REGIONS, RegionKeys
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
 from keyshape.decompose.selectors import make_selector
+from keyshape.decompose.stabilize import RigidStabilizer
 from keyshape.decompose.weights import solve_weights
 
-__all__ = ["REGIONS", "RegionKeys", "region_points", "available_regions", "head_pose", "model_shapes", "to_image",
-           "select_region", "decompose_region"]
+__all__ = ["REGIONS", "RegionKeys", "region_points", "available_regions", "head_pose", "model_shapes", "head_shapes",
+           "stable_pose", "to_image", "select_region", "decompose_region", "face_rest_frame", "HEAD_POSES"]
+
+#: How the head's pose is taken out of the shapes: ``rigid`` (the tracker's pose, then stabilised on the
+#: scheme's rigid points; the default) or ``tracker`` (the tracker's pose alone, keyshape's former behaviour).
+HEAD_POSES = ("rigid", "tracker")
 
 
 def region_points(scheme: Scheme, region: str) -> np.ndarray:
@@ -98,6 +106,57 @@ def model_shapes(tracks: Tracks, path=None) -> np.ndarray:
     return out
 
 
+def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | None = "rigid",
+                path=None) -> tuple[np.ndarray, RigidStabilizer | None]:
+    """Shapes in the head frame (n_frames, n_points, 2) and the stabiliser that made them.
+
+    Parameters
+    ----------
+    tracks, scheme : the tracks and their landmark scheme
+    head : ``"rigid"`` (default): :func:`model_shapes` stabilised on ``scheme.rigid`` with a
+        :class:`~keyshape.decompose.stabilize.RigidStabilizer` fitted to this take (the tracker's
+        pose alone where the scheme names no rigid points); ``"tracker"`` or None: the tracker's
+        pose alone; a fitted stabiliser, or a KEYS.json ``head_pose`` dict: that one (what
+        ``keyshape decompose`` does with the stabiliser the keys were chosen with)
+    path : the tracks file, named in errors
+
+    Returns
+    -------
+    shapes, stabiliser (None for the tracker's pose alone)
+    """
+    shapes = model_shapes(tracks, path)
+    if isinstance(head, dict):
+        head = RigidStabilizer.from_dict(head) if head.get("method") == "rigid" else None
+    if head is None or head == "tracker":
+        return shapes, None
+    if head == "rigid":
+        if not scheme.rigid:
+            return shapes, None
+        head = RigidStabilizer(scheme.rigid).fit(shapes)
+    if not isinstance(head, RigidStabilizer):
+        raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
+    return head.transform(shapes), head
+
+
+def stable_pose(tracks: Tracks, stabilizer: RigidStabilizer | dict | None, path=None) -> np.ndarray:
+    """The head pose ``image_from_head`` (n_frames, 2, 3) that goes with :func:`head_shapes`:
+    the tracker's nearest similarity composed with the inverse of the stabiliser's correction
+    (``image = pose @ [shape; 1]`` for every frame). ``stabilizer`` may be a KEYS.json
+    ``head_pose`` dict; None (or ``{"method": "tracker"}``): the tracker's pose alone."""
+    if isinstance(stabilizer, dict):
+        stabilizer = RigidStabilizer.from_dict(stabilizer) if stabilizer.get("method") == "rigid" else None
+    pose = head_pose(np.where(tracks.success[:, None, None], tracks.pose, np.eye(2, 3)))
+    if stabilizer is None:
+        return pose
+    c = stabilizer.correction(model_shapes(tracks, path))           # stable_from_model
+    inv = np.linalg.inv(c[:, :, :2])
+    lin = np.einsum("tij,tjk->tik", pose[:, :, :2], inv)
+    out = np.empty_like(pose)
+    out[:, :, :2] = lin
+    out[:, :, 2] = pose[:, :, 2] - np.einsum("tij,tj->ti", lin, c[:, :, 2])
+    return out
+
+
 def to_image(model_pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """Model-frame points (n_frames, n, 2) to the image with the head part of ``pose`` (n_frames, 2, 3)
     (:func:`head_pose`: the inverse of :func:`model_shapes`)."""
@@ -107,13 +166,14 @@ def to_image(model_pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | None, method: str = "spread",
                   rng=None, shapes: np.ndarray | None = None, neutral_frame: int | str | None = None,
-                  min_distance: float = 0.0, progress: bool = False) -> RegionKeys:
+                  min_distance: float = 0.0, progress: bool = False, rest_frame: int | None = None) -> RegionKeys:
     """Choose ``n_keys`` key shapes of ``region`` from the successful frames of ``tracks``.
 
     Failed frames (``success=0``) are never candidates. ``shapes`` may pass the
     already computed :func:`model_shapes`. The actor's neutral (``rest``) is always
-    recorded: frame ``neutral_frame`` when it is a frame number, else the most relaxed
-    frame (:func:`relaxed_frame`). With ``neutral_frame`` given (a frame number or
+    recorded: frame ``neutral_frame`` when it is a frame number, else frame ``rest_frame``
+    when given (:func:`face_rest_frame`: one relaxed frame for all regions), else the
+    region's most relaxed frame (:func:`relaxed_frame`). With ``neutral_frame`` given (a frame number or
     ``"auto"``) the weights are relative to that neutral; without it, to the take's mean
     (the paper's centring). ``min_distance`` > 0 drops near-duplicate keys: a key closer to
     an earlier key than ``min_distance`` times the median distance of the keys from the
@@ -126,13 +186,14 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
         raise InputError(f"cannot choose {n_keys} key shapes from {len(ok)} successful frames "
                          f"({tracks.n_frames - len(ok)} of {tracks.n_frames} failed)")
     sub = shapes[ok][:, idx]
-    if neutral_frame is None or neutral_frame == "auto":
+    if (neutral_frame is None or neutral_frame == "auto") and rest_frame is None:
         row = relaxed_frame(shapes[:, idx][ok])
         row = int(ok[row])
     else:
-        hit = np.flatnonzero(tracks.frame == int(neutral_frame))
+        wanted = rest_frame if neutral_frame is None or neutral_frame == "auto" else neutral_frame
+        hit = np.flatnonzero(tracks.frame == int(wanted))
         if not len(hit) or not tracks.success[hit[0]]:
-            raise InputError(f"neutral frame {neutral_frame} is not a successfully tracked frame of the tracks")
+            raise InputError(f"neutral frame {wanted} is not a successfully tracked frame of the tracks")
         row = int(hit[0])
     rest = shapes[row, idx].copy()
     # keys are chosen around the take's mean either way (measured: centring the greedy search on
@@ -146,6 +207,26 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
     keep = near_duplicates(sel.keys_, rest, min_distance) if min_distance > 0 else np.arange(len(sel.keys_))
     return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_[keep]]], sel.keys_[keep], neutral,
                       from_frame[keep], rest, int(tracks.frame[row]))
+
+
+def face_rest_frame(tracks: Tracks, shapes: np.ndarray, scheme: Scheme, regions) -> int:
+    """The frame number of the actor's neutral for all of ``regions`` together: :func:`relaxed_frame`
+    of the successful frames' points of every region at once.
+
+    One frame for the whole face, not one per region: a region's own densest shape can be a frame
+    of a held or a lopsided expression that the other regions show is not the rest. On franck.mp4
+    (``bench/real_rig_accuracy.py``, head stabilised) the eyes-and-brows region alone chose frame
+    615, whose left outer brow stands higher than in 77% of the take (the right one: 18%); the
+    face's frame (1646, the mouth's own choice too) took the ICT-FaceKit rig's browInnerUp curve's r
+    with MediaPipe's inner-brow height from 0.78 to 0.85 and browOuterUp_L's from 0.39 to 0.50
+    (cap12_edit: 0.86 to 0.87, 0.76 to 0.71). On the synthetic takes of ``bench/rig_accuracy.py``
+    (seeds 11-15) the rig's vertex error rose by 0.016 x the hidden motion on average.
+    """
+    pts = np.unique(np.concatenate([region_points(scheme, r) for r in regions]))
+    ok = np.flatnonzero(tracks.success)
+    if not len(ok):
+        raise InputError("no successful frame to take the neutral from")
+    return int(tracks.frame[ok[relaxed_frame(shapes[ok][:, pts])]])
 
 
 def near_duplicates(keys: np.ndarray, ref: np.ndarray, min_distance: float) -> np.ndarray:

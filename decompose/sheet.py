@@ -19,8 +19,12 @@ from keyshape.decompose.regions import RegionKeys, to_image
 
 
 def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[RegionKeys],
-              tile_width: int = 280) -> tuple[list[np.ndarray], list[str]]:
-    """One annotated tile per key shape; ``frames_bgr`` maps frame number -> BGR image."""
+              tile_width: int = 280, poses: np.ndarray | None = None) -> tuple[list[np.ndarray], list[str]]:
+    """One annotated tile per key shape; ``frames_bgr`` maps frame number -> BGR image.
+
+    ``poses``: (n_frames, 2, 3) ``image_from_head`` the keys' head frame goes with
+    (:func:`~keyshape.decompose.regions.stable_pose`; default the tracks' own pose)."""
+    poses = tracks.pose if poses is None else poses
     row_of = {int(f): i for i, f in enumerate(tracks.frame)}
     tiles, captions = [], []
     for rk in regions:
@@ -37,7 +41,7 @@ def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[Re
             r = row_of[int(f)]
             face = tracks.points[r]
             shape = face.copy()
-            shape[rk.points] = to_image(key[None], tracks.pose[r:r + 1])[0]   # the key itself, in the image
+            shape[rk.points] = to_image(key[None], poses[r:r + 1])[0]   # the key itself, in the image
             crop, p = crop_around(frames_bgr[int(f)], face, margin=0.3)
             s = tile_width / max(crop.shape[1], 1)
             big = cv2.resize(crop, (tile_width, max(1, int(round(crop.shape[0] * s)))), interpolation=cv2.INTER_CUBIC)
@@ -57,12 +61,13 @@ def key_tiles(frames_bgr: dict, tracks: Tracks, scheme: Scheme, regions: list[Re
 
 
 def key_sheet(video_path, tracks: Tracks, scheme: Scheme, regions: list[RegionKeys], columns: int = 4,
-              tile_width: int = 280) -> np.ndarray:
-    """The sheet image (BGR uint8) for ``regions``' keys, frames decoded from ``video_path``."""
+              tile_width: int = 280, poses: np.ndarray | None = None) -> np.ndarray:
+    """The sheet image (BGR uint8) for ``regions``' keys, frames decoded from ``video_path``
+    (``poses``: as :func:`key_tiles`)."""
     from keyshape.base.formats.video import VideoReader
 
     wanted = sorted({int(f) for rk in regions for f in rk.frames}
                     | {int(rk.rest_frame) for rk in regions if rk.rest_frame is not None})
     images = VideoReader(video_path).read_frames(wanted)
-    tiles, captions = key_tiles(dict(zip(wanted, images)), tracks, scheme, regions, tile_width)
+    tiles, captions = key_tiles(dict(zip(wanted, images)), tracks, scheme, regions, tile_width, poses)
     return contact_sheet(tiles, captions, columns=columns, tile_width=tile_width)

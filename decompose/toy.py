@@ -2,7 +2,8 @@
 
 Not a face renderer (``data_synth`` makes videos): this draws tracks directly.
 A ``contours48`` mean face (model frame, units of pixels at scale 1) is moved by
-``n_modes`` smooth random expression deltas per region, mixed with non-negative,
+``n_modes`` smooth random expression deltas per region (none moves the scheme's rigid
+points, the eye corners), mixed with non-negative,
 temporally smooth activations that hold still on stretches (for jitter tests);
 a random similarity head pose maps it into the image, and Gaussian tracking
 noise is added there.
@@ -77,6 +78,7 @@ def toy_tracks(n_frames: int = 600, n_modes: int = 6, noise_px: float = 0.5, sta
         p = (base[idx] - base[idx].mean(0)) / ext
         feats = np.column_stack([np.ones(len(idx)), p, p ** 2, p[:, :1] * p[:, 1:]])
         modes = np.einsum("pf,mfd->mpd", feats, rng.normal(size=(r, feats.shape[1], 2))) * 0.15 * ext
+        modes[:, np.isin(idx, sch.rigid)] = 0.0          # the eye corners stay on the skull, as in a face
         if region == "pupils":
             modes = np.stack([np.tile([4.0, 0], (2, 1)), np.tile([0, 3.0], (2, 1))])
             act = _smooth_noise(rng, n_frames, 6, (r,))

@@ -50,11 +50,14 @@ class Keys:
     regions : one :class:`~keyshape.decompose.regions.RegionKeys` per region; their ``frames`` are
         the tracks' frame numbers (for a key set chosen over several takes, positions in the takes
         concatenated in the order given, see :func:`select`)
+    head_pose : how the head was taken out of the shapes (KEYS.json's ``head_pose``; None: the
+        tracker's pose alone), applied again by :func:`decompose`
     """
 
     scheme: str
     n_points: int
     regions: list[RegionKeys]
+    head_pose: dict | None = None
 
     @property
     def names(self) -> list[str]:
@@ -65,14 +68,14 @@ class Keys:
         """Write KEYS.json atomically."""
         from keyshape.base.formats.keys import write_keys
 
-        write_keys(path, self.scheme, self.n_points, self.regions)
+        write_keys(path, self.scheme, self.n_points, self.regions, head_pose=self.head_pose)
 
     @classmethod
     def load(cls, path: str | Path) -> "Keys":
         """Read a KEYS.json (errors name the file)."""
-        from keyshape.base.formats.keys import read_keys
+        from keyshape.base.formats.keys import read_keys, read_keys_head_pose
 
-        return cls(*read_keys(path))
+        return cls(*read_keys(path), head_pose=read_keys_head_pose(path))
 
 
 @dataclass
@@ -180,19 +183,21 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
 
 
 def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = "spread",
-           regions: Sequence[str] | None = None, *, scheme: str | None = None, seed: int = 0) -> Keys:
+           regions: Sequence[str] | None = None, *, scheme: str | None = None, seed: int = 0,
+           head: str = "rigid") -> Keys:
     """Choose ``k`` key shapes per region (``keyshape select``).
 
     ``tracks`` may be a list (several takes of one actor, one key set for all): they are
     concatenated in order and the keys' ``frames`` count frames across that concatenation.
-    ``method``: spread (the paper's), kmeans2, kmeans3, hull2, random, greedy.
+    ``method``: spread (the paper's), kmeans2, kmeans3, hull2, random, greedy. ``head``: ``rigid``
+    (stabilise the head on the scheme's rigid points, the default) or ``tracker`` (its pose alone).
     """
     from keyshape.decompose.api import concat_tracks, select_keys
 
     if not isinstance(tracks, Tracks):
         tracks = concat_tracks(tracks)
-    sch, chosen = select_keys(tracks, k, method, regions, scheme, seed)
-    return Keys(sch.name, sch.n_points, chosen)
+    sch, chosen, head_pose = select_keys(tracks, k, method, regions, scheme, seed, head=head)
+    return Keys(sch.name, sch.n_points, chosen, head_pose)
 
 
 def decompose(tracks: Tracks, keys: Keys, solver: str = "nnls", ridge: float = 0.0,
@@ -207,7 +212,7 @@ def decompose(tracks: Tracks, keys: Keys, solver: str = "nnls", ridge: float = 0
     if keys.n_points != tracks.n_points:
         raise InputError(f"key shapes are for {keys.n_points} points ({keys.scheme}), the tracks have "
                          f"{tracks.n_points}")
-    names, w = decompose_keys(tracks, keys.regions, solver, smooth_lambda, ridge)
+    names, w = decompose_keys(tracks, keys.regions, solver, smooth_lambda, ridge, head_pose=keys.head_pose)
     return Weights(tracks.frame, names, w, ~tracks.success)
 
 

@@ -111,6 +111,7 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     from keyshape.base.formats.tracks import read_tracks, write_tracks
     from keyshape.data_synth.video import synthesize
     from keyshape.decompose.cli import write_sheet
+    from keyshape.decompose.regions import stable_pose
     from keyshape.base.schemes import load_scheme
     from keyshape.retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
 
@@ -131,7 +132,8 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     _step(f"keys = select(tracks, k={keys}, method={method!r}, regions=['mouth', 'eyes'])")
     key_set = api.select(tracks, keys, method, ["mouth", "eyes"])
     key_set.save(out / "keys.json")
-    write_sheet(out / "keys.png", video, tracks, load_scheme(key_set.scheme), key_set.regions)
+    write_sheet(out / "keys.png", video, tracks, load_scheme(key_set.scheme), key_set.regions,
+                stable_pose(tracks, key_set.head_pose))
     for rk in key_set.regions:
         print(f"  {rk.region}: {len(rk.keys)} keys ({rk.method}) at frames {', '.join(map(str, rk.frames))}")
     _step(f"weights = decompose(tracks, keys, solver={solver!r}, ridge={ridge})")

@@ -45,11 +45,14 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
 
 
 def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 0, head_units: float = 1.0,
-                     source=None) -> tuple[HeadMotion, float | None]:
+                     source=None, head: str = "rigid") -> tuple[HeadMotion, float | None]:
     """Head motion of the weights' ``frames`` from the tracks' 2D pose, and the tracks' frame rate.
 
-    Failed frames hold the last good pose. The frame rate is the median of the timestamps'
-    steps (None when they do not give one).
+    ``head``: ``rigid`` (default): the tracker's pose stabilised on the scheme's rigid points
+    (:func:`~keyshape.decompose.regions.stable_pose`), so that an expression the tracker's pose
+    took up does not move the character's head; ``tracker``: the tracker's pose as it is (also
+    for tracks of a point count no built-in scheme has). Failed frames hold the last good pose.
+    The frame rate is the median of the timestamps' steps (None when they do not give one).
     """
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
@@ -58,7 +61,20 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 
     rows = np.array([pos[int(f)] for f in frames])
     if reference_frame not in pos:
         raise InputError(f"reference frame {reference_frame} is not in the tracks", source)
-    full = hold_invalid(tracks.pose, tracks.success)
+    if head not in ("rigid", "tracker"):
+        raise InputError(f"unknown head pose {head!r}: use rigid or tracker")
+    pose = tracks.pose
+    if head == "rigid" and tracks.success.any():
+        from keyshape.base.schemes import scheme_for_n_points
+        from keyshape.decompose.regions import head_shapes, stable_pose
+        try:
+            scheme = scheme_for_n_points(tracks.n_points)
+        except InputError:                     # no built-in scheme, no rigid points: the tracker's pose
+            scheme = None
+        if scheme is not None and scheme.rigid:
+            _, stab = head_shapes(tracks, scheme, "rigid", source)
+            pose = np.where(tracks.success[:, None, None], stable_pose(tracks, stab, source), tracks.pose)
+    full = hold_invalid(pose, tracks.success)
     pose = np.concatenate([full[rows], full[[pos[reference_frame]]]])
     head = head_motion(pose, reference=len(rows), units_per_model=head_units)
     head = type(head)(head.translation[:-1], head.rotation[:-1], head.scale[:-1], head.angle[:-1])

@@ -19,7 +19,12 @@ a frame is ``neutral + sum_i w_i (key_i - neutral)``. Optional ``rest`` /
 which ``keyshape pose`` measures key motion from. Optional top-level ``source``:
 ``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``, the tracker model the keys'
 tracks came from (``keyshape decompose`` refuses keys of another model); with several
-tracks files each key has ``"take"``, the index of its file. The weights of
+tracks files each key has ``"take"``, the index of its file. Optional top-level
+``head_pose``: how the head was taken out of the shapes, ``{"method": "rigid", "points":
+[10, 14, 18, 22], "reference": [[x, y], ...]}`` (stabilised on those rigid points, put at
+``reference``: :mod:`keyshape.decompose.stabilize`) or ``{"method": "tracker"}`` (the
+tracker's pose alone; also what a file without the entry means). ``keyshape decompose``
+takes the head out of every frame the same way. The weights of
 the key shapes per frame are WEIGHTS.csv (:mod:`keyshape.base.formats.weights`).
 """
 from __future__ import annotations
@@ -79,15 +84,18 @@ class RegionKeys:
 
 
 def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[RegionKeys],
-               source: dict | None = None) -> None:
+               source: dict | None = None, head_pose: dict | None = None) -> None:
     """Write key shapes of one or more regions to a KEYS.json file, atomically.
 
     ``source``: where the keys came from, ``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``
-    (``keyshape decompose`` refuses keys of another model)."""
+    (``keyshape decompose`` refuses keys of another model). ``head_pose``: how the head was taken
+    out of the shapes (the module docstring; default: not recorded, the tracker's pose)."""
     data = {"format": FORMAT, "version": 1, "scheme": scheme_name, "n_points": int(n_points),
             "coordinates": "model frame (head pose removed)", "regions": {}}
     if source:
         data["source"] = source
+    if head_pose:
+        data["head_pose"] = head_pose
     for rk in regions:
         data["regions"][rk.region] = {
             "method": rk.method, "points": [int(i) for i in rk.points],
@@ -170,3 +178,30 @@ def read_keys_source(path: str | Path) -> dict:
         raise InputError(f"not valid JSON ({exc})", path) from None
     src = data.get("source", {}) if isinstance(data, dict) else {}
     return src if isinstance(src, dict) else {}
+
+
+def read_keys_head_pose(path: str | Path) -> dict:
+    """The ``head_pose`` of a KEYS.json file, checked (``{"method": "tracker"}`` when it has none)."""
+    path = require_file(path, "key-shapes file")
+    data = read_json(path, "key-shapes file")
+    hp = data.get("head_pose") if isinstance(data, dict) else None
+    if hp is None:
+        return {"method": "tracker"}
+    try:
+        method = hp["method"]
+        if method == "tracker":
+            return {"method": "tracker"}
+        if method != "rigid":
+            raise InputError(f"head_pose method {method!r}: expected 'rigid' or 'tracker'", path)
+        pts = [int(i) for i in hp["points"]]
+        ref = np.asarray(hp["reference"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise InputError(f"malformed head_pose (missing or bad field: {exc})", path) from None
+    n = int(data.get("n_points", 0))
+    if len(pts) < 2 or len(set(pts)) != len(pts) or not all(0 <= i < n for i in pts):
+        raise InputError(f"head_pose points {pts}: need two or more distinct points in 0..{n - 1}", path)
+    if ref.shape != (len(pts), 2) or not np.isfinite(ref).all() or np.abs(ref).max() > 1e5:
+        raise InputError(f"head_pose reference must be {len(pts)} finite points", path)
+    if np.linalg.norm(ref - ref.mean(axis=0)) < 1e-9:
+        raise InputError("head_pose reference points coincide", path)
+    return {"method": "rigid", "points": pts, "reference": ref.tolist()}

@@ -3,7 +3,10 @@
 A scheme is a JSON file (``contours48.json``, ``ibug68.json`` here, or a user's
 own file of the same layout) with ``name``, ``n_points``, ``contours`` (name ->
 ``{"points": [...], "closed": bool}``), ``regions`` (name -> point indices) and
-``inter_ocular`` (the two outer eye corners used to normalise errors).
+``inter_ocular`` (the two outer eye corners used to normalise errors) and, optionally,
+``rigid``: points that stay still on the skull whatever the expression (the eye corners; the
+nose bridge where the scheme has one), from which :mod:`keyshape.decompose.stabilize` takes
+the head's pose.
 """
 from __future__ import annotations
 
@@ -37,6 +40,8 @@ class Scheme:
     inter_ocular : tuple[int, int]
         Outer eye corners; their distance normalises errors (NME).
     description : str
+    rigid : tuple[int, ...]
+        Points rigid with the skull (eye corners, nose bridge); empty when the scheme names none.
     """
 
     name: str
@@ -47,6 +52,7 @@ class Scheme:
     inter_ocular: tuple
     description: str = ""
     source: str = field(default="", compare=False)
+    rigid: tuple = ()
 
     def region(self, name: str) -> np.ndarray:
         """Point indices of region ``name`` (``+``-joined names give the union, e.g. ``eyes+brows``)."""
@@ -76,7 +82,8 @@ def scheme_to_dict(s: Scheme) -> dict:
     """``s`` in the layout of a scheme JSON file (what :func:`scheme_from_dict` reads)."""
     return {"name": s.name, "n_points": s.n_points, "description": s.description,
             "contours": {k: {"points": list(v), "closed": s.closed[k]} for k, v in s.contours.items()},
-            "regions": {k: list(v) for k, v in s.regions.items()}, "inter_ocular": list(s.inter_ocular)}
+            "regions": {k: list(v) for k, v in s.regions.items()}, "inter_ocular": list(s.inter_ocular),
+            **({"rigid": list(s.rigid)} if s.rigid else {})}
 
 
 def scheme_from_dict(data: dict, source: str) -> Scheme:
@@ -87,6 +94,7 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
         closed = {k: bool(v.get("closed", False)) for k, v in data["contours"].items()}
         regions = {k: tuple(int(i) for i in v) for k, v in data["regions"].items()}
         io = tuple(int(i) for i in data["inter_ocular"])
+        rigid = tuple(int(i) for i in data.get("rigid", ()))
         name = str(data["name"])
     except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         raise InputError(f"not a landmark scheme (missing or bad field: {exc})", source) from None
@@ -99,7 +107,9 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
                 raise InputError(f"{kind} {k!r} names points {bad} outside 0..{n - 1}", source)
     if len(io) != 2 or not all(0 <= i < n for i in io) or io[0] == io[1]:
         raise InputError(f"inter_ocular must be two distinct point indices in 0..{n - 1}, got {io}", source)
-    return Scheme(name, n, contours, closed, regions, io, str(data.get("description", "")), source)
+    if rigid and (len(set(rigid)) != len(rigid) or len(rigid) < 2 or not all(0 <= i < n for i in rigid)):
+        raise InputError(f"rigid must be two or more distinct point indices in 0..{n - 1}, got {list(rigid)}", source)
+    return Scheme(name, n, contours, closed, regions, io, str(data.get("description", "")), source, rigid)
 
 
 def load_scheme(name_or_path: str | Path = DEFAULT) -> Scheme:
