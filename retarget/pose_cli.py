@@ -25,7 +25,12 @@ def register(subparsers) -> None:
                    help="L1 weight (dimensionless): larger gives fewer shapes per pose")
     p.add_argument("--nuisance", choices=("auto", "translation", "similarity", "none"), default="auto",
                    help="region motions fitted freely besides the rig shapes (left by 2D head-pose removal): "
-                        "auto = translation of the mouth, similarity of the eyes and brows")
+                        "auto = translation of the mouth; for the eyes and brows nothing when the keys' head "
+                        "was stabilised on rigid points (select --head-pose rigid), else a similarity")
+    p.add_argument("--opposed", type=float, default=-0.5, metavar="COSINE",
+                   help="two shapes of a region whose landmark motions have a cosine below this (antagonists: "
+                        "browDown and browOuterUp, mouthLeft and mouthRight) are never used in one pose; -1 "
+                        "allows every combination")
     p.add_argument("-o", "--output", required=True, help="POSES.json to write")
     p.add_argument("--edit", action="store_true",
                    help="then serve a local page (127.0.0.1) to correct the poses by hand; Ctrl-C stops it")
@@ -53,13 +58,18 @@ def run(args) -> int:
 
     import numpy as np
 
-    from keyshape.base.formats.keys import read_keys, read_keys_source
+    from keyshape.base.formats.keys import read_keys, read_keys_head_pose, read_keys_source
     from keyshape.base.formats.poses import write_poses
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import available_regions, region_points
     from keyshape.retarget.poses import pose_library
     from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
 
+    from keyshape.base.errors import InputError
+    if not (np.isfinite(args.opposed) and -1.0 <= args.opposed <= 0.0):
+        raise InputError(f"--opposed {args.opposed}: a cosine from -1 to 0")
+    if not (np.isfinite(args.sparsity) and 0.0 <= args.sparsity <= 100.0):
+        raise InputError(f"--sparsity {args.sparsity}: a number from 0 to 100")
     scheme_name, n_points, regions = read_keys(args.keys)
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=False)
     W, lm_path = rig_landmarks(rig, scheme_name, args.landmarks)
@@ -68,8 +78,9 @@ def run(args) -> int:
     lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
     groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
+    stabilized = read_keys_head_pose(args.keys)["method"] == "rigid"
     lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, args.sparsity,
-                       args.nuisance)
+                       args.nuisance, stabilized, args.opposed)
     fit = lib.pop("_fit")
     data = {"keys": {"file": str(args.keys), "scheme": scheme_name},
             "rig": {"neutral": str(rig.neutral_file), "n_vertices": rig.n_vertices, "shapes": rig.names,

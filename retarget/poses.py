@@ -51,8 +51,33 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray,
     return s, R, md - s * R @ ms
 
 
+def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float = -0.5) -> list[tuple[int, int]]:
+    """Pairs of rig shapes whose landmark motions point against each other (antagonists).
+
+    Parameters
+    ----------
+    A : (m, n_shapes) landmark motion per unit of each shape (:func:`landmark_motion`)
+    free : (m, k) nuisance motions, projected out of the columns first (what the fit ignores)
+    cosine : pairs whose motions' cosine is below this are opposed (ARKit's browDown and browOuterUp
+        of one side: -0.75; mouthLeft and mouthRight: -0.89; jawOpen and mouthClose: -0.99)
+
+    Returns
+    -------
+    list of (i, j), i < j
+    """
+    A = np.asarray(A, float)
+    if free is not None:
+        A = A - free @ np.linalg.lstsq(free, A, rcond=None)[0]
+    norm = np.linalg.norm(A, axis=0)
+    live = norm > 1e-12 * max(norm.max(initial=0.0), 1e-300)
+    C = (A.T @ A) / np.outer(np.where(live, norm, 1.0), np.where(live, norm, 1.0))
+    i, j = np.nonzero(np.triu(C < cosine, 1) & live[:, None] & live[None, :])
+    return list(zip(i.tolist(), j.tolist()))
+
+
 def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
-             sparsity: float = 0.02, scale: float | None = None, free: np.ndarray | None = None) -> np.ndarray:
+             sparsity: float = 0.02, scale: float | None = None, free: np.ndarray | None = None,
+             exclusive: Sequence[tuple[int, int]] = ()) -> np.ndarray:
     """Bounded, sparse least squares: ``argmin ||A p + F q - b||^2 / scale^2 + sparsity * sum_j p_j``.
 
     Parameters
@@ -68,6 +93,11 @@ def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1
         region keeps a key that barely moves (noise) at the rest pose instead of fitting its noise
     free : (m, k) nuisance motions with unbounded, unpenalised coefficients ``q`` (e.g. a common
         translation of the region's points, which 2D head-pose removal leaves behind)
+    exclusive : pairs of shapes that may not both be used (:func:`opposed_pairs`). Two opposed
+        shapes together cancel in the 2D points but not on the mesh (a brow pulled down and
+        raised at once: a frown the actor never made); while a pair is both on, the pair's
+        weaker use (the smaller of the two weights) is settled by refitting without either shape
+        and keeping the better fit, one shape of the pair dropped
 
     Returns
     -------
@@ -94,11 +124,30 @@ def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1
         r = As @ x - bs
         return r @ r + l1 @ x, 2 * (G @ x - h) + l1
 
-    x0 = np.concatenate([np.full(n, lo), np.zeros(k)])
-    res = minimize(f, x0, jac=True, method="L-BFGS-B", bounds=[(lo, hi)] * n + [(None, None)] * k,
-                   options={"maxiter": 5000, "ftol": 1e-15, "gtol": 1e-11})
-    p = np.clip(res.x[:n], lo, hi)
-    p[p < lo + 1e-4 * (hi - lo)] = lo
+    def solve(off):
+        """Minimise with the shapes in ``off`` held at ``lo``; returns (weights, objective)."""
+        box = [(lo, lo) if o else (lo, hi) for o in off] + [(None, None)] * k
+        x0 = np.concatenate([np.full(n, lo), np.zeros(k)])
+        res = minimize(f, x0, jac=True, method="L-BFGS-B", bounds=box,
+                       options={"maxiter": 5000, "ftol": 1e-15, "gtol": 1e-11})
+        p = np.clip(res.x[:n], lo, hi)
+        p[p < lo + 1e-4 * (hi - lo)] = lo
+        return p, float(res.fun)
+
+    off = np.zeros(n, dtype=bool)
+    p, _ = solve(off)
+    pairs = [(int(i), int(j)) for i, j in exclusive]
+    for _ in range(len(pairs)):
+        both = [(i, j) for i, j in pairs if p[i] > lo and p[j] > lo]
+        if not both:
+            break
+        i, j = max(both, key=lambda ij: min(p[ij[0]], p[ij[1]]))
+        tries = []
+        for drop in (i, j):
+            o = off.copy()
+            o[drop] = True
+            tries.append((*solve(o), o))
+        p, _, off = min(tries, key=lambda t: t[1])
     return p
 
 
@@ -179,9 +228,27 @@ def nuisance_motions(points: np.ndarray, kind: str = "translation") -> np.ndarra
     return np.stack(cols, axis=1)
 
 
+def auto_nuisance(region: str, stabilized: bool) -> str:
+    """The ``auto`` nuisance of a region: ``translation`` for the mouth; for the other regions
+    ``none`` when the keys' head was stabilised on rigid points, else ``similarity``.
+
+    The mouth moves against the eye corners with head pitch and yaw (the upper lip's height
+    above the eye-corner line varies by 0.03 inter-ocular distances (SD) on franck and cap12_edit
+    in all three of keyshape's, dlib's and MediaPipe's points, as much as half the lip gap's
+    variation), which no rigid stabilisation in 2D removes; without the free translation the
+    rig's jawOpen curve follows MediaPipe's lip gap with r 0.32 on cap12_edit instead of 0.99
+    (``bench/real_rig_accuracy.py``). The eyes-and-brows region holds the rigid points
+    themselves, so once they are stabilised its rotation and scale are no longer free.
+    """
+    if region == "mouth":
+        return "translation"
+    return "none" if stabilized else "similarity"
+
+
 def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
                  region_shapes: Mapping[str, np.ndarray], bounds: tuple[float, float] = (0.0, 1.0),
-                 sparsity: float = 0.01, nuisance: str = "auto") -> dict:
+                 sparsity: float = 0.01, nuisance: str | Mapping[str, str] = "auto",
+                 stabilized: bool = False, exclusive: float | None = -0.5) -> dict:
     """Suggest a rig pose for every key of every region (the ``regions`` part of POSES.json).
 
     Parameters
@@ -193,13 +260,17 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
     landmark_deltas : (n_shapes, n_points, 2) projected motion of the scheme points per rig shape
     region_shapes : {region: indices of the rig shapes it may drive} (:func:`~keyshape.retarget.rig.shape_regions`)
     bounds, sparsity : see :func:`fit_pose`; the L1 scale is the region's largest key motion
-    nuisance : "auto" (default), "translation", "similarity" or "none": motions of each region's
-        points fitted freely besides the rig shapes (:func:`nuisance_motions`). 2D head-pose
-        removal shifts a region when another one moves (an open jaw lifts the tracked upper
-        lip) and its rotation/scale errors show across the wide eyes-and-brows region; "auto"
-        frees a translation of the mouth (whose own widening, a smile, is a scale) and a
-        similarity of the other regions. A rig shape that only translates (or scales) a
-        region is then lost.
+    nuisance : "auto" (default), "translation", "similarity" or "none", or a dict of them per
+        region: motions of each region's points fitted freely besides the rig shapes
+        (:func:`nuisance_motions`). Head motion the 2D head-pose removal leaves behind shifts a
+        region (pitch moves the mouth against the eyes) and, with the tracker's pose alone, an
+        expression shifts, turns and scales the others; "auto" is :func:`auto_nuisance`. A rig
+        shape that only translates (or scales) a region is then lost.
+    stabilized : whether the keys' head was stabilised on rigid points (KEYS.json ``head_pose``
+        ``rigid``), which "auto" uses
+    exclusive : shapes of a region whose landmark motions (nuisances projected out) have a cosine
+        below this are never used together in one pose (:func:`opposed_pairs`, :func:`fit_pose`);
+        None allows every combination
 
     Returns
     -------
@@ -224,14 +295,16 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
         shapes = np.asarray(region_shapes.get(rk.region, []), dtype=np.intp)
         names = [shape_names[j] for j in shapes]
         A = landmark_motion(landmark_deltas[shapes], rk.points) if len(shapes) else np.zeros((2 * len(rk.points), 0))
-        kind = nuisance if nuisance != "auto" else ("translation" if rk.region == "mouth" else "similarity")
+        kind = nuisance.get(rk.region, "auto") if isinstance(nuisance, Mapping) else nuisance
+        kind = auto_nuisance(rk.region, stabilized) if kind == "auto" else kind
         F = nuisance_motions(rest[rk.region] @ M.T, kind)
+        pairs = opposed_pairs(A, F, exclusive) if exclusive is not None and len(shapes) else []
         motions = [((x - rest[rk.region]) @ M.T).ravel() for x in [*rk.keys, rk.neutral]]
         scale = max(float(np.linalg.norm(m)) for m in motions)
         entry = {"shapes": names, "neutral": {}, "keys": {}}
 
         def solve(b):
-            p = fit_pose(A, b, bounds, sparsity, scale, F)
+            p = fit_pose(A, b, bounds, sparsity, scale, F, pairs)
             r = A @ p - b
             if F is not None:
                 r = r - F @ np.linalg.lstsq(F, r, rcond=None)[0]

@@ -182,8 +182,11 @@ def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarr
     ----------
     landmark_deltas : (n_shapes, n_points, 2) projected motion of the scheme's points per shape
     region_points : {region: point indices}
-    min_fraction : a shape whose largest region motion (RMS over the region's points) is below
-        this fraction of the largest over all shapes drives no region (e.g. ``PupilDilate``)
+    min_fraction : a shape whose motion of its region (RMS over the region's points) is below this
+        fraction of the largest any shape gives that region drives no region (``PupilDilate``;
+        ICT-FaceKit's ``jawForward``, 4% of jawOpen's lip motion in a front view). Relative to the
+        region's own largest, not to all shapes': against jawOpen, eyeWide and eyeSquint (a third
+        of eyeBlink's lid motion) would be lost
 
     names : the shapes' names; ARKit gaze shapes (``eyeLook*``) go to the ``pupils`` region
         (and to no region when there is none)
@@ -195,7 +198,7 @@ def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarr
     regions = list(region_points)
     rms = np.stack([np.sqrt((landmark_deltas[:, region_points[r]] ** 2).sum(-1).mean(-1)) for r in regions], 1)
     best = np.argmax(rms, axis=1)
-    keep = rms.max(axis=1) >= min_fraction * rms.max()
+    keep = rms.max(axis=1) >= min_fraction * rms.max(axis=0)[best]
     if names is not None:
         gaze = np.array([n.lower().startswith(GAZE_PREFIX) for n in names])
         if "pupils" in regions:

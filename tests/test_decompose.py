@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.optimize import nnls
 
 from keyshape.cli import main
-from keyshape.base.errors import InputError, KeyshapeError, NotFittedError
+from keyshape.base.errors import InputError, NotFittedError
 from keyshape.base.formats.tracks import read_tracks, write_tracks
 from keyshape.base.schemes import load_scheme
 from keyshape.base.formats.keys import read_keys, write_keys

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from keyshape.base.errors import InputError
-from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices, write_obj
+from keyshape.base.formats.obj import read_obj, read_obj_vertices, write_obj
 
 QUAD = """v 0 0 0
 v 1 0 0

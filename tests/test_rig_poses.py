@@ -434,3 +434,69 @@ def test_component_gains_against_a_rig_made_from_the_face_itself():
     assert c2[0] < 0.9 and abs(g2[0] - 1.0 / amp[0]) > 0.05
     with pytest.raises(InputError, match="no landmark motion"):
         component_gains(neutral, basis, COMPONENTS, names, neutral @ (s * R).T + t, np.zeros_like(other))
+
+
+# ----------------------------------------------------------------------------------------- antagonists
+
+def test_opposed_shapes_are_never_used_together_and_the_better_one_stays():
+    """Two shapes that cancel in the points (a raise and a lowering of one brow) plus one that makes the
+    rest of the key: without the rule the fit mixes both opposed shapes to shape the key; with it one goes,
+    the one whose loss costs the fit least, and the free fit of the other shapes absorbs the rest."""
+    from keyshape.retarget.poses import opposed_pairs
+    rng = np.random.default_rng(3)
+    up = rng.normal(size=30)
+    down = -up + 0.4 * rng.normal(size=30)            # mostly the opposite motion, partly its own shape
+    other = rng.normal(size=30)
+    A = np.stack([up, down, other], axis=1)
+    assert opposed_pairs(A) == [(0, 1)]
+    assert opposed_pairs(A, cosine=-0.99) == []
+    b = A @ [0.8, 0.5, 0.3]                           # a key made of both: 2D-consistent, 3D nonsense
+    free_fit = fit_pose(A, b, sparsity=0.0)
+    assert free_fit[0] > 0.1 and free_fit[1] > 0.1
+    excl = fit_pose(A, b, sparsity=0.0, exclusive=[(0, 1)])
+    assert (excl[:2] > 0).sum() == 1
+    # the kept one is the one that explains the key better alone
+    res = [np.linalg.norm(A @ fit_pose(A, b, sparsity=0.0, exclusive=[(0, 1)]) - b)]
+    for drop in (0, 1):
+        keep = [j for j in range(3) if j != drop]
+        p = np.zeros(3)
+        p[keep] = fit_pose(A[:, keep], b, sparsity=0.0)
+        res.append(np.linalg.norm(A @ p - b))
+    assert res[0] == pytest.approx(min(res[1:]), rel=1e-6)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000))
+def test_exclusive_pairs_hold_on_random_problems(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(24, 8))
+    A[:, 1] = -A[:, 0] + 0.3 * rng.normal(size=24)
+    A[:, 3] = -A[:, 2] + 0.3 * rng.normal(size=24)
+    b = A @ rng.uniform(0, 1, 8)
+    pairs = [(0, 1), (2, 3)]
+    p = fit_pose(A, b, sparsity=0.01, exclusive=pairs)
+    assert all(not (p[i] > 0 and p[j] > 0) for i, j in pairs)
+    assert ((p >= 0) & (p <= 1)).all()
+
+
+def test_ict_antagonists_and_eye_shapes_of_the_real_rig(shared_data):
+    """On ICT-FaceKit: browDown/browOuterUp and mouthLeft/mouthRight are opposed pairs; eyeWide,
+    eyeSquint and cheekSquint drive the eyes (a third of eyeBlink's lid motion, far below jawOpen's);
+    jawForward, invisible from the front, drives nothing."""
+    from keyshape.retarget.poses import landmark_motion, opposed_pairs
+    from keyshape.retarget.rig import rig_landmarks
+    from keyshape.decompose.regions import available_regions, region_points
+    rig = load_rig(shared_data / "ict-facekit", with_mesh=False)
+    W, _ = rig_landmarks(rig, "contours48")
+    ld = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+    groups = {r: region_points(SCHEME, r) for r in available_regions(SCHEME)}
+    rs = shape_regions(ld, groups, names=rig.names)
+    eyes = [rig.names[j] for j in rs["eyes"]]
+    for n in ("eyeWide_L", "eyeSquint_R", "cheekSquint_L", "eyeBlink_L", "browDown_R"):
+        assert n in eyes
+    assert "jawForward" not in [rig.names[j] for r in rs.values() for j in r]
+    for region, a, b in (("eyes", "browDown_L", "browOuterUp_L"), ("mouth", "mouthLeft", "mouthRight")):
+        idx = list(rs[region])
+        pairs = opposed_pairs(landmark_motion(ld[idx], groups[region]))
+        names = {(rig.names[idx[i]], rig.names[idx[j]]) for i, j in pairs}
+        assert (a, b) in names or (b, a) in names, (region, sorted(names)[:10])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from keyshape.cli import main
-from keyshape.base.errors import InputError, KeyshapeError, NotFittedError
+from keyshape.base.errors import InputError, NotFittedError
 from keyshape.tracker.eigenpoints import AppearanceModel
 from keyshape.tracker.fitting import Tracker
 from keyshape.base.formats.tracks import read_tracks

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, pyramid_level, warp_level, warp_patch_u8
+from keyshape.tracker.eigenpoints import Pyramid, pyramid_level, warp_level, warp_patch_u8
 from keyshape.tracker.fitting import Tracker, single_threaded
 from test_tracker import footage, model  # noqa: F401  (module fixtures)
 
