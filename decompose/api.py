@@ -14,6 +14,7 @@ from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme, load_scheme, scheme_for_n_points
 from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, face_rest_frame, head_shapes,
                                         select_region)
+from keyshape.decompose.stabilize import head_pose_entry
 
 
 def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:
@@ -63,11 +64,6 @@ def select_keys(tracks: Tracks, k: int | None, method: str = "spread", regions: 
             raise
         raise InputError(str(exc), source) from None
     return sch, chosen, head_pose_entry(stab)
-
-
-def head_pose_entry(stabilizer) -> dict:
-    """The KEYS.json ``head_pose`` entry of a stabiliser (``{"method": "tracker"}`` for None)."""
-    return {"method": "tracker"} if stabilizer is None else stabilizer.to_dict()
 
 
 def decompose_keys(tracks: Tracks, regions: Sequence[RegionKeys], solver: str = "nnls", smooth_lambda: float = 0.1,

@@ -120,7 +120,7 @@ def _select(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import write_keys
     from keyshape.base.files import check_outputs
-    from keyshape.decompose.api import head_pose_entry
+    from keyshape.decompose.stabilize import head_pose_entry
     from keyshape.decompose.regions import available_regions, face_rest_frame, head_shapes, select_region, stable_pose
 
     # everything that can be checked before any work or any output

@@ -32,15 +32,11 @@ from keyshape.base.formats.keys import REGIONS, RegionKeys
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
 from keyshape.decompose.selectors import make_selector
-from keyshape.decompose.stabilize import RigidStabilizer
+from keyshape.decompose.stabilize import HEAD_POSES, RigidStabilizer, stabilizer_from_entry
 from keyshape.decompose.weights import solve_weights
 
 __all__ = ["REGIONS", "RegionKeys", "region_points", "available_regions", "head_pose", "model_shapes", "head_shapes",
            "stable_pose", "to_image", "select_region", "decompose_region", "face_rest_frame", "HEAD_POSES"]
-
-#: How the head's pose is taken out of the shapes: ``rigid`` (the tracker's pose, then stabilised on the
-#: scheme's rigid points; the default) or ``tracker`` (the tracker's pose alone, keyshape's former behaviour).
-HEAD_POSES = ("rigid", "tracker")
 
 
 def region_points(scheme: Scheme, region: str) -> np.ndarray:
@@ -126,7 +122,7 @@ def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabiliz
     """
     shapes = model_shapes(tracks, path)
     if isinstance(head, dict):
-        head = RigidStabilizer.from_dict(head) if head.get("method") == "rigid" else None
+        head = stabilizer_from_entry(head)
     if head is None or head == "tracker":
         return shapes, None
     if head == "rigid":
@@ -143,8 +139,7 @@ def stable_pose(tracks: Tracks, stabilizer: RigidStabilizer | dict | None, path=
     the tracker's nearest similarity composed with the inverse of the stabiliser's correction
     (``image = pose @ [shape; 1]`` for every frame). ``stabilizer`` may be a KEYS.json
     ``head_pose`` dict; None (or ``{"method": "tracker"}``): the tracker's pose alone."""
-    if isinstance(stabilizer, dict):
-        stabilizer = RigidStabilizer.from_dict(stabilizer) if stabilizer.get("method") == "rigid" else None
+    stabilizer = stabilizer_from_entry(stabilizer)
     pose = head_pose(np.where(tracks.success[:, None, None], tracks.pose, np.eye(2, 3)))
     if stabilizer is None:
         return pose
@@ -186,11 +181,10 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
         raise InputError(f"cannot choose {n_keys} key shapes from {len(ok)} successful frames "
                          f"({tracks.n_frames - len(ok)} of {tracks.n_frames} failed)")
     sub = shapes[ok][:, idx]
-    if (neutral_frame is None or neutral_frame == "auto") and rest_frame is None:
-        row = relaxed_frame(shapes[:, idx][ok])
-        row = int(ok[row])
+    wanted = rest_frame if neutral_frame is None or neutral_frame == "auto" else neutral_frame
+    if wanted is None:
+        row = int(ok[relaxed_frame(shapes[:, idx][ok])])
     else:
-        wanted = rest_frame if neutral_frame is None or neutral_frame == "auto" else neutral_frame
         hit = np.flatnonzero(tracks.frame == int(wanted))
         if not len(hit) or not tracks.success[hit[0]]:
             raise InputError(f"neutral frame {wanted} is not a successfully tracked frame of the tracks")

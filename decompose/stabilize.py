@@ -24,6 +24,10 @@ import numpy as np
 from keyshape.base.errors import InputError, NotFittedError
 from keyshape.base.geometry import rigid_fit
 
+#: How the head's pose is taken out of the shapes: ``rigid`` (the tracker's pose, then stabilised on the
+#: scheme's rigid points; the default) or ``tracker`` (the tracker's pose alone, keyshape's former behaviour).
+HEAD_POSES = ("rigid", "tracker")
+
 
 def similarity_affines(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Per frame, the least-squares similarity ``dst_from_src`` as a (n_frames, 2, 3) affine.
@@ -116,3 +120,16 @@ class RigidStabilizer:
 
     def __repr__(self) -> str:
         return f"RigidStabilizer(points={list(self.points)})"
+
+
+def head_pose_entry(stabilizer: RigidStabilizer | None) -> dict:
+    """The KEYS.json ``head_pose`` entry of a stabiliser (``{"method": "tracker"}`` for None)."""
+    return {"method": "tracker"} if stabilizer is None else stabilizer.to_dict()
+
+
+def stabilizer_from_entry(entry: dict | RigidStabilizer | None) -> RigidStabilizer | None:
+    """The stabiliser of a KEYS.json ``head_pose`` entry (None for ``tracker``); a stabiliser or
+    None passes through, so callers may take either."""
+    if isinstance(entry, dict):
+        return RigidStabilizer.from_dict(entry) if entry.get("method") == "rigid" else None
+    return entry

@@ -61,8 +61,9 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 
     rows = np.array([pos[int(f)] for f in frames])
     if reference_frame not in pos:
         raise InputError(f"reference frame {reference_frame} is not in the tracks", source)
-    if head not in ("rigid", "tracker"):
-        raise InputError(f"unknown head pose {head!r}: use rigid or tracker")
+    from keyshape.decompose.stabilize import HEAD_POSES
+    if head not in HEAD_POSES:
+        raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
     pose = tracks.pose
     if head == "rigid" and tracks.success.any():
         from keyshape.base.schemes import scheme_for_n_points

@@ -58,6 +58,7 @@ def run(args) -> int:
 
     import numpy as np
 
+    from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose, read_keys_source
     from keyshape.base.formats.poses import write_poses
     from keyshape.base.schemes import load_scheme
@@ -65,7 +66,6 @@ def run(args) -> int:
     from keyshape.retarget.poses import pose_library
     from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
 
-    from keyshape.base.errors import InputError
     if not (np.isfinite(args.opposed) and -1.0 <= args.opposed <= 0.0):
         raise InputError(f"--opposed {args.opposed}: a cosine from -1 to 0")
     if not (np.isfinite(args.sparsity) and 0.0 <= args.sparsity <= 100.0):

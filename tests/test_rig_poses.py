@@ -257,6 +257,22 @@ def test_rig_with_a_shape_of_another_vertex_count_is_refused(tmp_path, capsys):
     assert "broken.obj" in capsys.readouterr().err and not out.exists()
 
 
+@pytest.mark.parametrize("option, value, message", [
+    ("--opposed", "0.5", "--opposed 0.5: a cosine from -1 to 0"),
+    ("--opposed", "nan", "--opposed nan: a cosine from -1 to 0"),
+    ("--sparsity", "-1", "--sparsity -1.0: a number from 0 to 100"),
+    ("--sparsity", "inf", "--sparsity inf: a number from 0 to 100"),
+])
+def test_pose_options_out_of_range_are_refused_and_nothing_written(tmp_path, capsys, option, value, message):
+    from keyshape.base.formats.keys import write_keys
+    rig, lm = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
+    out = tmp_path / "poses.json"
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 option, value, "-o", str(out)]) == 2
+    assert message in capsys.readouterr().err and not out.exists()
+
+
 def test_rig_without_landmarks_asks_for_them(tmp_path, capsys):
     from keyshape.base.formats.keys import write_keys
     rig, _ = write_toy_rig(tmp_path / "rig")
