@@ -270,7 +270,7 @@ def write_take(out_dir, kit: FaceKit, perf: MocapTake, formats=("c3d", "trc")) -
 
     out_dir = Path(out_dir)
     paths = {}
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, kind="synth mocap take") as tmp:
         m = Markers(perf.markers_mm, perf.labels, perf.rate, "mm")
         for f in formats:
             write_markers(tmp / f"take.{f}", m)

@@ -50,7 +50,7 @@ def _synth_mocap(args) -> int:
     perf = synthesize(kit, args.frames, args.rate, rng=args.seed, noise_mm=args.noise, n_gaps=args.gaps,
                       long_gap=args.long_gap, head_degrees=args.head_degrees)
     face = perf.labels[:len(perf.marker_vertices)]
-    with atomic_dir(out_dir, args.overwrite) as tmp:
+    with atomic_dir(out_dir, args.overwrite, kind="synth mocap") as tmp:
         paths = write_take(tmp, kit, perf)
         write_masks(tmp / "masks.json", masks_from_regions(discontinuity_regions(kit, face)))
     paths = {k: out_dir / Path(v).relative_to(tmp) for k, v in paths.items()}

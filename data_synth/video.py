@@ -269,7 +269,7 @@ def synthesize(out_dir, frames: int = 600, seed: int = 0, size=(640, 480), fps: 
                 kept[t] = img
             prog.update()
     write_tracks(paths["truth"], sv.tracks())
-    with atomic_dir(paths["labels"]) as tmp:
+    with atomic_dir(paths["labels"], kind="synth labels") as tmp:
         idx = sv.label_frames(labels)
         write_labels(tmp, idx, sv.points[idx])
     with atomic_write(paths["truth_json"]) as f:

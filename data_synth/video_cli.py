@@ -37,7 +37,7 @@ def run(args) -> int:
     if args.preview:
         check_output(args.preview)
     t0 = time.perf_counter()
-    with atomic_dir(out_dir, args.overwrite) as tmp:
+    with atomic_dir(out_dir, args.overwrite, kind="synth video") as tmp:
         preview = args.preview
         inside = preview and Path(preview).resolve().parent == out_dir.resolve()
         if inside:

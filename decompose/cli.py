@@ -265,7 +265,7 @@ def _compare(args) -> int:
         rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
                        amplitude=args.amplitude, rng=args.seed, progress=bar)
     out = Path(args.output)
-    with atomic_dir(out, args.overwrite, inputs=[args.tracks]) as tmp:
+    with atomic_dir(out, args.overwrite, inputs=[args.tracks], kind="compare") as tmp:
         write_errors(tmp / "errors.csv", rows)
         plot_errors(tmp / "errors.png", rows)
     print(f"wrote {out / 'errors.csv'} and {out / 'errors.png'}")

@@ -93,7 +93,7 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
 
     if frames < 2 or keys < 1 or labels < 2:
         raise InputError("--frames and --labels must be >= 2 and --keys >= 1")
-    with atomic_dir(out_dir, overwrite) as tmp:
+    with atomic_dir(out_dir, overwrite, kind="demo") as tmp:
         figures = _run_demo(tmp, frames, seed, keys, method, labels, solver, ridge)
     _print_summary(Path(out_dir), figures)
     return figures

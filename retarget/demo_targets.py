@@ -135,7 +135,7 @@ def write_demo_targets(folder: str | Path, key_coeffs: Mapping[str, Mapping[str,
     from keyshape.base.files import atomic_dir
     from keyshape.base.formats.obj import write_obj
     ts = demo_targets(key_coeffs, expressions, neutral_coeffs)
-    with atomic_dir(folder) as tmp:
+    with atomic_dir(folder, kind="targets") as tmp:
         write_obj(tmp / "neutral.obj", ts.mesh)
         for c, s in zip(ts.columns, ts.shapes):
             write_obj(tmp / f"{c}.obj", ts.mesh, s)

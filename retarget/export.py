@@ -195,7 +195,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         from keyshape.base.formats.obj import write_obj
         if bake_head and head is not None:
             out = head.apply(out)
-        with atomic_dir(path, overwrite, inputs) as tmp:
+        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
             for fr, v in zip(frames, out):
                 write_obj(tmp / f"frame_{int(fr):06d}.obj", ts.mesh, v)
         return info
@@ -208,7 +208,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
-        with atomic_dir(path, overwrite, inputs) as tmp:
+        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
             for fr, img in zip(frames, images):
                 cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
     else:

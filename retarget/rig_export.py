@@ -61,7 +61,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj
-        with atomic_dir(path, overwrite, inputs) as tmp:
+        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
             for s in range(0, len(curves), chunk_frames):
                 for fr, v in zip(frames[s:s + chunk_frames], rig.evaluate(curves[s:s + chunk_frames])):
                     write_obj(tmp / f"frame_{int(fr):06d}.obj", rig.mesh, v)

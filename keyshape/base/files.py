@@ -23,6 +23,7 @@ import errno
 import hashlib
 import json
 import os
+import posixpath
 import shutil
 import tempfile
 from pathlib import Path
@@ -158,27 +159,124 @@ def check_outputs(files: Iterable[str | Path | None] = (), folders: Iterable[str
             seen[key] = Path(p)
 
 
-def _read_manifest(folder: Path) -> set[str] | None:
+_LEGACY = "legacy"      # the kind of files an older keyshape recorded without naming its command
+
+
+def _manifest_error(folder: Path, why: str) -> InputError:
+    return InputError(f"keyshape's ownership record {MANIFEST} {why}; it is not trusted as a list of "
+                      "files to replace: remove it or choose another folder", folder)
+
+
+def _valid_entry(entry, folder: Path) -> str:
+    """One recorded file name, checked as untrusted: a plain relative path inside the folder."""
+    if not isinstance(entry, str) or not entry:
+        raise _manifest_error(folder, f"lists {entry!r}, which is not a file name")
+    if ("\\" in entry or "\x00" in entry or entry.startswith("/") or (len(entry) > 1 and entry[1] == ":")
+            or entry.strip() != entry):
+        raise _manifest_error(folder, f"lists {entry!r}, which is not a relative path inside the folder")
+    parts = entry.split("/")
+    if any(part in ("", ".", "..") for part in parts) or posixpath.normpath(entry) != entry:
+        raise _manifest_error(folder, f"lists {entry!r}, which is not a normalised path inside the folder")
+    if entry == MANIFEST or _is_hidden_temp(parts[0]):
+        raise _manifest_error(folder, f"lists {entry!r}, a name keyshape never records")
+    return entry
+
+
+def _read_manifest(folder: Path) -> dict[str, set[str]] | None:
+    """The ownership record of ``folder``: command kind -> the files that kind wrote there.
+
+    None when there is none. The record is untrusted input: anything but a JSON object written
+    by keyshape whose entries are normalised relative paths inside the folder (no absolute path,
+    no ``..``) is a one-line :class:`InputError`, never a list of files to replace or delete.
+    A record of an older keyshape (one flat ``files`` list) is read as kind ``"legacy"``: its
+    files may be replaced by name but are never pruned.
+    """
     m = folder / MANIFEST
-    if not m.is_file():
+    if not m.exists() and not m.is_symlink():
         return None
+    if m.is_symlink() or not m.is_file():
+        raise _manifest_error(folder, "is not a plain file")
     try:
-        data = json.loads(m.read_text())
-        return {str(x) for x in data.get("files", [])}
-    except (OSError, ValueError, AttributeError, TypeError):
-        raise InputError(f"unreadable keyshape manifest {MANIFEST}: remove it or choose another folder",
-                         folder) from None
+        data = json.loads(m.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        raise _manifest_error(folder, "is unreadable") from None
+    except RecursionError:
+        raise _manifest_error(folder, "is nested too deeply") from None
+    if not isinstance(data, dict) or data.get("written_by") != "keyshape":
+        raise _manifest_error(folder, "was not written by keyshape")
+    record: dict[str, set[str]] = {}
+    if "outputs" in data:
+        outs = data["outputs"]
+        if not isinstance(outs, dict):
+            raise _manifest_error(folder, "has an 'outputs' that is not an object")
+        for kind, files in outs.items():
+            if not kind or not isinstance(files, list):
+                raise _manifest_error(folder, f"has a bad entry for {kind!r}")
+            record[kind] = {_valid_entry(e, folder) for e in files}
+    elif isinstance(data.get("files"), list):
+        record[_LEGACY] = {_valid_entry(e, folder) for e in data["files"]}
+    else:
+        raise _manifest_error(folder, "has no list of files")
+    return record
 
 
 def _is_hidden_temp(name: str) -> bool:
     return name.startswith(".keyshape-") and name.endswith(".partial")
 
 
+def _real(p: str | Path) -> str:
+    return os.path.normcase(os.path.realpath(p))
+
+
+def _inside(child: str, parent: str) -> bool:
+    return child == parent or child.startswith(parent.rstrip(os.sep) + os.sep)
+
+
+class _Inputs:
+    """This run's inputs, resolved: a path touches them when it is one of them or inside an input folder."""
+
+    def __init__(self, inputs: Iterable[str | Path | None]):
+        self.items = []
+        for i in inputs:
+            if i is None or str(i) == "":
+                continue
+            p = Path(i)
+            if p.exists():
+                self.items.append((p, _real(p), p.is_dir()))
+
+    def touched_by(self, path: Path) -> Path | None:
+        """The input that writing or deleting ``path`` would touch, or None."""
+        r = _real(path)
+        for p, real, is_dir in self.items:
+            if r == real or (is_dir and _inside(r, real)):
+                return p
+            with contextlib.suppress(OSError):
+                if path.exists() and os.path.samefile(path, p):     # a hard link of an input
+                    return p
+        return None
+
+
+def _link_on_the_way(root: Path, rel: str) -> Path | None:
+    """The first folder between ``root`` and ``root/rel`` (both excluded) that is a symbolic link."""
+    p = root
+    for part in rel.split("/")[:-1]:
+        p = p / part
+        if p.is_symlink():
+            return p
+    return None
+
+
 def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = ()) -> Path:
-    """Check a folder output before any computation: :func:`check_output`, then refuse a
-    non-empty folder that keyshape did not make (no :data:`MANIFEST`) unless ``overwrite``."""
+    """Check a folder output before any computation: :func:`check_output`; the folder is not
+    inside an input folder; its ownership record (:data:`MANIFEST`), if any, is valid; and a
+    non-empty folder that keyshape did not make (no record) is refused unless ``overwrite``."""
+    inputs = [i for i in inputs if i is not None]
     path = check_output(path, "folder", inputs)
-    if path.is_dir() and not overwrite and _read_manifest(path) is None:
+    for inp, real, is_dir in _Inputs(inputs).items:
+        if is_dir and _inside(_real(path), real):
+            raise InputError(f"the output folder is inside the input folder {inp}; choose another folder", path)
+    record = _read_manifest(path) if path.is_dir() else None
+    if path.is_dir() and not overwrite and record is None:
         others = [p.name for p in path.iterdir() if not _is_hidden_temp(p.name)]
         if others:
             raise InputError(f"folder is not empty and was not made by keyshape ({len(others)} entries, e.g. "
@@ -188,27 +286,40 @@ def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable
 
 
 def _rel_files(root: Path) -> list[str]:
-    """Files under ``root`` (relative paths), without its own manifest (a nested run's stays)."""
-    return sorted(str(p.relative_to(root)) for p in root.rglob("*")
+    """Files under ``root`` (relative POSIX paths), without its own manifest (a nested run's stays)."""
+    return sorted(p.relative_to(root).as_posix() for p in root.rglob("*")
                   if (p.is_file() or p.is_symlink()) and p != root / MANIFEST)
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = ()) -> Iterator[Path]:
+def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = (),
+               kind: str = "output") -> Iterator[Path]:
     """Yield a hidden temporary folder whose files are moved into the folder ``path`` on success.
 
-    Only the files written into the temporary folder are placed in ``path``
-    (created if needed); files already there that keyshape did not write are
-    never deleted. Files that an earlier keyshape run wrote there (listed in
-    its :data:`MANIFEST`) and that this run does not write are removed, so the
-    folder holds one run's outputs. A non-empty folder without a manifest is
-    refused unless ``overwrite``; a file this run would write that is one of
-    ``inputs`` is always refused. On error or interruption the temporary folder
-    is removed and ``path`` is as it was (a folder created for the run is
-    removed again).
+    The ownership rule (``docs/reliability.md``): the folder's :data:`MANIFEST` records, per
+    command ``kind`` (``"retarget"``, ``"compare"``, ``"demo"``, ...), the files that kind wrote
+    there. When this run succeeds:
+
+    * its files are moved in; a file of the same name already there is replaced only when it
+      is recorded under this ``kind`` (or by an older keyshape without a kind), or with
+      ``overwrite``; never when it is one of ``inputs`` or inside an input folder, never
+      through a symbolic link to a folder;
+    * files recorded under this ``kind`` that this run did not write are deleted, except an
+      input, a file inside an input folder, a symbolic link, or one reached through a link;
+      nothing recorded under another kind, and nothing unrecorded, is ever deleted;
+    * the record is rewritten: this kind's entry lists this run's files; files this run took
+      over leave other kinds' entries.
+
+    Every check is made before the first file moves. A non-empty folder without a record is
+    refused unless ``overwrite``; a malformed record is an :class:`InputError`. On error or
+    interruption the temporary folder is removed and ``path`` is as it was (a folder created
+    for the run is removed again).
     """
+    if not kind:
+        raise ValueError("atomic_dir needs a command kind")
+    inputs = [i for i in inputs if i is not None]
     path = check_output_dir(path, overwrite, inputs)
-    inputs = [Path(i) for i in inputs if i is not None]
+    guard = _Inputs(inputs)
     created = not path.exists()
     path.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".keyshape-", suffix=".partial", dir=path))
@@ -217,28 +328,46 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
     try:
         yield tmp
         new = _rel_files(tmp)
-        old = _read_manifest(path) or set()
+        record = _read_manifest(path) or {}
+        own = record.get(kind, set())
+        replaceable = own | record.get(_LEGACY, set())
         for rel in new:
             dest = path / rel
-            for inp in inputs:
-                if _same(dest, inp):
-                    raise InputError(f"this run would overwrite its input {inp}; choose another folder", dest)
-            if dest.is_dir():
-                raise InputError(f"is a folder where keyshape writes a file; move it away", dest)
+            link = _link_on_the_way(path, rel)
+            if link is not None:
+                raise InputError(f"{link} is a symbolic link; keyshape does not write through links: "
+                                 "move it away or choose another folder", dest)
+            inp = guard.touched_by(dest)
+            if inp is not None:
+                raise InputError(f"this run would overwrite its input {inp}; choose another folder", dest)
+            if dest.is_dir() and not dest.is_symlink():
+                raise InputError("is a folder where keyshape writes a file; move it away", dest)
+            if (dest.exists() or dest.is_symlink()) and rel not in replaceable and not overwrite:
+                owner = next((k for k, v in record.items() if rel in v), None)
+                who = f"by keyshape {owner}" if owner else "not by keyshape"
+                raise InputError(f"exists and was written {who}; keyshape {kind} replaces only its own earlier "
+                                 "files: choose another folder, or pass --overwrite", dest)
         for rel in new:
             dest = path / rel
             dest.parent.mkdir(parents=True, exist_ok=True)
             os.replace(tmp / rel, dest)
-        for rel in sorted(old - set(new)):
+        for rel in sorted(own - set(new)):
             stale = path / rel
-            if stale.is_file() and ".." not in Path(rel).parts:
-                stale.unlink()
-                parent = stale.parent
-                while parent != path and parent.is_dir() and not any(parent.iterdir()):
-                    parent.rmdir()
-                    parent = parent.parent
+            if (_link_on_the_way(path, rel) is not None or stale.is_symlink() or not stale.is_file()
+                    or guard.touched_by(stale) is not None):
+                continue
+            stale.unlink()
+            parent = stale.parent
+            while parent != path and not parent.is_symlink() and parent.is_dir() and not any(parent.iterdir()):
+                parent.rmdir()
+                parent = parent.parent
+        taken = set(new)
+        outputs = {k: sorted(f for f in v - taken if os.path.lexists(path / f))
+                   for k, v in record.items() if k != kind}
+        outputs[kind] = new
         with atomic_write(path / MANIFEST) as f:
-            json.dump({"written_by": "keyshape", "files": new}, f, indent=0)
+            json.dump({"written_by": "keyshape", "version": 2,
+                       "outputs": {k: v for k, v in sorted(outputs.items()) if v or k == kind}}, f, indent=0)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         if created:

@@ -182,7 +182,7 @@ def _mocap(args) -> int:
                   [f"pc{i:02d}" for i in range(k)], weights=u[:, :k], fps=take.rate)
         print(f"{k} principal morph targets keep {100 * energy:.3f}% of the motion energy")
     else:
-        with atomic_dir(out, args.overwrite, inputs) as tmp:
+        with atomic_dir(out, args.overwrite, inputs, kind="mocap") as tmp:
             for f in range(len(verts)):
                 write_obj(tmp / f"frame_{f:06d}.obj", mesh, verts[f])
     print(f"wrote {out}")
