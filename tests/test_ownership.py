@@ -251,3 +251,43 @@ def test_legacy_records_are_replaced_by_name_but_never_pruned(tmp_path):
     with atomic_dir(out, kind="demo") as d:
         (d / "c").write_text("c")
     assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "b", "c"]
+
+
+# --------------------------------------------------------------------------- write order: data before sidecar
+def _tracks(value: float, model: str):
+    import numpy as np
+
+    from keyshape.base.formats.tracks import Tracks
+    n = 3
+    return Tracks(np.arange(n), np.arange(n) / 30.0, np.ones(n), np.ones(n, bool), np.full((n, 4, 2), value),
+                  np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 1, 1)), {"model": model})
+
+
+@pytest.mark.parametrize("fail", ["csv", "sidecar"])
+def test_a_failed_tracks_write_keeps_the_old_csv_and_its_sidecar(tmp_path, monkeypatch, fail):
+    import errno
+
+    import keyshape.base.formats.tracks as tr
+    path = tmp_path / "t.csv"
+    tr.write_tracks(path, _tracks(5.0, "sha256:old"))
+    before = tree(tmp_path)
+
+    real_fsync = os.fsync
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    def csv_full(fd):                                           # the disk fills while the CSV is written
+        if os.readlink(f"/proc/self/fd/{fd}").endswith(".csv"):
+            full()
+        real_fsync(fd)
+    if fail == "csv":
+        monkeypatch.setattr(os, "fsync", csv_full)
+    else:
+        monkeypatch.setattr(tr, "write_json", full)
+    with pytest.raises(OSError):
+        tr.write_tracks(path, _tracks(7.0, "sha256:new"))
+    monkeypatch.undo()
+    assert tree(tmp_path) == before
+    t = tr.read_tracks(path)
+    assert t.meta.get("model") == "sha256:old" and float(t.points[0, 0, 0]) == 5.0
