@@ -40,8 +40,10 @@ import numpy as np
 
 from keyshape import __version__
 from keyshape.base.errors import InputError, KeyshapeError
-from keyshape.base.files import atomic_write, sha256_file
+from keyshape.base.files import InputSet, atomic_write, sha256_file
 from keyshape.manifest import OUTPUT_FILES, Actor, Manifest, Settings, Take, read_manifest
+
+REPORT_FORMAT = "keyshape-batch-report"
 
 RECORD = "batch.json"
 _PARTIAL = re.compile(r"^\..+\.[A-Za-z0-9_]+\.partial(\.[A-Za-z0-9]+)?$")
@@ -95,6 +97,11 @@ def write_record(path: Path, rec: dict) -> None:
 def _failure(exc: BaseException) -> dict:
     if isinstance(exc, KeyshapeError):
         msg = str(exc)
+    elif isinstance(exc, OSError):      # a file that cannot be read or written: name it, say why
+        from keyshape.base.files import describe_os_error
+        msg = describe_os_error(exc)
+    elif isinstance(exc, MemoryError):
+        msg = "out of memory (fewer --workers, or shorter takes with 'frames')"
     else:   # a bug, not bad input: keep the place it happened
         tb = traceback.extract_tb(exc.__traceback__)[-1]
         msg = f"{type(exc).__name__}: {exc} ({Path(tb.filename).name}:{tb.lineno})"
@@ -189,16 +196,36 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
         write_tracks(path, tracks)
         seconds = time.perf_counter() - t0
         stats = {"frames": int(tracks.n_frames), "lost_frames": int((~tracks.success).sum()),
+                 **_short_take(take, tracks.n_frames),
                  "confidence": float(np.mean(tracks.confidence)), "track_seconds": round(seconds, 3),
                  "track_cpu_seconds": round(time.process_time() - c0, 3),
                  "worker_max_rss_mb": _max_rss_mb()}
         # a re-tracked take invalidates its later stages: keep only what still holds
-        rec = {"video": video, "track_key": key, "tracks_sha256": file_sha(path)["sha256"], "stats": stats}
+        # (which output files batch wrote here stays recorded: they are still batch's to replace)
+        rec = {"video": video, "track_key": key, "tracks_sha256": file_sha(path)["sha256"], "stats": stats,
+               **{k: rec[k] for k in ("outputs", "outputs_sha256") if k in rec}}
         write_record(rec_path, rec)
         return {"ok": True, "status": "tracked", "path": str(path), "sha256": rec["tracks_sha256"], "stats": stats,
                 "seconds": seconds}
     except Exception as exc:  # noqa: BLE001
         return {**_failure(exc), "seconds": time.perf_counter() - t0}
+
+
+def _short_take(take: Take, n_frames: int) -> dict:
+    """``{"warning": ...}`` when the video ended before the frames its header announces (or the
+    take's frame range), as ``keyshape track`` warns; else {}."""
+    from keyshape.base.formats.video import video_info
+
+    try:
+        announced = video_info(take.video).n_frames
+    except (KeyshapeError, OSError):
+        return {}
+    expected = (min(take.stop, announced) if take.stop is not None and announced else
+                (take.stop if take.stop is not None else announced)) - take.start
+    if announced and n_frames < expected:
+        return {"warning": f"{take.video} ended after {n_frames} of the {expected} frames its header announces "
+                           "(truncated or damaged file); tracks written for the frames decoded"}
+    return {}
 
 
 def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) -> dict:
@@ -232,6 +259,18 @@ def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) ->
                 "offsets": offsets, "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
     except Exception as exc:  # noqa: BLE001
         return {**_failure(exc), "seconds": time.perf_counter() - t0}
+
+
+def _unchanged(files: dict, recorded: dict | None) -> bool:
+    """Every file is there with the content hash recorded when it was written (a truncated
+    weights.csv or an emptied .glb is redone, not reused)."""
+    if not isinstance(recorded, dict):
+        return False
+    for o, p in files.items():
+        p = Path(p)
+        if not p.is_file() or recorded.get(o) != file_sha(p)["sha256"]:
+            return False
+    return True
 
 
 def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: Path, outputs: list[str]) -> dict:
@@ -281,12 +320,13 @@ def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, key
                       settings.smooth_lambda, outputs, [tree_sha(p) for p in (actor.targets, actor.neutral, actor.map,
                                                                               actor.target_regions)], __version__])
         files = {o: str(tdir / OUTPUT_FILES[o]) for o in outputs}
-        if rec.get("finish_key") == key and all(Path(p).exists() for p in files.values()):
+        if rec.get("finish_key") == key and _unchanged(files, rec.get("outputs_sha256")):
             stages["finish"] = "skipped"
         else:
             files = finish_take(tracked["path"], keys["path"], actor, settings, tdir, outputs)
             rec["finish_key"] = key
             rec["outputs"] = files
+            rec["outputs_sha256"] = {o: file_sha(Path(p))["sha256"] for o, p in files.items()}
             write_record(rec_path, rec)
             stages["finish"] = "done"
         finish = time.perf_counter() - t0
@@ -314,11 +354,99 @@ def remove_partials(out: Path, manifest: Manifest) -> int:
     return n
 
 
+_SCHEDULER = re.compile(r"(tcp|tls|ucx|ws|wss|inproc)://[A-Za-z0-9_.\-\[\]:%]+/?")
+
+
+def check_scheduler(scheduler: str | None) -> None:
+    """Refuse a ``--scheduler`` that is not an address such as ``tcp://HOST:PORT``."""
+    if scheduler is None:
+        return
+    if not _SCHEDULER.fullmatch(scheduler):
+        raise InputError(f"--scheduler {scheduler!r}: expected an address such as tcp://HOST:PORT")
+    port = scheduler.rstrip("/").rsplit(":", 1)[-1]
+    if scheduler.count(":") >= 2 and port.isdigit() and not 0 < int(port) < 65536:
+        raise InputError(f"--scheduler {scheduler!r}: port {port} is not in 1..65535")
+
+
+_RECORD_KEYS = ("model_key", "model_file", "keys_key", "track_key", "finish_key")
+
+
+def _batch_record(path: Path) -> dict | None:
+    """The batch record at ``path`` when there is one keyshape batch wrote, else None."""
+    rec = read_record(path)
+    return rec if any(k in rec for k in _RECORD_KEYS) else None
+
+
+def check_layout(m: Manifest, out: Path) -> None:
+    """Before any work: refuse a run that would write over an input, into an input folder, or over a
+    file that keyshape batch did not write there.
+
+    A file is batch's when the record beside it (``batch.json``) says batch wrote it (then a rerun
+    may replace it; its content hash decides whether it is reused), or, for ``report.json``, when
+    it is a batch report. Raises :class:`InputError` naming the file and the take or actor.
+    """
+    from keyshape.manifest import ACTOR_FILES
+
+    paths = [m.path]
+    for a in m.actors.values():
+        paths += [a.video, a.labels, a.model, a.targets, a.neutral, a.map, a.target_regions]
+    paths += [t.video for t in m.takes]
+    inputs = InputSet(paths)
+
+    def ours(path: Path, owned: bool, who: str) -> None:
+        inp = inputs.touched_by(path)
+        if inp is not None:
+            raise InputError(f"{who} would write {path.name} over or inside the input {inp}: give it another name "
+                             "or choose another output folder", path)
+        if (path.exists() or path.is_symlink()) and not owned:
+            raise InputError(f"exists and was not written by keyshape batch ({who} writes it): move it away or "
+                             "choose another output folder", path)
+
+    report = out / "report.json"
+    try:
+        is_report = json.loads(report.read_text()).get("format") == REPORT_FORMAT
+    except (OSError, ValueError, AttributeError):
+        is_report = False
+    ours(report, is_report, "the batch report")
+    for a in {t.actor for t in m.takes}:
+        actor = m.actors[a]
+        adir = actor_dir(out, a)
+        rec = _batch_record(adir / RECORD)
+        who = f"actor {a!r}"
+        ours(adir / RECORD, rec is not None, who)
+        rec = rec or {}
+        if actor.model is None:
+            ours(adir / "model.npz", "model_sha256" in rec, who)
+        ours(adir / "keys.json", "keys_sha256" in rec, who)
+    for t in m.takes:
+        tdir = take_dir(out, t)
+        who = f"take {t.name!r} of actor {t.actor!r}"
+        if t.name in ACTOR_FILES:
+            raise InputError(f"{who}: the name is a file batch writes in the actor's folder", tdir)
+        inp = inputs.touched_by(tdir)
+        if inp is not None:
+            raise InputError(f"{who} would write into the input {inp}: give the take another 'name' or choose "
+                             "another output folder", tdir)
+        rec = _batch_record(tdir / RECORD)
+        ours(tdir / RECORD, rec is not None, who)
+        rec = rec or {}
+        ours(tdir / OUTPUT_FILES["tracks"], "tracks_sha256" in rec, who)
+        ours(tdir / "tracks.meta.json", "tracks_sha256" in rec, who)
+        for o in m.settings.outputs:
+            if o != "tracks":
+                ours(tdir / OUTPUT_FILES[o], o in rec.get("outputs", {}) or o in rec.get("outputs_sha256", {}), who)
+
+
 def _client(scheduler: str | None, workers: int | None, processes: bool):
     from distributed import Client, LocalCluster
 
     if scheduler:
-        return Client(scheduler, timeout="20s"), None
+        check_scheduler(scheduler)
+        try:
+            return Client(scheduler, timeout="20s"), None
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            raise InputError(f"--scheduler {scheduler}: cannot connect "
+                             f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
     n = workers or os.cpu_count() or 1
     # worker processes talk over TCP on this machine only; threads of this process use inproc://
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
@@ -349,12 +477,13 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
 
     m = manifest if isinstance(manifest, Manifest) else read_manifest(manifest)
     out = Path(out_dir).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    remove_partials(out, m)
+    check_layout(m, out)
     t0 = time.perf_counter()
     say = (lambda *a: print(*a, file=sys.stderr, flush=True)) if show_progress else (lambda *a: None)
-    client, cluster = _client(scheduler, workers, processes)
+    client, cluster = _client(scheduler, workers, processes)   # nothing is created before this connects
     try:
+        out.mkdir(parents=True, exist_ok=True)
+        remove_partials(out, m)
         n_workers = len(client.scheduler_info().get("workers", {}))
         say(f"keyshape batch: {len(m.takes)} takes of {len(m.actors)} actors on "
             f"{scheduler or 'a local cluster'} ({n_workers} workers)")
@@ -422,6 +551,8 @@ def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, mode
                "track_cpu_seconds": st.get("track_cpu_seconds"),
                "finish_cpu_seconds": round(r.get("finish_cpu_seconds", 0.0), 3), "stages": r.get("stages", {}),
                "outputs": r.get("outputs", {})}
+        if st.get("warning"):
+            row["warning"] = st["warning"]
         if not r["ok"]:
             row["error"] = r["error"]
         rows.append(row)
@@ -438,7 +569,7 @@ def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, mode
             if not res["ok"]:
                 actors[a][name] = res["error"]
     failed = [r for r in rows if r["status"] == "failed"]
-    return {"format": "keyshape-batch-report", "version": 1, "manifest": str(m.path), "out_dir": str(out),
+    return {"format": REPORT_FORMAT, "version": 1, "manifest": str(m.path), "out_dir": str(out),
             "scheduler": scheduler or ("LocalCluster (processes)" if processes else "LocalCluster (threads)"),
             "workers": n_workers, "seconds": round(seconds, 3), "takes": rows, "actors": actors,
             "n_takes": len(rows), "n_done": sum(r["status"] == "done" for r in rows),
@@ -472,12 +603,15 @@ def run(args) -> int:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     if args.scheduler and (args.workers or args.threads):
         raise InputError("--workers and --threads are for the local cluster; not with --scheduler")
+    check_scheduler(args.scheduler)
     rep = run_batch(args.manifest, args.output, scheduler=args.scheduler, workers=args.workers,
                     processes=not args.threads, show_progress=not args.quiet)
     print(f"keyshape batch: {rep['n_takes']} takes ({rep['n_done']} done, {rep['n_skipped']} skipped, "
           f"{rep['n_failed']} failed), {rep['frames']} frames in {rep['seconds']:.1f} s -> "
           f"{Path(rep['out_dir']) / 'report.json'}")
     for r in rep["takes"]:
+        if r.get("warning"):
+            print(f"keyshape batch: warning: {r['actor']}/{r['take']}: {r['warning']}", file=sys.stderr)
         if r["status"] == "failed":
             print(f"keyshape batch: {r['actor']}/{r['take']} failed: {r['error']}", file=sys.stderr)
     return 1 if rep["n_failed"] else 0

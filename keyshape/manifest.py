@@ -34,6 +34,7 @@ that actor's takes) in the batch and the others go on.
 from __future__ import annotations
 
 import difflib
+import math
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -48,6 +49,11 @@ OUTPUT_FILES = {"tracks": "tracks.csv", "weights": "weights.csv", "glb": "animat
                 "livelink": "livelink.csv", "preview": "preview.mp4"}
 SMOOTHERS = ("none", "savgol", "oneeuro")
 REGION_NAMES = ("mouth", "eyes", "pupils")
+#: names batch writes inside an actor's folder (a take may not be named one of them) and in OUT_DIR
+ACTOR_FILES = ("batch.json", "model.npz", "keys.json")
+TOP_FILES = ("report.json",)
+#: the largest seed numpy accepts
+_SEED_MAX = 2 ** 32 - 1
 
 
 @dataclass
@@ -185,8 +191,8 @@ def read_manifest(path: str | Path) -> Manifest:
         err("'settings' must be a table [settings]", "settings")
     _check_table(raw, _SETTINGS, err, ("settings",))
     settings = Settings(**{k: (float(v) if k in ("ridge", "smooth_lambda") else v) for k, v in raw.items()})
-    bad = [o for o in settings.outputs if o not in OUTPUTS]
-    if bad or not all(isinstance(o, str) for o in settings.outputs):
+    bad = [o for o in settings.outputs if not isinstance(o, str) or o not in OUTPUTS]
+    if bad:
         err(f"unknown output {bad[0]!r}: expected some of {', '.join(OUTPUTS)}", "settings", "outputs")
     for o in ("tracks", "weights"):      # always written: the batch resumes from them
         if o not in settings.outputs:
@@ -195,8 +201,10 @@ def read_manifest(path: str | Path) -> Manifest:
         err(f"smooth {settings.smooth!r}: expected one of {', '.join(SMOOTHERS)}", "settings", "smooth")
     if settings.solver not in SOLVERS:
         err(f"solver {settings.solver!r}: expected one of {', '.join(SOLVERS)}", "settings", "solver")
-    if settings.ridge < 0 or settings.smooth_lambda < 0:
-        err("ridge and smooth_lambda must be >= 0", "settings", "ridge" if settings.ridge < 0 else "smooth_lambda")
+    for key in ("ridge", "smooth_lambda"):
+        v = getattr(settings, key)
+        if not (math.isfinite(v) and 0 <= v <= 1e6):
+            err(f"{key} = {v!r}: must be a finite number from 0 to 1e6", "settings", key)
 
     actors_raw = data.get("actors")
     if not isinstance(actors_raw, dict) or not actors_raw:
@@ -219,6 +227,13 @@ def read_manifest(path: str | Path) -> Manifest:
             err(f"selector {actor.selector!r}: expected one of {', '.join(METHODS)}", "actors", name, "selector")
         if actor.keys < 1:
             err(f"keys must be >= 1, got {actor.keys}", "actors", name, "keys")
+        for key, lo, hi in (("components", 1, 10_000), ("morphs", 0, 100_000), ("seed", 0, _SEED_MAX)):
+            v = getattr(actor, key)
+            if v is not None and not lo <= v <= hi:
+                err(f"{key} = {v}: must be an integer from {lo} to {hi}", "actors", name, key)
+        if name in TOP_FILES:
+            err(f"actor name {name!r} is a file keyshape batch writes in the output folder: choose another",
+                "actors", name)
         if actor.regions is not None and (not actor.regions or any(r not in REGION_NAMES for r in actor.regions)):
             err(f"regions must be some of {', '.join(REGION_NAMES)}, got {actor.regions!r}", "actors", name,
                 "regions")
@@ -232,6 +247,8 @@ def read_manifest(path: str | Path) -> Manifest:
     takes: list[Take] = []
     seen: dict[tuple, int] = {}
     for i, t in enumerate(takes_raw):
+        if not isinstance(t, dict):
+            err(f"take {i + 1} is {t!r}: each take must be a table [[takes]] with actor and video", "takes")
         _check_table(t, _TAKE, err, ("takes", i))
         for key in ("actor", "video"):
             if key not in t:
@@ -243,6 +260,9 @@ def read_manifest(path: str | Path) -> Manifest:
         if not re.fullmatch(r"[A-Za-z0-9_.\-]+", name) or name in (".", ".."):
             err(f"take name {name!r}: use letters, digits, '_', '-', '.' (it names a folder)", "takes", i,
                 "name" if "name" in t else "video")
+        if name in ACTOR_FILES:
+            err(f"take name {name!r} is a file keyshape batch writes in the actor's folder: give the take "
+                "another 'name'", "takes", i, "name" if "name" in t else "video")
         start, stop = 0, None
         if "frames" in t:
             fr = t["frames"]

@@ -232,8 +232,9 @@ def _inside(child: str, parent: str) -> bool:
     return child == parent or child.startswith(parent.rstrip(os.sep) + os.sep)
 
 
-class _Inputs:
-    """This run's inputs, resolved: a path touches them when it is one of them or inside an input folder."""
+class InputSet:
+    """A run's inputs, resolved: a path touches them when it is one of them (a hard link of one
+    included) or lies inside an input folder (links resolved)."""
 
     def __init__(self, inputs: Iterable[str | Path | None]):
         self.items = []
@@ -272,7 +273,7 @@ def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable
     non-empty folder that keyshape did not make (no record) is refused unless ``overwrite``."""
     inputs = [i for i in inputs if i is not None]
     path = check_output(path, "folder", inputs)
-    for inp, real, is_dir in _Inputs(inputs).items:
+    for inp, real, is_dir in InputSet(inputs).items:
         if is_dir and _inside(_real(path), real):
             raise InputError(f"the output folder is inside the input folder {inp}; choose another folder", path)
     record = _read_manifest(path) if path.is_dir() else None
@@ -319,7 +320,7 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
         raise ValueError("atomic_dir needs a command kind")
     inputs = [i for i in inputs if i is not None]
     path = check_output_dir(path, overwrite, inputs)
-    guard = _Inputs(inputs)
+    guard = InputSet(inputs)
     created = not path.exists()
     path.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".keyshape-", suffix=".partial", dir=path))
