@@ -151,6 +151,8 @@ def _select(args) -> int:
         if info.n_frames > 0 and last >= info.n_frames:
             raise InputError(f"the tracks go to frame {last} but the video has {info.n_frames} frames: "
                              "is this the video the tracks came from?", args.video)
+        from keyshape.base.formats.tracks import check_frame_size
+        check_frame_size(tracks.meta, info.width, info.height, args.video, args.tracks[0])
     shapes, stab = head_shapes(tracks, scheme, args.head_pose, args.tracks[0])
     regions = args.region or available_regions(scheme)
     try:

@@ -52,12 +52,16 @@ class Keys:
         concatenated in the order given, see :func:`select`)
     head_pose : how the head was taken out of the shapes (KEYS.json's ``head_pose``; None: the
         tracker's pose alone), applied again by :func:`decompose`
+    source : where the keys came from (KEYS.json's ``source``): ``{"model": "sha256:...", "scheme": ...}``
+        when the tracks carried their model's fingerprint; :func:`decompose` refuses keys of another
+        model's tracks unless told otherwise
     """
 
     scheme: str
     n_points: int
     regions: list[RegionKeys]
     head_pose: dict | None = None
+    source: dict | None = None
 
     @property
     def names(self) -> list[str]:
@@ -68,14 +72,14 @@ class Keys:
         """Write KEYS.json atomically."""
         from keyshape.base.formats.keys import write_keys
 
-        write_keys(path, self.scheme, self.n_points, self.regions, head_pose=self.head_pose)
+        write_keys(path, self.scheme, self.n_points, self.regions, source=self.source, head_pose=self.head_pose)
 
     @classmethod
     def load(cls, path: str | Path) -> "Keys":
         """Read a KEYS.json (errors name the file)."""
-        from keyshape.base.formats.keys import read_keys, read_keys_head_pose
+        from keyshape.base.formats.keys import read_keys, read_keys_head_pose, read_keys_source
 
-        return cls(*read_keys(path), head_pose=read_keys_head_pose(path))
+        return cls(*read_keys(path), head_pose=read_keys_head_pose(path), source=read_keys_source(path) or None)
 
 
 @dataclass
@@ -96,7 +100,11 @@ class Weights:
     interpolated: np.ndarray = field(default=None)
 
     def __post_init__(self) -> None:
-        self.frames = np.asarray(self.frames, dtype=np.int64)
+        fr = np.asarray(self.frames)
+        if fr.dtype.kind not in "biuf" or fr.ndim != 1 or (fr.dtype.kind == "f" and not (
+                np.isfinite(fr).all() and (fr == np.round(fr)).all())):
+            raise InputError(f"Weights.frames must be whole frame numbers, got {fr[:5].tolist()}")
+        self.frames = fr.astype(np.int64)
         self.values = np.asarray(self.values, dtype=np.float64)
         if self.interpolated is None:
             self.interpolated = np.zeros(len(self.frames), dtype=bool)
@@ -150,6 +158,17 @@ class Animation:
                       head=self.head, clamp=clamp, livelink=livelink, bake_head=bake_head, scheme=scheme)
 
 
+def _what(obj) -> str:
+    return f"the path {str(obj)!r}" if isinstance(obj, (str, Path)) else f"{type(obj).__name__}"
+
+
+def _expect(obj, types, name: str, what: str) -> None:
+    """One-line :class:`InputError` when an argument is not of the expected kind (e.g. a path where
+    an object is expected, or None)."""
+    if isinstance(obj, bool) or not isinstance(obj, types):
+        raise InputError(f"{name}: expected {what}, got {_what(obj)}")
+
+
 def train(video: str | Path, labels, *, scheme: str = "contours48", components: int | None = None,
           morphs: int = 120, seed: int = 0) -> AppearanceModel:
     """Train the person-specific tracking model (``keyshape train``).
@@ -179,6 +198,8 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
     """
     from keyshape.tracker.commands import track_frames
 
+    _expect(model, (AppearanceModel, str, Path), "model", "a fitted AppearanceModel or a model file")
+    _expect(video, (str, Path), "video", "a video file path")
     return track_frames(video, model, smooth=smooth, start=start, stop=stop, show_progress=progress)
 
 
@@ -194,14 +215,23 @@ def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = "spre
     """
     from keyshape.decompose.api import concat_tracks, select_keys
 
-    if not isinstance(tracks, Tracks):
-        tracks = concat_tracks(tracks)
+    takes = [tracks] if isinstance(tracks, Tracks) else tracks
+    if isinstance(takes, (str, Path, bytes)) or not isinstance(takes, Sequence) or not takes or \
+            not all(isinstance(t, Tracks) for t in takes):
+        raise InputError(f"select: tracks must be Tracks or a list of Tracks (read a file with read_tracks), "
+                         f"got {_what(tracks)}")
+    if isinstance(regions, str):
+        regions = [regions]
+    models = {t.meta.get("model") for t in takes}
+    tracks = takes[0] if len(takes) == 1 else concat_tracks(takes)
     sch, chosen, head_pose = select_keys(tracks, k, method, regions, scheme, seed, head=head)
-    return Keys(sch.name, sch.n_points, chosen, head_pose)
+    model = models.pop() if len(models) == 1 else None
+    source = {"model": model, "scheme": sch.name} if model else None
+    return Keys(sch.name, sch.n_points, chosen, head_pose, source)
 
 
 def decompose(tracks: Tracks, keys: Keys, solver: str = "nnls", ridge: float = 0.0,
-              smooth_lambda: float = 0.1) -> Weights:
+              smooth_lambda: float = 0.1, *, allow_foreign_keys: bool = False) -> Weights:
     """Per-frame weights of ``keys`` for every frame of ``tracks`` (``keyshape decompose``).
 
     ``solver``: nnls (eq. 4), lstsq or smooth; ``ridge`` shrinks weights against tracking noise.
@@ -209,6 +239,12 @@ def decompose(tracks: Tracks, keys: Keys, solver: str = "nnls", ridge: float = 0
     """
     from keyshape.decompose.api import decompose_keys
 
+    _expect(tracks, Tracks, "tracks", "Tracks (read a file with read_tracks)")
+    _expect(keys, Keys, "keys", "Keys (read a file with Keys.load)")
+    mk, mt = (keys.source or {}).get("model"), tracks.meta.get("model")
+    if mk and mt and mk != mt and not allow_foreign_keys:
+        raise InputError(f"these keys were chosen from tracks of another tracker model ({mk}; these tracks: {mt}): "
+                         "select keys from this model's tracks, or pass allow_foreign_keys=True")
     if keys.n_points != tracks.n_points:
         raise InputError(f"key shapes are for {keys.n_points} points ({keys.scheme}), the tracks have "
                          f"{tracks.n_points}")
@@ -232,6 +268,11 @@ def retarget(weights: Weights, targets, regions=None, *, tracks: Tracks | None =
     """
     from keyshape.retarget.api import fit_retargeter, head_from_tracks
 
+    _expect(weights, Weights, "weights", "Weights (read a file with Weights.load)")
+    if len(weights.frames) == 0:
+        raise InputError("retarget: the weights have no frames")
+    if tracks is not None:
+        _expect(tracks, Tracks, "tracks", "Tracks (read a file with read_tracks)")
     rt = fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=form, band=band,
                         metric=metric)
     head = None

@@ -54,6 +54,10 @@ def run(args) -> int:
         raise InputError("preview output must end in .mp4 or .avi", args.output)
     if args.sheet and Path(args.sheet).suffix.lower() not in (".jpg", ".jpeg", ".png"):
         raise InputError("--sheet must end in .jpg or .png", args.sheet)
+    if not 1 <= args.sheet_frames <= 1000:
+        raise InputError(f"--sheet-frames {args.sheet_frames}: must be from 1 to 1000")
+    if args.size is not None and not 16 <= args.size <= 8192:
+        raise InputError(f"--size {args.size}: must be from 16 to 8192 pixels")
     if bool(args.curves) == bool(args.weights or args.poses):
         raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
@@ -78,6 +82,8 @@ def run(args) -> int:
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     rows = parse_frames(args.frames, frames)
     reader = VideoReader(args.video)
+    from keyshape.base.formats.tracks import check_frame_size
+    check_frame_size(tracks.meta, reader.info.width, reader.info.height, args.video, args.tracks)
     h = args.size or reader.info.height
     renderer = RigRenderer(rig, size=(h, h)).fit(curves[rows])
     fps = reader.info.fps or 30.0

@@ -107,6 +107,13 @@ def _rig_files(sources: Sequence[str | Path] | str | Path, neutral: str | Path |
             shapes = [f for f in shapes if f.stem in keep or f.parent != folder]
     if not shapes:
         raise InputError("no rig shapes (OBJ files besides the neutral) found", folder or neutral)
+    seen: dict[str, Path] = {}
+    for f in shapes:                    # as --targets: jawOpen.obj and JawOpen.obj are one name on some systems
+        key = f.stem.casefold()
+        if key in seen and seen[key] != f:
+            raise InputError(f"two rig shapes whose names differ only by case: {seen[key].name} and {f.name} "
+                             "(which one is meant?); rename or remove one", f.parent)
+        seen[key] = f
     return shapes, neutral
 
 

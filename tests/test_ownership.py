@@ -50,6 +50,8 @@ def one_line_error(capsys) -> str:
 def demo_dir(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("own") / "d2"
     assert main(["demo", str(d), "--frames", "40", "--labels", "6", "--keys", "3"]) == 0
+    from keyshape.base.formats.keys import read_keys_source                # the demo's key set names its model
+    assert read_keys_source(d / "keys.json")["model"].startswith("sha256:")
     return d
 
 

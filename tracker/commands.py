@@ -151,6 +151,16 @@ def _prefetched(items, depth: int = 8):
         thread.join()
 
 
+def check_frame_size(model: AppearanceModel, width: int, height: int, video=None) -> None:
+    """Refuse frames of another size than the model's labelled frames (a model trained on 640x480
+    tracks a 320x240 video wrongly without losing a frame); models without a recorded size pass."""
+    want = getattr(model, "image_size_", None)
+    if want is not None and width and height and (int(width), int(height)) != tuple(want):
+        raise InputError(f"the video's frames are {width}x{height} but the model was trained on "
+                         f"{want[0]}x{want[1]} frames: track video of the labelled footage's size "
+                         "(or label and train on this size)", video)
+
+
 def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int = 0, stop: int | None = None,
                tracker_options: dict | None = None, keep_frames: bool = False, reader: VideoReader | None = None,
                decode_thread: bool = True):
@@ -167,6 +177,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     from keyshape.tracker.smoothing import StreamSmoother
 
     reader = reader or VideoReader(video)
+    check_frame_size(model, reader.info.width, reader.info.height, video)
     tracker = Tracker(model, **(tracker_options or {}))
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
@@ -212,7 +223,8 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     frame = np.array([r[0] for r in rows], dtype=np.int64)
     return Tracks(frame, frame / fps, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
                   np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]),
-                  {"model": model_fingerprint(model), "scheme": model.scheme_.name})
+                  {"model": model_fingerprint(model), "scheme": model.scheme_.name,
+                   "image_size": [int(reader.info.width), int(reader.info.height)]})
 
 
 def check_label_geometry(frames: np.ndarray, shapes: np.ndarray, labels_dir) -> None:
@@ -279,7 +291,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     try:
         with contextlib.ExitStack() as stack:
             f = stack.enter_context(open(tmp_csv, "w", newline="\n"))
-            meta = {"model": model_fingerprint(model), "scheme": model.scheme_.name}
+            meta = {"model": model_fingerprint(model), "scheme": model.scheme_.name,
+                    "image_size": [int(info.width), int(info.height)]}
             writer = TracksWriter(f, model.n_points)
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:

@@ -455,6 +455,11 @@ class AppearanceModel:
             raise InputError(f"need at least 2 labelled frames, got {n}")
         if not np.isfinite(labels).all():
             raise InputError("labels contain NaN or infinity")
+        sizes = {np.asarray(f).shape[:2] for f in frames}
+        if len(sizes) != 1:
+            raise InputError(f"the labelled frames have different sizes {sorted(sizes)}: one video's frames expected")
+        h, w = sizes.pop()
+        self.image_size_ = (int(w), int(h))          # the tracker then refuses video of another size
         rng = np.random.default_rng(self.rng)
 
         # reference shape in the model frame (eq.: affine removal of section 3)
@@ -663,6 +668,8 @@ class AppearanceModel:
         arrays = {k.rstrip("_"): getattr(self, k) for k in self._ARRAYS}
         regions = getattr(self, "region_models_", [])
         state["region_models"] = [{"name": r.name, "landmark_scale": r.landmark_scale} for r in regions]
+        if getattr(self, "image_size_", None) is not None:
+            state["image_size"] = [int(v) for v in self.image_size_]
         for i, r in enumerate(regions):
             for k in RegionModel.ARRAYS:
                 arrays[f"region{i}_{k}"] = getattr(r, k)
@@ -687,6 +694,11 @@ class AppearanceModel:
             model.landmark_scale_ = float(mf.state["landmark_scale"])
             model.patch_size_ = int(mf.state["patch_size"])
             model.n_samples_ = int(mf.state["n_samples"])
+            size = mf.state.get("image_size")             # absent in models trained before it was recorded
+            if size is not None and not (isinstance(size, list) and len(size) == 2 and all(
+                    isinstance(v, (int, float)) and float(v).is_integer() and 1 <= v <= 100_000 for v in size)):
+                raise InputError(f"model file: image_size {size!r} is not [width, height] in pixels", path)
+            model.image_size_ = None if size is None else (int(size[0]), int(size[1]))
             model.region_models_ = [
                 RegionModel(str(r["name"]), *(np.asarray(mf.arrays[f"region{i}_{k}"]) for k in RegionModel.ARRAYS),
                             float(r["landmark_scale"])) for i, r in enumerate(mf.state.get("region_models", []))]

@@ -37,6 +37,8 @@ from keyshape.base.files import atomic_write
 
 FORMAT = "keyshape-poses"
 LANDMARKS_FORMAT = "keyshape-rig-landmarks"
+#: the widest rig shape range a pose library may declare (curves are clipped to its range)
+MAX_RANGE = 10.0
 
 
 def _load_json(path: Path, what: str):
@@ -82,7 +84,14 @@ def read_poses(path: str | Path, rig_shapes: list[str] | None = None) -> dict:
         raise InputError(f"not a poses file: expected \"format\": \"{FORMAT}\" (write one with 'keyshape pose')",
                          path)
     try:
-        lo, hi = (float(x) for x in data.get("range", [0.0, 1.0]))
+        rng = data.get("range", [0.0, 1.0])
+        if not isinstance(rng, list) or len(rng) != 2 or \
+                any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in rng):
+            raise InputError(f"range {rng!r}: expected [low, high] numbers", path)
+        lo, hi = (float(x) for x in rng)
+        if not (np.isfinite(lo) and np.isfinite(hi) and -MAX_RANGE <= lo < hi <= MAX_RANGE):
+            raise InputError(f"range [{lo:g}, {hi:g}]: must be finite numbers with {-MAX_RANGE:g} <= low < high <= "
+                             f"{MAX_RANGE:g} (blendshapes: [0, 1])", path)
         regions = data["regions"]
         if not isinstance(regions, dict) or not regions:
             raise InputError("no regions", path)

@@ -169,6 +169,17 @@ def _read_meta(path: Path, data: bytes) -> dict:
     return meta
 
 
+def check_frame_size(meta: dict, width: int, height: int, video=None, tracks_path=None) -> None:
+    """Refuse drawing tracks on a video of another frame size than the one they were tracked in
+    (``image_size`` in the tracks' metadata; tracks without it pass)."""
+    size = meta.get("image_size") if isinstance(meta, dict) else None
+    if (isinstance(size, list) and len(size) == 2 and width and height
+            and [int(width), int(height)] != [int(v) for v in size if isinstance(v, (int, float))]):
+        src = f" ({tracks_path})" if tracks_path is not None else ""
+        raise InputError(f"the video's frames are {width}x{height} but the tracks{src} were tracked on "
+                         f"{size[0]}x{size[1]} frames: is this the video the tracks came from?", video)
+
+
 def meta_line(meta: dict | None) -> str:
     """The metadata line of a tracks CSV ('' for no metadata)."""
     return META_PREFIX + json.dumps(meta, sort_keys=True) + "\n" if meta else ""

@@ -133,6 +133,30 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     return WeightsTable(a[:, 0].astype(np.int64), names, a[:, 1:1 + len(names)], interp)
 
 
+def _check_writable(frames: np.ndarray, names: list[str], weights: np.ndarray, path) -> None:
+    """Refuse, before writing, what :func:`read_weights` would refuse: no frames, frame numbers that
+    are not whole, unique, increasing and contiguous, weights that are not finite or beyond
+    +-:data:`MAX_WEIGHT` (an :class:`InputError` naming ``path``; nothing is written)."""
+    if len(frames) == 0:
+        raise InputError("no frames to write (a WEIGHTS.csv needs at least one); nothing written", path)
+    try:
+        fr = frames.astype(np.float64)
+    except (TypeError, ValueError):
+        raise InputError("frame numbers must be whole numbers from 0; nothing written", path) from None
+    if fr.ndim != 1 or not np.isfinite(fr).all():
+        raise InputError("frame numbers must be whole numbers from 0; nothing written", path)
+    try:
+        check_frame_numbers(fr, None, [None] * len(fr), "one row per frame is needed for an animation at a "
+                            "steady rate")
+    except InputError as exc:
+        raise InputError(f"{exc}; nothing written", path) from None
+    bad = ~np.isfinite(weights) | (np.abs(np.nan_to_num(weights)) > MAX_WEIGHT)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise InputError(f"weight {weights[i, j]:g} in column {names[j]!r} at frame {int(fr[i])}: weights must be "
+                         f"finite numbers within +-{MAX_WEIGHT:g}; nothing written", path)
+
+
 def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weights: np.ndarray,
                   interpolated: np.ndarray | None = None) -> None:
     """Write a WEIGHTS.csv atomically: ``frame``, one ``%.6f`` column per name, then ``interpolated``
@@ -143,6 +167,7 @@ def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weight
     if weights.shape != (len(frames), len(names)):
         raise InputError(f"weights: expected shape {(len(frames), len(names))}, got {weights.shape}", path)
     _check_names(names, path)
+    _check_writable(frames, names, weights, path)
     cols = [frames.astype(np.int64).astype(str)]
     cols += [np.char.mod("%.6f", weights[:, j]) for j in range(len(names))]
     header = ["frame", *names]
