@@ -15,7 +15,7 @@ import signal
 import sys
 from typing import Sequence
 
-from keyshape.base.errors import KeyshapeError
+from keyshape.base.errors import InputError, KeyshapeError
 
 # (module, group): group None registers top-level subcommands; "synth" registers
 # under ``keyshape synth ...``. Order is the order of ``keyshape --help``.
@@ -83,6 +83,21 @@ def _command_name(args) -> str:
     return f"{args.command} {sub}" if sub else str(args.command)
 
 
+#: the largest seed numpy's generators accept
+SEED_MAX = 2 ** 32 - 1
+
+
+def _check_common_options(args) -> None:
+    """Options several commands share, checked before any work: ``--seed`` (numpy accepts
+    0..2**32-1) and ``--port`` (0: any free port, else up to 65535)."""
+    seed = getattr(args, "seed", None)
+    if isinstance(seed, int) and not 0 <= seed <= SEED_MAX:
+        raise InputError(f"--seed {seed}: must be an integer from 0 to {SEED_MAX}")
+    port = getattr(args, "port", None)
+    if isinstance(port, int) and not 0 <= port <= 65535:
+        raise InputError(f"--port {port}: must be from 0 (any free port) to 65535")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``keyshape`` with ``argv`` (default ``sys.argv[1:]``); return the exit status.
 
@@ -100,6 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     name = _command_name(args)
     try:
+        _check_common_options(args)
         with sigterm_as_interrupt():
             rc = args.func(args)
     except KeyshapeError as exc:

@@ -47,8 +47,13 @@ def check_pose(library: dict, key: str, pose, source=None) -> tuple[str, dict]:
     for s, v in pose.items():
         if s not in allowed:
             raise InputError(f"{key}: shape {s!r} is not among region {region!r}'s shapes", source)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise InputError(f"{key}: weight of {s!r} is not a finite number: {v!r}", source)
+        try:
+            finite = not isinstance(v, bool) and isinstance(v, (int, float)) and np.isfinite(float(v))
+        except OverflowError:           # an integer beyond the float range
+            finite = False
+        if not finite:
+            shown = repr(v) if len(repr(v)) < 40 else repr(v)[:20] + "..."
+            raise InputError(f"{key}: weight of {s!r} is not a finite number: {shown}", source)
         if not lo - 1e-9 <= v <= hi + 1e-9:
             raise InputError(f"{key}: weight {v} of {s!r} is outside the rig's range [{lo:g}, {hi:g}]", source)
         if v != 0:

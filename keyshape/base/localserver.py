@@ -126,7 +126,7 @@ class LocalHandler(BaseHTTPRequestHandler):
             return NO_BODY
         try:
             return json.loads(raw)
-        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
+        except (ValueError, RecursionError):      # bad JSON, not UTF-8, an integer of > 4300 digits
             self.send_error_json(HTTPStatus.BAD_REQUEST, expected)
             return NO_BODY
 
