@@ -199,3 +199,16 @@ def test_a_rig_with_case_duplicate_shape_names_is_refused(tmp_path, capsys):
     err = one_line(capsys)
     assert "differ only by case" in err and first.name in err and twin.name in err
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- C3D cut short
+def test_a_c3d_cut_short_warns_with_both_counts(tmp_path, capsys):
+    from keyshape.base.formats.markers import Markers, read_c3d, write_c3d
+    m = Markers(np.random.default_rng(0).normal(size=(200, 5, 3)) * 100, [f"m{i}" for i in range(5)], 120.0, "mm")
+    write_c3d(tmp_path / "a.c3d", m)
+    assert read_c3d(tmp_path / "a.c3d").warnings == []
+    data = (tmp_path / "a.c3d").read_bytes()
+    (tmp_path / "cut.c3d").write_bytes(data[: len(data) // 2])
+    cut = read_c3d(tmp_path / "cut.c3d")
+    assert 0 < cut.n_frames < 200
+    assert len(cut.warnings) == 1 and f"announces 200 frames but the file holds {cut.n_frames}" in cut.warnings[0]

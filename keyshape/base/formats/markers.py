@@ -229,6 +229,28 @@ def _c3d_contents(path: str) -> dict:
             "first": int(hp["first_frame"]), "last": int(hp["last_frame"])}
 
 
+def _c3d_header_frames(path: Path) -> int | None:
+    """The frame count the C3D file's own header announces (last - first + 1, read from the raw
+    bytes: ezc3d adjusts its parsed header to the frames it found, so a file cut short would pass);
+    None when the header does not say (16-bit overflow, an unreadable header)."""
+    import struct
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(512)
+            if len(head) < 10 or head[1] != 0x50:
+                return None
+            f.seek((head[0] - 1) * 512 + 3) if head[0] >= 1 else None
+            proc = f.read(1)
+    except OSError:
+        return None
+    order = ">" if proc and proc[0] == 86 else "<"        # 84 Intel, 85 DEC: little-endian; 86 MIPS: big
+    first, last = struct.unpack(order + "HH", head[6:10])
+    if first < 1 or last < first or last >= 0xFFFF:
+        return None
+    return last - first + 1
+
+
 def _limit_memory(extra: int) -> None:  # pragma: no cover (runs in the child process)
     """Cap the address space at its current size plus ``extra`` bytes (a damaged header can make a
     C library try to allocate terabytes)."""
@@ -321,7 +343,9 @@ def read_c3d(path, duplicates: str = "error") -> Markers:
     units = (c["units"][0] if len(c["units"]) else "mm").strip() or "mm"
     if not rate > 0:
         raise InputError(f"POINT:RATE is {rate}: expected a positive frame rate", path)
-    return check_take(Markers(xyz, labels, rate, units), path, c["last"] - c["first"] + 1)
+    announced = _c3d_header_frames(path)
+    return check_take(Markers(xyz, labels, rate, units), path,
+                      announced if announced is not None else c["last"] - c["first"] + 1)
 
 
 def write_c3d(path, markers: Markers) -> None:
