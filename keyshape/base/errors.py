@@ -50,6 +50,8 @@ def require_file(path: str | Path, what: str = "file") -> Path:
     """Return ``Path(path)`` or raise :class:`MissingFileError` naming it."""
     p = Path(path)
     if not p.is_file():
+        if p.is_dir():
+            raise InputError(f"is a folder; a {what} was expected", p)
         raise MissingFileError(p, what)
     return p
 
@@ -58,6 +60,8 @@ def require_dir(path: str | Path, what: str = "folder") -> Path:
     """Return ``Path(path)`` or raise :class:`MissingFileError` naming it."""
     p = Path(path)
     if not p.is_dir():
+        if p.exists():
+            raise InputError(f"is a file; a {what} was expected", p)
         raise MissingFileError(p, what)
     return p
 

@@ -62,14 +62,37 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     exits without error and removed otherwise.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_sibling(path, suffix=path.suffix)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _tmp_sibling(path, suffix=path.suffix)
+    except OSError as exc:
+        raise _about(exc, path, None) from None
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            new = _about(exc, path, tmp)
+            if new is not exc:
+                raise new from None
         raise
+
+
+#: errors of writing a file whatever its name: reported as the output's, not the temporary file's
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS}
+
+
+def _about(exc: OSError, path: Path, tmp: Path | None) -> OSError:
+    """``exc`` re-aimed at the user's ``path`` when it concerns keyshape's hidden temporary file
+    (or names no file and is a disk-full or read-only error), so messages name what the user gave."""
+    if exc.filename is None:
+        ours = exc.errno in _WRITE_ERRNOS
+    else:
+        names = {Path(str(exc.filename)), Path(str(exc.filename2))} if exc.filename2 else {Path(str(exc.filename))}
+        ours = (tmp is not None and tmp in names) or \
+            any(n.parent == path.parent and n.name.startswith(f".{path.name}.") for n in names)
+    return OSError(exc.errno, exc.strerror or str(exc), str(path)) if ours else exc
 
 
 @contextlib.contextmanager
@@ -131,6 +154,15 @@ def check_output(path: str | Path, kind: str = "file", inputs: Iterable[str | Pa
         raise InputError(f"folder {anc} is not writable", path)
     if kind == "file" and path.exists() and not os.access(path, os.W_OK) and not os.access(path.parent, os.W_OK):
         raise InputError("not writable", path)
+    if kind == "file":
+        try:
+            name_max = os.pathconf(anc, "PC_NAME_MAX")
+        except (OSError, ValueError):
+            name_max = 255
+        # the hidden temporary sibling adds about 20 characters to the name
+        if len(os.fsencode(path.name)) + 20 > name_max:
+            raise InputError(f"file name too long ({len(os.fsencode(path.name))} bytes; at most "
+                             f"{name_max - 20} here)", path)
     for inp in inputs:
         if inp is None:
             continue

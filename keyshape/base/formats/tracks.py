@@ -196,7 +196,7 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     path = require_file(path, "tracks file")
     data = path.read_bytes()                   # read once: parsed here, hashed against the sidecar
     try:
-        text = data.decode()
+        text = data.decode("utf-8-sig")         # a byte-order mark (spreadsheet exports) is not a column
     except UnicodeDecodeError:
         raise InputError("not a text CSV file", path) from None
     lines = text.splitlines()
@@ -228,7 +228,11 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     with_pose = all(c in header for c in POSE_COLUMNS)
     expected = tracks_header(n_points) if with_pose else tracks_header(n_points)[:-6]
     if header != expected:
-        raise InputError(f"unexpected columns: expected {len(expected)} columns "
+        extra = [h for h in header if h not in expected]
+        missing = [h for h in expected if h not in header]
+        which = (f"extra column(s) {extra[:3]}" if extra else "") + ("; " if extra and missing else "") + \
+            (f"missing column(s) {missing[:3]}" if missing else "") or "columns out of order"
+        raise InputError(f"unexpected columns ({which}): expected {len(expected)} columns "
                          f"frame,time,confidence,success,x_0..x_{n_points - 1},y_0..y_{n_points - 1}"
                          f"{',pose_a11..pose_ty' if with_pose else ''}", path, first)
     rows = []

@@ -84,7 +84,7 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     """
     path = require_file(path, "weights file")
     try:
-        with open(path, newline="", encoding="utf-8") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:     # a byte-order mark is not part of 'frame'
             rows = list(csv.reader(f))
     except UnicodeDecodeError as exc:
         raise InputError(f"not a UTF-8 text CSV file (byte {exc.start})", path) from None
