@@ -147,6 +147,14 @@ def run_rig(args, inputs: list) -> int:
     needs_mesh = not str(args.output).lower().endswith(".csv")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
     lib = read_poses(args.poses, rig.names)
+    pose_model = (lib.get("keys") or {}).get("model") if isinstance(lib.get("keys"), dict) else None
+    if pose_model and args.tracks:
+        from keyshape.base.formats.tracks import read_tracks
+        tracks_model = read_tracks(args.tracks, accept_partial=args.accept_partial).meta.get("model")
+        if tracks_model and tracks_model != pose_model:
+            raise InputError(f"the pose library was fitted to keys of another tracker model ({pose_model}; "
+                             f"the tracks {args.tracks}: {tracks_model}): its poses are another actor's "
+                             "key shapes. Fit a pose library to this model's keys ('keyshape pose')", args.poses)
     curves = curves_from_library(weights, columns, lib, rig.names, args.poses)
     head, fps = _head(args, frames, rig)
     fps = fps or 30.0

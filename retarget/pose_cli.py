@@ -89,6 +89,8 @@ def run(args) -> int:
     src = read_keys_source(args.keys)
     if src.get("model"):
         data["keys"]["model"] = src["model"]
+    from keyshape.base.files import sha256_file
+    data["keys"]["sha256"] = sha256_file(args.keys)          # which key set exactly (provenance)
     write_poses(args.output, data)
     for r, reg in lib.items():
         print(f"{r}: {len(reg['keys'])} keys onto {len(reg['shapes'])} rig shapes")

@@ -212,3 +212,52 @@ def test_a_c3d_cut_short_warns_with_both_counts(tmp_path, capsys):
     cut = read_c3d(tmp_path / "cut.c3d")
     assert 0 < cut.n_frames < 200
     assert len(cut.warnings) == 1 and f"announces 200 frames but the file holds {cut.n_frames}" in cut.warnings[0]
+
+
+# --------------------------------------------------------------------------- POSES.json names its key set
+def test_poses_record_their_key_set_and_refuse_another_models_tracks(tmp_path, capsys):
+    from keyshape.base.files import sha256_file
+    from keyshape.base.formats.keys import write_keys
+    from keyshape.base.formats.tracks import Tracks, write_tracks
+    from test_rig_poses import TRUE, actor_keys, write_toy_rig
+    rig, lm = write_toy_rig(tmp_path / "rig")
+    write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE),
+               source={"model": "sha256:aaaaaaaaaaaaaaaa", "scheme": "contours48"})
+    assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "-o", str(tmp_path / "poses.json")]) == 0
+    keys = json.loads((tmp_path / "poses.json").read_text())["keys"]
+    assert keys["sha256"] == sha256_file(tmp_path / "keys.json") and keys["model"] == "sha256:aaaaaaaaaaaaaaaa"
+    from keyshape.base.formats.weights import write_weights
+    write_weights(tmp_path / "w.csv", np.arange(3), list(TRUE), np.full((3, len(TRUE)), 0.5))
+    rng = np.random.default_rng(0)
+    t = Tracks(np.arange(3), np.arange(3) / 30.0, np.ones(3), np.ones(3, bool), rng.uniform(50, 100, (3, 48, 2)),
+               np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (3, 1, 1)), {"model": "sha256:bbbbbbbbbbbbbbbb"})
+    write_tracks(tmp_path / "t.csv", t)
+    out = tmp_path / "curves.csv"
+    assert main(["retarget", str(tmp_path / "w.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                 "--tracks", str(tmp_path / "t.csv"), "-o", str(out)]) == 2
+    err = one_line(capsys)
+    assert "another tracker model" in err and "poses.json" in err
+    assert not out.exists()
+
+
+def test_preview_refuses_a_video_of_another_size_than_the_tracks(tmp_path, capsys):
+    from keyshape.base.formats.tracks import write_tracks
+    from keyshape.base.formats.video import video_writer
+    from keyshape.base.formats.weights import write_weights
+    from keyshape.decompose.toy import toy_tracks
+    from test_rig_poses import SHAPES, write_toy_rig
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    tr = toy_tracks(30, rng=1)
+    tr.meta = {"model": "sha256:aaaaaaaaaaaaaaaa", "scheme": "contours48", "image_size": [320, 240]}
+    write_tracks(tmp_path / "t.csv", tr)
+    with video_writer(tmp_path / "v.mp4", 10, (160, 120)) as wr:
+        for i in range(30):
+            wr.write(np.full((120, 160, 3), 8 * i, np.uint8))
+    write_weights(tmp_path / "c.csv", np.arange(30), list(SHAPES), np.zeros((30, len(SHAPES))))
+    sheet = tmp_path / "s.jpg"
+    assert main(["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
+                 str(tmp_path / "c.csv"), "--rig", str(rig), "--sheet", str(sheet)]) == 2
+    err = one_line(capsys)
+    assert "160x120" in err and "320x240" in err
+    assert not sheet.exists()
