@@ -170,7 +170,10 @@ def _check_table(table: dict, schema: dict, err, where: tuple) -> None:
 def read_manifest(path: str | Path) -> Manifest:
     """Read and check a manifest; paths come back absolute (relative ones resolved against its folder)."""
     path = require_file(path, "manifest")
-    text = path.read_text()
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text (byte {exc.start}): a manifest is a TOML text file", path) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -329,3 +329,234 @@ def test_model_fuzz(model_arrays):
 @pytest.mark.slow
 def test_model_fuzz_long(model_arrays):
     _fuzz_model(model_arrays, 3000)
+
+
+# ------------------------------------------------------------------ issue 27: the manifest, POSES.json, the
+# ownership record, the rig folder and the page's request bodies; readers fuzzed against their own writers
+MANIFEST_SEED = b'''[settings]
+outputs = ["tracks", "weights", "glb"]
+smooth = "none"
+solver = "smooth"
+ridge = 0.03
+smooth_lambda = 0.1
+
+[actors.anna]
+video = "anna/rom.mp4"
+labels = "anna/labels"
+keys = 8
+components = 12
+morphs = 120
+seed = 3
+selector = "greedy"
+regions = ["mouth", "eyes"]
+
+[[takes]]
+actor = "anna"
+video = "anna/take01.mp4"
+frames = [0, 600]
+name = "take01"
+'''
+
+
+def _seed_manifest(d: Path) -> bytes:
+    return MANIFEST_SEED
+
+
+def _read_manifest(p):
+    import math
+
+    from keyshape.manifest import ACTOR_FILES, read_manifest
+    m = read_manifest(p)
+    assert math.isfinite(m.settings.ridge) and m.settings.ridge >= 0
+    assert math.isfinite(m.settings.smooth_lambda) and m.settings.smooth_lambda >= 0
+    for a in m.actors.values():
+        assert a.keys >= 1 and 0 <= a.seed < 2 ** 32 and (a.components is None or a.components >= 1) and a.morphs >= 0
+    for t in m.takes:
+        assert t.name not in ACTOR_FILES and "/" not in t.name and t.name not in (".", "..")
+        assert t.start >= 0 and (t.stop is None or t.stop > t.start)
+
+
+def _toy_poses() -> dict:
+    return {"keys": {"file": "keys.json", "scheme": "contours48", "model": "sha256:0123456789abcdef"},
+            "rig": {"n_vertices": 50, "shapes": ["jawOpen", "mouthSmile_L", "eyeBlink_L"]},
+            "range": [0.0, 1.0],
+            "regions": {"mouth": {"shapes": ["jawOpen", "mouthSmile_L"], "neutral": {"jawOpen": 0.12},
+                                  "keys": {"mouth_0": {"jawOpen": 0.41, "mouthSmile_L": 0.3}, "mouth_1": {}}},
+                        "eyes": {"shapes": ["eyeBlink_L"], "neutral": {},
+                                 "keys": {"eyes_0": {"eyeBlink_L": 1.0}}}}}
+
+
+def _seed_poses(d: Path) -> bytes:
+    from keyshape.base.formats.poses import write_poses
+    write_poses(d / "s.json", _toy_poses())
+    return (d / "s.json").read_bytes()
+
+
+def _read_poses(p):
+    from keyshape.base.formats.poses import MAX_RANGE, read_poses
+    lib = read_poses(p, ["jawOpen", "mouthSmile_L", "eyeBlink_L"])
+    lo, hi = lib["range"]
+    assert np.isfinite([lo, hi]).all() and -MAX_RANGE <= lo < hi <= MAX_RANGE
+    for reg in lib["regions"].values():
+        for pose in [reg.get("neutral", {}), *reg["keys"].values()]:
+            for s, v in pose.items():
+                assert s in reg["shapes"] and lo - 1e-9 <= v <= hi + 1e-9
+
+
+def _seed_record(d: Path) -> bytes:
+    return json.dumps({"written_by": "keyshape", "version": 2,
+                       "outputs": {"retarget": ["frame_000000.obj", "sub/frame_000001.obj"],
+                                   "compare": ["errors.csv"], "legacy": ["a.txt"]}}).encode()
+
+
+def _read_record(p):
+    """The ownership record read as the folder outputs do: every entry a plain relative path inside."""
+    import os
+
+    from keyshape.base.files import MANIFEST, _read_manifest
+    folder = p.parent / "out"
+    folder.mkdir(exist_ok=True)
+    (folder / MANIFEST).write_bytes(p.read_bytes())
+    rec = _read_manifest(folder)
+    for kind, files in rec.items():
+        assert isinstance(kind, str) and kind
+        for f in files:
+            assert not os.path.isabs(f) and ".." not in f.split("/") and "\\" not in f and f == os.path.normpath(f)
+            assert os.path.realpath(folder / f).startswith(os.path.realpath(folder) + os.sep)
+
+
+def _seed_rig_shape(d: Path) -> bytes:
+    from keyshape.base.formats.obj import Mesh, write_obj
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    write_obj(d / "s.obj", Mesh(v + 0.1, [np.array([0, 1, 2]), np.array([0, 2, 3])]))
+    return (d / "s.obj").read_bytes()
+
+
+def _read_rig(p):
+    """A rig folder whose shape ``jawOpen.obj`` is the fuzzed file (the neutral stays valid)."""
+    import shutil
+
+    from keyshape.base.formats.obj import Mesh, write_obj
+    from keyshape.retarget.rig import load_rig
+    rig = p.parent / "rig"
+    shutil.rmtree(rig, ignore_errors=True)
+    rig.mkdir()
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    write_obj(rig / "neutral.obj", Mesh(v, [np.array([0, 1, 2]), np.array([0, 2, 3])]))
+    (rig / "jawOpen.obj").write_bytes(p.read_bytes())
+    r = load_rig(rig)
+    assert np.isfinite(r.deltas).all() and np.isfinite(r.neutral).all() and r.names == ["jawOpen"]
+
+
+READERS.update({
+    "manifest": (_seed_manifest, ".toml", _read_manifest),
+    "poses": (_seed_poses, ".json", _read_poses),
+    "outputs_record": (_seed_record, ".json", _read_record),
+    "rig_folder": (_seed_rig_shape, ".obj", _read_rig),
+})
+
+
+@pytest.mark.parametrize("name", ["manifest", "poses", "outputs_record", "rig_folder"])
+def test_reader_fuzz_issue27(name, monkeypatch):
+    _fuzz(name, 150, monkeypatch)
+
+
+# ------------------------------------------------------------------ the pose page's request bodies
+def _fuzz_pose_page(n: int) -> None:
+    from keyshape.base.formats.poses import read_poses
+    from server_helpers import request, serving
+    from test_pose_edit import pose_page_server
+
+    d = Path(tempfile.mkdtemp(prefix="fuzz-page-"))
+    seed = b'{"pose": {"jawOpen": 0.5, "mouthSmile_L": 0.25}}'
+    with serving(pose_page_server(d)) as server:
+        names = list(read_poses(d / "poses.json")["rig"]["shapes"])
+
+        @settings(max_examples=n, deadline=None, database=None, derandomize=n < 1000,
+                  suppress_health_check=list(HealthCheck))
+        @given(mutated(seed), st.sampled_from(["mouth_0", "eyes_0", "mouth_9"]))
+        def run(body, key):
+            status, reply = request(server, "PUT", f"/api/poses/{key}", body)
+            assert status == 200 or 400 <= status < 500, (status, reply)   # never a 5xx, always an answer
+            if status != 200:
+                assert "error" in json.loads(reply)
+            read_poses(d / "poses.json", names)                          # what the page wrote reads back
+
+        run()
+
+
+def test_pose_page_request_fuzz():
+    _fuzz_pose_page(120)
+
+
+@pytest.mark.slow
+def test_pose_page_request_fuzz_long():
+    _fuzz_pose_page(1500)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["manifest", "poses", "outputs_record", "rig_folder"])
+def test_reader_fuzz_issue27_long(name, monkeypatch):
+    _fuzz(name, 2000, monkeypatch)
+
+
+# ------------------------------------------------------------------ round trips through the API's save
+@settings(max_examples=150, deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck))
+@given(st.integers(0, 5), st.integers(1, 4), st.integers(0, 1000),
+       st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
+                          st.sampled_from([1e300, -1e7, 0.0, 1.0])), min_size=1, max_size=40),
+       st.sampled_from(["contiguous", "gap", "reversed", "repeated", "fractional"]))
+def test_weights_save_then_load_round_trips_or_refuses(n, k, first, pool, frames_kind):
+    """Whatever the API is given, ``Weights.save`` either writes a file ``Weights.load`` reads back
+    (the same numbers to 6 decimals) or refuses with a one-line InputError and writes nothing."""
+    from keyshape import api
+    from keyshape.base.errors import InputError
+    values = np.resize(np.asarray(pool, dtype=float), (n, k))
+    frames = np.arange(first, first + n, dtype=float)
+    if frames_kind == "gap" and n > 1:
+        frames[-1] += 2
+    elif frames_kind == "reversed":
+        frames = frames[::-1].copy()
+    elif frames_kind == "repeated" and n > 1:
+        frames[1] = frames[0]
+    elif frames_kind == "fractional" and n:
+        frames = frames + 0.5
+    d = Path(tempfile.mkdtemp(prefix="rt-w-"))
+    try:
+        w = api.Weights(frames, [f"mouth_{j}" for j in range(k)], values)
+        w.save(d / "w.csv")
+    except InputError as exc:
+        assert "\n" not in str(exc)
+        assert not (d / "w.csv").exists()
+        return
+    back = api.Weights.load(d / "w.csv")
+    np.testing.assert_array_equal(back.frames, w.frames)
+    np.testing.assert_allclose(back.values, w.values, atol=1e-6, rtol=1e-6)
+
+
+@settings(max_examples=60, deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck))
+@given(st.lists(st.sampled_from([0.0, 1.0, 0.5, -0.25, 2.0, 10.0, -10.0, 11.0, 1e-9]), min_size=2, max_size=2),
+       st.floats(-20, 20, allow_nan=False))
+def test_poses_write_then_read_round_trips_or_refuses(rng, weight):
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.poses import read_poses, write_poses
+    lib = _toy_poses()
+    lib["range"] = rng
+    for reg in lib["regions"].values():
+        reg["neutral"] = {}
+        reg["keys"] = {k: {} for k in reg["keys"]}
+    lib["regions"]["mouth"]["keys"]["mouth_0"]["jawOpen"] = weight
+    d = Path(tempfile.mkdtemp(prefix="rt-p-"))
+    write_poses(d / "p.json", lib)
+    lo, hi = rng
+    w = round(weight, 5)
+    valid = -10 <= lo < hi <= 10 and (w == 0 or lo - 1e-9 <= w <= hi + 1e-9)
+    try:
+        back = read_poses(d / "p.json", ["jawOpen", "mouthSmile_L", "eyeBlink_L"])
+    except InputError as exc:
+        assert "\n" not in str(exc) and not valid, str(exc)
+        return
+    assert valid
+    assert back["range"] == [float(x) for x in rng]
+    got = back["regions"]["mouth"]["keys"]["mouth_0"].get("jawOpen", 0.0)
+    assert got == pytest.approx(round(weight, 5), abs=1e-9)
