@@ -90,22 +90,38 @@ def test_identical_to_the_api_one_take_at_a_time(library, first_run, tmp_path):
                 assert filecmp.cmp(d / f, out / name / t.name / f, shallow=False), (name, t.name, f)
 
 
+def keys_content(path) -> dict:
+    """KEYS.json without ``source`` (the command names the tracks files it read; the batch's own)."""
+    data = json.loads(Path(path).read_text())
+    data.pop("source", None)
+    return data
+
+
 def test_identical_to_the_commands(library, first_run, tmp_path):
-    """``keyshape train/track/decompose/retarget`` one after another give the batch's files, byte for byte
-    (the key set is the batch's: no command selects over several takes)."""
+    """``keyshape train/track/select/decompose/retarget`` one after another, with no option beyond the
+    manifest's, give the batch's files byte for byte (the key set: the same content, one selection
+    over both takes)."""
     out, _ = first_run
     m = read_manifest(library)
-    actor, take = m.actors["actor1"], m.takes[3]
-    assert take.actor == "actor1"
+    actor = m.actors["actor1"]
+    takes = [t for t in m.takes if t.actor == "actor1"]
+    assert [t.name for t in takes] == ["take00", "take01"]
     assert main(["train", str(actor.video), "--labels", str(actor.labels), "--morphs", str(actor.morphs),
                  "-o", str(tmp_path / "model.npz")]) == 0
-    assert main(["track", str(take.video), "--model", str(tmp_path / "model.npz"), "-o", str(tmp_path / "tracks.csv"),
-                 "--quiet"]) == 0
-    assert main(["decompose", str(tmp_path / "tracks.csv"), "--keys", str(out / "actor1" / "keys.json"),
-                 "--solver", m.settings.solver, "--ridge", str(m.settings.ridge), "-o", str(tmp_path / "weights.csv")]) == 0
+    for t in takes:
+        assert main(["track", str(t.video), "--model", str(tmp_path / "model.npz"),
+                     "-o", str(tmp_path / f"{t.name}.csv"), "--quiet"]) == 0
+    assert main(["select", *[str(tmp_path / f"{t.name}.csv") for t in takes], "-k", str(actor.keys),
+                 *[a for r in actor.regions for a in ("--region", r)], "-o", str(tmp_path / "keys.json")]) == 0
+    assert keys_content(tmp_path / "keys.json") == keys_content(out / "actor1" / "keys.json")
+    take = takes[1]
+    assert main(["decompose", str(tmp_path / f"{take.name}.csv"), "--keys", str(tmp_path / "keys.json"),
+                 "-o", str(tmp_path / "weights.csv")]) == 0
     for name in ("animation.glb", "curves.csv"):
         assert main(["retarget", str(tmp_path / "weights.csv"), "--targets", str(actor.targets), "--regions",
-                     str(actor.target_regions), "--tracks", str(tmp_path / "tracks.csv"), "-o", str(tmp_path / name)]) == 0
+                     str(actor.target_regions), "--tracks", str(tmp_path / f"{take.name}.csv"),
+                     "-o", str(tmp_path / name)]) == 0
+    (tmp_path / "tracks.csv").write_bytes((tmp_path / f"{take.name}.csv").read_bytes())
     for name in COMPARED:
         assert filecmp.cmp(tmp_path / name, out / "actor1" / take.name / name, shallow=False), name
 

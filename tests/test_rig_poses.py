@@ -209,7 +209,11 @@ def test_pose_and_retarget_commands_end_to_end(tmp_path):
                  "-o", str(tmp_path / "take.glb")]) == 0
     import pygltflib
     g = pygltflib.GLTF2().load(str(tmp_path / "take.glb"))
-    assert g.meshes[0].extras["targetNames"] == load_rig(rig).names
+    # only the shapes that move in the take are morph targets (PupilDilate_L stays at 0 throughout)
+    moving = [n for n in load_rig(rig).names if np.abs(C[:, col[n]]).max() > 0]
+    assert "PupilDilate_L" not in moving and len(moving) >= 8
+    assert g.meshes[0].extras["targetNames"] == moving
+    assert len(g.meshes[0].primitives[0].targets) == len(moving)
 
 
 # ----------------------------------------------------------------------------------------- bad input
