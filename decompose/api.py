@@ -2,7 +2,8 @@
 
 ``keyshape select`` and ``keyshape decompose`` (``decompose/cli.py``: argument parsing and files),
 :mod:`keyshape.api`, ``keyshape batch`` and ``keyshape demo`` all call these functions and take
-their defaults from here (the constants below), so a default changes in one place. They take and
+their defaults from here (:mod:`keyshape.decompose.defaults`, re-exported), so a default changes in
+one place. They take and
 return arrays and never open files.
 """
 from __future__ import annotations
@@ -16,21 +17,9 @@ from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme, load_scheme, scheme_for_n_points
 from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, face_rest_frame, head_shapes,
                                         select_region)
-from keyshape.decompose.selectors import METHODS
-from keyshape.decompose.stabilize import HEAD_POSES, head_pose_entry
-
-#: weight solvers of :func:`decompose_keys`
-SOLVERS = ("nnls", "lstsq", "smooth")
-
-# The product's defaults, one place for the commands, keyshape.api, keyshape batch and the demo.
-METHOD = "greedy"            # key-shape selector (best in the project's measurements; spread is the paper's)
-NEUTRAL_FRAME = "auto"       # weights relative to the actor's most relaxed frame
-MIN_KEY_DISTANCE = 0.1       # near-duplicate keys dropped
-HEAD_POSE = "rigid"          # head stabilised on the rigid points
-SEED = 0
-SOLVER = "smooth"            # NNLS + temporal smoothness
-RIDGE = 0.03                 # Tikhonov shrinkage against tracking noise
-SMOOTH_LAMBDA = 0.1
+from keyshape.decompose.defaults import (HEAD_POSE, HEAD_POSES, METHOD, METHODS, MIN_KEY_DISTANCE,  # noqa: F401
+                                         NEUTRAL_FRAME, RIDGE, SEED, SMOOTH_LAMBDA, SOLVER, SOLVERS)
+from keyshape.decompose.stabilize import head_pose_entry
 
 
 def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:

@@ -1,14 +1,15 @@
 """Command-line registration for the decompose stage: ``keyshape select``, ``decompose``, ``compare``.
 
-Argument parsing and files only: the work and every default are :mod:`keyshape.decompose.api`'s."""
+Argument parsing and files only: the work is :mod:`keyshape.decompose.api`'s, every default
+:mod:`keyshape.decompose.defaults`'."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-from keyshape.decompose import api as D
-from keyshape.decompose.api import METHODS, SOLVERS
+from keyshape.decompose import defaults as D
+from keyshape.decompose.defaults import METHODS, SOLVERS
 
 
 def register(subparsers) -> None:
@@ -126,7 +127,9 @@ def _select(args) -> int:
         raise InputError("--sheet works with one tracks file (and its --video)")
     if args.sheet and Path(args.sheet).suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise InputError(f"--sheet {args.sheet}: use a .png or .jpg file name")
-    nf = D.parse_neutral_frame(args.neutral_frame)
+    from keyshape.decompose import api as A
+
+    nf = A.parse_neutral_frame(args.neutral_frame)
     if nf not in (None, "auto") and len(args.tracks) > 1:
         raise InputError("--neutral-frame F is ambiguous with several tracks files: use auto")
     check_outputs([args.output, args.sheet], inputs=[*args.tracks, args.video])
@@ -139,7 +142,7 @@ def _select(args) -> int:
         if info.n_frames > 0 and last >= info.n_frames:
             raise InputError(f"the tracks go to frame {last} but the video has {info.n_frames} frames: "
                              "is this the video the tracks came from?", args.video)
-    scheme, chosen, head_pose = D.select_keys(
+    scheme, chosen, head_pose = A.select_keys(
         loaded if len(loaded) > 1 else tracks, args.k, args.method, args.region, args.scheme, args.seed,
         source=args.tracks[0], progress=True, head=args.head_pose, neutral_frame=nf,
         min_key_distance=args.min_key_distance)
@@ -194,7 +197,7 @@ def _decompose(args) -> int:
     from keyshape.base.formats.keys import read_keys
     from keyshape.base.formats.weights import write_weights
     from keyshape.base.files import check_outputs
-    from keyshape.decompose.api import decompose_keys
+    from keyshape.decompose.api import decompose_keys, tracks_fps
 
     for name, v in (("--smooth-lambda", args.smooth_lambda), ("--ridge", args.ridge)):
         if not (np.isfinite(v) and 0 <= v <= 1e6):      # before any work (decompose_keys checks it too)
@@ -214,7 +217,7 @@ def _decompose(args) -> int:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)
     names, w = decompose_keys(tracks, regions, args.solver, args.smooth_lambda, args.ridge, args.tracks, head)
-    write_weights(args.output, tracks.frame, names, w, ~tracks.success, fps=D.tracks_fps(tracks))
+    write_weights(args.output, tracks.frame, names, w, ~tracks.success, fps=tracks_fps(tracks))
     n_fail = int((~tracks.success).sum())
     print(f"wrote {args.output}: {tracks.n_frames} frames x {len(names)} weights ({args.solver})"
           + (f"; {n_fail} failed frames interpolated (column 'interpolated')" if n_fail else ""))

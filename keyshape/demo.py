@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from keyshape.decompose import api as D
-from keyshape.decompose.api import METHODS, SOLVERS
+from keyshape.decompose import defaults as D
+from keyshape.decompose.defaults import METHODS, SOLVERS
 
 # synthetic components -> demo region (contours48 regions used by decompose)
 _REGION_OF = {"jaw": "mouth", "mouth": "mouth", "eye": "eyes", "brow": "eyes"}

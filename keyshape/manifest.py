@@ -48,8 +48,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.decompose import api as D
-from keyshape.decompose.api import METHODS, SOLVERS
+from keyshape.decompose import defaults as D
+from keyshape.decompose.defaults import METHODS, SOLVERS
 
 OUTPUTS = ("tracks", "weights", "glb", "curves", "livelink", "preview")
 #: file name of each output inside ``OUT_DIR/<actor>/<take>/``

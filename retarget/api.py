@@ -26,13 +26,7 @@ from keyshape.retarget.headpose import HeadMotion, head_motion, hold_invalid
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
-# The product's defaults, one place for the commands, keyshape.api, keyshape batch and the demo.
-FORM = "auto"                # delta with a neutral, else absolute
-METRIC = "geodesic"          # distance of the region band
-SPARSITY = 0.01              # keyshape pose: L1 weight of a pose fit
-NUISANCE = "auto"            # keyshape pose: region motions fitted freely (retarget.poses.auto_nuisance)
-OPPOSED = -0.5               # keyshape pose: antagonist shapes never in one pose below this cosine
-DEFAULT_FPS = 30.0           # when neither the weights, the tracks nor the caller give a frame rate
+from keyshape.retarget.defaults import DEFAULT_FPS, FORM, METRIC, NUISANCE, OPPOSED, SPARSITY  # noqa: F401,E402
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,

@@ -6,7 +6,7 @@ import argparse
 
 def register(subparsers) -> None:
     """Add ``retarget`` to ``subparsers``."""
-    from keyshape.retarget import api as A
+    from keyshape.retarget import defaults as A
 
     p = subparsers.add_parser(
         "retarget", help="drive the artist's target key shapes with decomposed weights (.glb/.csv/OBJ/video)",

@@ -6,7 +6,7 @@ import argparse
 
 def register(subparsers) -> None:
     """Add ``pose`` to ``subparsers``."""
-    from keyshape.retarget import api as A
+    from keyshape.retarget import defaults as A
 
     p = subparsers.add_parser(
         "pose", help="suggest a rig pose (rig shape weights) for every key shape -> POSES.json",

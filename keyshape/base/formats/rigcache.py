@@ -58,8 +58,9 @@ def write_rig_cache(path: str | Path, names: list[str], neutral: np.ndarray, del
                      material_colours=np.array(json.dumps({k: list(v) for k, v in mesh.material_colours.items()})))
 
 
-def read_rig_cache(path: str | Path) -> tuple[list[str], np.ndarray, np.ndarray, Mesh]:
-    """``(names, neutral, deltas, mesh)`` from a cache file, every array checked.
+def read_rig_cache(path: str | Path, with_mesh: bool = True) -> tuple[list[str], np.ndarray, np.ndarray, Mesh | None]:
+    """``(names, neutral, deltas, mesh)`` from a cache file, every array checked (``mesh`` None without
+    ``with_mesh``: the polygons are then checked but not built).
 
     Raises
     ------
@@ -98,6 +99,8 @@ def read_rig_cache(path: str | Path) -> tuple[list[str], np.ndarray, np.ndarray,
     bad = [what for ok, what in checks if not ok]
     if bad:
         raise InputError(f"damaged rig cache ({', '.join(bad)})", path)
+    if not with_mesh:
+        return names, neutral, deltas, None
     polygons = [pf[pi[i]:pi[i + 1]].astype(np.intp) for i in range(n_poly)]
     puv = [None if none[i] else uf[ui[i]:ui[i + 1]].astype(np.intp) for i in range(n_poly)]
     try:
