@@ -1,12 +1,15 @@
-"""Command-line registration for the decompose stage: ``keyshape select``, ``decompose``, ``compare``."""
+"""Command-line registration for the decompose stage: ``keyshape select``, ``decompose``, ``compare``.
+
+Argument parsing and files only: the work is :mod:`keyshape.decompose.api`'s, every default
+:mod:`keyshape.decompose.defaults`'."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
-SOLVERS = ("nnls", "lstsq", "smooth")
+from keyshape.decompose import defaults as D
+from keyshape.decompose.defaults import METHODS, SOLVERS
 
 
 def register(subparsers) -> None:
@@ -17,23 +20,23 @@ def register(subparsers) -> None:
                         "actor and one model give one key set for all of them")
     p.add_argument("-k", "--keys", dest="k", type=int, default=None,
                    help="key shapes per region (required but for --method hull2)")
-    p.add_argument("--method", choices=METHODS, default="greedy",
-                   help="selector (default: greedy, best in the project's measurements; spread is the paper's)")
-    p.add_argument("--neutral-frame", default="auto", metavar="F|auto|mean",
+    p.add_argument("--method", choices=METHODS, default=D.METHOD,
+                   help=f"selector (default: {D.METHOD}, best in the project's measurements; spread is the paper's)")
+    p.add_argument("--neutral-frame", default=D.NEUTRAL_FRAME, metavar="F|auto|mean",
                    help="what the weights are relative to: the actor's neutral, frame F or 'auto' (the most "
                         "relaxed frame, the default), or 'mean' (the take's mean shape, the paper's centring). "
                         "The actor's neutral is recorded in KEYS.json either way (for keyshape pose)")
     p.add_argument("--region", action="append", default=None,
                    help="mouth, eyes (with brows) or pupils; repeat for several (default: all the scheme has)")
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
-    p.add_argument("--seed", type=int, default=0, help="seed of kmeans/random/greedy (default 0)")
-    p.add_argument("--head-pose", choices=("rigid", "tracker"), default="rigid",
+    p.add_argument("--seed", type=int, default=D.SEED, help=f"seed of kmeans/random/greedy (default {D.SEED})")
+    p.add_argument("--head-pose", choices=D.HEAD_POSES, default=D.HEAD_POSE,
                    help="how the head's motion is taken out of the shapes: rigid (the tracker's pose, then "
                         "stabilised on the points rigid with the skull, the eye corners; the default) or tracker "
                         "(the tracker's pose alone). Recorded in KEYS.json; decompose does the same")
-    p.add_argument("--min-key-distance", type=float, default=0.1,
+    p.add_argument("--min-key-distance", type=float, default=D.MIN_KEY_DISTANCE,
                    help="drop near-duplicate keys: a key closer to an earlier key than this fraction of the "
-                        "median key-to-neutral distance (default 0.1; 0 keeps all)")
+                        f"median key-to-neutral distance (default {D.MIN_KEY_DISTANCE:g}; 0 keeps all)")
     p.add_argument("-o", "--output", required=True, help="KEYS.json to write")
     p.add_argument("--sheet", default=None, help="also write a key-frame sheet, .png or .jpg (needs --video)")
     p.add_argument("--video", default=None, help="the video the tracks came from (for --sheet)")
@@ -43,13 +46,14 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("decompose", help="per-frame weights of the key shapes (NNLS, eq. 4)")
     p.add_argument("tracks", help="tracks CSV")
     p.add_argument("--keys", required=True, help="KEYS.json from keyshape select")
-    p.add_argument("--solver", choices=SOLVERS, default="nnls",
-                   help="nnls (default), lstsq (unconstrained), smooth (NNLS + temporal smoothness)")
-    p.add_argument("--smooth-lambda", type=float, default=0.1,
-                   help="weight of the frame-to-frame change penalty for --solver smooth (default 0.1)")
-    p.add_argument("--ridge", type=float, default=0.0,
+    p.add_argument("--solver", choices=SOLVERS, default=D.SOLVER,
+                   help=f"nnls (the paper's), lstsq (unconstrained), smooth (NNLS + temporal smoothness); "
+                        f"default {D.SOLVER}")
+    p.add_argument("--smooth-lambda", type=float, default=D.SMOOTH_LAMBDA,
+                   help=f"weight of the frame-to-frame change penalty for --solver smooth (default {D.SMOOTH_LAMBDA:g})")
+    p.add_argument("--ridge", type=float, default=D.RIDGE,
                    help="shrink weights towards 0 against tracking noise: Tikhonov term, dimensionless "
-                        "(0 = the paper's NNLS, the default; 0.01-0.1 on noisy tracks)")
+                        f"(default {D.RIDGE:g}; 0 with --solver nnls is the paper's NNLS)")
     p.add_argument("--allow-foreign-keys", action="store_true",
                    help="use keys chosen from tracks of another tracker model (refused by default)")
     p.add_argument("-o", "--output", required=True, help="WEIGHTS.csv to write")
@@ -88,11 +92,8 @@ def _load(args, path=None):
 
 
 def _load_many(args):
-    """Several tracks files of one actor: concatenated, with the file index of every row."""
-    import numpy as np
-
+    """Several tracks files of one actor: the tracks of each, and the KEYS.json ``source`` entry."""
     from keyshape.base.errors import InputError
-    from keyshape.base.formats.tracks import Tracks
 
     loaded = [_load(args, p) for p in args.tracks]
     tracks, scheme = loaded[0]
@@ -103,25 +104,17 @@ def _load_many(args):
                          "one actor's model")
     if len({t.n_points for t, _ in loaded}) > 1:
         raise InputError("the tracks files have different point counts", args.tracks[1])
-    take = np.concatenate([np.full(t.n_frames, i) for i, (t, _) in enumerate(loaded)])
-    orig_frame = np.concatenate([t.frame for t, _ in loaded])
-    if len(loaded) > 1:             # one sequence; frame numbers repeat across files, so rows number them
-        ts = [t for t, _ in loaded]
-        tracks = Tracks(np.arange(len(take)), *(np.concatenate([getattr(t, k) for t in ts]) for k in
-                                                ("time", "confidence", "success", "points", "pose")),
-                        dict(ts[0].meta))
     source = {"scheme": scheme.name, "tracks": [str(p) for p in args.tracks]}
     if tracks.meta.get("model"):
         source["model"] = tracks.meta["model"]
-    return tracks, scheme, take, orig_frame, source
+    return [t for t, _ in loaded], source
 
 
 def _select(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import write_keys
     from keyshape.base.files import check_outputs
-    from keyshape.decompose.stabilize import head_pose_entry
-    from keyshape.decompose.regions import available_regions, face_rest_frame, head_shapes, select_region, stable_pose
+    from keyshape.decompose.regions import stable_pose
 
     # everything that can be checked before any work or any output
     if args.k is None and args.method != "hull2":
@@ -134,16 +127,14 @@ def _select(args) -> int:
         raise InputError("--sheet works with one tracks file (and its --video)")
     if args.sheet and Path(args.sheet).suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise InputError(f"--sheet {args.sheet}: use a .png or .jpg file name")
-    nf = None if args.neutral_frame == "mean" else args.neutral_frame
-    if nf is not None and nf != "auto" and len(args.tracks) > 1:
+    from keyshape.decompose import api as A
+
+    nf = A.parse_neutral_frame(args.neutral_frame)
+    if nf not in (None, "auto") and len(args.tracks) > 1:
         raise InputError("--neutral-frame F is ambiguous with several tracks files: use auto")
-    if nf is not None and nf != "auto":
-        try:
-            nf = int(nf)
-        except ValueError:
-            raise InputError(f"--neutral-frame must be a frame number, 'auto' or 'mean', got {nf!r}") from None
     check_outputs([args.output, args.sheet], inputs=[*args.tracks, args.video])
-    tracks, scheme, take, orig_frame, source = _load_many(args)
+    loaded, source = _load_many(args)
+    tracks = loaded[0]
     if args.video:
         from keyshape.base.formats.video import video_info
         info = video_info(args.video)
@@ -153,25 +144,14 @@ def _select(args) -> int:
                              "is this the video the tracks came from?", args.video)
         from keyshape.base.formats.tracks import check_frame_size
         check_frame_size(tracks.meta, info.width, info.height, args.video, args.tracks[0])
-    shapes, stab = head_shapes(tracks, scheme, args.head_pose, args.tracks[0])
-    regions = args.region or available_regions(scheme)
-    try:
-        rest = face_rest_frame(tracks, shapes, scheme, regions) if nf is None or nf == "auto" else None
-        chosen = [select_region(tracks, scheme, r, args.k, args.method, rng=args.seed, shapes=shapes,
-                                neutral_frame=nf, min_distance=args.min_key_distance, progress=True,
-                                rest_frame=rest)
-                  for r in regions]
-    except InputError as exc:
-        raise InputError(str(exc), args.tracks[0]) from None
-    if len(args.tracks) > 1:          # rows were numbered 0..N-1: back to (file, frame)
-        for rk in chosen:
-            rk.takes = take[rk.frames]
-            rk.frames = orig_frame[rk.frames]
-            rk.rest_frame = int(orig_frame[rk.rest_frame])
+    scheme, chosen, head_pose = A.select_keys(
+        loaded if len(loaded) > 1 else tracks, args.k, args.method, args.region, args.scheme, args.seed,
+        source=args.tracks[0], progress=True, head=args.head_pose, neutral_frame=nf,
+        min_key_distance=args.min_key_distance)
     # the sheet is made (video decoded) before any output is written: a failure writes nothing
-    sheet = encode_sheet(args.sheet, args.video, tracks, scheme, chosen, stable_pose(tracks, stab)) \
+    sheet = encode_sheet(args.sheet, args.video, tracks, scheme, chosen, stable_pose(tracks, head_pose)) \
         if args.sheet else None
-    write_keys(args.output, scheme.name, scheme.n_points, chosen, source, head_pose_entry(stab))
+    write_keys(args.output, scheme.name, scheme.n_points, chosen, source, head_pose)
     for rk in chosen:
         dropped = f" ({args.k - len(rk.keys)} near-duplicate keys dropped)" if args.k and len(rk.keys) < args.k \
             else ""
@@ -219,10 +199,10 @@ def _decompose(args) -> int:
     from keyshape.base.formats.keys import read_keys
     from keyshape.base.formats.weights import write_weights
     from keyshape.base.files import check_outputs
-    from keyshape.decompose.api import decompose_keys
+    from keyshape.decompose.api import decompose_keys, tracks_fps
 
     for name, v in (("--smooth-lambda", args.smooth_lambda), ("--ridge", args.ridge)):
-        if not (np.isfinite(v) and 0 <= v <= 1e6):
+        if not (np.isfinite(v) and 0 <= v <= 1e6):      # before any work (decompose_keys checks it too)
             raise InputError(f"{name} {v}: must be a finite number from 0 to 1e6")
     check_outputs([args.output], inputs=[args.tracks, args.keys])
     tracks, scheme = _load(args)
@@ -239,7 +219,7 @@ def _decompose(args) -> int:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)
     names, w = decompose_keys(tracks, regions, args.solver, args.smooth_lambda, args.ridge, args.tracks, head)
-    write_weights(args.output, tracks.frame, names, w, ~tracks.success)
+    write_weights(args.output, tracks.frame, names, w, ~tracks.success, fps=tracks_fps(tracks))
     n_fail = int((~tracks.success).sum())
     print(f"wrote {args.output}: {tracks.n_frames} frames x {len(names)} weights ({args.solver})"
           + (f"; {n_fail} failed frames interpolated (column 'interpolated')" if n_fail else ""))

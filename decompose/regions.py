@@ -31,9 +31,10 @@ from keyshape.base.errors import InputError
 from keyshape.base.formats.keys import REGIONS, RegionKeys
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
-from keyshape.decompose.selectors import make_selector
 from keyshape.decompose.stabilize import HEAD_POSES, RigidStabilizer, stabilizer_from_entry
-from keyshape.decompose.weights import solve_weights
+
+# the selectors and the solvers (scipy.fft, scipy.linalg) are imported where they are used: taking the
+# head out of the tracks (retarget's head motion) does not need them, and the commands start faster
 
 __all__ = ["REGIONS", "RegionKeys", "region_points", "available_regions", "head_pose", "model_shapes", "head_shapes",
            "stable_pose", "to_image", "select_region", "decompose_region", "face_rest_frame", "HEAD_POSES"]
@@ -192,6 +193,8 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
     rest = shapes[row, idx].copy()
     # keys are chosen around the take's mean either way (measured: centring the greedy search on
     # the neutral frame gave worse rig curves on a synthetic take); only the weights' origin moves
+    from keyshape.decompose.selectors import make_selector
+
     sel = make_selector(method, n_keys if n_keys is not None else 0, rng=rng, progress=progress,
                         desc=f"keyshape select {region}").fit(sub)
     from_frame = np.ones(len(sel.indices_), dtype=bool)
@@ -275,5 +278,7 @@ def decompose_region(tracks: Tracks, keys: RegionKeys, solver: str = "nnls", smo
     if keys.points.max(initial=-1) >= shapes.shape[1]:
         raise InputError(f"key shapes of {keys.region!r} name point {keys.points.max()} but the tracks "
                          f"have {shapes.shape[1]} points")
+    from keyshape.decompose.weights import solve_weights
+
     return solve_weights(shapes[:, keys.points], keys.keys, keys.neutral, solver=solver,
                          smooth_lambda=smooth_lambda, observed=tracks.success, ridge=ridge)

@@ -19,9 +19,8 @@ import numpy as np
 
 from keyshape.base.errors import InputError, NotFittedError
 from keyshape.base.progress import Progress
+from keyshape.decompose.defaults import METHODS  # noqa: F401  (the selectors' names, defined in one place)
 from keyshape.decompose.weights import nnls_gram
-
-METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
 
 
 def _check_shapes(shapes, n_keys: int | None) -> np.ndarray:

@@ -23,10 +23,9 @@ import numpy as np
 
 from keyshape.base.errors import InputError, NotFittedError
 from keyshape.base.geometry import rigid_fit
-
-#: How the head's pose is taken out of the shapes: ``rigid`` (the tracker's pose, then stabilised on the
-#: scheme's rigid points; the default) or ``tracker`` (the tracker's pose alone, keyshape's former behaviour).
-HEAD_POSES = ("rigid", "tracker")
+# HEAD_POSES: how the head's pose is taken out of the shapes: ``rigid`` (the tracker's pose, then stabilised
+# on the scheme's rigid points; the default) or ``tracker`` (the tracker's pose alone, keyshape's former behaviour)
+from keyshape.decompose.defaults import HEAD_POSES  # noqa: F401
 
 
 def similarity_affines(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -33,11 +33,13 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks, read_tracks, write_tracks
+from keyshape.decompose import api as D
+from keyshape.retarget import api as RA
 from keyshape.decompose.regions import RegionKeys
 from keyshape.tracker.eigenpoints import AppearanceModel
 
-__all__ = ["train", "track", "select", "decompose", "retarget", "Keys", "Weights", "Animation", "Tracks",
-           "AppearanceModel", "read_tracks", "write_tracks"]
+__all__ = ["train", "track", "select", "decompose", "retarget", "pose", "preview", "load_rig", "Keys", "Weights",
+           "Animation", "RigAnimation", "PoseLibrary", "Tracks", "AppearanceModel", "read_tracks", "write_tracks"]
 
 
 @dataclass
@@ -92,12 +94,15 @@ class Weights:
     names : key-shape columns ``REGION_K``
     values : (n_frames, n_keys) float64
     interpolated : (n_frames,) bool, True where tracking failed and the weights were filled in
+    fps : the take's frame rate (from the tracks' timestamps; None where unknown), written to and
+        read from WEIGHTS.csv's leading comment, so a retarget without the tracks keeps the take's rate
     """
 
     frames: np.ndarray
     names: list[str]
     values: np.ndarray
     interpolated: np.ndarray = field(default=None)
+    fps: float | None = None
 
     def __post_init__(self) -> None:
         fr = np.asarray(self.frames)
@@ -114,17 +119,17 @@ class Weights:
                              f"got {self.values.shape}")
 
     def save(self, path: str | Path) -> None:
-        """Write WEIGHTS.csv atomically (``%.6f``, the ``interpolated`` flag last)."""
+        """Write WEIGHTS.csv atomically (``%.6f``, the ``interpolated`` flag last, the frame rate in a leading comment)."""
         from keyshape.base.formats.weights import write_weights
 
-        write_weights(path, self.frames, list(self.names), self.values, self.interpolated)
+        write_weights(path, self.frames, list(self.names), self.values, self.interpolated, fps=self.fps)
 
     @classmethod
     def load(cls, path: str | Path) -> "Weights":
         """Read a WEIGHTS.csv (errors name the file and line)."""
-        from keyshape.base.formats.weights import read_weights
+        from keyshape.base.formats.weights import read_weights, read_weights_fps
 
-        return cls(*read_weights(path))
+        return cls(*read_weights(path), fps=read_weights_fps(path))
 
 
 @dataclass
@@ -141,7 +146,7 @@ class Animation:
 
     retargeter: object
     weights: Weights
-    fps: float = 30.0
+    fps: float = RA.DEFAULT_FPS
     head: object = None
 
     def vertices(self, chunk_frames: int = 256) -> np.ndarray:
@@ -203,18 +208,21 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
     return track_frames(video, model, smooth=smooth, start=start, stop=stop, show_progress=progress)
 
 
-def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = "spread",
-           regions: Sequence[str] | None = None, *, scheme: str | None = None, seed: int = 0,
-           head: str = "rigid") -> Keys:
-    """Choose ``k`` key shapes per region (``keyshape select``).
+def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.METHOD,
+           regions: Sequence[str] | None = None, *, scheme: str | None = None, seed: int = D.SEED,
+           head: str = D.HEAD_POSE, neutral_frame: int | str | None = D.NEUTRAL_FRAME,
+           min_key_distance: float = D.MIN_KEY_DISTANCE, progress: bool = False) -> Keys:
+    """Choose ``k`` key shapes per region (``keyshape select``, with its defaults).
 
-    ``tracks`` may be a list (several takes of one actor, one key set for all): they are
-    concatenated in order and the keys' ``frames`` count frames across that concatenation.
-    ``method``: spread (the paper's), kmeans2, kmeans3, hull2, random, greedy. ``head``: ``rigid``
-    (stabilise the head on the scheme's rigid points, the default) or ``tracker`` (its pose alone).
+    ``tracks`` may be a list (several takes of one actor, one key set for all): the keys' ``frames``
+    are then each take's frame numbers and their ``takes`` which take, as ``keyshape select`` with
+    several files writes them. ``method``: greedy (default), spread (the paper's), kmeans2, kmeans3,
+    hull2, random. ``head``: ``rigid`` (stabilise the head on the scheme's rigid points, the default)
+    or ``tracker`` (its pose alone). ``neutral_frame``: ``"auto"`` (weights relative to the actor's
+    most relaxed frame, the default), a frame number, or ``"mean"`` (the take's mean, the paper's
+    centring). ``min_key_distance``: near-duplicate keys dropped (0 keeps all). See
+    :func:`keyshape.decompose.api.select_keys`.
     """
-    from keyshape.decompose.api import concat_tracks, select_keys
-
     takes = [tracks] if isinstance(tracks, Tracks) else tracks
     if isinstance(takes, (str, Path, bytes)) or not isinstance(takes, Sequence) or not takes or \
             not all(isinstance(t, Tracks) for t in takes):
@@ -223,22 +231,22 @@ def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = "spre
     if isinstance(regions, str):
         regions = [regions]
     models = {t.meta.get("model") for t in takes}
-    tracks = takes[0] if len(takes) == 1 else concat_tracks(takes)
-    sch, chosen, head_pose = select_keys(tracks, k, method, regions, scheme, seed, head=head)
+    sch, chosen, head_pose = D.select_keys(takes[0] if len(takes) == 1 else list(takes), k, method, regions, scheme,
+                                           seed, progress=progress, head=head, neutral_frame=neutral_frame,
+                                           min_key_distance=min_key_distance)
     model = models.pop() if len(models) == 1 else None
     source = {"model": model, "scheme": sch.name} if model else None
     return Keys(sch.name, sch.n_points, chosen, head_pose, source)
 
 
-def decompose(tracks: Tracks, keys: Keys, solver: str = "nnls", ridge: float = 0.0,
-              smooth_lambda: float = 0.1, *, allow_foreign_keys: bool = False) -> Weights:
-    """Per-frame weights of ``keys`` for every frame of ``tracks`` (``keyshape decompose``).
+def decompose(tracks: Tracks, keys: Keys, solver: str = D.SOLVER, ridge: float = D.RIDGE,
+              smooth_lambda: float = D.SMOOTH_LAMBDA, *, allow_foreign_keys: bool = False) -> Weights:
+    """Per-frame weights of ``keys`` for every frame of ``tracks`` (``keyshape decompose``, with its defaults).
 
-    ``solver``: nnls (eq. 4), lstsq or smooth; ``ridge`` shrinks weights against tracking noise.
-    Failed frames are interpolated and flagged in :attr:`Weights.interpolated`.
+    ``solver``: smooth (NNLS + temporal smoothness, the default), nnls (eq. 4) or lstsq; ``ridge``
+    (default 0.03) shrinks weights against tracking noise. Failed frames are interpolated and flagged
+    in :attr:`Weights.interpolated`.
     """
-    from keyshape.decompose.api import decompose_keys
-
     _expect(tracks, Tracks, "tracks", "Tracks (read a file with read_tracks)")
     _expect(keys, Keys, "keys", "Keys (read a file with Keys.load)")
     mk, mt = (keys.source or {}).get("model"), tracks.meta.get("model")
@@ -248,35 +256,168 @@ def decompose(tracks: Tracks, keys: Keys, solver: str = "nnls", ridge: float = 0
     if keys.n_points != tracks.n_points:
         raise InputError(f"key shapes are for {keys.n_points} points ({keys.scheme}), the tracks have "
                          f"{tracks.n_points}")
-    names, w = decompose_keys(tracks, keys.regions, solver, smooth_lambda, ridge, head_pose=keys.head_pose)
-    return Weights(tracks.frame, names, w, ~tracks.success)
+    names, w = D.decompose_keys(tracks, keys.regions, solver, smooth_lambda, ridge, head_pose=keys.head_pose)
+    return Weights(tracks.frame, names, w, ~tracks.success, D.tracks_fps(tracks))
 
 
-def retarget(weights: Weights, targets, regions=None, *, tracks: Tracks | None = None, neutral=None, mapping=None,
-             form: str = "auto", band: float | None = None, metric: str = "geodesic", fps: float | None = None,
-             reference_frame: int = 0, head_units: float = 1.0) -> Animation:
-    """Drive the artist's target key shapes with ``weights`` (``keyshape retarget``).
+def load_rig(rig, neutral=None, with_mesh: bool = True):
+    """A blendshape rig (:class:`~keyshape.retarget.rig.Rig`) from a folder or a list of OBJ files, as the
+    commands' ``--rig`` (``neutral``: their ``--neutral``); parsed once, then read from the rig cache."""
+    from keyshape.retarget.rig import Rig, load_rig as _load
+
+    if isinstance(rig, Rig):
+        return rig
+    if isinstance(rig, (list, tuple)) and len(rig) == 1:
+        rig = rig[0]
+    return _load(rig, neutral, with_mesh=with_mesh)
+
+
+@dataclass
+class PoseLibrary:
+    """Every key's pose on a rig (``keyshape pose``), what POSES.json holds.
+
+    Attributes
+    ----------
+    data : POSES.json's layout (``keys``, ``rig``, ``range``, ``regions``: per region its ``shapes``,
+        ``neutral`` pose and per key ``{rig shape: weight}``)
+    residuals : per key the share of its landmark motion the pose does not reproduce (None when read
+        from a file)
+    """
+
+    data: dict
+    residuals: dict | None = None
+
+    def save(self, path: str | Path) -> None:
+        """Write POSES.json atomically."""
+        from keyshape.base.formats.poses import write_poses
+
+        write_poses(path, self.data)
+
+    @classmethod
+    def load(cls, path: str | Path, rig=None) -> "PoseLibrary":
+        """Read a POSES.json (checked against ``rig``'s shape names when given)."""
+        from keyshape.base.formats.poses import read_poses
+
+        return cls(read_poses(path, None if rig is None else list(rig.names)))
+
+
+def pose(keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.SPARSITY,
+         nuisance: str = RA.NUISANCE, opposed: float = RA.OPPOSED) -> PoseLibrary:
+    """Suggest every key's pose on an artist's blendshape rig (``keyshape pose``, with its defaults).
+
+    ``rig``: a :class:`~keyshape.retarget.rig.Rig` (:func:`load_rig`) or its folder / OBJ files
+    (``neutral``: its neutral OBJ). ``landmarks``: rig landmark JSON (default: the shipped one for
+    ICT-FaceKit rigs). See :func:`keyshape.retarget.api.fit_poses`.
+    """
+    r = load_rig(rig, neutral, with_mesh=False)
+    data, fit = RA.fit_poses(keys.regions, keys.scheme, r, keys.head_pose, landmarks, sparsity, nuisance, opposed)
+    return PoseLibrary({"keys": {"scheme": keys.scheme}, **data}, fit)
+
+
+@dataclass
+class RigAnimation:
+    """A rig driven by its own curves (``keyshape retarget --poses --rig``), ready to export.
+
+    Attributes
+    ----------
+    rig : the :class:`~keyshape.retarget.rig.Rig`
+    frames : (n_frames,) frame numbers
+    curves : (n_frames, n_shapes) the rig shapes' weights
+    fps : frame rate
+    head : :class:`~keyshape.retarget.headpose.HeadMotion` in the rig's units, or None
+    """
+
+    rig: object
+    frames: np.ndarray
+    curves: np.ndarray
+    fps: float = RA.DEFAULT_FPS
+    head: object = None
+
+    def vertices(self) -> np.ndarray:
+        """The rig per frame: (n_frames, n_vertices, 3)."""
+        return self.rig.evaluate(self.curves)
+
+    def export(self, path: str | Path, livelink: bool = False) -> dict:
+        """Write ``path`` atomically: ``.csv`` (the rig's curves, or Live Link with ``livelink``), ``.glb``,
+        ``.mp4`` (the shaded rig) or a folder of OBJ frames; see :func:`keyshape.retarget.rig_export.export_rig`."""
+        from keyshape.retarget.rig_export import export_rig
+
+        if not str(path).lower().endswith(".csv") and self.rig.mesh is None:
+            self.rig = load_rig(self.rig.files if len(self.rig.files) else self.rig.neutral_file,
+                                self.rig.neutral_file)
+        return export_rig(path, self.rig, self.frames, self.curves, fps=self.fps, head=self.head, livelink=livelink)
+
+
+def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary | str | Path | None = None,
+             rig=None, tracks: Tracks | None = None, neutral=None, mapping=None, form: str = RA.FORM,
+             band: float | None = None, metric: str = RA.METRIC, fps: float | None = None,
+             reference_frame: int | None = None, head_units: float | None = None, landmarks=None):
+    """Drive the artist's target key shapes, or a rig through a pose library, with ``weights``
+    (``keyshape retarget``, with its defaults).
 
     Parameters
     ----------
     targets : a folder or list of target files (OBJ meshes or 2D drawings) named by the weight
-        columns, or a :class:`~keyshape.retarget.targets.TargetSet`
-    regions : ``{region: vertex indices}``, a regions JSON or a grouped OBJ (None: no regions)
+        columns, or a :class:`~keyshape.retarget.targets.TargetSet` (the paper's route)
+    regions : ``{region: vertex indices}``, a regions JSON or a grouped OBJ, or ``"auto"`` (None: no regions)
+    poses, rig : instead of targets, a pose library (:func:`pose`, or a POSES.json) and the rig it is for
+        (a :class:`~keyshape.retarget.rig.Rig` or its folder; ``neutral``: the rig's neutral OBJ)
     tracks : give the head motion (root transform) and the frame rate
     neutral, mapping, form, band, metric : as ``keyshape retarget``
-    fps : frame rate (default: from the tracks, else 30)
-    """
-    from keyshape.retarget.api import fit_retargeter, head_from_tracks
+    fps : frame rate (default: from the tracks, else the weights' own, else 30)
+    reference_frame : the rest head pose's frame (default: the tracks' first)
+    head_units : mesh units per model unit of the head translation (default: with a rig its
+        inter-ocular distance over the actor's, else 1); landmarks : the rig's landmark JSON
 
+    Returns
+    -------
+    :class:`Animation` (targets) or :class:`RigAnimation` (rig)
+    """
     _expect(weights, Weights, "weights", "Weights (read a file with Weights.load)")
     if len(weights.frames) == 0:
         raise InputError("retarget: the weights have no frames")
     if tracks is not None:
         _expect(tracks, Tracks, "tracks", "Tracks (read a file with read_tracks)")
-    rt = fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=form, band=band,
-                        metric=metric)
-    head = None
-    if tracks is not None:
-        head, tracks_fps = head_from_tracks(tracks, weights.frames, reference_frame, head_units)
-        fps = fps or tracks_fps
-    return Animation(rt, weights, float(fps or 30.0), head)
+    if poses is not None or rig is not None:
+        if poses is None or rig is None:
+            raise InputError("poses and rig go together (drive a rig with a pose library)")
+        if targets is not None:
+            raise InputError("targets is for one sculpted target per key; with poses give the rig only")
+        r = load_rig(rig, neutral, with_mesh=False)
+        lib = poses if isinstance(poses, PoseLibrary) else PoseLibrary.load(poses, r)
+        curves = RA.rig_curves(weights.values, weights.names, lib.data, r,
+                               None if isinstance(poses, PoseLibrary) else poses)
+        head, fps = _head(weights, tracks, fps, reference_frame, head_units, r, landmarks)
+        return RigAnimation(r, weights.frames, curves, fps, head)
+    if targets is None:
+        raise InputError("give targets (one target per key) or poses and a rig")
+    rt = RA.fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=form, band=band,
+                           metric=metric)
+    head, fps = _head(weights, tracks, fps, reference_frame, head_units)
+    return Animation(rt, weights, fps, head)
+
+
+def _head(weights: Weights, tracks, fps, reference_frame, head_units, rig=None, landmarks=None):
+    """Head motion (or None) and the frame rate: ``fps``, else the tracks', else the weights', else 30."""
+    wfps = weights.fps
+    if tracks is None:
+        return None, float(fps or wfps or RA.DEFAULT_FPS)
+    if head_units is None:
+        head_units = 1.0 if rig is None else RA.rig_head_units(rig, tracks, landmarks)
+    head, tracks_fps = RA.head_from_tracks(tracks, weights.frames, reference_frame, head_units)
+    return head, float(fps or tracks_fps or wfps or RA.DEFAULT_FPS)
+
+
+def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: str | Path | None = None, *,
+            sheet: str | Path | None = None, frames: str | None = None, size: int | None = None,
+            sheet_frames: int = 12, threads: int | None = None) -> dict:
+    """The take's footage with its contours beside the shaded rig (``keyshape preview``): write ``path``
+    (.mp4/.avi) and/or ``sheet`` (.jpg/.png); ``frames`` ``"A:B"`` limits the range."""
+    from keyshape.retarget.preview_cli import write_preview
+
+    r = animation.rig
+    if r.mesh is None:
+        r = animation.rig = load_rig(r.files, r.neutral_file)
+    return write_preview(video, tracks, r, animation.frames, animation.curves, path, sheet=sheet, frames=frames,
+                         size=size, sheet_frames=sheet_frames, threads=threads)
+

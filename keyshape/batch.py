@@ -7,15 +7,20 @@ The graph (one Dask task per box; the arrows are futures)::
 - ``model``: train the actor's tracker once from its labelled footage (or take the model file given).
 - ``track``: every take in parallel -> ``OUT_DIR/<actor>/<take>/tracks.csv``.
 - ``keys``: one key selection per actor over all of its takes' tracks -> ``OUT_DIR/<actor>/keys.json``.
-- ``finish``: decompose and retarget every take in parallel -> ``weights.csv``, ``animation.glb``, ...
+- ``poses`` (an actor with a ``rig``): its pose library, the manifest's ``poses`` or fitted once from
+  the key set (``keyshape pose``) -> ``OUT_DIR/<actor>/poses.json``.
+- ``finish``: decompose and retarget every take in parallel (onto the actor's targets, or its rig
+  through the pose library) -> ``weights.csv``, ``animation.glb``, ``curves.csv``, ``livelink.csv``,
+  ``preview.mp4``.
 - the report ``OUT_DIR/report.json`` (per take: frames, lost frames, confidence, seconds, outputs).
 
 Tasks hand each other files, not objects: a track task loads ``model.npz``, the keys task reads
 the ``tracks.csv`` files, a finish task reads ``tracks.csv`` and ``keys.json`` and retargets the
 ``weights.csv`` it wrote. A resumed run therefore computes from exactly what a fresh run does, and
-each take's results are what the commands give run one after another (``keyshape train``,
-``track``, ``decompose``, ``retarget``; the key selection is ``keyshape.api.select`` over the
-actor's takes). The files must be reachable from every worker (one machine, or a shared file
+each take's results are what the commands give run one after another with no options beyond
+the manifest's (``keyshape train``, ``track``, ``select`` over the actor's takes, ``pose``,
+``decompose``, ``retarget``, ``preview``): every step takes its defaults from the stage's in-memory
+layer, as the commands and :mod:`keyshape.api` do. The files must be reachable from every worker (one machine, or a shared file
 system; see docs/scale.md).
 
 Resuming: each take folder holds ``batch.json``, the record of what its outputs were computed
@@ -273,10 +278,13 @@ def _unchanged(files: dict, recorded: dict | None) -> bool:
     return True
 
 
-def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: Path, outputs: list[str]) -> dict:
-    """Decompose one take with the actor's key set and retarget it; write the outputs; return their paths.
+def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: Path, outputs: list[str],
+                poses_path=None, video=None) -> dict:
+    """Decompose one take with the actor's key set and retarget it (onto its targets, or its rig through
+    the pose library ``poses_path``); write the outputs; return their paths.
 
-    The serial reference of the batch: exactly what the finish task runs.
+    The serial reference of the batch: exactly what the finish task runs, and what the commands
+    (``keyshape decompose``, ``retarget``, ``preview``) give with the manifest's settings.
     """
     from keyshape import api
     from keyshape.base.formats.tracks import read_tracks
@@ -289,41 +297,96 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
     weights.save(wpath)
     files["weights"] = str(wpath)
     wanted = [o for o in outputs if o not in ("tracks", "weights")]
-    if actor.targets is not None and wanted:
-        # the rest head pose: the take's first frame (frame 0 unless the take has a frame range)
-        anim = api.retarget(api.Weights.load(wpath), actor.targets, actor.target_regions, tracks=tracks,
-                            neutral=actor.neutral, mapping=actor.map, reference_frame=int(tracks.frame[0]))
-        for o in wanted:
-            p = tdir / OUTPUT_FILES[o]
+    if not wanted:
+        return files
+    weights = api.Weights.load(wpath)
+    if actor.rig is not None:
+        anim = api.retarget(weights, poses=poses_path, rig=actor.rig, neutral=actor.neutral, tracks=tracks,
+                            landmarks=actor.landmarks)
+    elif actor.targets is not None:
+        anim = api.retarget(weights, actor.targets, actor.target_regions, tracks=tracks, neutral=actor.neutral,
+                            mapping=actor.map)
+    else:
+        return files
+    for o in wanted:
+        p = tdir / OUTPUT_FILES[o]
+        if o == "preview" and actor.rig is not None:
+            api.preview(video, tracks, anim, p)
+        else:
             anim.export(p, livelink=(o == "livelink"))
-            files[o] = str(p)
+        files[o] = str(p)
     return files
 
 
-def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, keys: dict, out: str) -> dict:
-    """Decompose and retarget one take; skip when tracks, key set, targets and settings are unchanged."""
+def task_poses(actor: Actor, keys: dict, out: str) -> dict:
+    """The actor's pose library on its rig: the manifest's ``poses`` file, or ``keyshape pose``'s suggestion
+    fitted once from the actor's key set -> ``OUT_DIR/<actor>/poses.json``; skip when keys and rig are unchanged."""
+    _one_thread()
+    t0 = time.perf_counter()
+    if actor.rig is None:
+        return {"ok": True, "path": None, "sha256": None, "status": "none", "seconds": 0.0}
+    if not keys["ok"]:
+        return {"ok": False, "error": keys["error"], "seconds": 0.0}
+    try:
+        if actor.poses is not None:
+            from keyshape import api
+            api.PoseLibrary.load(actor.poses, api.load_rig(actor.rig, actor.neutral, with_mesh=False))
+            return {"ok": True, "path": str(actor.poses), "sha256": file_sha(actor.poses)["sha256"],
+                    "status": "given", "seconds": time.perf_counter() - t0}
+        adir = actor_dir(Path(out), actor.name)
+        rec_path = adir / RECORD
+        rec = read_record(rec_path)
+        key = digest(["poses", keys["sha256"], tree_sha(actor.rig), tree_sha(actor.neutral),
+                      tree_sha(actor.landmarks), __version__])
+        path = adir / "poses.json"
+        if rec.get("poses_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("poses_sha256"):
+            return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["poses_sha256"],
+                    "seconds": 0.0}
+        from keyshape import api
+        lib = api.pose(api.Keys.load(keys["path"]), actor.rig, neutral=actor.neutral, landmarks=actor.landmarks)
+        lib.data["keys"]["file"] = str(keys["path"])
+        lib.save(path)
+        rec = read_record(rec_path)
+        rec.update(poses_key=key, poses_sha256=file_sha(path)["sha256"])
+        write_record(rec_path, rec)
+        return {"ok": True, "status": "fitted", "path": str(path), "sha256": rec["poses_sha256"],
+                "seconds": time.perf_counter() - t0}
+    except Exception as exc:  # noqa: BLE001
+        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+
+
+def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, keys: dict, out: str,
+                poses: dict | None = None) -> dict:
+    """Decompose and retarget one take; skip when tracks, key set, targets (or rig and poses) and settings
+    are unchanged."""
     _one_thread()
     t0, c0 = time.perf_counter(), time.process_time()
     base = {"actor": take.actor, "take": take.name, "video": str(take.video)}
     if not tracked["ok"]:
         return {**base, "ok": False, "error": tracked["error"], "seconds": tracked.get("seconds", 0.0)}
     stages = {"track": tracked["status"]}
-    if not keys["ok"]:
-        return {**base, "ok": False, "error": keys["error"], "stats": tracked["stats"], "stages": stages,
-                "seconds": tracked["seconds"]}
+    poses = poses or {"ok": True, "path": None, "sha256": None}
+    for res in (keys, poses):
+        if not res["ok"]:
+            return {**base, "ok": False, "error": res["error"], "stats": tracked["stats"], "stages": stages,
+                    "seconds": tracked["seconds"]}
     try:
         tdir = take_dir(Path(out), take)
         rec_path = tdir / RECORD
         rec = read_record(rec_path)
-        outputs = settings.outputs if actor.targets is not None else ["tracks", "weights"]
+        driven = actor.targets is not None or actor.rig is not None
+        outputs = settings.outputs if driven else ["tracks", "weights"]
         key = digest(["finish", tracked["sha256"], keys["sha256"], settings.solver, settings.ridge,
                       settings.smooth_lambda, outputs, [tree_sha(p) for p in (actor.targets, actor.neutral, actor.map,
-                                                                              actor.target_regions)], __version__])
+                                                                              actor.target_regions, actor.rig,
+                                                                              actor.landmarks)],
+                      poses["sha256"], str(take.video) if "preview" in outputs else None, __version__])
         files = {o: str(tdir / OUTPUT_FILES[o]) for o in outputs}
         if rec.get("finish_key") == key and _unchanged(files, rec.get("outputs_sha256")):
             stages["finish"] = "skipped"
         else:
-            files = finish_take(tracked["path"], keys["path"], actor, settings, tdir, outputs)
+            files = finish_take(tracked["path"], keys["path"], actor, settings, tdir, outputs, poses["path"],
+                                take.video)
             rec["finish_key"] = key
             rec["outputs"] = files
             rec["outputs_sha256"] = {o: file_sha(Path(p))["sha256"] for o, p in files.items()}
@@ -501,8 +564,11 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
             if idx:
                 keys[a] = client.submit(task_keys, actor, [m.takes[i] for i in idx], [tracks[i] for i in idx], o,
                                         key=f"keys-{a}", pure=False)
+        poses = {a: client.submit(task_poses, m.actors[a], k, o, key=f"poses-{a}", pure=False)
+                 for a, k in keys.items()}
         finals = [client.submit(task_finish, t, m.actors[t.actor], m.settings, tracks[i], keys[t.actor], o,
-                                key=f"finish-{t.actor}-{t.name}", pure=False) for i, t in enumerate(m.takes)]
+                                poses[t.actor], key=f"finish-{t.actor}-{t.name}", pure=False)
+                  for i, t in enumerate(m.takes)]
         from distributed import as_completed
 
         results: dict[str, dict] = {}
@@ -517,6 +583,7 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
                 prog.update()
         model_res = {a: f.result() for a, f in models.items()}
         keys_res = {a: f.result() for a, f in keys.items()}
+        poses_res = {a: f.result() for a, f in poses.items()}
     except KeyboardInterrupt:
         client.close()
         if cluster is not None:
@@ -529,14 +596,15 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
         if cluster is not None:
             cluster.close()
     report = _report(m, out, scheduler, n_workers, processes, [results[f.key] for f in finals], model_res, keys_res,
-                     time.perf_counter() - t0)
+                     time.perf_counter() - t0, poses_res)
     with atomic_write(out / "report.json") as f:
         json.dump(report, f, indent=1)
         f.write("\n")
     return report
 
 
-def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, models, keys, seconds) -> dict:
+def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, models, keys, seconds,
+            poses: dict | None = None) -> dict:
     rows = []
     for r in takes:
         st = r.get("stats", {})
@@ -565,7 +633,10 @@ def _report(m: Manifest, out: Path, scheduler, n_workers, processes, takes, mode
                      "model_seconds": round(mr.get("seconds", 0.0), 3), "keys_seconds": round(kr.get("seconds", 0.0), 3),
                      "model_cpu_seconds": round(mr.get("cpu_seconds", 0.0), 3),
                      "keys_cpu_seconds": round(kr.get("cpu_seconds", 0.0), 3)}
-        for name, res in (("model_error", mr), ("keys_error", kr)):
+        pr = (poses or {}).get(a)
+        if m.actors[a].rig is not None and pr is not None:
+            actors[a].update(poses=pr.get("path"), poses_status=pr.get("status", "failed"))
+        for name, res in (("model_error", mr), ("keys_error", kr), ("poses_error", pr or {"ok": True})):
             if not res["ok"]:
                 actors[a][name] = res["error"]
     failed = [r for r in rows if r["status"] == "failed"]

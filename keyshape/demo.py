@@ -28,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from keyshape.decompose.cli import METHODS, SOLVERS
+from keyshape.decompose import defaults as D
+from keyshape.decompose.defaults import METHODS, SOLVERS
 
 # synthetic components -> demo region (contours48 regions used by decompose)
 _REGION_OF = {"jaw": "mouth", "mouth": "mouth", "eye": "eyes", "brow": "eyes"}
@@ -40,12 +41,13 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=int, default=300, help="frames of synthetic footage (default 300)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic performance (default 0)")
     p.add_argument("--keys", type=int, default=8, help="key shapes per region (default 8)")
-    p.add_argument("--method", default="greedy", choices=METHODS, help="key-shape selector (default greedy; spread is the paper's)")
+    p.add_argument("--method", default=D.METHOD, choices=METHODS,
+                   help=f"key-shape selector (default {D.METHOD}; spread is the paper's)")
     p.add_argument("--labels", type=int, default=20, help="labelled training frames (default 20)")
-    p.add_argument("--solver", default="smooth", choices=SOLVERS,
-                   help="weight solver for keyshape decompose (default smooth)")
-    p.add_argument("--ridge", type=float, default=0.03,
-                   help="keyshape decompose --ridge (default 0.03; 0 is the paper's plain NNLS)")
+    p.add_argument("--solver", default=D.SOLVER, choices=SOLVERS,
+                   help=f"weight solver of keyshape decompose (default {D.SOLVER})")
+    p.add_argument("--ridge", type=float, default=D.RIDGE,
+                   help=f"keyshape decompose --ridge (default {D.RIDGE:g}; 0 with --solver nnls is the paper's NNLS)")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
     p.set_defaults(func=run)
@@ -82,8 +84,8 @@ def run(args) -> int:
     return 0
 
 
-def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: str = "greedy", labels: int = 20,
-             solver: str = "smooth", ridge: float = 0.03, overwrite: bool = False) -> dict:
+def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: str = D.METHOD, labels: int = 20,
+             solver: str = D.SOLVER, ridge: float = D.RIDGE, overwrite: bool = False) -> dict:
     """Run the demo into ``out_dir`` (see :func:`_run_demo`). Every stage works in a hidden
     temporary folder inside ``out_dir``; the results replace an earlier demo's only when the
     whole demo has finished, so an interrupted or failed demo leaves ``out_dir`` as it was, and
@@ -94,14 +96,15 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
     if frames < 2 or keys < 1 or labels < 2:
         raise InputError("--frames and --labels must be >= 2 and --keys >= 1")
     with atomic_dir(out_dir, overwrite, kind="demo") as tmp:
-        figures = _run_demo(tmp, frames, seed, keys, method, labels, solver, ridge)
+        figures = _run_demo(tmp, frames, seed, keys, method, labels, solver, ridge, final=Path(out_dir))
     _print_summary(Path(out_dir), figures)
     return figures
 
 
 def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels: int,
-              solver: str, ridge: float) -> dict:
-    """Run the demo into the folder ``out``; return the measured figures (also written to
+              solver: str, ridge: float, final: Path | None = None) -> dict:
+    """Run the demo into the folder ``out`` (printing each step with the paths its files will have in
+    ``final``, where ``out`` is moved once the demo is done); return the measured figures (also written to
     ``demo_report.json``): ``nme_mean``, ``nme_worst``, ``failed_frames``, ``target_error_mm``
     (mean vertex error of the retargeted face against the hidden performance on the same
     face), ``target_motion_mm`` (mean vertex motion of that performance: a still face's error),
@@ -115,23 +118,29 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     from keyshape.base.schemes import load_scheme
     from keyshape.retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
 
+    def at(p) -> Path:
+        """Where ``p`` (inside ``out``) will be once the demo is done."""
+        return Path(p) if final is None else Path(final) / Path(p).relative_to(out)
+
     t0 = time.perf_counter()
     foot = out / "footage"
     video = foot / "video.mp4"
-    _step(f"synthesize({str(foot)!r}, frames={frames}, seed={seed}, labels={labels})")
-    synthesize(foot, frames=frames, seed=seed, labels=labels, preview=foot / "preview.png", verbose=True)
-    _step(f"model = train({str(video)!r}, {str(foot / 'labels')!r})")
+    _step(f"synthesize({str(at(foot))!r}, frames={frames}, seed={seed}, labels={labels})")
+    synthesize(foot, frames=frames, seed=seed, labels=labels, preview=foot / "preview.png")
+    print(f"  {frames} frames and ground truth -> {at(foot)}")
+    _step(f"model = train({str(at(video))!r}, {str(at(foot / 'labels'))!r})")
     model = api.train(video, foot / "labels")
     model.save(out / "model.npz")
     print(f"  {len(model.train_poses_)} labelled frames + {model.n_samples_ - len(model.train_poses_)} morphs, "
-          f"{model.k_} components -> {out / 'model.npz'}")
+          f"{model.k_} components -> {at(out / 'model.npz')}")
     _step("tracks = track(video, model)")
     tracks = api.track(video, model)
     write_tracks(out / "tracks.csv", tracks)
-    print(f"  {tracks.n_frames} frames, {int((~tracks.success).sum())} lost -> {out / 'tracks.csv'}")
+    print(f"  {tracks.n_frames} frames, {int((~tracks.success).sum())} lost -> {at(out / 'tracks.csv')}")
     _step(f"keys = select(tracks, k={keys}, method={method!r}, regions=['mouth', 'eyes'])")
     key_set = api.select(tracks, keys, method, ["mouth", "eyes"])
     key_set.save(out / "keys.json")
+    print(f"  -> {at(out / 'keys.json')}, key sheet {at(out / 'keys.png')}")
     write_sheet(out / "keys.png", video, tracks, load_scheme(key_set.scheme), key_set.regions,
                 stable_pose(tracks, key_set.head_pose))
     for rk in key_set.regions:
@@ -139,30 +148,34 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     _step(f"weights = decompose(tracks, keys, solver={solver!r}, ridge={ridge})")
     weights = api.decompose(tracks, key_set, solver, ridge)
     weights.save(out / "weights.csv")
-    print(f"  {len(weights.frames)} frames x {len(weights.names)} weights -> {out / 'weights.csv'}")
+    print(f"  {len(weights.frames)} frames x {len(weights.names)} weights -> {at(out / 'weights.csv')}")
 
     # the artist's targets, one per key shape, from what each key frame shows
     truth = json.loads((foot / "truth.json").read_text())
     names, hidden = truth["components"], np.asarray(truth["weights"], dtype=np.float64)
     ex = load_expressions()
-    # decompose's weights are relative to the mean shape, so a key's target is the mean face
-    # with that region's expressions as the key frame shows them
-    mean = dict(zip(names, hidden.mean(axis=0)))
+    # the weights are relative to the actor's neutral (the most relaxed frame, select's default), or to
+    # the take's mean with --neutral-frame mean: a key's target is that face with the key's region's
+    # expressions as the key frame shows them
+    rest = key_set.regions[0].rest_frame
+    base = dict(zip(names, hidden[int(rest)] if rest is not None and all(
+        rk.rest is not None and np.allclose(rk.neutral, rk.rest) for rk in key_set.regions)
+        else hidden.mean(axis=0)))
     key_coeffs = {}
     for rk in key_set.regions:
         for name, frame in zip(rk.names, rk.frames):
-            key_coeffs[name] = _expand(ex, {**mean, **_region_coeffs(names, hidden[int(frame)], rk.region)})
-    neutral_coeffs = _expand(ex, mean)
+            key_coeffs[name] = _expand(ex, {**base, **_region_coeffs(names, hidden[int(frame)], rk.region)})
+    neutral_coeffs = _expand(ex, base)
     write_demo_targets(out / "targets", key_coeffs, ex, neutral_coeffs)
     regions_json = out / "targets_regions.json"
     with atomic_write(regions_json) as f:
         json.dump({k: v.tolist() for k, v in demo_regions(ex).items()}, f)
-    _step(f"retarget(weights, {str(out / 'targets')!r}, regions={str(regions_json)!r}, tracks=tracks)"
-          f".export({str(out / 'animation.glb')!r})")
+    _step(f"retarget(weights, {str(at(out / 'targets'))!r}, regions={str(at(regions_json))!r}, tracks=tracks)"
+          f".export({str(at(out / 'animation.glb'))!r})")
     anim = api.retarget(weights, out / "targets", regions_json, tracks=tracks)
     info = anim.export(out / "animation.glb")
     print(f"  {len(weights.frames)} frames x {len(weights.names)} key shapes ({anim.retargeter.form_} form) at "
-          f"{anim.fps:g} fps -> {info['path']}")
+          f"{anim.fps:g} fps -> {at(info['path'])}")
 
     # side-by-side preview and measured errors against the ground truth
     report = _preview_and_errors(out, video, tracks, weights, ex, names, hidden, key_coeffs, neutral_coeffs)

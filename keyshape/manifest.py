@@ -5,7 +5,7 @@ model) and takes (videos of one actor). Everything but the two ``actors`` keys a
 ``takes`` keys shown here is optional::
 
     [settings]                      # all optional; the defaults are shown
-    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink", "preview"
+    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink" (a rig's), "preview"
     smooth = "none"                 # tracker smoothing: none, savgol, oneeuro
     solver = "smooth"               # nnls, lstsq, smooth
     ridge = 0.03
@@ -19,6 +19,14 @@ model) and takes (videos of one actor). Everything but the two ``actors`` keys a
     regions = ["mouth", "eyes"]     # key regions (default: all the scheme has)
     targets = "anna/targets"        # the artist's target key shapes (mouth_0.obj, ..., neutral.obj)
     target_regions = "anna/regions.json"
+
+    [actors.ben]                    # an existing blendshape rig instead of targets
+    model = "ben/model.npz"
+    rig = "rigs/ict-facekit"        # folder of shape OBJs (neutral: neutral.obj / generic_neutral_mesh.obj,
+                                    # or neutral = "...")
+    poses = "ben/poses.json"        # optional: a corrected pose library (default: keyshape pose's, fitted
+                                    # once per actor -> OUT_DIR/ben/poses.json)
+    landmarks = "rigs/lm.json"      # optional: the rig's landmark JSON (default: ICT-FaceKit's)
 
     [[takes]]
     actor = "anna"
@@ -41,7 +49,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.decompose.cli import METHODS, SOLVERS
+from keyshape.decompose import defaults as D
+from keyshape.decompose.defaults import METHODS, SOLVERS
 
 OUTPUTS = ("tracks", "weights", "glb", "curves", "livelink", "preview")
 #: file name of each output inside ``OUT_DIR/<actor>/<take>/``
@@ -60,9 +69,9 @@ _SEED_MAX = 2 ** 32 - 1
 class Settings:
     outputs: list[str] = field(default_factory=lambda: ["tracks", "weights", "glb"])
     smooth: str = "none"
-    solver: str = "smooth"
-    ridge: float = 0.03
-    smooth_lambda: float = 0.1
+    solver: str = D.SOLVER              # the stage's defaults (keyshape.decompose.api), as the commands
+    ridge: float = D.RIDGE
+    smooth_lambda: float = D.SMOOTH_LAMBDA
 
 
 @dataclass
@@ -76,12 +85,15 @@ class Actor:
     morphs: int = 120
     seed: int = 0
     keys: int = 8
-    selector: str = "greedy"
+    selector: str = D.METHOD
     regions: list[str] | None = None
     targets: Path | None = None
     neutral: Path | None = None
     map: Path | None = None
     target_regions: Path | None = None
+    rig: Path | None = None
+    poses: Path | None = None
+    landmarks: Path | None = None
     line: int | None = None
 
 
@@ -109,13 +121,14 @@ _ACTOR = {"video": (str, "a path"), "labels": (str, "a path"), "model": (str, "a
           "morphs": (int, "an integer"), "seed": (int, "an integer"), "keys": (int, "an integer"),
           "selector": (str, "a selector name"), "regions": (list, "a list of region names"),
           "targets": (str, "a path"), "neutral": (str, "a path"), "map": (str, "a path"),
-          "target_regions": (str, "a path")}
+          "target_regions": (str, "a path"), "rig": (str, "a path"), "poses": (str, "a path"),
+          "landmarks": (str, "a path")}
 _TAKE = {"actor": (str, "an actor name"), "video": (str, "a path"), "name": (str, "a name"),
          "frames": (list, "[start, stop]")}
 _SETTINGS = {"outputs": (list, "a list of output names"), "smooth": (str, "a smoother name"),
              "solver": (str, "a solver name"), "ridge": ((int, float), "a number"),
              "smooth_lambda": ((int, float), "a number")}
-_PATH_KEYS = {"video", "labels", "model", "targets", "neutral", "map", "target_regions"}
+_PATH_KEYS = {"video", "labels", "model", "targets", "neutral", "map", "target_regions", "rig", "poses", "landmarks"}
 
 
 class _Lines:
@@ -158,9 +171,6 @@ def _unknown(key: str, allowed) -> str:
 def _check_table(table: dict, schema: dict, err, where: tuple) -> None:
     for key, value in table.items():
         if key not in schema:
-            if key == "rig":
-                err("'rig' (driving an existing rig) is not supported by keyshape batch yet: give 'targets'",
-                    *where, key)
             err(_unknown(key, schema), *where, key)
         types, what = schema[key]
         if isinstance(value, bool) or not isinstance(value, types):
@@ -240,8 +250,14 @@ def read_manifest(path: str | Path) -> Manifest:
         if actor.regions is not None and (not actor.regions or any(r not in REGION_NAMES for r in actor.regions)):
             err(f"regions must be some of {', '.join(REGION_NAMES)}, got {actor.regions!r}", "actors", name,
                 "regions")
-        if actor.targets is None and any(k in a for k in ("neutral", "map", "target_regions")):
-            err(f"actor {name!r}: neutral, map and target_regions need targets", "actors", name)
+        if actor.targets is not None and actor.rig is not None:
+            err(f"actor {name!r}: give targets (one per key) or a rig, not both", "actors", name, "rig")
+        if actor.targets is None and any(k in a for k in ("map", "target_regions")):
+            err(f"actor {name!r}: map and target_regions need targets", "actors", name)
+        if actor.targets is None and actor.rig is None and "neutral" in a:
+            err(f"actor {name!r}: neutral needs targets or a rig", "actors", name, "neutral")
+        if actor.rig is None and any(k in a for k in ("poses", "landmarks")):
+            err(f"actor {name!r}: poses and landmarks need a rig", "actors", name)
         actors[name] = actor
 
     takes_raw = data.get("takes")

@@ -1,8 +1,16 @@
-"""The retarget stage's part of the Python API (:mod:`keyshape.api`).
+"""The retarget stage's in-memory layer, with the product's defaults.
 
-``keyshape retarget`` (``retarget/cli.py``), :mod:`keyshape.api` and ``keyshape batch`` all call
-these functions: fit a :class:`~keyshape.retarget.retargeter.Retargeter` to target key shapes
-(files or a :class:`~keyshape.retarget.targets.TargetSet`) and turn tracks into head motion.
+``keyshape retarget``, ``keyshape pose`` and ``keyshape preview`` (``retarget/cli.py``,
+``retarget/pose_cli.py``, ``retarget/preview_cli.py``: argument parsing and files),
+:mod:`keyshape.api`, ``keyshape batch`` and ``keyshape demo`` all call these functions and take
+their defaults from here:
+
+- sculpted targets: :func:`fit_retargeter` fits a :class:`~keyshape.retarget.retargeter.Retargeter`
+  to one target per key (files or a :class:`~keyshape.retarget.targets.TargetSet`);
+- a rig: :func:`fit_poses` suggests every key's pose on the rig (a pose library, POSES.json's
+  layout) and :func:`rig_curves` turns key weights into the rig's own curves;
+- :func:`head_from_tracks` turns tracks into head motion (in the rig's units with
+  :func:`rig_head_units`) and the frame rate.
 """
 from __future__ import annotations
 
@@ -13,13 +21,16 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
+from keyshape.decompose.api import tracks_fps
 from keyshape.retarget.headpose import HeadMotion, head_motion, hold_invalid
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
+from keyshape.retarget.defaults import DEFAULT_FPS, FORM, METRIC, NUISANCE, OPPOSED, SPARSITY  # noqa: F401,E402
 
-def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = "auto",
-                   band: float | None = None, metric: str = "geodesic") -> Retargeter:
+
+def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
+                   band: float | None = None, metric: str = METRIC) -> Retargeter:
     """A :class:`Retargeter` fitted to one target per weight column.
 
     Parameters
@@ -27,7 +38,9 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
     columns : the weight columns (``REGION_K``) in order
     targets : a :class:`TargetSet`, a folder or a list of target files (see
         :func:`~keyshape.retarget.targets.load_targets`)
-    regions : ``{region: vertex indices}``, or a regions JSON / grouped OBJ file, or None
+    regions : ``{region: vertex indices}``, a regions JSON / grouped OBJ file, ``"auto"`` (from the
+        targets' own support: each vertex to the region whose targets move it most; needs a
+        neutral), or None
     mapping, neutral : as :func:`~keyshape.retarget.targets.load_targets` (files only)
     form, band, metric : as :class:`Retargeter`
     """
@@ -38,15 +51,24 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
             targets = targets[0]
         ts = load_targets(list(columns), targets, mapping=mapping, neutral=neutral)
     source = "regions"
-    if isinstance(regions, (str, Path)):
+    if isinstance(regions, str) and regions == "auto":
+        from keyshape.retarget.rig import support_regions
+        if ts.neutral is None:
+            raise InputError("--regions auto needs a neutral (--neutral or neutral.* among the targets)")
+        regions = support_regions(ts.shapes, ts.neutral, ts.columns)
+        source = "regions auto"
+    elif isinstance(regions, (str, Path)):
         source = str(regions)
         regions = read_regions(regions, ts.mesh)
     return Retargeter(form=form, band=band, metric=metric).fit(ts, regions, source)
 
 
-def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 0, head_units: float = 1.0,
+def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | None = None, head_units: float = 1.0,
                      source=None, head: str = "rigid") -> tuple[HeadMotion, float | None]:
     """Head motion of the weights' ``frames`` from the tracks' 2D pose, and the tracks' frame rate.
+
+    ``reference_frame``: the tracks' frame taken as the rest head pose (default: the tracks' first
+    frame). ``head_units``: model units to mesh units of the translation.
 
     ``head``: ``rigid`` (default): the tracker's pose stabilised on the scheme's rigid points
     (:func:`~keyshape.decompose.regions.stable_pose`), so that an expression the tracker's pose
@@ -59,6 +81,8 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 
     if missing:
         raise InputError(f"weights frames {missing[:5]} are not in the tracks", source)
     rows = np.array([pos[int(f)] for f in frames])
+    if reference_frame is None:
+        reference_frame = int(tracks.frame[0])
     if reference_frame not in pos:
         raise InputError(f"reference frame {reference_frame} is not in the tracks", source)
     from keyshape.decompose.stabilize import HEAD_POSES
@@ -79,9 +103,69 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 
     pose = np.concatenate([full[rows], full[[pos[reference_frame]]]])
     head = head_motion(pose, reference=len(rows), units_per_model=head_units)
     head = type(head)(head.translation[:-1], head.rotation[:-1], head.scale[:-1], head.angle[:-1])
-    fps = None
-    if len(tracks.time) > 1:
-        dt = np.diff(tracks.time)
-        dt = dt[np.isfinite(dt) & (dt > 0)]
-        fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
-    return head, fps
+    return head, tracks_fps(tracks)
+
+
+def rig_head_units(rig, tracks: Tracks, landmarks=None) -> float:
+    """Rig units per tracker model unit: the rig's inter-ocular distance over the actor's (median, model frame)."""
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.regions import model_shapes
+    from keyshape.retarget.rig import rig_landmarks
+
+    scheme = scheme_for_n_points(tracks.n_points)
+    W, _ = rig_landmarks(rig, scheme.name, landmarks)
+    a, b = scheme.inter_ocular
+    rig_iod = float(np.linalg.norm((W[a] - W[b]) @ rig.neutral))
+    iod = scheme.interocular_distance(model_shapes(tracks)[tracks.success])
+    return rig_iod / float(np.median(iod))
+
+
+def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, landmarks=None,
+              sparsity: float = SPARSITY, nuisance: str = NUISANCE, opposed: float = OPPOSED) -> tuple[dict, dict]:
+    """Suggest every key's pose on ``rig`` (``keyshape pose``): the pose library and each fit's residual.
+
+    Parameters
+    ----------
+    regions : the keys' :class:`~keyshape.decompose.regions.RegionKeys` (model frame)
+    scheme_name : their landmark scheme
+    rig : a :class:`~keyshape.retarget.rig.Rig`
+    head_pose : the keys' KEYS.json ``head_pose`` entry (rigid stabilisation frees fewer nuisances)
+    landmarks : rig landmark JSON (default: the shipped one for ICT-FaceKit rigs)
+    sparsity, nuisance, opposed : see :func:`~keyshape.retarget.poses.pose_library`
+
+    Returns
+    -------
+    ``(library, residuals)``: the library in POSES.json's layout (``rig``, ``range``, ``regions``;
+    the caller adds ``keys``), and per key (and region neutral) the relative residual
+    ``||A p - b|| / ||b||`` of its landmark motion.
+    """
+    from keyshape.base.schemes import load_scheme
+    from keyshape.decompose.regions import available_regions, region_points
+    from keyshape.retarget.poses import pose_library
+    from keyshape.retarget.rig import project, rig_landmarks, shape_regions
+
+    if not (np.isfinite(opposed) and -1.0 <= opposed <= 0.0):
+        raise InputError(f"--opposed {opposed}: a cosine from -1 to 0")
+    if not (np.isfinite(sparsity) and 0.0 <= sparsity <= 100.0):
+        raise InputError(f"--sparsity {sparsity}: a number from 0 to 100")
+    W, lm_path = rig_landmarks(rig, scheme_name, landmarks)
+    scheme = load_scheme(scheme_name)
+    lm_neutral = project(W @ rig.neutral)
+    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
+    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
+    stabilized = (head_pose or {}).get("method") == "rigid"
+    lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, sparsity, nuisance,
+                       stabilized, opposed)
+    fit = lib.pop("_fit")
+    data = {"rig": {"neutral": str(rig.neutral_file), "n_vertices": rig.n_vertices, "shapes": list(rig.names),
+                    "landmarks": str(lm_path)},
+            "range": list(rig.value_range), "regions": lib}
+    return data, fit
+
+
+def rig_curves(weights: np.ndarray, columns: Sequence[str], library: dict, rig, source=None) -> np.ndarray:
+    """The rig's curves (n_frames, n_shapes) for key ``weights`` (n_frames, n_keys) through a pose library."""
+    from keyshape.retarget.poses import curves_from_library
+
+    return curves_from_library(weights, columns, library, rig.names, source)

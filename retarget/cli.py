@@ -6,6 +6,8 @@ import argparse
 
 def register(subparsers) -> None:
     """Add ``retarget`` to ``subparsers``."""
+    from keyshape.retarget import defaults as A
+
     p = subparsers.add_parser(
         "retarget", help="drive the artist's target key shapes with decomposed weights (.glb/.csv/OBJ/video)",
         description="Blend target key shapes (OBJ meshes of one topology, or 2D .pts/JSON drawings) with "
@@ -23,7 +25,7 @@ def register(subparsers) -> None:
     p.add_argument("--map", dest="mapping", help='mapping JSON {"REGION_K": "target file"} '
                                                  "(default: match column names to file stems)")
     p.add_argument("--neutral", help="neutral mesh/drawing (needed for --form delta; base of the .glb)")
-    p.add_argument("--form", choices=("auto", "absolute", "delta"), default="auto",
+    p.add_argument("--form", choices=("auto", "absolute", "delta"), default=A.FORM,
                    help="delta: N + sum w_i (B_i - N), for weights fitted relative to a neutral (keyshape "
                         "decompose's, relative to the sequence's mean shape); absolute: sum w_i B_i (the paper's "
                         "literal form); auto: delta when a neutral is given or found, else absolute")
@@ -33,10 +35,11 @@ def register(subparsers) -> None:
                                      "it most)")
     p.add_argument("--band", type=float, default=None,
                    help="region blending band width in mesh units (default 10%% of the bounding-box diagonal)")
-    p.add_argument("--metric", choices=("geodesic", "euclidean"), default="geodesic",
+    p.add_argument("--metric", choices=("geodesic", "euclidean"), default=A.METRIC,
                    help="distance for the region band")
     p.add_argument("--tracks", help="tracks CSV: its 2D pose gives the head motion (root transform)")
-    p.add_argument("--reference-frame", type=int, default=0, help="tracks frame taken as the rest head pose")
+    p.add_argument("--reference-frame", type=int, default=None,
+                   help="tracks frame taken as the rest head pose (default: the tracks' first frame)")
     p.add_argument("--head-units", type=float, default=None,
                    help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
                         "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
@@ -46,7 +49,7 @@ def register(subparsers) -> None:
                         "the head translation's units")
     p.add_argument("--bake-head", action="store_true", help="apply head motion to OBJ/PNG/video frames")
     p.add_argument("--fps", type=float, default=None,
-                   help="frame rate (default: from the tracks' timestamps, else 30)")
+                   help="frame rate (default: from the tracks' timestamps, else the weights' own, else 30)")
     p.add_argument("--clamp", action="store_true", help="clamp weights to [0, 1] in .glb/.csv (default keep)")
     p.add_argument("--livelink", action="store_true", help=".csv in the Live Link Face layout (ARKit names)")
     p.add_argument("--scheme", help="landmark scheme to draw 2D targets (default: by point count)")
@@ -85,7 +88,7 @@ def run(args) -> int:
     for name, v, lo in (("--head-units", args.head_units, 0.0), ("--fps", args.fps, 0.0), ("--band", args.band, 0.0)):
         if v is not None and not (np.isfinite(v) and lo < v < 1e9):
             raise InputError(f"{name} {v}: must be a finite number > {lo:g}")
-    if args.reference_frame < 0:
+    if args.reference_frame is not None and args.reference_frame < 0:
         raise InputError(f"--reference-frame {args.reference_frame}: frames are numbered from 0")
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
@@ -98,28 +101,18 @@ def run(args) -> int:
         check_output(args.output, "file", inputs)
     if args.poses or args.rig:
         return run_rig(args, inputs)
-    frames, columns, weights, _ = read_weights(args.weights)
-    regions = args.regions
-    if regions == "auto":
-        from keyshape.retarget.rig import support_regions
-        from keyshape.retarget.targets import load_targets
-
-        targets = args.targets[0] if len(args.targets) == 1 else args.targets
-        ts = load_targets(columns, targets, mapping=args.mapping, neutral=args.neutral)
-        if ts.neutral is None:
-            raise InputError("--regions auto needs a neutral (--neutral or neutral.* among the targets)")
-        regions = support_regions(ts.shapes, ts.neutral, ts.columns)
-        print("keyshape retarget: regions from the targets' own support: "
-              + ", ".join(f"{r} {len(g)} vertices" for r, g in regions.items()))
-        rt = fit_retargeter(columns, ts, regions, form=args.form, band=args.band, metric=args.metric)
-    else:
-        rt = fit_retargeter(columns, args.targets, regions, mapping=args.mapping, neutral=args.neutral,
-                            form=args.form, band=args.band, metric=args.metric)
+    weights = read_weights(args.weights)
+    frames, columns = weights.frames, weights.names
+    targets = args.targets[0] if len(args.targets) == 1 else args.targets
+    rt = fit_retargeter(columns, targets, args.regions, mapping=args.mapping, neutral=args.neutral,
+                        form=args.form, band=args.band, metric=args.metric)
+    if args.regions == "auto":
+        print("keyshape retarget: regions from the targets' own support: " + ", ".join(rt.region_names_ or []))
     ts = rt.targets_
-    head, fps = _head(args, frames)
-    fps = fps or 30.0
-    info = export(args.output, rt, frames, weights, fps=fps, head=head, clamp=args.clamp, livelink=args.livelink,
-                  bake_head=args.bake_head, scheme=args.scheme, overwrite=args.overwrite, inputs=inputs)
+    head, fps = _head(args, weights)
+    info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, clamp=args.clamp,
+                  livelink=args.livelink, bake_head=args.bake_head, scheme=args.scheme, overwrite=args.overwrite,
+                  inputs=inputs)
     extra = f", {info['n_clamped']} weights clamped to [0, 1]" if args.clamp else ""
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
           f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
@@ -135,7 +128,7 @@ def run_rig(args, inputs: list) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.poses import read_poses
     from keyshape.base.formats.weights import read_weights
-    from keyshape.retarget.poses import curves_from_library
+    from keyshape.retarget.api import rig_curves
     from keyshape.retarget.rig import load_rig
     from keyshape.retarget.rig_export import export_rig
 
@@ -143,7 +136,8 @@ def run_rig(args, inputs: list) -> int:
         raise InputError("--poses and --rig go together (drive a rig with a pose library)")
     if args.targets:
         raise InputError("--targets is for one sculpted target per key; with --poses give --rig only")
-    frames, columns, weights, _ = read_weights(args.weights)
+    weights = read_weights(args.weights)
+    frames, columns = weights.frames, weights.names
     needs_mesh = not str(args.output).lower().endswith(".csv")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
     lib = read_poses(args.poses, rig.names)
@@ -155,9 +149,8 @@ def run_rig(args, inputs: list) -> int:
             raise InputError(f"the pose library was fitted to keys of another tracker model ({pose_model}; "
                              f"the tracks {args.tracks}: {tracks_model}): its poses are another actor's "
                              "key shapes. Fit a pose library to this model's keys ('keyshape pose')", args.poses)
-    curves = curves_from_library(weights, columns, lib, rig.names, args.poses)
-    head, fps = _head(args, frames, rig)
-    fps = fps or 30.0
+    curves = rig_curves(weights.weights, columns, lib, rig, args.poses)
+    head, fps = _head(args, weights, rig)
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
                       overwrite=args.overwrite, inputs=inputs)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
@@ -166,30 +159,20 @@ def run_rig(args, inputs: list) -> int:
     return 0
 
 
-def rig_head_units(rig, tracks, landmarks=None) -> float:
-    """Rig units per tracker model unit: the rig's inter-ocular distance over the actor's (median, model frame)."""
-    import numpy as np
-
-    from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.regions import model_shapes
-    from keyshape.retarget.rig import rig_landmarks
-    scheme = scheme_for_n_points(tracks.n_points)
-    W, _ = rig_landmarks(rig, scheme.name, landmarks)
-    a, b = scheme.inter_ocular
-    rig_iod = float(np.linalg.norm((W[a] - W[b]) @ rig.neutral))
-    iod = scheme.interocular_distance(model_shapes(tracks)[tracks.success])
-    return rig_iod / float(np.median(iod))
-
-
-def _head(args, frames, rig=None):
-    """Head motion from ``--tracks`` (or None) and the frame rate from its timestamps (or ``--fps``).
+def _head(args, weights, rig=None):
+    """Head motion from ``--tracks`` (or None) and the frame rate: ``--fps``, else the tracks' timestamps,
+    else the weights' own (WEIGHTS.csv's ``fps``), else 30.
 
     The translation's units: ``--head-units``, else with a rig the rig's inter-ocular distance
     over the actor's, else 1."""
+    from keyshape.retarget.api import DEFAULT_FPS, head_from_tracks, rig_head_units
+
+    from keyshape.base.formats.weights import read_weights_fps
+
+    wfps = read_weights_fps(args.weights)
     if not args.tracks:
-        return None, args.fps
+        return None, args.fps or wfps or DEFAULT_FPS
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.retarget.api import head_from_tracks
 
     tr = read_tracks(args.tracks, accept_partial=args.accept_partial)
     units = args.head_units
@@ -198,5 +181,5 @@ def _head(args, frames, rig=None):
         if rig is not None:
             print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
                   "(rig inter-ocular distance / actor's)")
-    head, tracks_fps = head_from_tracks(tr, frames, args.reference_frame, units, args.tracks)
-    return head, args.fps or tracks_fps
+    head, tracks_fps = head_from_tracks(tr, weights.frames, args.reference_frame, units, args.tracks)
+    return head, args.fps or tracks_fps or wfps or DEFAULT_FPS

@@ -6,6 +6,8 @@ import argparse
 
 def register(subparsers) -> None:
     """Add ``pose`` to ``subparsers``."""
+    from keyshape.retarget import defaults as A
+
     p = subparsers.add_parser(
         "pose", help="suggest a rig pose (rig shape weights) for every key shape -> POSES.json",
         description="For every key of every region of KEYS.json, find non-negative, sparse weights of the rig's "
@@ -21,13 +23,13 @@ def register(subparsers) -> None:
     p.add_argument("--landmarks", default=None,
                    help="rig landmark JSON: the rig vertices of the scheme's points (default: the shipped "
                         "correspondence for ICT-FaceKit rigs)")
-    p.add_argument("--sparsity", type=float, default=0.01,
+    p.add_argument("--sparsity", type=float, default=A.SPARSITY,
                    help="L1 weight (dimensionless): larger gives fewer shapes per pose")
-    p.add_argument("--nuisance", choices=("auto", "translation", "similarity", "none"), default="auto",
+    p.add_argument("--nuisance", choices=("auto", "translation", "similarity", "none"), default=A.NUISANCE,
                    help="region motions fitted freely besides the rig shapes (left by 2D head-pose removal): "
                         "auto = translation of the mouth; for the eyes and brows nothing when the keys' head "
                         "was stabilised on rigid points (select --head-pose rigid), else a similarity")
-    p.add_argument("--opposed", type=float, default=-0.5, metavar="COSINE",
+    p.add_argument("--opposed", type=float, default=A.OPPOSED, metavar="COSINE",
                    help="two shapes of a region whose landmark motions have a cosine below this (antagonists: "
                         "browDown and browOuterUp, mouthLeft and mouthRight) are never used in one pose; -1 "
                         "allows every combination")
@@ -53,51 +55,57 @@ def register(subparsers) -> None:
     e.set_defaults(func=run_edit)
 
 
+def describe_residual(residual: float) -> str:
+    """A pose fit's relative residual in words: what it means and what to do about it."""
+    if residual <= 0.25:
+        return "good"
+    if residual <= 0.5:
+        return "fair: the rig shows this key's motion only in part; check it in 'keyshape pose-edit'"
+    return ("poor: no mix of the region's rig shapes makes this key's motion (a shape the rig lacks, or a key "
+            "spoiled by tracking or head motion); correct it by hand in 'keyshape pose-edit' or select keys again")
+
+
 def run(args) -> int:
+    import time
     from pathlib import Path
 
-    import numpy as np
-
-    from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose, read_keys_source
     from keyshape.base.formats.poses import write_poses
-    from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.regions import available_regions, region_points
-    from keyshape.retarget.poses import pose_library
-    from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
+    from keyshape.retarget.api import fit_poses
+    from keyshape.retarget.rig import load_rig
 
-    if not (np.isfinite(args.opposed) and -1.0 <= args.opposed <= 0.0):
-        raise InputError(f"--opposed {args.opposed}: a cosine from -1 to 0")
-    if not (np.isfinite(args.sparsity) and 0.0 <= args.sparsity <= 100.0):
-        raise InputError(f"--sparsity {args.sparsity}: a number from 0 to 100")
     scheme_name, n_points, regions = read_keys(args.keys)
+    t0 = time.perf_counter()
+    print(f"keyshape pose: loading the rig {' '.join(map(str, args.rig))} ...", flush=True)
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=False)
-    W, lm_path = rig_landmarks(rig, scheme_name, args.landmarks)
-    scheme = load_scheme(scheme_name)
-    lm_neutral = project(W @ rig.neutral)
-    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
-    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
-    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
-    stabilized = read_keys_head_pose(args.keys)["method"] == "rigid"
-    lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, args.sparsity,
-                       args.nuisance, stabilized, args.opposed)
-    fit = lib.pop("_fit")
-    data = {"keys": {"file": str(args.keys), "scheme": scheme_name},
-            "rig": {"neutral": str(rig.neutral_file), "n_vertices": rig.n_vertices, "shapes": rig.names,
-                    "landmarks": str(lm_path)},
-            "range": list(rig.value_range), "regions": lib}
+    n_keys = sum(len(rk.keys) for rk in regions)
+    print(f"keyshape pose: {rig.n_shapes} shapes of {rig.n_vertices} vertices ({time.perf_counter() - t0:.1f} s); "
+          f"fitting {n_keys} keys of {len(regions)} regions ...", flush=True)
+    t1 = time.perf_counter()
+    data, fit = fit_poses(regions, scheme_name, rig, read_keys_head_pose(args.keys), args.landmarks, args.sparsity,
+                          args.nuisance, args.opposed)
+    data = {"keys": {"file": str(args.keys), "scheme": scheme_name}, **data}
     src = read_keys_source(args.keys)
     if src.get("model"):
         data["keys"]["model"] = src["model"]
     from keyshape.base.files import sha256_file
     data["keys"]["sha256"] = sha256_file(args.keys)          # which key set exactly (provenance)
     write_poses(args.output, data)
-    for r, reg in lib.items():
+    print(f"keyshape pose: fitted in {time.perf_counter() - t1:.1f} s. Residual: the share of the key's landmark "
+          "motion the pose does not reproduce (0% exact; above 50% the rig cannot make this key)")
+    poor = []
+    for r, reg in data["regions"].items():
         print(f"{r}: {len(reg['keys'])} keys onto {len(reg['shapes'])} rig shapes")
         for k, pose in reg["keys"].items():
             top = sorted(pose.items(), key=lambda kv: -kv[1])[:4]
             print(f"  {k}: " + (", ".join(f"{s} {v:.2f}" for s, v in top) or "(rest)")
-                  + f"  [residual {100 * fit[k]:.0f}%]")
+                  + f"  [residual {100 * fit[k]:.0f}%: {describe_residual(fit[k]).split(':')[0]}]")
+            if fit[k] > 0.25:
+                poor.append(k)
+    if poor:
+        worst = max(poor, key=lambda k: fit[k])
+        print(f"keyshape pose: {len(poor)} key(s) with a high residual ({', '.join(poor)}); {worst}: "
+              f"{describe_residual(fit[worst])}")
     print(f"wrote {Path(args.output)}")
     if args.edit:
         from keyshape.retarget.pose_edit import serve

@@ -31,33 +31,14 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import time
-    from pathlib import Path
-
-    import cv2
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.base.files import atomic_write
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.base.formats.video import VideoReader
     from keyshape.base.formats.weights import read_weights
-    from keyshape.base.progress import Progress
-    from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.retarget.preview import RigRenderer, actor_panel, ordered_map, parse_frames
-    from keyshape.retarget.render import side_by_side
     from keyshape.retarget.rig import load_rig
 
-    if not args.output and not args.sheet:
-        raise InputError("give -o OUT.mp4 and/or --sheet SHEET.jpg")
-    if args.output and Path(args.output).suffix.lower() not in (".mp4", ".avi"):
-        raise InputError("preview output must end in .mp4 or .avi", args.output)
-    if args.sheet and Path(args.sheet).suffix.lower() not in (".jpg", ".jpeg", ".png"):
-        raise InputError("--sheet must end in .jpg or .png", args.sheet)
-    if not 1 <= args.sheet_frames <= 1000:
-        raise InputError(f"--sheet-frames {args.sheet_frames}: must be from 1 to 1000")
-    if args.size is not None and not 16 <= args.size <= 8192:
-        raise InputError(f"--size {args.size}: must be from 16 to 8192 pixels")
+    _check_outputs(args.output, args.sheet, args.sheet_frames, args.size)
     if bool(args.curves) == bool(args.weights or args.poses):
         raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
@@ -74,21 +55,75 @@ def run(args) -> int:
         if not (args.weights and args.poses):
             raise InputError("--weights and --poses go together")
         from keyshape.base.formats.poses import read_poses
-        from keyshape.retarget.poses import curves_from_library
+        from keyshape.retarget.api import rig_curves
         frames, cols, w, _ = read_weights(args.weights)
-        curves = curves_from_library(w, cols, read_poses(args.poses, rig.names), rig.names, args.poses)
+        curves = rig_curves(w, cols, read_poses(args.poses, rig.names), rig, args.poses)
     tracks = read_tracks(args.tracks)
+    info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
+                         size=args.size, sheet_frames=args.sheet_frames, threads=args.threads,
+                         tracks_source=args.tracks)
+    n, dt = info["frames"], info["seconds"]
+    print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
+          f"{n / max(info['render_cpu_seconds'], 1e-9):.1f} frames per CPU second, {rig.n_vertices} vertices)"
+          + (f" -> {args.output}" if args.output else "") + (f"; sheet {args.sheet}" if args.sheet else ""))
+    return 0
+
+
+def _check_outputs(output, sheet, sheet_frames: int = 12, size: int | None = None) -> None:
+    from pathlib import Path
+
+    from keyshape.base.errors import InputError
+
+    if not output and not sheet:
+        raise InputError("give -o OUT.mp4 and/or --sheet SHEET.jpg")
+    if output and Path(output).suffix.lower() not in (".mp4", ".avi"):
+        raise InputError("preview output must end in .mp4 or .avi", output)
+    if sheet and Path(sheet).suffix.lower() not in (".jpg", ".jpeg", ".png"):
+        raise InputError("--sheet must end in .jpg or .png", sheet)
+    if not 1 <= sheet_frames <= 1000:
+        raise InputError(f"--sheet-frames {sheet_frames}: must be from 1 to 1000")
+    if size is not None and not 16 <= size <= 8192:
+        raise InputError(f"--size {size}: must be from 16 to 8192 pixels")
+
+
+def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, sheet=None, frames: str | None = None,
+                  size: int | None = None, sheet_frames: int = 12, threads: int | None = None,
+                  tracks_source=None) -> dict:
+    """Write the side-by-side preview (the footage with its contours | the shaded rig driven by
+    ``curves``) to ``output`` (.mp4/.avi) and/or a contact ``sheet`` (.jpg/.png): what ``keyshape
+    preview``, :func:`keyshape.api.preview` and ``keyshape batch`` run.
+
+    ``frame_numbers``: the curves' frame numbers; ``frames``: the range to render, ``"A:B"`` (B
+    exclusive; default all). Returns ``{"frames", "seconds", "render_cpu_seconds"}``.
+    """
+    import time
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import atomic_write
+    from keyshape.base.formats.video import VideoReader
+    from keyshape.base.progress import Progress
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.retarget.preview import RigRenderer, actor_panel, ordered_map, parse_frames
+    from keyshape.retarget.render import side_by_side
+
+    _check_outputs(output, sheet, sheet_frames, size)
+    spec, frames = frames, np.asarray(frame_numbers)
+    curves = np.asarray(curves, dtype=np.float64)
     scheme = scheme_for_n_points(tracks.n_points)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
-    rows = parse_frames(args.frames, frames)
-    reader = VideoReader(args.video)
+    rows = parse_frames(spec, frames)
+    reader = VideoReader(video)
     from keyshape.base.formats.tracks import check_frame_size
-    check_frame_size(tracks.meta, reader.info.width, reader.info.height, args.video, args.tracks)
-    h = args.size or reader.info.height
+    check_frame_size(tracks.meta, reader.info.width, reader.info.height, video, tracks_source)
+    h = size or reader.info.height
     renderer = RigRenderer(rig, size=(h, h)).fit(curves[rows])
     fps = reader.info.fps or 30.0
-    sheet_rows = set(rows[np.linspace(0, len(rows) - 1, min(args.sheet_frames, len(rows))).round().astype(int)]
-                     .tolist()) if args.sheet else set()
+    sheet_rows = set(rows[np.linspace(0, len(rows) - 1, min(sheet_frames, len(rows))).round().astype(int)]
+                     .tolist()) if sheet else set()
     want = {int(frames[r]): r for r in rows}
     last = max(want)
     tiles, captions = [], []
@@ -114,10 +149,10 @@ def run(args) -> int:
                                bool(tracks.success[k]) if k is not None else False, h)
             yield (i, r, left), curves[r]
 
-    with _maybe_writer(args.output, fps) as wr:
+    with _maybe_writer(output, fps) as wr:
         prog = Progress(len(rows), desc="keyshape preview")
         # the rig is rendered on a few threads (fillPoly and numpy release the GIL), written in order
-        for (i, r, left), right, cpu in ordered_map(renderer.render_curves, jobs(wr, prog), args.threads):
+        for (i, r, left), right, cpu in ordered_map(renderer.render_curves, jobs(wr, prog), threads):
             t_render += cpu
             out = side_by_side(left, right)
             if wr is not None:
@@ -130,19 +165,15 @@ def run(args) -> int:
         prog.close()
     if n < len(rows):
         raise InputError(f"the video ended after frame {reader.n_read - 1}; the curves go on to frame {last}",
-                         args.video)
-    if args.sheet:
+                         video)
+    if sheet:
         from keyshape.base.draw import contact_sheet
-        sheet = contact_sheet(tiles, captions, columns=3, tile_width=2 * h + 4)
-        ok, buf = cv2.imencode(Path(args.sheet).suffix.lower(), sheet,
-                               [cv2.IMWRITE_JPEG_QUALITY, 85] if not args.sheet.lower().endswith(".png") else [])
-        with atomic_write(args.sheet, "wb") as f:
+        img = contact_sheet(tiles, captions, columns=3, tile_width=2 * h + 4)
+        ok, buf = cv2.imencode(Path(sheet).suffix.lower(), img,
+                               [cv2.IMWRITE_JPEG_QUALITY, 85] if not str(sheet).lower().endswith(".png") else [])
+        with atomic_write(sheet, "wb") as f:
             f.write(buf.tobytes())
-    dt = time.perf_counter() - t0
-    print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
-          f"{n / max(t_render, 1e-9):.1f} frames per CPU second, {rig.n_vertices} vertices)"
-          + (f" -> {args.output}" if args.output else "") + (f"; sheet {args.sheet}" if args.sheet else ""))
-    return 0
+    return {"frames": n, "seconds": time.perf_counter() - t0, "render_cpu_seconds": t_render}
 
 
 class _maybe_writer:

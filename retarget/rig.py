@@ -117,9 +117,88 @@ def _rig_files(sources: Sequence[str | Path] | str | Path, neutral: str | Path |
     return shapes, neutral
 
 
+def cache_dir() -> Path:
+    """Where parsed rigs are cached: ``$KEYSHAPE_CACHE/rigs``, else ``~/.cache/keyshape/rigs``."""
+    import os
+
+    root = os.environ.get("KEYSHAPE_CACHE")
+    return (Path(root) if root else Path.home() / ".cache" / "keyshape") / "rigs"
+
+
+def _file_hashes(paths: Sequence[Path]) -> list[str]:
+    """sha256 of each file's content; a file whose path, size and modification time are those recorded in
+    the cache folder's ``hashes.json`` (when its hash was last computed) is not read again, as
+    ``keyshape batch`` does for videos (hashing ICT-FaceKit's 152 MB on every command costs a quarter
+    of a second)."""
+    import os
+
+    from keyshape.base.files import read_json, sha256_file, write_json
+
+    index_path = cache_dir() / "hashes.json"
+    try:
+        index = read_json(index_path) if index_path.is_file() else {}
+        index = index if isinstance(index, dict) else {}
+    except InputError:
+        index = {}
+    out, changed = [], False
+    for p in paths:
+        st = os.stat(p)
+        key = str(Path(p).resolve())
+        rec = index.get(key)
+        if isinstance(rec, list) and len(rec) == 3 and rec[:2] == [st.st_size, st.st_mtime_ns] \
+                and isinstance(rec[2], str) and len(rec[2]) == 64:
+            out.append(rec[2])
+            continue
+        h = sha256_file(p)
+        index[key] = [st.st_size, st.st_mtime_ns, h]
+        out.append(h)
+        changed = True
+    if changed:
+        try:
+            write_json(index_path, index, indent=None)
+        except OSError:
+            pass
+    return out
+
+
+def rig_digest(files: Sequence[Path], neutral: Path) -> str:
+    """sha256 over the content of the rig's files (the neutral, every shape with its name, the .mtl files
+    beside the neutral whose colours the mesh carries): the parsed-rig cache's key."""
+    import hashlib
+
+    mtl = sorted(neutral.parent.glob("*.mtl"))
+    hashes = _file_hashes([neutral, *files, *mtl])
+    h = hashlib.sha256(b"keyshape-rig-cache 1\n")
+    h.update(f"neutral {hashes[0]}\n".encode())
+    for f, fh in zip(files, hashes[1:1 + len(files)]):
+        h.update(f"shape {f.stem} {fh}\n".encode())
+    for m, mh in zip(mtl, hashes[1 + len(files):]):
+        h.update(f"mtl {m.name} {mh}\n".encode())
+    return h.hexdigest()
+
+
+def _parse_rig(files: Sequence[Path], neutral: Path, with_mesh: bool):
+    mesh = read_obj(neutral) if with_mesh else None
+    base = mesh.vertices if mesh is not None else read_obj_vertices(neutral)
+    deltas = np.empty((len(files), len(base), 3))
+    for i, f in enumerate(files):
+        v = read_obj_vertices(f)
+        if len(v) != len(base):
+            raise InputError(f"{len(v)} vertices, but the rig's neutral {neutral.name} has {len(base)} "
+                             "(rig shapes must share one topology)", f)
+        deltas[i] = v - base
+    return base, deltas, mesh
+
+
 def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | None = None,
-             with_mesh: bool = True) -> Rig:
+             with_mesh: bool = True, cache: bool = True) -> Rig:
     """Load a rig from a folder or a list of OBJ files (see the module docstring).
+
+    Parsed once: the arrays are cached (:mod:`keyshape.base.formats.rigcache`) under
+    :func:`cache_dir`, named by :func:`rig_digest` (the files' content), so an edited file is parsed
+    again and ICT-FaceKit loads in a fraction of a second after the first time. A damaged cache file
+    is parsed again and rewritten; an unwritable cache folder only costs the parsing. ``cache=False``
+    parses and writes nothing.
 
     Raises
     ------
@@ -128,20 +207,29 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
         (naming that file); duplicate shape names.
     """
     files, neutral = _rig_files(sources, neutral)
-    mesh = read_obj(neutral) if with_mesh else None
-    base = mesh.vertices if mesh is not None else read_obj_vertices(neutral)
     names = [f.stem for f in files]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise InputError(f"rig shape names {dup} appear twice", files[names.index(dup[0])])
-    deltas = np.empty((len(files), len(base), 3))
-    for i, f in enumerate(files):
-        v = read_obj_vertices(f)
-        if len(v) != len(base):
-            raise InputError(f"{len(v)} vertices, but the rig's neutral {neutral.name} has {len(base)} "
-                             "(rig shapes must share one topology)", f)
-        deltas[i] = v - base
-    return Rig(names, base, deltas, mesh, files, neutral)
+    if not cache:
+        base, deltas, mesh = _parse_rig(files, neutral, with_mesh)
+        return Rig(names, base, deltas, mesh, files, neutral)
+    from keyshape.base.formats.rigcache import read_rig_cache, write_rig_cache
+
+    path = cache_dir() / f"{rig_digest(files, neutral)}.npz"
+    if path.is_file():
+        try:
+            cnames, base, deltas, mesh = read_rig_cache(path, with_mesh)
+            if cnames == names:
+                return Rig(names, base, deltas, mesh if with_mesh else None, files, neutral)
+        except InputError:
+            pass                                  # damaged: parse again and rewrite it below
+    base, deltas, mesh = _parse_rig(files, neutral, True)
+    try:
+        write_rig_cache(path, names, base, deltas, mesh)
+    except OSError:
+        pass                                      # a read-only home: the rig is parsed each time
+    return Rig(names, base, deltas, mesh if with_mesh else None, files, neutral)
 
 
 def default_landmarks(n_vertices: int, scheme: str) -> Path | None:

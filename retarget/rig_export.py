@@ -3,8 +3,9 @@
 =================  ==========================================================
 ``OUT.csv``        ``frame,<rig shape names>`` (what DCC import scripts read), or the
                    Live Link Face layout with ``livelink=True``
-``OUT.glb``        the rig's neutral with every rig shape as a morph target, the curves
-                   as the weight animation (and the head motion)
+``OUT.glb``        the rig's neutral with every rig shape that moves in the take (a curve
+                   not 0 throughout) as a morph target, their curves as the weight
+                   animation (and the head motion)
 ``OUT.mp4/.avi``   the shaded rig
 ``OUT`` (folder)   one OBJ per frame
 =================  ==========================================================
@@ -53,11 +54,16 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         from keyshape.retarget.rig import material_parts, vertex_normals
         ids, uvs, tri = split_at_uv_seams(rig.mesh)
         mt = rig.mesh.triangles
+        # only the shapes that move, each stored sparse (the vertices it moves): a shape at 0 throughout
+        # adds nothing but megabytes (26 of ICT-FaceKit's 53 shapes move on franck)
+        moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.zeros(0, np.intp)
         n0 = vertex_normals(rig.neutral, mt)
-        nd = np.stack([vertex_normals(rig.neutral + d, mt) - n0 for d in rig.deltas])
-        write_glb(path, rig.neutral[ids], tri, rig.deltas[:, ids], list(rig.names), curves, fps, head, uvs=uvs,
+        nd = np.stack([vertex_normals(rig.neutral + rig.deltas[j], mt) - n0 for j in moving]) if len(moving) \
+            else np.zeros((0, rig.n_vertices, 3))
+        write_glb(path, rig.neutral[ids], tri, rig.deltas[moving][:, ids], [rig.names[j] for j in moving],
+                  curves[:, moving], fps, head, uvs=uvs,
                   normals=n0[ids], normal_deltas=nd[:, ids], parts=material_parts(rig.mesh),
-                  first_frame=int(frames[0]) if len(frames) else 0)
+                  first_frame=int(frames[0]) if len(frames) else 0, sparse_targets=True)
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj

@@ -9,6 +9,11 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
+# the parsed-rig cache (retarget.rig.load_rig) of a test run goes to a folder of its own, not the user's home
+if "KEYSHAPE_CACHE" not in os.environ:
+    import tempfile
+    os.environ["KEYSHAPE_CACHE"] = tempfile.mkdtemp(prefix="keyshape-test-cache-")
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:

@@ -68,22 +68,31 @@ def test_api_matches_the_commands(footage, tmp_path):
     np.testing.assert_array_equal(from_file.success, tracks.success)
     np.testing.assert_allclose(from_file.points, tracks.points, atol=5e-5)
 
-    keys = api.select(from_file, 4, "spread", ["mouth"])
-    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "mouth", "--method", "spread",
-                 "--neutral-frame", "mean", "--min-key-distance", "0",
+    # the same defaults: no option on either side (the API's select once disagreed with the command's
+    # on the selector, the weights' origin and near-duplicate keys)
+    keys = api.select(from_file, 4, regions=["mouth"])
+    assert main(["select", str(tmp_path / "t.csv"), "-k", "4", "--region", "mouth",
                  "-o", str(tmp_path / "k.json")]) == 0
-    np.testing.assert_array_equal(api.Keys.load(tmp_path / "k.json").regions[0].frames, keys.regions[0].frames)
+    from_cmd = api.Keys.load(tmp_path / "k.json")
+    assert from_cmd.head_pose == keys.head_pose
+    for a, b in zip(from_cmd.regions, keys.regions):
+        assert (a.method, a.rest_frame) == (b.method, b.rest_frame) == ("greedy", b.rest_frame)
+        np.testing.assert_array_equal(a.frames, b.frames)
+        np.testing.assert_allclose(a.keys, b.keys, rtol=0, atol=5.1e-7)
+        np.testing.assert_allclose(a.neutral, b.neutral, rtol=0, atol=5.1e-7)
     # keys.json stores shapes to 6 decimals: decompose with the keys as the command reads them
-    weights = api.decompose(from_file, api.Keys.load(tmp_path / "k.json"), "nnls")
+    weights = api.decompose(from_file, from_cmd)
     assert main(["decompose", str(tmp_path / "t.csv"), "--keys", str(tmp_path / "k.json"),
                  "-o", str(tmp_path / "w.csv")]) == 0
     w = api.Weights.load(tmp_path / "w.csv")
-    assert w.names == weights.names == [f"mouth_{i}" for i in range(4)]
+    assert w.names == weights.names == [f"mouth_{i}" for i in range(len(keys.regions[0].keys))]
     np.testing.assert_allclose(w.values, weights.values, rtol=0, atol=5.1e-7)
 
-    # one key set over two "takes" (the clip split in two) is one selection over the concatenation
-    both = api.select([from_file[:20], from_file[20:]], 4, "spread", ["mouth"])
+    # one key set over two "takes" (the clip split in two) is one selection over the concatenation;
+    # the keys name each take's own frames
+    both = api.select([from_file[:20], from_file[20:]], 4, regions=["mouth"])
     np.testing.assert_array_equal(both.regions[0].frames, keys.regions[0].frames)
+    np.testing.assert_array_equal(both.regions[0].takes, (keys.regions[0].frames >= 20).astype(int))
 
 
 def test_track_frame_range(footage):

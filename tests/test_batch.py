@@ -90,24 +90,107 @@ def test_identical_to_the_api_one_take_at_a_time(library, first_run, tmp_path):
                 assert filecmp.cmp(d / f, out / name / t.name / f, shallow=False), (name, t.name, f)
 
 
+def keys_content(path) -> dict:
+    """KEYS.json without ``source`` (the command names the tracks files it read; the batch's own)."""
+    data = json.loads(Path(path).read_text())
+    data.pop("source", None)
+    return data
+
+
 def test_identical_to_the_commands(library, first_run, tmp_path):
-    """``keyshape train/track/decompose/retarget`` one after another give the batch's files, byte for byte
-    (the key set is the batch's: no command selects over several takes)."""
+    """``keyshape train/track/select/decompose/retarget`` one after another, with no option beyond the
+    manifest's, give the batch's files byte for byte (the key set: the same content, one selection
+    over both takes)."""
     out, _ = first_run
     m = read_manifest(library)
-    actor, take = m.actors["actor1"], m.takes[3]
-    assert take.actor == "actor1"
+    actor = m.actors["actor1"]
+    takes = [t for t in m.takes if t.actor == "actor1"]
+    assert [t.name for t in takes] == ["take00", "take01"]
     assert main(["train", str(actor.video), "--labels", str(actor.labels), "--morphs", str(actor.morphs),
                  "-o", str(tmp_path / "model.npz")]) == 0
-    assert main(["track", str(take.video), "--model", str(tmp_path / "model.npz"), "-o", str(tmp_path / "tracks.csv"),
-                 "--quiet"]) == 0
-    assert main(["decompose", str(tmp_path / "tracks.csv"), "--keys", str(out / "actor1" / "keys.json"),
-                 "--solver", m.settings.solver, "--ridge", str(m.settings.ridge), "-o", str(tmp_path / "weights.csv")]) == 0
+    for t in takes:
+        assert main(["track", str(t.video), "--model", str(tmp_path / "model.npz"),
+                     "-o", str(tmp_path / f"{t.name}.csv"), "--quiet"]) == 0
+    assert main(["select", *[str(tmp_path / f"{t.name}.csv") for t in takes], "-k", str(actor.keys),
+                 *[a for r in actor.regions for a in ("--region", r)], "-o", str(tmp_path / "keys.json")]) == 0
+    assert keys_content(tmp_path / "keys.json") == keys_content(out / "actor1" / "keys.json")
+    take = takes[1]
+    assert main(["decompose", str(tmp_path / f"{take.name}.csv"), "--keys", str(tmp_path / "keys.json"),
+                 "-o", str(tmp_path / "weights.csv")]) == 0
     for name in ("animation.glb", "curves.csv"):
         assert main(["retarget", str(tmp_path / "weights.csv"), "--targets", str(actor.targets), "--regions",
-                     str(actor.target_regions), "--tracks", str(tmp_path / "tracks.csv"), "-o", str(tmp_path / name)]) == 0
+                     str(actor.target_regions), "--tracks", str(tmp_path / f"{take.name}.csv"),
+                     "-o", str(tmp_path / name)]) == 0
+    (tmp_path / "tracks.csv").write_bytes((tmp_path / f"{take.name}.csv").read_bytes())
     for name in COMPARED:
         assert filecmp.cmp(tmp_path / name, out / "actor1" / take.name / name, shallow=False), name
+
+
+def test_a_rig_library_writes_curves_and_live_link_resumably_as_the_commands_do(library, first_run, tmp_path):
+    """Two actors driving a rig (a small one from the shipped ICT-FaceKit subset): one pose library per
+    actor (fitted once, or the manifest's own), each take's rig curves, Live Link CSV and .glb, as
+    ``keyshape pose`` and ``keyshape retarget --poses --rig`` give them; a rerun skips everything."""
+    from keyshape.data_synth.library import ict_subset_rig
+
+    out0, _ = first_run
+    lib = library.parent
+    rig, lm = ict_subset_rig(tmp_path / "rig")
+    text = "[settings]\noutputs = [\"curves\", \"livelink\", \"glb\", \"preview\"]\n\n"
+    for a in ("actor0", "actor1"):
+        text += (f'[actors.{a}]\nmodel = "{out0 / a / "model.npz"}"\nkeys = 4\nregions = ["mouth", "eyes"]\n'
+                 f'rig = "{rig}"\nlandmarks = "{lm}"\n\n')
+    for a in ("actor0", "actor1"):
+        for t in ("take00", "take01"):
+            text += f'[[takes]]\nactor = "{a}"\nvideo = "{lib / a / t}.mp4"\n\n'
+    manifest = tmp_path / "rig.toml"
+    manifest.write_text(text)
+    out = tmp_path / "out"
+    rep = run_batch(manifest, out, workers=2, processes=False, show_progress=False)
+    assert rep["n_done"] == 4 and rep["n_failed"] == 0, rep["takes"]
+    for a in ("actor0", "actor1"):
+        assert rep["actors"][a]["poses_status"] == "fitted" and (out / a / "poses.json").is_file()
+        for t in ("take00", "take01"):
+            d = out / a / t
+            assert sorted(rep_row(rep, a, t)["outputs"]) == ["curves", "glb", "livelink", "preview", "tracks",
+                                                             "weights"]
+            from keyshape.base.formats.video import video_info
+            assert video_info(d / "preview.mp4").n_frames == 60
+            assert (d / "curves.csv").read_text().startswith("frame,")
+            assert (d / "livelink.csv").read_text().startswith("Timecode,BlendShapeCount,")
+            assert (d / "animation.glb").stat().st_size > 0
+    # the commands, one after another, give the same files
+    d = out / "actor1" / "take01"
+    assert main(["pose", str(out / "actor1" / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
+                 "-o", str(tmp_path / "poses.json")]) == 0
+    poses = json.loads((tmp_path / "poses.json").read_text())
+    batch_poses = json.loads((out / "actor1" / "poses.json").read_text())
+    assert {k: v for k, v in poses.items() if k != "keys"} == {k: v for k, v in batch_poses.items() if k != "keys"}
+    for name, extra in (("curves.csv", []), ("livelink.csv", ["--livelink"]), ("animation.glb", [])):
+        assert main(["retarget", str(d / "weights.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
+                     "--landmarks", str(lm), "--tracks", str(d / "tracks.csv"), *extra,
+                     "-o", str(tmp_path / name)]) == 0
+        assert filecmp.cmp(tmp_path / name, d / name, shallow=False), name
+    # resumable: nothing recomputed; a corrected pose library given in the manifest redoes only the curves
+    rep = run_batch(manifest, out, workers=1, processes=False, show_progress=False)
+    assert rep["n_skipped"] == 4 and {a["poses_status"] for a in rep["actors"].values()} == {"skipped"}, rep
+    fixed = json.loads((out / "actor0" / "poses.json").read_text())
+    key = next(iter(fixed["regions"]["mouth"]["keys"]))
+    fixed["regions"]["mouth"]["keys"][key] = {"jawOpen": 1.0}
+    (tmp_path / "fixed.json").write_text(json.dumps(fixed))
+    manifest.write_text(text.replace(f'[actors.actor0]\nmodel = "{out0 / "actor0" / "model.npz"}"\n',
+                                     f'[actors.actor0]\nmodel = "{out0 / "actor0" / "model.npz"}"\n'
+                                     f'poses = "{tmp_path / "fixed.json"}"\n'))
+    before = (out / "actor1" / "take00" / "curves.csv").read_bytes()
+    rep = run_batch(manifest, out, workers=1, processes=False, show_progress=False)
+    stages = {(r["actor"], r["take"]): r["stages"] for r in rep["takes"]}
+    assert stages[("actor0", "take00")] == {"track": "skipped", "finish": "done"}, stages
+    assert stages[("actor1", "take00")] == {"track": "skipped", "finish": "skipped"}, stages
+    assert rep["actors"]["actor0"]["poses_status"] == "given"
+    assert (out / "actor1" / "take00" / "curves.csv").read_bytes() == before
+
+
+def rep_row(rep, actor, take) -> dict:
+    return next(r for r in rep["takes"] if (r["actor"], r["take"]) == (actor, take))
 
 
 def test_rerun_skips_and_recomputes_only_a_changed_take(library, first_run, tmp_path):
@@ -219,6 +302,10 @@ video = "{lib / 'actor1' / 'take00.mp4'}"
     ('[actors.a]\nmodel = "m.npz"\n[[takes]]\nactor = "a"\n', 3, "take 1 has no 'video'"),
     ('[actors.a]\nmodel = "m.npz\n', 2, "not valid TOML"),
     ('[actors.a]\nmodel = "m.npz"\n', None, "no takes"),
+    ('[actors.a]\nmodel = "m.npz"\ntargets = "t"\nrig = "r"\n[[takes]]\nactor = "a"\nvideo = "t.mp4"\n', 4,
+     "give targets (one per key) or a rig, not both"),
+    ('[actors.a]\nmodel = "m.npz"\nposes = "p.json"\n[[takes]]\nactor = "a"\nvideo = "t.mp4"\n', 1,
+     "poses and landmarks need a rig"),
 ])
 def test_manifest_mistakes_name_file_and_line(tmp_path, text, line, message):
     path = tmp_path / "library.toml"

@@ -577,8 +577,11 @@ def _smooth_reference(shapes, keys, neutral, lam, observed):
     return x.reshape(n, k), float(rnorm ** 2)
 
 
+@pytest.mark.parametrize("method", ["pdas", "admm"])
 @pytest.mark.parametrize("partial", [False, True])
-def test_smooth_matches_tight_bounded_least_squares(partial):
+def test_smooth_matches_tight_bounded_least_squares(partial, method):
+    # both solvers of the smoothed QP: the active-set method (the default) and ADMM (its fallback should
+    # a factorisation fail or the active set stop shrinking), against the exact QP (scipy's NNLS)
     # 120 frames x 5 keys; weights that often touch zero so the bounds are active
     rng = np.random.default_rng(11)
     n, k = 120, 5
@@ -602,11 +605,12 @@ def test_smooth_matches_tight_bounded_least_squares(partial):
         return float((obs * np.sum(r * r, axis=1)).sum() + mu * np.sum(np.diff(w, axis=0) ** 2))
 
     tight, info = smooth_weights(filled, keys, neutral, 0.1, observed=obs, tol=1e-10, max_iter=20000,
-                                 return_info=True)
-    assert info["converged"]
+                                 return_info=True, method=method)
+    assert info["converged"] and info["method"] == method
     assert tight.min() >= 0.0
     np.testing.assert_allclose(tight, ref, atol=1e-6)
-    w, info = smooth_weights(filled, keys, neutral, 0.1, observed=obs, return_info=True)  # default tol 1e-5
+    w, info = smooth_weights(filled, keys, neutral, 0.1, observed=obs, return_info=True,
+                             method=method)  # default tol 1e-5
     assert info["converged"] and w.min() >= 0.0
     assert np.abs(w - ref).max() < 1e-2 and np.sqrt(np.mean((w - ref) ** 2)) < 2e-3
     assert objective(w) <= f_ref * (1 + 1e-5) and abs(objective(ref) - f_ref) < 1e-8 * f_ref
@@ -681,3 +685,20 @@ def test_smooth_active_set_does_not_cycle_on_failed_frames():
     grad[1:] += d
     scale = float(np.trace(G)) / 16 * max(1.0, w.max())
     assert w.min() >= 0 and np.abs(grad[w > 0]).max() < 1e-7 * scale and grad[w == 0].min() > -1e-7 * scale
+
+
+def test_smooth_falls_back_to_admm_and_still_solves_the_qp(monkeypatch):
+    # should the active-set method stop short, ADMM takes over from the per-frame start: same QP solution
+    import keyshape.decompose.weights as wmod
+
+    rng = np.random.default_rng(4)
+    n, k = 60, 4
+    neutral = rng.normal(size=(8, 2))
+    keys = neutral + rng.normal(size=(k, 8, 2))
+    shapes = neutral + rng.normal(scale=0.7, size=(n, 8, 2))
+    obs = np.ones(n, bool)
+    ref, _ = _smooth_reference(shapes, keys, neutral, 0.1, obs)
+    monkeypatch.setattr(wmod, "_smooth_pdas", lambda Gs, H, m, mu, W, max_iter, tol: (W, max_iter, False))
+    w, info = smooth_weights(shapes, keys, neutral, 0.1, tol=1e-10, max_iter=20000, return_info=True)
+    assert info["method"] == "pdas, then admm" and info["converged"]
+    np.testing.assert_allclose(w, ref, atol=1e-6)

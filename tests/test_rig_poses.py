@@ -209,7 +209,11 @@ def test_pose_and_retarget_commands_end_to_end(tmp_path):
                  "-o", str(tmp_path / "take.glb")]) == 0
     import pygltflib
     g = pygltflib.GLTF2().load(str(tmp_path / "take.glb"))
-    assert g.meshes[0].extras["targetNames"] == load_rig(rig).names
+    # only the shapes that move in the take are morph targets (PupilDilate_L stays at 0 throughout)
+    moving = [n for n in load_rig(rig).names if np.abs(C[:, col[n]]).max() > 0]
+    assert "PupilDilate_L" not in moving and len(moving) >= 8
+    assert g.meshes[0].extras["targetNames"] == moving
+    assert len(g.meshes[0].primitives[0].targets) == len(moving)
 
 
 # ----------------------------------------------------------------------------------------- bad input
@@ -303,6 +307,25 @@ def test_rig_glb_has_normals_materials_frame_range_and_passes_validator(tmp_path
     assert g.scenes[0].extras == {"fps": 24.0, "frame_start": 100, "frame_end": 111}
     times = g.accessors[g.animations[0].samplers[0].input]
     assert times.min[0] == pytest.approx(100 / 24) and times.max[0] == pytest.approx(111 / 24)
+    # morph targets are stored sparse (only the vertices each shape moves) and read back as the rig's deltas
+    blob = g.binary_blob()
+    ids = np.arange(len(verts))                      # no UVs: one glTF vertex per rig vertex
+
+    def accessor_values(i):
+        acc = g.accessors[i]
+        out = np.zeros((acc.count, 3), np.float32)
+        if acc.bufferView is not None:
+            bv = g.bufferViews[acc.bufferView]
+            out[:] = np.frombuffer(blob, np.float32, acc.count * 3, bv.byteOffset).reshape(-1, 3)
+        if acc.sparse is not None:
+            bi, bv = g.bufferViews[acc.sparse.indices.bufferView], g.bufferViews[acc.sparse.values.bufferView]
+            idx = np.frombuffer(blob, np.uint32, acc.sparse.count, bi.byteOffset)
+            out[idx] = np.frombuffer(blob, np.float32, acc.sparse.count * 3, bv.byteOffset).reshape(-1, 3)
+        return out
+
+    assert any(g.accessors[t["POSITION"]].sparse is not None for t in prims[0].targets)
+    for j, t in enumerate(prims[0].targets):
+        np.testing.assert_allclose(accessor_values(t["POSITION"]), deltas[j][ids], rtol=0, atol=1e-6)
     # the normal deltas are the change of the normals: base + delta = normals of the shape
     n0 = vertex_normals(verts, mesh.triangles)
     assert np.allclose(np.linalg.norm(n0, axis=1), 1)

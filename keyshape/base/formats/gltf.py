@@ -29,6 +29,12 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_path
 
 FLOAT, UINT = 5126, 5125
+#: sparse morph targets: a vertex moving less than this fraction of the mesh's bounding-box diagonal
+#: is stored as still (ICT-FaceKit: 0.5 um; float32 positions of the head resolve about 2 um); a
+#: normal changing less than this (unit normals) likewise. The OBJ files' rounding leaves such
+#: motions over a third of ICT-FaceKit's head in every shape.
+SPARSE_POSITION_TOL = 1e-6
+SPARSE_NORMAL_TOL = 1e-5
 
 
 class _Blob:
@@ -52,6 +58,39 @@ class _Blob:
             kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
         self.gltf.accessors.append(g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=component,
                                               count=len(array), type=type_, **kw))
+        return len(self.gltf.accessors) - 1
+
+    def _view(self, data: bytes, target: int | None = None) -> int:
+        import pygltflib as g
+        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=self.offset, byteLength=len(data),
+                                                  target=target))
+        pad = (-len(data)) % 4
+        self.parts.append(data + b"\0" * pad)
+        self.offset += len(data) + pad
+        return len(self.gltf.bufferViews) - 1
+
+    def add_sparse(self, array: np.ndarray, minmax: bool = False, tol: float = 0.0) -> int:
+        """A float VEC3 accessor stored sparse (glTF 2.0 ``accessor.sparse`` over implicit zeros): only the
+        rows with a component beyond ``tol`` (the others read back as 0), with their indices; dense where
+        that would not be smaller. A morph target that moves part of the face costs that part."""
+        import pygltflib as g
+        a = np.array(array, dtype=np.float32)
+        keep = np.any(np.abs(a) > tol, axis=1)
+        a[~keep] = 0.0
+        rows = np.flatnonzero(keep)
+        if 16 * len(rows) >= 12 * len(a):
+            return self.add(a, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=minmax)
+        kw = {}
+        if minmax:
+            kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
+        sparse = None
+        if len(rows):
+            sparse = g.Sparse(count=len(rows),
+                              indices=g.AccessorSparseIndices(bufferView=self._view(rows.astype(np.uint32).tobytes()),
+                                                              componentType=UINT),
+                              values=g.AccessorSparseValues(bufferView=self._view(a[rows].tobytes())))
+        self.gltf.accessors.append(g.Accessor(componentType=FLOAT, count=len(a), type="VEC3", sparse=sparse,
+                                              byteOffset=None, **kw))
         return len(self.gltf.accessors) - 1
 
     def bytes(self) -> bytes:
@@ -93,7 +132,7 @@ def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, name
                weights: np.ndarray | None = None, fps: float = 30.0, head=None,
                default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
                normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
-               parts: Sequence | None = None, first_frame: int = 0):
+               parts: Sequence | None = None, first_frame: int = 0, sparse_targets: bool = False):
     """Build a :class:`pygltflib.GLTF2` in memory (see :func:`write_glb`)."""
     import pygltflib as g
     base = np.asarray(base, dtype=np.float64)
@@ -127,10 +166,16 @@ def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, name
             if nd.shape != tg.shape:
                 raise InputError(f"normal deltas: expected {tg.shape}, got {nd.shape}")
     tgt = []
+    scale = float(np.linalg.norm(np.ptp(base, axis=0))) if len(base) else 0.0
     for i, d in enumerate(tg.astype(np.float32)):
-        t = {"POSITION": blob.add(d, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)}
-        if nd is not None:
-            t["NORMAL"] = blob.add(nd[i], "VEC3", FLOAT, g.ARRAY_BUFFER)
+        if sparse_targets:
+            t = {"POSITION": blob.add_sparse(d, minmax=True, tol=SPARSE_POSITION_TOL * scale)}
+            if nd is not None:
+                t["NORMAL"] = blob.add_sparse(nd[i], tol=SPARSE_NORMAL_TOL)
+        else:
+            t = {"POSITION": blob.add(d, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)}
+            if nd is not None:
+                t["NORMAL"] = blob.add(nd[i], "VEC3", FLOAT, g.ARRAY_BUFFER)
         tgt.append(t)
     dw = np.zeros(len(tg)) if default_weights is None else np.asarray(default_weights, dtype=np.float64)
     attrs = g.Attributes(POSITION=pos)
@@ -187,7 +232,7 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas:
               names: Sequence[str], weights: np.ndarray | None = None, fps: float = 30.0, head=None,
               default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
               normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
-              parts: Sequence | None = None, first_frame: int = 0) -> None:
+              parts: Sequence | None = None, first_frame: int = 0, sparse_targets: bool = False) -> None:
     """Write a .glb atomically.
 
     Parameters
@@ -210,11 +255,14 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas:
         the scene's ``extras`` hold ``fps``, ``frame_start`` and ``frame_end`` (Blender keeps
         scene extras as custom properties; ``bench/blender_import_curves.py`` sets the scene's
         frame range from them; Blender's own importer does not set the scene range)
+    sparse_targets : store each morph target sparse (glTF ``accessor.sparse``: only the vertices it
+        moves, beyond :data:`SPARSE_POSITION_TOL` of the mesh's size), as for a rig whose shapes each
+        move a part of the head
 
     See :func:`retarget.export.morph_targets` for how target shapes, regions and the
     absolute form become glTF deltas and weights exactly.
     """
     gltf = build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs, normals,
-                      normal_deltas, parts, first_frame)
+                      normal_deltas, parts, first_frame, sparse_targets)
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))

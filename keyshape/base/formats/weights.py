@@ -14,6 +14,10 @@ Layout: a header ``frame,<name>,...[,interpolated]``, then one row per frame::
   flags) is 1 where the tracker failed on that frame (``success=0``) and the
   weights were filled in from neighbouring frames; it is not a key shape.
 * Values are written ``%.6f``; any finite decimal number is read.
+* ``keyshape decompose`` starts the file with a comment line giving the take's frame rate,
+  ``# keyshape weights, fps=24``, so that ``keyshape retarget`` without the tracks plays the
+  animation at the take's rate (:func:`read_weights_fps`). Lines starting with ``#`` before the
+  header are comments; files without them (older ones) read as before.
 """
 from __future__ import annotations
 
@@ -90,15 +94,20 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
         raise InputError(f"not a UTF-8 text CSV file (byte {exc.start})", path) from None
     except csv.Error as exc:
         raise InputError(f"not a readable CSV file ({exc})", path) from None
+    skip = 0
+    while skip < len(rows) and rows[skip] and rows[skip][0].lstrip().startswith("#"):
+        skip += 1
+    if skip:
+        rows = rows[skip:]
     if not rows or not rows[0] or rows[0][0].strip() != "frame":
-        raise InputError("expected a header 'frame,<key shape>,...'", path, 1)
+        raise InputError("expected a header 'frame,<key shape>,...'", path, 1 + skip)
     names = [c.strip() for c in rows[0][1:]]
     flag = bool(names) and names[-1] == FLAG
     if flag:
         names = names[:-1]
-    _check_names(names, path, 1, key_names)
+    _check_names(names, path, 1 + skip, key_names)
     n_cols = len(names) + 1 + flag
-    body = [(i, r) for i, r in enumerate(rows[1:], start=2) if any(c.strip() for c in r)]
+    body = [(i, r) for i, r in enumerate(rows[1:], start=2 + skip) if any(c.strip() for c in r)]
     if not body:
         raise InputError("no frames", path)
     for ln, r in body:
@@ -157,10 +166,30 @@ def _check_writable(frames: np.ndarray, names: list[str], weights: np.ndarray, p
                          f"finite numbers within +-{MAX_WEIGHT:g}; nothing written", path)
 
 
+_FPS = re.compile(r"\bfps\s*=\s*([0-9]+(?:\.[0-9]*)?(?:[eE][-+]?[0-9]+)?)")
+
+
+def read_weights_fps(path: str | Path) -> float | None:
+    """The frame rate a WEIGHTS.csv's leading comment gives (``# keyshape weights, fps=24``), or None."""
+    path = require_file(path, "weights file")
+    try:
+        with open(path, encoding="utf-8") as f:
+            for line in f:
+                if not line.lstrip().startswith("#"):
+                    return None
+                m = _FPS.search(line)
+                if m:
+                    fps = float(m.group(1))
+                    return fps if np.isfinite(fps) and 0 < fps < 1e6 else None
+    except UnicodeDecodeError:
+        return None
+    return None
+
+
 def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weights: np.ndarray,
-                  interpolated: np.ndarray | None = None) -> None:
+                  interpolated: np.ndarray | None = None, fps: float | None = None) -> None:
     """Write a WEIGHTS.csv atomically: ``frame``, one ``%.6f`` column per name, then ``interpolated``
-    (0/1) when ``interpolated`` is given."""
+    (0/1) when ``interpolated`` is given; with ``fps``, the leading comment ``# keyshape weights, fps=F``."""
     frames = np.asarray(frames)
     names = [str(n) for n in names]
     weights = np.asarray(weights, dtype=np.float64)
@@ -168,13 +197,16 @@ def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weight
         raise InputError(f"weights: expected shape {(len(frames), len(names))}, got {weights.shape}", path)
     _check_names(names, path)
     _check_writable(frames, names, weights, path)
-    cols = [frames.astype(np.int64).astype(str)]
-    cols += [np.char.mod("%.6f", weights[:, j]) for j in range(len(names))]
     header = ["frame", *names]
+    # one %-format per row (Python's "%.6f", as np.char.mod gives it, a few times faster)
+    fmt = ",".join(["%d"] + ["%.6f"] * len(names) + (["%d"] if interpolated is not None else []))
+    rows = [frames.astype(np.int64).tolist(), *weights.T.tolist()]
     if interpolated is not None:
-        cols.append(np.asarray(interpolated).astype(bool).astype(int).astype(str))
+        rows.append(np.asarray(interpolated).astype(bool).astype(int).tolist())
         header.append(FLAG)
     with atomic_write(path) as f:
+        if fps is not None:
+            f.write(f"# keyshape weights, fps={float(fps):g}\n")
         f.write(",".join(header) + "\n")
         if len(frames):
-            f.write("\n".join(",".join(r) for r in zip(*cols)) + "\n")
+            f.write("\n".join(fmt % r for r in zip(*rows)) + "\n")

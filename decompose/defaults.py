@@ -1,0 +1,24 @@
+"""The decompose stage's names and the product's defaults, in one place.
+
+``keyshape select`` / ``decompose`` (``decompose/cli.py``), the in-memory layer
+(:mod:`keyshape.decompose.api`, whose signatures use these), :mod:`keyshape.api`, ``keyshape batch``
+(the manifest's defaults) and ``keyshape demo`` all take them from here, so a default changes in
+one place. A leaf module (no imports), so that building the command line stays cheap.
+"""
+from __future__ import annotations
+
+#: key-shape selectors (:func:`keyshape.decompose.selectors.make_selector`)
+METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
+#: weight solvers (:func:`keyshape.decompose.weights.solve_weights`)
+SOLVERS = ("nnls", "lstsq", "smooth")
+#: how the head's motion is taken out of the shapes (:mod:`keyshape.decompose.stabilize`)
+HEAD_POSES = ("rigid", "tracker")
+
+METHOD = "greedy"            # key-shape selector (best in the project's measurements; spread is the paper's)
+NEUTRAL_FRAME = "auto"       # weights relative to the actor's most relaxed frame (one for the whole face)
+MIN_KEY_DISTANCE = 0.1       # near-duplicate keys dropped (fraction of the median key-to-neutral distance)
+HEAD_POSE = "rigid"          # head stabilised on the scheme's rigid points
+SEED = 0                     # seed of kmeans/random/greedy
+SOLVER = "smooth"            # NNLS + temporal smoothness
+RIDGE = 0.03                 # Tikhonov shrinkage against tracking noise (demo: 0.68 mm against 1.08 mm at 0)
+SMOOTH_LAMBDA = 0.1          # weight of the frame-to-frame change penalty of the smooth solver

@@ -1,0 +1,14 @@
+"""The retarget stage's defaults, in one place.
+
+``keyshape retarget`` / ``pose`` / ``preview``, the in-memory layer (:mod:`keyshape.retarget.api`, whose
+signatures use these), :mod:`keyshape.api`, ``keyshape batch`` and ``keyshape demo`` all take them from
+here. A leaf module (no imports), so that building the command line stays cheap.
+"""
+from __future__ import annotations
+
+FORM = "auto"                # delta with a neutral, else absolute
+METRIC = "geodesic"          # distance of the region band
+SPARSITY = 0.01              # keyshape pose: L1 weight of a pose fit
+NUISANCE = "auto"            # keyshape pose: region motions fitted freely (retarget.poses.auto_nuisance)
+OPPOSED = -0.5               # keyshape pose: antagonist shapes never in one pose below this cosine
+DEFAULT_FPS = 30.0           # when neither the caller, the tracks nor the weights give a frame rate
