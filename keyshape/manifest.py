@@ -5,7 +5,7 @@ model) and takes (videos of one actor). Everything but the two ``actors`` keys a
 ``takes`` keys shown here is optional::
 
     [settings]                      # all optional; the defaults are shown
-    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink", "preview"
+    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink", "preview", "usd"
     smooth = "none"                 # tracker smoothing: none, savgol, oneeuro
     solver = "smooth"               # nnls, lstsq, smooth
     ridge = 0.03
@@ -42,10 +42,10 @@ from pathlib import Path
 from keyshape.base.errors import InputError, require_file
 from keyshape.decompose.cli import METHODS, SOLVERS
 
-OUTPUTS = ("tracks", "weights", "glb", "curves", "livelink", "preview")
+OUTPUTS = ("tracks", "weights", "glb", "curves", "livelink", "preview", "usd")
 #: file name of each output inside ``OUT_DIR/<actor>/<take>/``
 OUTPUT_FILES = {"tracks": "tracks.csv", "weights": "weights.csv", "glb": "animation.glb", "curves": "curves.csv",
-                "livelink": "livelink.csv", "preview": "preview.mp4"}
+                "livelink": "livelink.csv", "preview": "preview.mp4", "usd": "animation.usdc"}
 SMOOTHERS = ("none", "savgol", "oneeuro")
 REGION_NAMES = ("mouth", "eyes", "pupils")
 

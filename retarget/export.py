@@ -2,6 +2,8 @@
 
 =================  ==========================================================
 ``OUT.glb``        glTF 2.0 binary: mesh, morph targets, weight + head animation (3D)
+``OUT.usda/.usdc``  USD (also ``.usd``): the mesh with UsdSkel blend shapes, a head joint with the
+                   head motion, the weights per time code (3D; needs ``keyshape[usd]``)
 ``OUT.csv``        per-frame weights per target name (``frame,<name>,...``), or the
                    Live Link Face layout with ``livelink=True``
 ``OUT.mp4/.avi``   rendered animation: the drawn character (2D) or the shaded mesh (3D)
@@ -23,6 +25,7 @@ from keyshape.retarget.targets import name_key
 from keyshape.base.formats.weights import write_weights
 
 VIDEO_SUFFIXES = (".mp4", ".avi")
+USD_SUFFIXES = (".usda", ".usdc", ".usd")
 
 # ARKit's 52 names in the order of the Live Link Face CSV (PascalCase there).
 ARKIT52 = (
@@ -39,17 +42,20 @@ LIVELINK_TAIL = ("HeadYaw HeadPitch HeadRoll LeftEyeYaw LeftEyePitch LeftEyeRoll
 
 
 def output_kind(path: str | Path, dim: int) -> str:
-    """``"glb"``, ``"csv"``, ``"video"``, ``"obj_frames"`` or ``"png_frames"`` for ``path``."""
+    """``"glb"``, ``"usd"``, ``"csv"``, ``"video"``, ``"obj_frames"`` or ``"png_frames"`` for ``path``."""
     suffix = Path(path).suffix.lower()
     if suffix == ".glb":
         return "glb"
+    if suffix in USD_SUFFIXES:
+        return "usd"
     if suffix == ".csv":
         return "csv"
     if suffix in VIDEO_SUFFIXES:
         return "video"
     if suffix == "" or Path(path).is_dir():
         return "obj_frames" if dim == 3 else "png_frames"
-    raise InputError("output must end in .glb, .csv, .mp4/.avi, or be a folder (OBJ or PNG frames)", path)
+    raise InputError("output must end in .glb, .usda/.usdc/.usd, .csv, .mp4/.avi, or be a folder (OBJ or PNG "
+                     "frames)", path)
 
 
 def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
@@ -88,6 +94,26 @@ def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | Non
         tc = f"{sec // 3600:02d}:{sec // 60 % 60:02d}:{sec % 60:02d}:{ff:02d}.{int(round(sub * 1000)):03d}"
         rows.append([tc, "61"] + ["%.6g" % x for x in out[i]] + ["%.6g" % x for x in tail[i]])
     return header, rows
+
+
+def write_usd_take(path: Path, mesh, base: np.ndarray, deltas: np.ndarray, names, weights: np.ndarray,
+                   frames: np.ndarray, fps: float, head: HeadMotion | None, meters_per_unit: float) -> dict:
+    """The USD take of a mesh (OBJ topology, UVs) and its shapes as deltas from ``base`` (one writer for
+    sculpted targets and rigs): vertex normals and each shape's normal offsets as in the .glb."""
+    from keyshape.base.formats.usd import write_usd
+    from keyshape.retarget.rig import vertex_normals
+    keep = [i for i, p in enumerate(mesh.polygons) if len(p) >= 3]
+    if not keep:
+        raise InputError("the mesh has no faces: USD output needs faces")
+    polys = [mesh.polygons[i] for i in keep]
+    puv = [mesh.polygon_uvs[i] for i in keep] if len(mesh.uvs) and len(mesh.polygon_uvs) == len(mesh.polygons) \
+        else None
+    tri = mesh.triangles
+    n0 = vertex_normals(base, tri)
+    nd = np.stack([vertex_normals(base + d, tri) - n0 for d in deltas]) if len(deltas) else None
+    return write_usd(path, base, polys, deltas, names, weights, fps, head, frames=frames,
+                     uvs=mesh.uvs if puv is not None else None, polygon_uvs=puv, normals=n0, normal_deltas=nd,
+                     meters_per_unit=meters_per_unit)
 
 
 def _draw_2d(points: np.ndarray, size=(480, 480), scheme=None):
@@ -133,7 +159,7 @@ def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
            head: HeadMotion | None = None, clamp: bool = False, livelink: bool = False,
            bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480),
-           overwrite: bool = False, inputs=()) -> dict:
+           overwrite: bool = False, inputs=(), meters_per_unit: float = 0.01) -> dict:
     """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
 
     Parameters
@@ -145,6 +171,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     clamp : clamp weights to [0, 1] in .glb and .csv outputs (default keep: NNLS weights may exceed 1)
     livelink : .csv in the Live Link Face layout instead of ``frame,<target names>``
     scheme : landmark scheme for drawing 2D targets (default: a built-in one with the same point count)
+    meters_per_unit : the meshes' length unit in metres (USD ``metersPerUnit``; default centimetres)
 
     Returns
     -------
@@ -172,6 +199,17 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
                   normal_deltas=None if nd is None else nd[:, ids], parts=material_parts(ts.mesh),
                   first_frame=int(frames[0]) if len(frames) else 0)
         info["n_morph_targets"] = len(names)
+        return info
+    if kind == "usd":
+        from keyshape.base.formats.usd import require_usd
+        require_usd()
+        if ts.dim != 3:
+            raise InputError("USD output needs 3D (OBJ) targets; these are 2D drawings")
+        base, deltas, names, mw, info["n_clamped"] = rt.morph_targets(weights, clamp=clamp)
+        if ts.mesh is None:
+            raise InputError("the target meshes have no faces: USD output needs faces", ts.files[0])
+        info.update(write_usd_take(path, ts.mesh, base, deltas, names, mw, np.asarray(frames), fps, head,
+                                   meters_per_unit))
         return info
     if kind == "csv":
         w = weights
