@@ -23,22 +23,11 @@ from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import name_key
 from keyshape.base.formats.weights import write_weights
+# the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
+from keyshape.base.formats.livelink import ARKIT52, LIVELINK_TAIL, csv_rows  # noqa: F401
 
 VIDEO_SUFFIXES = (".mp4", ".avi")
 USD_SUFFIXES = (".usda", ".usdc", ".usd")
-
-# ARKit's 52 names in the order of the Live Link Face CSV (PascalCase there).
-ARKIT52 = (
-    "eyeBlinkLeft eyeLookDownLeft eyeLookInLeft eyeLookOutLeft eyeLookUpLeft eyeSquintLeft eyeWideLeft "
-    "eyeBlinkRight eyeLookDownRight eyeLookInRight eyeLookOutRight eyeLookUpRight eyeSquintRight eyeWideRight "
-    "jawForward jawRight jawLeft jawOpen mouthClose mouthFunnel mouthPucker mouthRight mouthLeft "
-    "mouthSmileLeft mouthSmileRight mouthFrownLeft mouthFrownRight mouthDimpleLeft mouthDimpleRight "
-    "mouthStretchLeft mouthStretchRight mouthRollLower mouthRollUpper mouthShrugLower mouthShrugUpper "
-    "mouthPressLeft mouthPressRight mouthLowerDownLeft mouthLowerDownRight mouthUpperUpLeft mouthUpperUpRight "
-    "browDownLeft browDownRight browInnerUp browOuterUpLeft browOuterUpRight cheekPuff cheekSquintLeft "
-    "cheekSquintRight noseSneerLeft noseSneerRight tongueOut").split()
-LIVELINK_TAIL = ("HeadYaw HeadPitch HeadRoll LeftEyeYaw LeftEyePitch LeftEyeRoll "
-                 "RightEyeYaw RightEyePitch RightEyeRoll").split()
 
 
 def output_kind(path: str | Path, dim: int) -> str:
@@ -58,17 +47,19 @@ def output_kind(path: str | Path, dim: int) -> str:
                      "frames)", path)
 
 
-def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
-    """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``).
+def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None) -> np.ndarray:
+    """The 61 Live Link Face values of every frame, (n_frames, 61) in the CSV's column order.
 
     Target names are matched to ARKit names case-insensitively with ``_L``/``Left`` alike;
     an unsided ARKit name (``browInnerUp``, ``cheekPuff``) missing from the targets takes the
     mean of its ``_L``/``_R`` targets (ICT-FaceKit splits them). Unmatched ARKit columns are 0.
     ``HeadRoll`` is the head motion's in-plane angle in radians (yaw and pitch are not
     estimated from 2D video: 0). Raises :class:`InputError` when no target name is an ARKit name.
+    One mapping for the CSV (:func:`livelink_rows`) and the live packets (``keyshape live``).
     """
+    weights = np.asarray(weights, dtype=np.float64)
     col = {name_key(n): j for j, n in enumerate(names)}
-    out = np.zeros((len(weights), len(ARKIT52)))
+    out = np.zeros((len(weights), len(ARKIT52) + len(LIVELINK_TAIL)))
     hit = 0
     for a, n in enumerate(ARKIT52):
         k = name_key(n)
@@ -79,21 +70,17 @@ def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | Non
             out[:, a] = (weights[:, col[k + "left"]] + weights[:, col[k + "right"]]) / 2
             hit += 1
     if not hit:
-        raise InputError(f"no target name is an ARKit blendshape name (targets: {', '.join(names[:8])}...); "
+        raise InputError(f"no target name is an ARKit blendshape name (targets: {', '.join(list(names)[:8])}...); "
                          "the Live Link layout needs ARKit-named targets")
-    tail = np.zeros((len(weights), len(LIVELINK_TAIL)))
     if head is not None:
-        tail[:, 2] = head.angle
-    header = ["Timecode", "BlendShapeCount"] + [n[0].upper() + n[1:] for n in ARKIT52] + LIVELINK_TAIL
-    rows = []
-    for i in range(len(weights)):
-        t = i / fps
-        sec = int(t)
-        ff = int(round((t - sec) * fps, 6))
-        sub = (t - sec) * fps - ff
-        tc = f"{sec // 3600:02d}:{sec // 60 % 60:02d}:{sec % 60:02d}:{ff:02d}.{int(round(sub * 1000)):03d}"
-        rows.append([tc, "61"] + ["%.6g" % x for x in out[i]] + ["%.6g" % x for x in tail[i]])
-    return header, rows
+        out[:, len(ARKIT52) + 2] = head.angle
+    return out
+
+
+def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
+    """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``):
+    :func:`livelink_values` in the layout of :func:`keyshape.base.formats.livelink.csv_rows`."""
+    return csv_rows(livelink_values(names, weights, head), fps)
 
 
 def write_usd_take(path: Path, mesh, base: np.ndarray, deltas: np.ndarray, names, weights: np.ndarray,
