@@ -20,6 +20,7 @@ import re
 import socket
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -276,25 +277,42 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
 # -------------------------------------------------------------------------------------------- the loop
 @dataclass
 class LiveStats:
-    """What a live run did: frames tracked and sent, lost frames, latencies (seconds)."""
+    """What a live run did: frames tracked and sent, lost frames, latencies (seconds), send times."""
 
     frames: int = 0
     sent: int = 0
     lost: int = 0
     face_lost_frames: int = 0
     latencies: list = field(default_factory=list)
-    t_start: float = 0.0
-    t_end: float = 0.0
+    first_send: float | None = None
+    last_send: float | None = None
+    recent: deque = field(default_factory=lambda: deque(maxlen=61))
+
+    def record(self, t_sent: float, latency: float | None) -> None:
+        """Count one frame sent at ``t_sent`` (``time.perf_counter()``), ``latency`` after its capture."""
+        if self.first_send is None:
+            self.first_send = t_sent
+        self.last_send = t_sent
+        self.recent.append(t_sent)
+        if latency is not None:
+            self.latencies.append(latency)
+        self.frames += 1
+        self.sent += 1
 
     @property
     def fps(self) -> float:
-        dt = self.t_end - self.t_start
-        return self.frames / dt if dt > 0 else 0.0
+        """Frames per second sustained from the first frame sent to the last."""
+        if self.first_send is None or self.last_send <= self.first_send:
+            return 0.0
+        return (self.frames - 1) / (self.last_send - self.first_send)
 
-    def line(self, face_ok: bool = True) -> str:
-        lat = np.array(self.latencies[-300:]) * 1e3
+    def line(self, face_ok: bool = True, final: bool = False) -> str:
+        """The status line: the last 60 frames' rate and median latency (the whole run's when ``final``)."""
+        r = self.recent
+        fps = self.fps if final or len(r) < 2 else (len(r) - 1) / max(r[-1] - r[0], 1e-9)
+        lat = np.array(self.latencies if final else self.latencies[-60:]) * 1e3
         med = f"{np.median(lat):.1f}" if len(lat) else "-"
-        return (f"keyshape live: {self.frames} frames, {self.fps:.1f} fps, latency {med} ms, lost {self.lost}, "
+        return (f"keyshape live: {self.frames} frames, {fps:.1f} fps, latency {med} ms (median), lost {self.lost}, "
                 f"face {'tracked' if face_ok else 'LOST (sending neutral)'}")
 
 
@@ -312,18 +330,17 @@ def stream(source: FrameSource, model, chain: LiveChain, sender: LiveLinkSender,
     from keyshape.tracker.commands import iter_track
 
     fps = source.info.fps
-    stats = LiveStats(t_start=time.perf_counter())
+    stats = LiveStats()
     neutral = np.zeros(61)
     zero_curves = np.zeros(len(chain.rig_names))
     face_ok, last_status = True, 0.0
     tty = hasattr(status, "isatty") and status.isatty()
 
     def show(final=False):
-        stats.t_end = time.perf_counter()
         stats.lost = source.lost
         if status is None:
             return
-        text = stats.line(face_ok)
+        text = stats.line(face_ok, final)
         if tty and not final:
             status.write("\r" + text + "\x1b[K")
         elif final or tty:
@@ -351,10 +368,7 @@ def stream(source: FrameSource, model, chain: LiveChain, sender: LiveLinkSender,
                 osc.send(chain.rig_names, curves)
             t = time.perf_counter()
             cap = source.captured.get(res.index)
-            if cap is not None:
-                stats.latencies.append(t - cap)
-            stats.frames += 1
-            stats.sent += 1
+            stats.record(t, None if cap is None else t - cap)
             if t - last_status >= status_every:
                 last_status = t
                 if tty:
