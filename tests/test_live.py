@@ -61,27 +61,34 @@ def live_args(d: Path, source: str | None = None, *extra: str) -> list[str]:
 
 
 class Receiver:
-    """A UDP socket on 127.0.0.1 collecting datagrams in a thread until ``idle`` seconds pass without one."""
+    """A UDP socket on 127.0.0.1 collecting datagrams in a thread until :meth:`join`."""
 
-    def __init__(self, idle: float = 3.0):
+    def __init__(self):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(idle)
+        self.sock.settimeout(0.1)
         self.port = self.sock.getsockname()[1]
         self.data: list[bytes] = []
         self.first = threading.Event()
+        self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self):
-        try:
-            while True:
+        while True:
+            try:
                 self.data.append(self.sock.recv(65536))
                 self.first.set()
-        except (socket.timeout, OSError):
-            pass
+            except socket.timeout:
+                if self.stop.is_set():              # nothing more within 0.1 s after join was asked
+                    return
+            except OSError:
+                return
 
     def join(self):
+        time.sleep(0.2)
+        self.stop.set()
         self.thread.join(30)
         self.sock.close()
         return self.data
@@ -157,7 +164,7 @@ def test_osc_one_message_per_rig_curve(take, capsys):
 
 
 def test_ctrl_c_stops_cleanly_with_exit_130(take):
-    rx = Receiver(idle=20)
+    rx = Receiver()
     proc = subprocess.Popen([sys.executable, "-m", "keyshape", *live_args(take, None, "--port", str(rx.port))],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
     try:
@@ -168,7 +175,6 @@ def test_ctrl_c_stops_cleanly_with_exit_130(take):
     finally:
         if proc.poll() is None:
             proc.kill()
-    rx.sock.settimeout(0.5)
     assert proc.returncode == 130, err
     assert "frames" in err and "interrupted" in err and "Traceback" not in err
     assert 0 < len(rx.join()) < N_FRAMES                                         # paced: stopped part way
