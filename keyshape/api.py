@@ -155,7 +155,8 @@ class Animation:
 
     def export(self, path: str | Path, clamp: bool = False, livelink: bool = False, bake_head: bool = False,
                scheme=None) -> dict:
-        """Write ``path`` atomically: ``.glb``, ``.csv`` (curves, or Live Link with ``livelink``), ``.mp4``,
+        """Write ``path`` atomically: ``.glb``, ``.usda``/``.usdc``/``.usd`` (``keyshape[usd]``), ``.csv`` (curves,
+        or Live Link with ``livelink``), ``.mp4``,
         or a folder of OBJ/PNG frames; see :func:`keyshape.retarget.export.export`."""
         from keyshape.retarget.export import export
 

@@ -29,6 +29,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.retarget.pose_cli", None),
     ("keyshape.retarget.cli", None),
     ("keyshape.retarget.preview_cli", None),
+    ("keyshape.live", None),
     ("keyshape.retarget.mocap.cli", None),
     ("keyshape.retarget.dense_cli", None),
     ("keyshape.batch", None),

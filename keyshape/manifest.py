@@ -5,7 +5,7 @@ model) and takes (videos of one actor). Everything but the two ``actors`` keys a
 ``takes`` keys shown here is optional::
 
     [settings]                      # all optional; the defaults are shown
-    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink" (a rig's), "preview"
+    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink" (a rig's), "preview", "usd"
     smooth = "none"                 # tracker smoothing: none, savgol, oneeuro
     solver = "smooth"               # nnls, lstsq, smooth
     ridge = 0.03
@@ -52,10 +52,10 @@ from keyshape.base.errors import InputError, require_file
 from keyshape.decompose import defaults as D
 from keyshape.decompose.defaults import METHODS, SOLVERS
 
-OUTPUTS = ("tracks", "weights", "glb", "curves", "livelink", "preview")
+OUTPUTS = ("tracks", "weights", "glb", "curves", "livelink", "preview", "usd")
 #: file name of each output inside ``OUT_DIR/<actor>/<take>/``
 OUTPUT_FILES = {"tracks": "tracks.csv", "weights": "weights.csv", "glb": "animation.glb", "curves": "curves.csv",
-                "livelink": "livelink.csv", "preview": "preview.mp4"}
+                "livelink": "livelink.csv", "preview": "preview.mp4", "usd": "animation.usdc"}
 SMOOTHERS = ("none", "savgol", "oneeuro")
 REGION_NAMES = ("mouth", "eyes", "pupils")
 #: names batch writes inside an actor's folder (a take may not be named one of them) and in OUT_DIR

@@ -9,9 +9,10 @@ def register(subparsers) -> None:
     from keyshape.retarget import defaults as A
 
     p = subparsers.add_parser(
-        "retarget", help="drive the artist's target key shapes with decomposed weights (.glb/.csv/OBJ/video)",
+        "retarget", help="drive the artist's target key shapes with decomposed weights (.glb/.usd/.csv/OBJ/video)",
         description="Blend target key shapes (OBJ meshes of one topology, or 2D .pts/JSON drawings) with "
-                    "per-frame key-shape weights; write .glb, .csv, a folder of OBJ/PNG frames or a video.",
+                    "per-frame key-shape weights; write .glb, USD (.usda/.usdc/.usd), .csv, a folder of OBJ/PNG "
+                    "frames or a video.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("weights", help="weights CSV: frame,REGION_K,... (from keyshape decompose)")
     p.add_argument("--targets", nargs="+", metavar="DIR|FILE",
@@ -47,6 +48,8 @@ def register(subparsers) -> None:
     p.add_argument("--landmarks", default=None,
                    help="with --rig: rig landmark JSON (default: the shipped one for ICT-FaceKit rigs); used for "
                         "the head translation's units")
+    p.add_argument("--mesh-units", choices=("mm", "cm", "m", "in"), default="cm",
+                   help="length unit of the target or rig meshes: USD metersPerUnit (ICT-FaceKit is in cm)")
     p.add_argument("--bake-head", action="store_true", help="apply head motion to OBJ/PNG/video frames")
     p.add_argument("--fps", type=float, default=None,
                    help="frame rate (default: from the tracks' timestamps, else the weights' own, else 30)")
@@ -54,7 +57,8 @@ def register(subparsers) -> None:
     p.add_argument("--livelink", action="store_true", help=".csv in the Live Link Face layout (ARKit names)")
     p.add_argument("--scheme", help="landmark scheme to draw 2D targets (default: by point count)")
     p.add_argument("-o", "--output", required=True,
-                   help="OUT.glb | OUT.csv | OUT.mp4 | folder (OBJ frames for meshes, PNG frames for drawings)")
+                   help="OUT.glb | OUT.usda/.usdc/.usd | OUT.csv | OUT.mp4 | folder (OBJ frames for meshes, PNG "
+                        "frames for drawings)")
     p.add_argument("--overwrite", action="store_true",
                    help="write frames into a non-empty folder keyshape did not make (only its own "
                         "frame_NNNNNN files are written; nothing is deleted)")
@@ -92,8 +96,11 @@ def run(args) -> int:
         raise InputError(f"--reference-frame {args.reference_frame}: frames are numbered from 0")
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
-    inputs = _input_files(args)
     from pathlib import Path as _P
+    inputs = _input_files(args)
+    if _P(args.output).suffix.lower() in (".usda", ".usdc", ".usd"):
+        from keyshape.base.formats.usd import require_usd
+        require_usd()
     out_is_dir = _P(args.output).suffix == "" or _P(args.output).is_dir()
     if out_is_dir:
         check_output_dir(args.output, args.overwrite, inputs)
@@ -112,7 +119,7 @@ def run(args) -> int:
     head, fps = _head(args, weights)
     info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, clamp=args.clamp,
                   livelink=args.livelink, bake_head=args.bake_head, scheme=args.scheme, overwrite=args.overwrite,
-                  inputs=inputs)
+                  inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units))
     extra = f", {info['n_clamped']} weights clamped to [0, 1]" if args.clamp else ""
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
           f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
@@ -152,11 +159,17 @@ def run_rig(args, inputs: list) -> int:
     curves = rig_curves(weights.weights, columns, lib, rig, args.poses)
     head, fps = _head(args, weights, rig)
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
-                      overwrite=args.overwrite, inputs=inputs)
+                      overwrite=args.overwrite, inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units))
     used = int((np.abs(curves).max(axis=0) > 0).sum())
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key weights -> {used} of {rig.n_shapes} rig "
           f"shapes moving at {fps:g} fps -> {info['path']} ({info['kind']})")
     return 0
+
+
+def meters_per_unit(units: str) -> float:
+    """Metres in one ``--mesh-units`` unit (mm, cm, m, in)."""
+    from keyshape.base.formats.markers import unit_scale
+    return unit_scale(units, "m")
 
 
 def _head(args, weights, rig=None):

@@ -2,6 +2,8 @@
 
 =================  ==========================================================
 ``OUT.glb``        glTF 2.0 binary: mesh, morph targets, weight + head animation (3D)
+``OUT.usda/.usdc``  USD (also ``.usd``): the mesh with UsdSkel blend shapes, a head joint with the
+                   head motion, the weights per time code (3D; needs ``keyshape[usd]``)
 ``OUT.csv``        per-frame weights per target name (``frame,<name>,...``), or the
                    Live Link Face layout with ``livelink=True``
 ``OUT.mp4/.avi``   rendered animation: the drawn character (2D) or the shaded mesh (3D)
@@ -21,48 +23,43 @@ from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import name_key
 from keyshape.base.formats.weights import write_weights
+# the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
+from keyshape.base.formats.livelink import ARKIT52, LIVELINK_TAIL, csv_rows  # noqa: F401
 
 VIDEO_SUFFIXES = (".mp4", ".avi")
-
-# ARKit's 52 names in the order of the Live Link Face CSV (PascalCase there).
-ARKIT52 = (
-    "eyeBlinkLeft eyeLookDownLeft eyeLookInLeft eyeLookOutLeft eyeLookUpLeft eyeSquintLeft eyeWideLeft "
-    "eyeBlinkRight eyeLookDownRight eyeLookInRight eyeLookOutRight eyeLookUpRight eyeSquintRight eyeWideRight "
-    "jawForward jawRight jawLeft jawOpen mouthClose mouthFunnel mouthPucker mouthRight mouthLeft "
-    "mouthSmileLeft mouthSmileRight mouthFrownLeft mouthFrownRight mouthDimpleLeft mouthDimpleRight "
-    "mouthStretchLeft mouthStretchRight mouthRollLower mouthRollUpper mouthShrugLower mouthShrugUpper "
-    "mouthPressLeft mouthPressRight mouthLowerDownLeft mouthLowerDownRight mouthUpperUpLeft mouthUpperUpRight "
-    "browDownLeft browDownRight browInnerUp browOuterUpLeft browOuterUpRight cheekPuff cheekSquintLeft "
-    "cheekSquintRight noseSneerLeft noseSneerRight tongueOut").split()
-LIVELINK_TAIL = ("HeadYaw HeadPitch HeadRoll LeftEyeYaw LeftEyePitch LeftEyeRoll "
-                 "RightEyeYaw RightEyePitch RightEyeRoll").split()
+USD_SUFFIXES = (".usda", ".usdc", ".usd")
 
 
 def output_kind(path: str | Path, dim: int) -> str:
-    """``"glb"``, ``"csv"``, ``"video"``, ``"obj_frames"`` or ``"png_frames"`` for ``path``."""
+    """``"glb"``, ``"usd"``, ``"csv"``, ``"video"``, ``"obj_frames"`` or ``"png_frames"`` for ``path``."""
     suffix = Path(path).suffix.lower()
     if suffix == ".glb":
         return "glb"
+    if suffix in USD_SUFFIXES:
+        return "usd"
     if suffix == ".csv":
         return "csv"
     if suffix in VIDEO_SUFFIXES:
         return "video"
     if suffix == "" or Path(path).is_dir():
         return "obj_frames" if dim == 3 else "png_frames"
-    raise InputError("output must end in .glb, .csv, .mp4/.avi, or be a folder (OBJ or PNG frames)", path)
+    raise InputError("output must end in .glb, .usda/.usdc/.usd, .csv, .mp4/.avi, or be a folder (OBJ or PNG "
+                     "frames)", path)
 
 
-def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
-    """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``).
+def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None) -> np.ndarray:
+    """The 61 Live Link Face values of every frame, (n_frames, 61) in the CSV's column order.
 
     Target names are matched to ARKit names case-insensitively with ``_L``/``Left`` alike;
     an unsided ARKit name (``browInnerUp``, ``cheekPuff``) missing from the targets takes the
     mean of its ``_L``/``_R`` targets (ICT-FaceKit splits them). Unmatched ARKit columns are 0.
     ``HeadRoll`` is the head motion's in-plane angle in radians (yaw and pitch are not
     estimated from 2D video: 0). Raises :class:`InputError` when no target name is an ARKit name.
+    One mapping for the CSV (:func:`livelink_rows`) and the live packets (``keyshape live``).
     """
+    weights = np.asarray(weights, dtype=np.float64)
     col = {name_key(n): j for j, n in enumerate(names)}
-    out = np.zeros((len(weights), len(ARKIT52)))
+    out = np.zeros((len(weights), len(ARKIT52) + len(LIVELINK_TAIL)))
     hit = 0
     for a, n in enumerate(ARKIT52):
         k = name_key(n)
@@ -73,21 +70,37 @@ def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | Non
             out[:, a] = (weights[:, col[k + "left"]] + weights[:, col[k + "right"]]) / 2
             hit += 1
     if not hit:
-        raise InputError(f"no target name is an ARKit blendshape name (targets: {', '.join(names[:8])}...); "
+        raise InputError(f"no target name is an ARKit blendshape name (targets: {', '.join(list(names)[:8])}...); "
                          "the Live Link layout needs ARKit-named targets")
-    tail = np.zeros((len(weights), len(LIVELINK_TAIL)))
     if head is not None:
-        tail[:, 2] = head.angle
-    header = ["Timecode", "BlendShapeCount"] + [n[0].upper() + n[1:] for n in ARKIT52] + LIVELINK_TAIL
-    rows = []
-    for i in range(len(weights)):
-        t = i / fps
-        sec = int(t)
-        ff = int(round((t - sec) * fps, 6))
-        sub = (t - sec) * fps - ff
-        tc = f"{sec // 3600:02d}:{sec // 60 % 60:02d}:{sec % 60:02d}:{ff:02d}.{int(round(sub * 1000)):03d}"
-        rows.append([tc, "61"] + ["%.6g" % x for x in out[i]] + ["%.6g" % x for x in tail[i]])
-    return header, rows
+        out[:, len(ARKIT52) + 2] = head.angle
+    return out
+
+
+def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
+    """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``):
+    :func:`livelink_values` in the layout of :func:`keyshape.base.formats.livelink.csv_rows`."""
+    return csv_rows(livelink_values(names, weights, head), fps)
+
+
+def write_usd_take(path: Path, mesh, base: np.ndarray, deltas: np.ndarray, names, weights: np.ndarray,
+                   frames: np.ndarray, fps: float, head: HeadMotion | None, meters_per_unit: float) -> dict:
+    """The USD take of a mesh (OBJ topology, UVs) and its shapes as deltas from ``base`` (one writer for
+    sculpted targets and rigs): vertex normals and each shape's normal offsets as in the .glb."""
+    from keyshape.base.formats.usd import write_usd
+    from keyshape.retarget.rig import vertex_normals
+    keep = [i for i, p in enumerate(mesh.polygons) if len(p) >= 3]
+    if not keep:
+        raise InputError("the mesh has no faces: USD output needs faces")
+    polys = [mesh.polygons[i] for i in keep]
+    puv = [mesh.polygon_uvs[i] for i in keep] if len(mesh.uvs) and len(mesh.polygon_uvs) == len(mesh.polygons) \
+        else None
+    tri = mesh.triangles
+    n0 = vertex_normals(base, tri)
+    nd = np.stack([vertex_normals(base + d, tri) - n0 for d in deltas]) if len(deltas) else None
+    return write_usd(path, base, polys, deltas, names, weights, fps, head, frames=frames,
+                     uvs=mesh.uvs if puv is not None else None, polygon_uvs=puv, normals=n0, normal_deltas=nd,
+                     meters_per_unit=meters_per_unit)
 
 
 def _draw_2d(points: np.ndarray, size=(480, 480), scheme=None):
@@ -133,7 +146,7 @@ def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
            head: HeadMotion | None = None, clamp: bool = False, livelink: bool = False,
            bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480),
-           overwrite: bool = False, inputs=()) -> dict:
+           overwrite: bool = False, inputs=(), meters_per_unit: float = 0.01) -> dict:
     """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
 
     Parameters
@@ -145,6 +158,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     clamp : clamp weights to [0, 1] in .glb and .csv outputs (default keep: NNLS weights may exceed 1)
     livelink : .csv in the Live Link Face layout instead of ``frame,<target names>``
     scheme : landmark scheme for drawing 2D targets (default: a built-in one with the same point count)
+    meters_per_unit : the meshes' length unit in metres (USD ``metersPerUnit``; default centimetres)
 
     Returns
     -------
@@ -172,6 +186,17 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
                   normal_deltas=None if nd is None else nd[:, ids], parts=material_parts(ts.mesh),
                   first_frame=int(frames[0]) if len(frames) else 0)
         info["n_morph_targets"] = len(names)
+        return info
+    if kind == "usd":
+        from keyshape.base.formats.usd import require_usd
+        require_usd()
+        if ts.dim != 3:
+            raise InputError("USD output needs 3D (OBJ) targets; these are 2D drawings")
+        base, deltas, names, mw, info["n_clamped"] = rt.morph_targets(weights, clamp=clamp)
+        if ts.mesh is None:
+            raise InputError("the target meshes have no faces: USD output needs faces", ts.files[0])
+        info.update(write_usd_take(path, ts.mesh, base, deltas, names, mw, np.asarray(frames), fps, head,
+                                   meters_per_unit))
         return info
     if kind == "csv":
         w = weights

@@ -6,6 +6,8 @@
 ``OUT.glb``        the rig's neutral with every rig shape that moves in the take (a curve
                    not 0 throughout) as a morph target, their curves as the weight
                    animation (and the head motion)
+``OUT.usda/.usdc``  USD (also ``.usd``): the rig's neutral with the shapes that move as UsdSkel
+                   blend shapes (the rig's names), the curves per time code, the head joint
 ``OUT.mp4/.avi``   the shaded rig
 ``OUT`` (folder)   one OBJ per frame
 =================  ==========================================================
@@ -25,8 +27,11 @@ from keyshape.retarget.rig import Rig
 
 def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarray, fps: float = 30.0,
                head: HeadMotion | None = None, livelink: bool = False,
-               size=(480, 480), chunk_frames: int = 64, overwrite: bool = False, inputs=()) -> dict:
-    """Write rig curves (n_frames, n_shapes) to ``path``; returns ``{"kind", "path"}``. Nothing is left on error."""
+               size=(480, 480), chunk_frames: int = 64, overwrite: bool = False, inputs=(),
+               meters_per_unit: float = 0.01) -> dict:
+    """Write rig curves (n_frames, n_shapes) to ``path``; returns ``{"kind", "path"}``. Nothing is left on error.
+
+    ``meters_per_unit``: the rig's length unit in metres (USD ``metersPerUnit``; ICT-FaceKit: cm, 0.01)."""
     from keyshape.retarget.export import livelink_rows, output_kind
     path = Path(path)
     curves = np.asarray(curves, dtype=np.float64)
@@ -64,6 +69,12 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
                   curves[:, moving], fps, head, uvs=uvs,
                   normals=n0[ids], normal_deltas=nd[:, ids], parts=material_parts(rig.mesh),
                   first_frame=int(frames[0]) if len(frames) else 0, sparse_targets=True)
+        return info
+    if kind == "usd":
+        from keyshape.retarget.export import write_usd_take
+        moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.arange(0)
+        info.update(write_usd_take(path, rig.mesh, rig.neutral, rig.deltas[moving], [rig.names[j] for j in moving],
+                                   curves[:, moving], np.asarray(frames), fps, head, meters_per_unit))
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj

@@ -1,0 +1,444 @@
+"""``keyshape live``: a camera (or a video played at its own rate) to a rig's curves, streamed as it happens.
+
+Every frame goes through the offline chain one frame at a time, with the same code:
+the tracker (:func:`keyshape.tracker.commands.iter_track`), the key-shape weights of the frame
+(:func:`keyshape.decompose.api.decompose_keys` with the key set's head stabilisation, a per-frame
+solver: ``nnls`` or ``lstsq``), the pose library's map to the rig's curves
+(:func:`keyshape.retarget.poses.curves_from_library`) and the Live Link Face values
+(:func:`keyshape.retarget.export.livelink_values`), then one Live Link Face UDP packet per frame
+(:mod:`keyshape.base.formats.livelink`; Unreal's Live Link Face source, port 11111) and, with
+``--osc``, one OSC message per rig curve.
+
+It needs every stage, so it lives at the roof (docs/architecture.md). Frames whose face is lost are
+sent as the neutral (all curves 0, head roll 0) and the status line says so; the face found again
+resumes the curves. Ctrl-C stops cleanly (exit 130).
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import socket
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from keyshape.base.errors import InputError, require_file
+
+LIVE_SOLVERS = ("nnls", "lstsq")
+
+
+# ----------------------------------------------------------------------------------------------- sources
+class FrameSource:
+    """Frames of a camera (OpenCV device index) or of a video file, with their capture times.
+
+    Iterating yields ``(index, frame)`` like :class:`keyshape.base.formats.video.VideoReader` (what
+    :func:`~keyshape.tracker.commands.iter_track` reads). A file is played at its own frame rate
+    (``pace``): a frame is handed over at its time, and a frame whose time has passed by more than one
+    frame period when it is decoded is dropped and counted as lost, as a camera drops frames that are
+    not read in time; ``pace=False`` hands over every frame as fast as it decodes (tests). A camera's
+    lost frames are the gaps between capture times longer than 1.5 frame periods.
+
+    Attributes
+    ----------
+    info : ``fps``, ``width``, ``height`` (an object like :class:`~keyshape.base.formats.video.VideoInfo`)
+    captured : {index: ``time.perf_counter()`` when the frame was captured (or became due)}
+    lost : frames dropped or missed so far
+    """
+
+    def __init__(self, source: str, pace: bool = True, max_frames: int | None = None):
+        import cv2
+        self.camera = re.fullmatch(r"\d+", str(source)) is not None
+        self.pace, self.max_frames = pace, max_frames
+        if self.camera:
+            with _quiet_opencv():
+                cap = cv2.VideoCapture(int(source))
+                ok = cap.isOpened() and cap.read()[0]
+            if not ok:
+                cap.release()
+                raise InputError(f"camera {source}: cannot open it (no such device, or it is busy)")
+            self.name = f"camera {source}"
+        else:
+            from keyshape.base.formats.video import video_info
+            video_info(source)                                     # one-line errors naming the file
+            cap = cv2.VideoCapture(str(require_file(source, "video")))
+            self.name = str(source)
+        self.cap = cap
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self.info = type("Info", (), {})()
+        self.info.fps = fps if np.isfinite(fps) and 1.0 <= fps <= 1000.0 else 30.0
+        self.info.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        self.info.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        self.captured: dict[int, float] = {}
+        self.lost = 0
+        self.n_read = 0
+
+    def __iter__(self):
+        period = 1.0 / self.info.fps
+        t0 = last = None
+        i = -1
+        try:
+            while self.max_frames is None or self.n_read < self.max_frames:
+                ok, frame = self.cap.read()
+                if not ok:
+                    return
+                i += 1
+                now = time.perf_counter()
+                if self.camera:
+                    if last is not None and now - last > 1.5 * period:
+                        self.lost += int(round((now - last) / period)) - 1
+                    last = now
+                elif self.pace:
+                    if t0 is None:
+                        t0 = now
+                    due = t0 + i * period
+                    if now > due + period:                         # late by more than a frame: dropped
+                        self.lost += 1
+                        continue
+                    if now < due:
+                        time.sleep(due - now)
+                    now = time.perf_counter()
+                self.captured[i] = now
+                if len(self.captured) > 256:
+                    self.captured.pop(next(iter(self.captured)))
+                self.n_read += 1
+                yield i, frame
+        finally:
+            self.cap.release()
+
+
+class _quiet_opencv:
+    """OpenCV's own warnings off while probing a camera (the one-line error says what failed)."""
+
+    def __enter__(self):
+        import cv2
+        self.level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+    def __exit__(self, *exc):
+        import cv2
+        cv2.utils.logging.setLogLevel(self.level)
+        return False
+
+
+# ------------------------------------------------------------------------------------------------ sinks
+def parse_host_port(text: str, what: str) -> tuple[str, int]:
+    """``HOST:PORT`` -> (host, port) with a one-line error naming ``what``."""
+    host, sep, port = str(text).rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"{what} {text!r}: expected HOST:PORT with a port in 1..65535")
+    return host, int(port)
+
+
+def _resolve(host: str, port: int, what: str):
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+    except socket.gaierror as exc:
+        raise InputError(f"{what}: cannot resolve host {host!r} ({exc.strerror})") from None
+    return infos[0]
+
+
+class LiveLinkSender:
+    """A UDP socket sending Live Link Face packets to ``host:port`` (bound to ``local_port`` if given)."""
+
+    def __init__(self, host: str, port: int, local_port: int | None = None, subject: str = "keyshape"):
+        family, _, _, _, addr = _resolve(host, port, "--host")
+        self.target = f"{host}:{port}"
+        self.subject = subject
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            if local_port is not None:
+                try:
+                    self.sock.bind(("", local_port))
+                except OSError as exc:
+                    raise InputError(f"--local-port {local_port}: cannot bind it ({exc.strerror}; is the port "
+                                     "in use?)") from None
+            try:
+                self.sock.connect(addr)
+            except OSError as exc:
+                raise InputError(f"--host {host}: unreachable ({exc.strerror})") from None
+        except BaseException:
+            self.sock.close()
+            raise
+        self.refused = 0
+
+    def send(self, packet: bytes) -> None:
+        try:
+            self.sock.send(packet)
+        except ConnectionRefusedError:          # nobody listening (yet): Unreal may start later
+            self.refused += 1
+        except OSError as exc:
+            raise InputError(f"cannot send to {self.target}: {exc.strerror}") from None
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class OscSender:
+    """One OSC message per curve, ``PREFIX/<curve name> <float>``, to ``host:port`` (python-osc)."""
+
+    def __init__(self, host: str, port: int, prefix: str = "/keyshape"):
+        try:
+            from pythonosc.udp_client import SimpleUDPClient
+        except ImportError:
+            raise InputError("--osc needs python-osc: pip install 'keyshape[osc]'") from None
+        _resolve(host, port, "--osc")
+        self.client = SimpleUDPClient(host, port)
+        self.prefix = "/" + prefix.strip("/")
+
+    def send(self, names, values) -> None:
+        for n, v in zip(names, values):
+            try:
+                self.client.send_message(f"{self.prefix}/{n}", float(v))
+            except ConnectionRefusedError:
+                pass
+            except OSError as exc:
+                raise InputError(f"--osc: cannot send ({exc.strerror})") from None
+
+    def close(self) -> None:
+        self.client._sock.close()
+
+
+# ------------------------------------------------------------------------------------------- the chain
+@dataclass
+class LiveChain:
+    """The offline chain for one frame at a time: key weights -> rig curves -> Live Link values.
+
+    Built by :func:`load_chain`; :meth:`frame` runs it on one tracked frame.
+    """
+
+    scheme: str
+    regions: list
+    head_pose: dict | None
+    columns: list
+    library: dict
+    rig_names: list
+    solver: str = "nnls"
+    ridge: float = 0.0
+    reference_pose: np.ndarray | None = field(default=None)
+
+    def frame(self, index: int, fps: float, points: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
+        """(rig curves (n_shapes,), Live Link values (61,) in CSV column order) of one tracked frame."""
+        from keyshape.base.formats.tracks import Tracks
+        from keyshape.decompose.api import decompose_keys
+        from keyshape.decompose.regions import stable_pose
+        from keyshape.retarget.export import livelink_values
+        from keyshape.retarget.headpose import HeadMotion, head_motion
+        from keyshape.retarget.poses import curves_from_library
+
+        tr = Tracks(np.array([index]), np.array([index / fps]), np.array([res.confidence]), np.array([True]),
+                    points[None].astype(np.float64), np.asarray(res.pose, np.float64)[None], {"scheme": self.scheme})
+        _, w = decompose_keys(tr, self.regions, self.solver, 0.1, self.ridge, None, self.head_pose)
+        curves = curves_from_library(w, self.columns, self.library, self.rig_names)
+        pose = stable_pose(tr, self.head_pose)[0]
+        if self.reference_pose is None:
+            self.reference_pose = pose
+        hm = head_motion(np.stack([pose, self.reference_pose]), reference=1)
+        head = HeadMotion(hm.translation[:1], hm.rotation[:1], hm.scale[:1], hm.angle[:1])
+        return curves[0], livelink_values(self.rig_names, curves, head)[0]
+
+
+def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str = "nnls", ridge: float = 0.0):
+    """Read the model, key set, pose library and rig; check they belong together (one-line errors).
+
+    Returns ``(model, chain, rig shape names)``.
+    """
+    from keyshape.base.formats.keys import read_keys, read_keys_head_pose
+    from keyshape.base.formats.poses import read_poses
+    from keyshape.retarget.export import livelink_values
+    from keyshape.retarget.poses import curves_from_library
+    from keyshape.retarget.rig import load_rig
+    from keyshape.tracker.eigenpoints import AppearanceModel
+
+    if solver not in LIVE_SOLVERS:
+        raise InputError(f"--solver {solver}: live weights are solved frame by frame: use {' or '.join(LIVE_SOLVERS)}")
+    if not (np.isfinite(ridge) and ridge >= 0):
+        raise InputError(f"--ridge {ridge}: must be a finite number >= 0")
+    scheme, n_points, regions = read_keys(keys_path)
+    head = read_keys_head_pose(keys_path)
+    from keyshape.base.formats.model import read_model
+    mf = read_model(model_path)                                   # its scheme, before the model is built
+    if mf.scheme.name != scheme or mf.scheme.n_points != n_points:
+        raise InputError(f"the model tracks scheme {mf.scheme.name!r} ({mf.scheme.n_points} points) but the key "
+                         f"set {keys_path} is of scheme {scheme!r} ({n_points} points): use the model and keys "
+                         "of one actor and scheme", model_path)
+    model = AppearanceModel.from_file(mf)
+    rig_obj = load_rig(rig if len(rig) > 1 else rig[0], neutral, with_mesh=False)
+    lib = read_poses(poses_path, rig_obj.names)
+    columns = [n for rk in regions for n in rk.names]
+    curves = curves_from_library(np.zeros((1, len(columns))), columns, lib, rig_obj.names, poses_path)
+    livelink_values(rig_obj.names, curves)                       # the rig has ARKit names, or one line
+    chain = LiveChain(scheme, regions, head, columns, lib, list(rig_obj.names), solver, ridge)
+    return model, chain
+
+
+# -------------------------------------------------------------------------------------------- the loop
+@dataclass
+class LiveStats:
+    """What a live run did: frames tracked and sent, lost frames, latencies (seconds), send times."""
+
+    frames: int = 0
+    sent: int = 0
+    lost: int = 0
+    face_lost_frames: int = 0
+    latencies: list = field(default_factory=list)
+    first_send: float | None = None
+    last_send: float | None = None
+    recent: deque = field(default_factory=lambda: deque(maxlen=61))
+
+    def record(self, t_sent: float, latency: float | None) -> None:
+        """Count one frame sent at ``t_sent`` (``time.perf_counter()``), ``latency`` after its capture."""
+        if self.first_send is None:
+            self.first_send = t_sent
+        self.last_send = t_sent
+        self.recent.append(t_sent)
+        if latency is not None:
+            self.latencies.append(latency)
+        self.frames += 1
+        self.sent += 1
+
+    @property
+    def fps(self) -> float:
+        """Frames per second sustained from the first frame sent to the last."""
+        if self.first_send is None or self.last_send <= self.first_send:
+            return 0.0
+        return (self.frames - 1) / (self.last_send - self.first_send)
+
+    def line(self, face_ok: bool = True, final: bool = False) -> str:
+        """The status line: the last 60 frames' rate and median latency (the whole run's when ``final``)."""
+        r = self.recent
+        fps = self.fps if final or len(r) < 2 else (len(r) - 1) / max(r[-1] - r[0], 1e-9)
+        lat = np.array(self.latencies if final else self.latencies[-60:]) * 1e3
+        med = f"{np.median(lat):.1f}" if len(lat) else "-"
+        return (f"keyshape live: {self.frames} frames, {fps:.1f} fps, latency {med} ms (median), lost {self.lost}, "
+                f"face {'tracked' if face_ok else 'LOST (sending neutral)'}")
+
+
+def stream(source: FrameSource, model, chain: LiveChain, sender: LiveLinkSender, osc: OscSender | None = None,
+           status="stderr", status_every: float = 0.5, smooth: str = "none") -> LiveStats:
+    """Track ``source`` frame by frame and send every frame's packet; returns the run's :class:`LiveStats`.
+
+    ``status``: a text stream for the status line (refreshed in place on a terminal, printed once at the
+    end otherwise), ``"stderr"`` (default: ``sys.stderr`` at call time) or None (silent). Ctrl-C ends the
+    stream: the stats so far are printed and ``KeyboardInterrupt`` is raised again.
+    """
+    if status == "stderr":
+        status = sys.stderr
+    from keyshape.base.formats.livelink import csv_to_packet, encode_packet
+    from keyshape.tracker.commands import iter_track
+
+    fps = source.info.fps
+    stats = LiveStats()
+    neutral = np.zeros(61)
+    zero_curves = np.zeros(len(chain.rig_names))
+    face_ok, last_status = True, 0.0
+    tty = hasattr(status, "isatty") and status.isatty()
+
+    def show(final=False):
+        stats.lost = source.lost
+        if status is None:
+            return
+        text = stats.line(face_ok, final)
+        if tty and not final:
+            status.write("\r" + text + "\x1b[K")
+        elif final or tty:
+            status.write(("\r" + text + "\x1b[K" if tty else text) + "\n")
+        else:
+            status.write(text + "\n")
+        status.flush()
+
+    try:
+        for pts, res, _ in iter_track(None, model, smooth, reader=source, decode_thread=False):
+            if res.success and np.isfinite(pts).all():
+                curves, values = chain.frame(res.index, fps, pts, res)
+                if not face_ok and status is not None:
+                    status.write(("\n" if tty else "") + f"keyshape live: face found again at frame {res.index}\n")
+                face_ok = True
+            else:
+                curves, values = zero_curves, neutral
+                if face_ok and status is not None:
+                    status.write(("\n" if tty else "") + f"keyshape live: face lost at frame {res.index}: sending "
+                                 "the neutral until it is found\n")
+                face_ok = False
+                stats.face_lost_frames += 1
+            sender.send(encode_packet(csv_to_packet(values), res.index, fps, subject=sender.subject))
+            if osc is not None:
+                osc.send(chain.rig_names, curves)
+            t = time.perf_counter()
+            cap = source.captured.get(res.index)
+            stats.record(t, None if cap is None else t - cap)
+            if t - last_status >= status_every:
+                last_status = t
+                if tty:
+                    show()
+    except KeyboardInterrupt:
+        show(final=True)
+        raise
+    show(final=True)
+    return stats
+
+
+def register(subparsers) -> None:
+    """Add ``live`` to ``subparsers``."""
+    p = subparsers.add_parser(
+        "live", help="stream a camera (or a video at its own rate) to a rig's curves over Live Link Face UDP",
+        description="Track a camera (OpenCV device index) or a video file frame by frame with a trained model, "
+                    "solve the key weights (KEYS.json) and map them to the rig's curves (POSES.json, --rig), and "
+                    "send every frame as a Live Link Face UDP packet (Unreal's Live Link Face source) and, with "
+                    "--osc, as OSC messages. Ctrl-C stops.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("source", help="camera index (0, 1, ...) or a video file (played at its own frame rate)")
+    p.add_argument("--model", required=True, help="tracker model from keyshape train")
+    p.add_argument("--keys", required=True, help="KEYS.json from keyshape select")
+    p.add_argument("--poses", required=True, help="POSES.json from keyshape pose")
+    p.add_argument("--rig", required=True, nargs="+", metavar="DIR|FILE", help="the rig (as for retarget --rig)")
+    p.add_argument("--neutral", help="the rig's neutral mesh (default: the folder's neutral.*)")
+    p.add_argument("--host", default="127.0.0.1", help="where Unreal listens (the Live Link Face source)")
+    p.add_argument("--port", type=int, default=11111, help="its UDP port")
+    p.add_argument("--local-port", type=int, default=None, help="send from this local UDP port (default any)")
+    p.add_argument("--subject", default="keyshape", help="the Live Link subject name Unreal shows")
+    p.add_argument("--osc", metavar="HOST:PORT", help="also send OSC: one message per rig curve "
+                                                      "(needs python-osc: pip install 'keyshape[osc]')")
+    p.add_argument("--osc-prefix", default="/keyshape", help="OSC address prefix: PREFIX/<curve name>")
+    p.add_argument("--solver", choices=LIVE_SOLVERS, default="nnls", help="per-frame key weights solver")
+    p.add_argument("--ridge", type=float, default=0.0, help="ridge of the weights solver (as decompose --ridge)")
+    p.add_argument("--smooth", choices=("none", "oneeuro"), default="none",
+                   help="causal landmark smoothing (oneeuro adds no delay)")
+    p.add_argument("--no-pace", action="store_true",
+                   help="a video file: hand over frames as fast as they decode instead of at the video's rate")
+    p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    if not 0 < args.port < 65536:
+        raise InputError(f"--port {args.port}: must be in 1..65535")
+    if args.local_port is not None and not 0 < args.local_port < 65536:
+        raise InputError(f"--local-port {args.local_port}: must be in 1..65535")
+    if args.frames is not None and args.frames < 1:
+        raise InputError(f"--frames {args.frames}: must be >= 1")
+    camera = re.fullmatch(r"\d+", args.source) is not None
+    if not camera:
+        require_file(args.source, "video")
+    osc_addr = parse_host_port(args.osc, "--osc") if args.osc else None
+    model, chain = load_chain(args.model, args.keys, args.poses, args.rig, args.neutral, args.solver, args.ridge)
+    sender = LiveLinkSender(args.host, args.port, args.local_port, args.subject)
+    osc = None
+    try:
+        if osc_addr is not None:
+            osc = OscSender(*osc_addr, prefix=args.osc_prefix)
+        source = FrameSource(args.source, pace=not args.no_pace, max_frames=args.frames)
+        print(f"keyshape live: {source.name} ({source.info.width}x{source.info.height} at {source.info.fps:g} fps) "
+              f"-> Live Link Face {sender.target} subject {args.subject!r}"
+              f"{f', OSC {args.osc}' if args.osc else ''}; {len(chain.rig_names)} rig curves; Ctrl-C stops",
+              file=sys.stderr)
+        stats = stream(source, model, chain, sender, osc, smooth=args.smooth)
+    finally:
+        sender.close()
+        if osc is not None:
+            osc.close()
+    if stats.frames == 0:
+        raise InputError(f"no frame came from {args.source}")
+    return 0

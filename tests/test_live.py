@@ -1,0 +1,247 @@
+"""``keyshape live`` (issue 25): a synthetic video played as the camera, the Live Link Face packets received on
+127.0.0.1 with the decoder, every frame's curves against what ``retarget --livelink`` writes offline; the face
+lost and found; OSC; Ctrl-C; bad input (one-line errors, exit 2); the packet layout."""
+from __future__ import annotations
+
+import csv
+import importlib.util
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from keyshape.base.errors import InputError
+from keyshape.base.formats.livelink import (CSV_NAMES, N_VALUES, PACKET_NAMES, csv_to_packet, decode_packet,
+                                            encode_packet)
+from keyshape.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+N_FRAMES = 60
+
+
+def _toy_rig_module():
+    spec = importlib.util.spec_from_file_location("trp", Path(__file__).parent / "test_rig_poses.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory):
+    """A synthetic 640x480 take: model, key set, toy rig with its pose library, and the offline chain's files
+    (tracks, weights, ``retarget --livelink`` CSV)."""
+    from keyshape.data_synth.video import synthesize
+    d = tmp_path_factory.mktemp("live")
+    out = synthesize(d / "synth", frames=N_FRAMES, seed=3, labels=12)
+    shutil.copy(out["video"], d / "take.mp4")
+    rig, lm = _toy_rig_module().write_toy_rig(d / "rig")
+    steps = [["train", str(d / "take.mp4"), "--labels", str(out["labels"]), "-o", str(d / "model.npz")],
+             ["track", str(d / "take.mp4"), "--model", str(d / "model.npz"), "-o", str(d / "t.csv"), "--quiet"],
+             ["select", str(d / "t.csv"), "-k", "4", "-o", str(d / "k.json")],
+             ["pose", str(d / "k.json"), "--rig", str(rig), "--landmarks", str(lm), "-o", str(d / "poses.json")],
+             ["decompose", str(d / "t.csv"), "--keys", str(d / "k.json"), "--solver", "nnls", "-o", str(d / "w.csv")],
+             ["retarget", str(d / "w.csv"), "--poses", str(d / "poses.json"), "--rig", str(rig), "--tracks",
+              str(d / "t.csv"), "--landmarks", str(lm), "--livelink", "-o", str(d / "ll.csv")]]
+    for s in steps:
+        assert main(s) == 0, s
+    return d
+
+
+def live_args(d: Path, source: str | None = None, *extra: str) -> list[str]:
+    return ["live", source or str(d / "take.mp4"), "--model", str(d / "model.npz"), "--keys", str(d / "k.json"),
+            "--poses", str(d / "poses.json"), "--rig", str(d / "rig"), *extra]
+
+
+class Receiver:
+    """A UDP socket on 127.0.0.1 collecting datagrams in a thread until :meth:`join`."""
+
+    def __init__(self):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.port = self.sock.getsockname()[1]
+        self.data: list[bytes] = []
+        self.first = threading.Event()
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        while True:
+            try:
+                self.data.append(self.sock.recv(65536))
+                self.first.set()
+            except socket.timeout:
+                if self.stop.is_set():              # nothing more within 0.1 s after join was asked
+                    return
+            except OSError:
+                return
+
+    def join(self):
+        time.sleep(0.2)
+        self.stop.set()
+        self.thread.join(30)
+        self.sock.close()
+        return self.data
+
+
+def read_livelink_csv(path) -> tuple[list[str], np.ndarray]:
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    return rows[0][2:], np.array([[float(x) for x in r[2:]] for r in rows[1:]])
+
+
+def test_every_packet_equals_the_offline_livelink_csv(take, capsys):
+    rx = Receiver()
+    assert main(live_args(take, None, "--port", str(rx.port), "--no-pace", "--subject", "actor1")) == 0
+    packets = [decode_packet(p) for p in rx.join()]
+    err = capsys.readouterr().err
+    assert f"{N_FRAMES} frames" in err and "lost 0" in err and "latency" in err
+    assert [p.frame for p in packets] == list(range(N_FRAMES))                  # every frame, in order
+    assert {(p.subject, p.rate, p.version) for p in packets} == {("actor1", (30, 1), 6)}
+    header, offline = read_livelink_csv(take / "ll.csv")
+    assert header == CSV_NAMES
+    live = np.array([[p.named()[n] for n in header] for p in packets])
+    # the files carry tracks to 4 decimals (px), weights to 6 and curves to 6 significant digits
+    np.testing.assert_allclose(live[:, :52], offline[:, :52], rtol=0, atol=1e-4)
+    assert np.abs(live[:, :52]).max() > 0.05                                     # the curves do move
+    # the head roll: live stabilises on the key set's rigid reference, retarget on the take's own one
+    np.testing.assert_allclose(live[:, 54], offline[:, 54], atol=2e-3)
+
+    # the same chain offline in memory (no file rounding): equal to float32 precision
+    from keyshape import api
+    from keyshape.base.formats.poses import read_poses
+    from keyshape.retarget.export import livelink_values
+    from keyshape.retarget.poses import curves_from_library
+    from keyshape.retarget.rig import load_rig
+    tracks = api.track(take / "take.mp4", api.AppearanceModel.load(take / "model.npz"))
+    w = api.decompose(tracks, api.Keys.load(take / "k.json"), "nnls")
+    rig = load_rig(take / "rig", with_mesh=False)
+    curves = curves_from_library(w.values, w.names, read_poses(take / "poses.json", rig.names), rig.names)
+    mem = livelink_values(rig.names, curves).astype(np.float32)
+    np.testing.assert_allclose(live[:, :52], mem[:, :52], rtol=1e-6, atol=1e-7)
+
+
+def test_face_lost_sends_the_neutral_and_found_resumes(take, tmp_path, capsys):
+    from keyshape.base.formats.video import VideoReader, video_writer
+    frames = [f for _, f in VideoReader(take / "take.mp4")]
+    with video_writer(tmp_path / "gap.mp4", 30.0, (640, 480)) as wr:
+        for i, f in enumerate(frames):
+            wr.write(np.full_like(f, 90) if 20 <= i < 30 else f)                  # no face in frames 20-29
+    rx = Receiver()
+    assert main(live_args(take, str(tmp_path / "gap.mp4"), "--port", str(rx.port), "--no-pace")) == 0
+    packets = [decode_packet(p) for p in rx.join()]
+    err = capsys.readouterr().err
+    assert len(packets) == N_FRAMES
+    neutral = [p.frame for p in packets if not np.any(p.values)]
+    assert 20 in neutral and set(neutral) <= set(range(20, 32)), neutral
+    assert "face lost at frame 20" in err and "face found again at frame" in err
+    assert np.any(packets[-1].values)
+
+
+def test_osc_one_message_per_rig_curve(take, capsys):
+    pytest.importorskip("pythonosc", reason="python-osc not installed (pip install 'keyshape[osc]')")
+    from pythonosc.osc_message import OscMessage
+    from keyshape.retarget.rig import load_rig
+    names = load_rig(take / "rig", with_mesh=False).names
+    ll, osc = Receiver(), Receiver()
+    assert main(live_args(take, None, "--port", str(ll.port), "--osc", f"127.0.0.1:{osc.port}", "--no-pace",
+                          "--frames", "5")) == 0
+    packets = ll.join()
+    msgs = [OscMessage(m) for m in osc.join()]
+    assert len(packets) == 5 and len(msgs) == 5 * len(names)
+    assert [m.address for m in msgs[:len(names)]] == [f"/keyshape/{n}" for n in names]
+    assert all(len(m.params) == 1 and 0.0 <= m.params[0] <= 1.0 for m in msgs)
+
+
+def test_ctrl_c_stops_cleanly_with_exit_130(take):
+    rx = Receiver()
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", *live_args(take, None, "--port", str(rx.port))],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        assert rx.first.wait(60), "no packet arrived"
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "frames" in err and "interrupted" in err and "Traceback" not in err
+    assert 0 < len(rx.join()) < N_FRAMES                                         # paced: stopped part way
+
+
+@pytest.mark.parametrize("case", ["host", "broadcast", "port_in_use", "camera", "scheme", "osc", "osc_missing"])
+def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, case):
+    extra: list[str] = ["--no-pace", "--frames", "2"]
+    source = None
+    blocker = None
+    if case == "host":
+        extra += ["--host", "no-such-host.invalid"]
+        want = "cannot resolve host"
+    elif case == "broadcast":
+        extra += ["--host", "255.255.255.255"]
+        want = "unreachable"
+    elif case == "port_in_use":
+        blocker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        blocker.bind(("0.0.0.0", 0))
+        extra += ["--local-port", str(blocker.getsockname()[1])]
+        want = "in use"
+    elif case == "camera":
+        source = "57"
+        want = "camera 57: cannot open"
+    elif case == "scheme":
+        from keyshape.base.formats.model import read_model, write_model
+        from keyshape.base.schemes import load_scheme
+        mf = read_model(take / "model.npz")
+        mf.scheme = load_scheme("ibug68")
+        write_model(tmp_path / "m68.npz", mf)
+        extra += ["--model", str(tmp_path / "m68.npz")]
+        want = "scheme 'ibug68'"
+    elif case == "osc":
+        extra += ["--osc", "127.0.0.1"]
+        want = "HOST:PORT"
+    else:
+        monkeypatch.setitem(sys.modules, "pythonosc", None)
+        monkeypatch.setitem(sys.modules, "pythonosc.udp_client", None)
+        extra += ["--osc", "127.0.0.1:9000"]
+        want = "keyshape[osc]"
+    try:
+        assert main(live_args(take, source) + extra) == 2          # a later --model wins in argparse
+    finally:
+        if blocker is not None:
+            blocker.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and want in err[0], err
+
+
+def test_packet_layout_and_decoder():
+    vals = np.linspace(-1, 1, N_VALUES).astype(np.float32)
+    pkt = encode_packet(vals, 1234, 29.97, subject="Anna", device_id="dev-1", subframe=0.25)
+    # byte by byte, as Unreal's Live Link Face source reads it (big-endian)
+    assert pkt[0] == 6
+    assert struct.unpack(">i", pkt[1:5]) == (5,) and pkt[5:10] == b"dev-1"
+    assert struct.unpack(">i", pkt[10:14]) == (4,) and pkt[14:18] == b"Anna"
+    assert struct.unpack(">ifiiB", pkt[18:35]) == (1234, 0.25, 30000, 1001, 61)
+    assert len(pkt) == 35 + 4 * 61
+    np.testing.assert_array_equal(np.frombuffer(pkt[35:], ">f4"), vals)
+    p = decode_packet(pkt)
+    assert (p.subject, p.device_id, p.frame, p.subframe, p.rate) == ("Anna", "dev-1", 1234, 0.25, (30000, 1001))
+    np.testing.assert_array_equal(p.values, vals)
+    # the CSV's order differs from the packet's (Unreal's EARFaceBlendShape) for the jaw and mouth sides
+    csv_vals = np.arange(N_VALUES, dtype=float)
+    named = dict(zip(PACKET_NAMES, csv_to_packet(csv_vals)))
+    assert named["JawRight"] == CSV_NAMES.index("JawRight") and named["MouthLeft"] == CSV_NAMES.index("MouthLeft")
+    assert PACKET_NAMES.index("JawLeft") == 15 and PACKET_NAMES.index("HeadRoll") == 54
+    for bad in (pkt[:-1], b"\x05" + pkt[1:], pkt + b"\0"):
+        with pytest.raises(InputError):
+            decode_packet(bad)
