@@ -214,9 +214,14 @@ class Head3D:
             e = (1 if "left" in low else 2) if "sclera" in low else 0
             eye.append(np.full(len(t), e))
         self.parts = _Parts(np.concatenate(tris).astype(np.int64), np.concatenate(eye))
-        self.tri_flat = self.parts.tri.ravel()
+        from scipy.sparse import csr_matrix
+        nt = len(self.parts.tri)
+        self.vertex_of_triangle = csr_matrix((np.ones(3 * nt), (self.parts.tri.ravel(), np.repeat(np.arange(nt), 3))),
+                                             shape=(len(self.neutral), nt))
         self.lash_vertices = np.unique(np.concatenate(lash).ravel()) if lash else np.zeros(0, np.int64)
         self.albedo = self._albedo(np.asarray(skin, dtype=np.float64))
+        self.albedo32 = self.albedo.astype(np.float32)
+        self.neutral32 = self.neutral.astype(np.float32)
 
     # ------------------------------------------------------------------ colours
     def _albedo(self, skin: np.ndarray) -> np.ndarray:
@@ -266,7 +271,9 @@ class Head3D:
 
     def pose_vertices(self, curves: np.ndarray, eye_yaw: np.ndarray, eye_pitch: np.ndarray) -> np.ndarray:
         """Head-frame vertices (n_vertices, 3) for one frame: curves (len(DRIVEN),), eye angles (2,) (left, right)."""
-        v = self.neutral + np.tensordot(np.asarray(curves, dtype=np.float64), self.deltas, axes=1)
+        c = np.asarray(curves, dtype=np.float64)
+        on = np.flatnonzero(c)
+        v = self.neutral + (c[on] @ self.deltas[on].reshape(len(on), self.neutral.size)).reshape(self.neutral.shape)
         for e in range(2):
             R = eye_rotation(eye_yaw[e], eye_pitch[e])
             idx = self.eye_vertices[e]
@@ -390,8 +397,8 @@ def make_performance3d(n_frames: int, fps: float, rng: np.random.Generator) -> P
     phase = r_head.uniform(0, 2 * np.pi)
     period = r_head.uniform(6.0, 9.0)
     yaw = 1.05 * ry * np.sin(2 * np.pi * t / period + phase) + 0.25 * ry * smooth_noise(n_frames, 0.8 * fps, r_head)
-    pitch = 0.6 * rp * smooth_noise(n_frames, 0.9 * fps, r_head)
-    roll = 0.6 * rr * smooth_noise(n_frames, 1.1 * fps, r_head)
+    pitch = 0.45 * rp * smooth_noise(n_frames, 0.9 * fps, r_head)
+    roll = 0.45 * rr * smooth_noise(n_frames, 1.1 * fps, r_head)
     head = np.stack([_soft_limit(yaw, ry), _soft_limit(pitch, rp), _soft_limit(roll, rr)], 1)
     trans = np.stack([2.5 * smooth_noise(n_frames, 1.5 * fps, r_head), 1.5 * smooth_noise(n_frames, 1.5 * fps, r_head),
                       4.0 * smooth_noise(n_frames, 2.5 * fps, r_head)], 1)
@@ -512,40 +519,49 @@ class Synthetic3D:
         W, H = w * ss, h * ss
         tri = h3.parts.tri
         frag = rasterize(ss * (xy + 0.5) - 0.5 if ss > 1 else xy, depth, tri, W, H)
-        # Gouraud Lambert: vertex normals of the posed mesh (area weighted)
+        # Gouraud Lambert: area-weighted vertex normals of the posed mesh (one sparse product)
         a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
-        fn = np.cross(b - a, c - a)
-        vn = np.stack([np.bincount(h3.tri_flat, np.repeat(fn[:, d], 3), minlength=len(v)) for d in range(3)], 1)
+        vn = h3.vertex_of_triangle @ np.cross(b - a, c - a)
         vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
-        lam = self.ambient + (1 - self.ambient) * np.clip(vn @ self.light, 0, 1)
-        rgb = frag.interpolate(tri, h3.albedo * lam[:, None])
+        lam = (self.ambient + (1 - self.ambient) * np.clip(vn @ self.light, 0, 1)).astype(np.float32)
+        corners = tri[frag.triangle]                            # (n, 3) vertices of each fragment's triangle
+        rgb = (h3.albedo32[corners] * (frag.bary * lam[corners])[:, :, None]).sum(1)
         e = h3.parts.eye[frag.triangle]
         for side in (1, 2):                                     # procedural eyes from the rest pose
             m = np.flatnonzero(e == side)
             if not len(m):
                 continue
-            rest = h3.neutral[tri[frag.triangle[m]]]            # (k, 3, 3) rest positions of the triangle
-            p = np.einsum("kj,kjd->kd", frag.bary[m], rest) - h3.eye_centre[side - 1]
+            p = (frag.bary[m, :, None] * h3.neutral32[corners[m]]).sum(1) - h3.eye_centre[side - 1]
             cosang = p @ h3.eye_axis[side - 1] / np.maximum(np.linalg.norm(p, axis=1), 1e-9)
             ang = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
             iris = np.array([0.28, 0.2, 0.13]) * (0.7 + 0.3 * np.clip((ang - PUPIL_DEG) / 6, 0, 1))[:, None]
             col = np.where((ang < PUPIL_DEG)[:, None], [0.03, 0.03, 0.035],
                            np.where((ang < IRIS_DEG)[:, None], iris, [0.93, 0.92, 0.9]))
-            rgb[m] = col * _interp_rows(frag.bary[m], lam[tri[frag.triangle[m]]])[:, None]
+            rgb[m] = col * (frag.bary[m] * lam[corners[m]]).sum(1)[:, None]
         img = self._background(W, H).copy()
-        img.reshape(-1, 3)[frag.pixel] = (rgb[:, ::-1] * 255.0).astype(np.float32)
+        img.reshape(-1, 3)[frag.pixel] = np.clip(rgb[:, ::-1] * 255.0 + 0.5, 0, 255).astype(np.uint8)
         if ss > 1:
             img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        img = cv2.GaussianBlur(img, (0, 0), self.blur)
+        if self.blur > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.blur)
+        # sensor noise: one of a few fixed noise images, chosen and shifted per frame from (seed, t)
         rng = np.random.default_rng([self.seed, 4, t])
-        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(1.5)
-        return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        bank = self._noise_bank(h, w)
+        k, dy, dx = int(rng.integers(len(bank))), int(rng.integers(h)), int(rng.integers(w))
+        noise = np.roll(bank[k], (dy, dx), axis=(0, 1))
+        return cv2.add(img.astype(np.int16), noise, dtype=cv2.CV_8U)
+
+    def _noise_bank(self, h: int, w: int) -> np.ndarray:
+        if getattr(self, "_noise", None) is None:
+            rng = np.random.default_rng([self.seed, 5])
+            self._noise = np.round(rng.normal(0.0, 1.5, (4, h, w, 3))).astype(np.int16)
+        return self._noise
 
     def _background(self, W: int, H: int) -> np.ndarray:
         if getattr(self, "_bg", None) is None or self._bg.shape[:2] != (H, W):
-            gy = np.linspace(1.05, 0.9, H, dtype=np.float32)[:, None, None]
-            self._bg = np.ascontiguousarray(np.broadcast_to(gy * (self.background[::-1] * 255.0).astype(np.float32),
-                                                            (H, W, 3)))
+            gy = np.linspace(1.05, 0.9, H)[:, None, None]
+            self._bg = np.ascontiguousarray(np.broadcast_to(
+                np.clip(gy * self.background[::-1] * 255.0 + 0.5, 0, 255).astype(np.uint8), (H, W, 3)))
         return self._bg
 
     # ------------------------------------------------------------------ truth
@@ -597,11 +613,17 @@ class Synthetic3D:
         }
 
     def label_frames(self, k: int) -> np.ndarray:
+        """``k`` training frames: the most neutral, the peaks of jaw, both blinks and both smiles and the
+        inner brows, then farthest-point sampling over curves, gaze and head angles (a head angle at its
+        range counts as much as a curve at 1), sorted."""
         p = self.performance
-        main = [DRIVEN.index(n) for n in ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R",
-                                          "browInnerUp_L", "browOuterUp_R", "browDown_L", "mouthFunnel", "mouthPucker")]
-        feats = np.column_stack([p.curves[:, main], p.eye_deg[:, 0] / 40.0, p.head_deg / [60.0, 30.0, 20.0]])
-        return select_label_frames(feats, k, n_weights=len(main))
+        peaks = [DRIVEN.index(n) for n in ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R",
+                                           "browInnerUp_L")]
+        rest = [DRIVEN.index(n) for n in ("browOuterUp_R", "browDown_L", "mouthFunnel", "mouthPucker", "mouthLeft",
+                                          "mouthRight")]
+        feats = np.column_stack([p.curves[:, peaks], p.curves[:, rest], p.eye_deg[:, 0] / 25.0,
+                                 p.head_deg / np.array(HEAD_RANGE_DEG)])
+        return select_label_frames(feats, k, n_weights=len(peaks))
 
 
 def synthesize(out_dir, rig, frames: int = 300, seed: int = 0, size=(640, 480), fps: float = 30.0,
