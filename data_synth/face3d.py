@@ -56,6 +56,8 @@ DRIVEN = ("jawOpen", "mouthFunnel", "mouthPucker", "mouthSmile_L", "mouthSmile_R
           "eyeLookOut_L", "eyeLookOut_R")
 #: Eye angle (degrees) at which an ``eyeLook*`` curve reaches 1 (horizontal, vertical).
 LOOK_FULL_DEG = (30.0, 25.0)
+#: Speech's jaw opening on ICT-FaceKit's ``jawOpen`` (its 1 drops the chin about 4 cm).
+JAW_SCALE = 0.7
 #: Head motion ranges (degrees): yaw, pitch, roll.
 HEAD_RANGE_DEG = (30.0, 15.0, 10.0)
 #: Eye angular radii (degrees from the eye's axis) of the pupil and the iris on the eyeball.
@@ -234,7 +236,9 @@ class Head3D:
         for name, idx, rgba in self._parts:
             low = name.lower()
             if any(k in low for k in ("teeth", "gum", "tongue", "lash")):
-                alb[np.unique(triangles[idx])] = rgba[:3]
+                # inside the mouth the light is mostly blocked: gums and tongue dark, teeth dimmed
+                dim = 0.8 if "teeth" in low else (0.45 if ("gum" in low or "tongue" in low) else 1.0)
+                alb[np.unique(triangles[idx])] = np.asarray(rgba[:3]) * dim
         lash = (0.05, 0.035, 0.03)
         alb[self.lash_vertices] = lash
         alb[ICT_SOCKETS:ICT_SOCKETS_END] = (0.28, 0.1, 0.09)            # mouth and eye sockets
@@ -247,7 +251,7 @@ class Head3D:
         inside = MPath(outer).contains_points(xy)
         dist = _polyline_distance(xy, np.vstack([outer, outer[:1]]))
         t = np.where(inside, 0.5 + 0.5 * np.clip(dist / 0.06, 0, 1), 0.5 - 0.5 * np.clip(dist / 0.06, 0, 1))
-        lip = np.array([0.62, 0.34, 0.33])
+        lip = np.array([0.58, 0.27, 0.27])
         alb[face] = alb[face] * (1 - t[:, None]) + lip * t[:, None]
         # brows: a band about each brow's centre line (points 0-4, 5-9), wider at the inner end
         brow = np.array([0.2, 0.13, 0.09])
@@ -355,8 +359,9 @@ def make_performance3d(n_frames: int, fps: float, rng: np.random.Generator) -> P
     w = perf.weights
     cur = np.zeros((n_frames, len(DRIVEN)))
     t = np.arange(n_frames) / fps
-    for name in ("jawOpen", "mouthFunnel", "mouthPucker", "mouthSmile_L", "mouthSmile_R"):
+    for name in ("mouthFunnel", "mouthPucker", "mouthSmile_L", "mouthSmile_R"):
         cur[:, D[name]] = w[:, C[name]]
+    cur[:, D["jawOpen"]] = JAW_SCALE * w[:, C["jawOpen"]]     # ICT's jawOpen 1 is a 4 cm drop: speech uses less
     for side in ("L", "R"):
         cur[:, D[f"eyeBlink_{side}"]] = np.clip(w[:, C[f"eyeBlink_{side}"]] / 0.85, 0, 1)   # blinks close fully
         k = 1.0 + 0.15 * (1 if side == "L" else -1) * np.tanh(smooth_noise(n_frames, 3 * fps, r_extra))
