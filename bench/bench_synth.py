@@ -4,7 +4,10 @@ Prints wall-clock and CPU milliseconds per frame and the ratio to a baseline
 measured in the same run (encoding the same number of ready-made frames with
 ``keyshape.base.formats.video.video_writer``), so numbers from loaded machines stay comparable.
 
-    PYTHONPATH=. python bench/bench_synth.py [--frames 300] [--size 640x480]
+    PYTHONPATH=. python bench/bench_synth.py [--frames 300] [--size 640x480] [--face3d [RIG]]
+
+``--face3d`` measures ``keyshape synth face3d`` (the shaded ICT-FaceKit head; RIG defaults to
+``../shared/data/ict-facekit``; the one-off load of the rig is outside the per-frame figures).
 """
 from __future__ import annotations
 
@@ -20,6 +23,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--size", default="640x480")
+    ap.add_argument("--face3d", nargs="?", const=str(Path(__file__).resolve().parents[2] / "shared" / "data"
+                                                     / "ict-facekit"), default=None, metavar="RIG")
     args = ap.parse_args()
     from keyshape.data_synth.video import SyntheticVideo, parse_size, synthesize
     from keyshape.base.formats.video import video_writer
@@ -34,7 +39,13 @@ def main() -> None:
                 wr.write(frame)
         base_wall, base_cpu = time.perf_counter() - w0, time.process_time() - c0
 
-        sv = SyntheticVideo(n, 0, size)
+        if args.face3d:
+            from keyshape.data_synth.face3d import Synthetic3D
+            from keyshape.data_synth.face3d import synthesize as synth3d
+            sv = Synthetic3D(args.face3d, n, 0, size)
+            synthesize = lambda out, **kw: synth3d(out, args.face3d, **kw)  # noqa: E731
+        else:
+            sv = SyntheticVideo(n, 0, size)
         w0, c0 = time.perf_counter(), time.process_time()
         for t in range(n):
             sv.frame(t)

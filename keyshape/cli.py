@@ -23,6 +23,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.demo", None),
     ("keyshape.data_synth.video_cli", "synth"),
     ("keyshape.data_synth.mocap_cli", "synth"),
+    ("keyshape.data_synth.face3d_cli", "synth"),
     ("keyshape.tracker.labelling.cli", None),
     ("keyshape.tracker.cli", None),
     ("keyshape.decompose.cli", None),

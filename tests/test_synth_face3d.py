@@ -1,0 +1,228 @@
+"""``keyshape synth face3d``: the 3D head's truth against itself (landmarks, head-pose signs, gaze on the
+rendered pupils), the written files, determinism, bad options; slow: train + track on it."""
+from __future__ import annotations
+
+import json
+import time
+
+import cv2
+import numpy as np
+import pytest
+from matplotlib.path import Path as MPath
+
+from keyshape.base.errors import InputError
+from keyshape.base.formats.labels import read_labels
+from keyshape.base.formats.tracks import read_tracks
+from keyshape.base.formats.weights import read_weights
+from keyshape.base.schemes import load_scheme
+from keyshape.cli import main
+
+pytestmark = pytest.mark.shared_data
+SCHEME = load_scheme("contours48")
+
+
+@pytest.fixture(scope="module")
+def facekit(shared_data):
+    return shared_data / "ict-facekit"
+
+
+@pytest.fixture(scope="module")
+def sv(facekit):
+    from keyshape.data_synth.face3d import Synthetic3D
+    return Synthetic3D(facekit, frames=90, seed=2, size=(640, 480))
+
+
+def _set_frame(sv, t, head=(0.0, 0.0, 0.0), eye=(0.0, 0.0), curves=None):
+    """Overwrite frame ``t``'s truth (head angles, both eyes' yaw/pitch, curves) and refresh the landmarks."""
+    from keyshape.data_synth.face3d import head_rotation
+    p = sv.performance
+    p.head_deg[t] = head
+    p.translation[t] = 0.0
+    p.eye_deg[t] = np.array([eye, eye], float)
+    p.curves[t] = 0.0 if curves is None else curves
+    sv.rotation = head_rotation(*p.head_deg.T)
+    sv.points = sv.project_landmarks()
+
+
+def _nose_tip(sv, t):
+    h = sv.head
+    i = int(np.argmax(h.neutral[:9409, 2]))             # the face skin's most forward vertex
+    v = h.pose_vertices(sv.performance.curves[t], *sv._eyes(t))
+    return sv.project(sv.world(v[[i]], t))[0][0]
+
+
+def test_landmarks_are_the_projected_posed_mesh(sv):
+    """truth = perspective projection of the posed mesh's contours48 vertex mixes; pupils on the turned eyeball."""
+    for t in (0, 17, 45, 89):
+        v = sv.head.pose_vertices(sv.performance.curves[t], *sv._eyes(t))
+        world = sv.world(sv.head.landmark_weights @ v, t)
+        xy, _ = sv.project(world)
+        rows = [i for i in range(48) if i not in (26, 27)]
+        np.testing.assert_allclose(sv.points[t, rows], xy[rows], atol=1e-6)
+        # each pupil is the turned eyeball's front: a posed sclera vertex lies within 0.1 cm of it
+        pupils3d = sv.landmarks3d()[t]
+        for e, row in ((0, 27), (1, 26)):
+            shell = v[sv.head.eye_vertices[e]]
+            assert np.linalg.norm(shell - pupils3d[row], axis=1).min() < 0.1
+            np.testing.assert_allclose(sv.points[t, row], sv.project(sv.world(pupils3d[[row]], t))[0][0], atol=1e-6)
+
+
+def test_head_angle_signs(sv):
+    """yaw > 0: the nose moves image-right (the subject turns to their left); pitch > 0: the nose moves down
+    against the eyes; roll > 0: counter-clockwise on the screen (the image-right eye rises)."""
+    t = 5
+    nose = {}
+    for yaw in (-20.0, 0.0, 20.0):
+        _set_frame(sv, t, head=(yaw, 0.0, 0.0))
+        nose[yaw] = _nose_tip(sv, t)
+        eyes_x = sv.points[t, [26, 27], 0].mean()
+        if yaw:
+            assert np.sign(nose[yaw][0] - eyes_x) == np.sign(yaw)
+    assert nose[-20.0][0] < nose[0.0][0] < nose[20.0][0]
+    _set_frame(sv, t, head=(0.0, 0.0, 0.0))
+    rest = _nose_tip(sv, t)[1] - sv.points[t, [26, 27], 1].mean()
+    _set_frame(sv, t, head=(0.0, 12.0, 0.0))
+    down = _nose_tip(sv, t)[1] - sv.points[t, [26, 27], 1].mean()
+    assert down > rest + 2.0
+    _set_frame(sv, t, head=(0.0, 0.0, 8.0))
+    left_eye, right_eye = sv.points[t, 10], sv.points[t, 21]        # outer corners, image-left and image-right
+    ang = np.degrees(np.arctan2(-(right_eye[1] - left_eye[1]), right_eye[0] - left_eye[0]))
+    _set_frame(sv, t, head=(0.0, 0.0, 0.0))
+    left_eye, right_eye = sv.points[t, 10], sv.points[t, 21]
+    ang0 = np.degrees(np.arctan2(-(right_eye[1] - left_eye[1]), right_eye[0] - left_eye[0]))
+    assert 6.0 < ang - ang0 < 10.0
+
+
+def _pupil_centroid(img, eye_pts):
+    """Centroid of the dark (pupil) pixels inside the eye contour."""
+    g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(float)
+    lo, hi = np.floor(eye_pts.min(0)).astype(int), np.ceil(eye_pts.max(0)).astype(int)
+    ys, xs = np.mgrid[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1]
+    inside = MPath(eye_pts).contains_points(np.c_[xs.ravel(), ys.ravel()]).reshape(xs.shape)
+    patch = g[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1]
+    w = np.clip(15.0 - patch, 0, None) * inside                 # the pupil, not the iris or the lash line
+    assert w.sum() > 0
+    return np.array([(w * xs).sum(), (w * ys).sum()]) / w.sum()
+
+
+def test_gaze_moves_the_rendered_pupils(sv):
+    """eye yaw > 0 moves both dark pupils image-right, pitch > 0 down; each lies on its truth point
+    (measured: the dark blob's centroid 0.1-0.6 px across and 1.5-2.2 px below it)."""
+    t = 9
+    cen = {}
+    for eye in ((-20.0, 0.0), (0.0, 0.0), (20.0, 0.0), (0.0, -12.0), (0.0, 12.0)):
+        _set_frame(sv, t, eye=eye)
+        img = sv.frame(t)
+        c = np.array([_pupil_centroid(img, sv.points[t, a:a + 8]) for a in (10, 18)])   # image-left eye first
+        # on the truth point: within 1.5 px across; the upper lid hides the pupil's top (and the lid
+        # points' chords cut it off the contour), so the visible dark blob sits up to 2-3 px lower
+        np.testing.assert_allclose(c[:, 0], sv.points[t, [26, 27], 0], atol=1.5)
+        assert (np.abs(c[:, 1] - sv.points[t, [26, 27], 1] - 1.0) < 2.5).all(), (c, sv.points[t, [26, 27]])
+        cen[eye] = c
+    assert (cen[(20.0, 0.0)][:, 0] - cen[(0.0, 0.0)][:, 0] > 4).all()
+    assert (cen[(-20.0, 0.0)][:, 0] - cen[(0.0, 0.0)][:, 0] < -4).all()
+    assert (cen[(0.0, 12.0)][:, 1] - cen[(0.0, 0.0)][:, 1] > 2).all()
+    assert (cen[(0.0, -12.0)][:, 1] - cen[(0.0, 0.0)][:, 1] < -2).all()
+
+
+def test_performance_ranges(sv):
+    """Blinks close fully, the jaw opens, both smiles, head within the documented ranges."""
+    from keyshape.data_synth.face3d import DRIVEN, Synthetic3D
+    s = Synthetic3D(sv.head_folder, frames=900, seed=4, size=(320, 240))
+    c = s.performance.curves
+    for n in ("eyeBlink_L", "eyeBlink_R"):
+        assert c[:, DRIVEN.index(n)].max() >= 0.99, n
+    assert c[:, DRIVEN.index("jawOpen")].max() >= 0.6
+    for n in ("mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browDown_R"):
+        assert c[:, DRIVEN.index(n)].max() >= 0.4, n
+    h = s.performance.head_deg
+    assert np.abs(h).max(0).tolist() <= [30.0, 15.0, 10.0]
+    assert h[:, 0].max() > 20 and h[:, 0].min() < -20
+
+
+def test_cli_writes_the_take(facekit, tmp_path):
+    """60 frames at 320x240 in a few seconds: every file, the curves in the rig's layout, labels = truth."""
+    from keyshape.retarget.rig import load_rig
+    out = tmp_path / "take"
+    t0 = time.perf_counter()
+    assert main(["synth", "face3d", str(out), "--rig", str(facekit), "--frames", "60", "--size", "320x240",
+                 "--labels", "6", "--seed", "1"]) == 0
+    dt = time.perf_counter() - t0
+    assert dt < 60, dt
+    for name in ("video.mp4", "truth.csv", "curves.csv", "head.csv", "truth.json"):
+        assert (out / name).is_file(), name
+    tr = read_tracks(out / "truth.csv")
+    assert tr.points.shape == (60, 48, 2) and tr.success.all()
+    assert (tr.points[..., 0] > 0).all() and (tr.points[..., 0] < 320).all()
+    wt = read_weights(out / "curves.csv")
+    rig = load_rig(facekit, with_mesh=False)
+    assert list(wt.names) == list(rig.names) and wt.weights.shape == (60, rig.n_shapes)
+    assert (wt.weights >= 0).all() and (wt.weights <= 1).all()
+    head = np.genfromtxt(out / "head.csv", delimiter=",", names=True)
+    assert head.dtype.names[:5] == ("frame", "time", "head_yaw_deg", "head_pitch_deg", "head_roll_deg")
+    assert len(head) == 60
+    frames, shapes = read_labels(out / "labels")
+    assert len(frames) == 6
+    np.testing.assert_allclose(shapes, tr.points[frames], atol=1e-3)
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["rig_names"] == list(rig.names) and "yaw > 0" in truth["convention"]
+    cap = cv2.VideoCapture(str(out / "video.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 60 and int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 320
+
+
+def test_labels_include_blink_and_open_mouth(sv):
+    from keyshape.data_synth.face3d import DRIVEN, Synthetic3D
+    s = Synthetic3D(sv.head_folder, frames=300, seed=0, size=(320, 240))
+    idx = s.label_frames(12)
+    c = s.performance.curves
+    assert len(set(idx.tolist())) == 12
+    assert c[idx, DRIVEN.index("jawOpen")].max() >= 0.9 * c[:, DRIVEN.index("jawOpen")].max()
+    for n in ("eyeBlink_L", "eyeBlink_R"):
+        assert c[idx, DRIVEN.index(n)].max() >= 0.9
+
+
+def test_same_seed_same_take(sv):
+    from keyshape.data_synth.face3d import Synthetic3D
+    a = Synthetic3D(sv.head_folder, frames=20, seed=3, size=(320, 240))
+    b = Synthetic3D(sv.head_folder, frames=20, seed=3, size=(320, 240))
+    c = Synthetic3D(sv.head_folder, frames=20, seed=4, size=(320, 240))
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.frame(7), b.frame(7))
+    assert np.abs(a.points - c.points).max() > 1.0
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--frames", "0"], "frames"),
+    (["--size", "10x10"], "size"),
+    (["--labels", "99", "--frames", "10"], "labels"),
+    (["--fps", "-1"], "fps"),
+    (["--rig", "/nonexistent/ict"], "rig"),
+])
+def test_bad_options_fail_in_one_line(facekit, tmp_path, capsys, argv, message):
+    out = tmp_path / "o"
+    args = ["synth", "face3d", str(out)] + (["--rig", str(facekit)] if "--rig" not in argv else []) + argv
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1, err
+    assert not out.exists()
+
+
+def test_not_an_ict_folder(tmp_path):
+    from keyshape.data_synth.face3d import check_facekit
+    with pytest.raises(InputError, match="ICT-FaceKit"):
+        check_facekit(tmp_path)
+
+
+@pytest.mark.slow
+def test_tracker_on_the_3d_take(facekit, tmp_path):
+    """The normal train + track chain on a 300-frame 3D take: mean NME < 0.02, nothing lost."""
+    from keyshape.data_synth.face3d import synthesize
+    from keyshape.tracker.commands import track_video, train_model
+    out = synthesize(tmp_path / "t", facekit, frames=300, seed=0, labels=12)
+    model, _ = train_model(out["video"], out["labels"], "contours48")
+    track_video(out["video"], model, tmp_path / "tracks.csv", show_progress=False)
+    tr, truth = read_tracks(tmp_path / "tracks.csv"), read_tracks(out["truth"])
+    iod = SCHEME.interocular_distance(truth.points)
+    nme = np.linalg.norm(tr.points - truth.points, axis=-1).mean(1) / iod
+    assert tr.success.all()
+    assert np.nanmean(nme) < 0.02, np.nanmean(nme)
