@@ -24,10 +24,41 @@ def register(subparsers) -> None:
                    help="height of the output in pixels (default: the video's height)")
     p.add_argument("--sheet", default=None, help="also write a contact sheet (actor | character), .jpg or .png")
     p.add_argument("--sheet-frames", type=int, default=12, help="frames in the contact sheet, spread over the range")
+    p.add_argument("--crop", choices=("face", "full"), default="face",
+                   help="actor panel: a steady square around the tracked face over the range, or the full frame")
+    p.add_argument("--contours", action=argparse.BooleanOptionalAction, default=None,
+                   help="draw the rig's own lid, brow and lip contours over it (default: when the rig's "
+                        "landmarks are known: shipped for ICT-FaceKit, or --landmarks)")
+    p.add_argument("--landmarks", default=None,
+                   help="rig landmark JSON for --contours (default: the shipped one for ICT-FaceKit rigs)")
+    p.add_argument("--compare", default=None, metavar="CURVES.csv",
+                   help="a second set of rig curves (another solver, another tool's) rendered in a third panel")
+    p.add_argument("--captions", default="actor,keyshape,compare", metavar="A,B[,C]",
+                   help="panel captions, comma separated ('' for none)")
     p.add_argument("--threads", type=int, default=None,
                    help="rendering threads (default: one per core, at most 4)")
     p.add_argument("-o", "--output", default=None, help="OUT.mp4 / .avi (optional with --sheet)")
     p.set_defaults(func=run)
+
+
+def _curves_on_rig(path, rig):
+    """(frames, (n_frames, n_shapes) curves in the rig's shape order, head rotations or None) of a curves CSV."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.preview import head_rotations
+
+    frames, names, c, _ = read_weights(path)
+    curves = np.zeros((len(frames), rig.n_shapes))
+    found = 0
+    for j, n in enumerate(rig.names):
+        if n in names:
+            curves[:, j] = c[:, names.index(n)]
+            found += 1
+    if not found:
+        raise InputError("no column names a rig shape", path)
+    return frames, curves, head_rotations(names, c)
 
 
 def run(args) -> int:
@@ -44,9 +75,8 @@ def run(args) -> int:
     from keyshape.base.formats.weights import read_weights
     from keyshape.base.progress import Progress
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.retarget.preview import RigRenderer, actor_panel, ordered_map, parse_frames
-    from keyshape.retarget.render import side_by_side
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.preview import RigRenderer, actor_panel, caption, face_crop, ordered_map, parse_frames
+    from keyshape.retarget.rig import default_landmarks, load_rig, rig_landmarks
 
     if not args.output and not args.sheet:
         raise InputError("give -o OUT.mp4 and/or --sheet SHEET.jpg")
@@ -54,18 +84,16 @@ def run(args) -> int:
         raise InputError("preview output must end in .mp4 or .avi", args.output)
     if args.sheet and Path(args.sheet).suffix.lower() not in (".jpg", ".jpeg", ".png"):
         raise InputError("--sheet must end in .jpg or .png", args.sheet)
+    if args.sheet_frames < 1:
+        raise InputError(f"--sheet-frames {args.sheet_frames}: at least 1")
+    if args.size is not None and not 16 <= args.size <= 4096:
+        raise InputError(f"--size {args.size}: a height from 16 to 4096 pixels")
     if bool(args.curves) == bool(args.weights or args.poses):
         raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    head = None
     if args.curves:
-        frames, names, c, _ = read_weights(args.curves)
-        missing = [n for n in rig.names if n not in names]
-        if missing and len(missing) == rig.n_shapes:
-            raise InputError("no column names a rig shape", args.curves)
-        curves = np.zeros((len(frames), rig.n_shapes))
-        for j, n in enumerate(rig.names):
-            if n in names:
-                curves[:, j] = c[:, names.index(n)]
+        frames, curves, head = _curves_on_rig(args.curves, rig)
     else:
         if not (args.weights and args.poses):
             raise InputError("--weights and --poses go together")
@@ -73,13 +101,32 @@ def run(args) -> int:
         from keyshape.retarget.poses import curves_from_library
         frames, cols, w, _ = read_weights(args.weights)
         curves = curves_from_library(w, cols, read_poses(args.poses, rig.names), rig.names, args.poses)
+    other = other_head = None
+    if args.compare:
+        f2, c2, h2 = _curves_on_rig(args.compare, rig)
+        row2 = {int(f): i for i, f in enumerate(f2)}
+        gone = [int(f) for f in frames if int(f) not in row2]
+        if gone:
+            raise InputError(f"has no row for frame {gone[0]} (of {len(gone)} frames of the take)", args.compare)
+        idx = np.array([row2[int(f)] for f in frames])
+        other, other_head = c2[idx], (h2[idx] if h2 is not None else head)
     tracks = read_tracks(args.tracks)
     scheme = scheme_for_n_points(tracks.n_points)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     rows = parse_frames(args.frames, frames)
     reader = VideoReader(args.video)
     h = args.size or reader.info.height
-    renderer = RigRenderer(rig, size=(h, h)).fit(curves[rows])
+    crop = None
+    if args.crop == "face":
+        trows = [pos[int(frames[r])] for r in rows if int(frames[r]) in pos]
+        crop = face_crop(tracks.points[trows], tracks.success[trows], (reader.info.width, reader.info.height))
+    landmarks = None
+    if args.contours or (args.contours is None and (args.landmarks or default_landmarks(rig.n_vertices, scheme.name))):
+        landmarks = (rig_landmarks(rig, scheme.name, args.landmarks)[0], scheme)
+    turns = [x[rows] for x in (head, other_head) if x is not None]
+    renderer = RigRenderer(rig, size=(h, h), landmarks=landmarks).fit(
+        curves[rows], np.concatenate(turns) if turns else None)
+    names = [c.strip() for c in args.captions.split(",")] if args.captions else []
     fps = reader.info.fps or 30.0
     sheet_rows = set(rows[np.linspace(0, len(rows) - 1, min(args.sheet_frames, len(rows))).round().astype(int)]
                      .tolist()) if args.sheet else set()
@@ -89,6 +136,13 @@ def run(args) -> int:
     t0 = time.perf_counter()
     t_render = 0.0
     n = 0
+
+    def rigs(r):
+        """The rig panels of row ``r``: keyshape's curves (and the --compare curves)."""
+        out = [renderer.render_curves(curves[r], None if head is None else head[r])]
+        if other is not None:
+            out.append(renderer.render_curves(other[r], None if other_head is None else other_head[r]))
+        return out
 
     def jobs(wr, prog):
         """(frame, row, actor panel) for each frame to render, as the video is read (frames not
@@ -105,15 +159,17 @@ def run(args) -> int:
                 continue
             k = pos.get(i)
             left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
-                               bool(tracks.success[k]) if k is not None else False, h)
-            yield (i, r, left), curves[r]
+                               bool(tracks.success[k]) if k is not None else False, h, crop)
+            yield (i, r, left), r
 
     with _maybe_writer(args.output, fps) as wr:
         prog = Progress(len(rows), desc="keyshape preview")
         # the rig is rendered on a few threads (fillPoly and numpy release the GIL), written in order
-        for (i, r, left), right, cpu in ordered_map(renderer.render_curves, jobs(wr, prog), args.threads):
+        for (i, r, left), right, cpu in ordered_map(rigs, jobs(wr, prog), args.threads):
             t_render += cpu
-            out = side_by_side(left, right)
+            panels = [left, *right]
+            panels = [caption(p, t) if t else p for p, t in zip(panels, names + [""] * len(panels))]
+            out = panel_row(panels)
             if wr is not None:
                 wr(out)
             if r in sheet_rows:
@@ -127,16 +183,26 @@ def run(args) -> int:
                          args.video)
     if args.sheet:
         from keyshape.base.draw import contact_sheet
-        sheet = contact_sheet(tiles, captions, columns=3, tile_width=2 * h + 4)
+        sheet = contact_sheet(tiles, captions, columns=3 if other is None else 2, tile_width=tiles[0].shape[1])
         ok, buf = cv2.imencode(Path(args.sheet).suffix.lower(), sheet,
                                [cv2.IMWRITE_JPEG_QUALITY, 85] if not args.sheet.lower().endswith(".png") else [])
         with atomic_write(args.sheet, "wb") as f:
             f.write(buf.tobytes())
     dt = time.perf_counter() - t0
     print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
-          f"{n / max(t_render, 1e-9):.1f} frames per CPU second, {rig.n_vertices} vertices)"
+          f"{n * (1 + (other is not None)) / max(t_render, 1e-9):.1f} rig frames per CPU second, "
+          f"{rig.n_vertices} vertices)"
           + (f" -> {args.output}" if args.output else "") + (f"; sheet {args.sheet}" if args.sheet else ""))
     return 0
+
+
+def panel_row(panels):
+    """Panels side by side (each scaled to the first one's height), separated by a thin gap."""
+    from keyshape.retarget.render import side_by_side
+    out = panels[0]
+    for p in panels[1:]:
+        out = side_by_side(out, p)
+    return out
 
 
 class _maybe_writer:
