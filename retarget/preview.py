@@ -52,6 +52,10 @@ class RigRenderer:
     background : BGR
     vertices : optional vertex subset to frame the camera on (default: the face skin for an
         ICT-FaceKit rig, else all vertices)
+    landmarks : optional ``(W, scheme)``: the (n_points, n_vertices) matrix taking the rig's vertices
+        to a landmark scheme's points (:func:`~keyshape.retarget.rig.rig_landmarks`) and the scheme;
+        its contours (lids, brows, lips) are drawn over the shaded rig, in the colours of the actor's
+        contours, so lids and brows read at a glance and compare with the actor's
 
     Attributes
     ----------
@@ -59,11 +63,13 @@ class RigRenderer:
     """
 
     def __init__(self, rig: Rig, size=(480, 480), light=(0.3, 0.4, 1.0), ambient: float = 0.18, levels: int = 24,
-                 band: int = 2000, background=(40, 40, 40), vertices: np.ndarray | None = None):
+                 band: int = 2000, background=(40, 40, 40), vertices: np.ndarray | None = None,
+                 landmarks: tuple[np.ndarray, Any] | None = None):
         if rig.mesh is None or not rig.mesh.polygons:
             raise InputError("the rig's neutral has no faces to render", rig.neutral_file)
         self.rig, self.size, self.light, self.ambient = rig, size, light, ambient
         self.levels, self.band, self.background, self.vertices = levels, band, background, vertices
+        self.landmarks = landmarks
         tri = rig.mesh.triangles
         parts = [p for p in material_parts(rig.mesh) if p[2][3] > 0 and "lash" not in p[0].lower()]
         self.tri_ = np.concatenate([tri[p[1]] for p in parts])
@@ -73,18 +79,33 @@ class RigRenderer:
         li = np.asarray(light, float)
         self.l_ = li / np.linalg.norm(li)
 
-    def fit(self, curves: np.ndarray | None = None) -> "RigRenderer":
-        """Choose one camera framing the rig over the given curves (a sample of frames)."""
+    def fit(self, curves: np.ndarray | None = None, rotations: np.ndarray | None = None) -> "RigRenderer":
+        """Choose one camera framing the rig over the given curves (a sample of frames).
+
+        ``rotations`` (n, 3, 3): head rotations the frames will be rendered with (:meth:`pose`); the
+        triangles that any of the extreme ones turns towards the camera are kept for drawing.
+        """
         from keyshape.retarget.rig import ICT_FACE_SKIN, ICT_N_VERTICES
         vsel = self.vertices
         if vsel is None and self.rig.n_vertices == ICT_N_VERTICES:
             vsel = np.arange(ICT_FACE_SKIN)
         c = np.zeros((1, self.rig.n_shapes)) if curves is None else np.asarray(curves)[:: max(1, len(curves) // 20)]
-        pts = self.rig.evaluate(c, vsel)
-        self.camera_ = OrthoCamera.fit(pts, *self.size, margin=0.08)
+        if self.landmarks is not None:            # framed on the face, as the actor's panel (face_crop)
+            lm = np.einsum("pv,nvd->npd", self.landmarks[0], self.rig.evaluate(c), optimize=True)[..., :2]
+            centre, side = face_square(lm.min(axis=(0, 1)), lm.max(axis=(0, 1)), down=-1.0)
+            self.camera_ = OrthoCamera.fit(np.array([[*(centre - side / 2), 0.0], [*(centre + side / 2), 0.0]]),
+                                           *self.size, margin=0.0)
+        else:
+            self.camera_ = OrthoCamera.fit(self.rig.evaluate(c, vsel), *self.size, margin=0.08)
         # once per fit: drop triangles that face away in the neutral and in every full shape (the back of
         # the head), and triangles outside the view (with a margin)
         shapes = np.concatenate([self.rig.neutral[None], self.rig.neutral + self.rig.deltas])
+        self.pivot_ = head_pivot(self.rig)
+        if rotations is not None and len(rotations):
+            R = np.asarray(rotations, float)
+            ang = np.stack([R[:, 0, 2], R[:, 1, 2], R[:, 1, 0]], 1)       # sin of yaw, pitch, roll (about)
+            extremes = R[np.unique(np.concatenate([ang.argmin(0), ang.argmax(0)]))]
+            shapes = np.concatenate([shapes, self.pose(self.rig.neutral[None], extremes)])
         tri = self.tri_
         seen = np.zeros(len(tri), bool)
         inview = np.zeros(len(tri), bool)
@@ -140,16 +161,113 @@ class RigRenderer:
                 m, lv = divmod(kk, self.levels)
                 col = tuple(float(x) for x in self.rgb_[m] * ((lv + 0.5) / self.levels))
                 cv2.fillPoly(img, pts[s + grp], col, lineType=cv2.LINE_8, shift=4)
+        if self.landmarks is not None:
+            from keyshape.base.draw import draw_shape
+            W, scheme = self.landmarks
+            img = draw_shape(img, self.camera_.project(W @ v)[:, :2], scheme)
         return img
 
-    def render_curves(self, curves: np.ndarray) -> np.ndarray:
-        """One frame of the rig driven by ``curves`` (n_shapes,)."""
-        return self.render(self.rig.evaluate(np.asarray(curves)[None])[0])
+    def pose(self, vertices: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """``vertices`` (n, n_vertices, 3) turned by the head ``rotations`` (n, 3, 3) about the rig's
+        head pivot (:func:`head_pivot`)."""
+        c = self.pivot_ if hasattr(self, "pivot_") else head_pivot(self.rig)
+        return np.einsum("nij,nvj->nvi", rotations, np.asarray(vertices, float) - c, optimize=True) + c
+
+    def render_curves(self, curves: np.ndarray, rotation: np.ndarray | None = None) -> np.ndarray:
+        """One frame of the rig driven by ``curves`` (n_shapes,), turned by the head ``rotation`` (3, 3)."""
+        v = self.rig.evaluate(np.asarray(curves)[None])
+        if rotation is not None:
+            v = self.pose(v, np.asarray(rotation)[None])
+        return self.render(v[0])
 
     def render_many(self, curves: np.ndarray, workers: int | None = None) -> Iterator[np.ndarray]:
         """Yield one frame per row of ``curves`` (n_frames, n_shapes), in order, rendered on ``workers`` threads."""
         for _, img, _ in ordered_map(self.render_curves, ((None, c) for c in np.asarray(curves)), workers):
             yield img
+
+
+def head_pivot(rig: Rig) -> np.ndarray:
+    """The point the rig's head turns about: the centre of its vertices' bounding box, moved back to
+    the depth of its rear half (near the top of the neck), so a turn swings the face as a skull does."""
+    v = rig.neutral
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    c = (lo + hi) / 2
+    c[2] = lo[2] + 0.4 * (hi[2] - lo[2])
+    return c
+
+
+#: curves CSV columns of the head's rotation, degrees (``keyshape retarget --rig -o curves.csv``)
+HEAD_COLUMNS = ("headYaw", "headPitch", "headRoll")
+
+
+def head_rotations(names, values: np.ndarray) -> np.ndarray | None:
+    """(n_frames, 3, 3) head rotations in the rig's frame from a curves table's :data:`HEAD_COLUMNS`
+    (None when it has none): yaw turns the face towards the subject's left (+x), pitch raises it,
+    roll tilts the top of the head towards the subject's left, applied as ``R = Ry(yaw) Rx(-pitch) Rz(-roll)``."""
+    names = list(names)
+    if not any(c in names for c in HEAD_COLUMNS):
+        return None
+    yaw, pitch, roll = (np.radians(values[:, names.index(c)]) if c in names else np.zeros(len(values))
+                        for c in HEAD_COLUMNS)
+    c, s = np.cos, np.sin
+    z, o = np.zeros_like(yaw), np.ones_like(yaw)
+    ry = np.stack([c(yaw), z, s(yaw), z, o, z, -s(yaw), z, c(yaw)], 1).reshape(-1, 3, 3)
+    rx = np.stack([o, z, z, z, c(-pitch), -s(-pitch), z, s(-pitch), c(-pitch)], 1).reshape(-1, 3, 3)
+    rz = np.stack([c(-roll), -s(-roll), z, s(-roll), c(-roll), z, z, z, o], 1).reshape(-1, 3, 3)
+    return ry @ rx @ rz
+
+
+def face_square(lo: np.ndarray, hi: np.ndarray, margin: float = 0.45, down: float = 1.0) -> tuple[np.ndarray, float]:
+    """Centre and side of the square framing a face whose landmarks span the box ``lo``..``hi`` (2D).
+
+    The box (brows to lips) is grown by ``margin`` of its larger side on every side, and its centre
+    moved by 0.15 of its height towards the chin (``down``: +1 where y points down, as in images;
+    -1 where y points up, as in a mesh), so forehead and chin are in the frame.
+    """
+    ext = np.asarray(hi, float) - np.asarray(lo, float)
+    centre = (np.asarray(lo, float) + hi) / 2 + [0.0, 0.15 * down * ext[1]]
+    return centre, float(max(ext) * (1 + 2 * margin))
+
+
+def face_crop(points: np.ndarray, success: np.ndarray, size: tuple[int, int], margin: float = 0.45
+              ) -> tuple[int, int, int]:
+    """One steady square crop ``(x0, y0, side)`` of a take's footage around the tracked face.
+
+    The box spans the 2nd-98th percentiles of the tracked points' extent over the good frames,
+    framed by :func:`face_square` and clipped to the image ``size`` (width, height). Fixed over the
+    take, so the head's own motion stays visible in the panel.
+    """
+    w, h = size
+    P = np.asarray(points, float)[np.asarray(success, bool)]
+    P = P[np.isfinite(P).all(axis=(1, 2))] if len(P) else P
+    if not len(P):
+        return 0, 0, min(w, h)
+    c, side = face_square(np.percentile(P.min(axis=1), 2, axis=0), np.percentile(P.max(axis=1), 98, axis=0), margin)
+    side = int(min(round(side), w, h))
+    x0 = int(np.clip(round(c[0] - side / 2), 0, w - side))
+    y0 = int(np.clip(round(c[1] - side / 2), 0, h - side))
+    return x0, y0, side
+
+
+def caption(img: np.ndarray, text: str) -> np.ndarray:
+    """``img`` with ``text`` in its bottom-left corner (white on a dark strip; a contact sheet's
+    own caption covers the top)."""
+    import cv2
+    out = img.copy()
+    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+    y = out.shape[0] - th - 8
+    out[y:, : tw + 8] = (out[y:, : tw + 8] * 0.35).astype(np.uint8)
+    cv2.putText(out, text, (4, out.shape[0] - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def panel_row(panels: list[np.ndarray]) -> np.ndarray:
+    """Panels side by side (each scaled to the first one's height), separated by a thin gap."""
+    from keyshape.retarget.render import side_by_side
+    out = panels[0]
+    for p in panels[1:]:
+        out = side_by_side(out, p)
+    return out
 
 
 def default_workers() -> int:
@@ -209,12 +327,19 @@ def parse_frames(spec: str | None, frames: np.ndarray) -> np.ndarray:
     return rows
 
 
-def actor_panel(frame: np.ndarray, points: np.ndarray | None, scheme, success: bool, height: int) -> np.ndarray:
-    """The footage frame with its contours (``lost`` where tracking failed), scaled to ``height``."""
+def actor_panel(frame: np.ndarray, points: np.ndarray | None, scheme, success: bool, height: int,
+                crop: tuple[int, int, int] | None = None) -> np.ndarray:
+    """The footage frame with its contours (``lost`` where tracking failed), cut to ``crop``
+    (``x0, y0, side``: :func:`face_crop`) and scaled to ``height``."""
     import cv2
 
     from keyshape.base.draw import draw_shape
     img = frame.copy()
+    if crop is not None:
+        x0, y0, side = crop
+        img = img[y0: y0 + side, x0: x0 + side]
+        if points is not None:
+            points = np.asarray(points, float) - (x0, y0)
     if points is not None and success:
         img = draw_shape(img, points, scheme)
     elif not success:

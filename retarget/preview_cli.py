@@ -24,10 +24,41 @@ def register(subparsers) -> None:
                    help="height of the output in pixels (default: the video's height)")
     p.add_argument("--sheet", default=None, help="also write a contact sheet (actor | character), .jpg or .png")
     p.add_argument("--sheet-frames", type=int, default=12, help="frames in the contact sheet, spread over the range")
+    p.add_argument("--crop", choices=("face", "full"), default="face",
+                   help="actor panel: a steady square around the tracked face over the range, or the full frame")
+    p.add_argument("--contours", action=argparse.BooleanOptionalAction, default=None,
+                   help="draw the rig's own lid, brow and lip contours over it (default: when the rig's "
+                        "landmarks are known: shipped for ICT-FaceKit, or --landmarks)")
+    p.add_argument("--landmarks", default=None,
+                   help="rig landmark JSON for --contours (default: the shipped one for ICT-FaceKit rigs)")
+    p.add_argument("--compare", default=None, metavar="CURVES.csv",
+                   help="a second set of rig curves (another solver, another tool's) rendered in a third panel")
+    p.add_argument("--captions", default="actor,keyshape,compare", metavar="A,B[,C]",
+                   help="panel captions, comma separated ('' for none)")
     p.add_argument("--threads", type=int, default=None,
                    help="rendering threads (default: one per core, at most 4)")
     p.add_argument("-o", "--output", default=None, help="OUT.mp4 / .avi (optional with --sheet)")
     p.set_defaults(func=run)
+
+
+def _curves_on_rig(path, rig):
+    """(frames, (n_frames, n_shapes) curves in the rig's shape order, head rotations or None) of a curves CSV."""
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.preview import head_rotations
+
+    frames, names, c, _ = read_weights(path)
+    curves = np.zeros((len(frames), rig.n_shapes))
+    found = 0
+    for j, n in enumerate(rig.names):
+        if n in names:
+            curves[:, j] = c[:, names.index(n)]
+            found += 1
+    if not found:
+        raise InputError("no column names a rig shape", path)
+    return frames, curves, head_rotations(names, c)
 
 
 def run(args) -> int:
@@ -42,15 +73,9 @@ def run(args) -> int:
     if bool(args.curves) == bool(args.weights or args.poses):
         raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    head = None
     if args.curves:
-        frames, names, c, _ = read_weights(args.curves)
-        missing = [n for n in rig.names if n not in names]
-        if missing and len(missing) == rig.n_shapes:
-            raise InputError("no column names a rig shape", args.curves)
-        curves = np.zeros((len(frames), rig.n_shapes))
-        for j, n in enumerate(rig.names):
-            if n in names:
-                curves[:, j] = c[:, names.index(n)]
+        frames, curves, head = _curves_on_rig(args.curves, rig)
     else:
         if not (args.weights and args.poses):
             raise InputError("--weights and --poses go together")
@@ -58,13 +83,25 @@ def run(args) -> int:
         from keyshape.retarget.api import rig_curves
         frames, cols, w, _ = read_weights(args.weights)
         curves = rig_curves(w, cols, read_poses(args.poses, rig.names), rig, args.poses)
+    compare = None
+    if args.compare:
+        f2, c2, h2 = _curves_on_rig(args.compare, rig)
+        row2 = {int(f): i for i, f in enumerate(f2)}
+        gone = [int(f) for f in frames if int(f) not in row2]
+        if gone:
+            raise InputError(f"has no row for frame {gone[0]} (of {len(gone)} frames of the take)", args.compare)
+        idx = np.array([row2[int(f)] for f in frames])
+        compare = (c2[idx], h2[idx] if h2 is not None else head)
     tracks = read_tracks(args.tracks)
     info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
                          size=args.size, sheet_frames=args.sheet_frames, threads=args.threads,
-                         tracks_source=args.tracks)
+                         tracks_source=args.tracks, head=head, compare=compare, crop=args.crop,
+                         contours=args.contours, landmarks=args.landmarks,
+                         captions=[c.strip() for c in args.captions.split(",")] if args.captions else [])
     n, dt = info["frames"], info["seconds"]
     print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
-          f"{n / max(info['render_cpu_seconds'], 1e-9):.1f} frames per CPU second, {rig.n_vertices} vertices)"
+          f"{info['rig_frames'] / max(info['render_cpu_seconds'], 1e-9):.1f} rig frames per CPU second, "
+          f"{rig.n_vertices} vertices)"
           + (f" -> {args.output}" if args.output else "") + (f"; sheet {args.sheet}" if args.sheet else ""))
     return 0
 
@@ -88,13 +125,25 @@ def _check_outputs(output, sheet, sheet_frames: int = 12, size: int | None = Non
 
 def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, sheet=None, frames: str | None = None,
                   size: int | None = None, sheet_frames: int = 12, threads: int | None = None,
-                  tracks_source=None) -> dict:
+                  tracks_source=None, head=None, compare=None, crop: str = "face", contours: bool | None = None,
+                  landmarks=None, captions=("actor", "keyshape", "compare")) -> dict:
     """Write the side-by-side preview (the footage with its contours | the shaded rig driven by
-    ``curves``) to ``output`` (.mp4/.avi) and/or a contact ``sheet`` (.jpg/.png): what ``keyshape
-    preview``, :func:`keyshape.api.preview` and ``keyshape batch`` run.
+    ``curves`` [| the rig driven by a second set of curves]) to ``output`` (.mp4/.avi) and/or a contact
+    ``sheet`` (.jpg/.png): what ``keyshape preview``, :func:`keyshape.api.preview` and ``keyshape batch`` run.
 
-    ``frame_numbers``: the curves' frame numbers; ``frames``: the range to render, ``"A:B"`` (B
-    exclusive; default all). Returns ``{"frames", "seconds", "render_cpu_seconds"}``.
+    Parameters
+    ----------
+    frame_numbers : the curves' frame numbers; ``frames``: the range to render, ``"A:B"`` (B exclusive;
+        default all)
+    head : (n_frames, 3, 3) head rotations the rig is turned by (:func:`~keyshape.retarget.preview.head_rotations`)
+    compare : ``(curves, head rotations or None)`` of a second set of curves for a third panel
+    crop : ``"face"``: the footage cut to a steady square around the tracked face and the rig framed
+        on the same face box (:func:`~keyshape.retarget.preview.face_crop`); ``"full"``: the whole frame
+    contours : draw the rig's own scheme contours over it (None: where its landmarks are known);
+        ``landmarks``: the rig landmark JSON (default: the shipped one for ICT-FaceKit rigs)
+    captions : one per panel ('' or missing: none)
+
+    Returns ``{"frames", "rig_frames", "seconds", "render_cpu_seconds"}``.
     """
     import time
     from pathlib import Path
@@ -104,32 +153,52 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
 
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_write
+    from keyshape.base.formats.tracks import check_frame_size
     from keyshape.base.formats.video import VideoReader
     from keyshape.base.progress import Progress
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.retarget.preview import RigRenderer, actor_panel, ordered_map, parse_frames
-    from keyshape.retarget.render import side_by_side
+    from keyshape.retarget.preview import (RigRenderer, actor_panel, caption, face_crop, ordered_map, panel_row,
+                                           parse_frames)
+    from keyshape.retarget.rig import default_landmarks, rig_landmarks
 
     _check_outputs(output, sheet, sheet_frames, size)
+    if crop not in ("face", "full"):
+        raise InputError(f"crop {crop!r}: use face or full")
     spec, frames = frames, np.asarray(frame_numbers)
     curves = np.asarray(curves, dtype=np.float64)
     scheme = scheme_for_n_points(tracks.n_points)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     rows = parse_frames(spec, frames)
     reader = VideoReader(video)
-    from keyshape.base.formats.tracks import check_frame_size
     check_frame_size(tracks.meta, reader.info.width, reader.info.height, video, tracks_source)
     h = size or reader.info.height
-    renderer = RigRenderer(rig, size=(h, h)).fit(curves[rows])
+    box = None
+    if crop == "face":
+        trows = [pos[int(frames[r])] for r in rows if int(frames[r]) in pos]
+        box = face_crop(tracks.points[trows], tracks.success[trows], (reader.info.width, reader.info.height))
+    lm = None
+    if contours or (contours is None and (landmarks or default_landmarks(rig.n_vertices, scheme.name))):
+        lm = (rig_landmarks(rig, scheme.name, landmarks)[0], scheme)
+    other, other_head = compare if compare is not None else (None, None)
+    turns = [x[rows] for x in (head, other_head) if x is not None]
+    renderer = RigRenderer(rig, size=(h, h), landmarks=lm).fit(curves[rows], np.concatenate(turns) if turns else None)
+    names = list(captions or [])
     fps = reader.info.fps or 30.0
     sheet_rows = set(rows[np.linspace(0, len(rows) - 1, min(sheet_frames, len(rows))).round().astype(int)]
                      .tolist()) if sheet else set()
     want = {int(frames[r]): r for r in rows}
     last = max(want)
-    tiles, captions = [], []
+    tiles, tile_captions = [], []
     t0 = time.perf_counter()
     t_render = 0.0
-    n = 0
+    n = n_rig = 0
+
+    def rigs(r):
+        """The rig panels of row ``r``: ``curves`` (and the compared curves)."""
+        out = [renderer.render_curves(curves[r], None if head is None else head[r])]
+        if other is not None:
+            out.append(renderer.render_curves(other[r], None if other_head is None else other_head[r]))
+        return out
 
     def jobs(wr, prog):
         """(frame, row, actor panel) for each frame to render, as the video is read (frames not
@@ -146,20 +215,22 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
                 continue
             k = pos.get(i)
             left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
-                               bool(tracks.success[k]) if k is not None else False, h)
-            yield (i, r, left), curves[r]
+                               bool(tracks.success[k]) if k is not None else False, h, box)
+            yield (i, r, left), r
 
     with _maybe_writer(output, fps) as wr:
         prog = Progress(len(rows), desc="keyshape preview")
         # the rig is rendered on a few threads (fillPoly and numpy release the GIL), written in order
-        for (i, r, left), right, cpu in ordered_map(renderer.render_curves, jobs(wr, prog), threads):
+        for (i, r, left), right, cpu in ordered_map(rigs, jobs(wr, prog), threads):
             t_render += cpu
-            out = side_by_side(left, right)
+            n_rig += len(right)
+            panels = [left, *right]
+            out = panel_row([caption(p, t) if t else p for p, t in zip(panels, names + [""] * len(panels))])
             if wr is not None:
                 wr(out)
             if r in sheet_rows:
                 tiles.append(out)
-                captions.append(f"frame {i}")
+                tile_captions.append(f"frame {i}")
             n += 1
             prog.update()
         prog.close()
@@ -168,12 +239,12 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
                          video)
     if sheet:
         from keyshape.base.draw import contact_sheet
-        img = contact_sheet(tiles, captions, columns=3, tile_width=2 * h + 4)
+        img = contact_sheet(tiles, tile_captions, columns=3 if other is None else 2, tile_width=tiles[0].shape[1])
         ok, buf = cv2.imencode(Path(sheet).suffix.lower(), img,
                                [cv2.IMWRITE_JPEG_QUALITY, 85] if not str(sheet).lower().endswith(".png") else [])
         with atomic_write(sheet, "wb") as f:
             f.write(buf.tobytes())
-    return {"frames": n, "seconds": time.perf_counter() - t0, "render_cpu_seconds": t_render}
+    return {"frames": n, "rig_frames": n_rig, "seconds": time.perf_counter() - t0, "render_cpu_seconds": t_render}
 
 
 class _maybe_writer:

@@ -539,3 +539,62 @@ def test_ict_antagonists_and_eye_shapes_of_the_real_rig(shared_data):
         pairs = opposed_pairs(landmark_motion(ld[idx], groups[region]))
         names = {(rig.names[idx[i]], rig.names[idx[j]]) for i, j in pairs}
         assert (a, b) in names or (b, a) in names, (region, sorted(names)[:10])
+
+
+def test_preview_compare_panel_crop_and_head_turn(tmp_path):
+    """--compare adds a third panel; the face crop is a steady square around the tracked points; head
+    angles in the curves turn the rendered rig (yaw > 0: the face turns to the subject's left, image-right)."""
+    from keyshape.base.formats.tracks import write_tracks
+    from keyshape.base.formats.video import video_info, video_writer
+    from keyshape.base.formats.weights import write_weights
+    from keyshape.decompose.toy import toy_tracks
+    from keyshape.retarget.preview import face_crop, head_rotations
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    tr = toy_tracks(20, rng=1)
+    write_tracks(tmp_path / "t.csv", tr)
+    with video_writer(tmp_path / "v.mp4", 10, (320, 240)) as wr:
+        for i in range(20):
+            wr.write(np.full((240, 320, 3), 8 * i, np.uint8))
+    c = np.zeros((20, len(SHAPES)))
+    c[:, 0] = np.linspace(0, 1, 20)
+    write_weights(tmp_path / "c.csv", np.arange(20), list(SHAPES), c)
+    write_weights(tmp_path / "m.csv", np.arange(20), list(SHAPES), c[::-1])
+    base = ["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
+            str(tmp_path / "c.csv"), "--rig", str(rig), "--size", "100"]
+    assert main(base + ["-o", str(tmp_path / "two.mp4")]) == 0
+    assert main(base + ["--compare", str(tmp_path / "m.csv"), "--captions", "actor,keyshape,MediaPipe",
+                        "-o", str(tmp_path / "three.mp4")]) == 0
+    w2, w3 = video_info(tmp_path / "two.mp4").width, video_info(tmp_path / "three.mp4").width
+    assert w2 == 2 * 100 + 4 and w3 == 3 * 100 + 8               # square face crop: every panel 100 x 100
+    write_weights(tmp_path / "short.csv", np.arange(10), list(SHAPES), c[:10])
+    assert main(base + ["--compare", str(tmp_path / "short.csv"), "-o", str(tmp_path / "x.mp4")]) == 2
+    assert not (tmp_path / "x.mp4").exists()
+    # the crop holds every tracked point of the range and stays inside the image
+    rng = np.random.default_rng(2)
+    P = np.array([150, 110]) + rng.normal(0, 1, (20, 1, 2)) * 5 + rng.uniform(-30, 30, (1, 48, 2))
+    x0, y0, side = face_crop(P, np.ones(20, bool), (320, 240))
+    assert 0 <= x0 and 0 <= y0 and x0 + side <= 320 and y0 + side <= 240
+    assert (P[..., 0] >= x0).all() and (P[..., 0] <= x0 + side).all()
+    assert (P[..., 1] >= y0).all() and (P[..., 1] <= y0 + side).all()
+    # head angles: rotations, and their directions in the rig's frame (x: subject's left, y: up, z: to camera)
+    R = head_rotations(["headYaw", "headPitch", "headRoll"], np.array([[30.0, 0, 0], [0, 20.0, 0], [0, 0, 10.0]]))
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3))
+    nose = np.array([0.0, 0.0, 1.0])
+    assert (R[0] @ nose)[0] == pytest.approx(np.sin(np.radians(30)))   # yaw: nose to the subject's left
+    assert (R[1] @ nose)[1] == pytest.approx(np.sin(np.radians(20)))   # pitch: nose up
+    assert (R[2] @ np.array([0, 1.0, 0]))[0] == pytest.approx(np.sin(np.radians(10)))  # roll: top to the left
+    assert head_rotations(["jawOpen"], np.zeros((2, 1))) is None
+
+
+def test_rig_renderer_turns_with_the_head(tmp_path):
+    from keyshape.retarget.preview import RigRenderer, head_rotations
+    from keyshape.retarget.rig import Rig
+    # a box's front face and a side face: a yaw towards +x shows less of the front and more of the side
+    v = np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1], [1, 0, 1], [1, 0, 0], [1, 1, 0], [1, 1, 1]], float)
+    rig = Rig(["none"], v, np.zeros((1, 8, 3)), Mesh(v, [np.array([0, 1, 2, 3]), np.array([4, 5, 6, 7])]))
+    turn = head_rotations(["headYaw"], np.array([[-40.0]]))
+    r = RigRenderer(rig, size=(64, 64), background=(0, 0, 0)).fit(np.zeros((1, 1)), turn)
+    front = r.render_curves(np.zeros(1)).sum(axis=2) > 0
+    turned = r.render_curves(np.zeros(1), turn[0]).sum(axis=2) > 0
+    assert front.mean() > 0.1 and turned.mean() > 0.1
+    assert not np.array_equal(front, turned)
