@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
+from keyshape.decompose import defaults as D
 
 LIVE_SOLVERS = ("nnls", "lstsq")
 
@@ -216,7 +217,7 @@ class LiveChain:
     library: dict
     rig_names: list
     solver: str = "nnls"
-    ridge: float = 0.0
+    ridge: float = D.RIDGE
     reference_pose: np.ndarray | None = field(default=None)
 
     def frame(self, index: int, fps: float, points: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
@@ -240,7 +241,7 @@ class LiveChain:
         return curves[0], livelink_values(self.rig_names, curves, head)[0]
 
 
-def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str = "nnls", ridge: float = 0.0):
+def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str = "nnls", ridge: float = D.RIDGE):
     """Read the model, key set, pose library and rig; check they belong together (one-line errors).
 
     Returns ``(model, chain, rig shape names)``.
@@ -403,7 +404,7 @@ def register(subparsers) -> None:
                                                       "(needs python-osc: pip install 'keyshape[osc]')")
     p.add_argument("--osc-prefix", default="/keyshape", help="OSC address prefix: PREFIX/<curve name>")
     p.add_argument("--solver", choices=LIVE_SOLVERS, default="nnls", help="per-frame key weights solver")
-    p.add_argument("--ridge", type=float, default=0.0, help="ridge of the weights solver (as decompose --ridge)")
+    p.add_argument("--ridge", type=float, default=D.RIDGE, help="ridge of the weights solver (as decompose --ridge)")
     p.add_argument("--smooth", choices=("none", "oneeuro"), default="none",
                    help="causal landmark smoothing (oneeuro adds no delay)")
     p.add_argument("--no-pace", action="store_true",
