@@ -454,7 +454,7 @@ def check_layout(m: Manifest, out: Path) -> None:
     for a in m.actors.values():
         paths += [a.video, a.labels, a.model, a.targets, a.neutral, a.map, a.target_regions]
     paths += [t.video for t in m.takes]
-    inputs = InputSet(paths)
+    inputs = InputSet(paths, output=out)
 
     def ours(path: Path, owned: bool, who: str) -> None:
         inp = inputs.touched_by(path)

@@ -74,7 +74,7 @@ def _input_files(args) -> list:
     files = [args.weights, args.mapping, args.neutral, args.regions, args.tracks, args.poses, args.landmarks]
     for t in (args.targets or []) + (args.rig or []):
         p = Path(t)
-        files += list(p.iterdir()) if p.is_dir() else [p]
+        files += [q for q in p.iterdir() if not q.is_dir()] if p.is_dir() else [p]   # a subfolder is not read
         if p.is_dir():
             files.append(p)
     return [f for f in files if f is not None and f != "auto"]

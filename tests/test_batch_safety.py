@@ -4,7 +4,6 @@ takes, and turns every bad manifest value or option into one line (issue 27)."""
 from __future__ import annotations
 
 import hashlib
-import json
 import shutil
 from pathlib import Path
 

@@ -560,3 +560,37 @@ def test_poses_write_then_read_round_trips_or_refuses(rng, weight):
     assert back["range"] == [float(x) for x in rng]
     got = back["regions"]["mouth"]["keys"]["mouth_0"].get("jawOpen", 0.0)
     assert got == pytest.approx(round(weight, 5), abs=1e-9)
+
+
+# ------------------------------------------------------------------ the label page's request bodies
+def _fuzz_label_page(n: int) -> None:
+    from keyshape.base.formats.labels import read_pts
+    from keyshape.tracker.labelling import server as srv_mod
+    from label_helpers import make_folder
+    from server_helpers import request, serving
+
+    d = Path(tempfile.mkdtemp(prefix="fuzz-label-"))
+    folder = make_folder(d)
+    pts = read_pts(folder / "000005.pts")
+    seed = json.dumps({"points": np.round(pts, 2).tolist()}).encode()
+    with serving(srv_mod.LabelServer(folder, 0)) as server:
+
+        @settings(max_examples=n, deadline=None, database=None, derandomize=n < 1000,
+                  suppress_health_check=list(HealthCheck))
+        @given(mutated(seed))
+        def run(body):
+            status, reply = request(server, "PUT", "/api/points/000005.pts", body)
+            assert status == 200 or 400 <= status < 500, (status, reply)   # never a 5xx, always an answer
+            p = read_pts(folder / "000005.pts")                              # what the page wrote reads back
+            assert np.isfinite(p).all() and p.shape == pts.shape
+
+        run()
+
+
+def test_label_page_request_fuzz():
+    _fuzz_label_page(120)
+
+
+@pytest.mark.slow
+def test_label_page_request_fuzz_long():
+    _fuzz_label_page(1500)

@@ -234,10 +234,25 @@ def test_inputs_are_never_replaced_or_pruned(tmp_path):
     assert (out / "w.csv").read_text() == "w"
 
 
-def test_an_output_folder_inside_an_input_folder_is_refused_before_work(d2, capsys):
+def test_an_output_folder_inside_an_input_folder_touches_no_input(d2):
     out = d2 / "targets" / "frames"
-    assert main(["retarget", str(d2 / "weights.csv"), "--targets", str(d2 / "targets"), "-o", str(out)]) == 2
-    assert "inside the input folder" in one_line_error(capsys) and not out.exists()
+    before = tree(d2)
+    args = ["retarget", str(d2 / "weights.csv"), "--targets", str(d2 / "targets"), "-o", str(out)]
+    assert main(args) == 0 and main(args) == 0                  # and a rerun replaces its own frames
+    after = tree(d2)
+    assert_kept(before, after)
+    assert all(k.startswith("targets/frames/") for k in set(after) - set(before))
+
+
+def test_an_input_folder_inside_the_output_gets_no_new_file(tmp_path):
+    out = tmp_path / "o"
+    (out / "targets").mkdir(parents=True)
+    (out / "targets" / "a.obj").write_text("target")
+    with pytest.raises(InputError, match="would overwrite its input"):
+        with atomic_dir(out, kind="retarget", inputs=[out / "targets"], overwrite=True) as d:
+            (d / "targets").mkdir()
+            (d / "targets" / "frame_000000.obj").write_text("x")     # would be read as a target next time
+    assert sorted(p.name for p in (out / "targets").iterdir()) == ["a.obj"]
 
 
 def test_legacy_records_are_replaced_by_name_but_never_pruned(tmp_path):

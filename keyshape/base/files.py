@@ -266,22 +266,30 @@ def _inside(child: str, parent: str) -> bool:
 
 class InputSet:
     """A run's inputs, resolved: a path touches them when it is one of them (a hard link of one
-    included) or lies inside an input folder (links resolved)."""
+    included) or lies inside an input folder (links resolved).
 
-    def __init__(self, inputs: Iterable[str | Path | None]):
+    ``output``: the run's output folder. An input folder that holds the output folder (``-o
+    targets/frames``) covers only what lies outside the output folder: inside it, only the
+    inputs themselves are protected (a command lists the files it reads, e.g. every target).
+    """
+
+    def __init__(self, inputs: Iterable[str | Path | None], output: str | Path | None = None):
         self.items = []
+        out = _real(output) if output is not None else None
         for i in inputs:
             if i is None or str(i) == "":
                 continue
             p = Path(i)
             if p.exists():
-                self.items.append((p, _real(p), p.is_dir()))
+                real = _real(p)
+                self.items.append((p, real, p.is_dir(), out if out is not None and p.is_dir() and
+                                   out != real and _inside(out, real) else None))
 
     def touched_by(self, path: Path) -> Path | None:
         """The input that writing or deleting ``path`` would touch, or None."""
         r = _real(path)
-        for p, real, is_dir in self.items:
-            if r == real or (is_dir and _inside(r, real)):
+        for p, real, is_dir, carved in self.items:
+            if r == real or (is_dir and _inside(r, real) and not (carved and _inside(r, carved))):
                 return p
             with contextlib.suppress(OSError):
                 if path.exists() and os.path.samefile(path, p):     # a hard link of an input
@@ -300,14 +308,11 @@ def _link_on_the_way(root: Path, rel: str) -> Path | None:
 
 
 def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = ()) -> Path:
-    """Check a folder output before any computation: :func:`check_output`; the folder is not
-    inside an input folder; its ownership record (:data:`MANIFEST`), if any, is valid; and a
+    """Check a folder output before any computation: :func:`check_output` (not an input folder);
+    its ownership record (:data:`MANIFEST`), if any, is valid; and a
     non-empty folder that keyshape did not make (no record) is refused unless ``overwrite``."""
     inputs = [i for i in inputs if i is not None]
     path = check_output(path, "folder", inputs)
-    for inp, real, is_dir in InputSet(inputs).items:
-        if is_dir and _inside(_real(path), real):
-            raise InputError(f"the output folder is inside the input folder {inp}; choose another folder", path)
     record = _read_manifest(path) if path.is_dir() else None
     if path.is_dir() and not overwrite and record is None:
         others = [p.name for p in path.iterdir() if not _is_hidden_temp(p.name)]
@@ -335,7 +340,8 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
 
     * its files are moved in; a file of the same name already there is replaced only when it
       is recorded under this ``kind`` (or by an older keyshape without a kind), or with
-      ``overwrite``; never when it is one of ``inputs`` or inside an input folder, never
+      ``overwrite``; never when it is one of ``inputs`` or inside an input folder (see
+      :class:`InputSet` for an output folder inside an input folder), never
       through a symbolic link to a folder;
     * files recorded under this ``kind`` that this run did not write are deleted, except an
       input, a file inside an input folder, a symbolic link, or one reached through a link;
@@ -352,7 +358,7 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
         raise ValueError("atomic_dir needs a command kind")
     inputs = [i for i in inputs if i is not None]
     path = check_output_dir(path, overwrite, inputs)
-    guard = InputSet(inputs)
+    guard = InputSet(inputs, output=path)
     created = not path.exists()
     path.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".keyshape-", suffix=".partial", dir=path))
