@@ -18,7 +18,7 @@ import numpy as np
 from keyshape.decompose.regions import model_shapes
 from keyshape.decompose.selectors import SpreadSelector
 from keyshape.decompose.toy import toy_tracks
-from keyshape.decompose.weights import lstsq_weights, nnls_weights, smooth_weights
+from keyshape.decompose.weights import lstsq_weights, nnls_result, smooth_result
 
 
 def main() -> None:
@@ -44,23 +44,23 @@ def main() -> None:
         return name, (time.perf_counter() - t, time.process_time() - c), out
 
     res = [timed("lstsq (baseline)", lambda: lstsq_weights(shapes, keys, neutral)),
-           timed("nnls", lambda: nnls_weights(shapes, keys, neutral, return_converged=True)),
-           timed("smooth (lambda 0.1)", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True))]
+           timed("nnls", lambda: nnls_result(shapes, keys, neutral)),
+           timed("smooth (lambda 0.1)", lambda: smooth_result(shapes, keys, neutral, 0.1))]
     if args.admm:
-        res.append(timed("smooth, ADMM", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True,
+        res.append(timed("smooth, ADMM", lambda: smooth_result(shapes, keys, neutral, 0.1,
                                                                 method="admm")))
     if args.plain_admm:
-        res.append(timed("smooth, plain ADMM", lambda: smooth_weights(shapes, keys, neutral, 0.1, return_info=True,
+        res.append(timed("smooth, plain ADMM", lambda: smooth_result(shapes, keys, neutral, 0.1,
                                                                       method="admm", anderson=0)))
     base_t, base_c = res[0][1]
     for name, (dt, dc), out in res:
         extra = ""
         if name == "nnls":
-            extra = f"  all converged: {bool(out[1].all())}, min weight {out[0].min():.3g}"
+            extra = f"  all converged: {bool(out.converged.all())}, min weight {out.weights.min():.3g}"
         if name.startswith("smooth"):
-            extra = f"  {out[1]['method']} iterations: {out[1]['iterations']}, converged: {out[1]['converged']}"
+            extra = f"  {out.method} iterations: {out.iterations}, converged: {bool(out.converged.all())}"
             if name != "smooth (lambda 0.1)":
-                extra += f", max |w - active-set w| {np.abs(out[0] - res[2][2][0]).max():.2g}"
+                extra += f", max |w - active-set w| {np.abs(out.weights - res[2][2].weights).max():.2g}"
         print(f"{name:22s} {dt:8.2f} s   ratio to lstsq {dt / base_t:6.2f}   (CPU time {dc:7.2f} s, ratio "
               f"{dc / base_c:6.2f}){extra}")
 

@@ -14,6 +14,8 @@ the per-frame problem ``min_w ||B^T w - x||^2`` is then the k-sized
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import os
 
@@ -308,8 +310,32 @@ def _ridged(G: np.ndarray, ridge: float) -> np.ndarray:
     return G + ridge * float(np.trace(G)) / len(G) * np.eye(len(G))
 
 
+class SolveResult(NamedTuple):
+    """What every weight solver's ``*_result`` function returns (one type whatever the solver).
+
+    Attributes
+    ----------
+    weights : (n_frames, n_keys) float64, never negative
+    converged : (n_frames,) bool: per frame for NNLS (the active-set iterations ended); for the
+        smoothed QP, one flag for the whole sequence repeated per frame
+    iterations : iterations of the method (0 where the solution is direct)
+    method : the method that produced ``weights`` (``nnls``; ``pdas``, ``admm`` or ``pdas, then admm``)
+    """
+
+    weights: np.ndarray
+    converged: np.ndarray
+    iterations: int
+    method: str
+
+
 def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
-                 return_converged: bool = False, ridge: float = 0.0):
+                 ridge: float = 0.0) -> np.ndarray:
+    """Non-negative least-squares weights, eq. (4): :func:`nnls_result`'s ``weights``."""
+    return nnls_result(shapes, keys, neutral, ridge).weights
+
+
+def nnls_result(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
+                ridge: float = 0.0) -> SolveResult:
     """Non-negative least-squares weights, eq. (4) of 004_119ba07521a9af0b.txt, for all frames at once.
 
     ``min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2`` for each frame ``t``.
@@ -322,8 +348,6 @@ def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
     shapes : (n_frames, n_points, dim)
     keys : (n_keys, n_points, dim)
     neutral : (n_points, dim) or None
-    return_converged : bool
-        Also return the per-frame convergence flags.
     ridge : float
         Optional Tikhonov term ``ridge * (trace(G) / n_keys) * ||w_t||^2`` added to eq. (4)
         (0, the default, is the paper's NNLS). Tracked shapes carry noise, and NNLS explains
@@ -335,20 +359,29 @@ def nnls_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | Non
 
     Returns
     -------
-    (n_frames, n_keys) weights, never negative (and the flags if asked).
+    :class:`SolveResult`: (n_frames, n_keys) weights, never negative, and the per-frame convergence flags.
     """
     X, B = _flatten(shapes, keys, neutral)
     G = _ridged(_gram(B), ridge)
     w, ok = nnls_gram(G, X @ B.T)
-    return (w, ok) if return_converged else w
+    return SolveResult(w, np.asarray(ok, dtype=bool), 0, "nnls")
 
 
 # --------------------------------------------------------------------------- smoothed NNLS
 
 def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
                    smooth_lambda: float = 0.1, observed: np.ndarray | None = None,
-                   max_iter: int = 3000, tol: float = 1e-5, return_info: bool = False, ridge: float = 0.0,
-                   anderson: int = 10, method: str = "pdas"):
+                   max_iter: int = 3000, tol: float = 1e-5, ridge: float = 0.0,
+                   anderson: int = 10, method: str = "pdas") -> np.ndarray:
+    """NNLS with a penalty on frame-to-frame weight change: :func:`smooth_result`'s ``weights``."""
+    return smooth_result(shapes, keys, neutral, smooth_lambda, observed, max_iter, tol, ridge, anderson,
+                         method).weights
+
+
+def smooth_result(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
+                  smooth_lambda: float = 0.1, observed: np.ndarray | None = None,
+                  max_iter: int = 3000, tol: float = 1e-5, ridge: float = 0.0,
+                  anderson: int = 10, method: str = "pdas") -> SolveResult:
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
@@ -387,8 +420,8 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
 
     Returns
     -------
-    (n_frames, n_keys) non-negative weights (and a dict with ``iterations``, ``converged``,
-    ``method`` if ``return_info``).
+    :class:`SolveResult`: (n_frames, n_keys) non-negative weights, whether the method converged
+    (one flag, per frame), its iterations and the method used.
     """
     X, B = _flatten(shapes, keys, neutral)
     n, k = len(X), len(B)
@@ -413,7 +446,7 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
         Z[obs] = nnls_gram(Gs, H[obs])[0]
     if mu == 0:
         # per-frame NNLS (eq. 4); unobserved frames have no data and no penalty: weights 0
-        return (Z, {"iterations": 0, "converged": True, "method": method}) if return_info else Z
+        return SolveResult(Z, np.ones(n, dtype=bool), 0, method)
     if method == "pdas":
         W0 = Z
         if obs.all():
@@ -434,7 +467,7 @@ def smooth_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | N
             method = "pdas, then admm"
     else:
         W, it, converged = _smooth_admm(Gs, H, m, mu, Z, max_iter, tol, anderson)
-    return (W, {"iterations": it, "converged": converged, "method": method}) if return_info else W
+    return SolveResult(W, np.full(n, bool(converged)), int(it), method)
 
 
 def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.ndarray, max_iter: int,

@@ -19,7 +19,8 @@ from keyshape.decompose.regions import decompose_region, model_shapes, region_po
 from keyshape.decompose.selectors import (GreedySelector, HullSelector, KMeansSelector, RandomSelector, SpreadSelector,
                                  make_selector)
 from keyshape.decompose.toy import toy_tracks
-from keyshape.decompose.weights import (lstsq_weights, nnls_gram, nnls_weights, reconstruct, smooth_weights,
+from keyshape.decompose.weights import (SolveResult, lstsq_weights, nnls_gram, nnls_result, nnls_weights, reconstruct,
+                                       smooth_result, smooth_weights,
                                solve_weights)
 
 SCHEME = load_scheme("contours48")
@@ -47,7 +48,10 @@ def _random_problem(seed, n_frames=200, n_points=12, n_keys=9):
 def test_nnls_equals_scipy_lawson_hanson(seed, centred):
     shapes, keys, neutral = _random_problem(seed)
     neutral = neutral if centred else None
-    w, ok = nnls_weights(shapes, keys, neutral, return_converged=True)
+    res = nnls_result(shapes, keys, neutral)
+    assert isinstance(res, SolveResult) and res.method == "nnls"
+    w, ok = res.weights, res.converged
+    np.testing.assert_array_equal(w, nnls_weights(shapes, keys, neutral))
     ref_n = 0 if neutral is None else neutral
     B = (keys - ref_n).reshape(len(keys), -1).T
     ref = np.array([nnls(B, x)[0] for x in (shapes - ref_n).reshape(len(shapes), -1)])
@@ -604,14 +608,15 @@ def test_smooth_matches_tight_bounded_least_squares(partial, method):
         r = w @ B - X
         return float((obs * np.sum(r * r, axis=1)).sum() + mu * np.sum(np.diff(w, axis=0) ** 2))
 
-    tight, info = smooth_weights(filled, keys, neutral, 0.1, observed=obs, tol=1e-10, max_iter=20000,
-                                 return_info=True, method=method)
-    assert info["converged"] and info["method"] == method
+    res_ = smooth_result(filled, keys, neutral, 0.1, observed=obs, tol=1e-10, max_iter=20000, method=method)
+    tight = res_.weights
+    assert isinstance(res_, SolveResult) and res_.converged.all() and res_.method == method
     assert tight.min() >= 0.0
     np.testing.assert_allclose(tight, ref, atol=1e-6)
-    w, info = smooth_weights(filled, keys, neutral, 0.1, observed=obs, return_info=True,
-                             method=method)  # default tol 1e-5
-    assert info["converged"] and w.min() >= 0.0
+    res_ = smooth_result(filled, keys, neutral, 0.1, observed=obs, method=method)  # default tol 1e-5
+    w = res_.weights
+    np.testing.assert_array_equal(w, smooth_weights(filled, keys, neutral, 0.1, observed=obs, method=method))
+    assert res_.converged.all() and w.min() >= 0.0
     assert np.abs(w - ref).max() < 1e-2 and np.sqrt(np.mean((w - ref) ** 2)) < 2e-3
     assert objective(w) <= f_ref * (1 + 1e-5) and abs(objective(ref) - f_ref) < 1e-8 * f_ref
 
@@ -647,9 +652,10 @@ def test_smooth_active_set_solution_satisfies_kkt(seed, k, n, lam, partial, ridg
     shapes = neutral + rng.normal(size=(n, 6, 2))
     obs = rng.random(n) > 0.3 if partial else np.ones(n, bool)
     obs[rng.integers(n)] = True
-    w, info = smooth_weights(np.where(obs[:, None, None], shapes, neutral), keys, neutral, lam, observed=obs,
-                             tol=1e-10, ridge=ridge, return_info=True)
-    assert info["converged"] and info["method"] == "pdas"
+    res_ = smooth_result(np.where(obs[:, None, None], shapes, neutral), keys, neutral, lam, observed=obs,
+                         tol=1e-10, ridge=ridge)
+    w = res_.weights
+    assert res_.converged.all() and res_.method == "pdas"
     assert w.min() >= 0.0
     X = (shapes - neutral).reshape(n, -1)
     B = (keys - neutral).reshape(k, -1)
@@ -674,8 +680,9 @@ def test_smooth_active_set_does_not_cycle_on_failed_frames():
     obs[100:140] = False
     obs[700] = False
     F = np.where(obs[:, None, None], Q, sel.neutral_)
-    w, info = smooth_weights(F, sel.keys_, sel.neutral_, 0.01, observed=obs, tol=1e-10, return_info=True)
-    assert info["converged"] and info["method"] == "pdas", info
+    res_ = smooth_result(F, sel.keys_, sel.neutral_, 0.01, observed=obs, tol=1e-10)
+    w = res_.weights
+    assert res_.converged.all() and res_.method == "pdas", res_.method
     X = (Q - sel.neutral_).reshape(len(Q), -1)
     B = (sel.keys_ - sel.neutral_).reshape(16, -1)
     G = B @ B.T
@@ -699,6 +706,7 @@ def test_smooth_falls_back_to_admm_and_still_solves_the_qp(monkeypatch):
     obs = np.ones(n, bool)
     ref, _ = _smooth_reference(shapes, keys, neutral, 0.1, obs)
     monkeypatch.setattr(wmod, "_smooth_pdas", lambda Gs, H, m, mu, W, max_iter, tol: (W, max_iter, False))
-    w, info = smooth_weights(shapes, keys, neutral, 0.1, tol=1e-10, max_iter=20000, return_info=True)
-    assert info["method"] == "pdas, then admm" and info["converged"]
+    res_ = smooth_result(shapes, keys, neutral, 0.1, tol=1e-10, max_iter=20000)
+    w = res_.weights
+    assert res_.method == "pdas, then admm" and res_.converged.all()
     np.testing.assert_allclose(w, ref, atol=1e-6)
