@@ -62,6 +62,17 @@ def _roll_2d(pose: np.ndarray) -> np.ndarray:
     return a - np.median(a)
 
 
+def _offset_free(est: np.ndarray, truth: np.ndarray) -> dict:
+    """Per column: the estimate's constant offset (its zero is another frame than the truth's), then the
+    RMS and the 95th percentile of the remaining error, and r (degrees)."""
+    ok = np.isfinite(est).all(axis=1)
+    d = est[ok] - truth[ok]
+    off = np.median(d, axis=0)
+    e = np.abs(d - off)
+    return {"offset": off.tolist(), "rms": np.sqrt((e ** 2).mean(0)).tolist(), "p95": np.percentile(e, 95, axis=0).tolist(),
+            "r": [_r(est[ok, j], truth[ok, j]) for j in range(est.shape[1])]}
+
+
 def score(p: dict) -> dict:
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.formats.weights import read_weights
@@ -95,7 +106,20 @@ def score(p: dict) -> dict:
         off = ((tr.points[:, row] - (c0 + c1) / 2) * u).sum(1) / np.linalg.norm(c1 - c0, axis=1)
         gaze[name] = {"r_offset_vs_yaw": _r(off[ok], head[col_yaw][ok]),
                       "pupil_px": float(np.nanmean(np.linalg.norm(tr.points[:, row] - truth.points[:, row], axis=1)))}
-    return {"nme": nme, "lost": int((~tr.success).sum()), "curves": curves,
+    est = None
+    try:
+        from keyshape.api import head as head_api                 # the 3D head step (branch head3d)
+    except ImportError:
+        head_api = None
+    if head_api is not None:
+        hd = head_api(tr)
+        truth_ang = np.column_stack([head["head_yaw_deg"], head["head_pitch_deg"], head["head_roll_deg"]])
+        est = {"angles": _offset_free(hd.angles, truth_ang)}
+        if hd.gaze is not None:
+            truth_gaze = np.column_stack([head["left_eye_yaw_deg"], head["left_eye_pitch_deg"],
+                                          head["right_eye_yaw_deg"], head["right_eye_pitch_deg"]])
+            est["gaze"] = _offset_free(hd.gaze, truth_gaze)
+    return {"nme": nme, "lost": int((~tr.success).sum()), "curves": curves, "head3d": est,
             "roll": {"rms_tracks": float(np.sqrt(np.mean((roll_tr - roll_t[ok]) ** 2))),
                      "r_tracks": _r(roll_tr, roll_t[ok]),
                      "rms_truth_2d": float(np.sqrt(np.mean((roll_truth2d - roll_t) ** 2)))},
@@ -115,6 +139,17 @@ def report(s: dict) -> str:
     out.append(f"head (truth yaw {s['yaw_range'][0]:+.1f}..{s['yaw_range'][1]:+.1f} deg): roll from the tracks' 2D pose "
                f"RMS {ro['rms_tracks']:.2f} deg (r {ro['r_tracks']:.3f}); from the truth landmarks' 2D pose RMS "
                f"{ro['rms_truth_2d']:.2f} deg; yaw, pitch: not estimated by this chain")
+    h3 = s.get("head3d")
+    if h3:
+        a = h3["angles"]
+        out.append("3D head step (keyshape.api.head; offset removed): " + ", ".join(
+            f"{n} RMS {a['rms'][j]:.2f} p95 {a['p95'][j]:.2f} deg r {a['r'][j]:.3f} (offset {a['offset'][j]:+.1f})"
+            for j, n in enumerate(("yaw", "pitch", "roll"))) + "  [target: within 3 deg]")
+        if "gaze" in h3:
+            g = h3["gaze"]
+            out.append("gaze (keyshape.api.head; offset removed): " + ", ".join(
+                f"{n} RMS {g['rms'][j]:.2f} p95 {g['p95'][j]:.2f} deg r {g['r'][j]:.3f}"
+                for j, n in enumerate(("left yaw", "left pitch", "right yaw", "right pitch"))) + "  [target: 5 deg]")
     for name, g in s["gaze"].items():
         out.append(f"gaze {name}: tracked pupil offset vs truth eye yaw r {g['r_offset_vs_yaw']:+.3f}; pupil error "
                    f"{g['pupil_px']:.2f} px; angles not estimated by this chain")
