@@ -27,10 +27,12 @@ def register(subparsers) -> None:
                    help="mouth, eyes (with brows) or pupils; repeat for several (default: all the scheme has)")
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
     p.add_argument("--seed", type=int, default=0, help="seed of kmeans/random/greedy (default 0)")
-    p.add_argument("--head-pose", choices=("rigid", "tracker"), default="rigid",
-                   help="how the head's motion is taken out of the shapes: rigid (the tracker's pose, then "
-                        "stabilised on the points rigid with the skull, the eye corners; the default) or tracker "
-                        "(the tracker's pose alone). Recorded in KEYS.json; decompose does the same")
+    p.add_argument("--head-pose", choices=("3d", "rigid", "tracker"), default="3d",
+                   help="how the head's motion is taken out of the shapes: 3d (the head's 3D pose, fitted to the "
+                        "points rigid with the skull on a 3D face, is removed and the shapes are brought to the "
+                        "front; the default, rigid where the scheme has no 3D face), rigid (the tracker's pose, then "
+                        "a 2D similarity on the rigid points, the eye corners) or tracker (the tracker's pose "
+                        "alone). Recorded in KEYS.json; decompose, pose and retarget do the same")
     p.add_argument("--min-key-distance", type=float, default=0.1,
                    help="drop near-duplicate keys: a key closer to an earlier key than this fraction of the "
                         "median key-to-neutral distance (default 0.1; 0 keeps all)")

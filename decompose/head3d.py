@@ -207,6 +207,9 @@ class HeadPose3D:
     distance : assumed camera distance of the face (cm) for the focal length guess
     smooth : Gaussian sigma (frames) of the temporal smoothing of the pose; 0: none
     adapt : adapt the face's x, y to the actor's rest frame (symmetrised)
+    focal, centre : the camera's focal length and principal point (pixels) when known (default: guessed)
+    anchor : after Eq. 2, map each frame's rigid points onto the zero frame's by a 2D similarity (the
+        3D pose takes the turn out of the plane, the rigid points fix what is left in the plane)
 
     Attributes
     ----------
@@ -216,12 +219,14 @@ class HeadPose3D:
     zero_ : (3, 3) camera-axes rotation of the zero frame
     zero_frame_ : int, row of the zero frame in the shapes given to :meth:`fit`
     frame_ : (3,) ``(s, tx, ty)``: head-frame shape ``= s * H_xy + (tx, ty)`` (rest-frame pixels)
+    reference_ : (n_rigid, 2) the zero frame's rigid points in the head frame (``anchor``)
     weights_ : (n_points,) point weights of Eq. 1
     """
 
     def __init__(self, template: np.ndarray, weights: Sequence[float], rigid: Sequence[int], distance: float = 60.0,
                  smooth: float = 1.0, adapt: bool = True, focal: float | None = None,
-                 centre: Sequence[float] | None = None):
+                 centre: Sequence[float] | None = None, anchor: bool = False):
+        self.anchor = bool(anchor)
         self.focal = None if focal is None else float(focal)
         self.centre = None if centre is None else tuple(float(c) for c in centre)
         self.template = np.asarray(template, np.float64)
@@ -316,6 +321,7 @@ class HeadPose3D:
         pr = p[self.zero_frame_, rig]
         s = np.sqrt(((pr - pr.mean(0)) ** 2).sum() / max(((hr - hr.mean(0)) ** 2).sum(), 1e-12))
         self.frame_ = np.array([s, *(pr.mean(0) - s * hr.mean(0))])
+        self.reference_ = s * hr + self.frame_[1:]
         return self
 
     def _relaxed(self, shapes: np.ndarray, ok: np.ndarray, R: np.ndarray | None) -> int:
@@ -389,6 +395,12 @@ class HeadPose3D:
                        np.where(ok[:, None, None], R, np.eye(3)), np.where(ok[:, None], t, 1.0),
                        self.focal_, self.centre_)[..., :2]
         out = self.frame_[0] * H + self.frame_[1:]
+        if self.anchor and ok.any():
+            from keyshape.base.geometry import rigid_fit
+            rig = list(self.rigid)
+            rot, trans, sc = rigid_fit(out[ok][:, rig], np.broadcast_to(self.reference_, (int(ok.sum()),) + self.reference_.shape),
+                                       scale=True)
+            out[ok] = sc[:, None, None] * np.einsum("tij,tnj->tni", rot, out[ok]) + trans[:, None]
         out[~ok] = np.nan
         return out
 
@@ -415,12 +427,15 @@ class HeadPose3D:
         return {"method": "3d", "points": list(self.rigid), "distance": self.distance,
                 "smooth": self.smooth, "adapt": self.adapt, "generic": r(self.template), "template": r(self.template_),
                 "weights": r(self.weights), "focal": round(self.focal_, 6), "centre": r(self.centre_),
-                "zero": r(self.zero_), "zero_frame": int(self.zero_frame_), "frame": r(self.frame_)}
+                "zero": r(self.zero_), "zero_frame": int(self.zero_frame_), "frame": r(self.frame_),
+                "anchor": self.anchor, "reference": r(self.reference_)}
 
     @classmethod
     def from_dict(cls, data: dict) -> "HeadPose3D":
         """The estimator a KEYS.json ``head_pose`` entry (``method: 3d``) describes."""
-        out = cls(data["generic"], data["weights"], data["points"], data["distance"], data["smooth"], data["adapt"])
+        out = cls(data["generic"], data["weights"], data["points"], data["distance"], data["smooth"], data["adapt"],
+                  anchor=data["anchor"])
+        out.reference_ = np.asarray(data["reference"], np.float64)
         out.template_ = np.asarray(data["template"], np.float64)
         out.weights_ = np.asarray(data["weights"], np.float64)
         out.focal_ = float(data["focal"])

@@ -44,14 +44,20 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
     return Retargeter(form=form, band=band, metric=metric).fit(ts, regions, source)
 
 
-def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 0, head_units: float = 1.0,
-                     source=None, head: str = "rigid") -> tuple[HeadMotion, float | None]:
+def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | None = None, head_units: float = 1.0,
+                     source=None, head: str | dict = "3d") -> tuple[HeadMotion, float | None]:
     """Head motion of the weights' ``frames`` from the tracks' 2D pose, and the tracks' frame rate.
 
-    ``head``: ``rigid`` (default): the tracker's pose stabilised on the scheme's rigid points
+    ``head``: ``3d`` (default): the head's 3D pose (:class:`~keyshape.decompose.head3d.HeadPose3D`
+    fitted to the tracks, or the one of a KEYS.json ``head_pose`` entry given as a dict): rotation
+    about the rig's origin and translation with depth (:func:`~keyshape.retarget.headpose.head_motion_3d`),
+    zero at the estimator's most front-facing relaxed frame unless ``reference_frame`` is given, the
+    translation in model units (the actor's inter-ocular distance in the model frame per the 3D
+    face's) times ``head_units``; ``rigid`` where the scheme has no 3D face. ``rigid``: the tracker's pose stabilised on the scheme's rigid points
     (:func:`~keyshape.decompose.regions.stable_pose`), so that an expression the tracker's pose
     took up does not move the character's head; ``tracker``: the tracker's pose as it is (also
     for tracks of a point count no built-in scheme has). Failed frames hold the last good pose.
+    ``reference_frame``: the frame of the rest pose (2D default: the first frame).
     The frame rate is the median of the timestamps' steps (None when they do not give one).
     """
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
@@ -59,11 +65,26 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 
     if missing:
         raise InputError(f"weights frames {missing[:5]} are not in the tracks", source)
     rows = np.array([pos[int(f)] for f in frames])
-    if reference_frame not in pos:
+    if reference_frame is not None and reference_frame not in pos:
         raise InputError(f"reference frame {reference_frame} is not in the tracks", source)
     from keyshape.decompose.stabilize import HEAD_POSES
-    if head not in HEAD_POSES:
+    if isinstance(head, dict):
+        head = head if head.get("method") == "3d" else head.get("method", "tracker")
+    if not isinstance(head, dict) and head not in HEAD_POSES:
         raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
+    fps = None
+    if len(tracks.time) > 1:
+        dt = np.diff(tracks.time)
+        dt = dt[np.isfinite(dt) & (dt > 0)]
+        fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
+    if (isinstance(head, dict) or head == "3d") and tracks.success.any():
+        motion = _head_3d(tracks, head, rows, None if reference_frame is None else pos[reference_frame],
+                          head_units, source)
+        if motion is not None:
+            return motion, fps
+        head = "rigid"
+    if reference_frame is None:
+        reference_frame = int(tracks.frame[0])
     pose = tracks.pose
     if head == "rigid" and tracks.success.any():
         from keyshape.base.schemes import scheme_for_n_points
@@ -78,10 +99,39 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int = 
     full = hold_invalid(pose, tracks.success)
     pose = np.concatenate([full[rows], full[[pos[reference_frame]]]])
     head = head_motion(pose, reference=len(rows), units_per_model=head_units)
-    head = type(head)(head.translation[:-1], head.rotation[:-1], head.scale[:-1], head.angle[:-1])
-    fps = None
-    if len(tracks.time) > 1:
-        dt = np.diff(tracks.time)
-        dt = dt[np.isfinite(dt) & (dt > 0)]
-        fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
+    head = head.take(slice(0, -1))
     return head, fps
+
+
+def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_units: float, source):
+    """The 3D head's motion of ``rows`` (None where the tracks' scheme has no 3D face)."""
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.regions import head_pose_3d, image_points, model_shapes
+    from keyshape.decompose.stabilize import stabilizer_from_entry
+    from keyshape.retarget.headpose import head_motion_3d
+    try:
+        scheme = scheme_for_n_points(tracks.n_points)
+    except InputError:
+        return None
+    pts = image_points(tracks, source)
+    if isinstance(head, dict):
+        est = stabilizer_from_entry(head)
+    else:
+        est = head_pose_3d(scheme)
+        if est is None:
+            return None
+        est.fit(pts)
+    hp = est.head_pose(pts)
+    R, t = hp["rotation"], hp["translation"]
+    if ref_row is not None and np.isfinite(R[ref_row]).all():
+        from keyshape.decompose.head3d import euler_angles
+        R = np.einsum("tij,kj->tik", R, R[ref_row])
+        t = t - t[ref_row]
+        ang = euler_angles(R)
+    else:
+        ang = hp["angles"]
+    a, b = scheme.inter_ocular
+    ms = model_shapes(tracks, source)[tracks.success]
+    iod_model = float(np.median(scheme.interocular_distance(ms)))
+    iod_face = float(np.linalg.norm(est.template_[a] - est.template_[b]))
+    return head_motion_3d(R, t, ang, head_units * iod_model / iod_face).take(rows)

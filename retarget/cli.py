@@ -36,7 +36,13 @@ def register(subparsers) -> None:
     p.add_argument("--metric", choices=("geodesic", "euclidean"), default="geodesic",
                    help="distance for the region band")
     p.add_argument("--tracks", help="tracks CSV: its 2D pose gives the head motion (root transform)")
-    p.add_argument("--reference-frame", type=int, default=0, help="tracks frame taken as the rest head pose")
+    p.add_argument("--reference-frame", type=int, default=None,
+                   help="tracks frame taken as the rest head pose (default: with the 3D head, the actor's most "
+                        "front-facing relaxed frame; with a 2D head, the first frame)")
+    p.add_argument("--head-pose", choices=("3d", "rigid", "tracker"), default="3d",
+                   help="the head motion written with --tracks: 3d (yaw, pitch, roll and translation with depth "
+                        "from the track's rigid points on a 3D face; the default) or the 2D motion of rigid|tracker "
+                        "(as keyshape select --head-pose)")
     p.add_argument("--head-units", type=float, default=None,
                    help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
                         "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
@@ -85,7 +91,7 @@ def run(args) -> int:
     for name, v, lo in (("--head-units", args.head_units, 0.0), ("--fps", args.fps, 0.0), ("--band", args.band, 0.0)):
         if v is not None and not (np.isfinite(v) and lo < v < 1e9):
             raise InputError(f"{name} {v}: must be a finite number > {lo:g}")
-    if args.reference_frame < 0:
+    if args.reference_frame is not None and args.reference_frame < 0:
         raise InputError(f"--reference-frame {args.reference_frame}: frames are numbered from 0")
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
@@ -190,5 +196,5 @@ def _head(args, frames, rig=None):
         if rig is not None:
             print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
                   "(rig inter-ocular distance / actor's)")
-    head, tracks_fps = head_from_tracks(tr, frames, args.reference_frame, units, args.tracks)
+    head, tracks_fps = head_from_tracks(tr, frames, args.reference_frame, units, args.tracks, head=args.head_pose)
     return head, args.fps or tracks_fps

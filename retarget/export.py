@@ -52,14 +52,20 @@ def output_kind(path: str | Path, dim: int) -> str:
     raise InputError("output must end in .glb, .csv, .mp4/.avi, or be a folder (OBJ or PNG frames)", path)
 
 
-def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
+def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None,
+                  eyes: np.ndarray | None = None):
     """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``).
 
     Target names are matched to ARKit names case-insensitively with ``_L``/``Left`` alike;
     an unsided ARKit name (``browInnerUp``, ``cheekPuff``) missing from the targets takes the
     mean of its ``_L``/``_R`` targets (ICT-FaceKit splits them). Unmatched ARKit columns are 0.
-    ``HeadRoll`` is the head motion's in-plane angle in radians (yaw and pitch are not
-    estimated from 2D video: 0). Raises :class:`InputError` when no target name is an ARKit name.
+    ``HeadYaw``, ``HeadPitch``, ``HeadRoll``: the 3D head's angles in radians (``head.angles``; yaw > 0
+    when the actor turns to their left, pitch > 0 when they look down, roll > 0 when the head tilts
+    toward their right shoulder: the head axes of ARKit's face anchor, x the face's left, y up, z out
+    of the face, ``R = Rz(roll) Ry(yaw) Rx(pitch)``); with a 2D head motion only ``HeadRoll`` (its
+    in-plane angle) is set. The eye columns take ``eyes`` (n_frames, 4): left yaw, left pitch, right
+    yaw, right pitch in radians (the actor's left and right eyes), when given.
+    Raises :class:`InputError` when no target name is an ARKit name.
     """
     col = {name_key(n): j for j, n in enumerate(names)}
     out = np.zeros((len(weights), len(ARKIT52)))
@@ -76,8 +82,12 @@ def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | Non
         raise InputError(f"no target name is an ARKit blendshape name (targets: {', '.join(names[:8])}...); "
                          "the Live Link layout needs ARKit-named targets")
     tail = np.zeros((len(weights), len(LIVELINK_TAIL)))
-    if head is not None:
+    if head is not None and head.angles is not None:
+        tail[:, 0:3] = head.angles
+    elif head is not None:
         tail[:, 2] = head.angle
+    if eyes is not None:
+        tail[:, [3, 4, 6, 7]] = np.nan_to_num(np.asarray(eyes, np.float64))
     header = ["Timecode", "BlendShapeCount"] + [n[0].upper() + n[1:] for n in ARKIT52] + LIVELINK_TAIL
     rows = []
     for i in range(len(weights)):
@@ -88,6 +98,19 @@ def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | Non
         tc = f"{sec // 3600:02d}:{sec // 60 % 60:02d}:{sec % 60:02d}:{ff:02d}.{int(round(sub * 1000)):03d}"
         rows.append([tc, "61"] + ["%.6g" % x for x in out[i]] + ["%.6g" % x for x in tail[i]])
     return header, rows
+
+
+#: the curves CSV's head columns (:func:`head_columns`)
+HEAD_COLUMNS = ("headYaw", "headPitch", "headRoll", "headX", "headY", "headZ")
+
+
+def head_columns(head: HeadMotion) -> np.ndarray:
+    """(n_frames, 6) the curves CSV's ``headYaw, headPitch, headRoll`` (degrees, as Live Link's
+    HeadYaw/Pitch/Roll) and ``headX, headY, headZ`` (the head node's translation, mesh units, y up, z
+    toward the camera: depth) of a head motion; a 2D motion has yaw and pitch 0."""
+    ang = head.angles if head.angles is not None else np.stack(
+        [np.zeros(head.n_frames), np.zeros(head.n_frames), head.angle], 1)
+    return np.concatenate([np.degrees(ang), head.translation], 1)
 
 
 def _draw_2d(points: np.ndarray, size=(480, 480), scheme=None):

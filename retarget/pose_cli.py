@@ -78,7 +78,7 @@ def run(args) -> int:
     lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
     groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
-    stabilized = read_keys_head_pose(args.keys)["method"] == "rigid"
+    stabilized = read_keys_head_pose(args.keys)["method"] in ("rigid", "3d")
     lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, args.sparsity,
                        args.nuisance, stabilized, args.opposed)
     fit = lib.pop("_fit")
