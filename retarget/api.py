@@ -68,16 +68,17 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
     if reference_frame is not None and reference_frame not in pos:
         raise InputError(f"reference frame {reference_frame} is not in the tracks", source)
     from keyshape.decompose.stabilize import HEAD_POSES
+    from keyshape.decompose.head3d import HeadPose3D
     if isinstance(head, dict):
         head = head if head.get("method") == "3d" else head.get("method", "tracker")
-    if not isinstance(head, dict) and head not in HEAD_POSES:
+    if not isinstance(head, (dict, HeadPose3D)) and head not in HEAD_POSES:
         raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
     fps = None
     if len(tracks.time) > 1:
         dt = np.diff(tracks.time)
         dt = dt[np.isfinite(dt) & (dt > 0)]
         fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
-    if (isinstance(head, dict) or head == "3d") and tracks.success.any():
+    if (isinstance(head, (dict, HeadPose3D)) or head == "3d") and tracks.success.any():
         motion = _head_3d(tracks, head, rows, None if reference_frame is None else pos[reference_frame],
                           head_units, source)
         if motion is not None:
@@ -113,8 +114,9 @@ def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_u
         scheme = scheme_for_n_points(tracks.n_points)
     except InputError:
         return None
+    from keyshape.decompose.head3d import HeadPose3D
     pts = image_points(tracks, source)
-    if isinstance(head, dict):
+    if isinstance(head, (dict, HeadPose3D)):
         est = stabilizer_from_entry(head)
     else:
         est = head_pose_3d(scheme)
@@ -135,3 +137,40 @@ def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_u
     iod_model = float(np.median(scheme.interocular_distance(ms)))
     iod_face = float(np.linalg.norm(est.template_[a] - est.template_[b]))
     return head_motion_3d(R, t, ang, head_units * iod_model / iod_face).take(rows)
+
+
+def head_3d_from_tracks(tracks: Tracks, source=None):
+    """The :class:`~keyshape.decompose.head3d.HeadPose3D` fitted to ``tracks`` (None where their scheme
+    has no 3D face): give it to :func:`head_from_tracks` and :func:`gaze_from_tracks` to fit once."""
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.regions import head_pose_3d, image_points
+    try:
+        scheme = scheme_for_n_points(tracks.n_points)
+    except InputError:
+        return None
+    est = head_pose_3d(scheme)
+    return None if est is None or not tracks.success.any() else est.fit(image_points(tracks, source))
+
+
+def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None) -> np.ndarray:
+    """(n_frames, 4) eye angles of the weights' ``frames`` (left yaw, left pitch, right yaw, right pitch,
+    radians; :func:`keyshape.decompose.gaze.gaze_angles`) from the pupils in the head's frame (``head``:
+    a fitted :class:`~keyshape.decompose.head3d.HeadPose3D`, a KEYS.json ``head_pose`` entry, or None:
+    fitted here; the 2D rigid head where the scheme has no 3D face). Failed frames hold the last good
+    gaze. Raises :class:`InputError` when the scheme has no pupils."""
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.gaze import gaze_angles
+    from keyshape.decompose.regions import head_shapes
+    scheme = scheme_for_n_points(tracks.n_points)
+    shapes, _ = head_shapes(tracks, scheme, "3d" if head is None else head, source)
+    g = gaze_angles(shapes, scheme)
+    pos = {int(f): i for i, f in enumerate(tracks.frame)}
+    missing = [int(f) for f in frames if int(f) not in pos]
+    if missing:
+        raise InputError(f"weights frames {missing[:5]} are not in the tracks", source)
+    ok = np.isfinite(g).all(axis=1)
+    if ok.any():
+        idx = np.maximum.accumulate(np.where(ok, np.arange(len(g)), -1))
+        idx[idx < 0] = int(np.flatnonzero(ok)[0])
+        g = g[idx]
+    return np.nan_to_num(g[[pos[int(f)] for f in frames]])

@@ -154,10 +154,20 @@ def run_rig(args, inputs: list) -> int:
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
     lib = read_poses(args.poses, rig.names)
     curves = curves_from_library(weights, columns, lib, rig.names, args.poses)
-    head, fps = _head(args, frames, rig)
+    head, fps, eyes = _head(args, frames, rig, gaze=True)
+    if eyes is not None:
+        from keyshape.retarget.rig import gaze_curves
+        g, cols = gaze_curves(eyes, rig.names)
+        if cols:
+            curves[:, cols] = g[:, cols]
+            print(f"keyshape retarget: gaze from the pupils -> {len(cols)} eyeLook* shapes"
+                  + (" and the Live Link eye angles" if args.livelink else ""))
+        else:
+            print("keyshape retarget: gaze: the rig has no eyeLook* shapes, so its eyes cannot follow the pupils"
+                  + (" (the eye angles are in the Live Link eye columns)" if args.livelink else ""))
     fps = fps or 30.0
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
-                      overwrite=args.overwrite, inputs=inputs)
+                      overwrite=args.overwrite, inputs=inputs, eyes=eyes)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key weights -> {used} of {rig.n_shapes} rig "
           f"shapes moving at {fps:g} fps -> {info['path']} ({info['kind']})")
@@ -179,15 +189,17 @@ def rig_head_units(rig, tracks, landmarks=None) -> float:
     return rig_iod / float(np.median(iod))
 
 
-def _head(args, frames, rig=None):
-    """Head motion from ``--tracks`` (or None) and the frame rate from its timestamps (or ``--fps``).
+def _head(args, frames, rig=None, gaze: bool = False):
+    """Head motion from ``--tracks`` (or None) and the frame rate from its timestamps (or ``--fps``);
+    with ``gaze`` also the eye angles (n_frames, 4) from the pupils, or None (said in one line why).
 
     The translation's units: ``--head-units``, else with a rig the rig's inter-ocular distance
     over the actor's, else 1."""
     if not args.tracks:
-        return None, args.fps
+        return (None, args.fps, None) if gaze else (None, args.fps)
+    from keyshape.base.errors import InputError
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.retarget.api import head_from_tracks
+    from keyshape.retarget.api import gaze_from_tracks, head_3d_from_tracks, head_from_tracks
 
     tr = read_tracks(args.tracks, accept_partial=args.accept_partial)
     units = args.head_units
@@ -196,5 +208,14 @@ def _head(args, frames, rig=None):
         if rig is not None:
             print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
                   "(rig inter-ocular distance / actor's)")
-    head, tracks_fps = head_from_tracks(tr, frames, args.reference_frame, units, args.tracks, head=args.head_pose)
-    return head, args.fps or tracks_fps
+    est = head_3d_from_tracks(tr, args.tracks) if args.head_pose == "3d" else None
+    head_kind = est if est is not None else args.head_pose
+    head, tracks_fps = head_from_tracks(tr, frames, args.reference_frame, units, args.tracks, head=head_kind)
+    if not gaze:
+        return head, args.fps or tracks_fps
+    try:
+        eyes = gaze_from_tracks(tr, frames, est if est is not None else args.head_pose, args.tracks)
+    except InputError as exc:
+        print(f"keyshape retarget: gaze: {exc}; the eyes keep the poses' gaze")
+        eyes = None
+    return head, args.fps or tracks_fps, eyes

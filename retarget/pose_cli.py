@@ -91,6 +91,14 @@ def run(args) -> int:
         data["keys"]["model"] = src["model"]
     write_poses(args.output, data)
     for r, reg in lib.items():
+        if r == "pupils" and r in groups:
+            moving = [j for j, n in enumerate(rig.names) if n in reg["shapes"]
+                      and np.abs(lm_deltas[j][groups[r]]).max() > 1e-6]
+            if not moving:
+                print("pupils: this rig cannot show gaze through its landmarks (its eyeLook* shapes, if any, do not "
+                      "move the pupils: the eyeballs turn with bones), so the pupil keys stay at rest; gaze goes "
+                      "to the eyeLook* curves and Live Link eye angles from the pupils with retarget --tracks")
+                continue
         print(f"{r}: {len(reg['keys'])} keys onto {len(reg['shapes'])} rig shapes")
         for k, pose in reg["keys"].items():
             top = sorted(pose.items(), key=lambda kv: -kv[1])[:4]

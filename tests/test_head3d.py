@@ -151,3 +151,142 @@ def test_errors():
         HeadPose3D(X, W, SCHEME.rigid).fit(np.full((2, 48, 2), np.nan))
     with pytest.raises(InputError, match="no 3D head template"):
         load_head_template("nosuch")
+
+
+# ---------------------------------------------------------------------- where the head goes
+
+def _tiny_rig():
+    from keyshape.base.formats.obj import Mesh
+    from keyshape.retarget.rig import Rig
+    verts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.5]])
+    names = ["jawOpen", "eyeLookOut_L", "eyeLookIn_L", "eyeLookUp_R", "eyeLookDown_R", "eyeLookOut_R"]
+    deltas = np.random.default_rng(1).normal(0, 0.1, (len(names), 4, 3))
+    return Rig(names, verts, deltas, Mesh(verts, [np.array([0, 1, 2]), np.array([1, 3, 2])]))
+
+
+def _turning_head(n=12):
+    """A head motion of a known left turn, nod and tilt (the estimator's output format)."""
+    from keyshape.retarget.headpose import head_motion_3d
+    ang = np.radians(np.stack([np.linspace(0, 25, n), np.linspace(0, -10, n), np.linspace(0, 5, n)], 1))
+    R = from_euler(ang[:, 0], ang[:, 1], ang[:, 2])
+    t = np.stack([np.zeros(n), np.zeros(n), np.linspace(0, -6, n)], 1)        # moving 6 cm away
+    return head_motion_3d(R, t, ang, units=2.0), R, t, ang
+
+
+def _accessor(g, i):
+    acc = g.accessors[i]
+    view = g.bufferViews[acc.bufferView]
+    n = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[acc.type]
+    data = g.binary_blob()[view.byteOffset + (acc.byteOffset or 0):][: acc.count * n * 4]
+    return np.frombuffer(data, np.float32).reshape(acc.count, n)
+
+
+def test_glb_head_node_turns_and_moves_in_depth(tmp_path):
+    import pygltflib
+
+    from keyshape.retarget.headpose import quaternion_matrix
+    from keyshape.retarget.rig_export import export_rig
+    rig = _tiny_rig()
+    head, R, t, _ = _turning_head()
+    out = tmp_path / "take.glb"
+    export_rig(out, rig, np.arange(12), np.zeros((12, len(rig.names))), fps=24.0, head=head)
+    g = pygltflib.GLTF2().load(str(out))
+    anim = g.animations[0]
+    got = {c.target.path: _accessor(g, anim.samplers[c.sampler].output) for c in anim.channels if c.target.node == 0}
+    q = got["rotation"]
+    assert np.allclose(quaternion_matrix(q.astype(float)), R, atol=1e-5)
+    k = 11
+    # the face's forward axis (+z) turns toward +x: the actor's left; glTF's axes are the rig's (y up)
+    assert (quaternion_matrix(q[k:k + 1].astype(float))[0] @ [0, 0, 1])[0] > 0.3
+    assert np.allclose(got["translation"], t * 2.0, atol=1e-5)          # depth is the z translation
+    assert np.allclose(got["scale"], 1.0)                               # never a scale
+
+
+def test_curves_csv_and_livelink_carry_the_head(tmp_path):
+    import csv
+
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.rig_export import export_rig
+    rig = _tiny_rig()
+    head, R, t, ang = _turning_head()
+    eyes = np.tile(np.radians([10.0, -5.0, 8.0, 4.0]), (12, 1))
+    export_rig(tmp_path / "c.csv", rig, np.arange(12), np.zeros((12, len(rig.names))), head=head)
+    frames, names, w, _ = read_weights(tmp_path / "c.csv")
+    cols = {n: w[:, j] for j, n in enumerate(names)}
+    assert np.allclose(cols["headYaw"], np.degrees(ang[:, 0]), atol=1e-5)
+    assert np.allclose(cols["headPitch"], np.degrees(ang[:, 1]), atol=1e-5)
+    assert np.allclose(cols["headRoll"], np.degrees(ang[:, 2]), atol=1e-5)
+    assert np.allclose(cols["headZ"], 2.0 * t[:, 2], atol=1e-5)
+    export_rig(tmp_path / "ll.csv", _arkit_rig(), np.arange(12), np.zeros((12, 2)), head=head, livelink=True, eyes=eyes)
+    with open(tmp_path / "ll.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert float(rows[11]["HeadYaw"]) == pytest.approx(ang[11, 0], abs=1e-5)          # radians
+    assert float(rows[11]["HeadPitch"]) == pytest.approx(ang[11, 1], abs=1e-5)
+    assert float(rows[11]["HeadRoll"]) == pytest.approx(ang[11, 2], abs=1e-5)
+    assert [float(rows[3][c]) for c in ("LeftEyeYaw", "LeftEyePitch", "RightEyeYaw", "RightEyePitch")] == \
+        pytest.approx(np.radians([10.0, -5.0, 8.0, 4.0]), abs=1e-5)
+
+
+def _arkit_rig():
+    from keyshape.retarget.rig import Rig
+    verts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    return Rig(["jawOpen", "eyeBlinkLeft"], verts, np.zeros((2, 3, 3)))
+
+
+def test_a_left_turn_is_positive_head_yaw_end_to_end():
+    """Rendered: the actor turns to their left (the face's left side, image right, goes away from
+    the camera). Live Link's HeadYaw comes out positive (ARKit's face-anchor axes, see
+    ``retarget/export.py``), as does the curves CSV's headYaw."""
+    from keyshape.retarget.export import head_columns, livelink_rows
+    from keyshape.retarget.headpose import head_motion_3d
+    yaw = np.concatenate([np.zeros(30), np.linspace(0, 20, 30)])
+    pts = _render(yaw, np.zeros(60), np.zeros(60))
+    # seen from the camera, the turn moves the nose side (the mouth's middle) toward image right
+    assert pts[-1, 31, 0] - pts[-1, [10, 22], 0].mean() > pts[0, 31, 0] - pts[0, [10, 22], 0].mean()
+    est = HeadPose3D(X, W, SCHEME.rigid, smooth=0).fit(pts)
+    hp = est.head_pose(pts)
+    head = head_motion_3d(hp["rotation"], hp["translation"], hp["angles"])
+    header, rows = livelink_rows(["jawOpen"], np.zeros((60, 1)), 30.0, head)
+    assert float(rows[-1][header.index("HeadYaw")]) == pytest.approx(np.radians(20), abs=np.radians(3))
+    assert head_columns(head)[-1, 0] == pytest.approx(20, abs=3)
+
+
+# ---------------------------------------------------------------------- gaze
+
+def test_gaze_from_pupils():
+    from keyshape.decompose.gaze import EYE_RADIUS_CM, EYE_WIDTH_CM, gaze_angles, has_gaze
+    front = _render(np.zeros(40), np.zeros(40), np.zeros(40))
+    shapes = front.copy()
+    w_r = np.linalg.norm(front[0, 22] - front[0, 18])                       # the actor's left eye (image right)
+    w_l = np.linalg.norm(front[0, 14] - front[0, 10])
+    look = np.radians(15.0)
+    shapes[30:, 27, 0] += np.sin(look) * EYE_RADIUS_CM / EYE_WIDTH_CM * w_r   # both pupils to image right:
+    shapes[30:, 26, 0] += np.sin(look) * EYE_RADIUS_CM / EYE_WIDTH_CM * w_l   # the actor looks to their left
+    shapes[35:, 26, 1] += np.sin(look) * EYE_RADIUS_CM / EYE_WIDTH_CM * w_l   # right eye also down
+    g = np.degrees(gaze_angles(shapes, SCHEME))
+    assert np.allclose(g[:30], 0, atol=0.5)
+    # (measured along and across each eye's corner line, which the 3D face tilts by a few degrees)
+    assert g[32, 0] == pytest.approx(15, abs=1.5) and g[32, 2] == pytest.approx(15, abs=1.5)
+    assert g[38, 3] == pytest.approx(15, abs=1.5) and abs(g[38, 1]) < 1.5
+    assert has_gaze(SCHEME) and not has_gaze(load_scheme("ibug68"))
+    with pytest.raises(InputError, match="no pupils"):
+        gaze_angles(np.zeros((2, 68, 2)), load_scheme("ibug68"))
+
+
+def test_gaze_holds_through_a_blink():
+    from keyshape.decompose.gaze import gaze_angles
+    shapes = _render(np.zeros(20), np.zeros(20), np.zeros(20))
+    shapes[10:, 27, 0] += 2.0
+    shapes[12:14, [19, 20, 21], 1] = shapes[12:14, [25, 24, 23], 1]      # the left eye shut: pupil unseen
+    shapes[12:14, 27, 1] += 5.0
+    g = gaze_angles(shapes, SCHEME)
+    assert np.allclose(g[12:14], g[11])
+
+
+def test_gaze_curves_drive_eyelook_shapes():
+    from keyshape.retarget.rig import gaze_curves
+    names = ["eyeLookOut_L", "eyeLookIn_L", "eyeLookOutRight", "eyeLookIn_R", "eyeLookUp_L", "eyeLookDown_R", "jawOpen"]
+    a = np.radians([[15.0, -12.5, 15.0, 25.0]])           # both look to the actor's left; left up, right down
+    c, used = gaze_curves(a, names)
+    assert used == [0, 1, 2, 3, 4, 5]
+    assert c[0] == pytest.approx([0.5, 0.0, 0.0, 0.5, 0.5, 1.0, 0.0])
