@@ -41,12 +41,12 @@ def tracks_scheme(tracks: Tracks, scheme: str | Scheme | None = None, source=Non
 
 def select_keys(tracks: Tracks, k: int | None, method: str = "spread", regions: Sequence[str] | None = None,
                 scheme: str | Scheme | None = None, seed: int = 0, source=None, progress: bool = False,
-                head: str = "rigid") -> tuple[Scheme, list[RegionKeys], dict]:
+                head: str = "3d") -> tuple[Scheme, list[RegionKeys], dict]:
     """Choose ``k`` key shapes per region from ``tracks`` (see :func:`~keyshape.decompose.regions.select_region`).
 
     ``regions`` default to all the scheme can form; ``source`` names the tracks file in errors;
     ``progress`` shows the greedy selector's progress on stderr; ``head``: how the head pose is
-    taken out (:func:`~keyshape.decompose.regions.head_shapes`: ``rigid``, the default, or ``tracker``).
+    taken out (:func:`~keyshape.decompose.regions.head_shapes`: ``3d``, the default, ``rigid`` or ``tracker``).
     Returns the scheme, the keys and the KEYS.json ``head_pose`` entry that goes with them.
     """
     sch = tracks_scheme(tracks, scheme, source)

@@ -36,7 +36,7 @@ from keyshape.base.formats.tracks import Tracks, read_tracks, write_tracks
 from keyshape.decompose.regions import RegionKeys
 from keyshape.tracker.eigenpoints import AppearanceModel
 
-__all__ = ["train", "track", "select", "decompose", "retarget", "Keys", "Weights", "Animation", "Tracks",
+__all__ = ["train", "track", "select", "decompose", "retarget", "head", "Head", "Keys", "Weights", "Animation", "Tracks",
            "AppearanceModel", "read_tracks", "write_tracks"]
 
 
@@ -184,13 +184,14 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
 
 def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = "spread",
            regions: Sequence[str] | None = None, *, scheme: str | None = None, seed: int = 0,
-           head: str = "rigid") -> Keys:
+           head: str = "3d") -> Keys:
     """Choose ``k`` key shapes per region (``keyshape select``).
 
     ``tracks`` may be a list (several takes of one actor, one key set for all): they are
     concatenated in order and the keys' ``frames`` count frames across that concatenation.
-    ``method``: spread (the paper's), kmeans2, kmeans3, hull2, random, greedy. ``head``: ``rigid``
-    (stabilise the head on the scheme's rigid points, the default) or ``tracker`` (its pose alone).
+    ``method``: spread (the paper's), kmeans2, kmeans3, hull2, random, greedy. ``head``: ``3d`` (the
+    head's 3D pose removed, the shapes brought to the front; the default), ``rigid`` (a 2D similarity on
+    the scheme's rigid points) or ``tracker`` (its pose alone).
     """
     from keyshape.decompose.api import concat_tracks, select_keys
 
@@ -218,7 +219,7 @@ def decompose(tracks: Tracks, keys: Keys, solver: str = "nnls", ridge: float = 0
 
 def retarget(weights: Weights, targets, regions=None, *, tracks: Tracks | None = None, neutral=None, mapping=None,
              form: str = "auto", band: float | None = None, metric: str = "geodesic", fps: float | None = None,
-             reference_frame: int = 0, head_units: float = 1.0) -> Animation:
+             reference_frame: int | None = None, head_units: float = 1.0, head: str = "3d") -> Animation:
     """Drive the artist's target key shapes with ``weights`` (``keyshape retarget``).
 
     Parameters
@@ -229,6 +230,8 @@ def retarget(weights: Weights, targets, regions=None, *, tracks: Tracks | None =
     tracks : give the head motion (root transform) and the frame rate
     neutral, mapping, form, band, metric : as ``keyshape retarget``
     fps : frame rate (default: from the tracks, else 30)
+    reference_frame, head : the head's rest frame and kind (``3d``, ``rigid``, ``tracker``), as
+        ``keyshape retarget --reference-frame/--head-pose``
     """
     from keyshape.retarget.api import fit_retargeter, head_from_tracks
 
@@ -236,6 +239,51 @@ def retarget(weights: Weights, targets, regions=None, *, tracks: Tracks | None =
                         metric=metric)
     head = None
     if tracks is not None:
-        head, tracks_fps = head_from_tracks(tracks, weights.frames, reference_frame, head_units)
+        motion, tracks_fps = head_from_tracks(tracks, weights.frames, reference_frame, head_units, head=head)
         fps = fps or tracks_fps
-    return Animation(rt, weights, float(fps or 30.0), head)
+        return Animation(rt, weights, float(fps or 30.0), motion)
+    return Animation(rt, weights, float(fps or 30.0), None)
+
+
+@dataclass
+class Head:
+    """The head's 3D pose and the eyes' gaze per frame of a track (:func:`head`).
+
+    Attributes
+    ----------
+    frames : (n_frames,) frame numbers
+    angles : (n_frames, 3) yaw, pitch, roll in degrees (yaw > 0: the actor turns to their left; pitch > 0:
+        looks down; roll > 0: tilts toward their right shoulder), 0 at the actor's most front-facing
+        relaxed frame; NaN where tracking failed
+    translation : (n_frames, 3) cm from that frame, head axes (x the actor's left, y up, z toward the camera)
+    rotation : (n_frames, 3, 3) head rotations in head axes
+    gaze : (n_frames, 4) left yaw, left pitch, right yaw, right pitch in degrees, or None (no pupils)
+    estimator : the fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (its ``to_dict`` is KEYS.json's
+        ``head_pose``)
+    """
+
+    frames: np.ndarray
+    angles: np.ndarray
+    translation: np.ndarray
+    rotation: np.ndarray
+    gaze: np.ndarray | None
+    estimator: object
+
+
+def head(tracks: Tracks) -> Head:
+    """The head's 3D pose and gaze of every frame of ``tracks`` (what ``keyshape retarget --tracks``
+    writes to the Live Link CSV, the curves CSV's head columns and the .glb head node)."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.gaze import gaze_angles, has_gaze
+    from keyshape.decompose.regions import head_pose_3d, image_points
+
+    scheme = scheme_for_n_points(tracks.n_points)
+    est = head_pose_3d(scheme)
+    if est is None:
+        raise InputError(f"scheme {scheme.name!r} has no 3D face or no rigid points: no 3D head pose")
+    pts = image_points(tracks)
+    est.fit(pts)
+    hp = est.head_pose(pts)
+    gaze = np.degrees(gaze_angles(est.transform(pts), scheme)) if has_gaze(scheme) else None
+    return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)

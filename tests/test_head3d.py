@@ -290,3 +290,17 @@ def test_gaze_curves_drive_eyelook_shapes():
     c, used = gaze_curves(a, names)
     assert used == [0, 1, 2, 3, 4, 5]
     assert c[0] == pytest.approx([0.5, 0.0, 0.0, 0.5, 0.5, 1.0, 0.0])
+
+
+def test_python_api_head():
+    from keyshape import api
+    from keyshape.base.formats.tracks import Tracks
+    yaw = np.concatenate([np.zeros(30), np.linspace(0, 20, 30)])
+    pts = _render(yaw, np.zeros(60), np.zeros(60))
+    n = len(pts)
+    tr = Tracks(np.arange(n), np.arange(n) / 30.0, np.ones(n), np.ones(n, bool), pts,
+                np.broadcast_to(np.eye(2, 3), (n, 2, 3)).copy())
+    h = api.head(tr)
+    assert h.angles[-1, 0] == pytest.approx(20, abs=3) and np.abs(h.angles[:30]).max() < 1
+    assert h.gaze is not None and np.abs(h.gaze).max() < 2
+    assert h.estimator.to_dict()["method"] == "3d"
