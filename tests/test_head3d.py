@@ -304,3 +304,17 @@ def test_python_api_head():
     assert h.angles[-1, 0] == pytest.approx(20, abs=3) and np.abs(h.angles[:30]).max() < 1
     assert h.gaze is not None and np.abs(h.gaze).max() < 2
     assert h.estimator.to_dict()["method"] == "3d"
+
+
+def test_ibug68_has_a_3d_face_too():
+    """ibug68's rigid points include the nose bridge: yaw and pitch come back as well."""
+    sch = load_scheme("ibug68")
+    X68, W68 = load_head_template(sch)
+    yaw = np.concatenate([np.zeros(10), [25.0, -20.0, 0.0]])
+    pitch = np.concatenate([np.zeros(10), [0.0, 10.0, -15.0]])
+    Rh = from_euler(np.radians(yaw), np.radians(pitch), np.zeros(13))
+    P = np.einsum("tij,nj->tni", Rh, X68) @ FLIP.T + [0.0, 0.0, DIST]
+    pts = FOCAL * P[..., :2] / P[..., 2:3] + CENTRE
+    est = HeadPose3D(X68, W68, sch.rigid, smooth=0, centre=CENTRE).fit(pts)
+    ang = np.degrees(est.head_pose(pts)["angles"])
+    assert np.abs(ang[:, 0] - yaw).max() < 3 and np.abs(ang[:, 1] - pitch).max() < 3
