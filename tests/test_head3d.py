@@ -81,13 +81,17 @@ def test_recovers_known_rotations(noise, centre):
     assert err.max() < (3.0 if centre is not None else 3.5), err.max(0)
     if noise == 0 and centre is not None:
         assert err.max() < 1.5
-        exact = HeadPose3D(X, W, SCHEME.rigid, smooth=0.0, centre=centre, focal=FOCAL).fit(pts)
+        # with the true camera and no prior on the rotation (a MAP's pull toward facing the camera), exact
+        exact = HeadPose3D(X, W, SCHEME.rigid, smooth=0.0, centre=centre, focal=FOCAL, spread=0).fit(pts)
         assert _errors(exact, pts, yaw, pitch, roll).max() < 0.05
+        # the default prior (20 degrees) pulls a 30-degree turn by well under a degree
+        prior = HeadPose3D(X, W, SCHEME.rigid, smooth=0.0, centre=centre, focal=FOCAL).fit(pts)
+        assert _errors(prior, pts, yaw, pitch, roll).max() < 0.5
 
 
 def test_rotated_neutral_comes_back_as_the_neutral():
     yaw, pitch, roll, pts, _ = _take(n=80)
-    est = HeadPose3D(X, W, SCHEME.rigid, smooth=0, centre=CENTRE, focal=FOCAL).fit(pts)
+    est = HeadPose3D(X, W, SCHEME.rigid, smooth=0, centre=CENTRE, focal=FOCAL, spread=0).fit(pts)
     H = est.transform(pts)
     assert np.abs(H - H[est.zero_frame_]).max() < 1e-3 * np.ptp(H[0, :, 0])
     # the rest frame's rigid points stay where they are in the image
@@ -107,7 +111,8 @@ def test_expression_survives_a_head_turn():
     turned = _render(np.array([0.0, 25.0]), np.array([0.0, 8.0]), np.zeros(2), deform=np.stack([np.zeros_like(X), d]))
     pts = np.concatenate([np.repeat(front[:1], 30, 0), front[1:], turned[1:]])
     for focal, tol in ((FOCAL, 0.001), (None, 0.08)):       # the true camera; the guess (focal 15% long)
-        est = HeadPose3D(X, W, SCHEME.rigid, smooth=0, centre=CENTRE, focal=focal).fit(pts)
+        est = HeadPose3D(X, W, SCHEME.rigid, smooth=0, centre=CENTRE, focal=focal,
+                         spread=0 if focal else 20.0).fit(pts)
         H = est.transform(pts)
         gap_front = H[-2, 37, 1] - H[0, 37, 1]
         gap_turned = H[-1, 37, 1] - H[0, 37, 1]
@@ -318,3 +323,19 @@ def test_ibug68_has_a_3d_face_too():
     est = HeadPose3D(X68, W68, sch.rigid, smooth=0, centre=CENTRE).fit(pts)
     ang = np.degrees(est.head_pose(pts)["angles"])
     assert np.abs(ang[:, 0] - yaw).max() < 3 and np.abs(ang[:, 1] - pitch).max() < 3
+
+
+def test_a_big_brow_raise_is_not_read_as_a_nod():
+    """Brows (weight 0.1) raised by 1.5 cm, a third of the eye-to-mouth distance: the per-frame robust
+    weights and the rotation prior keep the head still (within 3 degrees)."""
+    d = np.zeros_like(X)
+    d[0:10, 1] = 1.5
+    n = 40
+    deform = np.zeros((n,) + X.shape)
+    deform[20:] = d
+    pts = _render(np.zeros(n), np.zeros(n), np.zeros(n), deform=deform)
+    est = HeadPose3D(X, W, SCHEME.rigid, smooth=0, centre=CENTRE).fit(pts)
+    ang = np.degrees(est.head_pose(pts)["angles"])
+    assert np.abs(ang).max() < 3.0
+    no_robust = HeadPose3D(X, W, SCHEME.rigid, smooth=0, centre=CENTRE, robust=0, spread=0).fit(pts)
+    assert np.abs(np.degrees(no_robust.head_pose(pts)["angles"])).max() > np.abs(ang).max()

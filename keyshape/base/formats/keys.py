@@ -216,8 +216,9 @@ def _head_pose_3d(hp: dict, n: int, path) -> dict:
     try:
         pts = [int(i) for i in hp["points"]]
         arr = {k: np.asarray(hp[k], dtype=np.float64) for k in ("generic", "template", "weights", "centre", "zero", "frame")}
-        scal = {k: float(hp[k]) for k in ("distance", "smooth", "focal")}
+        scal = {k: float(hp[k]) for k in ("distance", "smooth", "focal", "spread", "robust")}
         adapt, zf, anchor = bool(hp["adapt"]), int(hp["zero_frame"]), bool(hp["anchor"])
+        rounds = int(hp["robust_rounds"])
         ref = np.asarray(hp["reference"], dtype=np.float64)
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise InputError(f"malformed head_pose (missing or bad field: {exc})", path) from None
@@ -227,8 +228,10 @@ def _head_pose_3d(hp: dict, n: int, path) -> dict:
             raise InputError(f"head_pose {k} must be {shp} finite numbers", path)
     if len(pts) < 2 or len(set(pts)) != len(pts) or not all(0 <= i < n for i in pts):
         raise InputError(f"head_pose points {pts}: need two or more distinct points in 0..{n - 1}", path)
-    if not (np.isfinite(list(scal.values())).all() and scal["focal"] > 0 and scal["distance"] > 0 and scal["smooth"] >= 0):
-        raise InputError("head_pose focal and distance must be > 0, smooth >= 0", path)
+    if not (np.isfinite(list(scal.values())).all() and scal["focal"] > 0 and scal["distance"] > 0
+            and min(scal["smooth"], scal["spread"], scal["robust"]) >= 0 and 0 <= rounds <= 20):
+        raise InputError("head_pose focal and distance must be > 0, smooth, spread and robust >= 0, "
+                         "robust_rounds 0..20", path)
     if (arr["weights"] < 0).any() or (arr["weights"][pts] <= 0).any() or arr["frame"][0] <= 0:
         raise InputError("head_pose weights must be >= 0 (> 0 on its points) and its frame's scale > 0", path)
     if np.abs(arr["zero"] @ arr["zero"].T - np.eye(3)).max() > 1e-3:
@@ -236,5 +239,6 @@ def _head_pose_3d(hp: dict, n: int, path) -> dict:
     if ref.shape != (len(pts), 2) or not np.isfinite(ref).all() or np.linalg.norm(ref - ref.mean(0)) < 1e-9:
         raise InputError(f"head_pose reference must be {len(pts)} distinct finite points", path)
     return {"method": "3d", "points": pts, **scal, "adapt": adapt, "zero_frame": zf, "anchor": anchor,
+            "robust_rounds": rounds,
             "reference": ref.tolist(),
             **{k: v.tolist() for k, v in arr.items()}}
