@@ -94,7 +94,7 @@ def test_stabilised_shapes_undo_a_pose_that_moves_with_the_expression():
     tracks, truth, exact = _expression_biased_tracks(with_exact=True)
     floor = _aligned_error(model_shapes(exact), truth)     # the 0.3 px noise alone, with the true pose
     tracker_only = _aligned_error(model_shapes(tracks), truth)
-    shapes, stab = head_shapes(tracks, SCHEME)
+    shapes, stab = head_shapes(tracks, SCHEME, "rigid")
     stabilised = _aligned_error(shapes, truth)
     assert tracker_only > 8 * floor                        # the pose's error shows in the shapes
     # what is left is that noise, carried from the four corners to the whole face
