@@ -87,7 +87,8 @@ def select_keys(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = 
     seed : seed of kmeans/random/greedy; source : names the tracks in errors
     progress : show the greedy selector's progress on stderr
     head : how the head pose is taken out (:func:`~keyshape.decompose.regions.head_shapes`):
-        ``rigid`` (default) or ``tracker``
+        ``3d`` (the head's 3D pose removed, :class:`~keyshape.decompose.head3d.HeadPose3D`), ``rigid`` (a 2D
+        similarity on the scheme's rigid points) or ``tracker`` (its pose alone); default :data:`HEAD_POSE`
     neutral_frame : what the weights are relative to: ``"auto"`` (the actor's most relaxed frame,
         one for the whole face, the default), a frame number (one take only), or None / ``"mean"``
         (the take's mean shape, the paper's centring)

@@ -31,9 +31,11 @@ def register(subparsers) -> None:
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
     p.add_argument("--seed", type=int, default=D.SEED, help=f"seed of kmeans/random/greedy (default {D.SEED})")
     p.add_argument("--head-pose", choices=D.HEAD_POSES, default=D.HEAD_POSE,
-                   help="how the head's motion is taken out of the shapes: rigid (the tracker's pose, then "
-                        "stabilised on the points rigid with the skull, the eye corners; the default) or tracker "
-                        "(the tracker's pose alone). Recorded in KEYS.json; decompose does the same")
+                   help="how the head's motion is taken out of the shapes: 3d (the head's 3D pose, fitted to the "
+                        "points rigid with the skull on a 3D face, is removed and the shapes are brought to the "
+                        "front; rigid where the scheme has no 3D face), rigid (the tracker's pose, then "
+                        "a 2D similarity on the rigid points, the eye corners) or tracker (the tracker's pose "
+                        "alone); default " + D.HEAD_POSE + ". Recorded in KEYS.json; decompose, pose and retarget do the same")
     p.add_argument("--min-key-distance", type=float, default=D.MIN_KEY_DISTANCE,
                    help="drop near-duplicate keys: a key closer to an earlier key than this fraction of the "
                         f"median key-to-neutral distance (default {D.MIN_KEY_DISTANCE:g}; 0 keeps all)")

@@ -12,12 +12,14 @@ METHODS = ("spread", "kmeans2", "kmeans3", "hull2", "random", "greedy")
 #: weight solvers (:func:`keyshape.decompose.weights.solve_weights`)
 SOLVERS = ("nnls", "lstsq", "smooth")
 #: how the head's motion is taken out of the shapes (:mod:`keyshape.decompose.stabilize`)
-HEAD_POSES = ("rigid", "tracker")
+#: ``3d``: the head's 3D pose removed and the shapes brought to the front (:class:`keyshape.decompose.head3d.HeadPose3D`);
+#: ``rigid``: the tracker's pose, then stabilised in 2D on the scheme's rigid points; ``tracker``: its pose alone
+HEAD_POSES = ("3d", "rigid", "tracker")
 
 METHOD = "greedy"            # key-shape selector (best in the project's measurements; spread is the paper's)
 NEUTRAL_FRAME = "auto"       # weights relative to the actor's most relaxed frame (one for the whole face)
 MIN_KEY_DISTANCE = 0.1       # near-duplicate keys dropped (fraction of the median key-to-neutral distance)
-HEAD_POSE = "rigid"          # head stabilised on the scheme's rigid points
+HEAD_POSE = "3d"             # the head's 3D pose removed before keys, weights and poses
 SEED = 0                     # seed of kmeans/random/greedy
 SOLVER = "smooth"            # NNLS + temporal smoothness
 RIDGE = 0.03                 # Tikhonov shrinkage against tracking noise (demo: 0.68 mm against 1.08 mm at 0)

@@ -31,13 +31,16 @@ from keyshape.base.errors import InputError
 from keyshape.base.formats.keys import REGIONS, RegionKeys
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
+from keyshape.base.schemes import load_head_template
+from keyshape.decompose.head3d import HeadPose3D
 from keyshape.decompose.stabilize import HEAD_POSES, RigidStabilizer, stabilizer_from_entry
 
 # the selectors and the solvers (scipy.fft, scipy.linalg) are imported where they are used: taking the
 # head out of the tracks (retarget's head motion) does not need them, and the commands start faster
 
 __all__ = ["REGIONS", "RegionKeys", "region_points", "available_regions", "head_pose", "model_shapes", "head_shapes",
-           "stable_pose", "to_image", "select_region", "decompose_region", "face_rest_frame", "HEAD_POSES"]
+           "stable_pose", "to_image", "select_region", "decompose_region", "face_rest_frame", "HEAD_POSES",
+           "image_points", "head_pose_3d"]
 
 
 def region_points(scheme: Scheme, region: str) -> np.ndarray:
@@ -103,14 +106,37 @@ def model_shapes(tracks: Tracks, path=None) -> np.ndarray:
     return out
 
 
-def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | None = "rigid",
-                path=None) -> tuple[np.ndarray, RigidStabilizer | None]:
+def image_points(tracks: Tracks, path=None) -> np.ndarray:
+    """The tracked image points (n_frames, n_points, 2), NaN in failed frames (checked as
+    :func:`model_shapes` checks them)."""
+    model_shapes(tracks, path)
+    return np.where(tracks.success[:, None, None], tracks.points, np.nan)
+
+
+def head_pose_3d(scheme: Scheme) -> HeadPose3D | None:
+    """An unfitted :class:`~keyshape.decompose.head3d.HeadPose3D` for ``scheme`` (its shipped 3D face
+    and rigid points), or None when the scheme has no 3D face or no rigid points."""
+    if not scheme.rigid:
+        return None
+    try:
+        X, w = load_head_template(scheme)
+    except InputError:
+        return None
+    if len(X) != scheme.n_points:
+        return None
+    return HeadPose3D(X, w, scheme.rigid)
+
+
+def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | HeadPose3D | None = "3d",
+                path=None) -> tuple[np.ndarray, RigidStabilizer | HeadPose3D | None]:
     """Shapes in the head frame (n_frames, n_points, 2) and the stabiliser that made them.
 
     Parameters
     ----------
     tracks, scheme : the tracks and their landmark scheme
-    head : ``"rigid"`` (default): :func:`model_shapes` stabilised on ``scheme.rigid`` with a
+    head : ``"3d"`` (default, as ``keyshape select``): the head's 3D pose taken out and the shapes brought to the front
+        (:class:`~keyshape.decompose.head3d.HeadPose3D` fitted to this take's image points; ``rigid``
+        where the scheme has no 3D face); ``"rigid"``: :func:`model_shapes` stabilised on ``scheme.rigid`` with a
         :class:`~keyshape.decompose.stabilize.RigidStabilizer` fitted to this take (the tracker's
         pose alone where the scheme names no rigid points); ``"tracker"`` or None: the tracker's
         pose alone; a fitted stabiliser, or a KEYS.json ``head_pose`` dict: that one (what
@@ -121,9 +147,19 @@ def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabiliz
     -------
     shapes, stabiliser (None for the tracker's pose alone)
     """
-    shapes = model_shapes(tracks, path)
     if isinstance(head, dict):
         head = stabilizer_from_entry(head)
+    if head == "3d":
+        head = head_pose_3d(scheme)
+        if head is None:
+            head = "rigid"
+        else:
+            pts = image_points(tracks, path)
+            head.fit(pts)
+            return head.transform(pts), head
+    if isinstance(head, HeadPose3D):
+        return head.transform(image_points(tracks, path)), head
+    shapes = model_shapes(tracks, path)
     if head is None or head == "tracker":
         return shapes, None
     if head == "rigid":
@@ -139,8 +175,12 @@ def stable_pose(tracks: Tracks, stabilizer: RigidStabilizer | dict | None, path=
     """The head pose ``image_from_head`` (n_frames, 2, 3) that goes with :func:`head_shapes`:
     the tracker's nearest similarity composed with the inverse of the stabiliser's correction
     (``image = pose @ [shape; 1]`` for every frame). ``stabilizer`` may be a KEYS.json
-    ``head_pose`` dict; None (or ``{"method": "tracker"}``): the tracker's pose alone."""
+    ``head_pose`` dict; None (or ``{"method": "tracker"}``): the tracker's pose alone. For the 3D head
+    (:class:`~keyshape.decompose.head3d.HeadPose3D`) it is the 2D similarity nearest to the image on the
+    rigid points (the 3D pose itself is :meth:`~keyshape.decompose.head3d.HeadPose3D.head_pose`)."""
     stabilizer = stabilizer_from_entry(stabilizer)
+    if isinstance(stabilizer, HeadPose3D):
+        return stabilizer.image_from_head(image_points(tracks, path))
     pose = head_pose(np.where(tracks.success[:, None, None], tracks.pose, np.eye(2, 3)))
     if stabilizer is None:
         return pose

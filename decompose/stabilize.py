@@ -23,9 +23,8 @@ import numpy as np
 
 from keyshape.base.errors import InputError, NotFittedError
 from keyshape.base.geometry import rigid_fit
-# HEAD_POSES: how the head's pose is taken out of the shapes: ``rigid`` (the tracker's pose, then stabilised
-# on the scheme's rigid points; the default) or ``tracker`` (the tracker's pose alone, keyshape's former behaviour)
-from keyshape.decompose.defaults import HEAD_POSES  # noqa: F401
+from keyshape.decompose.defaults import HEAD_POSES  # noqa: F401  (3d, rigid, tracker)
+from keyshape.decompose.head3d import HeadPose3D
 
 
 def similarity_affines(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -121,14 +120,16 @@ class RigidStabilizer:
         return f"RigidStabilizer(points={list(self.points)})"
 
 
-def head_pose_entry(stabilizer: RigidStabilizer | None) -> dict:
+def head_pose_entry(stabilizer: RigidStabilizer | HeadPose3D | None) -> dict:
     """The KEYS.json ``head_pose`` entry of a stabiliser (``{"method": "tracker"}`` for None)."""
     return {"method": "tracker"} if stabilizer is None else stabilizer.to_dict()
 
 
-def stabilizer_from_entry(entry: dict | RigidStabilizer | None) -> RigidStabilizer | None:
+def stabilizer_from_entry(entry: dict | RigidStabilizer | HeadPose3D | None) -> RigidStabilizer | HeadPose3D | None:
     """The stabiliser of a KEYS.json ``head_pose`` entry (None for ``tracker``); a stabiliser or
     None passes through, so callers may take either."""
     if isinstance(entry, dict):
+        if entry.get("method") == "3d":
+            return HeadPose3D.from_dict(entry)
         return RigidStabilizer.from_dict(entry) if entry.get("method") == "rigid" else None
     return entry

@@ -45,8 +45,9 @@ from keyshape.retarget import api as RA
 from keyshape.decompose.regions import RegionKeys
 from keyshape.tracker.eigenpoints import AppearanceModel
 
-__all__ = ["train", "track", "select", "decompose", "retarget", "pose", "preview", "load_rig", "Keys", "Weights",
-           "Animation", "RigAnimation", "PoseLibrary", "Tracks", "AppearanceModel", "read_tracks", "write_tracks"]
+__all__ = ["train", "track", "select", "decompose", "retarget", "pose", "preview", "load_rig", "head", "Head", "Keys",
+           "Weights", "Animation", "RigAnimation", "PoseLibrary", "Tracks", "AppearanceModel", "read_tracks",
+           "write_tracks"]
 
 
 @dataclass
@@ -155,6 +156,7 @@ class Animation:
     weights: Weights
     fps: float = RA.DEFAULT_FPS
     head: object = None
+    eyes: np.ndarray | None = None
 
     def vertices(self, chunk_frames: int = 256) -> np.ndarray:
         """The target face per frame: (n_frames, n_vertices, dim)."""
@@ -225,8 +227,8 @@ def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.MET
     ``tracks`` may be a list (several takes of one actor, one key set for all): the keys' ``frames``
     are then each take's frame numbers and their ``takes`` which take, as ``keyshape select`` with
     several files writes them. ``method``: greedy (default), spread (the paper's), kmeans2, kmeans3,
-    hull2, random. ``head``: ``rigid`` (stabilise the head on the scheme's rigid points, the default)
-    or ``tracker`` (its pose alone). ``neutral_frame``: ``"auto"`` (weights relative to the actor's
+    hull2, random. ``head``: ``3d`` (the head's 3D pose removed, the shapes brought to the front), ``rigid``
+    (a 2D similarity on the scheme's rigid points) or ``tracker`` (its pose alone); default as the command's. ``neutral_frame``: ``"auto"`` (weights relative to the actor's
     most relaxed frame, the default), a frame number, or ``"mean"`` (the take's mean, the paper's
     centring). ``min_key_distance``: near-duplicate keys dropped (0 keeps all). See
     :func:`keyshape.decompose.api.select_keys`.
@@ -333,6 +335,7 @@ class RigAnimation:
     curves : (n_frames, n_shapes) the rig shapes' weights
     fps : frame rate
     head : :class:`~keyshape.retarget.headpose.HeadMotion` in the rig's units, or None
+    eyes : (n_frames, 4) eye angles from the pupils (left yaw, pitch, right yaw, pitch; radians), or None
     """
 
     rig: object
@@ -340,6 +343,7 @@ class RigAnimation:
     curves: np.ndarray
     fps: float = RA.DEFAULT_FPS
     head: object = None
+    eyes: np.ndarray | None = None
 
     def vertices(self) -> np.ndarray:
         """The rig per frame: (n_frames, n_vertices, 3)."""
@@ -353,13 +357,15 @@ class RigAnimation:
         if not str(path).lower().endswith(".csv") and self.rig.mesh is None:
             self.rig = load_rig(self.rig.files if len(self.rig.files) else self.rig.neutral_file,
                                 self.rig.neutral_file)
-        return export_rig(path, self.rig, self.frames, self.curves, fps=self.fps, head=self.head, livelink=livelink)
+        return export_rig(path, self.rig, self.frames, self.curves, fps=self.fps, head=self.head, livelink=livelink,
+                          eyes=self.eyes)
 
 
 def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary | str | Path | None = None,
              rig=None, tracks: Tracks | None = None, neutral=None, mapping=None, form: str = RA.FORM,
              band: float | None = None, metric: str = RA.METRIC, fps: float | None = None,
-             reference_frame: int | None = None, head_units: float | None = None, landmarks=None):
+             reference_frame: int | None = None, head_units: float | None = None, landmarks=None,
+             head: str = RA.HEAD_MOTION):
     """Drive the artist's target key shapes, or a rig through a pose library, with ``weights``
     (``keyshape retarget``, with its defaults).
 
@@ -373,7 +379,10 @@ def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary
     tracks : give the head motion (root transform) and the frame rate
     neutral, mapping, form, band, metric : as ``keyshape retarget``
     fps : frame rate (default: from the tracks, else the weights' own, else 30)
-    reference_frame : the rest head pose's frame (default: the tracks' first)
+    reference_frame, head : the head's rest frame (default: with the 3D head its most front-facing relaxed
+        frame, else the tracks' first) and kind (``3d``, ``rigid``, ``tracker``), as ``keyshape retarget
+        --reference-frame/--head-pose``; with a rig and ``tracks`` the pupils' gaze drives its ``eyeLook*``
+        shapes (and the Live Link eye angles)
     head_units : mesh units per model unit of the head translation (default: with a rig its
         inter-ocular distance over the actor's, else 1); landmarks : the rig's landmark JSON
 
@@ -395,24 +404,27 @@ def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary
         lib = poses if isinstance(poses, PoseLibrary) else PoseLibrary.load(poses, r)
         curves = RA.rig_curves(weights.values, weights.names, lib.data, r,
                                None if isinstance(poses, PoseLibrary) else poses)
-        head, fps = _head(weights, tracks, fps, reference_frame, head_units, r, landmarks)
-        return RigAnimation(r, weights.frames, curves, fps, head)
+        motion, fps = _head(weights, tracks, fps, reference_frame, head_units, head, r, landmarks)
+        eyes = None
+        if tracks is not None:
+            curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, head)
+        return RigAnimation(r, weights.frames, curves, fps, motion, eyes)
     if targets is None:
         raise InputError("give targets (one target per key) or poses and a rig")
     rt = RA.fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=form, band=band,
                            metric=metric)
-    head, fps = _head(weights, tracks, fps, reference_frame, head_units)
-    return Animation(rt, weights, fps, head)
+    motion, fps = _head(weights, tracks, fps, reference_frame, head_units, head)
+    return Animation(rt, weights, fps, motion)
 
 
-def _head(weights: Weights, tracks, fps, reference_frame, head_units, rig=None, landmarks=None):
+def _head(weights: Weights, tracks, fps, reference_frame, head_units, kind=RA.HEAD_MOTION, rig=None, landmarks=None):
     """Head motion (or None) and the frame rate: ``fps``, else the tracks', else the weights', else 30."""
     wfps = weights.fps
     if tracks is None:
         return None, float(fps or wfps or RA.DEFAULT_FPS)
     if head_units is None:
         head_units = 1.0 if rig is None else RA.rig_head_units(rig, tracks, landmarks)
-    head, tracks_fps = RA.head_from_tracks(tracks, weights.frames, reference_frame, head_units)
+    head, tracks_fps = RA.head_from_tracks(tracks, weights.frames, reference_frame, head_units, head=kind)
     return head, float(fps or tracks_fps or wfps or RA.DEFAULT_FPS)
 
 
@@ -429,3 +441,47 @@ def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: st
     return write_preview(video, tracks, r, animation.frames, animation.curves, path, sheet=sheet, frames=frames,
                          size=size, sheet_frames=sheet_frames, threads=threads)
 
+
+
+@dataclass
+class Head:
+    """The head's 3D pose and the eyes' gaze per frame of a track (:func:`head`).
+
+    Attributes
+    ----------
+    frames : (n_frames,) frame numbers
+    angles : (n_frames, 3) yaw, pitch, roll in degrees (yaw > 0: the actor turns to their left; pitch > 0:
+        looks down; roll > 0: tilts toward their right shoulder), 0 at the actor's most front-facing
+        relaxed frame; NaN where tracking failed
+    translation : (n_frames, 3) cm from that frame, head axes (x the actor's left, y up, z toward the camera)
+    rotation : (n_frames, 3, 3) head rotations in head axes
+    gaze : (n_frames, 4) left yaw, left pitch, right yaw, right pitch in degrees, or None (no pupils)
+    estimator : the fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (its ``to_dict`` is KEYS.json's
+        ``head_pose``)
+    """
+
+    frames: np.ndarray
+    angles: np.ndarray
+    translation: np.ndarray
+    rotation: np.ndarray
+    gaze: np.ndarray | None
+    estimator: object
+
+
+def head(tracks: Tracks) -> Head:
+    """The head's 3D pose and gaze of every frame of ``tracks`` (what ``keyshape retarget --tracks``
+    writes to the Live Link CSV, the curves CSV's head columns and the .glb head node)."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.decompose.gaze import gaze_angles, has_gaze
+    from keyshape.decompose.regions import head_pose_3d, image_points
+
+    scheme = scheme_for_n_points(tracks.n_points)
+    est = head_pose_3d(scheme)
+    if est is None:
+        raise InputError(f"scheme {scheme.name!r} has no 3D face or no rigid points: no 3D head pose")
+    pts = image_points(tracks)
+    est.fit(pts)
+    hp = est.head_pose(pts)
+    gaze = np.degrees(gaze_angles(est.transform(pts), scheme)) if has_gaze(scheme) else None
+    return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)

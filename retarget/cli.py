@@ -40,7 +40,12 @@ def register(subparsers) -> None:
                    help="distance for the region band")
     p.add_argument("--tracks", help="tracks CSV: its 2D pose gives the head motion (root transform)")
     p.add_argument("--reference-frame", type=int, default=None,
-                   help="tracks frame taken as the rest head pose (default: the tracks' first frame)")
+                   help="tracks frame taken as the rest head pose (default: with the 3D head, the actor's most "
+                        "front-facing relaxed frame; with a 2D head, the first frame)")
+    p.add_argument("--head-pose", choices=("3d", "rigid", "tracker"), default=A.HEAD_MOTION,
+                   help="the head motion written with --tracks: 3d (yaw, pitch, roll and translation with depth "
+                        "from the track's rigid points on a 3D face; the default) or the 2D motion of rigid|tracker "
+                        "(as keyshape select --head-pose)")
     p.add_argument("--head-units", type=float, default=None,
                    help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
                         "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
@@ -116,7 +121,7 @@ def run(args) -> int:
     if args.regions == "auto":
         print("keyshape retarget: regions from the targets' own support: " + ", ".join(rt.region_names_ or []))
     ts = rt.targets_
-    head, fps = _head(args, weights)
+    head, fps, _ = _head(args, weights)
     info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, clamp=args.clamp,
                   livelink=args.livelink, bake_head=args.bake_head, scheme=args.scheme, overwrite=args.overwrite,
                   inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units))
@@ -157,9 +162,13 @@ def run_rig(args, inputs: list) -> int:
                              f"the tracks {args.tracks}: {tracks_model}): its poses are another actor's "
                              "key shapes. Fit a pose library to this model's keys ('keyshape pose')", args.poses)
     curves = rig_curves(weights.weights, columns, lib, rig, args.poses)
-    head, fps = _head(args, weights, rig)
+    head, fps, src = _head(args, weights, rig)
+    eyes = None
+    if src is not None:
+        from keyshape.retarget.api import apply_gaze
+        curves, eyes = apply_gaze(curves, rig, src[0], frames, src[1], args.tracks)
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
-                      overwrite=args.overwrite, inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units))
+                      overwrite=args.overwrite, inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units), eyes=eyes)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key weights -> {used} of {rig.n_shapes} rig "
           f"shapes moving at {fps:g} fps -> {info['path']} ({info['kind']})")
@@ -173,18 +182,18 @@ def meters_per_unit(units: str) -> float:
 
 
 def _head(args, weights, rig=None):
-    """Head motion from ``--tracks`` (or None) and the frame rate: ``--fps``, else the tracks' timestamps,
-    else the weights' own (WEIGHTS.csv's ``fps``), else 30.
+    """Head motion from ``--tracks`` (or None), the frame rate (``--fps``, else the tracks' timestamps,
+    else the weights' own, WEIGHTS.csv's ``fps``, else 30) and, with ``--tracks``, ``(tracks, head kind)``
+    for the gaze (else None).
 
-    The translation's units: ``--head-units``, else with a rig the rig's inter-ocular distance
-    over the actor's, else 1."""
-    from keyshape.retarget.api import DEFAULT_FPS, head_from_tracks, rig_head_units
-
+    The head is ``--head-pose`` (default the 3D head); the translation's units: ``--head-units``, else
+    with a rig the rig's inter-ocular distance over the actor's, else 1."""
     from keyshape.base.formats.weights import read_weights_fps
+    from keyshape.retarget.api import DEFAULT_FPS, head_3d_from_tracks, head_from_tracks, rig_head_units
 
     wfps = read_weights_fps(args.weights)
     if not args.tracks:
-        return None, args.fps or wfps or DEFAULT_FPS
+        return None, args.fps or wfps or DEFAULT_FPS, None
     from keyshape.base.formats.tracks import read_tracks
 
     tr = read_tracks(args.tracks, accept_partial=args.accept_partial)
@@ -194,5 +203,7 @@ def _head(args, weights, rig=None):
         if rig is not None:
             print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
                   "(rig inter-ocular distance / actor's)")
-    head, tracks_fps = head_from_tracks(tr, weights.frames, args.reference_frame, units, args.tracks)
-    return head, args.fps or tracks_fps or wfps or DEFAULT_FPS
+    est = head_3d_from_tracks(tr, args.tracks) if args.head_pose == "3d" else None
+    kind = est if est is not None else args.head_pose
+    head, tracks_fps = head_from_tracks(tr, weights.frames, args.reference_frame, units, args.tracks, head=kind)
+    return head, args.fps or tracks_fps or wfps or DEFAULT_FPS, (tr, kind)

@@ -12,3 +12,4 @@ SPARSITY = 0.01              # keyshape pose: L1 weight of a pose fit
 NUISANCE = "auto"            # keyshape pose: region motions fitted freely (retarget.poses.auto_nuisance)
 OPPOSED = -0.5               # keyshape pose: antagonist shapes never in one pose below this cosine
 DEFAULT_FPS = 30.0           # when neither the caller, the tracks nor the weights give a frame rate
+HEAD_MOTION = "3d"           # the head written with --tracks: the 3D head (yaw, pitch, roll, translation with depth)

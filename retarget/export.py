@@ -47,14 +47,20 @@ def output_kind(path: str | Path, dim: int) -> str:
                      "frames)", path)
 
 
-def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None) -> np.ndarray:
+def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None,
+                    eyes: np.ndarray | None = None) -> np.ndarray:
     """The 61 Live Link Face values of every frame, (n_frames, 61) in the CSV's column order.
 
     Target names are matched to ARKit names case-insensitively with ``_L``/``Left`` alike;
     an unsided ARKit name (``browInnerUp``, ``cheekPuff``) missing from the targets takes the
     mean of its ``_L``/``_R`` targets (ICT-FaceKit splits them). Unmatched ARKit columns are 0.
-    ``HeadRoll`` is the head motion's in-plane angle in radians (yaw and pitch are not
-    estimated from 2D video: 0). Raises :class:`InputError` when no target name is an ARKit name.
+    ``HeadYaw``, ``HeadPitch``, ``HeadRoll``: the 3D head's angles in radians (``head.angles``; yaw > 0
+    when the actor turns to their left, pitch > 0 when they look down, roll > 0 when the head tilts
+    toward their right shoulder: the head axes of ARKit's face anchor, x the face's left, y up, z out
+    of the face, ``R = Rz(roll) Ry(yaw) Rx(pitch)``); with a 2D head motion only ``HeadRoll`` (its
+    in-plane angle) is set. The eye columns take ``eyes`` (n_frames, 4): left yaw, left pitch, right
+    yaw, right pitch in radians (the actor's left and right eyes), when given.
+    Raises :class:`InputError` when no target name is an ARKit name.
     One mapping for the CSV (:func:`livelink_rows`) and the live packets (``keyshape live``).
     """
     weights = np.asarray(weights, dtype=np.float64)
@@ -72,15 +78,21 @@ def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None) 
     if not hit:
         raise InputError(f"no target name is an ARKit blendshape name (targets: {', '.join(list(names)[:8])}...); "
                          "the Live Link layout needs ARKit-named targets")
-    if head is not None:
-        out[:, len(ARKIT52) + 2] = head.angle
+    tail = out[:, len(ARKIT52):]
+    if head is not None and head.angles is not None:
+        tail[:, 0:3] = head.angles
+    elif head is not None:
+        tail[:, 2] = head.angle
+    if eyes is not None:
+        tail[:, [3, 4, 6, 7]] = np.nan_to_num(np.asarray(eyes, np.float64))
     return out
 
 
-def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None):
+def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None,
+                  eyes: np.ndarray | None = None):
     """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``):
     :func:`livelink_values` in the layout of :func:`keyshape.base.formats.livelink.csv_rows`."""
-    return csv_rows(livelink_values(names, weights, head), fps)
+    return csv_rows(livelink_values(names, weights, head, eyes), fps)
 
 
 def write_usd_take(path: Path, mesh, base: np.ndarray, deltas: np.ndarray, names, weights: np.ndarray,
@@ -101,6 +113,19 @@ def write_usd_take(path: Path, mesh, base: np.ndarray, deltas: np.ndarray, names
     return write_usd(path, base, polys, deltas, names, weights, fps, head, frames=frames,
                      uvs=mesh.uvs if puv is not None else None, polygon_uvs=puv, normals=n0, normal_deltas=nd,
                      meters_per_unit=meters_per_unit)
+
+
+#: the curves CSV's head columns (:func:`head_columns`)
+HEAD_COLUMNS = ("headYaw", "headPitch", "headRoll", "headX", "headY", "headZ")
+
+
+def head_columns(head: HeadMotion) -> np.ndarray:
+    """(n_frames, 6) the curves CSV's ``headYaw, headPitch, headRoll`` (degrees, as Live Link's
+    HeadYaw/Pitch/Roll) and ``headX, headY, headZ`` (the head node's translation, mesh units, y up, z
+    toward the camera: depth) of a head motion; a 2D motion has yaw and pitch 0."""
+    ang = head.angles if head.angles is not None else np.stack(
+        [np.zeros(head.n_frames), np.zeros(head.n_frames), head.angle], 1)
+    return np.concatenate([np.degrees(ang), head.translation], 1)
 
 
 def _draw_2d(points: np.ndarray, size=(480, 480), scheme=None):

@@ -1,7 +1,9 @@
 """Head motion from the tracked 2D affine pose (section 5 of 004_119ba07521a9af0b.txt).
 
 The paper did not estimate 3D head motion: "only scaled 2D translation and
-rotation are applied to the output motion". The tracker's pose is the affine
+rotation are applied to the output motion". keyshape now does (:func:`head_motion_3d`, from
+:class:`keyshape.decompose.head3d.HeadPose3D`); the 2D motion below remains for ``--head-pose
+rigid|tracker`` key sets and schemes without a 3D face. The tracker's pose is the affine
 ``image_from_model`` ``[x_img, y_img] = A [x, y] + t``; its 2x2 part is reduced
 to the nearest similarity ``s R(theta)`` (Frobenius norm): for
 ``A = [[a, b], [c, d]]``, ``s cos(theta) = (a + d) / 2`` and
@@ -32,15 +34,20 @@ class HeadMotion:
     Attributes
     ----------
     translation : (n_frames, 3) float64, mesh units
-    rotation : (n_frames, 4) float64 unit quaternions (x, y, z, w), about +z
-    scale : (n_frames, 3) float64, uniform
-    angle : (n_frames,) float64, radians about +z (mesh frame, y up)
+    rotation : (n_frames, 4) float64 unit quaternions (x, y, z, w): about +z for the 2D motion, any
+        3D rotation for :func:`head_motion_3d`
+    scale : (n_frames, 3) float64, uniform (1 for the 3D head: depth is a translation)
+    angle : (n_frames,) float64, radians about +z (mesh frame, y up): the in-plane angle (the roll)
+    angles : (n_frames, 3) float64 or None: yaw, pitch, roll in radians of the 3D head
+        (:func:`keyshape.decompose.head3d.euler_angles`: yaw > 0 the actor turns to their left, pitch > 0
+        looks down, roll > 0 tilts toward their right shoulder); None for the 2D motion
     """
 
     translation: np.ndarray
     rotation: np.ndarray
     scale: np.ndarray
     angle: np.ndarray
+    angles: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -49,19 +56,81 @@ class HeadMotion:
     def matrices(self) -> np.ndarray:
         """(n_frames, 4, 4) homogeneous matrices T R S."""
         n = self.n_frames
-        c, s = np.cos(self.angle), np.sin(self.angle)
         m = np.zeros((n, 4, 4))
-        k = self.scale[:, 0]
-        m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1] = k * c, -k * s, k * s, k * c
-        m[:, 2, 2] = k
+        m[:, :3, :3] = quaternion_matrix(self.rotation) * self.scale[:, None, :]
         m[:, :3, 3] = self.translation
         m[:, 3, 3] = 1.0
         return m
+
+    def take(self, rows) -> "HeadMotion":
+        """The motion of some frames (an index array or slice)."""
+        return HeadMotion(self.translation[rows], self.rotation[rows], self.scale[rows], self.angle[rows],
+                          None if self.angles is None else self.angles[rows])
 
     def apply(self, vertices: np.ndarray) -> np.ndarray:
         """Bake the motion into ``(n_frames, n_vertices, 3)`` vertices (only when asked)."""
         m = self.matrices()
         return np.einsum("fij,fvj->fvi", m[:, :3, :3], vertices) + m[:, None, :3, 3]
+
+
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotation matrices of (n, 4) unit quaternions (x, y, z, w)."""
+    q = np.asarray(q, np.float64)
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                     np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                     np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def matrix_quaternion(R: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (x, y, z, w), w >= 0, of (n, 3, 3) rotation matrices (Shepperd's method)."""
+    R = np.asarray(R, np.float64)
+    tr = np.trace(R, axis1=1, axis2=2)
+    cand = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
+    k = cand.argmax(1)
+    q = np.zeros((len(R), 4))
+    for i in range(4):                        # four cases, each vectorised over its frames
+        m = k == i
+        if not m.any():
+            continue
+        r = R[m]
+        if i == 0:
+            s = np.sqrt(1 + tr[m]) * 2
+            q[m] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s,
+                             (r[:, 1, 0] - r[:, 0, 1]) / s, s / 4], 1)
+        else:
+            a, b, c = (i - 1), i % 3, (i + 1) % 3
+            s = np.sqrt(np.maximum(1 + r[:, a, a] - r[:, b, b] - r[:, c, c], 1e-300)) * 2
+            v = np.zeros((m.sum(), 4))
+            v[:, a] = s / 4
+            v[:, b] = (r[:, b, a] + r[:, a, b]) / s
+            v[:, c] = (r[:, c, a] + r[:, a, c]) / s
+            v[:, 3] = (r[:, c, b] - r[:, b, c]) / s
+            q[m] = v
+    q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def head_motion_3d(rotation: np.ndarray, translation: np.ndarray, angles: np.ndarray,
+                   units: float = 1.0) -> HeadMotion:
+    """The root transform of the 3D head (:meth:`keyshape.decompose.head3d.HeadPose3D.head_pose`).
+
+    ``rotation`` (n, 3, 3) and ``translation`` (n, 3, cm from the zero frame) are in head axes (x the
+    actor's left, y up, z out of the face toward the camera), which are a rig's and glTF's axes
+    (ICT-FaceKit, ARKit: y up, the face looking down +z), so the node rotates by ``rotation`` about
+    the rig's origin and moves by ``translation * units`` (mesh units per cm; depth is the z
+    translation, never a scale). Failed frames (NaN) hold the last good pose.
+    """
+    R = np.asarray(rotation, np.float64)
+    t = np.asarray(translation, np.float64)
+    a = np.asarray(angles, np.float64)
+    ok = np.isfinite(R).all(axis=(1, 2)) & np.isfinite(t).all(axis=1) & np.isfinite(a).all(axis=1)
+    if not ok.any():
+        raise InputError("head pose: no frame has a valid pose")
+    idx = np.maximum.accumulate(np.where(ok, np.arange(len(R)), -1))
+    idx[idx < 0] = int(np.flatnonzero(ok)[0])
+    R, t, a = R[idx], t[idx] * units, a[idx]
+    return HeadMotion(t, matrix_quaternion(R), np.ones((len(R), 3)), a[:, 2].copy(), a)
 
 
 def similarity(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -95,6 +95,11 @@ def run(args) -> int:
           "motion the pose does not reproduce (0% exact; above 50% the rig cannot make this key)")
     poor = []
     for r, reg in data["regions"].items():
+        if r == "pupils" and (not reg["shapes"] or all(fit[k] > 0.999 for k in reg["keys"])):
+            print("pupils: this rig cannot show gaze through its landmarks (no shape of it moves the pupils: "
+                  "ICT-FaceKit turns its eyeballs with bones), so the pupil keys stay at rest; gaze goes to the "
+                  "eyeLook* curves and the Live Link eye angles from the pupils (retarget/solve with --tracks)")
+            continue
         print(f"{r}: {len(reg['keys'])} keys onto {len(reg['shapes'])} rig shapes")
         for k, pose in reg["keys"].items():
             top = sorted(pose.items(), key=lambda kv: -kv[1])[:4]

@@ -202,19 +202,16 @@ HEAD_COLUMNS = ("headYaw", "headPitch", "headRoll")
 
 def head_rotations(names, values: np.ndarray) -> np.ndarray | None:
     """(n_frames, 3, 3) head rotations in the rig's frame from a curves table's :data:`HEAD_COLUMNS`
-    (None when it has none): yaw turns the face towards the subject's left (+x), pitch raises it,
-    roll tilts the top of the head towards the subject's left, applied as ``R = Ry(yaw) Rx(-pitch) Rz(-roll)``."""
+    (degrees; None when it has none), as ``keyshape retarget --tracks`` writes them: yaw > 0 turns the
+    face to the subject's left, pitch > 0 looks down, roll > 0 tilts toward the right shoulder,
+    ``R = Rz(roll) Ry(yaw) Rx(pitch)`` (:func:`keyshape.decompose.head3d.from_euler`)."""
+    from keyshape.decompose.head3d import from_euler
     names = list(names)
     if not any(c in names for c in HEAD_COLUMNS):
         return None
     yaw, pitch, roll = (np.radians(values[:, names.index(c)]) if c in names else np.zeros(len(values))
                         for c in HEAD_COLUMNS)
-    c, s = np.cos, np.sin
-    z, o = np.zeros_like(yaw), np.ones_like(yaw)
-    ry = np.stack([c(yaw), z, s(yaw), z, o, z, -s(yaw), z, c(yaw)], 1).reshape(-1, 3, 3)
-    rx = np.stack([o, z, z, z, c(-pitch), -s(-pitch), z, s(-pitch), c(-pitch)], 1).reshape(-1, 3, 3)
-    rz = np.stack([c(-roll), -s(-roll), z, s(-roll), c(-roll), z, z, z, o], 1).reshape(-1, 3, 3)
-    return ry @ rx @ rz
+    return from_euler(yaw, pitch, roll)
 
 
 def face_square(lo: np.ndarray, hi: np.ndarray, margin: float = 0.45, down: float = 1.0) -> tuple[np.ndarray, float]:

@@ -267,6 +267,36 @@ def project(points3d: np.ndarray) -> np.ndarray:
 #: ARKit gaze shapes: driven by the pupils region whatever they move (ICT-FaceKit turns its eyeballs
 #: with bones, so its ``eyeLook*`` shapes move only the lids, and a lid fit would mistake a blink for gaze).
 GAZE_PREFIX = "eyelook"
+#: eye rotation (radians) that a full ``eyeLook*`` shape (weight 1) stands for: ARKit's eye range,
+#: about 30 degrees sideways and 25 up or down
+GAZE_RANGE = (np.radians(30.0), np.radians(25.0))
+
+
+def gaze_curves(angles: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, list[int]]:
+    """The rig's ``eyeLook*`` curves from eye angles, and the indices of the shapes they drive.
+
+    ``angles`` (n_frames, 4): left yaw, left pitch, right yaw, right pitch in radians (yaw > 0: toward
+    the actor's left; pitch > 0: down; :func:`keyshape.decompose.gaze.gaze_angles`). ARKit's shapes:
+    ``eyeLookOutLeft`` the left eye toward the actor's left, ``eyeLookInLeft`` toward the nose, the right
+    eye mirrored; ``eyeLookUp``/``Down`` by pitch; each ``angle / GAZE_RANGE`` clipped to [0, 1].
+    Names match ARKit's and ICT-FaceKit's (``eyeLookOut_L``) alike.
+    """
+    from keyshape.retarget.targets import name_key
+    a = np.asarray(angles, np.float64)
+    yaw_l, pitch_l, yaw_r, pitch_r = (a[:, i] for i in range(4))
+    sy, sp = GAZE_RANGE
+    want = {"eyelookoutleft": yaw_l / sy, "eyelookinleft": -yaw_l / sy,
+            "eyelookoutright": -yaw_r / sy, "eyelookinright": yaw_r / sy,
+            "eyelookupleft": -pitch_l / sp, "eyelookdownleft": pitch_l / sp,
+            "eyelookupright": -pitch_r / sp, "eyelookdownright": pitch_r / sp}
+    out = np.zeros((len(a), len(names)))
+    used = []
+    for j, n in enumerate(names):
+        k = name_key(n)
+        if k in want:
+            out[:, j] = np.clip(want[k], 0.0, 1.0)
+            used.append(j)
+    return out, used
 
 
 def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarray],

@@ -28,11 +28,16 @@ from keyshape.retarget.rig import Rig
 def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarray, fps: float = 30.0,
                head: HeadMotion | None = None, livelink: bool = False,
                size=(480, 480), chunk_frames: int = 64, overwrite: bool = False, inputs=(),
-               meters_per_unit: float = 0.01) -> dict:
+               meters_per_unit: float = 0.01, eyes: np.ndarray | None = None) -> dict:
     """Write rig curves (n_frames, n_shapes) to ``path``; returns ``{"kind", "path"}``. Nothing is left on error.
 
-    ``meters_per_unit``: the rig's length unit in metres (USD ``metersPerUnit``; ICT-FaceKit: cm, 0.01)."""
-    from keyshape.retarget.export import livelink_rows, output_kind
+    ``meters_per_unit``: the rig's length unit in metres (USD ``metersPerUnit``; ICT-FaceKit: cm, 0.01).
+    With ``head`` the curves CSV gets the columns of :func:`~keyshape.retarget.export.head_columns`
+    (``headYaw, headPitch, headRoll`` in degrees, ``headX, headY, headZ``), the Live Link CSV its
+    HeadYaw/HeadPitch/HeadRoll and the .glb the head node's rotation and translation; ``eyes``
+    (n_frames, 4: left yaw, left pitch, right yaw, right pitch, radians) go to the Live Link eye columns.
+    """
+    from keyshape.retarget.export import HEAD_COLUMNS, head_columns, livelink_rows, output_kind
     path = Path(path)
     curves = np.asarray(curves, dtype=np.float64)
     if curves.shape != (len(frames), rig.n_shapes):
@@ -43,14 +48,18 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     info = {"kind": kind, "path": path}
     if kind == "csv":
         if livelink:
-            header, rows = livelink_rows(list(rig.names), curves, fps, head)
+            header, rows = livelink_rows(list(rig.names), curves, fps, head, eyes)
             with atomic_write(path, newline="") as f:
                 wr = csv.writer(f)
                 wr.writerow(header)
                 wr.writerows(rows)
         else:
             from keyshape.base.formats.weights import write_weights
-            write_weights(path, frames, list(rig.names), curves)
+            if head is not None:
+                write_weights(path, frames, list(rig.names) + list(HEAD_COLUMNS),
+                              np.concatenate([curves, head_columns(head)], 1))
+            else:
+                write_weights(path, frames, list(rig.names), curves)
         return info
     if rig.mesh is None or not rig.mesh.polygons:
         raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)

@@ -63,9 +63,11 @@ def test_old_metadata_line_still_reads(tmp_path):
     assert read_tracks(p).meta == {"model": "sha256:bbbb", "scheme": "contours48"}
 
 
-def test_select_several_takes_records_model_and_takes(tmp_path):
+@pytest.mark.parametrize("flag,method,tol", [(["--head-pose", "rigid"], "rigid", 1e-5), ([], "3d", 1e-3)])
+def test_select_several_takes_records_model_and_takes(tmp_path, flag, method, tol):
     a, b = _take(tmp_path / "a.csv", 1), _take(tmp_path / "b.csv", 2)
-    assert main(["select", str(a), str(b), "-k", "6", "--region", "mouth", "-o", str(tmp_path / "k.json")]) == 0
+    assert main(["select", str(a), str(b), "-k", "6", "--region", "mouth", "-o", str(tmp_path / "k.json"),
+                 *flag]) == 0
     src = read_keys_source(tmp_path / "k.json")
     assert src["model"] == "sha256:aaaa" and src["scheme"] == "contours48" and len(src["tracks"]) == 2
     d = json.loads((tmp_path / "k.json").read_text())
@@ -74,10 +76,10 @@ def test_select_several_takes_records_model_and_takes(tmp_path):
     assert takes <= {0, 1}
     _, _, regs = read_keys(tmp_path / "k.json")
     head = read_keys_head_pose(tmp_path / "k.json")          # the key set's stabiliser, fitted on both takes
-    assert head["method"] == "rigid" and head["points"] == list(SCHEME.rigid)
+    assert head["method"] == method and head["points"] == list(SCHEME.rigid)
     shapes = {i: head_shapes(read_tracks(p), SCHEME, head)[0] for i, p in enumerate((a, b))}
     for k, key in zip(keys, regs[0].keys):      # every key is the frame its take and frame number name
-        np.testing.assert_allclose(shapes[k["take"]][k["frame"], regs[0].points], key, atol=1e-5)
+        np.testing.assert_allclose(shapes[k["take"]][k["frame"], regs[0].points], key, atol=tol)
 
 
 def test_select_refuses_takes_of_different_models(tmp_path, capsys):
@@ -183,6 +185,9 @@ def test_face_rest_frame_is_relaxed_where_a_region_alone_picks_a_held_expression
                 np.broadcast_to(np.eye(2, 3), (n, 2, 3)).copy())
     assert held[relaxed_frame(X[:, eyes])]                           # the region alone: the held raise
     f = face_rest_frame(tr, X, SCHEME, ["mouth", "eyes"])
+    assert not held[f]
+    # select does the same on its head-frame shapes (the default 3D head step)
+    f = face_rest_frame(tr, head_shapes(tr, SCHEME)[0], SCHEME, ["mouth", "eyes"])
     assert not held[f]
     write_tracks(tmp_path / "t.csv", tr)
     assert main(["select", str(tmp_path / "t.csv"), "-k", "3", "--region", "mouth", "--region", "eyes",

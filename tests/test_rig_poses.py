@@ -543,7 +543,8 @@ def test_ict_antagonists_and_eye_shapes_of_the_real_rig(shared_data):
 
 def test_preview_compare_panel_crop_and_head_turn(tmp_path):
     """--compare adds a third panel; the face crop is a steady square around the tracked points; head
-    angles in the curves turn the rendered rig (yaw > 0: the face turns to the subject's left, image-right)."""
+    angles in the curves turn the rendered rig (yaw > 0: the face turns to the subject's left, image-right;
+    the conventions of retarget's head columns)."""
     from keyshape.base.formats.tracks import write_tracks
     from keyshape.base.formats.video import video_info, video_writer
     from keyshape.base.formats.weights import write_weights
@@ -581,8 +582,8 @@ def test_preview_compare_panel_crop_and_head_turn(tmp_path):
     assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3))
     nose = np.array([0.0, 0.0, 1.0])
     assert (R[0] @ nose)[0] == pytest.approx(np.sin(np.radians(30)))   # yaw: nose to the subject's left
-    assert (R[1] @ nose)[1] == pytest.approx(np.sin(np.radians(20)))   # pitch: nose up
-    assert (R[2] @ np.array([0, 1.0, 0]))[0] == pytest.approx(np.sin(np.radians(10)))  # roll: top to the left
+    assert (R[1] @ nose)[1] == pytest.approx(-np.sin(np.radians(20)))  # pitch: nose down
+    assert (R[2] @ np.array([0, 1.0, 0]))[0] == pytest.approx(-np.sin(np.radians(10)))  # roll: top to the right
     assert head_rotations(["jawOpen"], np.zeros((2, 1))) is None
 
 

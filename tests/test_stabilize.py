@@ -94,7 +94,7 @@ def test_stabilised_shapes_undo_a_pose_that_moves_with_the_expression():
     tracks, truth, exact = _expression_biased_tracks(with_exact=True)
     floor = _aligned_error(model_shapes(exact), truth)     # the 0.3 px noise alone, with the true pose
     tracker_only = _aligned_error(model_shapes(tracks), truth)
-    shapes, stab = head_shapes(tracks, SCHEME)
+    shapes, stab = head_shapes(tracks, SCHEME, "rigid")
     stabilised = _aligned_error(shapes, truth)
     assert tracker_only > 8 * floor                        # the pose's error shows in the shapes
     # what is left is that noise, carried from the four corners to the whole face
@@ -105,18 +105,19 @@ def test_stabilised_shapes_undo_a_pose_that_moves_with_the_expression():
     assert head_shapes(tracks, SCHEME, "tracker")[1] is None
 
 
-def test_select_records_the_head_pose_and_decompose_applies_it(tmp_path):
+@pytest.mark.parametrize("flag,method,tol", [(["--head-pose", "rigid"], "rigid", 1e-5), ([], "3d", 1e-3)])
+def test_select_records_the_head_pose_and_decompose_applies_it(tmp_path, flag, method, tol):
     tracks, _ = _expression_biased_tracks(1)
     tracks.meta = {"model": "sha256:cccc", "scheme": "contours48"}
     write_tracks(tmp_path / "t.csv", tracks)
     assert main(["select", str(tmp_path / "t.csv"), "-k", "6", "--region", "mouth", "--region", "eyes",
-                 "-o", str(tmp_path / "k.json")]) == 0
+                 "-o", str(tmp_path / "k.json"), *flag]) == 0
     head = read_keys_head_pose(tmp_path / "k.json")
-    assert head["method"] == "rigid" and head["points"] == [10, 14, 18, 22]
+    assert head["method"] == method and head["points"] == [10, 14, 18, 22]
     _, _, regs = read_keys(tmp_path / "k.json")
     stable, _ = head_shapes(read_tracks(tmp_path / "t.csv"), SCHEME, head)
     for rk in regs:                                        # each key is its frame in the stabilised head frame
-        np.testing.assert_allclose(rk.keys, stable[rk.frames][:, rk.points], atol=1e-5)
+        np.testing.assert_allclose(rk.keys, stable[rk.frames][:, rk.points], atol=tol)
     assert main(["decompose", str(tmp_path / "t.csv"), "--keys", str(tmp_path / "k.json"),
                  "-o", str(tmp_path / "w.csv")]) == 0
     # tracker-pose keys: recorded as such, and decompose follows them
@@ -151,6 +152,7 @@ def test_stabilised_keys_reconstruct_the_take_better(tmp_path):
 
 @pytest.mark.parametrize("entry, message", [
     ({"method": "wobble"}, "expected 'rigid' or 'tracker'"),
+    ({"method": "3d", "points": [10, 14]}, "malformed head_pose"),
     ({"method": "rigid", "points": [10, 99], "reference": [[0, 0], [1, 0]]}, "distinct points in 0..47"),
     ({"method": "rigid", "points": [10, 14], "reference": [[0, 0]]}, "must be 2 finite points"),
     ({"method": "rigid", "points": [10, 14], "reference": [[0, 0], [0, 0]]}, "coincide"),

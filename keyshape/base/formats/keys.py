@@ -20,7 +20,9 @@ which ``keyshape pose`` measures key motion from. Optional top-level ``source``:
 ``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``, the tracker model the keys'
 tracks came from (``keyshape decompose`` refuses keys of another model); with several
 tracks files each key has ``"take"``, the index of its file. Optional top-level
-``head_pose``: how the head was taken out of the shapes, ``{"method": "rigid", "points":
+``head_pose``: how the head was taken out of the shapes, ``{"method": "3d", ...}`` (the head's 3D
+pose removed and the shapes brought to the front: the fitted
+:class:`keyshape.decompose.head3d.HeadPose3D`, its ``to_dict``), ``{"method": "rigid", "points":
 [10, 14, 18, 22], "reference": [[x, y], ...]}`` (stabilised on those rigid points, put at
 ``reference``: :mod:`keyshape.decompose.stabilize`) or ``{"method": "tracker"}`` (the
 tracker's pose alone; also what a file without the entry means). ``keyshape decompose``
@@ -191,8 +193,10 @@ def read_keys_head_pose(path: str | Path) -> dict:
         method = hp["method"]
         if method == "tracker":
             return {"method": "tracker"}
+        if method == "3d":
+            return _head_pose_3d(hp, int(data.get("n_points", 0)), path)
         if method != "rigid":
-            raise InputError(f"head_pose method {method!r}: expected 'rigid' or 'tracker'", path)
+            raise InputError(f"head_pose method {method!r}: expected 'rigid' or 'tracker' (2D) or '3d'", path)
         pts = [int(i) for i in hp["points"]]
         ref = np.asarray(hp["reference"], dtype=np.float64)
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
@@ -205,3 +209,36 @@ def read_keys_head_pose(path: str | Path) -> dict:
     if np.linalg.norm(ref - ref.mean(axis=0)) < 1e-9:
         raise InputError("head_pose reference points coincide", path)
     return {"method": "rigid", "points": pts, "reference": ref.tolist()}
+
+
+def _head_pose_3d(hp: dict, n: int, path) -> dict:
+    """A checked ``{"method": "3d", ...}`` head_pose entry (:class:`keyshape.decompose.head3d.HeadPose3D`)."""
+    try:
+        pts = [int(i) for i in hp["points"]]
+        arr = {k: np.asarray(hp[k], dtype=np.float64) for k in ("generic", "template", "weights", "centre", "zero", "frame")}
+        scal = {k: float(hp[k]) for k in ("distance", "smooth", "focal", "spread", "robust")}
+        adapt, zf, anchor = bool(hp["adapt"]), int(hp["zero_frame"]), bool(hp["anchor"])
+        rounds = int(hp["robust_rounds"])
+        ref = np.asarray(hp["reference"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise InputError(f"malformed head_pose (missing or bad field: {exc})", path) from None
+    shapes = {"generic": (n, 3), "template": (n, 3), "weights": (n,), "centre": (2,), "zero": (3, 3), "frame": (3,)}
+    for k, shp in shapes.items():
+        if arr[k].shape != shp or not np.isfinite(arr[k]).all() or np.abs(arr[k]).max() > 1e6:
+            raise InputError(f"head_pose {k} must be {shp} finite numbers", path)
+    if len(pts) < 2 or len(set(pts)) != len(pts) or not all(0 <= i < n for i in pts):
+        raise InputError(f"head_pose points {pts}: need two or more distinct points in 0..{n - 1}", path)
+    if not (np.isfinite(list(scal.values())).all() and scal["focal"] > 0 and scal["distance"] > 0
+            and min(scal["smooth"], scal["spread"], scal["robust"]) >= 0 and 0 <= rounds <= 20):
+        raise InputError("head_pose focal and distance must be > 0, smooth, spread and robust >= 0, "
+                         "robust_rounds 0..20", path)
+    if (arr["weights"] < 0).any() or (arr["weights"][pts] <= 0).any() or arr["frame"][0] <= 0:
+        raise InputError("head_pose weights must be >= 0 (> 0 on its points) and its frame's scale > 0", path)
+    if np.abs(arr["zero"] @ arr["zero"].T - np.eye(3)).max() > 1e-3:
+        raise InputError("head_pose zero is not a rotation", path)
+    if ref.shape != (len(pts), 2) or not np.isfinite(ref).all() or np.linalg.norm(ref - ref.mean(0)) < 1e-9:
+        raise InputError(f"head_pose reference must be {len(pts)} distinct finite points", path)
+    return {"method": "3d", "points": pts, **scal, "adapt": adapt, "zero_frame": zf, "anchor": anchor,
+            "robust_rounds": rounds,
+            "reference": ref.tolist(),
+            **{k: v.tolist() for k, v in arr.items()}}

