@@ -438,8 +438,10 @@ def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: st
     r = animation.rig
     if r.mesh is None:
         r = animation.rig = load_rig(r.files, r.neutral_file)
+    from keyshape.retarget.headpose import head_rotations_of
+
     return write_preview(video, tracks, r, animation.frames, animation.curves, path, sheet=sheet, frames=frames,
-                         size=size, sheet_frames=sheet_frames, threads=threads)
+                         size=size, sheet_frames=sheet_frames, threads=threads, head=head_rotations_of(animation.head))
 
 
 

@@ -73,6 +73,13 @@ class HeadMotion:
         return np.einsum("fij,fvj->fvi", m[:, :3, :3], vertices) + m[:, None, :3, 3]
 
 
+def head_rotations_of(head: "HeadMotion | None") -> np.ndarray | None:
+    """(n_frames, 3, 3) rotations of a head motion (the 3D head's, or the 2D motion's roll), or None."""
+    if head is None:
+        return None
+    return quaternion_matrix(head.rotation)
+
+
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
     """(n, 3, 3) rotation matrices of (n, 4) unit quaternions (x, y, z, w)."""
     q = np.asarray(q, np.float64)

@@ -83,6 +83,7 @@ def run(args) -> int:
         from keyshape.retarget.api import rig_curves
         frames, cols, w, _ = read_weights(args.weights)
         curves = rig_curves(w, cols, read_poses(args.poses, rig.names), rig, args.poses)
+        head = "tracks"                     # the head and the gaze from the tracks, as retarget --tracks
     compare = None
     if args.compare:
         f2, c2, h2 = _curves_on_rig(args.compare, rig)
@@ -93,6 +94,11 @@ def run(args) -> int:
         idx = np.array([row2[int(f)] for f in frames])
         compare = (c2[idx], h2[idx] if h2 is not None else head)
     tracks = read_tracks(args.tracks)
+    if isinstance(head, str):
+        from keyshape.retarget.api import apply_gaze, head_from_tracks
+        from keyshape.retarget.headpose import head_rotations_of
+        curves, _ = apply_gaze(curves, rig, tracks, frames, source=args.tracks)
+        head = head_rotations_of(head_from_tracks(tracks, frames, source=args.tracks)[0])
     info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
                          size=args.size, sheet_frames=args.sheet_frames, threads=args.threads,
                          tracks_source=args.tracks, head=head, compare=compare, crop=args.crop,
