@@ -260,7 +260,7 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
 
 
 def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
-                 sparsity: float = 0.01, symmetry: float = 0.1, smooth: float = 0.0,
+                 sparsity: float = 0.01, symmetry: float = 0.03, smooth: float = 0.0,
                  pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None) -> np.ndarray:
     """One region's curves for every frame: :func:`box_lsq` on the weighted rows.
 
@@ -300,7 +300,7 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
 def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]], scheme,
                  landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
                  region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
-                 bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.1,
+                 bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
                  calibrate: bool = True) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.

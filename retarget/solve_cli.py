@@ -26,7 +26,7 @@ def register(subparsers) -> None:
                    help="rig landmark JSON (default: the shipped correspondence for ICT-FaceKit rigs)")
     p.add_argument("--sparsity", type=float, default=0.01,
                    help="L1 weight (dimensionless): larger gives fewer shapes per frame")
-    p.add_argument("--symmetry", type=float, default=0.1,
+    p.add_argument("--symmetry", type=float, default=0.03,
                    help="weight (dimensionless) of the left-right prior: mirrored shapes (_L/_R) kept alike "
                         "unless the actor's two sides differ")
     p.add_argument("--smooth", type=float, default=0.0, help="temporal smoothness (dimensionless; 0: none)")
