@@ -302,7 +302,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
                  bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
-                 calibrate: bool = True) -> np.ndarray:
+                 calibrate: bool = True, fixed: np.ndarray | None = None) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -319,6 +319,9 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
         mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
     calibrate : scale each eye's lid motion by :func:`eye_calibration`
+    fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
+        their landmark motion is taken from the actor's before the solve, and they are kept in
+        the result where non-zero (the solved shapes are the others)
 
     Returns
     -------
@@ -341,6 +344,10 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         idx = np.asarray(idx)
         rest_r = np.asarray(rest, float) @ Msim.T
         motion = (X[ok][:, idx] - rest) @ Msim.T
+        if fixed is not None:
+            fx = np.asarray(fixed, float)[ok]
+            sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
+            motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
         if calibrate:
             motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx])[None, :, None]
         D, _ = region_rows(scheme, idx, motion)
@@ -356,6 +363,9 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
             for j in range(len(sh)):          # loop over shapes, not frames
                 full[~ok, j] = np.interp(t[~ok], t[ok], c[:, j])
         out[:, sh] = full
+    if fixed is not None:
+        live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
+        out[:, live] = np.asarray(fixed, float)[:, live]
     return out
 
 

@@ -149,6 +149,24 @@ def test_solve_recovers_the_rigs_own_curves_from_its_projected_landmarks(shared_
     assert got[:, names.index("browOuterUp_R")].max() < 0.3 * got[:, names.index("browOuterUp_L")].max()
 
 
+def test_fixed_curves_are_taken_out_before_the_solve(shared_data):
+    """Curves known beforehand (gaze's eyeLook*, which move ICT-FaceKit's lids) are not solved again:
+    with the lids lowered by eyeLookDown, the blink stays at the truth."""
+    rig, ln, ld, rs = _ict(shared_data)
+    names = rig.names
+    C = _performance(names, n=200)
+    look = [names.index("eyeLookDown_L"), names.index("eyeLookDown_R")]
+    C[:, look] = 0.6 * (np.arange(200) % 40 > 20)[:, None]
+    X = ln[None] + np.einsum("ts,spd->tpd", C, ld)
+    regs = {r: (region_points(SCHEME, r), ln[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
+    fixed = np.zeros_like(C)
+    fixed[:, look] = C[:, look]
+    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names, fixed=fixed)
+    assert np.allclose(got[:, look], C[:, look])
+    j = names.index("eyeBlink_L")
+    assert np.abs(got[:, j] - C[:, j]).max() < 0.1
+
+
 def test_pose_override_puts_the_artists_pose_at_its_key_and_scales_it_by_the_weight():
     names = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L"]
     curves = np.array([[0.2, 0.1, 0.1, 0.0], [0.6, 0.3, 0.2, 0.5], [0.1, 0.0, 0.0, 0.9]])
