@@ -6,6 +6,8 @@ import argparse
 
 def register(subparsers) -> None:
     """Add ``solve`` to ``subparsers``."""
+    from keyshape.retarget import defaults as A
+
     p = subparsers.add_parser(
         "solve", help="drive an existing blendshape rig: its curves solved frame by frame from the tracks",
         description="For every frame, non-negative, sparse, left-right symmetric weights of the rig's shapes "
@@ -42,7 +44,14 @@ def register(subparsers) -> None:
     p.add_argument("--head-units", type=float, default=None,
                    help="mesh units per tracker model unit for the head translation (default: the rig's "
                         "inter-ocular distance over the actor's)")
-    p.add_argument("--reference-frame", type=int, default=0, help="tracks frame taken as the rest head pose")
+    p.add_argument("--reference-frame", type=int, default=None,
+                   help="tracks frame taken as the rest head pose (default: with the 3D head, the actor's most "
+                        "front-facing relaxed frame; with a 2D head, the first frame)")
+    p.add_argument("--head-pose", choices=("3d", "rigid", "tracker"), default=A.HEAD_MOTION,
+                   help="the head motion written: 3d (yaw, pitch, roll and translation with depth from the track's "
+                        "rigid points on a 3D face) or the 2D motion of rigid|tracker (as keyshape select --head-pose)")
+    p.add_argument("--no-gaze", dest="gaze", action="store_false",
+                   help="do not drive the rig's eyeLook* shapes (and the Live Link eye angles) from the pupils")
     p.add_argument("-o", "--output", required=True, help="OUT.csv | OUT.glb")
     p.add_argument("--overwrite", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--accept-partial", action="store_true",
@@ -59,7 +68,6 @@ def run(args) -> int:
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
-    from keyshape.retarget.cli import _head
     from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
     from keyshape.retarget.rig_export import export_rig
     from keyshape.retarget.solve import solve_curves
@@ -87,18 +95,34 @@ def run(args) -> int:
     groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
+    head, fps, kind = _head(args, tracks, rig)
+    eyes, fixed = None, None
+    if args.gaze:
+        from keyshape.retarget.api import apply_gaze
+        gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind,
+                                 args.tracks)
+        fixed = gazed if eyes is not None else None           # the eyeLook* curves, the rest 0
     curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
-                          args.sparsity, args.symmetry, args.smooth, calibrate=args.calibrate)
+                          args.sparsity, args.symmetry, args.smooth, calibrate=args.calibrate, fixed=fixed)
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
-    head, fps = _head(args, tracks.frame, rig)
-    fps = fps or 30.0
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
-                      overwrite=args.overwrite, inputs=inputs)
+                      overwrite=args.overwrite, inputs=inputs, eyes=eyes)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
     print(f"keyshape solve: {len(curves)} frames -> {used} of {rig.n_shapes} rig shapes moving at {fps:g} fps "
           f"-> {info['path']} ({info['kind']})")
     return 0
+
+
+def _head(args, tracks, rig):
+    """Head motion, frame rate and head kind of ``tracks`` (the 3D head by default), as ``retarget --tracks``."""
+    from keyshape.retarget.api import DEFAULT_FPS, head_3d_from_tracks, head_from_tracks, rig_head_units
+
+    units = args.head_units if args.head_units is not None else rig_head_units(rig, tracks, args.landmarks)
+    est = head_3d_from_tracks(tracks, args.tracks) if args.head_pose == "3d" else None
+    kind = est if est is not None else args.head_pose
+    head, tracks_fps = head_from_tracks(tracks, tracks.frame, args.reference_frame, units, args.tracks, head=kind)
+    return head, args.fps or tracks_fps or DEFAULT_FPS, kind
 
 
 def _override(args, curves, frames, rig, regions):
