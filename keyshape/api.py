@@ -365,7 +365,7 @@ def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary
              rig=None, tracks: Tracks | None = None, neutral=None, mapping=None, form: str = RA.FORM,
              band: float | None = None, metric: str = RA.METRIC, fps: float | None = None,
              reference_frame: int | None = None, head_units: float | None = None, landmarks=None,
-             head: str = RA.HEAD_MOTION):
+             head: str = RA.HEAD_MOTION, gaze: str = RA.GAZE):
     """Drive the artist's target key shapes, or a rig through a pose library, with ``weights``
     (``keyshape retarget``, with its defaults).
 
@@ -382,7 +382,8 @@ def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary
     reference_frame, head : the head's rest frame (default: with the 3D head its most front-facing relaxed
         frame, else the tracks' first) and kind (``3d``, ``rigid``, ``tracker``), as ``keyshape retarget
         --reference-frame/--head-pose``; with a rig and ``tracks`` the pupils' gaze drives its ``eyeLook*``
-        shapes (and the Live Link eye angles)
+        shapes (and the Live Link eye angles); ``gaze``: ``angles`` (the Live Link eye angles only, the
+        default), ``shapes`` (also the rig's ``eyeLook*``) or ``none``, as ``keyshape retarget --gaze``
     head_units : mesh units per model unit of the head translation (default: with a rig its
         inter-ocular distance over the actor's, else 1); landmarks : the rig's landmark JSON
 
@@ -407,7 +408,7 @@ def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary
         motion, fps = _head(weights, tracks, fps, reference_frame, head_units, head, r, landmarks)
         eyes = None
         if tracks is not None:
-            curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, head)
+            curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, head, gaze=gaze)
         return RigAnimation(r, weights.frames, curves, fps, motion, eyes)
     if targets is None:
         raise InputError("give targets (one target per key) or poses and a rig")

@@ -46,6 +46,9 @@ def register(subparsers) -> None:
                    help="the head motion written with --tracks: 3d (yaw, pitch, roll and translation with depth "
                         "from the track's rigid points on a 3D face; the default) or the 2D motion of rigid|tracker "
                         "(as keyshape select --head-pose)")
+    p.add_argument("--gaze", choices=A.GAZES, default=A.GAZE,
+                   help="with --rig and --tracks, the pupils' gaze: angles (the Live Link eye angles), shapes (also "
+                        "the rig's eyeLook* shapes; on ICT-FaceKit they move the lids too) or none")
     p.add_argument("--head-units", type=float, default=None,
                    help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
                         "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
@@ -166,7 +169,7 @@ def run_rig(args, inputs: list) -> int:
     eyes = None
     if src is not None:
         from keyshape.retarget.api import apply_gaze
-        curves, eyes = apply_gaze(curves, rig, src[0], frames, src[1], args.tracks)
+        curves, eyes = apply_gaze(curves, rig, src[0], frames, src[1], args.tracks, gaze=args.gaze)
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
                       overwrite=args.overwrite, inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units), eyes=eyes)
     used = int((np.abs(curves).max(axis=0) > 0).sum())

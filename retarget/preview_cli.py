@@ -97,7 +97,7 @@ def run(args) -> int:
     if isinstance(head, str):
         from keyshape.retarget.api import apply_gaze, head_from_tracks
         from keyshape.retarget.headpose import head_rotations_of
-        curves, _ = apply_gaze(curves, rig, tracks, frames, source=args.tracks)
+        curves, _ = apply_gaze(curves, rig, tracks, frames, source=args.tracks, say=lambda _: None)
         head = head_rotations_of(head_from_tracks(tracks, frames, source=args.tracks)[0])
     info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
                          size=args.size, sheet_frames=args.sheet_frames, threads=args.threads,

@@ -50,8 +50,9 @@ def register(subparsers) -> None:
     p.add_argument("--head-pose", choices=("3d", "rigid", "tracker"), default=A.HEAD_MOTION,
                    help="the head motion written: 3d (yaw, pitch, roll and translation with depth from the track's "
                         "rigid points on a 3D face) or the 2D motion of rigid|tracker (as keyshape select --head-pose)")
-    p.add_argument("--no-gaze", dest="gaze", action="store_false",
-                   help="do not drive the rig's eyeLook* shapes (and the Live Link eye angles) from the pupils")
+    p.add_argument("--gaze", choices=A.GAZES, default=A.GAZE,
+                   help="the pupils' gaze: angles (the Live Link eye angles), shapes (also the rig's eyeLook* "
+                        "shapes, held fixed in the solve; on ICT-FaceKit they move the lids too) or none")
     p.add_argument("-o", "--output", required=True, help="OUT.csv | OUT.glb")
     p.add_argument("--overwrite", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--accept-partial", action="store_true",
@@ -96,12 +97,10 @@ def run(args) -> int:
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
     head, fps, kind = _head(args, tracks, rig)
-    eyes, fixed = None, None
-    if args.gaze:
-        from keyshape.retarget.api import apply_gaze
-        gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind,
-                                 args.tracks)
-        fixed = gazed if eyes is not None else None           # the eyeLook* curves, the rest 0
+    from keyshape.retarget.api import apply_gaze
+    gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind,
+                             args.tracks, gaze=args.gaze)
+    fixed = gazed if eyes is not None and args.gaze == "shapes" else None   # the eyeLook* curves, the rest 0
     curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
                           args.sparsity, args.symmetry, args.smooth, calibrate=args.calibrate, fixed=fixed)
     if args.poses:

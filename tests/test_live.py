@@ -49,7 +49,9 @@ def take(tmp_path_factory):
              ["pose", str(d / "k.json"), "--rig", str(rig), "--landmarks", str(lm), "-o", str(d / "poses.json")],
              ["decompose", str(d / "t.csv"), "--keys", str(d / "k.json"), "--solver", "nnls", "-o", str(d / "w.csv")],
              ["retarget", str(d / "w.csv"), "--poses", str(d / "poses.json"), "--rig", str(rig), "--tracks",
-              str(d / "t.csv"), "--landmarks", str(lm), "--livelink", "-o", str(d / "ll.csv")]]
+              str(d / "t.csv"), "--landmarks", str(lm), "--livelink", "-o", str(d / "ll.csv"),
+              # live sends the 2D head's roll and no eye angles (docs/live.md): the offline file's head to match
+              "--head-pose", "rigid", "--gaze", "none"]]
     for s in steps:
         assert main(s) == 0, s
     return d
