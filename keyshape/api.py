@@ -45,7 +45,7 @@ from keyshape.retarget import api as RA
 from keyshape.decompose.regions import RegionKeys
 from keyshape.tracker.eigenpoints import AppearanceModel
 
-__all__ = ["train", "track", "select", "decompose", "retarget", "pose", "preview", "load_rig", "head", "Head", "Keys",
+__all__ = ["train", "track", "select", "decompose", "retarget", "solve", "pose", "preview", "load_rig", "head", "Head", "Keys",
            "Weights", "Animation", "RigAnimation", "PoseLibrary", "Tracks", "AppearanceModel", "read_tracks",
            "write_tracks"]
 
@@ -359,6 +359,26 @@ class RigAnimation:
                                 self.rig.neutral_file)
         return export_rig(path, self.rig, self.frames, self.curves, fps=self.fps, head=self.head, livelink=livelink,
                           eyes=self.eyes)
+
+
+def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.SOLVE_SPARSITY,
+          symmetry: float = RA.SOLVE_SYMMETRY, smooth: float = RA.SOLVE_SMOOTH, calibrate: bool = True,
+          gaze: str = RA.GAZE, head: str = RA.HEAD_MOTION, reference_frame: int | None = None,
+          head_units: float | None = None, fps: float | None = None) -> RigAnimation:
+    """Drive a rig by solving its curves of every frame from ``tracks`` (``keyshape solve``, with its defaults).
+
+    ``keys`` gives the head stabilisation, the regions and the actor's neutral; ``rig`` a
+    :class:`~keyshape.retarget.rig.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). See
+    :func:`keyshape.retarget.api.solve_rig` for the priors, the gaze and the head written beside the curves.
+    """
+    _expect(tracks, Tracks, "tracks", "Tracks (read a file with read_tracks)")
+    _expect(keys, Keys, "keys", "Keys (read a file with Keys.load)")
+    r = load_rig(rig, neutral, with_mesh=False)
+    curves, motion, rate, eyes = RA.solve_rig(
+        tracks, keys.regions, keys.scheme, keys.head_pose, r, landmarks=landmarks, sparsity=sparsity,
+        symmetry=symmetry, smooth=smooth, calibrate=calibrate, gaze=gaze, head=head,
+        reference_frame=reference_frame, head_units=head_units, fps=fps)
+    return RigAnimation(r, tracks.frame.copy(), curves, rate, motion, eyes)
 
 
 def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary | str | Path | None = None,

@@ -27,7 +27,7 @@ from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
-                                        OPPOSED, SPARSITY)
+                                        OPPOSED, SOLVE_SMOOTH, SOLVE_SPARSITY, SOLVE_SYMMETRY, SPARSITY)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -295,3 +295,60 @@ def apply_gaze(curves: np.ndarray, rig, tracks: Tracks, frames: np.ndarray, head
         say("keyshape: gaze: the rig has no eyeLook* shapes, so its eyes cannot follow the pupils "
             "(the eye angles are in the Live Link eye columns)")
     return curves, eyes
+
+
+def check_solve_options(sparsity: float, symmetry: float, smooth: float) -> None:
+    """One-line :class:`InputError` for a ``solve`` prior out of range (before any work)."""
+    for name, v, hi in (("--sparsity", sparsity, 100.0), ("--symmetry", symmetry, 100.0), ("--smooth", smooth, 1e6)):
+        if not (np.isfinite(v) and 0.0 <= v <= hi):
+            raise InputError(f"{name} {v}: a number from 0 to {hi:g}")
+
+
+def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig, *, landmarks=None,
+              sparsity: float = SOLVE_SPARSITY, symmetry: float = SOLVE_SYMMETRY, smooth: float = SOLVE_SMOOTH,
+              calibrate: bool = True, gaze: str = GAZE, head: str = HEAD_MOTION, reference_frame: int | None = None,
+              head_units: float | None = None, fps: float | None = None, source=None):
+    """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
+
+    Parameters
+    ----------
+    tracks : the take's :class:`Tracks`
+    regions, scheme_name, head_pose : the key set's regions (their ``points`` and the actor's neutral, ``rest``),
+        scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
+    rig : a :class:`~keyshape.retarget.rig.Rig`; ``landmarks``: its landmark JSON (default: shipped for ICT-FaceKit)
+    sparsity, symmetry, smooth, calibrate : the solve's priors (:func:`~keyshape.retarget.solve.solve_curves`)
+    gaze : ``angles`` (the eye angles, for Live Link), ``shapes`` (also the rig's ``eyeLook*``, held fixed in
+        the solve) or ``none`` (:func:`apply_gaze`)
+    head, reference_frame, head_units, fps : the head motion written beside the curves, as :func:`head_from_tracks`
+
+    Returns
+    -------
+    ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``
+    """
+    from keyshape.base.schemes import load_scheme
+    from keyshape.decompose.regions import available_regions, head_shapes, region_points
+    from keyshape.retarget.rig import project, rig_landmarks, shape_regions
+    from keyshape.retarget.solve import solve_curves
+
+    check_solve_options(sparsity, symmetry, smooth)
+    scheme = load_scheme(scheme_name)
+    if tracks.n_points != scheme.n_points:
+        raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} "
+                         f"{scheme.n_points}", source)
+    shapes, _ = head_shapes(tracks, scheme, head_pose, source)
+    W, _ = rig_landmarks(rig, scheme_name, landmarks)
+    lm_neutral = project(W @ rig.neutral)
+    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
+    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
+    regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
+    units = head_units if head_units is not None else rig_head_units(rig, tracks, landmarks)
+    est = head_3d_from_tracks(tracks, source) if head == "3d" else None
+    kind = est if est is not None else head
+    motion, tracks_rate = head_from_tracks(tracks, tracks.frame, reference_frame, units, source, head=kind)
+    gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
+                             gaze=gaze)
+    fixed = gazed if eyes is not None and gaze == "shapes" else None      # the eyeLook* curves, the rest 0
+    curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
+                          sparsity, symmetry, smooth, calibrate=calibrate, fixed=fixed)
+    return curves, motion, float(fps or tracks_rate or DEFAULT_FPS), eyes

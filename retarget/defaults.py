@@ -16,3 +16,6 @@ HEAD_MOTION = "3d"           # the head written with --tracks: the 3D head (yaw,
 GAZE = "angles"              # the pupils' gaze: the Live Link eye angles only ("shapes": also the rig's eyeLook*,
                              # which on ICT-FaceKit move the lids: eye closure r 0.92 -> 0.88 on franck.mp4)
 GAZES = ("angles", "shapes", "none")
+SOLVE_SPARSITY = 0.01        # keyshape solve: L1 weight (fewer, stronger shapes per frame)
+SOLVE_SYMMETRY = 0.03        # keyshape solve: left-right prior (0.1 cut a real one-sided brow raise by 19%)
+SOLVE_SMOOTH = 0.0           # keyshape solve: temporal smoothness

@@ -26,12 +26,12 @@ def register(subparsers) -> None:
                    help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
     p.add_argument("--landmarks", default=None,
                    help="rig landmark JSON (default: the shipped correspondence for ICT-FaceKit rigs)")
-    p.add_argument("--sparsity", type=float, default=0.01,
+    p.add_argument("--sparsity", type=float, default=A.SOLVE_SPARSITY,
                    help="L1 weight (dimensionless): larger gives fewer shapes per frame")
-    p.add_argument("--symmetry", type=float, default=0.03,
+    p.add_argument("--symmetry", type=float, default=A.SOLVE_SYMMETRY,
                    help="weight (dimensionless) of the left-right prior: mirrored shapes (_L/_R) kept alike "
                         "unless the actor's two sides differ")
-    p.add_argument("--smooth", type=float, default=0.0, help="temporal smoothness (dimensionless; 0: none)")
+    p.add_argument("--smooth", type=float, default=A.SOLVE_SMOOTH, help="temporal smoothness (dimensionless; 0: none)")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false",
                    help="do not scale each eye's lid motion so that the take's deepest closure closes the rig's eye")
     p.add_argument("--poses", default=None,
@@ -67,16 +67,11 @@ def run(args) -> int:
     from keyshape.base.files import check_output
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.regions import available_regions, head_shapes, region_points
-    from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
+    from keyshape.retarget.api import check_solve_options, solve_rig
+    from keyshape.retarget.rig import load_rig
     from keyshape.retarget.rig_export import export_rig
-    from keyshape.retarget.solve import solve_curves
 
-    for name, v, hi in (("--sparsity", args.sparsity, 100.0), ("--symmetry", args.symmetry, 100.0),
-                        ("--smooth", args.smooth, 1e6)):
-        if not (np.isfinite(v) and 0.0 <= v <= hi):
-            raise InputError(f"{name} {v}: a number from 0 to {hi:g}")
+    check_solve_options(args.sparsity, args.symmetry, args.smooth)
     if bool(args.poses) != bool(args.weights):
         raise InputError("--poses and --weights go together (the artist's pose library and the key weights)")
     inputs = [f for f in (args.tracks, args.keys, args.neutral, args.landmarks, args.poses, args.weights) if f]
@@ -86,23 +81,13 @@ def run(args) -> int:
     if tracks.n_points != n_points:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} {n_points}",
                          args.tracks)
-    scheme = load_scheme(scheme_name)
-    shapes, _ = head_shapes(tracks, scheme, read_keys_head_pose(args.keys), args.tracks)
     needs_mesh = not str(args.output).lower().endswith(".csv")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
-    W, _ = rig_landmarks(rig, scheme_name, args.landmarks)
-    lm_neutral = project(W @ rig.neutral)
-    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
-    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
-    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
-    regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
-    head, fps, kind = _head(args, tracks, rig)
-    from keyshape.retarget.api import apply_gaze
-    gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind,
-                             args.tracks, gaze=args.gaze)
-    fixed = gazed if eyes is not None and args.gaze == "shapes" else None   # the eyeLook* curves, the rest 0
-    curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
-                          args.sparsity, args.symmetry, args.smooth, calibrate=args.calibrate, fixed=fixed)
+    curves, head, fps, eyes = solve_rig(
+        tracks, regions, scheme_name, read_keys_head_pose(args.keys), rig, landmarks=args.landmarks,
+        sparsity=args.sparsity, symmetry=args.symmetry, smooth=args.smooth, calibrate=args.calibrate,
+        gaze=args.gaze, head=args.head_pose, reference_frame=args.reference_frame, head_units=args.head_units,
+        fps=args.fps, source=args.tracks)
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
@@ -111,17 +96,6 @@ def run(args) -> int:
     print(f"keyshape solve: {len(curves)} frames -> {used} of {rig.n_shapes} rig shapes moving at {fps:g} fps "
           f"-> {info['path']} ({info['kind']})")
     return 0
-
-
-def _head(args, tracks, rig):
-    """Head motion, frame rate and head kind of ``tracks`` (the 3D head by default), as ``retarget --tracks``."""
-    from keyshape.retarget.api import DEFAULT_FPS, head_3d_from_tracks, head_from_tracks, rig_head_units
-
-    units = args.head_units if args.head_units is not None else rig_head_units(rig, tracks, args.landmarks)
-    est = head_3d_from_tracks(tracks, args.tracks) if args.head_pose == "3d" else None
-    kind = est if est is not None else args.head_pose
-    head, tracks_fps = head_from_tracks(tracks, tracks.frame, args.reference_frame, units, args.tracks, head=kind)
-    return head, args.fps or tracks_fps or DEFAULT_FPS, kind
 
 
 def _override(args, curves, frames, rig, regions):

@@ -218,3 +218,10 @@ def test_solve_command_end_to_end(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--sparsity -1" in err and "--poses and --weights go together" in err
     assert not (tmp_path / "bad.csv").exists()
+    # the API's solve, with no options, writes what the command writes with none (one pipeline)
+    from keyshape import api
+    from keyshape.base.formats.tracks import read_tracks
+    anim = api.solve(read_tracks(tmp_path / "t.csv"), api.Keys.load(tmp_path / "keys.json"), rig_dir,
+                     landmarks=lm)
+    anim.export(tmp_path / "api.csv")
+    assert (tmp_path / "api.csv").read_bytes() == (tmp_path / "c.csv").read_bytes()
