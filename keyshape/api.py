@@ -364,12 +364,15 @@ class RigAnimation:
 def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.SOLVE_SPARSITY,
           symmetry: float = RA.SOLVE_SYMMETRY, smooth: float = RA.SOLVE_SMOOTH, calibrate: bool = True,
           gaze: str = RA.GAZE, head: str = RA.HEAD_MOTION, reference_frame: int | None = None,
-          head_units: float | None = None, fps: float | None = None) -> RigAnimation:
+          head_units: float | None = None, fps: float | None = None, poses: "PoseLibrary | str | Path | None" = None,
+          weights: Weights | None = None) -> RigAnimation:
     """Drive a rig by solving its curves of every frame from ``tracks`` (``keyshape solve``, with its defaults).
 
     ``keys`` gives the head stabilisation, the regions and the actor's neutral; ``rig`` a
     :class:`~keyshape.retarget.rig.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). See
     :func:`keyshape.retarget.api.solve_rig` for the priors, the gaze and the head written beside the curves.
+    ``poses`` (a corrected pose library) with the take's key ``weights``: the artist's poses over the solve,
+    as ``keyshape solve --poses --weights``.
     """
     _expect(tracks, Tracks, "tracks", "Tracks (read a file with read_tracks)")
     _expect(keys, Keys, "keys", "Keys (read a file with Keys.load)")
@@ -378,6 +381,13 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
         tracks, keys.regions, keys.scheme, keys.head_pose, r, landmarks=landmarks, sparsity=sparsity,
         symmetry=symmetry, smooth=smooth, calibrate=calibrate, gaze=gaze, head=head,
         reference_frame=reference_frame, head_units=head_units, fps=fps)
+    if (poses is None) != (weights is None):
+        raise InputError("solve: poses and weights go together (the artist's pose library and the key weights)")
+    if poses is not None:
+        _expect(weights, Weights, "weights", "Weights (read a file with Weights.load)")
+        lib = poses if isinstance(poses, PoseLibrary) else PoseLibrary.load(poses, r)
+        curves = RA.override_poses(curves, tracks.frame, keys.regions, weights.values, weights.names, weights.frames,
+                                   lib.data, r, None if isinstance(poses, PoseLibrary) else poses)
     return RigAnimation(r, tracks.frame.copy(), curves, rate, motion, eyes)
 
 

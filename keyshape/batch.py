@@ -280,11 +280,12 @@ def _unchanged(files: dict, recorded: dict | None) -> bool:
 
 def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: Path, outputs: list[str],
                 poses_path=None, video=None) -> dict:
-    """Decompose one take with the actor's key set and retarget it (onto its targets, or its rig through
-    the pose library ``poses_path``); write the outputs; return their paths.
+    """Decompose one take with the actor's key set and retarget it (onto its targets, or its rig: the rig's
+    curves solved from the tracks, with the manifest's corrected pose library ``poses`` over them when it
+    gives one); write the outputs; return their paths.
 
     The serial reference of the batch: exactly what the finish task runs, and what the commands
-    (``keyshape decompose``, ``retarget``, ``preview``) give with the manifest's settings.
+    (``keyshape decompose``, ``retarget``, ``solve``, ``preview``) give with the manifest's settings.
     """
     from keyshape import api
     from keyshape.base.formats.tracks import read_tracks
@@ -301,8 +302,9 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
         return files
     weights = api.Weights.load(wpath)
     if actor.rig is not None:
-        anim = api.retarget(weights, poses=poses_path, rig=actor.rig, neutral=actor.neutral, tracks=tracks,
-                            landmarks=actor.landmarks)
+        given = actor.poses is not None                 # a pose library the artist corrected
+        anim = api.solve(tracks, keys, actor.rig, neutral=actor.neutral, landmarks=actor.landmarks,
+                         poses=poses_path if given else None, weights=weights if given else None)
     elif actor.targets is not None:
         anim = api.retarget(weights, actor.targets, actor.target_regions, tracks=tracks, neutral=actor.neutral,
                             mapping=actor.map)

@@ -352,3 +352,15 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
                           sparsity, symmetry, smooth, calibrate=calibrate, fixed=fixed)
     return curves, motion, float(fps or tracks_rate or DEFAULT_FPS), eyes
+
+
+def override_poses(curves: np.ndarray, frames: np.ndarray, regions, weights: np.ndarray, columns: Sequence[str],
+                   weight_frames: np.ndarray, library: dict, rig, source=None, weights_source=None) -> np.ndarray:
+    """The artist's pose library (POSES.json, corrected in ``keyshape pose-edit``) over solved curves, in
+    proportion to each frame's key weights (:func:`~keyshape.retarget.solve.pose_override`)."""
+    from keyshape.retarget.solve import pose_override
+
+    if len(weight_frames) != len(frames) or (np.asarray(weight_frames) != np.asarray(frames)).any():
+        raise InputError("the weights' frames are not the tracks' frames", weights_source)
+    key_frames = {k: int(f) for rk in regions for k, f in zip(rk.names, rk.frames)}
+    return pose_override(curves, frames, weights, columns, library, rig.names, key_frames, source)

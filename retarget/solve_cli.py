@@ -99,15 +99,11 @@ def run(args) -> int:
 
 
 def _override(args, curves, frames, rig, regions):
-    """The artist's pose library over the solve: ``c + W (P - C_keys)`` (:func:`~keyshape.retarget.solve.pose_override`)."""
-    from keyshape.base.errors import InputError
+    """The artist's pose library over the solve (:func:`keyshape.retarget.api.override_poses`)."""
     from keyshape.base.formats.poses import read_poses
     from keyshape.base.formats.weights import read_weights
-    from keyshape.retarget.solve import pose_override
+    from keyshape.retarget.api import override_poses
 
     wf, columns, weights, _ = read_weights(args.weights)
-    if len(wf) != len(frames) or (wf != frames).any():
-        raise InputError("the weights' frames are not the tracks' frames", args.weights)
-    key_frames = {k: int(f) for rk in regions for k, f in zip(rk.names, rk.frames)}
-    lib = read_poses(args.poses, rig.names)
-    return pose_override(curves, frames, weights, columns, lib, rig.names, key_frames, args.poses)
+    return override_poses(curves, frames, regions, weights, columns, wf, read_poses(args.poses, rig.names), rig,
+                          args.poses, args.weights)

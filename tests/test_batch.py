@@ -128,8 +128,9 @@ def test_identical_to_the_commands(library, first_run, tmp_path):
 
 def test_a_rig_library_writes_curves_and_live_link_resumably_as_the_commands_do(library, first_run, tmp_path):
     """Two actors driving a rig (a small one from the shipped ICT-FaceKit subset): one pose library per
-    actor (fitted once, or the manifest's own), each take's rig curves, Live Link CSV and .glb, as
-    ``keyshape pose`` and ``keyshape retarget --poses --rig`` give them; a rerun skips everything."""
+    actor (fitted once for the artist, or the manifest's corrected one), each take's rig curves, Live Link
+    CSV and .glb, as ``keyshape pose`` and ``keyshape solve`` give them (``solve --poses --weights`` with a
+    corrected library); a rerun skips everything."""
     from keyshape.data_synth.library import ict_subset_rig
 
     out0, _ = first_run
@@ -166,9 +167,8 @@ def test_a_rig_library_writes_curves_and_live_link_resumably_as_the_commands_do(
     batch_poses = json.loads((out / "actor1" / "poses.json").read_text())
     assert {k: v for k, v in poses.items() if k != "keys"} == {k: v for k, v in batch_poses.items() if k != "keys"}
     for name, extra in (("curves.csv", []), ("livelink.csv", ["--livelink"]), ("animation.glb", [])):
-        assert main(["retarget", str(d / "weights.csv"), "--poses", str(tmp_path / "poses.json"), "--rig", str(rig),
-                     "--landmarks", str(lm), "--tracks", str(d / "tracks.csv"), *extra,
-                     "-o", str(tmp_path / name)]) == 0
+        assert main(["solve", str(d / "tracks.csv"), "--keys", str(out / "actor1" / "keys.json"), "--rig", str(rig),
+                     "--landmarks", str(lm), *extra, "-o", str(tmp_path / name)]) == 0
         assert filecmp.cmp(tmp_path / name, d / name, shallow=False), name
     # resumable: nothing recomputed; a corrected pose library given in the manifest redoes only the curves
     rep = run_batch(manifest, out, workers=1, processes=False, show_progress=False)
@@ -187,6 +187,11 @@ def test_a_rig_library_writes_curves_and_live_link_resumably_as_the_commands_do(
     assert stages[("actor1", "take00")] == {"track": "skipped", "finish": "skipped"}, stages
     assert rep["actors"]["actor0"]["poses_status"] == "given"
     assert (out / "actor1" / "take00" / "curves.csv").read_bytes() == before
+    d0 = out / "actor0" / "take00"
+    assert main(["solve", str(d0 / "tracks.csv"), "--keys", str(out / "actor0" / "keys.json"), "--rig", str(rig),
+                 "--landmarks", str(lm), "--poses", str(tmp_path / "fixed.json"), "--weights", str(d0 / "weights.csv"),
+                 "-o", str(tmp_path / "fixed_curves.csv")]) == 0
+    assert filecmp.cmp(tmp_path / "fixed_curves.csv", d0 / "curves.csv", shallow=False)
 
 
 def rep_row(rep, actor, take) -> dict:
