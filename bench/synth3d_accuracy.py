@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 SCORED = ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R")
 
 
-def run_chain(work: Path, seed: int, frames: int, rig: Path) -> dict:
+def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve") -> dict:
     """Run the chain in ``work`` (re-using finished steps); returns the paths."""
     from keyshape.cli import main
     work.mkdir(parents=True, exist_ok=True)
@@ -42,10 +42,14 @@ def run_chain(work: Path, seed: int, frames: int, rig: Path) -> dict:
                      "--quiet"]) == 0
     assert main(["select", str(p["tracks.csv"]), "-k", "8", "--region", "mouth", "--region", "eyes",
                  "-o", str(p["keys.json"])]) == 0
-    assert main(["decompose", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "-o", str(p["weights.csv"])]) == 0
-    assert main(["pose", str(p["keys.json"]), "--rig", str(rig), "-o", str(p["poses.json"])]) == 0
-    assert main(["retarget", str(p["weights.csv"]), "--poses", str(p["poses.json"]), "--rig", str(rig),
-                 "-o", str(p["curves.csv"])]) == 0
+    if chain == "solve":                                   # README's rig chain
+        assert main(["solve", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "--rig", str(rig),
+                     "-o", str(p["curves.csv"])]) == 0
+    else:                                                  # the paper's route: key weights through poses
+        assert main(["decompose", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "-o", str(p["weights.csv"])]) == 0
+        assert main(["pose", str(p["keys.json"]), "--rig", str(rig), "-o", str(p["poses.json"])]) == 0
+        assert main(["retarget", str(p["weights.csv"]), "--poses", str(p["poses.json"]), "--rig", str(rig),
+                     "-o", str(p["curves.csv"])]) == 0
     p["take"] = take
     return p
 
@@ -162,12 +166,14 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--work", default=None, help="work folder (kept; finished steps are re-used)")
     ap.add_argument("--rig", default=str(REPO.parent / "shared" / "data" / "ict-facekit"))
+    ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
+                    help="solve (README's rig chain) or poses (decompose, pose, retarget --poses)")
     a = ap.parse_args()
     if a.work:
-        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig)))))
+        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain))))
     else:
         with tempfile.TemporaryDirectory() as tmp:
-            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig)))))
+            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig), a.chain))))
 
 
 if __name__ == "__main__":

@@ -29,7 +29,6 @@ the head; same signs: yaw > 0 looks to the subject's left, pitch > 0 down).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -38,15 +37,14 @@ import cv2
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_path, atomic_write
-from keyshape.base.formats.labels import write_labels
-from keyshape.base.formats.tracks import Tracks, write_tracks
+from keyshape.base.files import atomic_path, atomic_write
+from keyshape.base.formats.tracks import Tracks
 from keyshape.base.formats.video import video_writer
 from keyshape.base.formats.weights import write_weights
 from keyshape.base.progress import Progress
 from keyshape.data_synth.performance import make_performance, smooth_noise
 from keyshape.data_synth.raster import rasterize
-from keyshape.data_synth.video import _check_args, select_label_frames
+from keyshape.data_synth.video import _check_args, select_label_frames, write_truth
 
 #: Shapes the performance drives (ICT-FaceKit names); the curves CSV has every shape of the rig.
 DRIVEN = ("jawOpen", "mouthFunnel", "mouthPucker", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L", "eyeBlink_R",
@@ -667,19 +665,12 @@ def synthesize(out_dir, rig, frames: int = 300, seed: int = 0, size=(640, 480), 
             if t in sheet_idx:
                 kept[t] = img
             prog.update()
-    write_tracks(paths["truth"], sv.tracks())
     write_weights(paths["curves"], np.arange(frames), sv.head.names, sv.curves())
     cols, data = sv.head_table()
     with atomic_write(paths["head"]) as f:
         f.write(",".join(cols) + "\n")
         f.write("\n".join(",".join([str(int(r[0]))] + ["%.6f" % x for x in r[1:]]) for r in data) + "\n")
-    with atomic_dir(paths["labels"]) as tmp:
-        idx = sv.label_frames(labels)
-        write_labels(tmp, idx, sv.points[idx])
-    with atomic_write(paths["truth_json"]) as f:
-        json.dump(sv.truth(), f, separators=(",", ":"))
-    if preview:
-        paths["preview"] = write_preview(preview, sv, kept)
+    write_truth(paths, sv, labels, preview, kept, write_preview)
     return paths
 
 

@@ -18,17 +18,11 @@ def register(subparsers) -> None:
     p.add_argument("out_dir", metavar="OUT_DIR", help="output folder (created)")
     p.add_argument("--rig", default=str(DEFAULT_FACEKIT),
                    help="ICT-FaceKit folder (default ../shared/data/ict-facekit)")
-    p.add_argument("--frames", type=int, default=300, help="number of frames (default 300)")
-    p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same take (default 0)")
-    p.add_argument("--size", default="640x480", help="frame size WIDTHxHEIGHT (default 640x480)")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
-    p.add_argument("--labels", type=int, default=12, help="training frames written to labels/ (default 12)")
+    from keyshape.data_synth.video_cli import add_footage_options
+
+    add_footage_options(p, frames=300)
     p.add_argument("--identity", choices=("mixed", "generic"), default="mixed",
                    help="mixed: a seeded mix of ICT-FaceKit's identities, rescaled; generic: its neutral (default mixed)")
-    p.add_argument("--preview", metavar="PNG", default=None,
-                   help="also write a contact sheet of 12 frames with the truth drawn")
-    p.add_argument("--overwrite", action="store_true",
-                   help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
     p.set_defaults(func=run)
 
 

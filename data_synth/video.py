@@ -268,6 +268,14 @@ def synthesize(out_dir, frames: int = 600, seed: int = 0, size=(640, 480), fps: 
             if t in sheet_idx:
                 kept[t] = img
             prog.update()
+    write_truth(paths, sv, labels, preview, kept, write_preview)
+    return paths
+
+
+def write_truth(paths: dict, sv, labels: int, preview, kept: dict, preview_writer) -> None:
+    """What every synthetic take writes beside its video: the truth tracks, ``labels`` training frames
+    (``labels/``), ``truth.json`` and, with ``preview``, a contact sheet of the ``kept`` frames
+    (``preview_writer(path, sv, kept)``). ``sv`` has ``tracks()``, ``label_frames(n)``, ``points`` and ``truth()``."""
     write_tracks(paths["truth"], sv.tracks())
     with atomic_dir(paths["labels"], kind="synth labels") as tmp:
         idx = sv.label_frames(labels)
@@ -275,8 +283,7 @@ def synthesize(out_dir, frames: int = 600, seed: int = 0, size=(640, 480), fps: 
     with atomic_write(paths["truth_json"]) as f:
         json.dump(sv.truth(), f, separators=(",", ":"))
     if preview:
-        paths["preview"] = write_preview(preview, sv, kept)
-    return paths
+        paths["preview"] = preview_writer(preview, sv, kept)
 
 
 def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray], tile_width: int = 400) -> Path:

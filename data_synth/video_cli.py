@@ -12,7 +12,13 @@ def register(subparsers) -> None:
                     "labels/ (suggested training frames as .pts) and truth.json (hidden expression "
                     "weights and basis) into OUT_DIR.")
     p.add_argument("out_dir", metavar="OUT_DIR", help="output folder (created)")
-    p.add_argument("--frames", type=int, default=600, help="number of frames (default 600)")
+    add_footage_options(p, frames=600)
+    p.set_defaults(func=run)
+
+
+def add_footage_options(p, frames: int) -> None:
+    """The options every synthetic footage command shares (``synth video``, ``synth face3d``)."""
+    p.add_argument("--frames", type=int, default=frames, help=f"number of frames (default {frames})")
     p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same footage (default 0)")
     p.add_argument("--size", default="640x480", help="frame size WIDTHxHEIGHT (default 640x480)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
@@ -21,7 +27,6 @@ def register(subparsers) -> None:
                    help="also write a contact sheet of 12 frames with the ground truth drawn")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:

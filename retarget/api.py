@@ -21,7 +21,6 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
-from keyshape.decompose.api import tracks_fps
 from keyshape.retarget.headpose import HeadMotion, head_motion, hold_invalid
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
@@ -95,11 +94,8 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
         head = head if head.get("method") == "3d" else head.get("method", "tracker")
     if not isinstance(head, (dict, HeadPose3D)) and head not in HEAD_POSES:
         raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
-    fps = None
-    if len(tracks.time) > 1:
-        dt = np.diff(tracks.time)
-        dt = dt[np.isfinite(dt) & (dt > 0)]
-        fps = round(float(1.0 / np.median(dt)), 3) if len(dt) else None
+    from keyshape.decompose.api import tracks_fps
+    fps = tracks_fps(tracks)
     if (isinstance(head, (dict, HeadPose3D)) or head == "3d") and tracks.success.any():
         motion = _head_3d(tracks, head, rows, None if reference_frame is None else pos[reference_frame],
                           head_units, source)

@@ -16,7 +16,6 @@ from typing import Sequence
 
 import numpy as np
 
-from keyshape.base.files import read_json
 from keyshape.base.errors import InputError, MissingFileError, require_file
 from keyshape.base.files import read_json
 from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices
