@@ -33,6 +33,7 @@ from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
 from keyshape.base.schemes import load_head_template
 from keyshape.decompose.head3d import HeadPose3D
+from keyshape.decompose.defaults import HEAD_POSE
 from keyshape.decompose.stabilize import HEAD_POSES, RigidStabilizer, stabilizer_from_entry
 
 # the selectors and the solvers (scipy.fft, scipy.linalg) are imported where they are used: taking the
@@ -127,14 +128,14 @@ def head_pose_3d(scheme: Scheme) -> HeadPose3D | None:
     return HeadPose3D(X, w, scheme.rigid)
 
 
-def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | HeadPose3D | None = "3d",
+def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | HeadPose3D | None = HEAD_POSE,
                 path=None) -> tuple[np.ndarray, RigidStabilizer | HeadPose3D | None]:
     """Shapes in the head frame (n_frames, n_points, 2) and the stabiliser that made them.
 
     Parameters
     ----------
     tracks, scheme : the tracks and their landmark scheme
-    head : ``"3d"`` (default, as ``keyshape select``): the head's 3D pose taken out and the shapes brought to the front
+    head : default :data:`~keyshape.decompose.defaults.HEAD_POSE`, as ``keyshape select``; ``"3d"``: the head's 3D pose taken out and the shapes brought to the front
         (:class:`~keyshape.decompose.head3d.HeadPose3D` fitted to this take's image points; ``rigid``
         where the scheme has no 3D face); ``"rigid"``: :func:`model_shapes` stabilised on ``scheme.rigid`` with a
         :class:`~keyshape.decompose.stabilize.RigidStabilizer` fitted to this take (the tracker's

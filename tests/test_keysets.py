@@ -63,7 +63,7 @@ def test_old_metadata_line_still_reads(tmp_path):
     assert read_tracks(p).meta == {"model": "sha256:bbbb", "scheme": "contours48"}
 
 
-@pytest.mark.parametrize("flag,method,tol", [(["--head-pose", "rigid"], "rigid", 1e-5), ([], "3d", 1e-3)])
+@pytest.mark.parametrize("flag,method,tol", [([], "rigid", 1e-5), (["--head-pose", "3d"], "3d", 1e-3)])
 def test_select_several_takes_records_model_and_takes(tmp_path, flag, method, tol):
     a, b = _take(tmp_path / "a.csv", 1), _take(tmp_path / "b.csv", 2)
     assert main(["select", str(a), str(b), "-k", "6", "--region", "mouth", "-o", str(tmp_path / "k.json"),
@@ -186,7 +186,7 @@ def test_face_rest_frame_is_relaxed_where_a_region_alone_picks_a_held_expression
     assert held[relaxed_frame(X[:, eyes])]                           # the region alone: the held raise
     f = face_rest_frame(tr, X, SCHEME, ["mouth", "eyes"])
     assert not held[f]
-    # select does the same on its head-frame shapes (the default 3D head step)
+    # select does the same on its head-frame shapes (the default head step)
     f = face_rest_frame(tr, head_shapes(tr, SCHEME)[0], SCHEME, ["mouth", "eyes"])
     assert not held[f]
     write_tracks(tmp_path / "t.csv", tr)

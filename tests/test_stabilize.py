@@ -105,7 +105,7 @@ def test_stabilised_shapes_undo_a_pose_that_moves_with_the_expression():
     assert head_shapes(tracks, SCHEME, "tracker")[1] is None
 
 
-@pytest.mark.parametrize("flag,method,tol", [(["--head-pose", "rigid"], "rigid", 1e-5), ([], "3d", 1e-3)])
+@pytest.mark.parametrize("flag,method,tol", [([], "rigid", 1e-5), (["--head-pose", "3d"], "3d", 1e-3)])
 def test_select_records_the_head_pose_and_decompose_applies_it(tmp_path, flag, method, tol):
     tracks, _ = _expression_biased_tracks(1)
     tracks.meta = {"model": "sha256:cccc", "scheme": "contours48"}
