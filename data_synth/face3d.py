@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_path, atomic_write
+from keyshape.base.files import atomic_write
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.formats.video import video_writer
 from keyshape.base.formats.weights import write_weights
@@ -675,24 +675,12 @@ def synthesize(out_dir, rig, frames: int = 300, seed: int = 0, size=(640, 480), 
 
 
 def write_preview(path, sv: Synthetic3D, frames: dict[int, np.ndarray], tile_width: int = 400) -> Path:
-    """Contact sheet of ``frames`` (index -> image) as face close-ups with the truth drawn (PNG)."""
-    from keyshape.base.draw import contact_sheet, crop_around, draw_shape
-    from keyshape.base.schemes import load_scheme
+    """Contact sheet of ``frames`` (index -> image) as face close-ups with the truth drawn (PNG), captioned
+    with each frame's head angles (:func:`keyshape.data_synth.video.write_preview`)."""
+    from keyshape.data_synth.video import write_preview as sheet
 
-    path = Path(path)
-    if path.suffix.lower() != ".png":
-        raise InputError("preview must be a .png file", path)
-    scheme = load_scheme("contours48")
-    tiles, caps = [], []
-    for t in sorted(frames):
-        crop, pts = crop_around(frames[t], sv.points[t], margin=0.3)
-        f = tile_width / crop.shape[1]
-        big = cv2.resize(crop, (tile_width, int(round(crop.shape[0] * f))), interpolation=cv2.INTER_CUBIC)
-        tiles.append(draw_shape(big, pts * f + (f - 1) / 2, scheme))
+    def caption(t: int) -> str:
         y, p, r = sv.performance.head_deg[t]
-        caps.append(f"frame {t}: yaw {y:+.0f} pitch {p:+.0f} roll {r:+.0f}")
-    sheet = contact_sheet(tiles, caps, columns=4, tile_width=tile_width)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), sheet):
-            raise InputError("cannot write the preview image", path)
-    return path
+        return f"frame {t}: yaw {y:+.0f} pitch {p:+.0f} roll {r:+.0f}"
+
+    return sheet(path, sv, frames, tile_width, caption)

@@ -1,7 +1,6 @@
 """``keyshape synth face3d``: footage of a shaded 3D head (ICT-FaceKit) with rig, head-pose and gaze truth."""
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 DEFAULT_FACEKIT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict-facekit"
@@ -27,28 +26,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from keyshape.base.files import atomic_dir, check_output, check_output_dir
     from keyshape.data_synth.face3d import check_facekit, synthesize
-    from keyshape.data_synth.video import _check_args, parse_size
+    from keyshape.data_synth.video_cli import run_footage
 
-    size = parse_size(args.size)
-    _check_args(args.frames, args.seed, size, args.fps, args.labels)
-    check_facekit(args.rig)
-    out_dir = Path(args.out_dir)
-    check_output_dir(out_dir, args.overwrite)
-    if args.preview:
-        check_output(args.preview)
-    t0 = time.perf_counter()
-    with atomic_dir(out_dir, args.overwrite) as tmp:
-        preview = args.preview
-        if preview and Path(preview).resolve().parent == out_dir.resolve():
-            preview = tmp / Path(args.preview).name
-        out = synthesize(tmp, args.rig, frames=args.frames, seed=args.seed, size=size, fps=args.fps,
-                         labels=args.labels, identity=args.identity, preview=preview, verbose=True)
-    out = {k: (out_dir / Path(v).relative_to(tmp) if Path(v).is_relative_to(tmp) else Path(v))
-           for k, v in out.items()}
-    dt = time.perf_counter() - t0
-    print(f"keyshape synth face3d: {args.frames} frames in {dt:.1f} s ({1000 * dt / args.frames:.1f} ms/frame)")
-    for name, path in out.items():
-        print(f"  {name:11s} {path}")
-    return 0
+    return run_footage(args, "face3d", lambda tmp, size, preview: synthesize(
+        tmp, args.rig, frames=args.frames, seed=args.seed, size=size, fps=args.fps, labels=args.labels,
+        identity=args.identity, preview=preview, verbose=True), check=lambda: check_facekit(args.rig))

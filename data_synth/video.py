@@ -286,13 +286,14 @@ def write_truth(paths: dict, sv, labels: int, preview, kept: dict, preview_write
         paths["preview"] = preview_writer(preview, sv, kept)
 
 
-def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray], tile_width: int = 400) -> Path:
+def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray], tile_width: int = 400,
+                  caption=None) -> Path:
     """Contact sheet of ``frames`` (index -> image) as face close-ups with the ground truth drawn, as a PNG.
 
     Each tile is the face region of a frame, enlarged to ``tile_width`` pixels
     before the contours are drawn so that a person can check that they follow
     the lids, lips, brows and pupils; the caption names the frame and its
-    strongest hidden weights.
+    strongest hidden weights (or ``caption(t)``: the 3D take's head angles).
     """
     from keyshape.base.draw import contact_sheet, crop_around, draw_shape
     from keyshape.base.schemes import load_scheme
@@ -307,11 +308,15 @@ def write_preview(path, sv: SyntheticVideo, frames: dict[int, np.ndarray], tile_
         f = tile_width / crop.shape[1]
         big = cv2.resize(crop, (tile_width, int(round(crop.shape[0] * f))), interpolation=cv2.INTER_CUBIC)
         tiles.append(draw_shape(big, pts * f + (f - 1) / 2, scheme))
-        top = np.argsort(-sv.weights[t])[:2]
-        caps.append(f"frame {t}: " + ", ".join(f"{COMPONENTS[j]} {sv.weights[t, j]:.2f}" for j in top
-                                                if sv.weights[t, j] >= 0.05))
+        caps.append(caption(t) if caption is not None else _weights_caption(sv, t))
     sheet = contact_sheet(tiles, caps, columns=4, tile_width=tile_width)
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), sheet):
             raise InputError("cannot write the preview image", path)
     return path
+
+
+def _weights_caption(sv: SyntheticVideo, t: int) -> str:
+    top = np.argsort(-sv.weights[t])[:2]
+    return f"frame {t}: " + ", ".join(f"{COMPONENTS[j]} {sv.weights[t, j]:.2f}" for j in top
+                                      if sv.weights[t, j] >= 0.05)

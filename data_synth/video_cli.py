@@ -30,29 +30,40 @@ def add_footage_options(p, frames: int) -> None:
 
 
 def run(args) -> int:
+    from keyshape.data_synth.video import synthesize
+
+    return run_footage(args, "video", lambda tmp, size, preview: synthesize(
+        tmp, frames=args.frames, seed=args.seed, size=size, fps=args.fps, labels=args.labels, preview=preview,
+        verbose=True))
+
+
+def run_footage(args, kind: str, make, check=None) -> int:
+    """What every ``keyshape synth`` footage command does around its generator: check the shared options
+    (and ``check()``) before any work, run ``make(tmp, size, preview)`` into a hidden folder of OUT_DIR
+    (a ``--preview`` inside OUT_DIR goes there too), move its files in, print where they are."""
     from pathlib import Path
 
     from keyshape.base.files import atomic_dir, check_output, check_output_dir
-    from keyshape.data_synth.video import _check_args, parse_size, synthesize
+    from keyshape.data_synth.video import _check_args, parse_size
 
     size = parse_size(args.size)
     _check_args(args.frames, args.seed, size, args.fps, args.labels)
+    if check is not None:
+        check()
     out_dir = Path(args.out_dir)
     check_output_dir(out_dir, args.overwrite)
     if args.preview:
         check_output(args.preview)
     t0 = time.perf_counter()
-    with atomic_dir(out_dir, args.overwrite, kind="synth video") as tmp:
+    with atomic_dir(out_dir, args.overwrite, kind=f"synth {kind}") as tmp:
         preview = args.preview
-        inside = preview and Path(preview).resolve().parent == out_dir.resolve()
-        if inside:
+        if preview and Path(preview).resolve().parent == out_dir.resolve():
             preview = tmp / Path(args.preview).name
-        out = synthesize(tmp, frames=args.frames, seed=args.seed, size=size, fps=args.fps,
-                         labels=args.labels, preview=preview, verbose=True)
+        out = make(tmp, size, preview)
     out = {k: (out_dir / Path(v).relative_to(tmp) if Path(v).is_relative_to(tmp) else Path(v))
            for k, v in out.items()}
     dt = time.perf_counter() - t0
-    print(f"keyshape synth video: {args.frames} frames in {dt:.1f} s ({1000 * dt / args.frames:.1f} ms/frame)")
+    print(f"keyshape synth {kind}: {args.frames} frames in {dt:.1f} s ({1000 * dt / args.frames:.1f} ms/frame)")
     for name, path in out.items():
         print(f"  {name:11s} {path}")
     return 0
