@@ -27,8 +27,11 @@ import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.decompose import defaults as D
+from keyshape.retarget.defaults import GAZE, GAZES
 
 LIVE_SOLVERS = ("nnls", "lstsq")
+#: the head sent: the 3D head and gaze from a calibration, or the 2D head's roll
+LIVE_HEADS = ("3d", "2d")
 
 
 # ----------------------------------------------------------------------------------------------- sources
@@ -203,11 +206,148 @@ class OscSender:
 
 
 # ------------------------------------------------------------------------------------------- the chain
+class LiveHead:
+    """The 3D head's angles and the eyes' angles of one frame, from a calibration fitted offline, once.
+
+    What offline (``retarget --tracks``, ``solve``) fits over the whole take is fitted here once on a
+    calibration take's tracks with the same function (:func:`keyshape.retarget.api.head_3d_from_tracks`):
+    the actor-adapted 3D face, the camera's focal length and principal point (guessed from the face's
+    size and place in that take) and the front-facing zero. Each live frame is then posed alone by that
+    :class:`~keyshape.decompose.head3d.HeadPose3D` with its temporal smoothing off (offline's is a
+    Gaussian over past and future frames; live has no future): :func:`~keyshape.retarget.api.head_from_tracks`
+    on the one frame, as offline.
+
+    The gaze (``gaze`` ``angles`` or ``shapes``) is :func:`keyshape.decompose.gaze.gaze_angles` of the
+    frame's head-frame shape with the calibration's head-frame shapes before it (twice, so that their
+    median, the straight-ahead pupil and the open-lid gap, is the calibration's: exactly when the
+    calibration has an odd number of open frames, else within half the step between its two middle
+    values). An eye that ``gaze_angles`` finds closed holds the frame's last open gaze of the live run
+    (offline holds the take's last open frame's gaze; before the run's first open frame: the
+    calibration's straight-ahead frame's).
+
+    Parameters
+    ----------
+    estimator : a fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (copied; its smoothing set to 0)
+    calibration : the calibration's :class:`~keyshape.base.formats.tracks.Tracks` (for the gaze)
+    scheme : their :class:`~keyshape.base.schemes.Scheme`
+    gaze : ``angles``, ``shapes`` or ``none`` (as ``retarget --gaze``)
+    source : the calibration file, named in errors
+    """
+
+    def __init__(self, estimator, calibration, scheme, gaze: str = "angles", source=None):
+        import copy
+
+        from keyshape.decompose.gaze import gaze_angles, has_gaze
+        from keyshape.decompose.regions import image_points
+
+        est = copy.copy(estimator)
+        est.smooth = 0.0                                  # causal: each frame posed alone
+        _share_camera_pose(est)
+        self.estimator, self.scheme, self.gaze, self.source = est, scheme, gaze, source
+        self.context = None                               # calibration shapes (twice) + a slot for the frame
+        self.last_eyes = np.zeros(4)
+        self.note = ""
+        if gaze == "none":
+            return
+        if not has_gaze(scheme):
+            self.note = f"scheme {scheme.name!r} has no pupils: no eye angles"
+            return
+        H = est.transform(image_points(calibration, source))
+        H = H[np.isfinite(H).all(axis=(1, 2))]
+        g = gaze_angles(H, scheme)
+        # an open frame of both eyes (gaze_angles gives a closed eye the last open frame's value): the one
+        # looking most straight ahead goes last, so that a closed eye in the live frame is seen as a copy of it
+        fresh = np.ones((len(g), 2), bool)
+        fresh[1:] = (g[1:].reshape(-1, 2, 2) != g[:-1].reshape(-1, 2, 2)).any(-1)
+        fresh[0] = False
+        both = np.flatnonzero(fresh.all(1) & np.isfinite(g).all(1))
+        if not len(both):
+            self.note = f"no frame of the calibration {source} has both eyes open: no eye angles"
+            return
+        a = int(both[np.argmin(np.abs(g[both]).sum(1))])
+        order = np.r_[np.delete(np.arange(len(H)), a), a]
+        self.context = np.concatenate([H, H[order], H[:1]])
+        self.last_eyes = g[a].copy()
+
+    def frame(self, tracks) -> tuple:
+        """``(HeadMotion, eye angles (4,) or None)`` of a one-frame :class:`~keyshape.base.formats.tracks.Tracks`."""
+        from keyshape.decompose.gaze import gaze_angles
+        from keyshape.retarget.api import head_from_tracks
+
+        head, _ = head_from_tracks(tracks, tracks.frame, None, 1.0, self.source, head=self.estimator)
+        if self.context is None:
+            return head, None
+        self.context[-1] = self.estimator.transform(tracks.points)[0]
+        g = gaze_angles(self.context, self.scheme)[-2:]
+        eyes = g[1].copy()
+        for c in (slice(0, 2), slice(2, 4)):
+            if (g[1, c] == g[0, c]).all():                 # closed: the last open frame's gaze
+                eyes[c] = self.last_eyes[c]
+        self.last_eyes = eyes
+        return head, eyes
+
+
+def _share_camera_pose(est) -> None:
+    """Let ``est.head_pose`` and ``est.transform`` of the same points share one pose solve (both call
+    :meth:`~keyshape.decompose.head3d.HeadPose3D.camera_pose`; the last call's result is kept)."""
+    solve = est.camera_pose
+    memo: dict = {}
+
+    def camera_pose(points):
+        key = np.asarray(points, np.float64).tobytes()
+        if memo.get("key") != key:
+            memo["key"], memo["pose"] = key, solve(points)
+        return memo["pose"]
+    est.camera_pose = camera_pose
+
+
+def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", say=None) -> LiveHead | None:
+    """The :class:`LiveHead` fitted to the calibration tracks (``calibration``; default: the key set's own
+    tracks, KEYS.json's ``source``), or None (the 2D head roll) when there are none or their scheme has
+    no 3D face; what happened is said in one line through ``say``."""
+    from pathlib import Path
+
+    from keyshape.base.formats.keys import read_keys_source
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.schemes import load_scheme
+    from keyshape.retarget.api import head_3d_from_tracks
+
+    say = say or (lambda line: print(line, file=sys.stderr))
+    if calibration is None:
+        listed = read_keys_source(keys_path).get("tracks") or []
+        for f in listed[:1]:
+            for cand in (Path(f), Path(keys_path).parent / Path(f).name):
+                if cand.is_file():
+                    calibration = cand
+                    break
+        if calibration is None:
+            say(f"keyshape live: no calibration tracks ({'the key set names none' if not listed else listed[0] + ' is gone'}; "
+                "--calibration TRACKS.csv): sending the 2D head roll and no eye angles")
+            return None
+    calibration = require_file(calibration, "calibration tracks")
+    tracks = read_tracks(calibration)
+    scheme = load_scheme(scheme_name)
+    if tracks.n_points != scheme.n_points:
+        raise InputError(f"the calibration tracks have {tracks.n_points} points but the key set's scheme "
+                         f"{scheme_name!r} {scheme.n_points}: track the calibration take with the live model",
+                         calibration)
+    est = head_3d_from_tracks(tracks, calibration)
+    if est is None:
+        say(f"keyshape live: scheme {scheme_name!r} has no 3D face (or {calibration} no tracked frame): "
+            "sending the 2D head roll and no eye angles")
+        return None
+    head = LiveHead(est, tracks, scheme, gaze, calibration)
+    say(f"keyshape live: 3D head and {'eye angles' if head.context is not None else 'no eye angles'} "
+        f"calibrated on {calibration} ({int(tracks.success.sum())} frames){'; ' + head.note if head.note else ''}")
+    return head
+
+
 @dataclass
 class LiveChain:
     """The offline chain for one frame at a time: key weights -> rig curves -> Live Link values.
 
-    Built by :func:`load_chain`; :meth:`frame` runs it on one tracked frame.
+    Built by :func:`load_chain`; :meth:`frame` runs it on one tracked frame. ``head``: the 3D head and
+    gaze (:class:`LiveHead`); None: the 2D head's roll, relative to the first frame, no eye angles.
     """
 
     scheme: str
@@ -219,32 +359,47 @@ class LiveChain:
     solver: str = "nnls"
     ridge: float = D.RIDGE
     reference_pose: np.ndarray | None = field(default=None)
+    head: LiveHead | None = None
 
     def frame(self, index: int, fps: float, points: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
         """(rig curves (n_shapes,), Live Link values (61,) in CSV column order) of one tracked frame."""
         from keyshape.base.formats.tracks import Tracks
         from keyshape.decompose.api import decompose_keys
-        from keyshape.decompose.regions import stable_pose
         from keyshape.retarget.export import livelink_values
-        from keyshape.retarget.headpose import HeadMotion, head_motion
         from keyshape.retarget.poses import curves_from_library
 
         tr = Tracks(np.array([index]), np.array([index / fps]), np.array([res.confidence]), np.array([True]),
                     points[None].astype(np.float64), np.asarray(res.pose, np.float64)[None], {"scheme": self.scheme})
         _, w = decompose_keys(tr, self.regions, self.solver, 0.1, self.ridge, None, self.head_pose)
         curves = curves_from_library(w, self.columns, self.library, self.rig_names)
+        if self.head is not None:
+            head, eyes = self.head.frame(tr)
+            if eyes is not None and self.head.gaze == "shapes":
+                from keyshape.retarget.rig import gaze_curves
+                g, cols = gaze_curves(eyes[None], self.rig_names)
+                curves[:, cols] = g[:, cols]
+        else:
+            head, eyes = self._head_2d(tr), None
+        return curves[0], livelink_values(self.rig_names, curves, head, None if eyes is None else eyes[None])[0]
+
+    def _head_2d(self, tr):
+        """The in-plane head motion of a one-frame track relative to the run's first frame."""
+        from keyshape.decompose.regions import stable_pose
+        from keyshape.retarget.headpose import HeadMotion, head_motion
+
         pose = stable_pose(tr, self.head_pose)[0]
         if self.reference_pose is None:
             self.reference_pose = pose
         hm = head_motion(np.stack([pose, self.reference_pose]), reference=1)
-        head = HeadMotion(hm.translation[:1], hm.rotation[:1], hm.scale[:1], hm.angle[:1])
-        return curves[0], livelink_values(self.rig_names, curves, head)[0]
+        return HeadMotion(hm.translation[:1], hm.rotation[:1], hm.scale[:1], hm.angle[:1])
 
 
-def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str = "nnls", ridge: float = D.RIDGE):
-    """Read the model, key set, pose library and rig; check they belong together (one-line errors).
+def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str = "nnls", ridge: float = D.RIDGE,
+               head: str = "3d", calibration=None, gaze: str = "angles", say=None):
+    """Read the model, key set, pose library and rig; check they belong together (one-line errors);
+    with ``head="3d"`` fit the 3D head and gaze on the calibration tracks (:func:`load_head`).
 
-    Returns ``(model, chain, rig shape names)``.
+    Returns ``(model, chain)``.
     """
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose
     from keyshape.base.formats.poses import read_poses
@@ -257,8 +412,12 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
         raise InputError(f"--solver {solver}: live weights are solved frame by frame: use {' or '.join(LIVE_SOLVERS)}")
     if not (np.isfinite(ridge) and ridge >= 0):
         raise InputError(f"--ridge {ridge}: must be a finite number >= 0")
+    if head not in LIVE_HEADS:
+        raise InputError(f"--head-pose {head}: use one of {', '.join(LIVE_HEADS)}")
+    if gaze not in GAZES:
+        raise InputError(f"--gaze {gaze}: use one of {', '.join(GAZES)}")
     scheme, n_points, regions = read_keys(keys_path)
-    head = read_keys_head_pose(keys_path)
+    head_entry = read_keys_head_pose(keys_path)
     from keyshape.base.formats.model import read_model
     mf = read_model(model_path)                                   # its scheme, before the model is built
     if mf.scheme.name != scheme or mf.scheme.n_points != n_points:
@@ -271,7 +430,8 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
     columns = [n for rk in regions for n in rk.names]
     curves = curves_from_library(np.zeros((1, len(columns))), columns, lib, rig_obj.names, poses_path)
     livelink_values(rig_obj.names, curves)                       # the rig has ARKit names, or one line
-    chain = LiveChain(scheme, regions, head, columns, lib, list(rig_obj.names), solver, ridge)
+    live_head = load_head(calibration, keys_path, scheme, gaze, say) if head == "3d" else None
+    chain = LiveChain(scheme, regions, head_entry, columns, lib, list(rig_obj.names), solver, ridge, head=live_head)
     return model, chain
 
 
@@ -405,6 +565,16 @@ def register(subparsers) -> None:
     p.add_argument("--osc-prefix", default="/keyshape", help="OSC address prefix: PREFIX/<curve name>")
     p.add_argument("--solver", choices=LIVE_SOLVERS, default="nnls", help="per-frame key weights solver")
     p.add_argument("--ridge", type=float, default=D.RIDGE, help="ridge of the weights solver (as decompose --ridge)")
+    p.add_argument("--head-pose", choices=LIVE_HEADS, default="3d",
+                   help="3d: the 3D head's yaw, pitch and roll and the eye angles, calibrated once on --calibration "
+                        "(as retarget --tracks writes them offline); 2d: the head's in-plane roll only, no eye angles")
+    p.add_argument("--calibration", metavar="TRACKS.csv",
+                   help="with --head-pose 3d: tracks of the actor in front of this camera (keyshape track with "
+                        "this model), on which the 3D face, the camera and the front-facing zero are fitted once "
+                        "(default: the key set's own tracks, as KEYS.json names them)")
+    p.add_argument("--gaze", choices=GAZES, default=GAZE,
+                   help="the pupils' gaze (as retarget --gaze): angles (the Live Link eye angles), shapes (also the "
+                        "rig's eyeLook* curves) or none")
     p.add_argument("--smooth", choices=("none", "oneeuro"), default="none",
                    help="causal landmark smoothing (oneeuro adds no delay)")
     p.add_argument("--no-pace", action="store_true",
@@ -424,13 +594,17 @@ def run(args) -> int:
     if not camera:
         require_file(args.source, "video")
     osc_addr = parse_host_port(args.osc, "--osc") if args.osc else None
-    model, chain = load_chain(args.model, args.keys, args.poses, args.rig, args.neutral, args.solver, args.ridge)
+    notes: list[str] = []                       # said once everything has opened (bad input stays one line)
+    model, chain = load_chain(args.model, args.keys, args.poses, args.rig, args.neutral, args.solver, args.ridge,
+                              args.head_pose, args.calibration, args.gaze, say=notes.append)
     sender = LiveLinkSender(args.host, args.port, args.local_port, args.subject)
     osc = None
     try:
         if osc_addr is not None:
             osc = OscSender(*osc_addr, prefix=args.osc_prefix)
         source = FrameSource(args.source, pace=not args.no_pace, max_frames=args.frames)
+        for line in notes:
+            print(line, file=sys.stderr)
         print(f"keyshape live: {source.name} ({source.info.width}x{source.info.height} at {source.info.fps:g} fps) "
               f"-> Live Link Face {sender.target} subject {args.subject!r}"
               f"{f', OSC {args.osc}' if args.osc else ''}; {len(chain.rig_names)} rig curves; Ctrl-C stops",

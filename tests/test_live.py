@@ -48,9 +48,11 @@ def take(tmp_path_factory):
              ["select", str(d / "t.csv"), "-k", "4", "-o", str(d / "k.json")],
              ["pose", str(d / "k.json"), "--rig", str(rig), "--landmarks", str(lm), "-o", str(d / "poses.json")],
              ["decompose", str(d / "t.csv"), "--keys", str(d / "k.json"), "--solver", "nnls", "-o", str(d / "w.csv")],
+             # the 3D head and the eye angles (the defaults), and the 2D head's roll alone
              ["retarget", str(d / "w.csv"), "--poses", str(d / "poses.json"), "--rig", str(rig), "--tracks",
-              str(d / "t.csv"), "--landmarks", str(lm), "--livelink", "-o", str(d / "ll.csv"),
-              # live sends the 2D head's roll and no eye angles (docs/live.md): the offline file's head to match
+              str(d / "t.csv"), "--landmarks", str(lm), "--livelink", "-o", str(d / "ll.csv")],
+             ["retarget", str(d / "w.csv"), "--poses", str(d / "poses.json"), "--rig", str(rig), "--tracks",
+              str(d / "t.csv"), "--landmarks", str(lm), "--livelink", "-o", str(d / "ll2d.csv"),
               "--head-pose", "rigid", "--gaze", "none"]]
     for s in steps:
         assert main(s) == 0, s
@@ -102,22 +104,25 @@ def read_livelink_csv(path) -> tuple[list[str], np.ndarray]:
     return rows[0][2:], np.array([[float(x) for x in r[2:]] for r in rows[1:]])
 
 
-def test_every_packet_equals_the_offline_livelink_csv(take, capsys):
+def _receive(take, *extra, source=None):
     rx = Receiver()
-    assert main(live_args(take, None, "--port", str(rx.port), "--no-pace", "--subject", "actor1")) == 0
+    assert main(live_args(take, source, "--port", str(rx.port), "--no-pace", *extra)) == 0
     packets = [decode_packet(p) for p in rx.join()]
+    return packets, np.array([[p.named()[n] for n in CSV_NAMES] for p in packets])
+
+
+def test_every_packet_equals_the_offline_livelink_csv(take, capsys):
+    packets, live = _receive(take, "--subject", "actor1")
     err = capsys.readouterr().err
     assert f"{N_FRAMES} frames" in err and "lost 0" in err and "latency" in err
+    assert f"3D head and eye angles calibrated on {take / 't.csv'}" in err       # the key set's own tracks
     assert [p.frame for p in packets] == list(range(N_FRAMES))                  # every frame, in order
     assert {(p.subject, p.rate, p.version) for p in packets} == {("actor1", (30, 1), 6)}
     header, offline = read_livelink_csv(take / "ll.csv")
     assert header == CSV_NAMES
-    live = np.array([[p.named()[n] for n in header] for p in packets])
     # the files carry tracks to 4 decimals (px), weights to 6 and curves to 6 significant digits
     np.testing.assert_allclose(live[:, :52], offline[:, :52], rtol=0, atol=1e-4)
     assert np.abs(live[:, :52]).max() > 0.05                                     # the curves do move
-    # the head roll: live stabilises on the key set's rigid reference, retarget on the take's own one
-    np.testing.assert_allclose(live[:, 54], offline[:, 54], atol=2e-3)
 
     # the same chain offline in memory (no file rounding): equal to float32 precision
     from keyshape import api
@@ -131,6 +136,58 @@ def test_every_packet_equals_the_offline_livelink_csv(take, capsys):
     curves = curves_from_library(w.values, w.names, read_poses(take / "poses.json", rig.names), rig.names)
     mem = livelink_values(rig.names, curves).astype(np.float32)
     np.testing.assert_allclose(live[:, :52], mem[:, :52], rtol=1e-6, atol=1e-7)
+
+
+def test_head_and_eye_angles_equal_the_offline_ones(take):
+    """The 3D head and the gaze: ``retarget --tracks`` calls ``head_3d_from_tracks``, ``head_from_tracks`` and
+    ``gaze_from_tracks`` on the whole take; live fits the first once on the calibration (here the take's own
+    tracks, the key set's) and applies the others to each frame alone with the 3D head's temporal smoothing
+    off (offline's is a Gaussian over past and future frames). Offline with that smoothing off, every frame's
+    9 head and eye values are equal; the command's file differs by its smoothing."""
+    import copy
+
+    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.retarget.api import gaze_from_tracks, head_3d_from_tracks, head_from_tracks
+    from keyshape.retarget.export import livelink_values
+    from keyshape.retarget.rig import load_rig
+    _, live = _receive(take)
+    tr = read_tracks(take / "t.csv")
+    causal = copy.copy(head_3d_from_tracks(tr))
+    causal.smooth = 0.0
+    head, _ = head_from_tracks(tr, tr.frame, None, 1.0, head=causal)
+    eyes = gaze_from_tracks(tr, tr.frame, causal)
+    names = load_rig(take / "rig", with_mesh=False).names
+    ref = livelink_values(names, np.zeros((N_FRAMES, len(names))), head, eyes)
+    # float32 packets; live's points are the tracker's, the file's rounded to 1e-4 px (measured 3.8e-6 rad)
+    np.testing.assert_allclose(live[:, 52:], ref[:, 52:], rtol=0, atol=2e-5)
+    assert np.ptp(live[:, 52:55], axis=0).max() > 0.05 and np.ptp(live[:, [55, 58]], axis=0).min() > 0.1
+    assert not live[:, [57, 60]].any()                                            # no eye roll
+    # the command's own file (the head smoothed over time with sigma 1 frame): measured 0.0085 rad at most
+    _, offline = read_livelink_csv(take / "ll.csv")
+    np.testing.assert_allclose(live[:, 52:], offline[:, 52:], rtol=0, atol=0.02)
+
+
+def test_2d_head_sends_the_roll_only(take):
+    _, live = _receive(take, "--head-pose", "2d")
+    _, offline = read_livelink_csv(take / "ll2d.csv")
+    np.testing.assert_allclose(live[:, :52], offline[:, :52], rtol=0, atol=1e-4)
+    # the head roll: live stabilises on the key set's rigid reference, retarget on the take's own one
+    np.testing.assert_allclose(live[:, 54], offline[:, 54], atol=2e-3)
+    assert np.ptp(live[:, 54]) > 0.01 and not live[:, [52, 53, 55, 56, 57, 58, 59, 60]].any()
+
+
+def test_calibration_missing_falls_back_to_the_2d_head(take, tmp_path, capsys):
+    import json
+    keys = json.loads((take / "k.json").read_text())
+    keys["source"]["tracks"] = [str(tmp_path / "gone.csv")]
+    (tmp_path / "k.json").write_text(json.dumps(keys))
+    rx = Receiver()
+    args = live_args(take, None, "--port", str(rx.port), "--no-pace", "--frames", "3", "--keys", str(tmp_path / "k.json"))
+    assert main(args) == 0
+    live = np.array([decode_packet(p).values for p in rx.join()])
+    err = capsys.readouterr().err
+    assert "gone.csv is gone" in err and "sending the 2D head roll and no eye angles" in err
+    assert len(live) == 3 and not live[:, 52:54].any()
 
 
 def test_face_lost_sends_the_neutral_and_found_resumes(take, tmp_path, capsys):
@@ -182,7 +239,8 @@ def test_ctrl_c_stops_cleanly_with_exit_130(take):
     assert 0 < len(rx.join()) < N_FRAMES                                         # paced: stopped part way
 
 
-@pytest.mark.parametrize("case", ["host", "broadcast", "port_in_use", "camera", "scheme", "osc", "osc_missing"])
+@pytest.mark.parametrize("case", ["host", "broadcast", "port_in_use", "camera", "scheme", "osc", "osc_missing",
+                                  "calibration", "calibration_scheme"])
 def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, case):
     extra: list[str] = ["--no-pace", "--frames", "2"]
     source = None
@@ -209,6 +267,16 @@ def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, c
         write_model(tmp_path / "m68.npz", mf)
         extra += ["--model", str(tmp_path / "m68.npz")]
         want = "scheme 'ibug68'"
+    elif case == "calibration":
+        extra += ["--calibration", str(tmp_path / "none.csv")]
+        want = "none.csv"
+    elif case == "calibration_scheme":
+        from keyshape.base.formats.tracks import read_tracks, write_tracks
+        tr = read_tracks(take / "t.csv")
+        tr.points, tr.meta = tr.points[:, :40], {}
+        write_tracks(tmp_path / "t40.csv", tr)
+        extra += ["--calibration", str(tmp_path / "t40.csv")]
+        want = "40 points"
     elif case == "osc":
         extra += ["--osc", "127.0.0.1"]
         want = "HOST:PORT"
