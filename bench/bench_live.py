@@ -2,13 +2,17 @@
 
 A synthetic 640x480 take (``keyshape.data_synth``) is the camera; the chain is the one ``keyshape live``
 runs (model trained on the take's suggested frames, a 4-key set, the toy rig of the tests with its pose
-library), and the packets go to a UDP socket on 127.0.0.1 that drains them. Two runs:
+library; the 3D head and gaze calibrated on the take's own tracks, as ``keyshape live`` does by default), and
+the packets go to a UDP socket on 127.0.0.1 that drains them. Three runs:
 
 * **paced**: the video played at its own 30 frames/s, as a camera delivers it; reports the frames/s
   sustained, frames lost (dropped because the chain fell more than a frame behind) and the latency
   from a frame's capture (the moment it is due) to its packet sent: median and 95th percentile;
 * **unpaced** (``--no-pace``): frames as fast as they decode: the chain's throughput ceiling and its
-  per-frame latency (decode excluded: a frame counts as captured once decoded).
+  per-frame latency (decode excluded: a frame counts as captured once decoded);
+* **unpaced, 2D head** (``--head-pose 2d``): the same without the 3D head and gaze, for their cost.
+
+Each line carries the 1-minute load average read right after its run (the machine may be shared).
 
     python bench/bench_live.py [--frames 600] [--work DIR]
 """
@@ -48,7 +52,7 @@ def prepare(work: Path, frames: int) -> Path:
     return work
 
 
-def run(work: Path, pace: bool) -> dict:
+def run(work: Path, pace: bool, head: str = "3d") -> dict:
     from keyshape.live import FrameSource, LiveLinkSender, load_chain, stream
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
@@ -63,7 +67,8 @@ def run(work: Path, pace: bool) -> dict:
             pass
     th = threading.Thread(target=drain, daemon=True)
     th.start()
-    model, chain = load_chain(work / "model.npz", work / "k.json", work / "poses.json", [str(work / "rig")])
+    model, chain = load_chain(work / "model.npz", work / "k.json", work / "poses.json", [str(work / "rig")],
+                              head=head, say=lambda line: None)
     sender = LiveLinkSender("127.0.0.1", sink.getsockname()[1])
     src = FrameSource(str(work / "take.mp4"), pace=pace)
     c0 = time.process_time()
@@ -75,7 +80,7 @@ def run(work: Path, pace: bool) -> dict:
     lat = np.array(stats.latencies) * 1e3
     return {"frames": stats.frames, "received": len(got), "fps": stats.fps, "lost": stats.lost,
             "latency_median_ms": float(np.median(lat)), "latency_p95_ms": float(np.percentile(lat, 95)),
-            "cpu_s_per_frame_ms": 1e3 * cpu / max(stats.frames, 1)}
+            "cpu_s_per_frame_ms": 1e3 * cpu / max(stats.frames, 1), "load": os.getloadavg()[0]}
 
 
 def main() -> None:
@@ -89,12 +94,13 @@ def main() -> None:
         prepare(work, a.frames)
         print(f"keyshape live at 640x480, {a.frames} frames, {os.cpu_count()} CPUs, load average "
               f"{os.getloadavg()[0]:.2f}")
-        for pace in (True, False):
-            r = run(work, pace)
-            print(f"{'paced (30 fps video as a camera)' if pace else 'unpaced (--no-pace)':34s} "
-                  f"{r['fps']:6.1f} frames/s  lost {r['lost']:3d}  latency median {r['latency_median_ms']:5.1f} ms "
-                  f"p95 {r['latency_p95_ms']:5.1f} ms  CPU {r['cpu_s_per_frame_ms']:.1f} ms/frame  "
-                  f"({r['frames']} sent, {r['received']} received)")
+        for pace, head, label in ((True, "3d", "paced (30 fps video as a camera)"), (False, "3d", "unpaced (--no-pace)"),
+                                  (False, "2d", "unpaced, 2D head (--head-pose 2d)")):
+            r = run(work, pace, head)
+            print(f"{label:34s} {r['fps']:6.1f} frames/s  lost {r['lost']:3d}  latency median "
+                  f"{r['latency_median_ms']:5.1f} ms p95 {r['latency_p95_ms']:5.1f} ms  CPU "
+                  f"{r['cpu_s_per_frame_ms']:.1f} ms/frame  ({r['frames']} sent, {r['received']} received; "
+                  f"load average {r['load']:.2f})")
 
 
 if __name__ == "__main__":

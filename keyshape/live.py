@@ -4,13 +4,16 @@ Every frame goes through the offline chain one frame at a time, with the same co
 the tracker (:func:`keyshape.tracker.commands.iter_track`), the key-shape weights of the frame
 (:func:`keyshape.decompose.api.decompose_keys` with the key set's head stabilisation, a per-frame
 solver: ``nnls`` or ``lstsq``), the pose library's map to the rig's curves
-(:func:`keyshape.retarget.poses.curves_from_library`) and the Live Link Face values
-(:func:`keyshape.retarget.export.livelink_values`), then one Live Link Face UDP packet per frame
+(:func:`keyshape.retarget.poses.curves_from_library`), the 3D head's yaw, pitch and roll and the eyes'
+angles (:class:`LiveHead`: fitted once on calibration tracks, then
+:func:`keyshape.retarget.api.head_from_tracks` and :func:`keyshape.decompose.gaze.gaze_angles` per frame)
+and the Live Link Face values (:func:`keyshape.retarget.export.livelink_values`), then one Live Link Face
+UDP packet per frame
 (:mod:`keyshape.base.formats.livelink`; Unreal's Live Link Face source, port 11111) and, with
 ``--osc``, one OSC message per rig curve.
 
 It needs every stage, so it lives at the roof (docs/architecture.md). Frames whose face is lost are
-sent as the neutral (all curves 0, head roll 0) and the status line says so; the face found again
+sent as the neutral (all curves 0, head and eyes at rest) and the status line says so; the face found again
 resumes the curves. Ctrl-C stops cleanly (exit 130).
 """
 from __future__ import annotations
