@@ -65,10 +65,10 @@ def run(work: Path, pace: bool, head: str = "3d") -> dict:
                 got.append(len(sink.recv(4096)))
         except OSError:
             pass
-    th = threading.Thread(target=drain, daemon=True)
-    th.start()
     model, chain = load_chain(work / "model.npz", work / "k.json", work / "poses.json", [str(work / "rig")],
                               head=head, say=lambda line: None)
+    th = threading.Thread(target=drain, daemon=True)        # after the calibration: it waits 2 s at most
+    th.start()
     sender = LiveLinkSender("127.0.0.1", sink.getsockname()[1])
     src = FrameSource(str(work / "take.mp4"), pace=pace)
     c0 = time.process_time()

@@ -35,6 +35,8 @@ from keyshape.retarget.defaults import GAZE, GAZES
 LIVE_SOLVERS = ("nnls", "lstsq")
 #: the head sent: the 3D head and gaze from a calibration, or the 2D head's roll
 LIVE_HEADS = ("3d", "2d")
+#: most calibration frames (evenly spaced) whose head-frame shapes set the gaze's straight-ahead live
+GAZE_FRAMES = 301
 
 
 # ----------------------------------------------------------------------------------------------- sources
@@ -224,7 +226,8 @@ class LiveHead:
     frame's head-frame shape with the calibration's head-frame shapes before it (twice, so that their
     median, the straight-ahead pupil and the open-lid gap, is the calibration's: exactly when the
     calibration has an odd number of open frames, else within half the step between its two middle
-    values). An eye that ``gaze_angles`` finds closed holds the frame's last open gaze of the live run
+    values; a calibration longer than :data:`GAZE_FRAMES` frames gives that many, evenly spaced, since
+    each frame's cost grows with them). An eye that ``gaze_angles`` finds closed holds the frame's last open gaze of the live run
     (offline holds the take's last open frame's gaze; before the run's first open frame: the
     calibration's straight-ahead frame's).
 
@@ -257,6 +260,8 @@ class LiveHead:
             return
         H = est.transform(image_points(calibration, source))
         H = H[np.isfinite(H).all(axis=(1, 2))]
+        if len(H) > GAZE_FRAMES:                          # the per-frame cost grows with the context
+            H = H[np.unique(np.linspace(0, len(H) - 1, GAZE_FRAMES).round().astype(int))]
         g = gaze_angles(H, scheme)
         # an open frame of both eyes (gaze_angles gives a closed eye the last open frame's value): the one
         # looking most straight ahead goes last, so that a closed eye in the live frame is seen as a copy of it
