@@ -309,10 +309,12 @@ def _share_camera_pose(est) -> None:
     est.camera_pose = camera_pose
 
 
-def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", say=None) -> LiveHead | None:
+def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", say=None,
+              model: str | None = None) -> LiveHead | None:
     """The :class:`LiveHead` fitted to the calibration tracks (``calibration``; default: the key set's own
     tracks, KEYS.json's ``source``), or None (the 2D head roll) when there are none or their scheme has
-    no 3D face; what happened is said in one line through ``say``."""
+    no 3D face; what happened is said in one line through ``say``. ``model``: the live model's fingerprint
+    (:func:`keyshape.tracker.commands.model_fingerprint`): tracks of another model are refused."""
     from pathlib import Path
 
     from keyshape.base.formats.keys import read_keys_source
@@ -334,6 +336,10 @@ def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", sa
             return None
     calibration = require_file(calibration, "calibration tracks")
     tracks = read_tracks(calibration)
+    made = tracks.meta.get("model")
+    if model and made and made != model:
+        raise InputError(f"the calibration tracks come from another tracker model ({made}; the live model: {model}): "
+                         "track the calibration take with the live model", calibration)
     scheme = load_scheme(scheme_name)
     if tracks.n_points != scheme.n_points:
         raise InputError(f"the calibration tracks have {tracks.n_points} points but the key set's scheme "
@@ -438,7 +444,8 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
     columns = [n for rk in regions for n in rk.names]
     curves = curves_from_library(np.zeros((1, len(columns))), columns, lib, rig_obj.names, poses_path)
     livelink_values(rig_obj.names, curves)                       # the rig has ARKit names, or one line
-    live_head = load_head(calibration, keys_path, scheme, gaze, say) if head == "3d" else None
+    from keyshape.tracker.commands import model_fingerprint
+    live_head = load_head(calibration, keys_path, scheme, gaze, say, model_fingerprint(model)) if head == "3d" else None
     chain = LiveChain(scheme, regions, head_entry, columns, lib, list(rig_obj.names), solver, ridge, head=live_head)
     return model, chain
 

@@ -240,7 +240,7 @@ def test_ctrl_c_stops_cleanly_with_exit_130(take):
 
 
 @pytest.mark.parametrize("case", ["host", "broadcast", "port_in_use", "camera", "scheme", "osc", "osc_missing",
-                                  "calibration", "calibration_scheme"])
+                                  "calibration", "calibration_scheme", "calibration_model"])
 def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, case):
     extra: list[str] = ["--no-pace", "--frames", "2"]
     source = None
@@ -277,6 +277,13 @@ def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, c
         write_tracks(tmp_path / "t40.csv", tr)
         extra += ["--calibration", str(tmp_path / "t40.csv")]
         want = "40 points"
+    elif case == "calibration_model":
+        from keyshape.base.formats.tracks import read_tracks, write_tracks
+        tr = read_tracks(take / "t.csv")
+        tr.meta = {**tr.meta, "model": "sha256:0123456789abcdef"}
+        write_tracks(tmp_path / "other.csv", tr)
+        extra += ["--calibration", str(tmp_path / "other.csv")]
+        want = "another tracker model"
     elif case == "osc":
         extra += ["--osc", "127.0.0.1"]
         want = "HOST:PORT"
