@@ -94,8 +94,9 @@ def main() -> None:
         prepare(work, a.frames)
         print(f"keyshape live at 640x480, {a.frames} frames, {os.cpu_count()} CPUs, load average "
               f"{os.getloadavg()[0]:.2f}")
-        for pace, head, label in ((True, "3d", "paced (30 fps video as a camera)"), (False, "3d", "unpaced (--no-pace)"),
-                                  (False, "2d", "unpaced, 2D head (--head-pose 2d)")):
+        runs = ((True, "3d", "paced (30 fps video as a camera)"), (False, "3d", "unpaced (--no-pace)"),
+                (False, "2d", "unpaced, 2D head (--head-pose 2d)"))
+        for pace, head, label in runs:
             r = run(work, pace, head)
             print(f"{label:34s} {r['fps']:6.1f} frames/s  lost {r['lost']:3d}  latency median "
                   f"{r['latency_median_ms']:5.1f} ms p95 {r['latency_p95_ms']:5.1f} ms  CPU "

@@ -227,8 +227,8 @@ class LiveHead:
     median, the straight-ahead pupil and the open-lid gap, is the calibration's: exactly when the
     calibration has an odd number of open frames, else within half the step between its two middle
     values; a calibration longer than :data:`GAZE_FRAMES` frames gives that many, evenly spaced, since
-    each frame's cost grows with them). An eye that ``gaze_angles`` finds closed holds the frame's last open gaze of the live run
-    (offline holds the take's last open frame's gaze; before the run's first open frame: the
+    each frame's cost grows with them). An eye that ``gaze_angles`` finds closed holds the live run's last
+    open gaze (offline holds the take's last open frame's gaze; before the run's first open frame: the
     calibration's straight-ahead frame's).
 
     Parameters
@@ -331,8 +331,9 @@ def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", sa
                     calibration = cand
                     break
         if calibration is None:
-            say(f"keyshape live: no calibration tracks ({'the key set names none' if not listed else listed[0] + ' is gone'}; "
-                "--calibration TRACKS.csv): sending the 2D head roll and no eye angles")
+            why = "the key set names none" if not listed else f"{listed[0]} is gone"
+            say(f"keyshape live: no calibration tracks ({why}; --calibration TRACKS.csv): sending the 2D head roll "
+                "and no eye angles")
             return None
     calibration = require_file(calibration, "calibration tracks")
     tracks = read_tracks(calibration)

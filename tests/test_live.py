@@ -182,7 +182,8 @@ def test_calibration_missing_falls_back_to_the_2d_head(take, tmp_path, capsys):
     keys["source"]["tracks"] = [str(tmp_path / "gone.csv")]
     (tmp_path / "k.json").write_text(json.dumps(keys))
     rx = Receiver()
-    args = live_args(take, None, "--port", str(rx.port), "--no-pace", "--frames", "3", "--keys", str(tmp_path / "k.json"))
+    args = live_args(take, None, "--port", str(rx.port), "--no-pace", "--frames", "3",
+                     "--keys", str(tmp_path / "k.json"))
     assert main(args) == 0
     live = np.array([decode_packet(p).values for p in rx.join()])
     err = capsys.readouterr().err
