@@ -606,6 +606,8 @@ def run(args) -> int:
         raise InputError(f"--local-port {args.local_port}: must be in 1..65535")
     if args.frames is not None and args.frames < 1:
         raise InputError(f"--frames {args.frames}: must be >= 1")
+    if args.calibration and args.head_pose != "3d":
+        raise InputError("--calibration fits the 3D head: it goes with --head-pose 3d (the default)")
     camera = re.fullmatch(r"\d+", args.source) is not None
     if not camera:
         require_file(args.source, "video")

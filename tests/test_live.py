@@ -241,7 +241,7 @@ def test_ctrl_c_stops_cleanly_with_exit_130(take):
 
 
 @pytest.mark.parametrize("case", ["host", "broadcast", "port_in_use", "camera", "scheme", "osc", "osc_missing",
-                                  "calibration", "calibration_scheme", "calibration_model"])
+                                  "calibration", "calibration_scheme", "calibration_model", "calibration_2d"])
 def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, case):
     extra: list[str] = ["--no-pace", "--frames", "2"]
     source = None
@@ -278,6 +278,9 @@ def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, c
         write_tracks(tmp_path / "t40.csv", tr)
         extra += ["--calibration", str(tmp_path / "t40.csv")]
         want = "40 points"
+    elif case == "calibration_2d":
+        extra += ["--calibration", str(take / "t.csv"), "--head-pose", "2d"]
+        want = "goes with --head-pose 3d"
     elif case == "calibration_model":
         from keyshape.base.formats.tracks import read_tracks, write_tracks
         tr = read_tracks(take / "t.csv")
