@@ -251,6 +251,7 @@ class LiveHead:
         _share_camera_pose(est)
         self.estimator, self.scheme, self.gaze, self.source = est, scheme, gaze, source
         self.context = None                               # calibration shapes (twice) + a slot for the frame
+        self.last_head = None                             # the last frame's head (held where a pose fails)
         self.last_eyes = np.zeros(4)
         self.note = ""
         if gaze == "none":
@@ -282,7 +283,11 @@ class LiveHead:
         from keyshape.decompose.gaze import gaze_angles
         from keyshape.retarget.api import head_from_tracks
 
-        head, _ = head_from_tracks(tracks, tracks.frame, None, 1.0, self.source, head=self.estimator)
+        try:
+            head, _ = head_from_tracks(tracks, tracks.frame, None, 1.0, self.source, head=self.estimator)
+            self.last_head = head
+        except InputError:                                 # no pose found: hold the last one (offline holds too)
+            head = self.last_head
         if self.context is None:
             return head, None
         self.context[-1] = self.estimator.transform(tracks.points)[0]

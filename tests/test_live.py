@@ -326,3 +326,24 @@ def test_packet_layout_and_decoder():
     for bad in (pkt[:-1], b"\x05" + pkt[1:], pkt + b"\0"):
         with pytest.raises(InputError):
             decode_packet(bad)
+
+
+def test_a_frame_without_a_head_pose_holds_the_last_one(take):
+    """A frame the 3D head finds no pose for (none seen: forced here) keeps the last frame's head, as offline
+    holds failed frames, instead of stopping the stream."""
+    import warnings
+
+    from keyshape.base.formats.tracks import Tracks, read_tracks
+    from keyshape.live import load_chain
+    _, chain = load_chain(take / "model.npz", take / "k.json", take / "poses.json", [str(take / "rig")],
+                          say=lambda line: None)
+    tr = read_tracks(take / "t.csv")
+    one = [Tracks(tr.frame[i:i + 1], tr.time[i:i + 1], tr.confidence[i:i + 1], tr.success[i:i + 1],
+                  tr.points[i:i + 1], tr.pose[i:i + 1], {}) for i in (5, 6)]
+    first, _ = chain.head.frame(one[0])
+    chain.head.estimator.camera_pose = lambda p: (np.full((len(p), 3, 3), np.nan), np.full((len(p), 3), np.nan))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)              # numpy on an all-NaN pose
+        held, eyes = chain.head.frame(one[1])
+    np.testing.assert_array_equal(held.angles, first.angles)
+    assert np.isfinite(first.angles).all() and np.abs(first.angles).max() > 0
