@@ -2,9 +2,9 @@
 library in the same run (issue 26). Prints the ratio beside the load average and the CPU time each run
 got; asserts nothing.
 
-    python bench/bench_batch.py                   # 2 actors x 4 takes x 1200 frames: ~2.5 min on 2 idle cores
+    python bench/bench_batch.py                   # 2 actors x 4 takes x 900 frames: under 3 min on 2 idle cores
     python bench/bench_batch.py --all             # also serial commands, thread workers, 1 worker on all cores
-    python bench/bench_batch.py [--actors 2] [--takes 4] [--frames 1200] [--clip 150] [--library DIR]
+    python bench/bench_batch.py [--actors 2] [--takes 4] [--frames 900] [--clip 150] [--library DIR]
 
 The library (``keyshape.data_synth.library.synth_library``: one synthetic person per actor) is
 synthesised with ``--clip`` frames per take, then every take is lengthened to ``--frames`` by playing
@@ -166,7 +166,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--actors", type=int, default=2)
     ap.add_argument("--takes", type=int, default=4)
-    ap.add_argument("--frames", type=int, default=1200, help="frames per take (default 1200)")
+    ap.add_argument("--frames", type=int, default=900, help="frames per take (default 900)")
     ap.add_argument("--clip", type=int, default=150, help="frames synthesised per take, played back and forth")
     ap.add_argument("--library", default=None, help="folder to keep the synthetic library in (default: temporary)")
     ap.add_argument("--all", action="store_true",
