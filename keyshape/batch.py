@@ -556,7 +556,8 @@ def _client(scheduler: str | None, workers: int | None, processes: bool):
 
     n = workers or CPU_COUNT or 1
     # one thread per worker, and its libraries' thread pools at one thread from the start: the variables
-    # are set in each worker process before it imports numpy (Dask's own list, with FFmpeg's decoder added)
+    # are set in each worker process before it imports numpy (Dask's own list, with FFmpeg's decoder added;
+    # Dask's nanny sets them in this process's environment too, for the processes it spawns)
     env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ONE_THREAD_ENV}
     with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
         # worker processes talk over TCP on this machine only; threads of this process use inproc://
