@@ -181,14 +181,15 @@ def main() -> None:
         n_frames = args.actors * args.takes * args.frames
         cpus = cores()
         print(f"library: {args.actors} actors x {args.takes} takes x {args.frames} frames = {n_frames} frames "
-              f"(640x480), ready in {time.perf_counter() - t0:.0f} s ({time.process_time() - c0:.0f} s CPU); this process may run on cores {cpus} "
-              f"of {os.cpu_count()}; load average {os.getloadavg()[0]:.2f}", flush=True)
+              f"(640x480), ready in {time.perf_counter() - t0:.0f} s ({time.process_time() - c0:.0f} s CPU); this "
+              f"process may run on cores {cpus} of {os.cpu_count()}; load average {os.getloadavg()[0]:.2f}", flush=True)
         if cpus is not None and len(cpus) < 2:
             print("only one core here: the 2-core run shares it (no scaling to measure)")
         confs = [("1 worker, 1 core", 1, cpus[:1] if cpus else None, False),
                  ("2 workers, 2 cores", 2, cpus[:2] if cpus else None, False)]
         if args.all:
-            confs += [("1 worker, all cores", 1, None, False), ("1 thread worker, 1 core", 1, cpus[:1] if cpus else None, True),
+            confs += [("1 worker, all cores", 1, None, False),
+                      ("1 thread worker, 1 core", 1, cpus[:1] if cpus else None, True),
                       ("2 thread workers, 2 cores", 2, cpus[:2] if cpus else None, True)]
         runs = {}
         for label, n, aff, threads in confs:
@@ -219,8 +220,15 @@ def main() -> None:
         print(f"\n2 workers on 2 cores / 1 worker on 1 core: {one['wall'] / two['wall']:.2f}x wall "
               f"(aim >= 1.7x on an idle machine); CPU time {one['cpu']:.1f} s and {two['cpu']:.1f} s; load average "
               f"{one['load'][0]:.2f} before the first run, {two['load'][1]:.2f} after the second; "
-              f"{'idle enough to judge' if max(one['load'][0], two['load'][0]) < 0.5 else 'NOT idle: the ratio is not the figure to judge'}")
+              + ("idle enough to judge" if max(one["load"][0], two["load"][0]) < 0.5 else
+                 "NOT idle: the ratio is not the figure to judge"))
 
+        for label, r in runs.items():     # the same work: CPU per frame should match across runs on idle cores
+            if "report" in r and label != "rerun of the 2-worker batch, all skipped":
+                t = r["report"]["takes"]
+                track = 1000 * sum(x["track_cpu_seconds"] for x in t) / n_frames
+                finish = 1000 * sum(x["finish_cpu_seconds"] for x in t) / n_frames
+                print(f"  {label}: CPU per frame in the tasks: track {track:.2f} ms, decompose+retarget {finish:.2f} ms")
         rep = one["report"]
         cpu_track = sum(r["track_cpu_seconds"] for r in rep["takes"])
         cpu_finish = sum(r["finish_cpu_seconds"] for r in rep["takes"])
