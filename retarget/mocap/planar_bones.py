@@ -77,7 +77,8 @@ one sparse product, accumulated onto the start value; with a second core a helpe
 multiplies the fixed columns while the wedge block is refilled and multiplied. ``deform_many``
 does the fixed columns of ``T`` for 32 frames at once (the frames side by side as columns of
 the right-hand side, where scipy's sparse product costs about a third as much per frame as
-with 3 columns) and only the wedge block per frame, the two halves of the take in two threads.
+with 3 columns) and only the wedge block per frame (its lengths ``d`` for 8 frames in one pass of
+each operation), the two halves of the take in two threads.
 
 *Displacement form and precision.* The fixed columns act on ``Y - Y_rest`` and the start value
 is ``still + T_fixed Y_rest`` (the same sum regrouped, formed in float64 at bind time), so the
