@@ -21,7 +21,8 @@ is nonlinear in each frame's corner angles, so it is refilled and multiplied per
 
 ``--compare`` times another version of ``planar_bones.py`` (e.g. ``git show
 34d62c1:retarget/mocap/planar_bones.py > /tmp/old.py``) in the same run, interleaved, on the
-same frames, and prints its largest difference from the float64 rows.
+same frames, in both precisions where it has ``dtype``, and prints its largest difference from our
+rows of the same precision.
 """
 from __future__ import annotations
 
@@ -109,9 +110,18 @@ def main(n_bones=100, n_frames=600, repeat=5, threads=True, seed=0, compare=None
     bones = {dt: PlanarBones(radius_scale=1.5, unbound="fade", threads=threads, dtype=dt).fit(v, markers, tri)
              for dt in ("float64", "float32")}
     b64 = bones["float64"]
-    if compare:
-        old = load_module(compare).PlanarBones(radius_scale=1.5, unbound="fade", threads=threads).fit(v, markers, tri)
-        bones = {"compared file": old, **bones}
+    if compare:     # the other version next to each of ours, in the same precision where it has a dtype
+        mod, ours = load_module(compare), bones
+        bones = {}
+        for dt, bo in ours.items():
+            try:
+                bones[f"compared file {dt}"] = mod.PlanarBones(radius_scale=1.5, unbound="fade", threads=threads,
+                                                               dtype=dt).fit(v, markers, tri)
+            except TypeError:       # a version without dtype: float64 only
+                if dt == "float64":
+                    bones["compared file"] = mod.PlanarBones(radius_scale=1.5, unbound="fade",
+                                                             threads=threads).fit(v, markers, tri)
+            bones[dt] = bo
     frames = markers + rng.normal(0, 0.2, (n_frames,) + markers.shape)
     a = rng.normal(size=(len(v), 28))
     b = rng.normal(size=(28, 3))
@@ -138,8 +148,11 @@ def main(n_bones=100, n_frames=600, repeat=5, threads=True, seed=0, compare=None
                                                                  n_frames), plain())
     err = np.abs(b32.deform_many(frames[:20]) - b64.deform_many(frames[:20])).max()
     if compare:
-        err_old = np.abs(bones["compared file"].deform_many(frames[:20]) - b64.deform_many(frames[:20])).max()
-        print(f"compared file: {compare}; its largest difference from the float64 rows {err_old:.2g}")
+        for name, bo in bones.items():
+            if name.startswith("compared file"):
+                ref = bones[name.split()[-1] if name.endswith("32") else "float64"]
+                err_old = np.abs(bo.deform_many(frames[:20]) - ref.deform_many(frames[:20])).max()
+                print(f"{name}: {compare}; its largest difference from our rows of its precision {err_old:.2g}")
     print(f"mesh {len(v)} vertices, {len(markers)} markers, {len(tri)} bones, "
           f"{len(b64.pair_weight_)} vertex-bone pairs ({b64.bound_.sum()} vertices bound, "
           f"{len(b64._wedge_corner)} of the pairs in wedges); helper thread: {threads}")

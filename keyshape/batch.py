@@ -32,6 +32,7 @@ is written atomically, and stale temporary files of an interrupted run are remov
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -113,12 +114,50 @@ def _failure(exc: BaseException) -> dict:
     return {"ok": False, "error": msg}
 
 
+#: What pins a worker's libraries to one thread: OpenMP, OpenBLAS, MKL and FFmpeg's decoder (read by OpenCV
+#: when it opens a video). The local cluster sets them before it spawns each worker (before numpy is imported);
+#: every task sets them again for workers started elsewhere (``dask worker`` without a nanny).
+ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                  "OPENCV_FFMPEG_THREADS": "1"}
+
+#: True in the process that runs :func:`run_batch` (the ``--threads`` workers share it: leave its libraries be).
+_CLIENT_PROCESS = False
+
+
 def _one_thread() -> None:
-    """A worker is one core: keep OpenCV's own thread pool to one thread too (Dask already sets
-    OMP/MKL/OpenBLAS to one thread in the worker processes it starts). Results do not depend on it."""
+    """A worker is one core: its libraries run their parallel loops on the calling thread.
+
+    OpenCV's own pool is set to one thread; in a worker process (not the client's, where ``--threads``
+    workers run) also the BLAS/OpenMP pools, through threadpoolctl (the environment variables only act
+    before the libraries load), and FFmpeg's decoder threads for the videos opened from now on. The
+    tracker's decode-ahead thread stays (a worker tracks on one thread and decodes on another; see
+    docs/scale.md). Results do not depend on any of it.
+    """
     import cv2
 
     cv2.setNumThreads(1)
+    if _CLIENT_PROCESS:
+        return
+    os.environ.update(ONE_THREAD_ENV)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+
+
+def _task(fn):
+    """A batch task: runs with :func:`_one_thread` and adds ``span`` to its result: when and where it ran
+    (``start``/``end`` epoch seconds, the worker's ``pid``) and the CPU seconds of the worker process and of
+    the task's own thread (``cpu`` above ``thread_cpu`` is what the process's other threads did meanwhile:
+    the decode-ahead thread, Dask's own). The report lists them; bench/bench_batch.py reads them."""
+    @functools.wraps(fn)
+    def run(*args, **kwargs) -> dict:
+        _one_thread()
+        t0, c0, th0 = time.time(), time.process_time(), time.thread_time()
+        res = fn(*args, **kwargs)
+        res["span"] = {"start": round(t0, 4), "end": round(time.time(), 4), "pid": os.getpid(),
+                       "cpu": round(time.process_time() - c0, 4), "thread_cpu": round(time.thread_time() - th0, 4)}
+        return res
+    return run
 
 
 def _max_rss_mb() -> float | None:
@@ -141,9 +180,9 @@ def take_dir(out: Path, take: Take) -> Path:
 
 # ---------------------------------------------------------------- the tasks (run on the workers)
 
+@_task
 def task_model(actor: Actor, out: str) -> dict:
     """Train the actor's model once (or take its model file); skip when the record matches."""
-    _one_thread()
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         adir = actor_dir(Path(out), actor.name)
@@ -176,9 +215,9 @@ def task_model(actor: Actor, out: str) -> dict:
         return {**_failure(exc), "seconds": time.perf_counter() - t0}
 
 
+@_task
 def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: str) -> dict:
     """Track one take with its actor's model -> tracks.csv; skip when video, model and settings are unchanged."""
-    _one_thread()
     t0, c0 = time.perf_counter(), time.process_time()
     if not model["ok"]:
         return {"ok": False, "error": f"actor {actor.name!r}: {model['error']}", "seconds": 0.0}
@@ -233,9 +272,9 @@ def _short_take(take: Take, n_frames: int) -> dict:
     return {}
 
 
+@_task
 def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) -> dict:
     """One key selection for the actor over all its successfully tracked takes (in manifest order)."""
-    _one_thread()
     t0, c0 = time.perf_counter(), time.process_time()
     used = [(t, r) for t, r in zip(takes, tracked) if r["ok"]]
     if not used:
@@ -320,10 +359,10 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
     return files
 
 
+@_task
 def task_poses(actor: Actor, keys: dict, out: str) -> dict:
     """The actor's pose library on its rig: the manifest's ``poses`` file, or ``keyshape pose``'s suggestion
     fitted once from the actor's key set -> ``OUT_DIR/<actor>/poses.json``; skip when keys and rig are unchanged."""
-    _one_thread()
     t0 = time.perf_counter()
     if actor.rig is None:
         return {"ok": True, "path": None, "sha256": None, "status": "none", "seconds": 0.0}
@@ -357,11 +396,11 @@ def task_poses(actor: Actor, keys: dict, out: str) -> dict:
         return {**_failure(exc), "seconds": time.perf_counter() - t0}
 
 
+@_task
 def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, keys: dict, out: str,
                 poses: dict | None = None) -> dict:
     """Decompose and retarget one take; skip when tracks, key set, targets (or rig and poses) and settings
     are unchanged."""
-    _one_thread()
     t0, c0 = time.perf_counter(), time.process_time()
     base = {"actor": take.actor, "take": take.name, "video": str(take.video)}
     if not tracked["ok"]:
@@ -512,10 +551,18 @@ def _client(scheduler: str | None, workers: int | None, processes: bool):
         except (OSError, TimeoutError, ValueError, TypeError) as exc:
             raise InputError(f"--scheduler {scheduler}: cannot connect "
                              f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-    n = workers or os.cpu_count() or 1
-    # worker processes talk over TCP on this machine only; threads of this process use inproc://
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
-                           **({"host": "127.0.0.1"} if processes else {}))
+    import dask
+    from dask.system import CPU_COUNT     # the cores this process may use (affinity, cgroup quota)
+
+    n = workers or CPU_COUNT or 1
+    # one thread per worker, and its libraries' thread pools at one thread from the start: the variables
+    # are set in each worker process before it imports numpy (Dask's own list, with FFmpeg's decoder added;
+    # Dask's nanny sets them in this process's environment too, for the processes it spawns)
+    env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ONE_THREAD_ENV}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
+        # worker processes talk over TCP on this machine only; threads of this process use inproc://
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
+                               **({"host": "127.0.0.1"} if processes else {}))
     return Client(cluster), cluster
 
 
@@ -540,6 +587,8 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
     """
     from keyshape.base.progress import Progress
 
+    global _CLIENT_PROCESS
+    _CLIENT_PROCESS = True
     m = manifest if isinstance(manifest, Manifest) else read_manifest(manifest)
     out = Path(out_dir).resolve()
     check_layout(m, out)
@@ -586,6 +635,8 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
         model_res = {a: f.result() for a, f in models.items()}
         keys_res = {a: f.result() for a, f in keys.items()}
         poses_res = {a: f.result() for a, f in poses.items()}
+        spans = [{"task": f.key, **f.result()["span"]} for f in [*models.values(), *tracks, *keys.values(),
+                                                                 *poses.values(), *finals]]
     except KeyboardInterrupt:
         client.close()
         if cluster is not None:
@@ -599,6 +650,7 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
             cluster.close()
     report = _report(m, out, scheduler, n_workers, processes, [results[f.key] for f in finals], model_res, keys_res,
                      time.perf_counter() - t0, poses_res)
+    report["tasks"] = spans
     with atomic_write(out / "report.json") as f:
         json.dump(report, f, indent=1)
         f.write("\n")

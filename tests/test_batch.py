@@ -194,6 +194,48 @@ def test_a_rig_library_writes_curves_and_live_link_resumably_as_the_commands_do(
     assert filecmp.cmp(tmp_path / "fixed_curves.csv", d0 / "curves.csv", shallow=False)
 
 
+def test_the_report_says_when_and_where_each_task_ran(first_run):
+    """One span per task (2 trainings, 4 tracks, 2 key selections, 2 pose steps, 4 finishes), in worker
+    processes (not this one), with the worker process's CPU at least its task thread's."""
+    _, report = first_run
+    spans = report["tasks"]
+    assert sorted(s["task"].split("-")[0] for s in spans) == sorted(["model"] * 2 + ["track"] * 4 + ["keys"] * 2
+                                                                    + ["poses"] * 2 + ["finish"] * 4)
+    assert len({s["pid"] for s in spans}) <= 2 and os.getpid() not in {s["pid"] for s in spans}
+    for s in spans:
+        assert s["start"] <= s["end"] and s["cpu"] >= s["thread_cpu"] - 0.01 >= -0.01, s
+    track = [s for s in spans if s["task"].startswith("track-")]
+    model = {s["task"].split("-")[1]: s for s in spans if s["task"].startswith("model-")}
+    assert all(s["start"] >= model[s["task"].split("-")[1]]["end"] for s in track)
+
+
+def test_a_worker_runs_its_libraries_on_one_thread():
+    """The local cluster's worker process starts with OpenMP/BLAS/FFmpeg's decoder at one thread (set before
+    numpy loads), and a task keeps OpenCV's pool and every loaded BLAS/OpenMP pool at one thread."""
+    from keyshape.batch import ONE_THREAD_ENV, _client
+
+    def pools():
+        import os
+
+        import cv2
+        from threadpoolctl import threadpool_info
+
+        from keyshape.batch import _one_thread
+
+        env = {k: os.environ.get(k) for k in ONE_THREAD_ENV}
+        _one_thread()
+        return env, cv2.getNumThreads(), [p["num_threads"] for p in threadpool_info()], os.getpid()
+
+    client, cluster = _client(None, 1, True)
+    try:
+        env, n_cv, n_pools, pid = client.submit(pools, pure=False).result()
+    finally:
+        client.close()
+        cluster.close()
+    assert env == ONE_THREAD_ENV and pid != os.getpid()
+    assert n_cv == 1 and n_pools and set(n_pools) == {1}, n_pools
+
+
 def rep_row(rep, actor, take) -> dict:
     return next(r for r in rep["takes"] if (r["actor"], r["take"]) == (actor, take))
 

@@ -77,7 +77,8 @@ one sparse product, accumulated onto the start value; with a second core a helpe
 multiplies the fixed columns while the wedge block is refilled and multiplied. ``deform_many``
 does the fixed columns of ``T`` for 32 frames at once (the frames side by side as columns of
 the right-hand side, where scipy's sparse product costs about a third as much per frame as
-with 3 columns) and only the wedge block per frame, the two halves of the take in two threads.
+with 3 columns) and only the wedge block per frame (its lengths ``d`` for 8 frames in one pass of
+each operation), the two halves of the take in two threads.
 
 *Displacement form and precision.* The fixed columns act on ``Y - Y_rest`` and the start value
 is ``still + T_fixed Y_rest`` (the same sum regrouped, formed in float64 at bind time), so the
@@ -101,6 +102,8 @@ try:  # out += A @ X for a CSC A, in place (scipy's own kernel behind ``A @ X``;
 except ImportError:  # pragma: no cover - a scipy without it: the public product below
     _csc_matvecs = None
 
+#: frames whose wedge lengths ``d`` (eq. 10) deform_many computes in one pass (8 x 140k pairs of float32: 4.5 MB)
+_WEDGE_FRAMES = 8
 N_SLOTS = 7  # per bone: A, B_0, B_1, B_2, C_0, C_1, C_2
 REGION_NAMES = ("A", "B0", "B1", "B2", "C0", "C1", "C2")
 
@@ -415,9 +418,11 @@ class PlanarBones:
         # c_1 (m_i + m_{i-1}) + (c_2 - c_1) m_{i-1}, whose terms do not cancel where the corner closes
         self._wedge_num = ((w[wi] * c1w * D).astype(dt), (w[wi] * (c2w - c1w) * D).astype(dt))
         self._wedge_corner = wcorner
-        self._wedge_sq = ((c1w - c2w) ** 2).astype(dt)                   # d^2 = sq + cross * (1 + g), no cancellation
-        self._wedge_cross = (2.0 * c1w * c2w).astype(dt)
+        # d^2 = sq + cross * (1 + g), no cancellation; sq at least the smallest normal number, so that with
+        # 1 + g clamped at 0 per bone corner d^2 is positive for every pair without a clamp per pair
         self._tiny = 1e-300 if dt == np.float64 else float(np.finfo(dt).tiny)
+        self._wedge_sq = np.maximum((c1w - c2w) ** 2, self._tiny).astype(dt)
+        self._wedge_cross = (2.0 * c1w * c2w).astype(dt)
         self._wedge_count = wcount
         # the same wedge columns alone, sharing the data (for deform_many, whose fixed part is
         # done for many frames at once): rows n_controls + 4 n_bones on of Y
@@ -492,17 +497,19 @@ class PlanarBones:
         return y, g.reshape(lead + (-1,))
 
     def _inverse_d(self, g: np.ndarray) -> np.ndarray:
-        """``d`` of eq. (10) for every wedge pair of one frame, from ``g = 1 + m_i' . m_{i-1}'`` per bone corner.
+        """``d`` of eq. (10) for every wedge pair, from ``g = 1 + m_i' . m_{i-1}'`` per bone corner: ``g`` of one
+        frame ``(3 n_bones,)`` gives ``(n_wedge_pairs,)``, of several frames ``(n, 3 n_bones)`` gives
+        ``(n, n_wedge_pairs)`` (all frames in one pass of each operation).
 
         With unit rows ``m_i', m_{i-1}'`` the wedge length is
         ``d = sqrt(c_1^2 + c_2^2 + 2 c_1 c_2 (m_i' . m_{i-1}')) = sqrt((c_1 - c_2)^2 + 2 c_1 c_2 g)``;
         the second form has no cancellation (both terms >= 0; ``c_1, c_2 >= 0`` in a wedge) where
-        the deformed corner closes (``g -> 0``), which float32 needs.
+        the deformed corner closes (``g -> 0``), which float32 needs. ``g`` is clamped at 0 per corner
+        (rounding), and the first term is at least the smallest normal number (bind time), so ``d > 0``.
         """
-        k = np.repeat(g, self._wedge_count)                                          # pairs by corner
+        k = np.repeat(np.maximum(g, 0), self._wedge_count, axis=-1)                    # pairs by corner
         k *= self._wedge_cross
         k += self._wedge_sq
-        np.maximum(k, self._tiny, out=k)
         np.sqrt(k, out=k)
         return k
 
@@ -532,11 +539,11 @@ class PlanarBones:
         out += wedge
         return out
 
-    def _refill(self, g: np.ndarray, data=None) -> None:
+    def _refill(self, g: np.ndarray, data=None, d=None) -> None:
         """Write this frame's wedge entries ``w c_1 D/d``, ``w c_2 D/d`` (eq. 10) in place into ``T``
-        (or into ``data``, the data of a copy of the wedge block)."""
+        (or into ``data``, the data of a copy of the wedge block); ``d``: this frame's, when already computed."""
         if len(self._wedge_corner):
-            d = self._inverse_d(g)
+            d = self._inverse_d(g) if d is None else d
             npw = len(d)
             targets = self._wedge_data if data is None else (data[:npw], data[npw:])
             np.divide(self._wedge_num[0], d, out=targets[0])
@@ -554,9 +561,10 @@ class PlanarBones:
             # the chunk at once (a strided pass per frame misses the cache on every vertex)
             for v0 in range(0, nv, 2048):
                 np.add(res[v0:v0 + 2048].transpose(1, 0, 2), self._still[v0:v0 + 2048], out=out[f0:f1, v0:v0 + 2048])
-            if len(self._wedge_corner):
-                for f in range(f0, f1):
-                    self._refill(g[f], None if tw is self._Tw else tw.data)
+            for w0 in range(f0, f1, _WEDGE_FRAMES) if len(self._wedge_corner) else ():
+                d = self._inverse_d(g[w0:min(w0 + _WEDGE_FRAMES, f1)])        # eq. (10)'s d, several frames at once
+                for f in range(w0, w0 + len(d)):
+                    self._refill(g[f], None if tw is self._Tw else tw.data, d[f - w0])
                     _add_product(tw, y[f, nfc:], out[f])
 
     def deform_many(self, control_points, chunk: int = 32) -> np.ndarray:
