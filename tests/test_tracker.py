@@ -419,8 +419,8 @@ def test_prefetched_decode_thread_keeps_order_errors_and_early_stop():
 def test_brow_border_is_its_own_and_reads_held_out_brows(footage, tmp_path):
     """``brow_grow`` widens only the brow regions' pixel border (None: ``region_grow``, the earlier
     model); a model trained on 8 frames reads the brows of the 2 held-out ones (their true pose given)
-    within 0.3 px of the truth (0.10-0.16 measured); the parameter survives the model file, and files written before
-    it existed load with the earlier border."""
+    within 0.3 px of the truth (0.10-0.16 measured); the parameter survives the model file, and files
+    written before it existed load with the earlier border."""
     frames, labels = footage
     wide = AppearanceModel("contours48", n_morphs=10, rng=0, brow_grow=0.14).fit(list(frames[:8]), labels[:8])
     old = AppearanceModel("contours48", n_morphs=10, rng=0, brow_grow=None).fit(list(frames[:8]), labels[:8])
