@@ -394,10 +394,11 @@ class AppearanceModel:
         real clips, ``docs/tracker.md``).
     brow_grow : float or None
         The same for the brow regions (None: ``region_grow``). A brow's outer end fades into the
-        skin of the temple; the forehead and the upper lid around it tell the region model how
-        high it is. Measured on the real clips (``docs/tracker.md``, issue 23): the outer brows'
-        height correlates with the motion common to the track, dlib and MediaPipe at 0.897 with
-        0.14 against 0.874 with 0.10 on cap12_edit, 0.978 against 0.972 on franck.
+        skin of the temple, and the forehead around it may tell the region model how high it is.
+        Measured (``docs/tracker.md``, issue 23), 0.14 against the default: the outer brows' height
+        follows the motion common to the track, dlib and MediaPipe at 0.897 against 0.874 on
+        cap12_edit and 0.978 against 0.972 on franck, but the synthetic clips' brows are read worse
+        (NME 0.0023 against 0.0021, seeds 0-2), so it is not the default.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
 
@@ -419,7 +420,7 @@ class AppearanceModel:
     def __init__(self, scheme: str | Scheme = "contours48", n_components: int | None = None,
                  variance: float = 0.98, face_width: int = 64, margin: float = 0.22, n_morphs: int = 120,
                  landmark_weight: float = 1.0, ridge: float = 1.0, regions: bool = True, split_mouth: bool = True,
-                 region_grow: float = 0.1, lip_grow: float | None = 0.14, brow_grow: float | None = 0.14, rng=None):
+                 region_grow: float = 0.1, lip_grow: float | None = 0.14, brow_grow: float | None = None, rng=None):
         self.scheme = scheme
         self.n_components = n_components
         self.variance = variance
