@@ -294,10 +294,10 @@ class Tracker:
         (:meth:`read_regions`: one remap, one gradient, batched products over padded arrays)
         instead of one at a time (:meth:`read_region`, :meth:`read_lips`). The same points up to
         the rounding of sampled grey levels (at most a few thousandths of a pixel at the same
-        pose). Off by default: on a shared 2-core machine (load average 9-13) it took 0.85-0.97
-        times the per-region code's speed, the padding to the largest region and numpy's stacked
-        products of a few thousand numbers costing what the fewer calls save (issue 26;
-        ``bench/bench_tracker.py`` prints both).
+        pose). Off by default: it ran at 0.86 times the per-region code's speed (thread CPU time,
+        25-frame chunks interleaved, synthetic and franck.mp4; shared 2-core machine), the padding
+        to the largest region and numpy's stacked products of a few thousand numbers costing what
+        the fewer calls save (issue 26; ``bench/bench_tracker.py`` prints both).
     """
 
     def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 3.0, search: bool = True,
