@@ -1,21 +1,67 @@
-"""Tracking speed against plain decoding of the same video, measured in the same run (issue 3).
+"""Tracking speed against plain decoding of the same video, measured in the same run (issues 3, 26).
 
 Synthesises 640x480 footage (or takes ``--video`` with ``--labels``), trains on
 its labels (timed) and reports frames/s of decode-only, of decode + tracking
 (decoding in a background thread, the default) and their ratio, and the same
-without the decode thread, and the CPU time per frame of each (``time.process_time``).
+without the decode thread, and the CPU time per frame of each (``time.process_time``);
+then the tracker with the region models' forward-additive steps (the default) against the
+inverse-compositional ones, and the forward steps of all regions at once (``Tracker(region_step=...,
+batch_regions=...)``, thread CPU time on the same decoded frames, interleaved),
+and the command-level ratio: ``keyshape track`` run as a command (imports and model loading
+included) against decoding the same file. The load average is printed beside the figures.
 Prints ratios, never asserts times.
 
     PYTHONPATH=. python bench/bench_tracker.py [--frames 600] [--video V --labels DIR --scheme S]
+    PYTHONPATH=. python bench/bench_tracker.py --frames 6000        # the issue's command-level figure
 """
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from footage import add_footage_args, footage
+
+
+def _decode_rate(video) -> tuple[float, float]:
+    """Frames/s and CPU seconds per frame of decoding ``video`` (the better of two passes)."""
+    from keyshape.base.formats.video import VideoReader
+
+    best = (0.0, float("inf"))
+    for _ in range(2):
+        t0, c0 = time.perf_counter(), time.process_time()
+        n = sum(1 for _ in VideoReader(video))
+        best = (max(best[0], n / (time.perf_counter() - t0)), min(best[1], (time.process_time() - c0) / n))
+    return best
+
+
+def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
+    """Thread CPU seconds per frame of ``Tracker.step`` with the region models' steps forward-additive (the
+    default), inverse-compositional, and forward-additive all at once (``batch_regions=True``), on the same
+    decoded frames (interleaved, best of ``reps``)."""
+    from keyshape.base.formats.video import VideoReader
+    from keyshape.tracker.fitting import Tracker, single_threaded
+
+    frames = []
+    for i, f in VideoReader(video):
+        if i >= n_frames:
+            break
+        frames.append(f)
+    options = {"forward": {}, "inverse": {"region_step": "inverse"}, "batched": {"batch_regions": True}}
+    out = {k: float("inf") for k in options}
+    with single_threaded():
+        for _ in range(reps):
+            for k, opts in options.items():
+                tr = Tracker(model, **opts)
+                c0 = time.thread_time()
+                for i, f in enumerate(frames):
+                    tr.step(f, i)
+                out[k] = min(out[k], (time.thread_time() - c0) / len(frames))
+    return out
 
 
 def main() -> None:
@@ -30,31 +76,45 @@ def main() -> None:
         t0 = time.perf_counter()
         model, _ = train_model(video, labels, args.scheme)
         t_train = time.perf_counter() - t0
-        t0, c0 = time.perf_counter(), time.process_time()
-        n = sum(1 for _ in VideoReader(video))
-        decode = n / (time.perf_counter() - t0)
-        cpu_decode = (time.process_time() - c0) / n
+        load0 = os.getloadavg()[0]
+        decode, cpu_decode = _decode_rate(video)
+        info = VideoReader(video).info
+        n = info.n_frames
         c0 = time.process_time()
         summ = track_video(video, model, Path(tmp) / "tracks.csv", show_progress=False)
-        cpu_thread = (time.process_time() - c0) / n
+        cpu_thread = (time.process_time() - c0) / summ.n_frames
         c0 = time.process_time()
         summ0 = track_video(video, model, Path(tmp) / "tracks0.csv", show_progress=False, decode_thread=False)
-        cpu_plain = (time.process_time() - c0) / n
-        t0, c0 = time.perf_counter(), time.process_time()
-        n2 = sum(1 for _ in VideoReader(video))
-        decode = max(decode, n2 / (time.perf_counter() - t0))
-        cpu_decode = min(cpu_decode, (time.process_time() - c0) / n2)
-        info = VideoReader(video).info
-        print(f"video {video.name}: {n} frames {info.width}x{info.height}")
+        cpu_plain = (time.process_time() - c0) / summ0.n_frames
+        modes = _region_modes(video, model)
+        # the command as a user runs it: a fresh process, imports and the model file included
+        model_path = Path(tmp) / "model.npz"
+        model.save(model_path)
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "keyshape", "track", str(video), "--model", str(model_path), "-o",
+                        str(Path(tmp) / "tracks_cmd.csv"), "--quiet"], check=True, stdout=subprocess.DEVNULL)
+        t_cmd = time.perf_counter() - t0
+        decode2, cpu_decode2 = _decode_rate(video)
+        decode, cpu_decode = max(decode, decode2), min(cpu_decode, cpu_decode2)
+        load1 = os.getloadavg()[0]
+        print(f"video {video.name}: {n} frames {info.width}x{info.height}; load average {load0:.2f} at the start, "
+              f"{load1:.2f} at the end (2 cores: above 2 the figures are slowed by other work)")
         print(f"training on {len(model.train_poses_)} labels: {t_train:.1f} s")
         print(f"decode only: {decode:.0f} frames/s; decode + track: {summ.fps:.0f} frames/s; "
               f"ratio {summ.fps / decode:.2f} (aim >= 0.5; floor 150 frames/s); lost {summ.n_lost}")
         print(f"without the decode thread: decode + track {summ0.fps:.0f} frames/s; ratio {summ0.fps / decode:.2f}")
+        print(f"command level: `keyshape track` {t_cmd:.2f} s for {n} frames ({n / t_cmd:.0f} frames/s), decoding "
+              f"{n / decode:.2f} s: ratio {n / decode / t_cmd:.2f}")
         # CPU seconds (time.process_time: all threads of this process) per frame: less sensitive than
         # frames/s to the other jobs of a shared machine
         print(f"CPU per frame: decode only {1e3 * cpu_decode:.3f} ms; decode + track {1e3 * cpu_thread:.3f} ms "
               f"(without the decode thread {1e3 * cpu_plain:.3f} ms); tracking alone about "
               f"{1e3 * (cpu_plain - cpu_decode):.3f} ms")
+        print(f"tracker step, thread CPU per frame: region steps forward-additive (default) "
+              f"{1e3 * modes['forward']:.3f} ms; inverse-compositional (region_step='inverse') "
+              f"{1e3 * modes['inverse']:.3f} ms (speed ratio {modes['forward'] / modes['inverse']:.2f}); forward, all "
+              f"regions at once (batch_regions=True) {1e3 * modes['batched']:.3f} ms "
+              f"(ratio {modes['forward'] / modes['batched']:.2f})")
 
 
 if __name__ == "__main__":

