@@ -117,12 +117,13 @@ class RigRenderer:
         seen = np.zeros(len(tri), bool)
         inview = np.zeros(len(tri), bool)
         w, h = self.size
-        for v in shapes:                                  # loop over shapes (53), not triangles
-            a, b, c3 = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
-            seen |= np.cross(b - a, c3 - a)[:, 2] > 0
-            p = self.camera_.project(v)[tri][:, :, :2]
-            lo, hi = p.min(axis=1), p.max(axis=1)
-            inview |= (hi[:, 0] > -0.1 * w) & (lo[:, 0] < 1.1 * w) & (hi[:, 1] > -0.1 * h) & (lo[:, 1] < 1.1 * h)
+        cam = self.camera_
+        for v in shapes.astype(np.float32):               # loop over shapes (53), not triangles
+            x, y = (v[:, 0] - cam.x0) * cam.scale, (cam.y0 - v[:, 1]) * cam.scale     # pixels
+            (xa, xb, xc), (ya, yb, yc) = x[tri.T], y[tri.T]
+            seen |= (xb - xa) * (yc - ya) - (yb - ya) * (xc - xa) < 0      # counter-clockwise in the mesh's view
+            inview |= ((np.maximum(np.maximum(xa, xb), xc) > -0.1 * w) & (np.minimum(np.minimum(xa, xb), xc) < 1.1 * w)
+                       & (np.maximum(np.maximum(ya, yb), yc) > -0.1 * h) & (np.minimum(np.minimum(ya, yb), yc) < 1.1 * h))
         keep = np.flatnonzero(seen & inview)
         shown = np.ones(len(keep), bool)
         if self.cull_hidden and curves is not None and len(curves):
@@ -133,7 +134,7 @@ class RigRenderer:
         return self
 
     def visible_triangles(self, candidates: np.ndarray, curves: np.ndarray, rotations: np.ndarray | None = None,
-                          n_spread: int = 16) -> np.ndarray:
+                          n_spread: int = 8) -> np.ndarray:
         """Which of the triangles ``candidates`` (indices into ``tri_``) some sampled frame shows, grown by one ring.
 
         The frames sampled: ``n_spread`` spread over ``curves`` (n_frames, n_shapes), and those where a
@@ -153,10 +154,15 @@ class RigRenderer:
         if rotations is not None:
             rows |= set(_turn_extremes(rotations).tolist())
         rows = np.array(sorted(rows))
-        V = self.rig.evaluate(C[rows])
+        used = np.unique(self.tri_[candidates])
+        local = np.zeros(self.rig.n_vertices, np.intp)
+        local[used] = np.arange(len(used))
+        V = self.rig.neutral[used] + np.einsum("nk,kvd->nvd", C[rows][:, moving].astype(np.float32),
+                                               self.rig.deltas[moving][:, used].astype(np.float32), optimize=True)
         if rotations is not None:
-            V = self.pose(V, np.asarray(rotations, float)[rows])
-        tri = self.tri_[candidates]
+            c = (self.pivot_ if hasattr(self, "pivot_") else head_pivot(self.rig))
+            V = np.einsum("nij,nvj->nvi", np.asarray(rotations, float)[rows], V - c, optimize=True) + c
+        tri = local[self.tri_[candidates]]
         # the painter's order as a depth: a higher layer is nearer than any lower one wherever both cover
         # a pixel; each triangle gets its own three corners (a vertex may be shared across layers)
         layer = self.layer_[self.mat_[candidates]].astype(float)
@@ -168,7 +174,7 @@ class RigRenderer:
             lift = (np.ptp(p[..., 2]) + 1.0) * layer
             f = rasterize(p[..., :2].reshape(-1, 2), (-p[..., 2] - lift[:, None]).ravel(), corners, w, h)
             shown[f.triangle] = True
-        near = np.zeros(self.rig.n_vertices, bool)
+        near = np.zeros(len(used), bool)
         near[tri[shown].ravel()] = True
         return near[tri].any(axis=1)
 
@@ -217,16 +223,17 @@ class RigRenderer:
         if not nd:
             return img
         a, b, c = v[sup[:, 0]], v[sup[:, 1]], v[sup[:, 2]]
-        fn = np.cross(b - a, c - a)
+        (ux, uy, uz), (wx, wy, wz) = (b - a).T, (c - a).T
+        fn = np.stack([uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx], axis=1)     # face normals
         # vertex normals (area weighted) -> per-triangle mean normal, for smooth-looking shading
         vn = np.bincount(self.normal_index_, np.repeat(fn, 3, axis=0).ravel(), minlength=3 * len(v))
         vn = vn.reshape(-1, 3).astype(np.float32)
-        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+        vn /= np.maximum(np.sqrt(np.einsum("ij,ij->i", vn, vn)), 1e-12)[:, None]
         t = np.flatnonzero(fn[:nd, 2] > 0)
         tri = sup[t]
-        n = vn[tri].sum(axis=1)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        lam = np.clip(n @ self.l_, 0, 1) * (1 - self.ambient) + self.ambient
+        n = vn[tri[:, 0]] + vn[tri[:, 1]] + vn[tri[:, 2]]
+        cos = (n @ self.l_) / np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-12)
+        lam = np.clip(cos, 0, 1) * (1 - self.ambient) + self.ambient
         level = np.minimum((lam * self.levels).astype(np.int64), self.levels - 1)
         cam = self.camera_
         xy = np.empty((len(v), 2), np.float32)
@@ -243,6 +250,8 @@ class RigRenderer:
         key = (self.mat_fit_[t] * self.levels + level)[order]
         nkeys = len(self.colours_)
         group = np.cumsum(cut) * nkeys + key
+        if group[-1] < 2 ** 15:
+            group = group.astype(np.int16)                          # a radix sort
         srt = np.argsort(group, kind="stable")
         group = group[srt]
         pts = np.round(xy * 16).astype(np.int32)[tri[order[srt]]]   # 4 bits of sub-pixel precision
