@@ -207,16 +207,23 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     t_render = 0.0
     n = n_rig = 0
 
-    def rigs(r):
-        """The rig panels of row ``r``: ``curves`` (and the compared curves)."""
-        out = [renderer.render_curves(curves[r], None if head is None else head[r])]
+    def frame(job):
+        """Row ``r``'s output frame: the actor panel of video frame ``img`` beside the rig panels of
+        ``curves`` (and the compared curves), captioned; and the CPU seconds of the rig panels alone."""
+        img, k, r = job
+        left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
+                           bool(tracks.success[k]) if k is not None else False, h, box)
+        t = time.thread_time()
+        right = [renderer.render_curves(curves[r], None if head is None else head[r])]
         if other is not None:
-            out.append(renderer.render_curves(other[r], None if other_head is None else other_head[r]))
-        return out
+            right.append(renderer.render_curves(other[r], None if other_head is None else other_head[r]))
+        cpu = time.thread_time() - t
+        panels = [left, *right]
+        return panel_row([caption(p, t) if t else p for p, t in zip(panels, names + [""] * len(panels))]), cpu
 
     def jobs(wr, prog):
-        """(frame, row, actor panel) for each frame to render, as the video is read (frames not
-        rendered are counted here)."""
+        """((frame, row), (image, tracks row, row)) for each frame to render, as the video is read
+        (frames not rendered are counted here)."""
         nonlocal n
         for i, img in reader:
             if i > last:
@@ -227,19 +234,15 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
                     n += 1
                     prog.update()
                 continue
-            k = pos.get(i)
-            left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
-                               bool(tracks.success[k]) if k is not None else False, h, box)
-            yield (i, r, left), r
+            yield (i, r), (img, pos.get(i), r)
 
     with _maybe_writer(output, fps) as wr:
         prog = Progress(len(rows), desc="keyshape preview")
-        # the rig is rendered on a few threads (fillPoly and numpy release the GIL), written in order
-        for (i, r, left), right, cpu in ordered_map(rigs, jobs(wr, prog), threads):
+        # whole frames are drawn on a few threads (fillPoly, resizing and numpy release the GIL), encoded
+        # on another, in order
+        for (i, r), (out, cpu), _ in ordered_map(frame, jobs(wr, prog), threads):
             t_render += cpu
-            n_rig += len(right)
-            panels = [left, *right]
-            out = panel_row([caption(p, t) if t else p for p, t in zip(panels, names + [""] * len(panels))])
+            n_rig += 1 + (other is not None)
             if wr is not None:
                 wr(out)
             if r in sheet_rows:
