@@ -80,19 +80,19 @@ def main() -> None:
         n, k = a.frames, rig.n_shapes
         curves = rng.uniform(0, 0.6, (n, k)) * (rng.uniform(size=(n, k)) < 0.15)
     lm = None
-    if default_landmarks(rig.n_vertices, "contours48"):               # the contours drawn over the rig, as a preview does
+    if default_landmarks(rig.n_vertices, "contours48"):      # the contours drawn over the rig, as a preview does
         from keyshape.base.schemes import load_scheme
         lm = (rig_landmarks(rig, "contours48")[0], load_scheme("contours48"))
-    print(f"{rig.n_vertices} vertices, {len(rig.mesh.triangles)} triangles, {a.size}x{a.size}, {len(curves)} frames; "
-          f"rig loaded in {t_load:.2f} s; {load()}")
+    print(f"{rig.n_vertices} vertices, {len(rig.mesh.triangles)} triangles, {a.size}x{a.size}, "
+          f"{len(curves)} frames; rig loaded in {t_load:.2f} s; {load()}")
     new, fit_new, wall_new, cpu_new = render_loop(rig, curves, head, a.size, True, lm)
     old, fit_old, wall_old, cpu_old = render_loop(rig, curves, head, a.size, False, lm)
     diff = np.array([(np.abs(x.astype(int) - y.astype(int)).max(axis=2) > 30).mean() for x, y in zip(new, old)])
     n = len(curves)
-    print(f"render loop, visible triangles only: {n / wall_new:5.1f} frames/s ({1000 * cpu_new / n:5.1f} CPU ms/frame, "
-          f"fit {fit_new:.2f} s)")
-    print(f"render loop, every front triangle:   {n / wall_old:5.1f} frames/s ({1000 * cpu_old / n:5.1f} CPU ms/frame, "
-          f"fit {fit_old:.2f} s)")
+    print(f"render loop, visible triangles only: {n / wall_new:5.1f} frames/s "
+          f"({1000 * cpu_new / n:5.1f} CPU ms/frame, fit {fit_new:.2f} s)")
+    print(f"render loop, every front triangle:   {n / wall_old:5.1f} frames/s "
+          f"({1000 * cpu_old / n:5.1f} CPU ms/frame, fit {fit_old:.2f} s)")
     print(f"  speed-up {wall_old / wall_new:.2f}x; pixels differing by more than 30 levels: mean "
           f"{100 * diff.mean():.3f}%, worst frame {100 * diff.max():.3f}%; {load()}")
     if a.video and a.tracks and a.curves:
@@ -104,11 +104,12 @@ def main() -> None:
         t_dec = time.perf_counter() - t
         with tempfile.TemporaryDirectory() as tmp:
             t_new = command(sys.executable, a, Path(tmp) / "new.mp4")
-            print(f"keyshape preview, {a.frames} frames, whole command: {t_new:.1f} s ({a.frames / t_new:.1f} frames/s); "
-                  f"decoding those frames {t_dec:.2f} s; {load()}")
+            print(f"keyshape preview, {a.frames} frames, whole command: {t_new:.1f} s "
+                  f"({a.frames / t_new:.1f} frames/s); decoding those frames {t_dec:.2f} s; {load()}")
             if a.baseline_python:
                 t_old = command(a.baseline_python, a, Path(tmp) / "old.mp4")
-                print(f"  run by {a.baseline_python} (another checkout): {t_old:.1f} s; old / new = {t_old / t_new:.2f}x; {load()}")
+                print(f"  run by {a.baseline_python} (another checkout): {t_old:.1f} s; "
+                      f"old / new = {t_old / t_new:.2f}x; {load()}")
 
 
 if __name__ == "__main__":

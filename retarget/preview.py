@@ -129,8 +129,9 @@ class RigRenderer:
             x, y = (v[:, 0] - cam.x0) * cam.scale, (cam.y0 - v[:, 1]) * cam.scale     # pixels
             (xa, xb, xc), (ya, yb, yc) = x[tri.T], y[tri.T]
             seen |= (xb - xa) * (yc - ya) - (yb - ya) * (xc - xa) < 0      # counter-clockwise in the mesh's view
-            inview |= ((np.maximum(np.maximum(xa, xb), xc) > -0.1 * w) & (np.minimum(np.minimum(xa, xb), xc) < 1.1 * w)
-                       & (np.maximum(np.maximum(ya, yb), yc) > -0.1 * h) & (np.minimum(np.minimum(ya, yb), yc) < 1.1 * h))
+            x_lo, x_hi = np.minimum(np.minimum(xa, xb), xc), np.maximum(np.maximum(xa, xb), xc)
+            y_lo, y_hi = np.minimum(np.minimum(ya, yb), yc), np.maximum(np.maximum(ya, yb), yc)
+            inview |= (x_hi > -0.1 * w) & (x_lo < 1.1 * w) & (y_hi > -0.1 * h) & (y_lo < 1.1 * h)
         keep = np.flatnonzero(seen & inview)
         shown = np.ones(len(keep), bool)
         if self.cull_hidden and curves is not None and len(curves):

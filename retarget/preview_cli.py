@@ -296,7 +296,7 @@ class _maybe_writer:
                     self.cm = video_writer(self.path, self.fps, (img.shape[1], img.shape[0]))
                     self.wr = self.cm.__enter__()
                 self.wr.write(img)
-            except BaseException as exc:                  # handed to the caller's thread
+            except Exception as exc:  # noqa: BLE001 -- any failure is handed to the caller's thread
                 self.error = exc
 
     def _write(self, img):

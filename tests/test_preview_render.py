@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from keyshape.retarget.rig import Rig
 
 from keyshape.base.formats.obj import Mesh
-from keyshape.retarget.rig import Rig
 
 SHAPES = ("jawOpen", "mouthSmile_L", "mouthFunnel", "eyeBlink_L", "eyeBlink_R", "browInnerUp_L", "noseSneer_R")
 
@@ -89,7 +89,6 @@ def test_float32_deformation_of_the_moving_shapes_matches_the_rig(face):
 
 def test_the_encoding_thread_writes_every_frame_in_order_and_reports_failure(tmp_path):
     import cv2
-
     from keyshape.retarget.preview_cli import _maybe_writer
     out = tmp_path / "v.avi"
     with _maybe_writer(out, 10.0) as write:
@@ -101,8 +100,7 @@ def test_the_encoding_thread_writes_every_frame_in_order_and_reports_failure(tmp
         means.append(frame[1].mean())
     assert len(means) == 12 and np.all(np.diff(means) > 10)
     (tmp_path / "f").write_text("a file, not a folder")
-    with pytest.raises(OSError):
-        with _maybe_writer(tmp_path / "f" / "v.avi", 10.0) as write:
-            for _ in range(30):
-                write(np.zeros((32, 48, 3), np.uint8))
+    with pytest.raises(OSError), _maybe_writer(tmp_path / "f" / "v.avi", 10.0) as write:
+        for _ in range(30):
+            write(np.zeros((32, 48, 3), np.uint8))
     assert not list(tmp_path.glob("f*/*.avi"))
