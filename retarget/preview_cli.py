@@ -186,8 +186,16 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     if contours or (contours is None and (landmarks or default_landmarks(rig.n_vertices, scheme.name))):
         lm = (rig_landmarks(rig, scheme.name, landmarks)[0], scheme)
     other, other_head = compare if compare is not None else (None, None)
-    turns = [x[rows] for x in (head, other_head) if x is not None]
-    renderer = RigRenderer(rig, size=(h, h), landmarks=lm).fit(curves[rows], np.concatenate(turns) if turns else None)
+    # fitted on every frame to render, each with its own turn, so that the triangles no frame shows are
+    # left out of the drawing (cull_hidden: the backs of the eyeballs, the teeth behind closed lips)
+    fit_curves = [curves[rows]] + ([other[rows]] if other is not None else [])
+    fit_turns = None
+    if head is not None or other_head is not None:
+        still = np.broadcast_to(np.eye(3), (len(rows), 3, 3))
+        fit_turns = np.concatenate([still if x is None else x[rows]
+                                    for x in (head, other_head)[:len(fit_curves)]])
+    renderer = RigRenderer(rig, size=(h, h), landmarks=lm, cull_hidden=True).fit(np.concatenate(fit_curves),
+                                                                                 fit_turns)
     names = list(captions or [])
     fps = reader.info.fps or 30.0
     sheet_rows = set(rows[np.linspace(0, len(rows) - 1, min(sheet_frames, len(rows))).round().astype(int)]
@@ -199,16 +207,23 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     t_render = 0.0
     n = n_rig = 0
 
-    def rigs(r):
-        """The rig panels of row ``r``: ``curves`` (and the compared curves)."""
-        out = [renderer.render_curves(curves[r], None if head is None else head[r])]
+    def frame(job):
+        """Row ``r``'s output frame: the actor panel of video frame ``img`` beside the rig panels of
+        ``curves`` (and the compared curves), captioned; and the CPU seconds of the rig panels alone."""
+        img, k, r = job
+        left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
+                           bool(tracks.success[k]) if k is not None else False, h, box)
+        t = time.thread_time()
+        right = [renderer.render_curves(curves[r], None if head is None else head[r])]
         if other is not None:
-            out.append(renderer.render_curves(other[r], None if other_head is None else other_head[r]))
-        return out
+            right.append(renderer.render_curves(other[r], None if other_head is None else other_head[r]))
+        cpu = time.thread_time() - t
+        panels = [left, *right]
+        return panel_row([caption(p, t) if t else p for p, t in zip(panels, names + [""] * len(panels))]), cpu
 
     def jobs(wr, prog):
-        """(frame, row, actor panel) for each frame to render, as the video is read (frames not
-        rendered are counted here)."""
+        """((frame, row), (image, tracks row, row)) for each frame to render, as the video is read
+        (frames not rendered are counted here)."""
         nonlocal n
         for i, img in reader:
             if i > last:
@@ -219,19 +234,15 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
                     n += 1
                     prog.update()
                 continue
-            k = pos.get(i)
-            left = actor_panel(img, tracks.points[k] if k is not None else None, scheme,
-                               bool(tracks.success[k]) if k is not None else False, h, box)
-            yield (i, r, left), r
+            yield (i, r), (img, pos.get(i), r)
 
     with _maybe_writer(output, fps) as wr:
         prog = Progress(len(rows), desc="keyshape preview")
-        # the rig is rendered on a few threads (fillPoly and numpy release the GIL), written in order
-        for (i, r, left), right, cpu in ordered_map(rigs, jobs(wr, prog), threads):
+        # whole frames are drawn on a few threads (fillPoly, resizing and numpy release the GIL), encoded
+        # on another, in order
+        for (i, r), (out, cpu), _ in ordered_map(frame, jobs(wr, prog), threads):
             t_render += cpu
-            n_rig += len(right)
-            panels = [left, *right]
-            out = panel_row([caption(p, t) if t else p for p, t in zip(panels, names + [""] * len(panels))])
+            n_rig += 1 + (other is not None)
             if wr is not None:
                 wr(out)
             if r in sheet_rows:
@@ -254,24 +265,54 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
 
 
 class _maybe_writer:
-    """Context manager: a frame sink writing a video at ``path`` (sized from the first frame), or None."""
+    """Context manager: a frame sink writing a video at ``path`` (sized from the first frame), or None.
 
-    def __init__(self, path, fps):
-        self.path, self.fps, self.cm, self.wr = path, fps, None, None
+    Frames are encoded on a thread of their own (OpenCV's encoder releases the GIL), so the encoding
+    overlaps the rendering; at most ``queue`` frames wait. An encoding error is raised in the caller,
+    at its next frame or on leaving the block.
+    """
+
+    def __init__(self, path, fps, queue: int = 8):
+        self.path, self.fps, self.size = path, fps, queue
+        self.cm = self.wr = self.q = self.thread = self.error = None
 
     def __enter__(self):
         if self.path is None:
             return None
+        import queue
+        import threading
+        self.q = queue.Queue(self.size)
+        self.thread = threading.Thread(target=self._encode, name="keyshape-encode", daemon=True)
+        self.thread.start()
         return self._write
 
+    def _encode(self):
+        while (img := self.q.get()) is not None:
+            if self.error is not None:
+                continue                                   # drain: the caller stops at its next frame
+            try:
+                if self.wr is None:
+                    from keyshape.base.formats.video import video_writer
+                    self.cm = video_writer(self.path, self.fps, (img.shape[1], img.shape[0]))
+                    self.wr = self.cm.__enter__()
+                self.wr.write(img)
+            except Exception as exc:  # noqa: BLE001 -- any failure is handed to the caller's thread
+                self.error = exc
+
     def _write(self, img):
-        if self.wr is None:
-            from keyshape.base.formats.video import video_writer
-            self.cm = video_writer(self.path, self.fps, (img.shape[1], img.shape[0]))
-            self.wr = self.cm.__enter__()
-        self.wr.write(img)
+        if self.error is not None:
+            raise self.error
+        self.q.put(img)
 
     def __exit__(self, *exc):
+        if self.thread is None:
+            return False
+        self.q.put(None)
+        self.thread.join()
+        failed = exc[0] is not None or self.error is not None
         if self.cm is not None:
-            return self.cm.__exit__(*exc)
+            err = (type(self.error), self.error, self.error.__traceback__) if self.error is not None else exc
+            self.cm.__exit__(*err) if failed else self.cm.__exit__(None, None, None)
+        if self.error is not None and exc[0] is None:
+            raise self.error
         return False
