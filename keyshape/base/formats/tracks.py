@@ -94,6 +94,16 @@ class Tracks:
     def n_points(self) -> int:
         return self.points.shape[1]
 
+    @property
+    def image_size(self) -> tuple[int, int] | None:
+        """(width, height) in pixels of the frames the points were tracked in (the metadata's
+        ``image_size``), or None where unrecorded or not two positive whole numbers."""
+        size = self.meta.get("image_size") if isinstance(self.meta, dict) else None
+        if (isinstance(size, (list, tuple)) and len(size) == 2
+                and all(isinstance(v, (int, float)) and v >= 1 and float(v).is_integer() for v in size)):
+            return int(size[0]), int(size[1])
+        return None
+
     def __getitem__(self, idx) -> "Tracks":
         return Tracks(self.frame[idx], self.time[idx], self.confidence[idx], self.success[idx],
                       self.points[idx], self.pose[idx], dict(self.meta))
