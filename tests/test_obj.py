@@ -1,4 +1,6 @@
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import pytest
 
 from keyshape.base.errors import InputError
@@ -60,3 +62,17 @@ def test_ict_neutral(shared_data):
     m = read_obj(shared_data / "ict-facekit/generic_neutral_mesh.obj", require_faces=True)
     assert m.n_vertices == 26719 and len(m.polygons) == 26384
     assert m.triangles.shape[1] == 3
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.lists(st.integers(0, 30), min_size=0, max_size=8), min_size=0, max_size=40))
+def test_triangles_fan_every_polygon_in_order(polys):
+    """The vectorised fan triangulation equals the definition: for each polygon of 3 or more
+    vertices, in file order, (p0, pk, pk+1) for k = 1 .. len - 2; smaller polygons give nothing."""
+    from keyshape.base.formats.obj import Mesh
+
+    polys = [np.asarray(p, np.intp) for p in polys]
+    want = [(p[0], p[k], p[k + 1]) for p in polys if len(p) >= 3 for k in range(1, len(p) - 1)]
+    got = Mesh(np.zeros((31, 3)), polys).triangles
+    assert got.shape == (len(want), 3) and got.dtype == np.intp
+    assert got.tolist() == [list(t) for t in want]

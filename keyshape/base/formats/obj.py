@@ -47,8 +47,16 @@ class Mesh:
     @property
     def triangles(self) -> np.ndarray:
         """(n_triangles, 3) int array: every polygon fan-triangulated from its first vertex."""
-        tris = [np.stack([np.full(len(p) - 2, p[0]), p[1:-1], p[2:]], axis=1) for p in self.polygons if len(p) >= 3]
-        return np.concatenate(tris).astype(np.intp) if tris else np.zeros((0, 3), np.intp)
+        polys = [p for p in self.polygons if len(p) >= 3]
+        if not polys:
+            return np.zeros((0, 3), np.intp)
+        flat = np.concatenate(polys).astype(np.intp)
+        lens = np.fromiter(map(len, polys), np.intp, len(polys))
+        start = np.cumsum(lens) - lens                       # each polygon's first vertex in ``flat``
+        n_tri = lens - 2
+        first = np.repeat(start, n_tri)
+        k = np.arange(len(first)) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri) + 1   # 1 .. len - 2
+        return np.stack([flat[first], flat[first + k], flat[first + k + 1]], axis=1)
 
     def group_vertices(self, name: str) -> np.ndarray:
         """Sorted vertex indices used by the faces of group ``name``."""
