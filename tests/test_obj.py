@@ -1,7 +1,7 @@
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-import pytest
 
 from keyshape.base.errors import InputError
 from keyshape.base.formats.obj import read_obj, read_obj_vertices, write_obj
