@@ -38,6 +38,23 @@ def test_box_lsq_ignores_free_motions_and_smooths_in_time():
     assert jitter(box_lsq(A, noisy, free=F, smooth=5.0)) < jitter(box_lsq(A, noisy, free=F))
 
 
+@pytest.mark.parametrize("seed", [4, 5])
+def test_box_lsq_solves_the_rests_offset_with_the_curves(seed):
+    """Targets measured from a rest that was not relaxed (it held 0.4 of two shapes, plus motion no
+    shape makes): with the shared offset the curves come back from the take's lower envelope, the
+    offset is the rest's error; without it two shapes are clipped at 0 and the rest is under-read."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(30, 4))
+    true = rng.uniform(0, 1, size=(80, 4)) * (rng.uniform(size=(80, 4)) > 0.3)   # each shape relaxes often
+    c_rest = np.array([0.4, 0.0, 0.4, 0.0])
+    err = A @ c_rest + 0.2 * rng.normal(size=30)
+    B = true @ A.T - err
+    C, d = box_lsq(A, B, offset=np.eye(30), l1=1e-4, max_iter=50000, tol=1e-12, return_offset=True)
+    assert np.abs(C - true).max() < 0.01
+    assert np.allclose(-d, err, atol=0.02)                    # b_t = A c_t + E d: d is minus the error
+    assert np.abs(box_lsq(A, B, l1=1e-4) - true).max() > 0.3
+
+
 def test_contour_measures_of_the_eyes_brows_and_lips():
     pts = SCHEME.region("eyes+brows")
     m = dict(contour_measures(SCHEME, pts))
@@ -147,6 +164,31 @@ def test_solve_recovers_the_rigs_own_curves_from_its_projected_landmarks(shared_
     assert np.corrcoef(got[:, L], got[:, Rr])[0, 1] > 0.97                  # both sides, alike
     assert 0.9 < np.polyfit(got[:, L], got[:, Rr], 1)[0] < 1.1
     assert got[:, names.index("browOuterUp_R")].max() < 0.3 * got[:, names.index("browOuterUp_L")].max()
+
+
+def test_solve_corrects_a_rest_frame_that_was_not_relaxed(shared_data):
+    """KEYS.json's rest held a smile, an open jaw and raised brows (``keyshape select`` chose a frame
+    that was not relaxed): the curves still come back at their true size (the rest's error solved as
+    an offset), where taking the rest as it is reads a frown and shut jaw into every other frame."""
+    rig, ln, ld, rs = _ict(shared_data)
+    names = rig.names
+    C = _performance(names, n=300, seed=2)
+    held = np.zeros(len(names))
+    for n, v in (("mouthSmile_L", 0.4), ("mouthSmile_R", 0.4), ("jawOpen", 0.2), ("browInnerUp_L", 0.3),
+                 ("browInnerUp_R", 0.3)):
+        held[names.index(n)] = v
+    X = ln[None] + np.einsum("ts,spd->tpd", C, ld)
+    rest = ln + np.einsum("s,spd->pd", held, ld)
+    regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
+    got, kept = (solve_curves(X, regs, SCHEME, ln, ld, rs, names, rest_offset=o) for o in (True, False))
+    for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "eyeBlink_L", "eyeBlink_R"):
+        j = names.index(n)
+        r = np.corrcoef(C[:, j], got[:, j])[0, 1]
+        gain = np.polyfit(C[:, j], got[:, j], 1)[0]
+        assert r >= 0.95 and 0.75 <= gain <= 1.15, (n, r, gain)    # jawOpen 0.80: the L1 term shares it
+    for n in ("jawOpen", "mouthSmile_L", "browInnerUp_L"):        # the rest taken as it is: under-driven
+        j = names.index(n)
+        assert np.polyfit(C[:, j], kept[:, j], 1)[0] < 0.6, n
 
 
 def test_fixed_curves_are_taken_out_before_the_solve(shared_data):
