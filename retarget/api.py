@@ -26,7 +26,8 @@ from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
-                                        OPPOSED, SOLVE_SMOOTH, SOLVE_SPARSITY, SOLVE_SYMMETRY, SPARSITY)
+                                        OPPOSED, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY, SOLVE_SYMMETRY,
+                                        SPARSITY)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -302,8 +303,8 @@ def check_solve_options(sparsity: float, symmetry: float, smooth: float) -> None
 
 def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig, *, landmarks=None,
               sparsity: float = SOLVE_SPARSITY, symmetry: float = SOLVE_SYMMETRY, smooth: float = SOLVE_SMOOTH,
-              calibrate: bool = True, gaze: str = GAZE, head: str = HEAD_MOTION, reference_frame: int | None = None,
-              head_units: float | None = None, fps: float | None = None, source=None):
+              calibrate: bool = True, rest_offset: bool = SOLVE_REST_OFFSET, gaze: str = GAZE, head: str = HEAD_MOTION,
+              reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
@@ -312,7 +313,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     regions, scheme_name, head_pose : the key set's regions (their ``points`` and the actor's neutral, ``rest``),
         scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
     rig : a :class:`~keyshape.retarget.rig.Rig`; ``landmarks``: its landmark JSON (default: shipped for ICT-FaceKit)
-    sparsity, symmetry, smooth, calibrate : the solve's priors (:func:`~keyshape.retarget.solve.solve_curves`)
+    sparsity, symmetry, smooth, calibrate, rest_offset : the solve's priors and calibrations
+        (:func:`~keyshape.retarget.solve.solve_curves`)
     gaze : ``angles`` (the eye angles, for Live Link), ``shapes`` (also the rig's ``eyeLook*``, held fixed in
         the solve) or ``none`` (:func:`apply_gaze`)
     head, reference_frame, head_units, fps : the head motion written beside the curves, as :func:`head_from_tracks`
@@ -346,7 +348,7 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
                              gaze=gaze)
     fixed = gazed if eyes is not None and gaze == "shapes" else None      # the eyeLook* curves, the rest 0
     curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
-                          sparsity, symmetry, smooth, calibrate=calibrate, fixed=fixed)
+                          sparsity, symmetry, smooth, calibrate=calibrate, fixed=fixed, rest_offset=rest_offset)
     return curves, motion, float(fps or tracks_rate or DEFAULT_FPS), eyes
 
 

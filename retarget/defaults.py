@@ -19,3 +19,4 @@ GAZES = ("angles", "shapes", "none")
 SOLVE_SPARSITY = 0.01        # keyshape solve: L1 weight (fewer, stronger shapes per frame)
 SOLVE_SYMMETRY = 0.03        # keyshape solve: left-right prior (0.1 cut a real one-sided brow raise by 19%)
 SOLVE_SMOOTH = 0.0           # keyshape solve: temporal smoothness
+SOLVE_REST_OFFSET = True     # keyshape solve: the actor's rest corrected in the solve (an offset shared by all frames)

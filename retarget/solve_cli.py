@@ -34,6 +34,10 @@ def register(subparsers) -> None:
     p.add_argument("--smooth", type=float, default=A.SOLVE_SMOOTH, help="temporal smoothness (dimensionless; 0: none)")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false",
                    help="do not scale each eye's lid motion so that the take's deepest closure closes the rig's eye")
+    p.add_argument("--keep-rest", dest="rest_offset", action="store_false", default=A.SOLVE_REST_OFFSET,
+                   help="take the actor's rest from KEYS.json as it is (default: its error, one offset of its points' "
+                        "left-right symmetric heights, lids excepted, shared by all frames, is solved with the "
+                        "curves, so a rest frame that was not relaxed does not offset every frame)")
     p.add_argument("--poses", default=None,
                    help="POSES.json (keyshape pose, corrected by hand): with --weights, each key's rig pose is "
                         "what the rig shows at that key; the difference from the solve there is added in "
@@ -86,6 +90,7 @@ def run(args) -> int:
     curves, head, fps, eyes = solve_rig(
         tracks, regions, scheme_name, read_keys_head_pose(args.keys), rig, landmarks=args.landmarks,
         sparsity=args.sparsity, symmetry=args.symmetry, smooth=args.smooth, calibrate=args.calibrate,
+        rest_offset=args.rest_offset,
         gaze=args.gaze, head=args.head_pose, reference_frame=args.reference_frame, head_units=args.head_units,
         fps=args.fps, source=args.tracks)
     if args.poses:

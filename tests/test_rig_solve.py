@@ -9,7 +9,7 @@ from keyshape.cli import main
 from keyshape.decompose.regions import available_regions, region_points
 from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
 from keyshape.retarget.solve import (box_lsq, contour_measures, eye_calibration, mirror_pairs, pose_override,
-                                     solve_curves)
+                                     solve_curves, symmetric_offsets)
 
 SCHEME = load_scheme("contours48")
 
@@ -36,6 +36,43 @@ def test_box_lsq_ignores_free_motions_and_smooths_in_time():
     noisy = B + rng.normal(scale=0.5, size=B.shape)
     jitter = lambda C: np.abs(np.diff(C, axis=0)).mean()  # noqa: E731
     assert jitter(box_lsq(A, noisy, free=F, smooth=5.0)) < jitter(box_lsq(A, noisy, free=F))
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_box_lsq_solves_the_rests_offset_with_the_curves(seed):
+    """Targets measured from a rest that was not relaxed (it held 0.4 of two shapes, plus motion no
+    shape makes): with the shared offset the curves come back from the take's lower envelope, the
+    offset is the rest's error; without it two shapes are clipped at 0 and the rest is under-read."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(30, 4))
+    true = rng.uniform(0, 1, size=(80, 4)) * (rng.uniform(size=(80, 4)) > 0.3)   # each shape relaxes often
+    c_rest = np.array([0.4, 0.0, 0.4, 0.0])
+    err = A @ c_rest + 0.2 * rng.normal(size=30)
+    B = true @ A.T - err
+    C, d = box_lsq(A, B, offset=np.eye(30), l1=1e-4, max_iter=50000, tol=1e-12, return_offset=True)
+    assert np.abs(C - true).max() < 0.01
+    assert np.allclose(-d, err, atol=0.02)                    # b_t = A c_t + E d: d is minus the error
+    assert np.abs(box_lsq(A, B, l1=1e-4) - true).max() > 0.3
+
+
+def test_symmetric_offsets_span_mirrored_heights_and_not_a_sideways_slide():
+    """The rest's offset basis: a symmetric change of heights (corners up, the midline point down) lies in
+    it exactly; a sideways slide (what a head's yaw leaves in a 2D-stabilised mouth), a widening and a
+    one-sided motion's antisymmetric half are orthogonal to it; points not kept do not move."""
+    P = np.array([[-2.0, 0.0], [2.0, 0.0], [-1.0, 0.5], [1.0, 0.5], [0.0, 0.6], [0.0, -1.0]])
+    keep = np.array([True, True, True, True, True, False])
+    B = symmetric_offsets(P, keep)
+    assert B.shape == (12, 3)                            # 2 pairs' heights + the midline point's
+    proj = B @ np.linalg.pinv(B)
+    sym = np.array([[0.0, -0.2], [0.0, -0.2], [0.0, 0.1], [0.0, 0.1], [0.0, 0.25], [0.0, 0.0]]).ravel()
+    assert np.allclose(proj @ sym, sym)
+    slide = np.tile([1.0, 0.0], 6)
+    wider = np.array([[-1.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [1.0, 0.0], [0.0, 0.0], [0.0, 0.0]]).ravel()
+    assert np.allclose(proj @ slide, 0) and np.allclose(proj @ wider, 0)
+    one_sided = np.zeros((6, 2))
+    one_sided[1] = [0.3, -0.2]                           # the right corner only: its symmetric half is kept
+    assert np.allclose((proj @ one_sided.ravel()).reshape(6, 2)[[0, 1]], [[0.0, -0.1], [0.0, -0.1]])
+    assert np.allclose(B.reshape(6, 2, -1)[5], 0)
 
 
 def test_contour_measures_of_the_eyes_brows_and_lips():
@@ -147,6 +184,31 @@ def test_solve_recovers_the_rigs_own_curves_from_its_projected_landmarks(shared_
     assert np.corrcoef(got[:, L], got[:, Rr])[0, 1] > 0.97                  # both sides, alike
     assert 0.9 < np.polyfit(got[:, L], got[:, Rr], 1)[0] < 1.1
     assert got[:, names.index("browOuterUp_R")].max() < 0.3 * got[:, names.index("browOuterUp_L")].max()
+
+
+def test_solve_corrects_a_rest_frame_that_was_not_relaxed(shared_data):
+    """KEYS.json's rest held a smile, an open jaw and raised brows (``keyshape select`` chose a frame
+    that was not relaxed): the curves still come back at their true size (the rest's error solved as
+    an offset), where taking the rest as it is reads a frown and shut jaw into every other frame."""
+    rig, ln, ld, rs = _ict(shared_data)
+    names = rig.names
+    C = _performance(names, n=300, seed=2)
+    held = np.zeros(len(names))
+    for n, v in (("mouthSmile_L", 0.4), ("mouthSmile_R", 0.4), ("jawOpen", 0.2), ("browInnerUp_L", 0.3),
+                 ("browInnerUp_R", 0.3)):
+        held[names.index(n)] = v
+    X = ln[None] + np.einsum("ts,spd->tpd", C, ld)
+    rest = ln + np.einsum("s,spd->pd", held, ld)
+    regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
+    got, kept = (solve_curves(X, regs, SCHEME, ln, ld, rs, names, rest_offset=o) for o in (True, False))
+    for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "eyeBlink_L", "eyeBlink_R"):
+        j = names.index(n)
+        r = np.corrcoef(C[:, j], got[:, j])[0, 1]
+        gain = np.polyfit(C[:, j], got[:, j], 1)[0]
+        assert r >= 0.95 and 0.7 <= gain <= 1.15, (n, r, gain)     # jawOpen 0.72, smiles 0.75
+    for n in ("jawOpen", "mouthSmile_L", "browInnerUp_L"):        # the rest taken as it is: under-driven
+        j = names.index(n)
+        assert np.polyfit(C[:, j], kept[:, j], 1)[0] < 0.6, n
 
 
 def test_fixed_curves_are_taken_out_before_the_solve(shared_data):
