@@ -363,7 +363,8 @@ class RigAnimation:
 
 def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.SOLVE_SPARSITY,
           symmetry: float = RA.SOLVE_SYMMETRY, smooth: float = RA.SOLVE_SMOOTH, calibrate: bool = True,
-          gaze: str = RA.GAZE, head: str = RA.HEAD_MOTION, reference_frame: int | None = None,
+          rest_offset: bool = RA.SOLVE_REST_OFFSET, gaze: str = RA.GAZE, head: str = RA.HEAD_MOTION,
+          reference_frame: int | None = None,
           head_units: float | None = None, fps: float | None = None, poses: "PoseLibrary | str | Path | None" = None,
           weights: Weights | None = None) -> RigAnimation:
     """Drive a rig by solving its curves of every frame from ``tracks`` (``keyshape solve``, with its defaults).
@@ -371,6 +372,7 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
     ``keys`` gives the head stabilisation, the regions and the actor's neutral; ``rig`` a
     :class:`~keyshape.retarget.rig.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). See
     :func:`keyshape.retarget.api.solve_rig` for the priors, the gaze and the head written beside the curves.
+    ``rest_offset`` False keeps the key set's rest as the actor's rest (``keyshape solve --keep-rest``).
     ``poses`` (a corrected pose library) with the take's key ``weights``: the artist's poses over the solve,
     as ``keyshape solve --poses --weights``.
     """
@@ -379,7 +381,7 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
     r = load_rig(rig, neutral, with_mesh=False)
     curves, motion, rate, eyes = RA.solve_rig(
         tracks, keys.regions, keys.scheme, keys.head_pose, r, landmarks=landmarks, sparsity=sparsity,
-        symmetry=symmetry, smooth=smooth, calibrate=calibrate, gaze=gaze, head=head,
+        symmetry=symmetry, smooth=smooth, calibrate=calibrate, rest_offset=rest_offset, gaze=gaze, head=head,
         reference_frame=reference_frame, head_units=head_units, fps=fps)
     if (poses is None) != (weights is None):
         raise InputError("solve: poses and weights go together (the artist's pose library and the key weights)")
