@@ -60,6 +60,7 @@ from keyshape.base.errors import InputError, NotFittedError
 
 #: camera axes (x right, y down, z away from the camera) from head axes (x left of the actor, y up, z forward)
 FLIP = np.diag([1.0, -1.0, -1.0])
+_DIAG3, _DIAG6 = np.arange(3), np.arange(6)
 
 
 def _hat(v: np.ndarray) -> np.ndarray:
@@ -124,9 +125,60 @@ def project(X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: float, centre: n
     return focal * P[..., :2] / P[..., 2:3] + centre
 
 
+def _rodrigues_left(v: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``exp([v]_x) @ R`` for (T, 3) rotation vectors and (T, 3, 3) rotations (:func:`rodrigues` in
+    fewer array operations: ``I + a [v]_x + b (v v^T - |v|^2 I)``)."""
+    th2 = np.einsum("ti,ti->t", v, v)
+    th = np.sqrt(th2)
+    small = th < 1e-12
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5, (1 - np.cos(ths)) / ths ** 2)
+    E = b[:, None, None] * (v[:, :, None] * v[:, None, :])
+    av = a[:, None] * v
+    E[:, 0, 1] -= av[:, 2]
+    E[:, 1, 0] += av[:, 2]
+    E[:, 0, 2] += av[:, 1]
+    E[:, 2, 0] -= av[:, 1]
+    E[:, 1, 2] -= av[:, 0]
+    E[:, 2, 1] += av[:, 0]
+    E[:, _DIAG3, _DIAG3] += (1 - b * th2)[:, None]
+    return E @ R
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    """:func:`rotation_vector` of (T, 3, 3) rotations with no checks (the solver's inner loop)."""
+    c = np.clip((R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1) / 2, -1.0, 1.0)
+    th = np.arccos(c)
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
+    tiny = th < 1e-9
+    k = np.where(tiny, 0.5, th / (2 * np.where(tiny, 1.0, np.sin(th))))
+    return w * k[:, None]
+
+
+def _residuals(Xt: np.ndarray, q: np.ndarray, focal: float, R: np.ndarray, t: np.ndarray):
+    """Eq. 1's residuals ``(rx, ry)`` (T, n) each, the posed points' ``R X`` (T, 3, n), ``x/z``, ``y/z``
+    and ``1/z`` (T, n) for face points ``Xt`` (3, n) and centred pixels ``q = p - c`` (T, n, 2)."""
+    RX = R @ Xt
+    iz = 1.0 / (RX[:, 2] + t[:, 2:3])
+    u = (RX[:, 0] + t[:, 0:1]) * iz
+    v = (RX[:, 1] + t[:, 1:2]) * iz
+    return focal * u - q[..., 0], focal * v - q[..., 1], RX, u, v, iz
+
+
 def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray,
                R0: np.ndarray, t0: np.ndarray, n_iter: int = 30, prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on Eq. 1 for every frame at once.
+
+    Each frame stops on its own (a step below 1e-7 in every coordinate), and an iteration computes
+    only the frames still moving. The Jacobian of a point's residual is written out: with ``a = R X``,
+    ``P = a + t``, ``u = P_x / P_z``, ``v = P_y / P_z`` and the increment ``(d, dt)`` of
+    ``R <- exp([d]_x) R``, ``t <- t + dt``,
+
+    ``d r_x = f / P_z (-u a_y, a_z + u a_x, -a_y, 1, 0, -u)``,
+    ``d r_y = f / P_z (-a_z - v a_y, v a_x, a_x, 0, 1, -v)``,
+
+    and the ``f / P_z`` folded into the weights of the 6x6 normal equations.
 
     Parameters
     ----------
@@ -142,45 +194,65 @@ def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre
     -------
     R : (T, 3, 3), t : (T, 3) camera-axes pose of each frame (``P = R X + t``)
     """
-    R, t = R0.copy(), t0.copy()
-    w = np.broadcast_to(np.asarray(w, np.float64), p.shape[:2])
-    lam = np.full(len(p), 1e-3)
+    R = np.array(R0, np.float64)
+    t = np.array(t0, np.float64)
+    T, n = p.shape[:2]
+    Xt = np.ascontiguousarray(np.asarray(X, np.float64).T)
+    q = np.asarray(p, np.float64) - centre
+    w = np.broadcast_to(np.asarray(w, np.float64), (T, n))
+    f2 = focal * focal
 
-    def cost(R, t):
-        e = (w * ((project(X, R, t, focal, centre) - p) ** 2).sum(-1)).sum(-1)
-        return e + prior * (rotation_vector(R) ** 2).sum(-1) if prior else e
+    def cost(R, t, q, w):
+        rx, ry = _residuals(Xt, q, focal, R, t)[:2]
+        e = (w * (rx * rx + ry * ry)).sum(-1)
+        if not prior:
+            return e, None
+        om = _rotvec(R)
+        return e + prior * np.einsum("ti,ti->t", om, om), om
 
-    E = cost(R, t)
+    E, om = cost(R, t, q, w)
+    lam = np.full(T, 1e-3)
+    act = np.arange(T)
+    J = np.zeros((T, 6, 2 * n))
+    J[:, 3, :n] = 1.0
+    J[:, 4, n:] = 1.0
     for _ in range(n_iter):
-        RX = np.einsum("tij,nj->tni", R, X)
-        P = RX + t[:, None]
-        z = P[..., 2]
-        r = focal * P[..., :2] / z[..., None] + centre - p                      # (T, n, 2)
-        # d pi / d P: (T, n, 2, 3)
-        Jp = np.zeros(P.shape[:2] + (2, 3))
-        Jp[..., 0, 0] = focal / z
-        Jp[..., 1, 1] = focal / z
-        Jp[..., 0, 2] = -focal * P[..., 0] / z ** 2
-        Jp[..., 1, 2] = -focal * P[..., 1] / z ** 2
-        # d P / d (rotation increment d, translation): [-[RX]_x, I]
-        dP = np.concatenate([-_hat(RX), np.broadcast_to(np.eye(3), RX.shape[:2] + (3, 3))], -1)
-        J = Jp @ dP                                                              # (T, n, 2, 6)
-        H = np.einsum("tn,tnki,tnkj->tij", w, J, J)
-        g = np.einsum("tn,tnki,tnk->ti", w, J, r)
+        m = len(act)
+        Ra, ta, qa, wa = (R, t, q, w) if m == T else (R[act], t[act], q[act], w[act])
+        rx, ry, RX, u, v, iz = _residuals(Xt, qa, focal, Ra, ta)
+        ax, ay, az = RX[:, 0], RX[:, 1], RX[:, 2]
+        Jm = J[:m]
+        Jx, Jy = Jm[..., :n], Jm[..., n:]
+        Jx[:, 0] = -u * ay
+        Jx[:, 1] = az + u * ax
+        Jx[:, 2] = -ay
+        Jx[:, 5] = -u
+        Jy[:, 0] = -az - v * ay
+        Jy[:, 1] = v * ax
+        Jy[:, 2] = ax
+        Jy[:, 5] = -v
+        fz = focal * iz
+        Jz = Jm * np.concatenate([fz, fz], -1)[:, None]                         # d r / d (d, dt): (m, 6, 2n)
+        Jw = Jz * np.concatenate([wa, wa], -1)[:, None]
+        H = Jw @ Jz.transpose(0, 2, 1)
+        g = Jw @ np.concatenate([rx, ry], -1)[..., None]
         if prior:                                  # d omega / d (left increment) ~ I near the camera-facing pose
-            H[:, :3, :3] += prior * np.eye(3)
-            g[:, :3] += prior * rotation_vector(R)
-        damp = lam[:, None, None] * (np.einsum("tii->ti", H)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6))
-        step = -np.linalg.solve(H + damp, g[..., None])[..., 0]
-        Rn = rodrigues(step[:, :3]) @ R
-        tn = t + step[:, 3:]
-        En = cost(Rn, tn)
-        better = En <= E
-        R = np.where(better[:, None, None], Rn, R)
-        t = np.where(better[:, None], tn, t)
-        E = np.where(better, En, E)
-        lam = np.where(better, lam * 0.3, lam * 10.0)
-        if np.all(np.abs(step).max(-1) < 1e-7):
+            H[:, _DIAG3, _DIAG3] += prior
+            g[:, :3, 0] += prior * om[act]
+        la = lam[act]
+        H[:, _DIAG6, _DIAG6] += la[:, None] * (H[:, _DIAG6, _DIAG6] + 1e-9)
+        step = -np.linalg.solve(H, g)[..., 0]
+        Rn = _rodrigues_left(step[:, :3], Ra)
+        tn = ta + step[:, 3:]
+        En, omn = cost(Rn, tn, qa, wa)
+        better = En <= E[act]
+        idx = act[better]
+        R[idx], t[idx], E[idx] = Rn[better], tn[better], En[better]
+        if prior:
+            om[idx] = omn[better]
+        lam[act] = np.where(better, la * 0.3, la * 10.0)
+        act = act[np.abs(step).max(-1) >= 1e-7]
+        if not len(act):
             break
     return R, t
 
