@@ -61,6 +61,10 @@ from keyshape.base.errors import InputError, NotFittedError
 #: camera axes (x right, y down, z away from the camera) from head axes (x left of the actor, y up, z forward)
 FLIP = np.diag([1.0, -1.0, -1.0])
 _DIAG3, _DIAG6 = np.arange(3), np.arange(6)
+#: flat positions in a 3x3 matrix of [v]_x's entries -v_z, v_y, -v_x (upper) and v_z, -v_y, v_x (lower)
+_HAT9, _HAT9_FROM, _HAT9_SIGN = np.array([1, 2, 5, 3, 6, 7]), np.array([2, 1, 0, 2, 1, 0]), \
+    np.array([-1.0, 1.0, -1.0, 1.0, -1.0, 1.0])
+_SKEW_PLUS, _SKEW_MINUS = np.array([7, 2, 3]), np.array([5, 6, 1])
 
 
 def _hat(v: np.ndarray) -> np.ndarray:
@@ -129,41 +133,31 @@ def _rodrigues_left(v: np.ndarray, R: np.ndarray) -> np.ndarray:
     """``exp([v]_x) @ R`` for (T, 3) rotation vectors and (T, 3, 3) rotations (:func:`rodrigues` in
     fewer array operations: ``I + a [v]_x + b (v v^T - |v|^2 I)``)."""
     th2 = np.einsum("ti,ti->t", v, v)
-    th = np.sqrt(th2)
-    small = th < 1e-12
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5, (1 - np.cos(ths)) / ths ** 2)
-    E = b[:, None, None] * (v[:, :, None] * v[:, None, :])
-    av = a[:, None] * v
-    E[:, 0, 1] -= av[:, 2]
-    E[:, 1, 0] += av[:, 2]
-    E[:, 0, 2] += av[:, 1]
-    E[:, 2, 0] -= av[:, 1]
-    E[:, 1, 2] -= av[:, 0]
-    E[:, 2, 1] += av[:, 0]
-    E[:, _DIAG3, _DIAG3] += (1 - b * th2)[:, None]
+    th = np.maximum(np.sqrt(th2), 1e-12)               # below: a = 1 and b v v^T = 0 to the last bit
+    a = np.sin(th) / th
+    b = (1 - np.cos(th)) / (th * th)
+    E = (b[:, None] * v)[:, :, None] * v[:, None, :]
+    E.reshape(-1, 9)[:, _HAT9] += (a[:, None] * v)[:, _HAT9_FROM] * _HAT9_SIGN
+    E.reshape(-1, 9)[:, ::4] += (1 - b * th2)[:, None]
     return E @ R
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
-    """:func:`rotation_vector` of (T, 3, 3) rotations with no checks (the solver's inner loop)."""
-    c = np.clip((R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1) / 2, -1.0, 1.0)
-    th = np.arccos(c)
-    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
-    tiny = th < 1e-9
-    k = np.where(tiny, 0.5, th / (2 * np.where(tiny, 1.0, np.sin(th))))
-    return w * k[:, None]
+    """:func:`rotation_vector` of (T, 3, 3) rotations with fewer array operations (the solver's loop)."""
+    Rf = R.reshape(-1, 9)
+    th = np.arccos(np.minimum(np.maximum((Rf[:, ::4].sum(-1) - 1) / 2, -1.0), 1.0))
+    k = np.where(th < 1e-9, 0.5, th / (2 * np.sin(np.maximum(th, 1e-9))))
+    return (Rf[:, _SKEW_PLUS] - Rf[:, _SKEW_MINUS]) * k[:, None]      # (R_21 - R_12, R_02 - R_20, R_10 - R_01)
 
 
-def _residuals(Xt: np.ndarray, q: np.ndarray, focal: float, R: np.ndarray, t: np.ndarray):
-    """Eq. 1's residuals ``(rx, ry)`` (T, n) each, the posed points' ``R X`` (T, 3, n), ``x/z``, ``y/z``
-    and ``1/z`` (T, n) for face points ``Xt`` (3, n) and centred pixels ``q = p - c`` (T, n, 2)."""
+def _residuals(Xt: np.ndarray, qt: np.ndarray, focal: float, R: np.ndarray, t: np.ndarray):
+    """Eq. 1's residuals (T, 2, n), the posed points' ``R X`` (T, 3, n), ``(x, y) / z`` (T, 2, n) and
+    ``1/z`` (T, n) for face points ``Xt`` (3, n) and centred pixels ``qt = p - c`` (T, 2, n)."""
     RX = R @ Xt
-    iz = 1.0 / (RX[:, 2] + t[:, 2:3])
-    u = (RX[:, 0] + t[:, 0:1]) * iz
-    v = (RX[:, 1] + t[:, 1:2]) * iz
-    return focal * u - q[..., 0], focal * v - q[..., 1], RX, u, v, iz
+    P = RX + t[:, :, None]
+    iz = 1.0 / P[:, 2]
+    uv = P[:, :2] * iz[:, None]
+    return focal * uv - qt, RX, uv, iz
 
 
 def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray,
@@ -178,7 +172,8 @@ def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre
     ``d r_x = f / P_z (-u a_y, a_z + u a_x, -a_y, 1, 0, -u)``,
     ``d r_y = f / P_z (-a_z - v a_y, v a_x, a_x, 0, 1, -v)``,
 
-    and the ``f / P_z`` folded into the weights of the 6x6 normal equations.
+    and the ``f / P_z`` folded into the weights of the 6x6 normal equations. Points of weight 0 in every
+    frame are left out (they add nothing to Eq. 1).
 
     Parameters
     ----------
@@ -196,46 +191,47 @@ def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre
     """
     R = np.array(R0, np.float64)
     t = np.array(t0, np.float64)
-    T, n = p.shape[:2]
-    Xt = np.ascontiguousarray(np.asarray(X, np.float64).T)
-    q = np.asarray(p, np.float64) - centre
-    w = np.broadcast_to(np.asarray(w, np.float64), (T, n))
-    f2 = focal * focal
+    T = len(p)
+    w = np.broadcast_to(np.asarray(w, np.float64), p.shape[:2])
+    used = (w > 0).any(0)
+    w = np.ascontiguousarray(w[:, used])
+    Xt = np.ascontiguousarray(np.asarray(X, np.float64)[used].T)
+    qt = np.ascontiguousarray((np.asarray(p, np.float64)[:, used] - centre).transpose(0, 2, 1))
+    n = Xt.shape[1]
 
-    def cost(R, t, q, w):
-        rx, ry = _residuals(Xt, q, focal, R, t)[:2]
-        e = (w * (rx * rx + ry * ry)).sum(-1)
+    def cost(R, t, qt, w):
+        r = _residuals(Xt, qt, focal, R, t)[0]
+        e = (w * (r * r).sum(1)).sum(-1)
         if not prior:
             return e, None
         om = _rotvec(R)
         return e + prior * np.einsum("ti,ti->t", om, om), om
 
-    E, om = cost(R, t, q, w)
+    E, om = cost(R, t, qt, w)
     lam = np.full(T, 1e-3)
     act = np.arange(T)
-    J = np.zeros((T, 6, 2 * n))
-    J[:, 3, :n] = 1.0
-    J[:, 4, n:] = 1.0
+    J = np.zeros((T, 6, 2, n))                 # d r / d (d, dt) without its f / P_z
+    J[:, 3, 0] = 1.0
+    J[:, 4, 1] = 1.0
     for _ in range(n_iter):
         m = len(act)
-        Ra, ta, qa, wa = (R, t, q, w) if m == T else (R[act], t[act], q[act], w[act])
-        rx, ry, RX, u, v, iz = _residuals(Xt, qa, focal, Ra, ta)
+        Ra, ta, qa, wa = (R, t, qt, w) if m == T else (R[act], t[act], qt[act], w[act])
+        r, RX, uv, iz = _residuals(Xt, qa, focal, Ra, ta)
         ax, ay, az = RX[:, 0], RX[:, 1], RX[:, 2]
         Jm = J[:m]
-        Jx, Jy = Jm[..., :n], Jm[..., n:]
-        Jx[:, 0] = -u * ay
-        Jx[:, 1] = az + u * ax
-        Jx[:, 2] = -ay
-        Jx[:, 5] = -u
-        Jy[:, 0] = -az - v * ay
-        Jy[:, 1] = v * ax
-        Jy[:, 2] = ax
-        Jy[:, 5] = -v
+        Jm[:, 0] = uv * -ay[:, None]
+        Jm[:, 0, 1] -= az
+        Jm[:, 1] = uv * ax[:, None]
+        Jm[:, 1, 0] += az
+        Jm[:, 2, 0] = -ay
+        Jm[:, 2, 1] = ax
+        Jm[:, 5] = -uv
         fz = focal * iz
-        Jz = Jm * np.concatenate([fz, fz], -1)[:, None]                         # d r / d (d, dt): (m, 6, 2n)
-        Jw = Jz * np.concatenate([wa, wa], -1)[:, None]
-        H = Jw @ Jz.transpose(0, 2, 1)
-        g = Jw @ np.concatenate([rx, ry], -1)[..., None]
+        wf = wa * fz
+        wf2 = wf * fz
+        Jm = Jm.reshape(m, 6, 2 * n)
+        H = (Jm * np.concatenate([wf2, wf2], -1)[:, None]) @ Jm.transpose(0, 2, 1)
+        g = Jm @ (r * wf[:, None]).reshape(m, 2 * n, 1)
         if prior:                                  # d omega / d (left increment) ~ I near the camera-facing pose
             H[:, _DIAG3, _DIAG3] += prior
             g[:, :3, 0] += prior * om[act]
