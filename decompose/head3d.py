@@ -302,6 +302,8 @@ class HeadPose3D:
     focal_ : float, pixels
     centre_ : (2,) principal point, pixels
     zero_ : (3, 3) camera-axes rotation of the zero frame
+    camera_pose_ : ``(R, t)`` what :meth:`camera_pose` gives for the points given to :meth:`fit` (its solve,
+        to pass on as ``pose`` to :meth:`head_pose` and :meth:`transform` of those points; not in KEYS.json)
     zero_frame_ : int, row of the zero frame in the shapes given to :meth:`fit`
     frame_ : (3,) ``(s, tx, ty)``: head-frame shape ``= s * H_xy + (tx, ty)`` (rest-frame pixels)
     reference_ : (n_rigid, 2) the zero frame's rigid points in the head frame (``anchor``)
@@ -423,6 +425,7 @@ class HeadPose3D:
         self.template_, self.focal_, self.centre_, self.weights_ = X, float(focal), centre, w
         R, t = self._poses(X, p, ok, w, focal, centre)
         R, t = self._smooth(R, t, ok)
+        self.camera_pose_ = (R, t)
         H = frontalise(X, np.where(ok[:, None, None], p, 0.0), np.where(ok[:, None, None], R, np.eye(3)),
                        np.where(ok[:, None], t, 1.0), focal, centre)
         H[~ok] = np.nan
@@ -479,8 +482,9 @@ class HeadPose3D:
         R, t = self._poses(self.template_, p, ok, self.weights_, self.focal_, self.centre_)
         return self._smooth(R, t, ok)
 
-    def head_pose(self, points: np.ndarray) -> dict:
-        """The head's motion from the zero frame, per frame.
+    def head_pose(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+        """The head's motion from the zero frame, per frame (``pose``: :meth:`camera_pose` of ``points``
+        when already solved, e.g. ``camera_pose_`` after :meth:`fit` on them; default: solved here).
 
         Returns
         -------
@@ -489,19 +493,20 @@ class HeadPose3D:
         cm in head axes from the zero frame's position, and ``depth`` (T,) the face's distance in cm
         (all NaN in failed frames)
         """
-        R, t = self.camera_pose(points)
+        R, t = self.camera_pose(points) if pose is None else pose
         Rh = FLIP @ np.einsum("tij,kj->tik", R, self.zero_) @ FLIP
         zero_t = t[self.zero_frame_] if self.zero_frame_ < len(t) and np.isfinite(t[self.zero_frame_]).all() \
             else np.nanmedian(t, axis=0)
         return {"rotation": Rh, "angles": euler_angles(Rh), "translation": (t - zero_t) @ FLIP.T,
                 "depth": t[:, 2]}
 
-    def transform(self, points: np.ndarray) -> np.ndarray:
-        """(T, n_points, 2) head-frame shapes (Eq. 2, in the rest frame's pixels; NaN rows stay NaN)."""
+    def transform(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(T, n_points, 2) head-frame shapes (Eq. 2, in the rest frame's pixels; NaN rows stay NaN);
+        ``pose``: :meth:`camera_pose` of ``points`` when already solved (as in :meth:`head_pose`)."""
         self._fitted()
         p = self._check(points)
         ok = np.isfinite(p).all(axis=(1, 2))
-        R, t = self.camera_pose(p)
+        R, t = self.camera_pose(p) if pose is None else pose
         H = frontalise(self.template_, np.where(ok[:, None, None], p, 0.0),
                        np.where(ok[:, None, None], R, np.eye(3)), np.where(ok[:, None], t, 1.0),
                        self.focal_, self.centre_)[..., :2]
