@@ -46,7 +46,8 @@ def run(mod, pts: np.ndarray, single: int, repeat: int, scheme) -> tuple[dict, t
     times = {"fit": _best(lambda: est.fit(pts), repeat) / len(pts) * 1e3}
     times["batch"] = _best(lambda: est.camera_pose(pts), repeat) / len(pts) * 1e3
     one = pts[:single]
-    times["one frame"] = _best(lambda: [est.camera_pose(one[i:i + 1]) for i in range(len(one))], repeat) / len(one) * 1e3
+    times["one frame"] = _best(lambda: [est.camera_pose(one[i:i + 1]) for i in range(len(one))], repeat) \
+        / len(one) * 1e3
     R, t = est.camera_pose(pts)
     R1 = np.concatenate([est.camera_pose(one[i:i + 1])[0] for i in range(len(one))])
     return times, (R, t, R1)

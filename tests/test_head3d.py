@@ -418,13 +418,14 @@ def test_fast_solver_matches_the_reference(monkeypatch):
     from keyshape.decompose import head3d
     rng = np.random.default_rng(3)
     n = 90
-    yaw, pitch, roll = 30 * np.sin(np.linspace(0, 6, n)), 12 * np.sin(np.linspace(1, 5, n)), 6 * np.cos(np.linspace(0, 4, n))
+    yaw, pitch = 30 * np.sin(np.linspace(0, 6, n)), 12 * np.sin(np.linspace(1, 5, n))
+    roll = 6 * np.cos(np.linspace(0, 4, n))
     d = np.zeros((n,) + X.shape)
     d[:, 35:40, 1] = -np.abs(np.sin(np.linspace(0, 9, n)))[:, None]          # the mouth opens and closes
     d[:, 45:48, 1] = -0.8 * np.abs(np.sin(np.linspace(0, 9, n)))[:, None]
     d[:, :10, 1] += 0.4 * np.sin(np.linspace(0, 4, n))[:, None]              # brows
-    pts = _render(yaw, pitch, roll, np.stack([np.sin(np.linspace(0, 3, n)), np.zeros(n), 4 * np.cos(np.linspace(0, 2, n))], 1),
-                  deform=d) + rng.normal(0, 0.7, (n,) + X.shape[:1] + (2,))
+    shift = np.stack([np.sin(np.linspace(0, 3, n)), np.zeros(n), 4 * np.cos(np.linspace(0, 2, n))], 1)
+    pts = _render(yaw, pitch, roll, shift, deform=d) + rng.normal(0, 0.7, (n, len(X), 2))
     pts[[5, 40, 41]] = np.nan
     fast = HeadPose3D(X, W, SCHEME.rigid).fit(pts)
     Rf, tf = fast.camera_pose(pts)
