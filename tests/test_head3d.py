@@ -440,4 +440,3 @@ def test_gaze_under_a_head_turn():
     g = np.degrees(gaze_angles(est.transform(pts), SCHEME))
     truth = np.stack([eye_yaw, eye_pitch, eye_yaw, eye_pitch], 1)
     assert np.abs(g - truth).max() < 3.0, np.abs(g - truth).max(0)
-
