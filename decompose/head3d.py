@@ -60,6 +60,11 @@ from keyshape.base.errors import InputError, NotFittedError
 
 #: camera axes (x right, y down, z away from the camera) from head axes (x left of the actor, y up, z forward)
 FLIP = np.diag([1.0, -1.0, -1.0])
+_DIAG3, _DIAG6 = np.arange(3), np.arange(6)
+#: flat positions in a 3x3 matrix of [v]_x's entries -v_z, v_y, -v_x (upper) and v_z, -v_y, v_x (lower)
+_HAT9, _HAT9_FROM, _HAT9_SIGN = np.array([1, 2, 5, 3, 6, 7]), np.array([2, 1, 0, 2, 1, 0]), \
+    np.array([-1.0, 1.0, -1.0, 1.0, -1.0, 1.0])
+_SKEW_PLUS, _SKEW_MINUS = np.array([7, 2, 3]), np.array([5, 6, 1])
 
 
 def _hat(v: np.ndarray) -> np.ndarray:
@@ -124,9 +129,51 @@ def project(X: np.ndarray, R: np.ndarray, t: np.ndarray, focal: float, centre: n
     return focal * P[..., :2] / P[..., 2:3] + centre
 
 
+def _rodrigues_left(v: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``exp([v]_x) @ R`` for (T, 3) rotation vectors and (T, 3, 3) rotations (:func:`rodrigues` in
+    fewer array operations: ``I + a [v]_x + b (v v^T - |v|^2 I)``)."""
+    th2 = np.einsum("ti,ti->t", v, v)
+    th = np.maximum(np.sqrt(th2), 1e-12)               # below: a = 1 and b v v^T = 0 to the last bit
+    a = np.sin(th) / th
+    b = (1 - np.cos(th)) / (th * th)
+    E = (b[:, None] * v)[:, :, None] * v[:, None, :]
+    E.reshape(-1, 9)[:, _HAT9] += (a[:, None] * v)[:, _HAT9_FROM] * _HAT9_SIGN
+    E.reshape(-1, 9)[:, ::4] += (1 - b * th2)[:, None]
+    return E @ R
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    """:func:`rotation_vector` of (T, 3, 3) rotations with fewer array operations (the solver's loop)."""
+    Rf = R.reshape(-1, 9)
+    th = np.arccos(np.minimum(np.maximum((Rf[:, ::4].sum(-1) - 1) / 2, -1.0), 1.0))
+    k = np.where(th < 1e-9, 0.5, th / (2 * np.sin(np.maximum(th, 1e-9))))
+    return (Rf[:, _SKEW_PLUS] - Rf[:, _SKEW_MINUS]) * k[:, None]      # (R_21 - R_12, R_02 - R_20, R_10 - R_01)
+
+
+def _residuals(Xt: np.ndarray, qt: np.ndarray, focal: float, R: np.ndarray, t: np.ndarray):
+    """Eq. 1's residuals (T, 2, n), the posed points' ``R X`` (T, 3, n), ``(x, y) / z`` (T, 2, n) and
+    ``1/z`` (T, n) for face points ``Xt`` (3, n) and centred pixels ``qt = p - c`` (T, 2, n)."""
+    RX = R @ Xt
+    P = RX + t[:, :, None]
+    iz = 1.0 / P[:, 2]
+    uv = P[:, :2] * iz[:, None]
+    return focal * uv - qt, RX, uv, iz
+
+
 def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray,
                R0: np.ndarray, t0: np.ndarray, n_iter: int = 30, prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on Eq. 1 for every frame at once.
+
+    Each frame stops on its own (a step below 1e-7 in every coordinate), and an iteration computes
+    only the frames still moving. The Jacobian of a point's residual is written out: with ``a = R X``,
+    ``P = a + t``, ``u = P_x / P_z``, ``v = P_y / P_z`` and the increment ``(d, dt)`` of
+    ``R <- exp([d]_x) R``, ``t <- t + dt``,
+
+    ``d r_x = f / P_z (-u a_y, a_z + u a_x, -a_y, 1, 0, -u)``,
+    ``d r_y = f / P_z (-a_z - v a_y, v a_x, a_x, 0, 1, -v)``,
+
+    and the ``f / P_z`` folded into the weights of the 6x6 normal equations. Points of weight 0 in every
+    frame are left out (they add nothing to Eq. 1).
 
     Parameters
     ----------
@@ -142,45 +189,66 @@ def solve_pose(X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre
     -------
     R : (T, 3, 3), t : (T, 3) camera-axes pose of each frame (``P = R X + t``)
     """
-    R, t = R0.copy(), t0.copy()
+    R = np.array(R0, np.float64)
+    t = np.array(t0, np.float64)
+    T = len(p)
     w = np.broadcast_to(np.asarray(w, np.float64), p.shape[:2])
-    lam = np.full(len(p), 1e-3)
+    used = (w > 0).any(0)
+    w = np.ascontiguousarray(w[:, used])
+    Xt = np.ascontiguousarray(np.asarray(X, np.float64)[used].T)
+    qt = np.ascontiguousarray((np.asarray(p, np.float64)[:, used] - centre).transpose(0, 2, 1))
+    n = Xt.shape[1]
 
-    def cost(R, t):
-        e = (w * ((project(X, R, t, focal, centre) - p) ** 2).sum(-1)).sum(-1)
-        return e + prior * (rotation_vector(R) ** 2).sum(-1) if prior else e
+    def cost(R, t, qt, w):
+        r = _residuals(Xt, qt, focal, R, t)[0]
+        e = (w * (r * r).sum(1)).sum(-1)
+        if not prior:
+            return e, None
+        om = _rotvec(R)
+        return e + prior * np.einsum("ti,ti->t", om, om), om
 
-    E = cost(R, t)
+    E, om = cost(R, t, qt, w)
+    lam = np.full(T, 1e-3)
+    act = np.arange(T)
+    J = np.zeros((T, 6, 2, n))                 # d r / d (d, dt) without its f / P_z
+    J[:, 3, 0] = 1.0
+    J[:, 4, 1] = 1.0
     for _ in range(n_iter):
-        RX = np.einsum("tij,nj->tni", R, X)
-        P = RX + t[:, None]
-        z = P[..., 2]
-        r = focal * P[..., :2] / z[..., None] + centre - p                      # (T, n, 2)
-        # d pi / d P: (T, n, 2, 3)
-        Jp = np.zeros(P.shape[:2] + (2, 3))
-        Jp[..., 0, 0] = focal / z
-        Jp[..., 1, 1] = focal / z
-        Jp[..., 0, 2] = -focal * P[..., 0] / z ** 2
-        Jp[..., 1, 2] = -focal * P[..., 1] / z ** 2
-        # d P / d (rotation increment d, translation): [-[RX]_x, I]
-        dP = np.concatenate([-_hat(RX), np.broadcast_to(np.eye(3), RX.shape[:2] + (3, 3))], -1)
-        J = Jp @ dP                                                              # (T, n, 2, 6)
-        H = np.einsum("tn,tnki,tnkj->tij", w, J, J)
-        g = np.einsum("tn,tnki,tnk->ti", w, J, r)
+        m = len(act)
+        Ra, ta, qa, wa = (R, t, qt, w) if m == T else (R[act], t[act], qt[act], w[act])
+        r, RX, uv, iz = _residuals(Xt, qa, focal, Ra, ta)
+        ax, ay, az = RX[:, 0], RX[:, 1], RX[:, 2]
+        Jm = J[:m]
+        Jm[:, 0] = uv * -ay[:, None]
+        Jm[:, 0, 1] -= az
+        Jm[:, 1] = uv * ax[:, None]
+        Jm[:, 1, 0] += az
+        Jm[:, 2, 0] = -ay
+        Jm[:, 2, 1] = ax
+        Jm[:, 5] = -uv
+        fz = focal * iz
+        wf = wa * fz
+        wf2 = wf * fz
+        Jm = Jm.reshape(m, 6, 2 * n)
+        H = (Jm * np.concatenate([wf2, wf2], -1)[:, None]) @ Jm.transpose(0, 2, 1)
+        g = Jm @ (r * wf[:, None]).reshape(m, 2 * n, 1)
         if prior:                                  # d omega / d (left increment) ~ I near the camera-facing pose
-            H[:, :3, :3] += prior * np.eye(3)
-            g[:, :3] += prior * rotation_vector(R)
-        damp = lam[:, None, None] * (np.einsum("tii->ti", H)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6))
-        step = -np.linalg.solve(H + damp, g[..., None])[..., 0]
-        Rn = rodrigues(step[:, :3]) @ R
-        tn = t + step[:, 3:]
-        En = cost(Rn, tn)
-        better = En <= E
-        R = np.where(better[:, None, None], Rn, R)
-        t = np.where(better[:, None], tn, t)
-        E = np.where(better, En, E)
-        lam = np.where(better, lam * 0.3, lam * 10.0)
-        if np.all(np.abs(step).max(-1) < 1e-7):
+            H[:, _DIAG3, _DIAG3] += prior
+            g[:, :3, 0] += prior * om[act]
+        la = lam[act]
+        H[:, _DIAG6, _DIAG6] += la[:, None] * (H[:, _DIAG6, _DIAG6] + 1e-9)
+        step = -np.linalg.solve(H, g)[..., 0]
+        Rn = _rodrigues_left(step[:, :3], Ra)
+        tn = ta + step[:, 3:]
+        En, omn = cost(Rn, tn, qa, wa)
+        better = En <= E[act]
+        idx = act[better]
+        R[idx], t[idx], E[idx] = Rn[better], tn[better], En[better]
+        if prior:
+            om[idx] = omn[better]
+        lam[act] = np.where(better, la * 0.3, la * 10.0)
+        act = act[np.abs(step).max(-1) >= 1e-7]
+        if not len(act):
             break
     return R, t
 
@@ -234,6 +302,8 @@ class HeadPose3D:
     focal_ : float, pixels
     centre_ : (2,) principal point, pixels
     zero_ : (3, 3) camera-axes rotation of the zero frame
+    camera_pose_ : ``(R, t)`` what :meth:`camera_pose` gives for the points given to :meth:`fit` (its solve,
+        to pass on as ``pose`` to :meth:`head_pose` and :meth:`transform` of those points; not in KEYS.json)
     zero_frame_ : int, row of the zero frame in the shapes given to :meth:`fit`
     frame_ : (3,) ``(s, tx, ty)``: head-frame shape ``= s * H_xy + (tx, ty)`` (rest-frame pixels)
     reference_ : (n_rigid, 2) the zero frame's rigid points in the head frame (``anchor``)
@@ -355,6 +425,7 @@ class HeadPose3D:
         self.template_, self.focal_, self.centre_, self.weights_ = X, float(focal), centre, w
         R, t = self._poses(X, p, ok, w, focal, centre)
         R, t = self._smooth(R, t, ok)
+        self.camera_pose_ = (R, t)
         H = frontalise(X, np.where(ok[:, None, None], p, 0.0), np.where(ok[:, None, None], R, np.eye(3)),
                        np.where(ok[:, None], t, 1.0), focal, centre)
         H[~ok] = np.nan
@@ -411,8 +482,9 @@ class HeadPose3D:
         R, t = self._poses(self.template_, p, ok, self.weights_, self.focal_, self.centre_)
         return self._smooth(R, t, ok)
 
-    def head_pose(self, points: np.ndarray) -> dict:
-        """The head's motion from the zero frame, per frame.
+    def head_pose(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+        """The head's motion from the zero frame, per frame (``pose``: :meth:`camera_pose` of ``points``
+        when already solved, e.g. ``camera_pose_`` after :meth:`fit` on them; default: solved here).
 
         Returns
         -------
@@ -421,19 +493,20 @@ class HeadPose3D:
         cm in head axes from the zero frame's position, and ``depth`` (T,) the face's distance in cm
         (all NaN in failed frames)
         """
-        R, t = self.camera_pose(points)
+        R, t = self.camera_pose(points) if pose is None else pose
         Rh = FLIP @ np.einsum("tij,kj->tik", R, self.zero_) @ FLIP
         zero_t = t[self.zero_frame_] if self.zero_frame_ < len(t) and np.isfinite(t[self.zero_frame_]).all() \
             else np.nanmedian(t, axis=0)
         return {"rotation": Rh, "angles": euler_angles(Rh), "translation": (t - zero_t) @ FLIP.T,
                 "depth": t[:, 2]}
 
-    def transform(self, points: np.ndarray) -> np.ndarray:
-        """(T, n_points, 2) head-frame shapes (Eq. 2, in the rest frame's pixels; NaN rows stay NaN)."""
+    def transform(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(T, n_points, 2) head-frame shapes (Eq. 2, in the rest frame's pixels; NaN rows stay NaN);
+        ``pose``: :meth:`camera_pose` of ``points`` when already solved (as in :meth:`head_pose`)."""
         self._fitted()
         p = self._check(points)
         ok = np.isfinite(p).all(axis=(1, 2))
-        R, t = self.camera_pose(p)
+        R, t = self.camera_pose(p) if pose is None else pose
         H = frontalise(self.template_, np.where(ok[:, None, None], p, 0.0),
                        np.where(ok[:, None, None], R, np.eye(3)), np.where(ok[:, None], t, 1.0),
                        self.focal_, self.centre_)[..., :2]

@@ -168,7 +168,7 @@ def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabiliz
         else:
             pts = image_points(tracks, path)
             head.fit(pts)
-            return head.transform(pts), head
+            return head.transform(pts, head.camera_pose_), head         # fit's own pose solve, not a second one
     if isinstance(head, HeadPose3D):
         return head.transform(image_points(tracks, path)), head
     shapes = model_shapes(tracks, path)

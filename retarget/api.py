@@ -200,14 +200,15 @@ def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_u
         return None
     from keyshape.decompose.head3d import HeadPose3D
     pts = image_points(tracks, source)
+    pose = None
     if isinstance(head, (dict, HeadPose3D)):
         est = stabilizer_from_entry(head)
     else:
         est = head_pose_3d(scheme, tracks.image_size)
         if est is None:
             return None
-        est.fit(pts)
-    hp = est.head_pose(pts)
+        pose = est.fit(pts).camera_pose_                # fitted on these points: its pose solve is theirs
+    hp = est.head_pose(pts, pose)
     R, t = hp["rotation"], hp["translation"]
     if ref_row is not None and np.isfinite(R[ref_row]).all():
         from keyshape.decompose.head3d import euler_angles
