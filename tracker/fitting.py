@@ -712,6 +712,44 @@ class Tracker:
     def _is_lip(self, rm) -> bool:
         return self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth"))
 
+    def _refine_region(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray, measure, delta) -> np.ndarray:
+        """The loop :meth:`read_region` and :meth:`read_region_inverse` share: refine the region box's
+        translation ``t`` in the model frame, then read its eigen-points at the best ``t``.
+
+        ``measure(crop)`` gives ``(distance, error, state)`` of a crop; ``delta(crop, error, state)`` the
+        step to add to ``t`` (None: stop). At most ``region_iter`` steps, each at most 2 px and kept
+        only if the distance falls, ``|t|`` at most 8% of the face width.
+        """
+        x0, y0, w, h = rm.box.tolist()
+        crop = rm.crop(patch)
+        tx = ty = 0.0
+        best = None
+        lim = 0.08 * self.model.face_width
+        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
+        for it in range(self.region_iter + 1):
+            if it:
+                bx, by = x0 + tx, y0 + ty
+                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
+                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
+            r, e, state = measure(crop)
+            if best is not None and r >= best[0]:
+                break
+            best = (r, (tx, ty), e)
+            if it == self.region_iter:
+                break
+            d = delta(crop, e, state)
+            if d is None:
+                break
+            tx = max(-lim, min(lim, tx + max(-2.0, min(2.0, d[0]))))
+            ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, d[1]))))
+        _, t, e = best
+        t = np.array(t)
+        self._region_shift[rm.name] = t
+        c = rm.pinv_i @ e
+        self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
+        return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + t
+
     def read_region_inverse(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray) -> np.ndarray:
         """:meth:`read_region` with inverse-compositional steps (Baker and Matthews' project-out
         algorithm applied to the region's translation; ``Tracker(region_step="inverse")``).
@@ -725,38 +763,20 @@ class Tracker:
         falls) as the forward step; the fixed point differs in that the forward step linearises
         about the current crop and this one about the mean appearance.
         """
-        x0, y0, w, h = rm.box.tolist()
-        crop = rm.crop(patch)
-        tx = ty = 0.0
-        best = None
-        lim = 0.08 * self.model.face_width
-        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
-        lvl = pyramid_level(pyr, pose)
         mat = self._inverse[rm.name]
         nq = len(rm.qt)
-        for it in range(self.region_iter + 1):
-            if it:
-                bx, by = x0 + tx, y0 + ty
-                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
-                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
+
+        def measure(crop):
             e, _ = rm.error(crop)
             out = mat @ e
             qe = out[:nq]
-            r = float(e @ e) - float(qe @ qe)
-            if best is not None and r >= best[0]:
-                break
-            best = (r, (tx, ty), e)
-            if it == self.region_iter:
-                break
+            return float(e @ e) - float(qe @ qe), e, out
+
+        def delta(crop, e, out):
             d0, d1 = out[nq:].tolist()
-            tx = max(-lim, min(lim, tx - max(-2.0, min(2.0, d0))))
-            ty = max(-lim, min(lim, ty - max(-2.0, min(2.0, d1))))
-        _, t, e = best
-        t = np.array(t)
-        self._region_shift[rm.name] = t
-        c = rm.pinv_i @ e
-        self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
-        return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + t
+            return -d0, -d1                     # inverse composition: t <- t - dt
+
+        return self._refine_region(pyr, pose, rm, patch, measure, delta)
 
     def read_region(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray) -> np.ndarray:
         """Model-frame points of one region: refine its translation, then read its eigen-points.
@@ -768,32 +788,20 @@ class Tracker:
         face width): the global affine cannot follow every part of a face
         that turns or deforms, each feature moves a little on its own.
         """
-        x0, y0, w, h = rm.box.tolist()
-        crop = rm.crop(patch)
-        tx = ty = 0.0
-        best = None
-        lim = 0.08 * self.model.face_width
-        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
-        lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
         j = np.empty((2, rm.n_pix))
         jx, jy = j
-        for it in range(self.region_iter + 1):
-            if it:
-                bx, by = x0 + tx, y0 + ty
-                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
-                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
+
+        def measure(crop):
             e, sd = rm.error(crop)
             qe = rm.qt @ e
-            r = float(e @ e) - float(qe @ qe)
-            if best is not None and r >= best[0]:
-                break
-            best = (r, (tx, ty), e)
-            if it == self.region_iter:
-                break
+            return float(e @ e) - float(qe @ qe), e, (sd, qe)
+
+        def delta(crop, e, state):
+            sd, qe = state
             gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
             jx[:] = gx.ravel()[rm.index]
             jy[:] = gy.ravel()[rm.index]
-            j *= 1.0 / (8.0 * sd)
+            np.multiply(j, 1.0 / (8.0 * sd), out=j)
             qx, qy = j @ rm.qt.T
             # J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe, entry by entry (issue 16:
             # ten dot products cost less than the two small matrix products)
@@ -804,17 +812,11 @@ class Tracker:
             g1 = float(jy @ e) - float(qy @ qe)
             det = h00 * h11 - h01 * h01
             if det <= 0:
-                break
-            # Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px a step, |t| at most `lim`
-            s0 = max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))
-            s1 = max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))
-            tx, ty = max(-lim, min(lim, tx + s0)), max(-lim, min(lim, ty + s1))
-        _, t, e = best
-        t = np.array(t)
-        self._region_shift[rm.name] = t
-        c = rm.pinv_i @ e
-        self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
-        return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + t
+                return None
+            # Gauss-Newton step -H⁻¹g (2x2 in closed form)
+            return -(h11 * g0 - h01 * g1) / det, -(h00 * g1 - h01 * g0) / det
+
+        return self._refine_region(pyr, pose, rm, patch, measure, delta)
 
     def read_lips(self, pyr: Pyramid, pose: np.ndarray, rms: list, patch: np.ndarray) -> list[np.ndarray]:
         """:meth:`read_region` for the lip regions together: each box has its own translation, and all
