@@ -184,7 +184,7 @@ def _expect(obj, types, name: str, what: str) -> None:
         raise InputError(f"{name}: expected {what}, got {_what(obj)}")
 
 
-def train(video: str | Path, labels, *, scheme: str = "contours48", components: int | None = None,
+def train(video: str | Path, labels, *, scheme: str | None = None, components: int | None = None,
           morphs: int = 120, seed: int = 0) -> AppearanceModel:
     """Train the person-specific tracking model (``keyshape train``).
 
@@ -192,7 +192,7 @@ def train(video: str | Path, labels, *, scheme: str = "contours48", components: 
     ----------
     video : the footage the labels belong to
     labels : a folder of ``NNNNNN.pts`` files, or ``(frames (n,), shapes (n, n_points, 2))`` arrays
-    scheme : landmark scheme; components : eigenvectors kept (None: 98% of the variance);
+    scheme : landmark scheme (None: the one the labels folder was made in, else contours48); components : eigenvectors kept (None: 98% of the variance);
     morphs : morphed training images added; seed : seed of the morph pairs
 
     Returns

@@ -112,3 +112,28 @@ def test_more_adds_the_frames_the_track_explains_worst(small_video, tmp_path, ca
     assert frames == sorted(set(first) | {lost, weak})
     assert main(["label", str(small_video), "-o", str(out), "--no-prefill", "--quiet", "--more", "2"]) != 0
     assert "--more needs --tracks" in capsys.readouterr().err
+
+
+def test_train_takes_the_scheme_the_labels_were_made_in(tmp_path):
+    """``keyshape train`` without ``--scheme`` uses the label folder's ``session.json`` scheme (so an
+    ``ibug68`` label folder trains an ``ibug68`` model); a folder without a session means contours48,
+    and ``--scheme`` still decides."""
+    from pathlib import Path
+
+    from keyshape.base.formats.labels import labels_scheme
+    from keyshape.cli import main
+    from keyshape.data_synth.video import synthesize
+    from keyshape.tracker.commands import fit_model
+
+    out = synthesize(tmp_path / "take", frames=12, seed=0)          # contours48 labels, no session
+    labels = Path(out["labels"])
+    assert labels_scheme(labels) is None
+    assert fit_model(out["video"], labels, n_morphs=0).scheme.name == "contours48"
+    (labels / "session.json").write_text(json.dumps({"scheme": "ibug68", "frames": [0]}))
+    assert labels_scheme(labels) == "ibug68"
+    # the session says ibug68: the 48-point files are refused as not ibug68's 68 points
+    assert main(["train", str(out["video"]), "--labels", str(labels), "-o", str(tmp_path / "m.npz")]) != 0
+    assert main(["train", str(out["video"]), "--labels", str(labels), "--scheme", "contours48", "--morphs", "0",
+                 "-o", str(tmp_path / "m.npz")]) == 0
+    (labels / "session.json").write_text("{not json")
+    assert labels_scheme(labels) is None

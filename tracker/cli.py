@@ -16,7 +16,9 @@ def register(subparsers) -> None:
                                           "zero-based frame index (000123.pts = frame 123).")
     p.add_argument("video", help="the video the labels belong to")
     p.add_argument("--labels", required=True, metavar="DIR", help="folder of NNNNNN.pts label files")
-    p.add_argument("--scheme", default="contours48", help="contours48 (default), ibug68 or a scheme JSON file")
+    p.add_argument("--scheme", default=None,
+                   help="contours48, ibug68 or a scheme JSON file (default: the scheme the labels were made in "
+                        "by 'keyshape label', else contours48)")
     p.add_argument("--components", type=int, default=None, metavar="K",
                    help="eigenvectors kept (default: enough for 98%% of the variance)")
     p.add_argument("--morphs", type=int, default=120, help="morphed images added to the training set (default 120)")

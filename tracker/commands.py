@@ -19,12 +19,12 @@ from keyshape.base.files import atomic_write
 from keyshape.base.progress import Progress
 from keyshape.tracker.eigenpoints import AppearanceModel
 from keyshape.base.formats.tracks import PARTIAL_MARK, Tracks, TracksWriter, meta_line, meta_path, write_meta
-from keyshape.base.formats.labels import read_labels
+from keyshape.base.formats.labels import labels_scheme, read_labels
 from keyshape.base.schemes import load_scheme
 from keyshape.base.formats.video import VideoReader, video_info
 
 
-def fit_model(video, labels, scheme="contours48", n_components: int | None = None, n_morphs: int = 120,
+def fit_model(video, labels, scheme: str | None = None, n_components: int | None = None, n_morphs: int = 120,
               rng=0) -> AppearanceModel:
     """Fit an :class:`AppearanceModel` to labelled frames of ``video``.
 
@@ -32,7 +32,9 @@ def fit_model(video, labels, scheme="contours48", n_components: int | None = Non
     ----------
     video : path of the video the labels belong to
     labels : a folder of ``NNNNNN.pts`` files, or ``(frames (n,), shapes (n, n_points, 2))`` arrays
-    scheme, n_components, n_morphs, rng : as :class:`AppearanceModel`
+    scheme : as :class:`AppearanceModel`; None: the scheme the labels folder was made in by
+        ``keyshape label`` (its ``session.json``), else ``contours48``
+    n_components, n_morphs, rng : as :class:`AppearanceModel`
 
     Raises
     ------
@@ -40,6 +42,8 @@ def fit_model(video, labels, scheme="contours48", n_components: int | None = Non
         Labels of the wrong point count, for frames past the video's end or far outside the picture
         (naming the labels folder or file).
     """
+    if scheme is None:
+        scheme = (labels_scheme(labels) if isinstance(labels, (str, Path)) else None) or "contours48"
     sch = load_scheme(scheme)
     if isinstance(labels, (str, Path)):
         source = Path(labels)
@@ -84,7 +88,7 @@ def model_fingerprint(model: AppearanceModel) -> str:
     return "sha256:" + h.hexdigest()[:16]
 
 
-def train_model(video, labels_dir, scheme="contours48", n_components: int | None = None, n_morphs: int = 120,
+def train_model(video, labels_dir, scheme: str | None = None, n_components: int | None = None, n_morphs: int = 120,
                 rng=0) -> tuple[AppearanceModel, float]:
     """:func:`fit_model` from a labels folder; return the model and the seconds taken."""
     t0 = time.perf_counter()

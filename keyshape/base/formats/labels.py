@@ -131,6 +131,19 @@ def read_labels(folder: str | Path, n_points: int | None = None) -> tuple[np.nda
     return np.array([f for f, _ in files], dtype=np.intp), np.stack(shapes)
 
 
+def labels_scheme(folder: str | Path) -> str | None:
+    """The landmark scheme a ``keyshape label`` folder was made in (its ``session.json``'s ``scheme``),
+    or None where the folder has no readable session (hand-made ``.pts`` files)."""
+    import json
+
+    path = Path(folder) / "session.json"
+    try:
+        scheme = json.loads(path.read_text()).get("scheme")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return scheme if isinstance(scheme, str) and scheme else None
+
+
 def write_labels(folder: str | Path, frames, shapes: np.ndarray) -> None:
     """Write one ``.pts`` per frame into ``folder`` (created if needed)."""
     folder = Path(folder)
