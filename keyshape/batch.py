@@ -236,7 +236,10 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
         from keyshape.tracker.eigenpoints import AppearanceModel
 
         m = AppearanceModel.load(model["path"], actor.scheme)
-        tracks = api.track(take.video, m, smooth=settings.smooth, start=take.start, stop=take.stop)
+        # a worker process is one core: it decodes on its tracking thread (the --threads workers share
+        # the client's process and keep the decode-ahead thread)
+        tracks = api.track(take.video, m, smooth=settings.smooth, start=take.start, stop=take.stop,
+                           decode_thread=_CLIENT_PROCESS)
         write_tracks(path, tracks)
         seconds = time.perf_counter() - t0
         stats = {"frames": int(tracks.n_frames), "lost_frames": int((~tracks.success).sum()),

@@ -205,10 +205,12 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
 
 
 def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int | None = None,
-                 tracker_options: dict | None = None, scheme=None, show_progress: bool = False) -> Tracks:
+                 tracker_options: dict | None = None, scheme=None, show_progress: bool = False,
+                 decode_thread: bool = True) -> Tracks:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into :class:`Tracks` in memory.
 
-    The same per-frame results as :func:`track_video` (which streams them to a file instead).
+    The same per-frame results as :func:`track_video` (which streams them to a file instead), with or
+    without the decode-ahead thread (``decode_thread``, :func:`iter_track`).
     """
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)
@@ -217,7 +219,8 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     rows = []
     n_total = (stop if stop is not None else reader.info.n_frames) - start
     with Progress(n_total if n_total > 0 else None, desc="keyshape track", enabled=show_progress) as prog:
-        for pts, res, _ in iter_track(video, model, smooth, start, stop, tracker_options, reader=reader):
+        for pts, res, _ in iter_track(video, model, smooth, start, stop, tracker_options, reader=reader,
+                                       decode_thread=decode_thread):
             rows.append((res.index, res.confidence, res.success, pts, res.pose))
             prog.update()
     if stop is not None and reader.n_read < stop and not rows:
