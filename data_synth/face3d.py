@@ -39,12 +39,10 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
 from keyshape.base.formats.tracks import Tracks
-from keyshape.base.formats.video import video_writer
 from keyshape.base.formats.weights import write_weights
-from keyshape.base.progress import Progress
 from keyshape.data_synth.performance import make_performance, smooth_noise
 from keyshape.data_synth.raster import rasterize
-from keyshape.data_synth.video import _check_args, select_label_frames, write_truth
+from keyshape.data_synth.video import _check_args, render_video, select_label_frames, write_truth
 
 #: Shapes the performance drives (ICT-FaceKit names); the curves CSV has every shape of the rig.
 DRIVEN = ("jawOpen", "mouthFunnel", "mouthPucker", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L", "eyeBlink_R",
@@ -655,16 +653,7 @@ def synthesize(out_dir, rig, frames: int = 300, seed: int = 0, size=(640, 480), 
     sv = Synthetic3D(rig, frames, seed, size, fps, identity)
     paths = {"video": out / "video.mp4", "truth": out / "truth.csv", "curves": out / "curves.csv",
              "head": out / "head.csv", "labels": out / "labels", "truth_json": out / "truth.json"}
-    n_sheet = min(12, frames)
-    sheet_idx = set(np.linspace(0, frames - 1, n_sheet).round().astype(int).tolist()) if preview else set()
-    kept: dict[int, np.ndarray] = {}
-    with video_writer(paths["video"], fps, size) as writer, Progress(frames, "synth face3d", enabled=verbose) as prog:
-        for t in range(frames):
-            img = sv.frame(t)
-            writer.write(img)
-            if t in sheet_idx:
-                kept[t] = img
-            prog.update()
+    kept = render_video(paths["video"], sv.frame, frames, fps, size, preview, "synth face3d", verbose)
     write_weights(paths["curves"], np.arange(frames), sv.head.names, sv.curves())
     cols, data = sv.head_table()
     with atomic_write(paths["head"]) as f:

@@ -257,19 +257,27 @@ def synthesize(out_dir, frames: int = 600, seed: int = 0, size=(640, 480), fps: 
     sv = SyntheticVideo(frames, seed, size, fps)
     paths = {"video": out / "video.mp4", "truth": out / "truth.csv", "labels": out / "labels",
              "truth_json": out / "truth.json"}
+    kept = render_video(paths["video"], sv.frame, frames, fps, size, preview, "synth video", verbose)
+    write_truth(paths, sv, labels, preview, kept, write_preview)
+    return paths
+
+
+def render_video(path, frame, frames: int, fps: float, size, preview: bool, desc: str,
+                 verbose: bool) -> dict[int, np.ndarray]:
+    """Encode ``frame(t)`` for ``t`` in ``0 .. frames - 1`` into the video ``path``, with a progress bar
+    ``desc``; returns the frames kept for the contact sheet (12 spread over the take; none without
+    ``preview``). Shared by the synthetic generators (``synth video``, ``synth face3d``)."""
     n_sheet = min(12, frames)
     sheet_idx = set(np.linspace(0, frames - 1, n_sheet).round().astype(int).tolist()) if preview else set()
     kept: dict[int, np.ndarray] = {}
-    with video_writer(paths["video"], fps, size) as writer, \
-            Progress(frames, "synth video", enabled=verbose) as prog:
+    with video_writer(path, fps, size) as writer, Progress(frames, desc, enabled=verbose) as prog:
         for t in range(frames):
-            img = sv.frame(t)
+            img = frame(t)
             writer.write(img)
             if t in sheet_idx:
                 kept[t] = img
             prog.update()
-    write_truth(paths, sv, labels, preview, kept, write_preview)
-    return paths
+    return kept
 
 
 def write_truth(paths: dict, sv, labels: int, preview, kept: dict, preview_writer) -> None:
