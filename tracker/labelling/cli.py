@@ -49,7 +49,7 @@ def _worst_frames(args) -> list[int]:
     from keyshape.base.errors import InputError  # noqa: PLC0415
     from keyshape.base.formats.tracks import read_tracks  # noqa: PLC0415
     from keyshape.tracker.labelling.frames import worst_explained  # noqa: PLC0415
-    from keyshape.tracker.labelling.server import SESSION_FILE, read_session  # noqa: PLC0415
+    from keyshape.base.formats.labels import SESSION_FILE, read_session  # noqa: PLC0415
 
     if args.more < 1:
         raise InputError(f"--more must be at least 1, got {args.more}")

@@ -17,7 +17,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
-from keyshape.tracker.labelling.server import SESSION_FILE
+from keyshape.base.formats.labels import SESSION_FILE
 
 MEAN_SHAPE = Path(__file__).parent / "ibug68_mean.json"
 
@@ -143,7 +143,7 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         landmarker = DlibLandmarker()
     session = None
     if sess_path.is_file():
-        from keyshape.tracker.labelling.server import read_session  # noqa: PLC0415
+        from keyshape.base.formats.labels import read_session  # noqa: PLC0415
         old = read_session(out)
         if Path(old.get("video", "")).name == info.path.name and old["scheme"] == scheme.name:
             session = old

@@ -26,7 +26,6 @@ Label folder layout (made by ``keyshape label``)::
 """
 from __future__ import annotations
 
-import json
 import re
 import threading
 from http import HTTPStatus
@@ -34,26 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
-from keyshape.base.errors import InputError, KeyshapeError, require_dir, require_file
+from keyshape.base.errors import KeyshapeError
+from keyshape.base.formats.labels import read_session
 from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, is_loopback, page_files  # noqa: F401
 
 PAGE_FILES = page_files(Path(__file__).parent / "page")
 PTS_RE = re.compile(r"^(\d{6})\.pts$")
 PNG_RE = re.compile(r"^(\d{6})\.png$")
-SESSION_FILE = "session.json"
-
-
-def read_session(folder: str | Path) -> dict:
-    """The ``session.json`` of a label folder: ``scheme``, ``video``, ``frames``."""
-    folder = require_dir(folder, "label folder")
-    path = require_file(folder / SESSION_FILE, "label session (made by 'keyshape label')")
-    try:
-        data = json.loads(path.read_text())
-        frames = [int(f) for f in data["frames"]]
-        scheme = str(data["scheme"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"not a label session ({exc})", path) from None
-    return {**data, "frames": frames, "scheme": scheme}
 
 
 #: largest coordinate saved (pixels): far beyond any frame, still refusing 1e300

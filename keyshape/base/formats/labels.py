@@ -15,12 +15,13 @@ right, y down, ``(x, y)`` order (OpenCV's pixel-centre convention).
 """
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 
-from keyshape.base.errors import InputError, require_dir, require_file
+from keyshape.base.errors import InputError, KeyshapeError, require_dir, require_file
 from keyshape.base.files import atomic_write
 
 #: largest plausible pixel coordinate (no image is 100 000 pixels wide)
@@ -131,17 +132,30 @@ def read_labels(folder: str | Path, n_points: int | None = None) -> tuple[np.nda
     return np.array([f for f, _ in files], dtype=np.intp), np.stack(shapes)
 
 
-def labels_scheme(folder: str | Path) -> str | None:
-    """The landmark scheme a ``keyshape label`` folder was made in (its ``session.json``'s ``scheme``),
-    or None where the folder has no readable session (hand-made ``.pts`` files)."""
-    import json
+#: the label folder's session record written by ``keyshape label``
+SESSION_FILE = "session.json"
 
-    path = Path(folder) / "session.json"
+
+def read_session(folder: str | Path) -> dict:
+    """The ``session.json`` of a label folder: ``scheme``, ``video``, ``frames``."""
+    folder = require_dir(folder, "label folder")
+    path = require_file(folder / SESSION_FILE, "label session (made by 'keyshape label')")
     try:
-        scheme = json.loads(path.read_text()).get("scheme")
-    except (OSError, ValueError, AttributeError):
+        data = json.loads(path.read_text())
+        frames = [int(f) for f in data["frames"]]
+        scheme = str(data["scheme"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"not a label session ({exc})", path) from None
+    return {**data, "frames": frames, "scheme": scheme}
+
+
+def labels_scheme(folder: str | Path) -> str | None:
+    """The landmark scheme a ``keyshape label`` folder was made in (:func:`read_session`), or None
+    where the folder has no readable session (hand-made ``.pts`` files)."""
+    try:
+        return read_session(folder)["scheme"] or None
+    except KeyshapeError:                   # no folder, no session, or not a session
         return None
-    return scheme if isinstance(scheme, str) and scheme else None
 
 
 def write_labels(folder: str | Path, frames, shapes: np.ndarray) -> None:
