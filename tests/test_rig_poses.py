@@ -344,20 +344,27 @@ def test_rig_glb_has_normals_materials_frame_range_and_passes_validator(tmp_path
 
 # ----------------------------------------------------------------------------------------- preview
 
-def test_preview_renders_range_and_sheet(tmp_path):
+def _preview_inputs(tmp_path, n: int, size: tuple[int, int]):
+    """The toy rig, ``n`` frames of toy tracks (t.csv), a grey ramp video of ``size`` (v.mp4) and curves
+    opening the rig's first shape from 0 to 1 (c.csv) in ``tmp_path``; returns the rig folder and curves."""
     from keyshape.base.formats.tracks import write_tracks
-    from keyshape.base.formats.video import video_info, video_writer
+    from keyshape.base.formats.video import video_writer
     from keyshape.base.formats.weights import write_weights
     from keyshape.decompose.toy import toy_tracks
     rig, _ = write_toy_rig(tmp_path / "rig")
-    tr = toy_tracks(30, rng=1)
-    write_tracks(tmp_path / "t.csv", tr)
-    with video_writer(tmp_path / "v.mp4", 10, (160, 120)) as wr:
-        for i in range(30):
-            wr.write(np.full((120, 160, 3), 8 * i, np.uint8))
-    c = np.zeros((30, len(SHAPES)))
-    c[:, 0] = np.linspace(0, 1, 30)
-    write_weights(tmp_path / "c.csv", np.arange(30), list(SHAPES), c)
+    write_tracks(tmp_path / "t.csv", toy_tracks(n, rng=1))
+    with video_writer(tmp_path / "v.mp4", 10, size) as wr:
+        for i in range(n):
+            wr.write(np.full((size[1], size[0], 3), 8 * i, np.uint8))
+    c = np.zeros((n, len(SHAPES)))
+    c[:, 0] = np.linspace(0, 1, n)
+    write_weights(tmp_path / "c.csv", np.arange(n), list(SHAPES), c)
+    return rig, c
+
+
+def test_preview_renders_range_and_sheet(tmp_path):
+    from keyshape.base.formats.video import video_info
+    rig, _ = _preview_inputs(tmp_path, 30, (160, 120))
     out, sheet = tmp_path / "p.mp4", tmp_path / "s.jpg"
     assert main(["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
                  str(tmp_path / "c.csv"), "--rig", str(rig), "--frames", "5:17", "--sheet", str(sheet),
@@ -545,20 +552,10 @@ def test_preview_compare_panel_crop_and_head_turn(tmp_path):
     """--compare adds a third panel; the face crop is a steady square around the tracked points; head
     angles in the curves turn the rendered rig (yaw > 0: the face turns to the subject's left, image-right;
     the conventions of retarget's head columns)."""
-    from keyshape.base.formats.tracks import write_tracks
-    from keyshape.base.formats.video import video_info, video_writer
+    from keyshape.base.formats.video import video_info
     from keyshape.base.formats.weights import write_weights
-    from keyshape.decompose.toy import toy_tracks
     from keyshape.retarget.preview import face_crop, head_rotations
-    rig, _ = write_toy_rig(tmp_path / "rig")
-    tr = toy_tracks(20, rng=1)
-    write_tracks(tmp_path / "t.csv", tr)
-    with video_writer(tmp_path / "v.mp4", 10, (320, 240)) as wr:
-        for i in range(20):
-            wr.write(np.full((240, 320, 3), 8 * i, np.uint8))
-    c = np.zeros((20, len(SHAPES)))
-    c[:, 0] = np.linspace(0, 1, 20)
-    write_weights(tmp_path / "c.csv", np.arange(20), list(SHAPES), c)
+    rig, c = _preview_inputs(tmp_path, 20, (320, 240))
     write_weights(tmp_path / "m.csv", np.arange(20), list(SHAPES), c[::-1])
     base = ["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
             str(tmp_path / "c.csv"), "--rig", str(rig), "--size", "100"]
