@@ -213,16 +213,41 @@ def test_not_an_ict_folder(tmp_path):
         check_facekit(tmp_path)
 
 
-@pytest.mark.slow
-def test_tracker_on_the_3d_take(facekit, tmp_path):
-    """The normal train + track chain on a 300-frame 3D take: mean NME < 0.02, nothing lost."""
+@pytest.fixture(scope="module")
+def tracked_3d_take(facekit, tmp_path_factory):
+    """The normal train + track chain on a 300-frame 3D take (seed 0, 12 labels): (tracks, truth)."""
     from keyshape.data_synth.face3d import synthesize
     from keyshape.tracker.commands import track_video, train_model
-    out = synthesize(tmp_path / "t", facekit, frames=300, seed=0, labels=12)
+    tmp = tmp_path_factory.mktemp("take3d")
+    out = synthesize(tmp / "t", facekit, frames=300, seed=0, labels=12)
     model, _ = train_model(out["video"], out["labels"], "contours48")
-    track_video(out["video"], model, tmp_path / "tracks.csv", show_progress=False)
-    tr, truth = read_tracks(tmp_path / "tracks.csv"), read_tracks(out["truth"])
+    track_video(out["video"], model, tmp / "tracks.csv", show_progress=False)
+    return read_tracks(tmp / "tracks.csv"), read_tracks(out["truth"])
+
+
+@pytest.mark.slow
+def test_tracker_on_the_3d_take(tracked_3d_take):
+    """The normal train + track chain on a 300-frame 3D take: mean NME < 0.02, nothing lost."""
+    tr, truth = tracked_3d_take
     iod = SCHEME.interocular_distance(truth.points)
     nme = np.linalg.norm(tr.points - truth.points, axis=-1).mean(1) / iod
     assert tr.success.all()
     assert np.nanmean(nme) < 0.02, np.nanmean(nme)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="issue 23: the tracker reads the mouth's and the lids' openings at 0.73-0.78 of "
+                          "their true size on the 3D take (bench/synth3d_tracker_diag.py)")
+def test_tracker_reads_openings_at_true_size_on_the_3d_take(tracked_3d_take):
+    """The inner lips' gap and each eye's lid gap (inter-ocular units) follow the truth's with r >= 0.95 and
+    a gain (least-squares slope of the tracked on the truth) within 0.85-1.15: what jawOpen and the blinks
+    are read from. Measured on today's tracker: inner lips r 0.925 gain 0.73, lids r 0.913 / 0.905, gain
+    0.77 / 0.78 (the readings shrink toward the labelled frames' mean: a closed mouth reads a little open,
+    a wide one less open)."""
+    tr, truth = tracked_3d_take
+    iod = SCHEME.interocular_distance(truth.points)
+    for name, (a, b) in {"inner lips": (42, 46), "right lids": (12, 16), "left lids": (20, 24)}.items():
+        t = np.linalg.norm(truth.points[:, a] - truth.points[:, b], axis=-1) / iod
+        r = np.linalg.norm(tr.points[:, a] - tr.points[:, b], axis=-1) / iod
+        corr, gain = np.corrcoef(t, r)[0, 1], np.polyfit(t, r, 1)[0]
+        assert corr >= 0.95 and 0.85 <= gain <= 1.15, (name, corr, gain)
