@@ -228,10 +228,11 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     if not rows:
         raise InputError(f"no frames from {start} on (the video has {reader.n_read} frames)", video)
     frame = np.array([r[0] for r in rows], dtype=np.int64)
+    points, aux = model.scheme_.split(np.stack([r[3] for r in rows]))
     return Tracks(frame, frame / fps, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                  np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]),
-                  {"model": model_fingerprint(model), "scheme": model.scheme_.name,
-                   "image_size": [int(reader.info.width), int(reader.info.height)]})
+                  points, np.stack([r[4] for r in rows]),
+                  {"model": model_fingerprint(model), "scheme": model.scheme_.base_name,
+                   "image_size": [int(reader.info.width), int(reader.info.height)]}, aux)
 
 
 def check_label_geometry(frames: np.ndarray, shapes: np.ndarray, labels_dir) -> None:
@@ -298,9 +299,10 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     try:
         with contextlib.ExitStack() as stack:
             f = stack.enter_context(open(tmp_csv, "w", newline="\n"))
-            meta = {"model": model_fingerprint(model), "scheme": model.scheme_.name,
+            sch = model.scheme_
+            meta = {"model": model_fingerprint(model), "scheme": sch.base_name,
                     "image_size": [int(info.width), int(info.height)]}
-            writer = TracksWriter(f, model.n_points)
+            writer = TracksWriter(f, sch.core, {g: len(src) for g, src in sch.auxiliary.items()} if sch.n_core else None)
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:
                 for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
