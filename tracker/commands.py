@@ -33,7 +33,9 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
     video : path of the video the labels belong to
     labels : a folder of ``NNNNNN.pts`` files, or ``(frames (n,), shapes (n, n_points, 2))`` arrays
     scheme : as :class:`AppearanceModel`; None: the scheme the labels folder was made in by
-        ``keyshape label`` (its ``session.json``), else ``contours48``
+        ``keyshape label`` (its ``session.json``), else ``contours48``; labels that carry the scheme's
+        auxiliary points too (``Scheme.auxiliary``: the nose, 48 + 5 points) train its
+        :meth:`~keyshape.base.schemes.Scheme.full` form, whose tracks carry them in their own columns
     n_components, n_morphs, rng : as :class:`AppearanceModel`
 
     Raises
@@ -47,12 +49,20 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
     sch = load_scheme(scheme)
     if isinstance(labels, (str, Path)):
         source = Path(labels)
-        frames, shapes = read_labels(labels, n_points=sch.n_points)
+        frames, shapes = read_labels(labels)
+        if shapes.shape[1] == sch.full().n_points:     # labelled with the scheme's auxiliary points (the nose)
+            sch = sch.full()
+        elif shapes.shape[1] != sch.n_points:
+            raise InputError(f"labels of {shapes.shape[1]} points, expected {sch.n_points} for scheme {sch.name!r}"
+                             + (f" ({sch.full().n_points} with its {'+'.join(sch.auxiliary)} points)"
+                                if sch.auxiliary and not sch.n_core else ""), source)
     else:
         source = None
         frames, shapes = (np.asarray(a) for a in labels)
         frames = frames.astype(np.int64)
         shapes = shapes.astype(np.float64)
+        if shapes.ndim == 3 and shapes.shape[1] == sch.full().n_points:
+            sch = sch.full()
         if shapes.ndim != 3 or shapes.shape[1:] != (sch.n_points, 2) or len(frames) != len(shapes):
             raise InputError(f"labels: expected frames (n,) and shapes (n, {sch.n_points}, 2) for scheme "
                              f"{sch.name!r}, got {frames.shape} and {shapes.shape}")

