@@ -381,7 +381,7 @@ class LiveChain:
     ridge: float = D.RIDGE
     reference_pose: np.ndarray | None = field(default=None)
     head: LiveHead | None = None
-    auxiliary: dict = field(default_factory=dict)     # the model's auxiliary groups (name -> points), after the scheme's
+    model_scheme: object = None                       # the model's Scheme: its auxiliary points (the nose) split off
 
     def frame(self, index: int, fps: float, points: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
         """(rig curves (n_shapes,), Live Link values (61,) in CSV column order) of one tracked frame."""
@@ -390,12 +390,11 @@ class LiveChain:
         from keyshape.retarget.export import livelink_values
         from keyshape.retarget.poses import curves_from_library
 
-        n = len(points) - sum(self.auxiliary.values())
-        p, aux, i = points[None].astype(np.float64), {}, n
-        for g, k in self.auxiliary.items():                # the model's nose points: the 3D head's too
-            aux[g], i = p[:, i:i + k], i + k
+        p, aux = points[None].astype(np.float64), {}
+        if self.model_scheme is not None:                  # the model's nose points: the 3D head's too
+            p, aux = self.model_scheme.split(p)
         tr = Tracks(np.array([index]), np.array([index / fps]), np.array([res.confidence]), np.array([True]),
-                    p[:, :n], np.asarray(res.pose, np.float64)[None], {"scheme": self.scheme}, aux)
+                    p, np.asarray(res.pose, np.float64)[None], {"scheme": self.scheme}, aux)
         _, w = decompose_keys(tr, self.regions, self.solver, 0.1, self.ridge, None, self.head_pose)
         curves = curves_from_library(w, self.columns, self.library, self.rig_names)
         if self.head is not None:
@@ -459,7 +458,7 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
     from keyshape.tracker.commands import model_fingerprint
     live_head = load_head(calibration, keys_path, scheme, gaze, say, model_fingerprint(model)) if head == "3d" else None
     chain = LiveChain(scheme, regions, head_entry, columns, lib, list(rig_obj.names), solver, ridge, head=live_head,
-                      auxiliary={g: len(src) for g, src in mf.scheme.auxiliary.items()} if mf.scheme.n_core else {})
+                      model_scheme=mf.scheme)
     return model, chain
 
 
