@@ -138,6 +138,10 @@ def fitted_head_points(head: HeadPose3D, tracks: Tracks, path=None) -> np.ndarra
     if n > pts.shape[1] and tracks.aux:
         extra = np.concatenate(list(tracks.aux.values()), axis=1)
         pts = np.concatenate([pts, np.where(tracks.success[:, None, None], extra, np.nan)], axis=1)
+    if n > pts.shape[1]:
+        raise InputError(f"the 3D head was fitted on {n} points (the scheme's and its nose points) but the tracks "
+                         f"have {pts.shape[1]}: use tracks with the nose columns (nose_x_0..) of the model that "
+                         "made the key set, or select the keys on these tracks", path)
     return pts[:, :n]
 
 
