@@ -115,7 +115,9 @@ def test_the_nose_pins_the_head_pitch(sv, tmp_path):
     from keyshape.api import head as head_api
     from keyshape.base.formats.tracks import Tracks, write_tracks
     from keyshape.data_synth.face3d import head_rotation
+    from keyshape.data_synth.face3d import Synthetic3D
     from keyshape.decompose.head3d import euler_angles
+    sv = Synthetic3D(sv.head_folder, frames=90, seed=2, size=(640, 480))      # the fixture's, unedited by other tests
     tr = sv.tracks()
     rng = np.random.default_rng(0)
     noisy = Tracks(tr.frame, tr.time, tr.confidence, tr.success, tr.points + rng.normal(0, 0.5, tr.points.shape),
