@@ -190,7 +190,8 @@ def evaluate(video: Path, count: int, n_heldout: int, work: Path, seed: int) -> 
     else:
         frames = spread_frames(info.n_frames, n_heldout, exclude=sess["frames"], min_gap=gap, rng=seed)
         held = prepare_label_folder(video, held_dir, n_heldout, "contours48", quiet=True, frames=frames)
-    hf, hlab = read_labels(held_dir, 48)
+    hf, hlab = read_labels(held_dir)
+    hlab = hlab[:, :48]                                       # the contours (the nose points after them)
     _, p48, timing = dlib_all_frames(video, work / f"{name}_dlib.npz")
     det_ms, pred_ms = timing.per_frame_ms(cpu=True)
     det_wall, pred_wall = timing.per_frame_ms()

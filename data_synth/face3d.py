@@ -40,6 +40,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.formats.weights import write_weights
+from keyshape.base.schemes import load_scheme
 from keyshape.data_synth.performance import make_performance, smooth_noise
 from keyshape.data_synth.raster import rasterize
 from keyshape.data_synth.video import _check_args, render_video, select_label_frames, write_truth
@@ -160,7 +161,8 @@ class Head3D:
     names : every shape of the rig, in :func:`keyshape.retarget.rig.load_rig`'s order (the curves CSV's columns)
     neutral : (n_vertices, 3) the identity's neutral, scaled
     deltas : (len(DRIVEN), n_vertices, 3) the driven shapes' deltas, scaled
-    landmark_weights : (48, n_vertices) contours48 points as vertex mixes (pupil rows replaced by the iris centre)
+    landmark_weights : (53, n_vertices) contours48 points as vertex mixes (pupil rows replaced by the iris
+        centre), then its auxiliary nose points (``contours48+nose``: the iBUG-68 correspondence's vertices)
     eye_vertices : [left, right] vertex indices of each eyeball (sclera and iris shells)
     parts : the rendered triangles and which eye (1 left, 2 right, 0 none) each belongs to
     eye_centre, eye_axis, eye_radius : per eye (subject's left first), rest pose
@@ -178,8 +180,11 @@ class Head3D:
         self.neutral = self.scale * n
         self.deltas = self.scale * shapes
         self.mesh = mesh
-        W, _ = rig_landmarks(Rig(self.names, base, np.zeros((0, len(base), 3)), mesh), "contours48")
-        self.landmark_weights = W
+        rig = Rig(self.names, base, np.zeros((0, len(base), 3)), mesh)
+        W, _ = rig_landmarks(rig, "contours48")
+        W68, _ = rig_landmarks(rig, "ibug68")
+        self.scheme = load_scheme("contours48").full()
+        self.landmark_weights = np.vstack([W, W68[[i for g in self.scheme.auxiliary.values() for i in g]]])
 
         self._triangles, self._parts = triangles, parts
         # eyes: centre (sphere fit of the sclera shell), axis (towards the cornea's bulge), radius
@@ -290,7 +295,7 @@ class Head3D:
         return out
 
     def landmarks3d(self, v: np.ndarray, eye_yaw, eye_pitch) -> np.ndarray:
-        """(48, 3) contours48 points of head-frame vertices ``v`` (pupils: the iris centres)."""
+        """(53, 3) contours48+nose points of head-frame vertices ``v`` (pupils: the iris centres)."""
         p = self.landmark_weights @ v
         pu = self.pupils(eye_yaw, eye_pitch)
         p[26], p[27] = pu[1], pu[0]            # point 26 is the image-left pupil: the subject's right eye
@@ -437,7 +442,7 @@ class Synthetic3D:
     head : Head3D
     performance : Performance3D
     focal, centre, camera_position, pivot : the camera and the head's rotation centre (cm)
-    points : (n_frames, 48, 2) contours48 landmarks in image pixels
+    points : (n_frames, 53, 2) contours48+nose landmarks in image pixels (the nose after the 48)
     """
 
     def __init__(self, rig, frames: int = 300, seed: int = 0, size=(640, 480), fps: float = 30.0,
@@ -475,7 +480,7 @@ class Synthetic3D:
         return e[:, 0], e[:, 1]
 
     def landmarks3d(self) -> np.ndarray:
-        """(n_frames, 48, 3) head-frame contours48 points of every frame (the vertex mixes of
+        """(n_frames, 53, 3) head-frame contours48+nose points of every frame (the vertex mixes of
         :attr:`Head3D.landmark_weights`, pupils at the turned iris centres)."""
         h = self.head
         W = h.landmark_weights
@@ -489,7 +494,7 @@ class Synthetic3D:
         return p
 
     def project_landmarks(self) -> np.ndarray:
-        """(n_frames, 48, 2) the contours48 truth in image pixels (:meth:`landmarks3d` posed and projected)."""
+        """(n_frames, 53, 2) the contours48+nose truth in image pixels (:meth:`landmarks3d` posed and projected)."""
         p = self.landmarks3d()
         world = np.einsum("nij,npj->npi", self.rotation, p - self.pivot) + self.pivot \
             + self.performance.translation[:, None]
@@ -569,12 +574,13 @@ class Synthetic3D:
     def tracks(self) -> Tracks:
         """The landmark truth as tracks (pose: the least-squares affine from the rig's neutral front view)."""
         n = self.n_frames
-        ref = self.head.landmarks3d(self.head.neutral, np.zeros(2), np.zeros(2))
+        points, aux = self.head.scheme.split(self.points)                  # contours48, and the nose
+        ref = self.head.landmarks3d(self.head.neutral, np.zeros(2), np.zeros(2))[:points.shape[1]]
         model = np.stack([ref[:, 0], -ref[:, 1]], 1)                       # front view, cm, y down
         A = np.c_[model, np.ones(len(model))]
-        sol = np.linalg.lstsq(A, self.points.transpose(1, 0, 2).reshape(len(model), -1), rcond=None)[0]
+        sol = np.linalg.lstsq(A, points.transpose(1, 0, 2).reshape(len(model), -1), rcond=None)[0]
         pose = sol.reshape(3, n, 2).transpose(1, 2, 0)                     # (n, 2, 3)
-        return Tracks(np.arange(n), np.arange(n) / self.fps, np.ones(n), np.ones(n, bool), self.points, pose)
+        return Tracks(np.arange(n), np.arange(n) / self.fps, np.ones(n), np.ones(n, bool), points, pose, {}, aux)
 
     def curves(self) -> np.ndarray:
         """(n_frames, len(head.names)) curves over every rig shape (undriven ones 0)."""

@@ -43,7 +43,7 @@ from keyshape.decompose.stabilize import HEAD_POSES, RigidStabilizer, stabilizer
 
 __all__ = ["REGIONS", "RegionKeys", "region_points", "available_regions", "head_pose", "model_shapes", "head_shapes",
            "stable_pose", "to_image", "select_region", "decompose_region", "face_rest_frame", "HEAD_POSES",
-           "image_points", "head_pose_3d"]
+           "image_points", "head_points", "fitted_head_points", "head_pose_3d"]
 
 
 def region_points(scheme: Scheme, region: str) -> np.ndarray:
@@ -116,6 +116,35 @@ def image_points(tracks: Tracks, path=None) -> np.ndarray:
     return np.where(tracks.success[:, None, None], tracks.points, np.nan)
 
 
+def head_points(tracks: Tracks, scheme: Scheme, path=None) -> tuple[np.ndarray, Scheme]:
+    """The image points the 3D head pose is fitted on and their scheme: :func:`image_points` followed by
+    the tracks' auxiliary points (``Tracks.aux``, the nose) in :meth:`~keyshape.base.schemes.Scheme.full`
+    ``scheme`` where the tracks carry all of its auxiliary groups; else :func:`image_points` and ``scheme``
+    (tracks made before the nose points)."""
+    pts = image_points(tracks, path)
+    aux = scheme.auxiliary
+    if not aux or scheme.n_core or not all(g in tracks.aux and tracks.aux[g].shape[1] == len(src)
+                                           for g, src in aux.items()):
+        return pts, scheme
+    extra = np.concatenate([tracks.aux[g] for g in aux], axis=1)
+    return np.concatenate([pts, np.where(tracks.success[:, None, None], extra, np.nan)], axis=1), scheme.full()
+
+
+def fitted_head_points(head: HeadPose3D, tracks: Tracks, path=None) -> np.ndarray:
+    """The image points of ``tracks`` a fitted ``head`` takes: :func:`image_points`, followed by the
+    tracks' auxiliary points (in their order) where the head was fitted with them."""
+    pts = image_points(tracks, path)
+    n = len(head.template)
+    if n > pts.shape[1] and tracks.aux:
+        extra = np.concatenate(list(tracks.aux.values()), axis=1)
+        pts = np.concatenate([pts, np.where(tracks.success[:, None, None], extra, np.nan)], axis=1)
+    if n > pts.shape[1]:
+        raise InputError(f"the 3D head was fitted on {n} points (the scheme's and its nose points) but the tracks "
+                         f"have {pts.shape[1]}: use tracks with the nose columns (nose_x_0..) of the model that "
+                         "made the key set, or select the keys on these tracks", path)
+    return pts[:, :n]
+
+
 def head_pose_3d(scheme: Scheme, image_size: Sequence[int] | None = None) -> HeadPose3D | None:
     """An unfitted :class:`~keyshape.decompose.head3d.HeadPose3D` for ``scheme`` (its shipped 3D face
     and rigid points), or None when the scheme has no 3D face or no rigid points.
@@ -162,15 +191,16 @@ def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabiliz
     if isinstance(head, dict):
         head = stabilizer_from_entry(head)
     if head == "3d":
-        head = head_pose_3d(scheme, tracks.image_size)
+        pts, full = head_points(tracks, scheme, path)
+        head = head_pose_3d(full, tracks.image_size)
         if head is None:
             head = "rigid"
         else:
-            pts = image_points(tracks, path)
             head.fit(pts)
-            return head.transform(pts, head.camera_pose_), head         # fit's own pose solve, not a second one
+            # fit's own pose solve, not a second one; the scheme's points (the nose only poses the head)
+            return head.transform(pts, head.camera_pose_)[:, :tracks.n_points], head
     if isinstance(head, HeadPose3D):
-        return head.transform(image_points(tracks, path)), head
+        return head.transform(fitted_head_points(head, tracks, path))[:, :tracks.n_points], head
     shapes = model_shapes(tracks, path)
     if head is None or head == "tracker":
         return shapes, None
@@ -192,7 +222,7 @@ def stable_pose(tracks: Tracks, stabilizer: RigidStabilizer | dict | None, path=
     rigid points (the 3D pose itself is :meth:`~keyshape.decompose.head3d.HeadPose3D.head_pose`)."""
     stabilizer = stabilizer_from_entry(stabilizer)
     if isinstance(stabilizer, HeadPose3D):
-        return stabilizer.image_from_head(image_points(tracks, path))
+        return stabilizer.image_from_head(fitted_head_points(stabilizer, tracks, path))
     pose = head_pose(np.where(tracks.success[:, None, None], tracks.pose, np.eye(2, 3)))
     if stabilizer is None:
         return pose

@@ -511,14 +511,14 @@ def head(tracks: Tracks) -> Head:
     from keyshape.base.errors import InputError
     from keyshape.base.schemes import scheme_for_n_points
     from keyshape.decompose.gaze import gaze_angles, has_gaze
-    from keyshape.decompose.regions import head_pose_3d, image_points
+    from keyshape.decompose.regions import head_points, head_pose_3d
 
     scheme = scheme_for_n_points(tracks.n_points)
-    est = head_pose_3d(scheme, tracks.image_size)
+    pts, full = head_points(tracks, scheme)
+    est = head_pose_3d(full, tracks.image_size)
     if est is None:
         raise InputError(f"scheme {scheme.name!r} has no 3D face or no rigid points: no 3D head pose")
-    pts = image_points(tracks)
     est.fit(pts)
     hp = est.head_pose(pts)
-    gaze = np.degrees(gaze_angles(est.transform(pts), scheme)) if has_gaze(scheme) else None
+    gaze = np.degrees(gaze_angles(est.transform(pts)[:, :tracks.n_points], scheme)) if has_gaze(scheme) else None
     return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)

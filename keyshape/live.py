@@ -244,7 +244,7 @@ class LiveHead:
         import copy
 
         from keyshape.decompose.gaze import gaze_angles, has_gaze
-        from keyshape.decompose.regions import image_points
+        from keyshape.decompose.regions import fitted_head_points
 
         est = copy.copy(estimator)
         est.smooth = 0.0                                  # causal: each frame posed alone
@@ -259,7 +259,7 @@ class LiveHead:
         if not has_gaze(scheme):
             self.note = f"scheme {scheme.name!r} has no pupils: no eye angles"
             return
-        H = est.transform(image_points(calibration, source))
+        H = est.transform(fitted_head_points(est, calibration, source))[:, :calibration.n_points]
         H = H[np.isfinite(H).all(axis=(1, 2))]
         if len(H) > GAZE_FRAMES:                          # the per-frame cost grows with the context
             H = H[np.unique(np.linspace(0, len(H) - 1, GAZE_FRAMES).round().astype(int))]
@@ -290,7 +290,8 @@ class LiveHead:
             head = self.last_head
         if self.context is None:
             return head, None
-        self.context[-1] = self.estimator.transform(tracks.points)[0]
+        from keyshape.decompose.regions import fitted_head_points
+        self.context[-1] = self.estimator.transform(fitted_head_points(self.estimator, tracks))[0, :tracks.n_points]
         g = gaze_angles(self.context, self.scheme)[-2:]
         eyes = g[1].copy()
         for c in (slice(0, 2), slice(2, 4)):
@@ -380,6 +381,7 @@ class LiveChain:
     ridge: float = D.RIDGE
     reference_pose: np.ndarray | None = field(default=None)
     head: LiveHead | None = None
+    model_scheme: object = None                       # the model's Scheme: its auxiliary points (the nose) split off
 
     def frame(self, index: int, fps: float, points: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
         """(rig curves (n_shapes,), Live Link values (61,) in CSV column order) of one tracked frame."""
@@ -388,8 +390,11 @@ class LiveChain:
         from keyshape.retarget.export import livelink_values
         from keyshape.retarget.poses import curves_from_library
 
+        p, aux = points[None].astype(np.float64), {}
+        if self.model_scheme is not None:                  # the model's nose points: the 3D head's too
+            p, aux = self.model_scheme.split(p)
         tr = Tracks(np.array([index]), np.array([index / fps]), np.array([res.confidence]), np.array([True]),
-                    points[None].astype(np.float64), np.asarray(res.pose, np.float64)[None], {"scheme": self.scheme})
+                    p, np.asarray(res.pose, np.float64)[None], {"scheme": self.scheme}, aux)
         _, w = decompose_keys(tr, self.regions, self.solver, 0.1, self.ridge, None, self.head_pose)
         curves = curves_from_library(w, self.columns, self.library, self.rig_names)
         if self.head is not None:
@@ -440,7 +445,7 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
     head_entry = read_keys_head_pose(keys_path)
     from keyshape.base.formats.model import read_model
     mf = read_model(model_path)                                   # its scheme, before the model is built
-    if mf.scheme.name != scheme or mf.scheme.n_points != n_points:
+    if mf.scheme.base_name != scheme or mf.scheme.core != n_points:
         raise InputError(f"the model tracks scheme {mf.scheme.name!r} ({mf.scheme.n_points} points) but the key "
                          f"set {keys_path} is of scheme {scheme!r} ({n_points} points): use the model and keys "
                          "of one actor and scheme", model_path)
@@ -452,7 +457,8 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
     livelink_values(rig_obj.names, curves)                       # the rig has ARKit names, or one line
     from keyshape.tracker.commands import model_fingerprint
     live_head = load_head(calibration, keys_path, scheme, gaze, say, model_fingerprint(model)) if head == "3d" else None
-    chain = LiveChain(scheme, regions, head_entry, columns, lib, list(rig_obj.names), solver, ridge, head=live_head)
+    chain = LiveChain(scheme, regions, head_entry, columns, lib, list(rig_obj.names), solver, ridge, head=live_head,
+                      model_scheme=mf.scheme)
     return model, chain
 
 

@@ -191,7 +191,7 @@ def rig_curves(weights: np.ndarray, columns: Sequence[str], library: dict, rig, 
 def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_units: float, source):
     """The 3D head's motion of ``rows`` (None where the tracks' scheme has no 3D face)."""
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.regions import head_pose_3d, image_points, model_shapes
+    from keyshape.decompose.regions import fitted_head_points, head_points, head_pose_3d, model_shapes
     from keyshape.decompose.stabilize import stabilizer_from_entry
     from keyshape.retarget.headpose import head_motion_3d
     try:
@@ -199,12 +199,13 @@ def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_u
     except InputError:
         return None
     from keyshape.decompose.head3d import HeadPose3D
-    pts = image_points(tracks, source)
     pose = None
     if isinstance(head, (dict, HeadPose3D)):
         est = stabilizer_from_entry(head)
+        pts = fitted_head_points(est, tracks, source)
     else:
-        est = head_pose_3d(scheme, tracks.image_size)
+        pts, full = head_points(tracks, scheme, source)
+        est = head_pose_3d(full, tracks.image_size)
         if est is None:
             return None
         pose = est.fit(pts).camera_pose_                # fitted on these points: its pose solve is theirs
@@ -228,13 +229,14 @@ def head_3d_from_tracks(tracks: Tracks, source=None):
     """The :class:`~keyshape.decompose.head3d.HeadPose3D` fitted to ``tracks`` (None where their scheme
     has no 3D face): give it to :func:`head_from_tracks` and :func:`gaze_from_tracks` to fit once."""
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.regions import head_pose_3d, image_points
+    from keyshape.decompose.regions import head_points, head_pose_3d
     try:
         scheme = scheme_for_n_points(tracks.n_points)
     except InputError:
         return None
-    est = head_pose_3d(scheme, tracks.image_size)
-    return None if est is None or not tracks.success.any() else est.fit(image_points(tracks, source))
+    pts, full = head_points(tracks, scheme, source)
+    est = head_pose_3d(full, tracks.image_size)
+    return None if est is None or not tracks.success.any() else est.fit(pts)
 
 
 def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None) -> np.ndarray:

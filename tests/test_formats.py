@@ -108,3 +108,40 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
             assert len(partial) == 1 and partial[0].read_text().count("\n") == 4   # header + 3 rows on disk
             raise InputError("crashed at frame 3")                                 # e.g. the video ended early
     assert sorted(tmp_path.iterdir()) == [dest] and dest.read_text() == "older\n"
+
+
+def test_tracks_nose_columns_beside_the_scheme(tmp_path):
+    """Auxiliary points (the nose) go to their own prefixed columns after the pose (as OpenFace's
+    eye_lmk_x_0..): the x_/y_ columns stay the scheme's 48, what tools counting x_ columns read; they read
+    back into Tracks.aux, through write_tracks and the streaming TracksWriter alike, slice with the tracks,
+    and a file without them reads with none."""
+    import csv
+    from keyshape.base.formats.tracks import TracksWriter
+    t = _tracks()
+    rng = np.random.default_rng(3)
+    t.aux = {"nose": rng.uniform(0, 300, (t.n_frames, 5, 2))}
+    t.aux["nose"][1, 2] = np.nan
+    write_tracks(tmp_path / "t.csv", t)
+    with open(tmp_path / "t.csv") as f:
+        header = next(csv.reader(f))
+    assert sum(h.startswith("x_") for h in header) == 48 and sum(h.startswith("y_") for h in header) == 48
+    assert header[4 + 96:4 + 96 + 6] == ["pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty"]
+    assert header[-10:] == [f"nose_x_{i}" for i in range(5)] + [f"nose_y_{i}" for i in range(5)]
+    r = read_tracks(tmp_path / "t.csv")
+    np.testing.assert_allclose(r.points, t.points, atol=1e-4)
+    np.testing.assert_allclose(r.pose, t.pose, rtol=1e-7)
+    np.testing.assert_allclose(r.aux["nose"], t.aux["nose"], atol=1e-4)
+    assert np.isnan(r.aux["nose"][1, 2]).all() and r[1:3].aux["nose"].shape == (2, 5, 2)
+    with open(tmp_path / "w.csv", "w") as f:
+        w = TracksWriter(f, 48, {"nose": 5})
+        for i in range(t.n_frames):
+            w.write(t.frame[i], t.time[i], t.confidence[i], t.success[i],
+                    np.concatenate([t.points[i], t.aux["nose"][i]]), t.pose[i])
+    r2 = read_tracks(tmp_path / "w.csv")
+    np.testing.assert_allclose(r2.aux["nose"], t.aux["nose"], atol=1e-4)
+    np.testing.assert_allclose(r2.points, t.points, atol=1e-4)
+    t.aux = {}
+    write_tracks(tmp_path / "old.csv", t)
+    assert read_tracks(tmp_path / "old.csv").aux == {}
+    with pytest.raises(InputError, match="Tracks.aux"):
+        Tracks(t.frame, t.time, t.confidence, t.success, t.points, t.pose, {}, {"nose": np.zeros((2, 5, 2))})

@@ -469,3 +469,27 @@ def test_tracks_image_size_puts_the_principal_point_at_the_image_centre():
     err_guess = _errors(guess.fit(pts), pts, yaw, pitch, roll)
     assert err_known[:, 2].max() < 1.5 and err_known.max() < 2.0
     assert err_guess[:, 2].max() > 5.0
+
+
+def test_a_head_fitted_with_the_nose_needs_tracks_with_it():
+    """A 3D head fitted on tracks with the nose columns poses tracks that carry them (the 48 head-frame points
+    come back), and refuses tracks without them in one line; tracks without them fit a 48-point head."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.tracks import Tracks
+    from keyshape.base.schemes import load_head_template
+    from keyshape.decompose.regions import head_shapes
+    yaw, pitch, roll, _, _ = _take(n=40, amp=20.0)
+    Xf, _ = load_head_template(SCHEME.full())
+    P = np.einsum("tij,nj->tni", from_euler(*np.radians([yaw, pitch, roll])), Xf) @ FLIP.T + [0.0, 0.0, DIST]
+    pts = FOCAL * P[..., :2] / P[..., 2:3] + CENTRE
+    n = len(pts)
+    with_nose = Tracks(np.arange(n), np.arange(n) / 30.0, np.ones(n), np.ones(n, bool), pts[:, :48],
+                       np.tile(np.eye(2, 3), (n, 1, 1)), {}, {"nose": pts[:, 48:]})
+    shapes, est = head_shapes(with_nose, SCHEME, "3d")
+    assert shapes.shape == (n, 48, 2) and len(est.template) == 53
+    assert head_shapes(with_nose, SCHEME, est)[0].shape == (n, 48, 2)
+    without = with_nose[:]
+    without.aux = {}
+    assert len(head_shapes(without, SCHEME, "3d")[1].template) == 48
+    with pytest.raises(InputError, match="nose columns"):
+        head_shapes(without, SCHEME, est)

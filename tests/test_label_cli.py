@@ -32,10 +32,11 @@ def test_label_no_prefill_makes_folder_and_resumes(small_video, tmp_path, capsys
     assert main(["label", str(small_video), "--count", "4", "-o", str(out), "--no-prefill", "--quiet"]) == 0
     sess = json.loads((out / "session.json").read_text())
     frames = sess["frames"]
-    assert len(frames) == 4 and sess["scheme"] == "contours48" and not sess["prefilled"]
+    # contours48 is labelled with its auxiliary nose points (48 + 5)
+    assert len(frames) == 4 and sess["scheme"] == "contours48+nose" and not sess["prefilled"]
     assert (out / "contact_sheet.png").stat().st_size > 1000
     for f in frames:
-        assert read_pts(out / f"{f:06d}.pts").shape == (48, 2)
+        assert read_pts(out / f"{f:06d}.pts").shape == (53, 2)
         assert (out / "frames" / f"{f:06d}.png").is_file()
     assert "4 frames" in capsys.readouterr().out
     # a correction survives running the command again; the frames stay the same

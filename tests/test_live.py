@@ -42,6 +42,7 @@ def take(tmp_path_factory):
     d = tmp_path_factory.mktemp("live")
     out = synthesize(d / "synth", frames=N_FRAMES, seed=3, labels=12)
     shutil.copy(out["video"], d / "take.mp4")
+    _add_nose(out["labels"])
     rig, lm = _toy_rig_module().write_toy_rig(d / "rig")
     steps = [["train", str(d / "take.mp4"), "--labels", str(out["labels"]), "-o", str(d / "model.npz")],
              ["track", str(d / "take.mp4"), "--model", str(d / "model.npz"), "-o", str(d / "t.csv"), "--quiet"],
@@ -57,6 +58,19 @@ def take(tmp_path_factory):
     for s in steps:
         assert main(s) == 0, s
     return d
+
+
+def _add_nose(labels: Path) -> None:
+    """Give the 2D take's labels contours48's five nose points (contours48+nose, as ``keyshape label`` makes
+    them), placed between the eyes and the upper lip, so that the model tracks them, the tracks carry them in
+    their own columns and the 3D head (offline and live alike) uses them."""
+    from keyshape.base.formats.labels import read_labels, write_labels
+    frames, shapes = read_labels(labels)
+    eyes, lip = (shapes[:, 14] + shapes[:, 18]) / 2, shapes[:, 31]
+    w = shapes[:, 22, 0] - shapes[:, 10, 0]
+    at = lambda f, dx: eyes + f * (lip - eyes) + np.stack([dx * w, 0 * w], 1)   # noqa: E731
+    nose = np.stack([at(0.05, 0), at(0.6, 0), at(0.75, -0.12), at(0.85, 0), at(0.75, 0.12)], 1)
+    write_labels(labels, frames, np.concatenate([shapes, nose], 1))
 
 
 def live_args(d: Path, source: str | None = None, *extra: str) -> list[str]:
@@ -152,6 +166,7 @@ def test_head_and_eye_angles_equal_the_offline_ones(take):
     from keyshape.retarget.rig import load_rig
     _, live = _receive(take)
     tr = read_tracks(take / "t.csv")
+    assert tr.aux["nose"].shape == (N_FRAMES, 5, 2)                  # the model's nose: the 3D head's too
     causal = copy.copy(head_3d_from_tracks(tr))
     causal.smooth = 0.0
     head, _ = head_from_tracks(tr, tr.frame, None, 1.0, head=causal)
@@ -339,7 +354,8 @@ def test_a_frame_without_a_head_pose_holds_the_last_one(take):
                           say=lambda line: None)
     tr = read_tracks(take / "t.csv")
     one = [Tracks(tr.frame[i:i + 1], tr.time[i:i + 1], tr.confidence[i:i + 1], tr.success[i:i + 1],
-                  tr.points[i:i + 1], tr.pose[i:i + 1], {}) for i in (5, 6)]
+                  tr.points[i:i + 1], tr.pose[i:i + 1], {}, {k: v[i:i + 1] for k, v in tr.aux.items()})
+           for i in (5, 6)]
     first, _ = chain.head.frame(one[0])
     chain.head.estimator.camera_pose = lambda p: (np.full((len(p), 3, 3), np.nan), np.full((len(p), 3), np.nan))
     with warnings.catch_warnings():

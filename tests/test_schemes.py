@@ -76,3 +76,30 @@ def test_scheme_for_n_points():
     with pytest.raises(InputError, match="no built-in landmark scheme has 5 points"):
         scheme_for_n_points(5)
     assert set(BUILTIN) == {"contours48", "ibug68"}
+
+
+def test_contours48_nose_is_an_auxiliary_group():
+    """contours48's auxiliary nose (iBUG-68 27, 30, 31, 33, 35) is not among its 48 points; its full form
+    appends it (contours48+nose, 53 points, a 'nose' contour and region), loads by name, travels in a
+    model file's scheme dict and splits back; its 3D face is the ibug68 template's nose with its weights."""
+    from keyshape.base.schemes import load_head_template, scheme_from_dict, scheme_to_dict
+    s = load_scheme("contours48")
+    assert s.n_points == s.core == 48 and s.auxiliary == {"nose": (27, 30, 31, 33, 35)} and s.n_auxiliary == 5
+    f = s.full()
+    assert (f.name, f.n_points, f.core, f.base_name) == ("contours48+nose", 53, 48, "contours48")
+    assert f.contours["nose"] == f.regions["nose"] == (48, 49, 50, 51, 52) and f.rigid == s.rigid
+    assert f.full() is f and load_scheme("contours48+nose") == f
+    assert scheme_from_dict(scheme_to_dict(f), "x") == f and scheme_from_dict(scheme_to_dict(s), "x") == s
+    pts = np.arange(53 * 2, dtype=float).reshape(53, 2)
+    core, aux = f.split(pts)
+    assert core.shape == (48, 2) and np.array_equal(aux["nose"], pts[48:])
+    X, w = load_head_template(f)
+    X68, w68 = load_head_template("ibug68")
+    X48, _ = load_head_template(s)
+    assert np.array_equal(X[:48], X48) and np.array_equal(X[48:], X68[[27, 30, 31, 33, 35]])
+    assert np.array_equal(w[48:], w68[[27, 30, 31, 33, 35]]) and (w[48:] > 0).all()
+    with pytest.raises(InputError, match="auxiliary points nose"):
+        load_scheme("contours48+ears")
+    bad = {**scheme_to_dict(s), "auxiliary": {"nose": {"ibug68": [27, 70]}}}
+    with pytest.raises(InputError, match="auxiliary group 'nose'"):
+        scheme_from_dict(bad, "bad.json")

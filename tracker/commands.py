@@ -33,7 +33,9 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
     video : path of the video the labels belong to
     labels : a folder of ``NNNNNN.pts`` files, or ``(frames (n,), shapes (n, n_points, 2))`` arrays
     scheme : as :class:`AppearanceModel`; None: the scheme the labels folder was made in by
-        ``keyshape label`` (its ``session.json``), else ``contours48``
+        ``keyshape label`` (its ``session.json``), else ``contours48``; labels that carry the scheme's
+        auxiliary points too (``Scheme.auxiliary``: the nose, 48 + 5 points) train its
+        :meth:`~keyshape.base.schemes.Scheme.full` form, whose tracks carry them in their own columns
     n_components, n_morphs, rng : as :class:`AppearanceModel`
 
     Raises
@@ -47,12 +49,20 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
     sch = load_scheme(scheme)
     if isinstance(labels, (str, Path)):
         source = Path(labels)
-        frames, shapes = read_labels(labels, n_points=sch.n_points)
+        frames, shapes = read_labels(labels)
+        if shapes.shape[1] == sch.full().n_points:     # labelled with the scheme's auxiliary points (the nose)
+            sch = sch.full()
+        elif shapes.shape[1] != sch.n_points:
+            raise InputError(f"labels of {shapes.shape[1]} points, expected {sch.n_points} for scheme {sch.name!r}"
+                             + (f" ({sch.full().n_points} with its {'+'.join(sch.auxiliary)} points)"
+                                if sch.auxiliary and not sch.n_core else ""), source)
     else:
         source = None
         frames, shapes = (np.asarray(a) for a in labels)
         frames = frames.astype(np.int64)
         shapes = shapes.astype(np.float64)
+        if shapes.ndim == 3 and shapes.shape[1] == sch.full().n_points:
+            sch = sch.full()
         if shapes.ndim != 3 or shapes.shape[1:] != (sch.n_points, 2) or len(frames) != len(shapes):
             raise InputError(f"labels: expected frames (n,) and shapes (n, {sch.n_points}, 2) for scheme "
                              f"{sch.name!r}, got {frames.shape} and {shapes.shape}")
@@ -228,10 +238,11 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     if not rows:
         raise InputError(f"no frames from {start} on (the video has {reader.n_read} frames)", video)
     frame = np.array([r[0] for r in rows], dtype=np.int64)
+    points, aux = model.scheme_.split(np.stack([r[3] for r in rows]))
     return Tracks(frame, frame / fps, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                  np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]),
-                  {"model": model_fingerprint(model), "scheme": model.scheme_.name,
-                   "image_size": [int(reader.info.width), int(reader.info.height)]})
+                  points, np.stack([r[4] for r in rows]),
+                  {"model": model_fingerprint(model), "scheme": model.scheme_.base_name,
+                   "image_size": [int(reader.info.width), int(reader.info.height)]}, aux)
 
 
 def check_label_geometry(frames: np.ndarray, shapes: np.ndarray, labels_dir) -> None:
@@ -298,9 +309,10 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     try:
         with contextlib.ExitStack() as stack:
             f = stack.enter_context(open(tmp_csv, "w", newline="\n"))
-            meta = {"model": model_fingerprint(model), "scheme": model.scheme_.name,
+            sch = model.scheme_
+            meta = {"model": model_fingerprint(model), "scheme": sch.base_name,
                     "image_size": [int(info.width), int(info.height)]}
-            writer = TracksWriter(f, model.n_points)
+            writer = TracksWriter(f, sch.core, {g: len(src) for g, src in sch.auxiliary.items()} if sch.n_core else None)
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:
                 for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,

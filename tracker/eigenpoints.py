@@ -208,6 +208,8 @@ def region_groups(scheme: Scheme) -> dict[str, np.ndarray]:
             key = f"brow_{side}"
         elif name.startswith("lip"):
             key = "mouth"
+        elif name == "nose":                   # the auxiliary nose points (Scheme.auxiliary)
+            key = "nose"
         else:
             continue
         groups.setdefault(key, []).extend(int(i) for i in idx)

@@ -18,7 +18,9 @@ def register(subparsers) -> None:
     p.add_argument("video", help="the performance video")
     p.add_argument("--count", "-k", type=int, default=12, help="frames to label")
     p.add_argument("-o", "--out", required=True, help="label folder to make (or resume)")
-    p.add_argument("--scheme", default="contours48", help="landmark scheme: contours48, ibug68 or a JSON file")
+    p.add_argument("--scheme", default="contours48",
+                   help="landmark scheme: contours48 (labelled with its 5 nose points: contours48+nose), ibug68 "
+                        "or a JSON file")
     p.add_argument("--no-prefill", action="store_true",
                    help="start from a generic face shape instead of dlib's points")
     p.add_argument("--frames", type=_frame_list, default=None,

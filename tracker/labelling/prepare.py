@@ -32,12 +32,20 @@ def template_points(scheme, width: int, height: int) -> np.ndarray:
     from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
 
     p = mean_ibug68() * (0.3 * min(width, height)) + [width / 2, 0.4 * height]
-    if scheme.n_points == 68:
-        return p
-    if scheme.n_points == 48:
-        return ibug68_to_contours48(p)
+    if scheme.core == 68:
+        return with_auxiliary(p, p, scheme)
+    if scheme.core == 48:
+        return with_auxiliary(ibug68_to_contours48(p), p, scheme)
     raise InputError(f"no starting template for scheme {scheme.name!r} ({scheme.n_points} points): "
                      f"use contours48 or ibug68")
+
+
+def with_auxiliary(points: np.ndarray, points68: np.ndarray, scheme) -> np.ndarray:
+    """``points`` (the base scheme's) followed by the auxiliary points of a :meth:`~keyshape.base.schemes.Scheme.full`
+    ``scheme``, taken at their iBUG-68 sources in ``points68``."""
+    if not scheme.n_core:
+        return points
+    return np.concatenate([points, points68[[i for g in scheme.auxiliary.values() for i in g]]])
 
 
 def face_box(frames: np.ndarray, landmarker, margin: float = 0.15) -> tuple[int, int, int, int] | None:
@@ -69,10 +77,10 @@ def prefill(images: np.ndarray, scheme, landmarker) -> list[np.ndarray | None]:
         p = landmarker.detect(im, averaged=True)       # 14 views averaged: less of dlib's error in the labels
         if p is None:
             out.append(None)
-        elif scheme.n_points == 68:
-            out.append(p)
-        elif scheme.n_points == 48:
-            out.append(ibug68_to_contours48(p, im))
+        elif scheme.core == 68:
+            out.append(with_auxiliary(p, p, scheme))
+        elif scheme.core == 48:
+            out.append(with_auxiliary(ibug68_to_contours48(p, im), p, scheme))
         else:
             raise InputError(f"dlib pre-fill gives ibug68 or contours48, not {scheme.name!r}: use --no-prefill")
     return out
@@ -132,7 +140,7 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
 
     if int(count) < 1:
         raise InputError(f"--count must be at least 1, got {count}")
-    scheme = load_scheme(scheme_name)
+    scheme = load_scheme(scheme_name).full()            # with its auxiliary points (contours48: the nose)
     out = Path(out)
     reader = VideoReader(video)
     info = reader.info
@@ -145,8 +153,9 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
     if sess_path.is_file():
         from keyshape.base.formats.labels import read_session  # noqa: PLC0415
         old = read_session(out)
-        if Path(old.get("video", "")).name == info.path.name and old["scheme"] == scheme.name:
+        if Path(old.get("video", "")).name == info.path.name and old["scheme"] in (scheme.name, scheme.base_name):
             session = old
+            scheme = load_scheme(old["scheme"])     # a folder labelled before the nose points stays without them
             if frames is not None:      # --frames (or --more) on an existing folder: add those frames
                 add = sorted(set(int(f) for f in frames))
                 if add and (add[0] < 0 or add[-1] >= info.n_frames):

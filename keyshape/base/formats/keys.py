@@ -222,6 +222,8 @@ def _head_pose_3d(hp: dict, n: int, path) -> dict:
         ref = np.asarray(hp["reference"], dtype=np.float64)
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise InputError(f"malformed head_pose (missing or bad field: {exc})", path) from None
+    if arr["generic"].ndim == 2 and len(arr["generic"]) > n:
+        n = len(arr["generic"])          # the scheme's points and its auxiliary ones after them (the nose)
     shapes = {"generic": (n, 3), "template": (n, 3), "weights": (n,), "centre": (2,), "zero": (3, 3), "frame": (3,)}
     for k, shp in shapes.items():
         if arr[k].shape != shp or not np.isfinite(arr[k]).all() or np.abs(arr[k]).max() > 1e6:

