@@ -13,7 +13,8 @@ def register(subparsers) -> None:
         description="For every frame, non-negative, sparse, left-right symmetric weights of the rig's shapes "
                     "(within their range) whose projected landmark motion matches the actor's head-stabilised "
                     "motion from the neutral that KEYS.json records (keyshape select), each eye calibrated so the "
-                    "take's deepest closure closes the rig's eye. Writes the rig's curves: CSV with the rig's "
+                    "take's deepest closure closes the rig's eye and each brow so its ends rise as far as the "
+                    "actor's. Writes the rig's curves: CSV with the rig's "
                     "names, Live Link Face CSV (--livelink) or a .glb with the rig's shapes. With --poses and "
                     "--weights, the artist's pose library overrides the solve at its keys.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -33,7 +34,8 @@ def register(subparsers) -> None:
                         "unless the actor's two sides differ")
     p.add_argument("--smooth", type=float, default=A.SOLVE_SMOOTH, help="temporal smoothness (dimensionless; 0: none)")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false",
-                   help="do not scale each eye's lid motion so that the take's deepest closure closes the rig's eye")
+                   help="do not scale each eye's lid motion so that the take's deepest closure closes the rig's eye, "
+                        "nor the brow shapes so that the brow ends rise as far as the actor's")
     p.add_argument("--keep-rest", dest="rest_offset", action="store_false", default=A.SOLVE_REST_OFFSET,
                    help="take the actor's rest from KEYS.json as it is (default: its error, one offset of its points' "
                         "left-right symmetric heights, lids excepted, shared by all frames, is solved with the "

@@ -8,7 +8,7 @@ from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.decompose.regions import available_regions, region_points
 from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
-from keyshape.retarget.solve import (box_lsq, contour_measures, eye_calibration, mirror_pairs, pose_override,
+from keyshape.retarget.solve import (box_lsq, brow_calibration, contour_measures, eye_calibration, mirror_pairs, pose_override,
                                      solve_curves, symmetric_offsets)
 
 SCHEME = load_scheme("contours48")
@@ -200,7 +200,10 @@ def test_solve_corrects_a_rest_frame_that_was_not_relaxed(shared_data):
     X = ln[None] + np.einsum("ts,spd->tpd", C, ld)
     rest = ln + np.einsum("s,spd->pd", held, ld)
     regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
-    got, kept = (solve_curves(X, regs, SCHEME, ln, ld, rs, names, rest_offset=o) for o in (True, False))
+    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names)
+    # the rest taken as it is, without the brow calibration (which would scale the under-driven brows back up
+    # by the take's gain, 0.80 here): what the offset alone does
+    kept = solve_curves(X, regs, SCHEME, ln, ld, rs, names, rest_offset=False, calibrate=False)
     for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "eyeBlink_L", "eyeBlink_R"):
         j = names.index(n)
         r = np.corrcoef(C[:, j], got[:, j])[0, 1]
@@ -209,6 +212,50 @@ def test_solve_corrects_a_rest_frame_that_was_not_relaxed(shared_data):
     for n in ("jawOpen", "mouthSmile_L", "browInnerUp_L"):        # the rest taken as it is: under-driven
         j = names.index(n)
         assert np.polyfit(C[:, j], kept[:, j], 1)[0] < 0.6, n
+
+
+def _brow_ends(motion):
+    """(T, 4) heights (up > 0) of both ends of both brows (contours48 points 0, 4, 5, 9) of a motion."""
+    return -motion[:, [0, 4, 5, 9], 1]
+
+
+def test_brow_ends_rise_as_far_as_the_actors(shared_data):
+    """The actor raises the brows in other proportions than the rig's shapes (the brow ends 1.4x the
+    rig's pattern, the brows' middles as the rig's): the solved rig's brow ends rise as far as the
+    actor's (gain 0.93-1.07, r >= 0.97); the uncalibrated fit leaves them short (0.82-0.87)."""
+    rig, ln, ld, rs = _ict(shared_data)
+    names = rig.names
+    C = _performance(names, n=300, seed=3)
+    C[:, names.index("browOuterUp_R")] = C[:, names.index("browOuterUp_L")]
+    brows = [names.index(f"brow{k}_{s}") for k in ("InnerUp", "OuterUp") for s in "LR"]
+    dl = ld.copy()
+    dl[np.ix_(brows, [0, 4, 5, 9], [1])] *= 1.4                 # the actor's brow ends move more
+    X = ln[None] + np.einsum("ts,spd->tpd", C, dl)
+    regs = {r: (region_points(SCHEME, r), ln[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
+    actor = _brow_ends(X - ln)
+    for calibrate, lo, hi in ((True, 0.93, 1.07), (False, 0.0, 0.88)):
+        got = solve_curves(X, regs, SCHEME, ln, ld, rs, names, calibrate=calibrate)
+        rig_ends = _brow_ends(np.einsum("ts,spd->tpd", got, ld))
+        for e in range(4):
+            r = np.corrcoef(actor[:, e], rig_ends[:, e])[0, 1]
+            gain = np.polyfit(actor[:, e], rig_ends[:, e], 1)[0]
+            assert lo <= gain <= hi and r >= 0.97, (calibrate, e, r, gain)
+
+
+def test_brow_calibration_keeps_a_fit_that_is_already_at_size():
+    """Where the fit's brow ends already move as the actor's, every scale is 1; shapes that do not
+    move the brows most (a lid shape) keep 1 whatever the brows do."""
+    pts = region_points(SCHEME, "eyes")
+    rng = np.random.default_rng(0)
+    A = rng.normal(scale=0.01, size=(3, len(pts), 2))
+    A[0, :5, 1] = -np.array([0.3, 0.8, 1.0, 1.0, 0.7])           # a brow shape: the first brow up
+    A[1, 5:10, 1] = -np.array([0.7, 1.0, 1.0, 0.8, 0.3])          # the other brow
+    A[2, 10:18, 1] = 2.0                                          # a lid shape
+    c = rng.uniform(0, 1, (200, 3))
+    motion = np.einsum("ts,spd->tpd", c, A)
+    assert np.allclose(brow_calibration(SCHEME, pts, A, motion, c), 1.0)
+    short = brow_calibration(SCHEME, pts, A, motion, 0.5 * c)      # the fit at half the size: 2x
+    assert np.allclose(short[:2], 2.0, atol=0.05) and short[2] == 1.0
 
 
 def test_fixed_curves_are_taken_out_before_the_solve(shared_data):
