@@ -158,6 +158,83 @@ def _reflect101(i: np.ndarray, n: int) -> np.ndarray:
     return np.minimum(np.where(i >= n, 2 * n - 2 - i, i), n - 1).clip(0)
 
 
+class _RegionRows:
+    """One region model's constant rows and work rows, so that one matrix product gives every inner
+    product of a forward-additive step of :meth:`Tracker.read_region` and :meth:`Tracker.read_lips`.
+
+    ``rows`` is ``(q + 3 + p, n)``: the region's projection basis ``Qᵀ`` (``q`` rows: constant and
+    appearance, ``RegionModel.qt``), its mean appearance ``m``, a row of ones, then, written per crop,
+    the raw grey levels ``v`` of the region's ``n`` pixels and the ``p`` raw Jacobian rows ``G`` (the
+    3x3 Sobel gradients in x and y; for the lips also each times the pixel's x from the box centre,
+    ``p = 4``). ``A = rows @ rows[q + 2:]ᵀ`` holds ``Qᵀv, QᵀG`` (rows ``:q``), ``m·v, m·G``, ``1·v, 1·G``,
+    ``v·v, v·G`` and ``G Gᵀ``. The normalised error ``e = (v - μ)/σ - m`` and the Jacobian
+    ``J = G / (8σ)`` are affine in ``v`` and ``G`` with scalar coefficients, so ``Qᵀe``, ``|e|²``, ``J e``,
+    ``QᵀJ`` and ``J Jᵀ`` follow from ``A`` without forming ``e`` or ``J`` (:meth:`moments`); the
+    coefficients ``pinv_i e = (pinv_i Q) Qᵀe`` too (``coef``; the rows of ``pinv_i`` lie in the span of ``Q``).
+    """
+
+    def __init__(self, rm, p: int, xc: np.ndarray | None = None):
+        q, n = rm.qt.shape
+        self.q, self.n, self.p = q, n, p
+        self.rows = np.zeros((q + 3 + p, n))
+        self.rows[:q] = rm.qt
+        self.rows[q] = rm.mean_i
+        self.rows[q + 1] = 1.0
+        self.q1 = rm.qt.sum(1)                      # Qᵀ1
+        self.qm = rm.qt @ rm.mean_i                 # Qᵀm
+        self.m1, self.mm = float(rm.mean_i.sum()), float(rm.mean_i @ rm.mean_i)
+        self.coef = rm.pinv_i @ rm.qt.T              # (n_coef, q): c = coef Qᵀe
+        self.inv_var = 1.0 / rm.variance
+        self.mean_l, self.ul = rm.mean_l, rm.ul
+        self.index = rm.index
+        self.box = tuple(int(v) for v in rm.box)
+        self.xc = xc
+
+    def load(self, crop: np.ndarray, grad: bool) -> np.ndarray:
+        """Write ``crop``'s grey levels (and with ``grad`` its Jacobian rows) and return ``A``
+        (``rows @ rows[q + 2:]ᵀ``; without ``grad`` only its first column, ``rows[:q + 3] @ v``)."""
+        q, rows, idx = self.q, self.rows, self.index
+        rows[q + 2] = crop.ravel()[idx]
+        if not grad:
+            return rows[:q + 3] @ rows[q + 2]
+        gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
+        rows[q + 3] = gx.ravel()[idx]
+        rows[q + 4] = gy.ravel()[idx]
+        if self.p == 4:
+            np.multiply(rows[q + 3:q + 5], self.xc, out=rows[q + 5:q + 7])
+        return rows @ rows[q + 2:].T
+
+    def moments(self, a: np.ndarray) -> tuple:
+        """``(r, Qᵀe, s, M, B)`` from ``A`` (:meth:`load`): the distance ``r = |e|² - |Qᵀe|²`` of the
+        crop from the region's subspace, ``Qᵀe`` (a view of ``A``, overwritten in place), the scale
+        ``s = 1/σ``, and with the Jacobian rows ``M = [Qᵀe, QᵀG]ᵀ[Qᵀe, QᵀG]`` and ``B = A[q:]`` (lists)."""
+        q, n = self.q, self.n
+        grad = a.ndim == 2
+        qe = a[:q, 0] if grad else a[:q]
+        if grad:
+            b = a[q:].tolist()
+            mv, sv, vv = b[0][0], b[1][0], b[2][0]
+        else:
+            mv, sv, vv = a[q:].tolist()
+            b = None
+        mu = sv / n
+        e0 = vv - sv * mu                           # |v - μ|²
+        s = 1.0 / max(math.sqrt(max(e0, 0.0) / n), 1e-6)
+        qe *= s
+        qe -= (s * mu) * self.q1
+        qe -= self.qm
+        ee = s * s * e0 - 2.0 * s * (mv - mu * self.m1) + self.mm
+        if not grad:
+            return ee - float(qe @ qe), qe, s, None, None
+        m = a[:q].T @ a[:q]
+        return ee - float(m[0, 0]), qe, s, m, b
+
+    def read(self, qe: np.ndarray) -> tuple[np.ndarray, float]:
+        """Model-frame points (box coordinates = model) and ``mean c²/λ`` of the coefficients at ``Qᵀe``."""
+        c = self.coef @ qe
+        return (self.mean_l + self.ul @ c).reshape(-1, 2), float(c @ (c * self.inv_var)) / len(c)
+
+
 class _RegionBatch:
     """The region models' constant arrays, padded to common sizes, so that one Gauss-Newton step
     refines the translation of every region of a frame at once (:meth:`Tracker.read_regions`).
@@ -351,7 +428,8 @@ class Tracker:
         self.lip_stretch = float(lip_stretch)
         self.typical_shape_m2 = min(8.0, 0.5 * self.max_shape_m2)
         self._region_shift: dict = {}
-        self._jac_bufs: dict = {}          # read_lips' Jacobian work buffers, per tracker (trackers may share a model)
+        self._rows: dict = {}              # the regions' _RegionRows (work rows: per tracker, trackers may share a model)
+        self._lip_index: dict = {}
         self._m2 = 0.0
         m = model
         size = m.patch_size_
@@ -787,36 +865,59 @@ class Tracker:
         each kept only if it lowers that distance, ``|t|`` at most 8% of the
         face width): the global affine cannot follow every part of a face
         that turns or deforms, each feature moves a little on its own.
+        Every inner product of a step comes from one matrix product (:class:`_RegionRows`).
         """
-        j = np.empty((2, rm.n_pix))
-        jx, jy = j
-
-        def measure(crop):
-            e, sd = rm.error(crop)
-            qe = rm.qt @ e
-            return float(e @ e) - float(qe @ qe), e, (sd, qe)
-
-        def delta(crop, e, state):
-            sd, qe = state
-            gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-            jx[:] = gx.ravel()[rm.index]
-            jy[:] = gy.ravel()[rm.index]
-            np.multiply(j, 1.0 / (8.0 * sd), out=j)
-            qx, qy = j @ rm.qt.T
-            # J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe, entry by entry (issue 16:
-            # ten dot products cost less than the two small matrix products)
-            h00 = float(jx @ jx) - float(qx @ qx) + 1e-6
-            h01 = float(jx @ jy) - float(qx @ qy)
-            h11 = float(jy @ jy) - float(qy @ qy) + 1e-6
-            g0 = float(jx @ e) - float(qx @ qe)
-            g1 = float(jy @ e) - float(qy @ qe)
+        rr = self._region_rows(rm, 2)
+        x0, y0, w, h = rr.box
+        n = rr.n
+        crop = rm.crop(patch)
+        tx = ty = 0.0
+        best = None
+        lim = 0.08 * self.model.face_width
+        last = self.region_iter
+        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
+        for it in range(last + 1):
+            if it:
+                bx, by = x0 + tx, y0 + ty
+                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
+                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
+            r, qe, s, m, b = rr.moments(rr.load(crop, it < last))
+            if best is not None and r >= best[0]:
+                break
+            best = (r, tx, ty, qe)
+            if it == last:
+                break
+            # J = k G (k = 1/(8σ)): J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe) (issue 16:
+            # closed forms of a 2x2 system), G e = s(G v - μ G 1) - G m
+            (_, m01, m02), (_, m11, m12), (_, _, m22) = m.tolist()
+            (_, mgx, mgy), (sv, sgx, sgy), (_, vgx, vgy), (_, gxx, gxy), (_, _, gyy) = b
+            mu, k = sv / n, s / 8.0
+            k2 = k * k
+            h00 = k2 * (gxx - m11) + 1e-6
+            h01 = k2 * (gxy - m12)
+            h11 = k2 * (gyy - m22) + 1e-6
+            g0 = k * (s * (vgx - mu * sgx) - mgx - m01)
+            g1 = k * (s * (vgy - mu * sgy) - mgy - m02)
             det = h00 * h11 - h01 * h01
             if det <= 0:
-                return None
-            # Gauss-Newton step -H⁻¹g (2x2 in closed form)
-            return -(h11 * g0 - h01 * g1) / det, -(h00 * g1 - h01 * g0) / det
+                break
+            # Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px, |t| <= lim
+            tx = max(-lim, min(lim, tx + max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))))
+            ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))))
+        _, tx, ty, qe = best
+        t = np.array([tx, ty])
+        self._region_shift[rm.name] = t
+        pts, m2 = rr.read(qe)
+        self._m2 = max(self._m2, m2)
+        return pts + t
 
-        return self._refine_region(pyr, pose, rm, patch, measure, delta)
+    def _region_rows(self, rm, p: int) -> _RegionRows:
+        """The :class:`_RegionRows` of region model ``rm`` with ``p`` Jacobian rows (built once per tracker)."""
+        rr = self._rows.get((rm.name, p))
+        if rr is None or rr.n != rm.n_pix:
+            rr = self._rows[rm.name, p] = _RegionRows(rm, p, rm.box_xc if p == 4 else None)
+        return rr
 
     def read_lips(self, pyr: Pyramid, pose: np.ndarray, rms: list, patch: np.ndarray) -> list[np.ndarray]:
         """:meth:`read_region` for the lip regions together: each box has its own translation, and all
@@ -841,14 +942,19 @@ class Tracker:
         slim = self.lip_stretch
         lvl = pyramid_level(pyr, pose)
         (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        rrs = [self._region_rows(rm, 4) for rm in rms]
+        # each lip's rows/columns of the system: its translation (2 i, 2 i + 1), the shared stretch and tilt
+        blocks = self._lip_index.get(n)
+        if blocks is None:
+            blocks = self._lip_index[n] = [(np.ix_(b, b), b) for b in
+                                           (np.array([2 * i, 2 * i + 1, npar - 2, npar - 1]) for i in range(n))]
         t = [[0.0, 0.0] for _ in rms]
         st = kt = 0.0
-        geo = [(*rm.box.tolist(), rm.box_cx) for rm in rms]
+        geo = [(*rr.box, rm.box_cx) for rr, rm in zip(rrs, rms)]
         crops = [rm.crop(patch) for rm in rms]
         best = None
-        hess = np.empty((npar, npar))
-        grad = np.empty(npar)
-        for it in range(self.region_iter + 1):
+        last = self.region_iter
+        for it in range(last + 1):
             if it:
                 crops = []
                 for (x0, y0, w, h, cx), (tx, ty) in zip(geo, t):
@@ -857,38 +963,23 @@ class Tracker:
                     crops.append(warp_level(pyr, lvl, [[a00 * (1 + st) + a01 * kt, a01, a00 * bx + a01 * by + a02],
                                                        [a10 * (1 + st) + a11 * kt, a11, a10 * bx + a11 * by + a12]],
                                             w, h))
-            errs = [rm.error(c) for rm, c in zip(rms, crops)]
-            qes = [rm.qt @ e for rm, (e, _) in zip(rms, errs)]
-            r = sum(float(e @ e) - float(qe @ qe) for (e, _), qe in zip(errs, qes))
+            mats = [rr.load(c, it < last) for rr, c in zip(rrs, crops)]
+            moms = [rr.moments(a) for rr, a in zip(rrs, mats)]
+            r = sum(mo[0] for mo in moms)
             if best is not None and r >= best[0]:
                 break
-            best = (r, [list(v) for v in t], st, kt, [e for e, _ in errs])
-            if it == self.region_iter:
+            best = (r, [list(v) for v in t], st, kt, [mo[1] for mo in moms])
+            if it == last:
                 break
-            hess.fill(0.0)
-            grad.fill(0.0)
-            for i, (rm, crop, (e, sd), qe, g) in enumerate(zip(rms, crops, errs, qes, geo)):
-                gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-                j = self._jac_bufs.get(rm.name)
-                if j is None or j.shape[1] != rm.n_pix:
-                    j = self._jac_bufs[rm.name] = np.empty((4, rm.n_pix))
-                j[0] = gx.ravel()[rm.index]
-                j[1] = gy.ravel()[rm.index]
-                j[:2] *= 1.0 / (8.0 * sd)
-                np.multiply(j[0], rm.box_xc, out=j[2])
-                np.multiply(j[1], rm.box_xc, out=j[3])
-                qj = j @ rm.qt.T
-                # projected out as in read_region: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ), J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe;
-                # rows/columns: this region's translation (2 i, 2 i + 1), the shared stretch and tilt (last two)
-                hr = j @ j.T - qj @ qj.T
-                gr = j @ e - qj @ qe
-                a = 2 * i
-                hess[a:a + 2, a:a + 2] += hr[:2, :2]
-                hess[a:a + 2, -2:] += hr[:2, 2:]
-                hess[-2:, a:a + 2] += hr[2:, :2]
-                hess[-2:, -2:] += hr[2:, 2:]
-                grad[a:a + 2] += gr[:2]
-                grad[-2:] += gr[2:]
+            hess = np.zeros((npar, npar))
+            grad = np.zeros(npar)
+            for rr, a, (_, _, s, m, b), (hix, gix) in zip(rrs, mats, moms, blocks):
+                # projected out as in read_region, J = G/(8σ) with rows x, y, x (b_x - c_x), y (b_x - c_x):
+                # J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe), G e = s(G v - μ G 1) - G m
+                q = rr.q
+                k = s / 8.0
+                hess[hix] += (k * k) * (a[q + 3:, 1:] - m[1:, 1:])
+                grad[gix] += k * (s * (a[q + 2, 1:] - (b[1][0] / rr.n) * a[q + 1, 1:]) - a[q, 1:] - m[0, 1:])
             hess.flat[::npar + 1] += 1e-6
             ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
             if not ok:
@@ -899,13 +990,12 @@ class Tracker:
                 v[1] = max(-lim, min(lim, v[1] + max(-2.0, min(2.0, sol[2 * i + 1]))))
             st = max(-slim, min(slim, st + sol[-2]))
             kt = max(-slim, min(slim, kt + sol[-1]))
-        _, t, st, kt, es = best
+        _, t, st, kt, qes = best
         out = []
-        for rm, e, (x0, y0, w, h, cx), (tx, ty) in zip(rms, es, geo, t):
+        for rm, rr, qe, (x0, y0, w, h, cx), (tx, ty) in zip(rms, rrs, qes, geo, t):
             self._region_shift[rm.name] = np.array([tx, ty, st, kt])
-            c = rm.pinv_i @ e
-            self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
-            pts = (rm.mean_l + rm.ul @ c).reshape(-1, 2)
+            pts, m2 = rr.read(qe)
+            self._m2 = max(self._m2, m2)
             bx = pts[:, 0] - (x0 + cx)
             pts[:, 0] += tx + st * bx
             pts[:, 1] += ty + kt * bx
