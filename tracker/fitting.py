@@ -114,13 +114,14 @@ class _Level:
         b = b - b.mean(0)
         q, _ = np.linalg.qr(np.hstack([np.ones((len(b), 1)), b]))
         self.q, self.xx, self.yy = q, xx.astype(np.float64), yy.astype(np.float64)
-        # polish: the Jacobian's columns are (gx, gy) times (x, y, 1), so JᵀJ and Jᵀe are sums of
-        # gradient products weighted by the monomials below, and QᵀJ is [Q x | Q y | Q]ᵀ [gx gy]
-        self.mono = np.stack([xx * xx, xx * yy, yy * yy, xx, yy, np.ones(len(xx))], axis=1).astype(np.float64)
-        self.q_mono = np.hstack([q * xx[:, None], q * yy[:, None], q]).T.copy()      # (3 k', n_pix)
-        self.q_mono32 = self.q_mono.astype(np.float32)
         self.qt = np.ascontiguousarray(q.T)
-        self.prod = np.empty((len(self.index), 5))    # work buffer: gx², gx gy, gy², gx e, gy e
+        # polish: rows [Qᵀ; e; Jᵀ] in single precision, Qᵀ constant, the error e and the Jacobian's six
+        # rows (gx x, gy x, gx y, gy y, gx, gy) written per patch, so that one product with [e; Jᵀ]ᵀ
+        # gives QᵀJ, eᵀJ and JᵀJ (and a 1e-7 relative rounding of them moves a step by far less than
+        # the stopping test; the normal equations and the solve are float64)
+        self.rows32 = np.zeros((q.shape[1] + 7, len(self.index)), np.float32)
+        self.rows32[:q.shape[1]] = q.T
+        self.x32, self.y32 = xx.astype(np.float32), yy.astype(np.float32)
         sd_po = sd - q @ (q.T @ sd)
         # weighted Gauss-Newton: pixels that vary a lot between labelled frames (mouth, eyelids)
         # count less, so an expression never seen in training does not drag the pose
@@ -525,7 +526,8 @@ class Tracker:
         a = np.asarray(pose, np.float64)
         n = len(lv.index)
         nq = lv.q.shape[1]
-        prod = lv.prod
+        rows = lv.rows32
+        jt = rows[nq + 1:]                                  # Jᵀ: gx x, gy x, gx y, gy y, gx, gy
         best_r, its = None, 0
         for _ in range(self.n_polish):
             patch = warp_patch_u8(pyr, a, lv.size)
@@ -543,23 +545,14 @@ class Tracker:
                 break
             best_r, prev = r, a
             gxi, gyi = cv2.spatialGradient(patch)          # 3x3 Sobel, unscaled (exact on uint8)
-            g = np.empty((n, 2))
-            g[:, 0] = gxi.ravel()[lv.index]
-            g[:, 1] = gyi.ravel()[lv.index]
-            g *= 1.0 / (8.0 * sd)
-            gx, gy = g[:, 0], g[:, 1]
-            np.multiply(gx, gx, out=prod[:, 0])
-            np.multiply(gx, gy, out=prod[:, 1])
-            np.multiply(gy, gy, out=prod[:, 2])
-            np.multiply(gx, e, out=prod[:, 3])
-            np.multiply(gy, e, out=prod[:, 4])
-            mom = lv.mono.T @ prod                          # (6 monomials, 5 products)
-            jtj = mom[_JTJ_MONO, _JTJ_PROD]
-            jte = mom[_JTE_MONO, _JTE_PROD]
-            # (3 k', 2) in single precision (half the cost; the normal equations and the solve stay
-            # float64: a relative 1e-7 change of QᵀJ moves the step by far less than the stopping test)
-            qg = (lv.q_mono32 @ g.astype(np.float32)).astype(np.float64)
-            qj = qg.reshape(3, nq, 2)[_COL_MONO3, :, _COL_GRAD].T   # (k', 6) = QᵀJ
+            jt[4] = gxi.ravel()[lv.index]
+            jt[5] = gyi.ravel()[lv.index]
+            jt[4:] *= 1.0 / (8.0 * sd)
+            np.multiply(jt[4:], lv.x32, out=jt[:2])
+            np.multiply(jt[4:], lv.y32, out=jt[2:4])
+            rows[nq] = e
+            prods = (rows @ rows[nq:].T).astype(np.float64)  # (k' + 7, 7): [Qᵀ; eᵀ; Jᵀ] [e J]
+            qj, jte, jtj = prods[:nq, 1:], prods[nq, 1:], prods[nq + 1:, 1:]
             # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
             hess = jtj - qj.T @ qj
             hess[_DIAG6] += 1e-9
