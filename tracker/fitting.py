@@ -475,6 +475,8 @@ class Tracker:
         regions = list(m.region_models_)
         lip_group = [r for r, rm in enumerate(regions) if self._is_lip(rm)]
         self._batch = _RegionBatch(regions, lip_group, size) if regions and batch_regions else None
+        self._region_sets = ([rm for rm in regions if not self._is_lip(rm)], [regions[r] for r in lip_group])
+        self._region_count = None          # how many regions read each point (_read_regions_each)
         if region_step not in ("inverse", "forward"):
             raise InputError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
         self.region_step = region_step
@@ -766,16 +768,17 @@ class Tracker:
     def _read_regions_each(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray, n_points: int):
         """:meth:`read_regions` one region at a time (:meth:`read_region`, :meth:`read_lips`): the reference."""
         acc = np.zeros((n_points, 2))
-        cnt = np.zeros(n_points)
-        lips = [rm for rm in self.model.region_models_ if self._is_lip(rm)]
-        for rm in self.model.region_models_:
-            if rm not in lips:
-                read = self.read_region_inverse if rm.name in self._inverse else self.read_region
-                acc[rm.points] += read(pyr, pose, rm, patch)
-                cnt[rm.points] += 1
+        alone, lips = self._region_sets
+        for rm in alone:
+            read = self.read_region_inverse if rm.name in self._inverse else self.read_region
+            acc[rm.points] += read(pyr, pose, rm, patch)
         if lips:
             for rm, pts in zip(lips, self.read_lips(pyr, pose, lips, patch)):
                 acc[rm.points] += pts
+        cnt = self._region_count
+        if cnt is None or len(cnt) != n_points:
+            cnt = self._region_count = np.zeros(n_points)
+            for rm in alone + lips:
                 cnt[rm.points] += 1
         hit = cnt > 0
         return hit, acc[hit] / cnt[hit, None]             # points shared by two regions (lip corners): mean
