@@ -29,15 +29,6 @@ from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, p
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
-# polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
-_COL_GRAD = np.array([0, 1, 0, 1, 0, 1])
-_COL_MONO3 = np.array([0, 0, 1, 1, 2, 2])
-_MONO_PAIR = np.array([[0, 1, 3], [1, 2, 4], [3, 4, 5]])     # x², xy, y², x, y, 1 by monomial pair
-_GRAD_PAIR = np.array([[0, 1], [1, 2]])                      # gx², gx gy, gy² by gradient pair
-_JTJ_MONO = _MONO_PAIR[_COL_MONO3[:, None], _COL_MONO3[None, :]]
-_JTJ_PROD = _GRAD_PAIR[_COL_GRAD[:, None], _COL_GRAD[None, :]]
-_JTE_MONO = np.array([3, 3, 4, 4, 5, 5])                     # x, x, y, y, 1, 1
-_JTE_PROD = 3 + _COL_GRAD                                    # gx e, gy e
 _DIAG6 = np.diag_indices(6)
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
 
