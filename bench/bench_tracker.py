@@ -3,7 +3,8 @@
 Synthesises 640x480 footage (or takes ``--video`` with ``--labels``), trains on
 its labels (timed) and reports frames/s of decode-only, of decode + tracking
 (decoding in a background thread, the default) and their ratio, and the same
-without the decode thread, and the CPU time per frame of each (``time.process_time``);
+without the decode thread, and the CPU time per frame of each (``time.process_time``), and on
+synthetic footage the track's NME against the true points;
 then the tracker with the region models' forward-additive steps (the default) against the
 inverse-compositional ones, and the forward steps of all regions at once (``Tracker(region_step=...,
 batch_regions=...)``, thread CPU time on the same decoded frames, interleaved),
@@ -64,6 +65,17 @@ def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
     return out
 
 
+def _nme(tracks, truth, scheme) -> float:
+    """Mean over frames of the mean point-to-point error of ``tracks`` against ``truth`` over the true
+    inter-ocular distance (``bench/synth_accuracy.py``'s NME; lost frames left out)."""
+    import numpy as np
+    from keyshape.base.formats.tracks import read_tracks
+
+    got, want = read_tracks(tracks).points, read_tracks(truth).points
+    d = np.linalg.norm(got - want, axis=-1).mean(1) / scheme.interocular_distance(want)
+    return float(np.nanmean(d))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     add_footage_args(ap, frames=600)
@@ -72,7 +84,7 @@ def main() -> None:
     from keyshape.base.formats.video import VideoReader
 
     with tempfile.TemporaryDirectory() as tmp:
-        video, labels, _ = footage(args, tmp)
+        video, labels, truth = footage(args, tmp)
         t0 = time.perf_counter()
         model, _ = train_model(video, labels, args.scheme)
         t_train = time.perf_counter() - t0
@@ -100,6 +112,9 @@ def main() -> None:
         print(f"video {video.name}: {n} frames {info.width}x{info.height}; load average {load0:.2f} at the start, "
               f"{load1:.2f} at the end (2 cores: above 2 the figures are slowed by other work)")
         print(f"training on {len(model.train_poses_)} labels: {t_train:.1f} s")
+        if truth is not None:
+            print(f"synthetic NME of the track (mean point error / inter-ocular distance): "
+                  f"{_nme(Path(tmp) / 'tracks.csv', truth, model.scheme_):.5f}")
         print(f"decode only: {decode:.0f} frames/s; decode + track: {summ.fps:.0f} frames/s; "
               f"ratio {summ.fps / decode:.2f} (aim >= 0.5; floor 150 frames/s); lost {summ.n_lost}")
         print(f"without the decode thread: decode + track {summ0.fps:.0f} frames/s; ratio {summ0.fps / decode:.2f}")

@@ -14,7 +14,7 @@ from keyshape.base.formats.tracks import read_tracks
 from keyshape.base.formats.labels import write_labels, write_pts
 from keyshape.base.schemes import load_scheme
 from keyshape.tracker.smoothing import StreamSmoother, smooth
-from keyshape.base.formats.video import video_writer
+from keyshape.base.formats.video import VideoReader, video_writer
 from keyshape.base.geometry import apply_affine, compose_affine, fit_affine, fit_similarity, invert_affine
 from keyshape.base.warp import PiecewiseAffine, morph, triangulate
 
@@ -441,3 +441,25 @@ def test_brow_border_is_its_own_and_reads_held_out_brows(footage, tmp_path):
     mf = wide.to_file()
     del mf.params["brow_grow"]
     assert AppearanceModel.from_file(mf).brow_grow is None
+
+
+def test_decode_thread_converts_to_gray_as_the_tracker_does(files, tmp_path):
+    """Issue 26: with the decode thread the frames reach the tracker already gray (converted in that
+    thread): the same points, poses and kept (colour) frames as the tracker converting them itself."""
+    from keyshape.tracker.commands import iter_track
+
+    d, video, model, labels = files
+    tinted = tmp_path / "tinted.avi"
+    frames = [f for _, f in VideoReader(video)]
+    with video_writer(tinted, 10.0, (frames[0].shape[1], frames[0].shape[0])) as w:
+        for f in frames:
+            g = f[:, :, 0].astype(np.float64)
+            w.write(np.stack([g, 0.8 * g + 20, np.minimum(1.2 * g, 255)], -1).astype(np.uint8))
+    model = AppearanceModel.load(model)
+    runs = [list(iter_track(tinted, model, keep_frames=True, decode_thread=t)) for t in (True, False)]
+    assert len(runs[0]) == len(runs[1]) == len(frames)
+    for (pa, ra, fa), (pb, rb, fb) in zip(*runs):
+        assert fa.ndim == 3 and np.array_equal(fa, fb)
+        assert ra.success == rb.success and np.array_equal(ra.pose, rb.pose)
+        np.testing.assert_array_equal(pa, pb)
+    assert sum(r.success for _, r, _ in runs[0]) >= len(frames) - 1

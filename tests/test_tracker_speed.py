@@ -1,5 +1,6 @@
-"""The tracker's speed refactors of issue 16 keep its results: the per-region refinement and the
-warp helpers against the straightforward code they replaced (kept here as the reference)."""
+"""The tracker's speed refactors of issues 16 and 26 keep its results: the per-region refinement (each
+region alone and the lips together) and the warp helpers against the straightforward code they replaced
+(kept here as the reference)."""
 from __future__ import annotations
 
 import math
@@ -72,6 +73,74 @@ def _read_region_reference(tracker, pyr, pose, rm, patch):
     return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + np.array(t), float(c @ (c / rm.variance)) / len(c)
 
 
+def _read_lips_reference(tracker, pyr, pose, rms, patch):
+    """Tracker.read_lips as it was before issue 26's one-product step (the normalised errors and the Jacobian
+    rows formed, one product per block); returns the points and the largest ``mean c²/λ``."""
+    n = len(rms)
+    npar = 2 * n + 2
+    lim = 0.08 * tracker.model.face_width
+    slim = tracker.lip_stretch
+    lvl = pyramid_level(pyr, pose)
+    (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+    t = [[0.0, 0.0] for _ in rms]
+    st = kt = 0.0
+    geo = [(*rm.box.tolist(), rm.box_cx) for rm in rms]
+    crops = [rm.crop(patch) for rm in rms]
+    best = None
+    for it in range(tracker.region_iter + 1):
+        if it:
+            crops = []
+            for (x0, y0, w, h, cx), (tx, ty) in zip(geo, t):
+                bx, by = x0 + tx - st * cx, y0 + ty - kt * cx
+                crops.append(warp_level(pyr, lvl, [[a00 * (1 + st) + a01 * kt, a01, a00 * bx + a01 * by + a02],
+                                                   [a10 * (1 + st) + a11 * kt, a11, a10 * bx + a11 * by + a12]], w, h))
+        errs = [rm.error(c) for rm, c in zip(rms, crops)]
+        qes = [rm.qt @ e for rm, (e, _) in zip(rms, errs)]
+        r = sum(float(e @ e) - float(qe @ qe) for (e, _), qe in zip(errs, qes))
+        if best is not None and r >= best[0]:
+            break
+        best = (r, [list(v) for v in t], st, kt, [e for e, _ in errs])
+        if it == tracker.region_iter:
+            break
+        hess = np.zeros((npar, npar))
+        grad = np.zeros(npar)
+        for i, (rm, crop, (e, sd), qe) in enumerate(zip(rms, crops, errs, qes)):
+            gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
+            j = np.empty((4, rm.n_pix))
+            j[0] = gx.ravel()[rm.index]
+            j[1] = gy.ravel()[rm.index]
+            j[:2] *= 1.0 / (8.0 * sd)
+            j[2] = j[0] * rm.box_xc
+            j[3] = j[1] * rm.box_xc
+            qj = j @ rm.qt.T
+            hr = j @ j.T - qj @ qj.T
+            gr = j @ e - qj @ qe
+            idx = [2 * i, 2 * i + 1, npar - 2, npar - 1]
+            hess[np.ix_(idx, idx)] += hr
+            grad[idx] += gr
+        hess.flat[::npar + 1] += 1e-6
+        ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
+        if not ok:
+            break
+        sol = sol.ravel().tolist()
+        for i, v in enumerate(t):
+            v[0] = max(-lim, min(lim, v[0] + max(-2.0, min(2.0, sol[2 * i]))))
+            v[1] = max(-lim, min(lim, v[1] + max(-2.0, min(2.0, sol[2 * i + 1]))))
+        st = max(-slim, min(slim, st + sol[-2]))
+        kt = max(-slim, min(slim, kt + sol[-1]))
+    _, t, st, kt, es = best
+    out, m2 = [], 0.0
+    for rm, e, (x0, y0, w, h, cx), (tx, ty) in zip(rms, es, geo, t):
+        c = rm.pinv_i @ e
+        m2 = max(m2, float(c @ (c / rm.variance)) / len(c))
+        pts = (rm.mean_l + rm.ul @ c).reshape(-1, 2)
+        bx = pts[:, 0] - (x0 + cx)
+        pts[:, 0] += tx + st * bx
+        pts[:, 1] += ty + kt * bx
+        out.append(pts)
+    return out, m2
+
+
 def test_warp_level_is_bit_identical_to_the_old_warp():
     rng = np.random.default_rng(3)
     frame = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (5, 5), 1.5)
@@ -96,7 +165,7 @@ def test_region_reading_equals_the_reference(model, footage):  # noqa: F811
     assert model.region_models_
     tr = Tracker(model)
     rng = np.random.default_rng(5)
-    worst = 0.0
+    worst, moved = 0.0, []
     for frame in frames[:6]:
         tr.reset()
         res = tr.step(frame)
@@ -111,6 +180,14 @@ def test_region_reading_equals_the_reference(model, footage):  # noqa: F811
                 want, m2 = _read_region_reference(tr, pyr, pose, rm, patch)
                 worst = max(worst, float(np.abs(got - want).max()))
                 assert tr._m2 == pytest.approx(m2, rel=1e-9)
+            lips = [rm for rm in model.region_models_ if tr._is_lip(rm)]
+            tr._m2 = 0.0
+            got = tr.read_lips(pyr, pose, lips, patch)
+            want, m2 = _read_lips_reference(tr, pyr, pose, lips, patch)
+            worst = max(worst, max(float(np.abs(g - w).max()) for g, w in zip(got, want)))
+            assert tr._m2 == pytest.approx(m2, rel=1e-9)
+            moved.append(max(float(np.abs(g - rm.read(rm.crop(patch))).max()) for g, rm in zip(got, lips)))
+    assert len(lips) == 2 and np.median(moved) > 0.05          # the lips' boxes had steps to take
     assert worst < 1e-9
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
 from keyshape.base.progress import Progress
-from keyshape.tracker.eigenpoints import AppearanceModel
+from keyshape.tracker.eigenpoints import AppearanceModel, to_gray
 from keyshape.base.formats.tracks import PARTIAL_MARK, Tracks, TracksWriter, meta_line, meta_path, write_meta
 from keyshape.base.formats.labels import labels_scheme, read_labels
 from keyshape.base.schemes import load_scheme
@@ -165,6 +165,14 @@ def _prefetched(items, depth: int = 8):
         thread.join()
 
 
+def _with_gray(frames, start: int = 0):
+    """``(index, frame, gray)`` for each ``(index, frame)`` of ``frames`` from ``start`` on (before it the
+    frame twice, unconverted): the gray conversion :class:`~keyshape.tracker.eigenpoints.Pyramid` would do,
+    done where the frames are produced (the decode thread of :func:`iter_track`)."""
+    for i, frame in frames:
+        yield i, frame, (to_gray(frame) if i >= start else frame)
+
+
 def check_frame_size(model: AppearanceModel, width: int, height: int, video=None) -> None:
     """Refuse frames of another size than the model's labelled frames (a model trained on 640x480
     tracks a 320x240 video wrongly without losing a frame); models without a recorded size pass."""
@@ -184,8 +192,9 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     temporal smoothing ``smooth`` (which delays the output by its window). Frames before
     ``start`` are decoded and skipped; the tracker starts afresh at ``start``. On Ctrl-C the
     frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
-    With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead
-    (OpenCV's decoder releases the GIL, so decoding overlaps tracking; same frames, same order).
+    With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead and
+    converts them to gray (OpenCV's decoder and conversion release the GIL, so both overlap
+    tracking; same frames, same order, the same gray levels as the tracker's own conversion).
     """
     from keyshape.tracker.fitting import Tracker, single_threaded
     from keyshape.tracker.smoothing import StreamSmoother
@@ -199,12 +208,13 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
         # OpenCV and BLAS single-threaded while tracking (issue 16: less CPU per frame, the
         # same points); restored when the loop ends or the generator is closed
         with single_threaded():
-            for i, frame in _prefetched(reader) if decode_thread else reader:
+            frames = _prefetched(_with_gray(reader, start)) if decode_thread else ((i, f, f) for i, f in reader)
+            for i, frame, gray in frames:
                 if i < start:
                     continue
                 if stop is not None and i >= stop:
                     break
-                res = tracker.step(frame, i)
+                res = tracker.step(gray, i)
                 yield from ((pts, r, fr) for pts, (r, fr) in
                             smoother.push(res.points, (res, frame if keep_frames else None)))
     except KeyboardInterrupt as exc:

