@@ -326,8 +326,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     """
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
-    from keyshape.retarget.rig import project, rig_landmarks, shape_regions
-    from keyshape.retarget.solve import solve_curves
+    from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
+    from keyshape.retarget.solve import gaze_in_eye_region, solve_curves
 
     check_solve_options(sparsity, symmetry, smooth)
     scheme = load_scheme(scheme_name)
@@ -348,8 +348,14 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
                              gaze=gaze)
     fixed = gazed if eyes is not None and gaze == "shapes" else None      # the eyeLook* curves, the rest 0
-    curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
-                          sparsity, symmetry, smooth, calibrate=calibrate, fixed=fixed, rest_offset=rest_offset)
+    # the lids' region sees the pupils and the gaze shapes (a look down is not a blink); the gaze shapes'
+    # curves are written only with gaze="shapes" (from the eye angles), else the eye angles carry the gaze
+    regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
+    curves = solve_curves(shapes, regs, scheme, lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme),
+                          reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
+                          fixed=fixed, rest_offset=rest_offset)
+    if fixed is None:
+        curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
     return curves, motion, float(fps or tracks_rate or DEFAULT_FPS), eyes
 
 

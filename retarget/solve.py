@@ -66,16 +66,27 @@ OFFSET_FRAMES = 300
 
 #: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
 MIRROR = (("_L", "_R"), ("Left", "Right"))
+#: Shapes whose mirror image is another shape of the other side: the eyes turn together (a look to
+#: the actor's left is the left eye's ``eyeLookOut`` and the right eye's ``eyeLookIn``).
+CONJUGATE = (("eyeLookIn", "eyeLookOut"), ("eyeLookOut", "eyeLookIn"))
 
 
 def mirror_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
-    """Index pairs ``(i, j)`` of shapes whose names differ only by the side (``_L``/``_R``, ``Left``/``Right``)."""
+    """Index pairs ``(i, j)`` of mirrored shapes: names that differ only by the side (``_L``/``_R``,
+    ``Left``/``Right``), the horizontal gaze shapes crossed (``eyeLookIn_L`` with ``eyeLookOut_R``, :data:`CONJUGATE`)."""
     pos = {n: i for i, n in enumerate(names)}
     out = []
     for i, n in enumerate(names):
         for a, b in MIRROR:
-            if n.endswith(a) and n[: -len(a)] + b in pos:
-                out.append((i, pos[n[: -len(a)] + b]))
+            if not n.endswith(a):
+                continue
+            base = n[: -len(a)]
+            for x, y in CONJUGATE:
+                if base.startswith(x):
+                    base = y + base[len(x):]
+                    break
+            if base + b in pos:
+                out.append((i, pos[base + b]))
     return out
 
 
@@ -257,6 +268,12 @@ def _is_eye(scheme, name: str) -> bool:
     return name.startswith("eye") and bool(scheme.closed.get(name)) and bool(scheme.corners.get(name))
 
 
+def held_rest_points(scheme) -> list[int]:
+    """Points whose rest the rest's offset leaves alone: the lids (the open eye :func:`eye_calibration`
+    measures closure from) and the pupils (``pupil*`` contours; straight ahead is a gaze, not an expression)."""
+    return [p for name, pts in scheme.contours.items() if _is_eye(scheme, name) or name.startswith("pupil") for p in pts]
+
+
 def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Left-right symmetric heights of a region's points: the basis of the rest's offset.
 
@@ -338,6 +355,53 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
         contour = [loc[int(p)] for p in scheme.contours[name[: -len(" opening")]] if int(p) in loc]
         scale[contour] = k
     return scale
+
+
+def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                       region_shapes: Mapping[str, np.ndarray], scheme, shape_names: Sequence[str]):
+    """The region of the lids joined by the pupils and by the rig's gaze shapes (``eyeLook*``).
+
+    A look down lowers the lids (on ICT-FaceKit ``eyeLookDown`` drops the upper lid by 0.8 of a
+    blink's travel; people's lids follow their gaze alike): solved without its gaze shapes, the lid region
+    reads every downward look as a partial blink (the 3D synthetic take, seed 0, the true landmarks:
+    eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06). With the pupils in the region and
+    the gaze shapes moving them (:func:`~keyshape.retarget.rig.gaze_pupil_deltas`), the solve tells a
+    look (lids and pupil move together, the lower lid too) from a blink (the upper lid alone). The
+    pupils' rest is their median over the take (straight ahead, as :func:`keyshape.decompose.gaze.gaze_angles`).
+
+    Parameters
+    ----------
+    shapes : (T, n_points, 2) head-frame shapes (NaN rows: failed frames)
+    regions : {region: (point indices, the actor's neutral of those points)}
+    region_shapes : {region: indices of the rig shapes it drives}
+    scheme : the landmark scheme; shape_names : the rig's shape names
+
+    Returns
+    -------
+    ``(regions, region_shapes)``: new dicts, unchanged where the scheme has no pupils, the rig no gaze shapes,
+    no region holds both eyes' lids or a region already holds a pupil
+    """
+    from keyshape.decompose.gaze import EYES, has_gaze
+    from keyshape.retarget.rig import gaze_columns
+    regions, region_shapes = dict(regions), dict(region_shapes)
+    gaze = np.array([j for j, _, _ in gaze_columns(shape_names)], dtype=np.intp)
+    if not has_gaze(scheme) or not len(gaze):
+        return regions, region_shapes
+    lids = [int(p) for eye, _ in EYES for p in scheme.contours[eye]]
+    pupils = [int(scheme.contours[pupil][0]) for _, pupil in EYES]
+    held = {int(p) for idx, _ in regions.values() for p in idx}
+    home = [r for r, (idx, _) in regions.items() if set(lids) <= {int(p) for p in idx}]
+    if not home or held & set(pupils):
+        return regions, region_shapes
+    X = np.asarray(shapes, float)
+    ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
+    idx, rest = regions[home[0]]
+    regions[home[0]] = (np.r_[np.asarray(idx, np.intp), pupils],
+                        np.concatenate([np.asarray(rest, float), np.median(X[ok][:, pupils], axis=0)]))
+    own = np.asarray(region_shapes.get(home[0], []), dtype=np.intp)
+    region_shapes = {r: np.setdiff1d(np.asarray(v, dtype=np.intp), gaze) for r, v in region_shapes.items()}
+    region_shapes[home[0]] = np.union1d(own, gaze)
+    return regions, region_shapes
 
 
 def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
@@ -430,7 +494,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     s, R, _ = fit_similarity(src, landmark_neutral[pts])
     Msim = s * R
     out = np.full((len(X), len(shape_names)), float(bounds[0]))
-    lids = [p for name, pts in scheme.contours.items() if _is_eye(scheme, name) for p in pts]
+    held = held_rest_points(scheme)
     for region, (idx, rest) in regions.items():
         sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
         if not len(sh):
@@ -450,7 +514,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         names = [shape_names[j] for j in sh]
         c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
                          mirror_pairs(names), F,
-                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, lids)) if rest_offset else None)
+                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if rest_offset else None)
         full = np.empty((len(X), len(sh)))
         full[ok] = c
         if not ok.all():
