@@ -93,7 +93,7 @@ def mirror_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
 def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
             Q: np.ndarray | None = None, smooth: float = 0.0, free: np.ndarray | None = None,
             offset: np.ndarray | None = None, max_iter: int = 2000, tol: float = 1e-7,
-            return_offset: bool = False):
+            return_offset: bool = False, ceiling: np.ndarray | None = None):
     """All frames' bounded, sparse least squares at once (projected FISTA).
 
     ``min_{lo <= c_t <= hi, d} sum_t ||A c_t + E d + F q_t - b_t||^2 + l1 * sum_t 1^T c_t + sum_t c_t^T Q c_t
@@ -118,6 +118,7 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
     offset : (m, k) motions ``E`` of an unknown offset ``d`` shared by all frames (None: no offset)
     max_iter, tol : stop when no unknown moved more than ``tol * (hi - lo)`` in an iteration
     return_offset : also return ``d``
+    ceiling : (T, n) per-frame upper bounds, each clipped into ``bounds`` (None: ``hi`` everywhere)
 
     Returns
     -------
@@ -146,6 +147,7 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
         Le = 2 * len(B) * float(np.linalg.eigvalsh(EE).max()) * 1.001 + 1e-300
         L, Le = 2 * L, 2 * Le                       # block-diagonal bound of the joint Hessian
     C = np.full((len(B), n), float(lo))
+    top = hi if ceiling is None else np.clip(np.asarray(ceiling, float), lo, hi)
     Y, t = C.copy(), 1.0
     d = yd = np.zeros(k)
     for _ in range(max_iter):          # iterations, each one product over all frames
@@ -156,7 +158,7 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
             dy = np.diff(Y, axis=0)
             g[:-1] -= 2 * smooth * dy
             g[1:] += 2 * smooth * dy
-        Cn = np.clip(Y - g / L, lo, hi)
+        Cn = np.clip(Y - g / L, lo, top)
         tn = (1 + np.sqrt(1 + 4 * t * t)) / 2
         step = np.abs(Cn - C).max(initial=0.0)
         if k:
@@ -357,6 +359,39 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
     return scale
 
 
+#: Seconds a look is held at the least (a fixation, 0.2-0.4 s and more); a blink is over sooner (0.1-0.4 s).
+LOOK_HOLD_S = 0.5
+
+
+def gaze_ceiling(angles: np.ndarray, names: Sequence[str], fps: float, hold: float = LOOK_HOLD_S) -> np.ndarray:
+    """Per-frame upper bounds of the rig's gaze shapes: what the pupils show, held at least ``hold`` seconds.
+
+    The gaze shapes' curves that the eye angles give (:func:`~keyshape.retarget.rig.gaze_curves`), opened in
+    time (a running minimum then maximum over ``hold`` seconds, ``scipy.ndimage.grey_opening``): a look is held
+    (a fixation lasts 0.2-0.4 s and more), and what is shorter is dropped: the tracked pupil dips with the upper
+    lid during a blink (franck.mp4: the pupil's height follows the lids' closure at r 0.91, a full closure
+    moving it as far as a 25-degree look down), and read as gaze it let ``eyeLookDown`` take the blinks.
+
+    Parameters
+    ----------
+    angles : (T, 4) eye angles (:func:`keyshape.decompose.gaze.gaze_angles`; NaN: none known)
+    names : the rig's shape names
+    fps : frames per second of the angles
+
+    Returns
+    -------
+    (T, n_shapes): the bound of each gaze shape, NaN for the other shapes (no bound)
+    """
+    from scipy.ndimage import grey_opening
+
+    from keyshape.retarget.rig import gaze_curves
+    g, cols = gaze_curves(np.nan_to_num(np.asarray(angles, float)), names)
+    out = np.full_like(g, np.nan)
+    if cols:
+        out[:, cols] = grey_opening(g[:, cols], size=(max(1, int(round(hold * fps))), 1), mode="nearest")
+    return out
+
+
 def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
                        region_shapes: Mapping[str, np.ndarray], scheme, shape_names: Sequence[str]):
     """The region of the lids joined by the pupils and by the rig's gaze shapes (``eyeLook*``).
@@ -384,7 +419,7 @@ def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarra
     from keyshape.decompose.gaze import EYES, has_gaze
     from keyshape.retarget.rig import gaze_columns
     regions, region_shapes = dict(regions), dict(region_shapes)
-    gaze = np.array([j for j, _, _ in gaze_columns(shape_names)], dtype=np.intp)
+    gaze = np.array([j for j, c, _ in gaze_columns(shape_names)], dtype=np.intp)
     if not has_gaze(scheme) or not len(gaze):
         return regions, region_shapes
     lids = [int(p) for eye, _ in EYES for p in scheme.contours[eye]]
@@ -407,7 +442,7 @@ def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarra
 def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
                  sparsity: float = 0.01, symmetry: float = 0.03, smooth: float = 0.0,
                  pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None,
-                 rest_offset: np.ndarray | None = None) -> np.ndarray:
+                 rest_offset: np.ndarray | None = None, ceiling: np.ndarray | None = None) -> np.ndarray:
     """One region's curves for every frame: :func:`box_lsq` on the weighted rows.
 
     Parameters
@@ -423,6 +458,7 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
     free : (n_points * 2, k) nuisance motions (flattened like the points)
     rest_offset : (n_points * 2, k) motions (flattened like the points) of an unknown offset of the
         rest shared by every frame (:func:`box_lsq`'s ``offset``), solved with the curves; None: none
+    ceiling : (T, n_shapes) per-frame upper bounds of the curves (:func:`box_lsq`); None: ``bounds``' top
 
     Returns
     -------
@@ -447,9 +483,10 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
         # of the weaker side would buy symmetry), then the curves from the corrected rest
         E = D.reshape(len(D), -1) @ rest_offset
         some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
-        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True)
+        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
+                       ceiling=None if ceiling is None else ceiling[some])
         Bw = Bw - E @ d
-    return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw)
+    return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw, ceiling=ceiling)
 
 
 def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]], scheme,
@@ -457,7 +494,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
                  bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
-                 calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True) -> np.ndarray:
+                 calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
+                 ceiling: np.ndarray | None = None) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -476,6 +514,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     calibrate : scale each eye's lid motion by :func:`eye_calibration`
     rest_offset : solve, with the curves, an offset of the actor's rest shared by every frame (each
         region's points but the lids', whose rest is the open eye that :func:`eye_calibration` measures)
+    ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
+        pupils show); NaN or None: ``bounds``' top
     fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
         their landmark motion is taken from the actor's before the solve, and they are kept in
         the result where non-zero (the solved shapes are the others)
@@ -512,9 +552,10 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         kind = (nuisance or {}).get(region) or auto_nuisance(region, True)
         F = nuisance_motions(rest_r, kind)
         names = [shape_names[j] for j in sh]
+        top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
         c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
                          mirror_pairs(names), F,
-                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if rest_offset else None)
+                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if rest_offset else None, top)
         full = np.empty((len(X), len(sh)))
         full[ok] = c
         if not ok.all():
