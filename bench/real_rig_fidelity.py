@@ -9,7 +9,7 @@ per feature r and gain for keyshape's curves and for MediaPipe's 52 blendshape s
 A contact sheet (actor | keyshape's rig | the rig driven by MediaPipe's scores, at six frames spread over
 the frames where the actor's expression is farthest from rest) goes to ``bench/results/rig_fidelity_<clip>.png``.
 
-    python bench/real_rig_fidelity.py [--clips franck cap12_edit] [--work /tmp/fid_bench] [--chain solve|poses]
+    python bench/real_rig_fidelity.py [--clips franck cap12_edit] [--work /tmp/fid_bench] [--chain solve|poses] [--gaze-lids]
 """
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def prepare(clip: str, work: Path) -> Path:
     return tracks
 
 
-def run_chain(tracks: Path, work: Path, chain: str = "solve") -> tuple[Path, Path]:
+def run_chain(tracks: Path, work: Path, chain: str = "solve", extra: tuple = ()) -> tuple[Path, Path]:
     """README's rig chain from the tracks: curves CSV and Live Link CSV."""
     keys, weights, poses = work / "keys.json", work / "weights.csv", work / "poses.json"
     curves, ll = work / "curves.csv", work / "livelink.csv"
@@ -57,8 +57,8 @@ def run_chain(tracks: Path, work: Path, chain: str = "solve") -> tuple[Path, Pat
         p.unlink(missing_ok=True)
     keyshape("select", tracks, "-k", 8, "--region", "mouth", "--region", "eyes", "-o", keys)
     if chain == "solve":
-        keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "-o", curves)
-        keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "--livelink", "-o", ll)
+        keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "-o", curves, *extra)
+        keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "--livelink", "-o", ll, *extra)
     else:
         keyshape("decompose", tracks, "--keys", keys, "-o", weights)
         keyshape("pose", keys, "--rig", RIG, "-o", poses)
@@ -144,6 +144,7 @@ def main() -> None:
     ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
                     help="solve: README's default (per-frame rig solve); poses: decompose + pose + retarget")
     ap.add_argument("--no-sheet", action="store_true")
+    ap.add_argument("--gaze-lids", action="store_true", help="solve with --gaze-lids (the lids with the pupils and eyeLook*)")
     a = ap.parse_args()
     failed = []
     for clip in a.clips:
@@ -151,7 +152,7 @@ def main() -> None:
         tracks = prepare(clip, work)
         out = work / a.chain
         out.mkdir(parents=True, exist_ok=True)
-        curves, ll = run_chain(tracks, out, a.chain)
+        curves, ll = run_chain(tracks, out, a.chain, ("--gaze-lids",) if a.gaze_lids else ())
         print(f"== {clip} ({a.chain} chain)", flush=True)
         if judge(clip, curves, ll, out / "fidelity.json"):
             failed.append(clip)

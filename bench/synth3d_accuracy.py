@@ -13,7 +13,7 @@ yaws and pitches); yaw and pitch are not estimated by this chain (2D only) and a
 the correlation of each tracked pupil's offset in its eye (fraction of the eye's width, along the
 corners' line) with the truth eye yaw, and the 2D pupil error in pixels (no angle estimator yet).
 
-    PYTHONPATH=. python bench/synth3d_accuracy.py [--seed 0] [--frames 600] [--work DIR] [--rig DIR]
+    PYTHONPATH=. python bench/synth3d_accuracy.py [--seed 0] [--frames 600] [--work DIR] [--rig DIR] [--gaze-lids]
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 SCORED = ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R")
 
 
-def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve") -> dict:
+def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve", gaze_lids: bool = False) -> dict:
     """Run the chain in ``work`` (re-using finished steps); returns the paths."""
     from keyshape.cli import main
     work.mkdir(parents=True, exist_ok=True)
@@ -44,7 +44,7 @@ def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve
                  "-o", str(p["keys.json"])]) == 0
     if chain == "solve":                                   # README's rig chain
         assert main(["solve", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "--rig", str(rig),
-                     "-o", str(p["curves.csv"])]) == 0
+                     "-o", str(p["curves.csv"])] + (["--gaze-lids"] if gaze_lids else [])) == 0
     else:                                                  # the paper's route: key weights through poses
         assert main(["decompose", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "-o", str(p["weights.csv"])]) == 0
         assert main(["pose", str(p["keys.json"]), "--rig", str(rig), "-o", str(p["poses.json"])]) == 0
@@ -175,12 +175,13 @@ def main() -> None:
     ap.add_argument("--rig", default=str(REPO.parent / "shared" / "data" / "ict-facekit"))
     ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
                     help="solve (README's rig chain) or poses (decompose, pose, retarget --poses)")
+    ap.add_argument("--gaze-lids", action="store_true", help="solve with --gaze-lids (the lids with the pupils and eyeLook*)")
     a = ap.parse_args()
     if a.work:
-        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain))))
+        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids))))
     else:
         with tempfile.TemporaryDirectory() as tmp:
-            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig), a.chain))))
+            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids))))
 
 
 if __name__ == "__main__":

@@ -366,7 +366,7 @@ class RigAnimation:
 def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.SOLVE_SPARSITY,
           symmetry: float = RA.SOLVE_SYMMETRY, smooth: float = RA.SOLVE_SMOOTH, calibrate: bool = True,
           rest_offset: bool = RA.SOLVE_REST_OFFSET, gaze: str = RA.GAZE, head: str = RA.HEAD_MOTION,
-          reference_frame: int | None = None,
+          reference_frame: int | None = None, gaze_lids: bool = RA.SOLVE_GAZE_LIDS,
           head_units: float | None = None, fps: float | None = None, poses: "PoseLibrary | str | Path | None" = None,
           weights: Weights | None = None) -> RigAnimation:
     """Drive a rig by solving its curves of every frame from ``tracks`` (``keyshape solve``, with its defaults).
@@ -374,7 +374,8 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
     ``keys`` gives the head stabilisation, the regions and the actor's neutral; ``rig`` a
     :class:`~keyshape.retarget.rig.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). See
     :func:`keyshape.retarget.api.solve_rig` for the priors, the gaze and the head written beside the curves.
-    ``rest_offset`` False keeps the key set's rest as the actor's rest (``keyshape solve --keep-rest``).
+    ``rest_offset`` False keeps the key set's rest as the actor's rest (``keyshape solve --keep-rest``);
+    ``gaze_lids`` solves the lids with the pupils and the rig's gaze shapes (``keyshape solve --gaze-lids``).
     ``poses`` (a corrected pose library) with the take's key ``weights``: the artist's poses over the solve,
     as ``keyshape solve --poses --weights``.
     """
@@ -384,7 +385,7 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
     curves, motion, rate, eyes = RA.solve_rig(
         tracks, keys.regions, keys.scheme, keys.head_pose, r, landmarks=landmarks, sparsity=sparsity,
         symmetry=symmetry, smooth=smooth, calibrate=calibrate, rest_offset=rest_offset, gaze=gaze, head=head,
-        reference_frame=reference_frame, head_units=head_units, fps=fps)
+        reference_frame=reference_frame, head_units=head_units, fps=fps, gaze_lids=gaze_lids)
     if (poses is None) != (weights is None):
         raise InputError("solve: poses and weights go together (the artist's pose library and the key weights)")
     if poses is not None:

@@ -26,8 +26,8 @@ from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
-                                        OPPOSED, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY, SOLVE_SYMMETRY,
-                                        SPARSITY)
+                                        OPPOSED, SOLVE_GAZE_LIDS, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY,
+                                        SOLVE_SYMMETRY, SPARSITY)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -307,7 +307,8 @@ def check_solve_options(sparsity: float, symmetry: float, smooth: float) -> None
 def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig, *, landmarks=None,
               sparsity: float = SOLVE_SPARSITY, symmetry: float = SOLVE_SYMMETRY, smooth: float = SOLVE_SMOOTH,
               calibrate: bool = True, rest_offset: bool = SOLVE_REST_OFFSET, gaze: str = GAZE, head: str = HEAD_MOTION,
-              reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None):
+              reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None,
+              gaze_lids: bool = SOLVE_GAZE_LIDS):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
@@ -320,6 +321,10 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
         (:func:`~keyshape.retarget.solve.solve_curves`)
     gaze : ``angles`` (the eye angles, for Live Link), ``shapes`` (also the rig's ``eyeLook*``, held fixed in
         the solve) or ``none`` (:func:`apply_gaze`)
+    gaze_lids : the lids' region solved with the pupils and the rig's gaze shapes (their lid motion), each gaze
+        shape at most what the pupils show, held half a second
+        (:func:`~keyshape.retarget.solve.gaze_in_eye_region`, :func:`~keyshape.retarget.solve.gaze_ceiling`);
+        the gaze shapes' curves are written only with ``gaze="shapes"`` (from the eye angles)
     head, reference_frame, head_units, fps : the head motion written beside the curves, as :func:`head_from_tracks`
 
     Returns
@@ -328,8 +333,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     """
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
-    from keyshape.retarget.rig import project, rig_landmarks, shape_regions
-    from keyshape.retarget.solve import solve_curves
+    from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
+    from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region, solve_curves
 
     check_solve_options(sparsity, symmetry, smooth)
     scheme = load_scheme(scheme_name)
@@ -350,9 +355,19 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
                              gaze=gaze)
     fixed = gazed if eyes is not None and gaze == "shapes" else None      # the eyeLook* curves, the rest 0
-    curves = solve_curves(shapes, regs, scheme, lm_neutral, lm_deltas, reg_shapes, rig.names, rig.value_range,
-                          sparsity, symmetry, smooth, calibrate=calibrate, fixed=fixed, rest_offset=rest_offset)
-    return curves, motion, float(fps or tracks_rate or DEFAULT_FPS), eyes
+    rate = float(fps or tracks_rate or DEFAULT_FPS)
+    ceiling = None
+    if gaze_lids and eyes is not None:
+        # the lids' region sees the pupils and the gaze shapes (a look down is not a blink); the gaze shapes'
+        # curves are written only with gaze="shapes" (from the eye angles), else the eye angles carry the gaze
+        regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
+        ceiling = gaze_ceiling(eyes, rig.names, rate)
+    curves = solve_curves(shapes, regs, scheme, lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme),
+                          reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
+                          fixed=fixed, rest_offset=rest_offset, ceiling=ceiling)
+    if fixed is None and ceiling is not None:
+        curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
+    return curves, motion, rate, eyes
 
 
 def override_poses(curves: np.ndarray, frames: np.ndarray, regions, weights: np.ndarray, columns: Sequence[str],

@@ -272,31 +272,73 @@ GAZE_PREFIX = "eyelook"
 GAZE_RANGE = (np.radians(30.0), np.radians(25.0))
 
 
+#: ARKit's gaze shapes: name key -> (column of the eye angles (n_frames, 4): left yaw, left pitch, right yaw,
+#: right pitch; the sign of the angle the shape stands for). ``eyeLookOutLeft`` turns the left eye toward
+#: the actor's left (yaw > 0), ``eyeLookInLeft`` toward the nose, the right eye mirrored; ``Down``: pitch > 0.
+GAZE_SHAPES = {"eyelookoutleft": (0, 1.0), "eyelookinleft": (0, -1.0), "eyelookupleft": (1, -1.0),
+               "eyelookdownleft": (1, 1.0), "eyelookoutright": (2, -1.0), "eyelookinright": (2, 1.0),
+               "eyelookupright": (3, -1.0), "eyelookdownright": (3, 1.0)}
+
+
+def gaze_columns(names: Sequence[str]) -> list[tuple[int, int, float]]:
+    """``(shape index, angle column, sign)`` of each ARKit gaze shape among ``names`` (:data:`GAZE_SHAPES`)."""
+    from keyshape.retarget.targets import name_key
+    return [(j, *GAZE_SHAPES[name_key(n)]) for j, n in enumerate(names) if name_key(n) in GAZE_SHAPES]
+
+
 def gaze_curves(angles: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, list[int]]:
     """The rig's ``eyeLook*`` curves from eye angles, and the indices of the shapes they drive.
 
     ``angles`` (n_frames, 4): left yaw, left pitch, right yaw, right pitch in radians (yaw > 0: toward
-    the actor's left; pitch > 0: down; :func:`keyshape.decompose.gaze.gaze_angles`). ARKit's shapes:
-    ``eyeLookOutLeft`` the left eye toward the actor's left, ``eyeLookInLeft`` toward the nose, the right
-    eye mirrored; ``eyeLookUp``/``Down`` by pitch; each ``angle / GAZE_RANGE`` clipped to [0, 1].
-    Names match ARKit's and ICT-FaceKit's (``eyeLookOut_L``) alike.
+    the actor's left; pitch > 0: down; :func:`keyshape.decompose.gaze.gaze_angles`). ARKit's shapes
+    (:data:`GAZE_SHAPES`): ``eyeLookOutLeft`` the left eye toward the actor's left, ``eyeLookInLeft`` toward
+    the nose, the right eye mirrored; ``eyeLookUp``/``Down`` by pitch; each ``angle / GAZE_RANGE`` clipped
+    to [0, 1]. Names match ARKit's and ICT-FaceKit's (``eyeLook_L``) alike.
     """
-    from keyshape.retarget.targets import name_key
     a = np.asarray(angles, np.float64)
-    yaw_l, pitch_l, yaw_r, pitch_r = (a[:, i] for i in range(4))
-    sy, sp = GAZE_RANGE
-    want = {"eyelookoutleft": yaw_l / sy, "eyelookinleft": -yaw_l / sy,
-            "eyelookoutright": -yaw_r / sy, "eyelookinright": yaw_r / sy,
-            "eyelookupleft": -pitch_l / sp, "eyelookdownleft": pitch_l / sp,
-            "eyelookupright": -pitch_r / sp, "eyelookdownright": pitch_r / sp}
     out = np.zeros((len(a), len(names)))
     used = []
-    for j, n in enumerate(names):
-        k = name_key(n)
-        if k in want:
-            out[:, j] = np.clip(want[k], 0.0, 1.0)
-            used.append(j)
+    for j, col, sign in gaze_columns(names):
+        out[:, j] = np.clip(sign * a[:, col] / GAZE_RANGE[col % 2], 0.0, 1.0)
+        used.append(j)
     return out, used
+
+
+def gaze_pupil_deltas(landmark_neutral: np.ndarray, landmark_deltas: np.ndarray, names: Sequence[str],
+                      scheme) -> np.ndarray:
+    """The rig's landmark motion per shape with the pupils turned by its gaze shapes.
+
+    A rig's ``eyeLook*`` shapes move the lids (ICT-FaceKit's: ``eyeLookDown`` lowers the upper lid by
+    0.8 of ``eyeBlink``'s travel, and the lower lid with it); the eyeball itself turns with a bone, so the
+    shapes leave the pupil landmarks still. Here each gaze shape also moves its eye's pupil as the eye
+    turned by the shape's full angle (:data:`GAZE_RANGE`) does in the front view (``project``):
+    ``r sin(angle)`` sideways (``eyeLookIn/Out``) or down (``eyeLookDown``; up for ``eyeLookUp``), ``r``
+    the eyeball's radius on the rig's eye (:data:`keyshape.decompose.gaze.EYE_RADIUS_CM` per
+    :data:`~keyshape.decompose.gaze.EYE_WIDTH_CM` of the eye's corner-to-corner width, Eq. 1 of
+    :mod:`keyshape.decompose.gaze`). A solve that sees the pupils then tells a lid lowered by a downward
+    look (pupil down with it) from a blink (pupil still).
+
+    Parameters
+    ----------
+    landmark_neutral : (n_points, 2) the rig's projected scheme points
+    landmark_deltas : (n_shapes, n_points, 2) their motion per shape
+    names : the rig's shape names
+    scheme : the landmark scheme (its pupils and eye corners; unchanged where it has none)
+
+    Returns
+    -------
+    (n_shapes, n_points, 2) a copy of ``landmark_deltas``
+    """
+    from keyshape.decompose.gaze import EYE_RADIUS_CM, EYE_WIDTH_CM, EYES, has_gaze
+    out = np.array(landmark_deltas, np.float64)
+    if not has_gaze(scheme):
+        return out
+    for j, col, sign in gaze_columns(names):
+        eye, pupil = EYES[col // 2]
+        a, b = scheme.corners[eye]
+        r = EYE_RADIUS_CM / EYE_WIDTH_CM * float(np.linalg.norm(landmark_neutral[b] - landmark_neutral[a]))
+        out[j, scheme.contours[pupil][0], col % 2] += sign * r * np.sin(GAZE_RANGE[col % 2])
+    return out
 
 
 def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarray],

