@@ -184,7 +184,7 @@ class Head3D:
         W, _ = rig_landmarks(rig, "contours48")
         W68, _ = rig_landmarks(rig, "ibug68")
         self.scheme = load_scheme("contours48").full()
-        self.landmark_weights = np.vstack([W, W68[[i for g in self.scheme.auxiliary.values() for i in g]]])
+        self.landmark_weights = np.vstack([W, W68[self.scheme.auxiliary_sources]])
 
         self._triangles, self._parts = triangles, parts
         # eyes: centre (sphere fit of the sclera shell), axis (towards the cornea's bulge), radius

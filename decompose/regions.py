@@ -126,8 +126,13 @@ def head_points(tracks: Tracks, scheme: Scheme, path=None) -> tuple[np.ndarray, 
     if not aux or scheme.n_core or not all(g in tracks.aux and tracks.aux[g].shape[1] == len(src)
                                            for g, src in aux.items()):
         return pts, scheme
-    extra = np.concatenate([tracks.aux[g] for g in aux], axis=1)
-    return np.concatenate([pts, np.where(tracks.success[:, None, None], extra, np.nan)], axis=1), scheme.full()
+    return _with_aux(pts, tracks, aux), scheme.full()
+
+
+def _with_aux(pts: np.ndarray, tracks: Tracks, groups) -> np.ndarray:
+    """``pts`` followed by the tracks' auxiliary points of ``groups`` (in that order), NaN on failed frames."""
+    extra = np.concatenate([tracks.aux[g] for g in groups], axis=1)
+    return np.concatenate([pts, np.where(tracks.success[:, None, None], extra, np.nan)], axis=1)
 
 
 def fitted_head_points(head: HeadPose3D, tracks: Tracks, path=None) -> np.ndarray:
@@ -136,8 +141,7 @@ def fitted_head_points(head: HeadPose3D, tracks: Tracks, path=None) -> np.ndarra
     pts = image_points(tracks, path)
     n = len(head.template)
     if n > pts.shape[1] and tracks.aux:
-        extra = np.concatenate(list(tracks.aux.values()), axis=1)
-        pts = np.concatenate([pts, np.where(tracks.success[:, None, None], extra, np.nan)], axis=1)
+        pts = _with_aux(pts, tracks, tracks.aux)
     if n > pts.shape[1]:
         raise InputError(f"the 3D head was fitted on {n} points (the scheme's and its nose points) but the tracks "
                          f"have {pts.shape[1]}: use tracks with the nose columns (nose_x_0..) of the model that "

@@ -50,9 +50,8 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
     if isinstance(labels, (str, Path)):
         source = Path(labels)
         frames, shapes = read_labels(labels)
-        if shapes.shape[1] == sch.full().n_points:     # labelled with the scheme's auxiliary points (the nose)
-            sch = sch.full()
-        elif shapes.shape[1] != sch.n_points:
+        sch = _labelled_scheme(sch, shapes)
+        if shapes.shape[1] != sch.n_points:
             raise InputError(f"labels of {shapes.shape[1]} points, expected {sch.n_points} for scheme {sch.name!r}"
                              + (f" ({sch.full().n_points} with its {'+'.join(sch.auxiliary)} points)"
                                 if sch.auxiliary and not sch.n_core else ""), source)
@@ -61,8 +60,7 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
         frames, shapes = (np.asarray(a) for a in labels)
         frames = frames.astype(np.int64)
         shapes = shapes.astype(np.float64)
-        if shapes.ndim == 3 and shapes.shape[1] == sch.full().n_points:
-            sch = sch.full()
+        sch = _labelled_scheme(sch, shapes)
         if shapes.ndim != 3 or shapes.shape[1:] != (sch.n_points, 2) or len(frames) != len(shapes):
             raise InputError(f"labels: expected frames (n,) and shapes (n, {sch.n_points}, 2) for scheme "
                              f"{sch.name!r}, got {frames.shape} and {shapes.shape}")
@@ -163,6 +161,13 @@ def _prefetched(items, depth: int = 8):
     finally:
         stop.set()
         thread.join()
+
+
+def _labelled_scheme(scheme, shapes: np.ndarray):
+    """``scheme``'s :meth:`~keyshape.base.schemes.Scheme.full` form where the labels ``shapes`` (n, n_points, 2)
+    carry its auxiliary points too (the nose), else ``scheme``."""
+    full = scheme.full()
+    return full if shapes.ndim == 3 and shapes.shape[1] == full.n_points else scheme
 
 
 def _with_gray(frames, start: int = 0):

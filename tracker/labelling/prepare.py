@@ -45,7 +45,7 @@ def with_auxiliary(points: np.ndarray, points68: np.ndarray, scheme) -> np.ndarr
     ``scheme``, taken at their iBUG-68 sources in ``points68``."""
     if not scheme.n_core:
         return points
-    return np.concatenate([points, points68[[i for g in scheme.auxiliary.values() for i in g]]])
+    return np.concatenate([points, points68[scheme.auxiliary_sources]])
 
 
 def face_box(frames: np.ndarray, landmarker, margin: float = 0.15) -> tuple[int, int, int, int] | None:

@@ -50,6 +50,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.base.files import atomic_path, read_json, write_json
+from keyshape.base.schemes import AUX_NAME
 
 POSE_COLUMNS = ("pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty")
 #: first line of a tracks file an interrupted ``keyshape track`` wrote (``NAME.partial.csv``)
@@ -125,10 +126,6 @@ class Tracks:
     def __getitem__(self, idx) -> "Tracks":
         return Tracks(self.frame[idx], self.time[idx], self.confidence[idx], self.success[idx],
                       self.points[idx], self.pose[idx], dict(self.meta), {k: v[idx] for k, v in self.aux.items()})
-
-
-#: name of an auxiliary point group (its columns' prefix)
-AUX_NAME = r"[a-z][a-z0-9]*"
 
 
 def tracks_header(n_points: int, aux: dict | None = None, pose: bool = True) -> list[str]:

@@ -27,6 +27,8 @@ from keyshape.base.files import read_json
 
 _HERE = Path(__file__).parent
 BUILTIN = ("contours48", "ibug68")
+#: name of an auxiliary point group (the prefix of its tracks columns, ``nose_x_0..``)
+AUX_NAME = r"[a-z][a-z0-9]*"
 DEFAULT = "contours48"
 
 
@@ -82,6 +84,11 @@ class Scheme:
     def base_name(self) -> str:
         """The base scheme's name (``contours48`` of ``contours48+nose``)."""
         return self.name.split("+")[0] if self.n_core else self.name
+
+    @property
+    def auxiliary_sources(self) -> list[int]:
+        """The iBUG-68 source point of each auxiliary point, all groups in order."""
+        return [i for src in self.auxiliary.values() for i in src]
 
     @property
     def n_auxiliary(self) -> int:
@@ -183,7 +190,7 @@ def scheme_from_dict(data: dict, source: str) -> Scheme:
             raise InputError(f"contour {k!r}: corners must be two distinct points of the contour, got {list(c)}",
                              source)
     for k, src in auxiliary.items():
-        if not src or not all(0 <= i < 68 for i in src) or not re.fullmatch(r"[a-z][a-z0-9]*", k):
+        if not src or not all(0 <= i < 68 for i in src) or not re.fullmatch(AUX_NAME, k):
             raise InputError(f"auxiliary group {k!r}: expected a lower-case name and one or more iBUG-68 "
                              f"points (0..67), got {list(src)}", source)
     if n_core and n_core + sum(len(v) for v in auxiliary.values()) != n:
@@ -241,7 +248,7 @@ def load_head_template(scheme: Scheme | str) -> tuple[np.ndarray, np.ndarray]:
                          f"{', '.join(data.get('schemes', {}))}): use --head-pose rigid")
     X, w = np.asarray(pts, dtype=np.float64), np.asarray(data["weights"][name], dtype=np.float64)
     if full:
-        src = [i for g in scheme.auxiliary.values() for i in g]
+        src = scheme.auxiliary_sources
         X = np.concatenate([X, np.asarray(data["schemes"]["ibug68"], np.float64)[src]])
         w = np.concatenate([w, np.asarray(data["weights"]["ibug68"], np.float64)[src]])
     return X, w
