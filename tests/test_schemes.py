@@ -103,3 +103,6 @@ def test_contours48_nose_is_an_auxiliary_group():
     bad = {**scheme_to_dict(s), "auxiliary": {"nose": {"ibug68": [27, 70]}}}
     with pytest.raises(InputError, match="auxiliary group 'nose'"):
         scheme_from_dict(bad, "bad.json")
+    short = {**scheme_to_dict(f), "n_core": 47}
+    with pytest.raises(InputError, match="n_core 47 and the auxiliary points do not add up to n_points 53"):
+        scheme_from_dict(short, "short.json")

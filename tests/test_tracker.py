@@ -463,3 +463,17 @@ def test_decode_thread_converts_to_gray_as_the_tracker_does(files, tmp_path):
         assert ra.success == rb.success and np.array_equal(ra.pose, rb.pose)
         np.testing.assert_array_equal(pa, pb)
     assert sum(r.success for _, r, _ in runs[0]) >= len(frames) - 1
+
+
+def test_labels_of_another_point_count_are_refused_naming_the_scheme(files, tmp_path, capsys):
+    """Labels whose every file has 50 points (neither contours48's 48 nor 53 with its nose points): one line
+    naming the folder, both counts the scheme takes, and no model written."""
+    d, video, _, labels = files
+    lab = tmp_path / "labels"
+    wrong = np.concatenate([labels[[0, 2, 4]], labels[[0, 2, 4]][:, :2]], axis=1)
+    write_labels(lab, [0, 2, 4], wrong)
+    out = tmp_path / "m.npz"
+    assert main(["train", str(video), "--labels", str(lab), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "labels of 50 points, expected 48 for scheme 'contours48' (53 with its nose points)" in err
+    assert str(lab) in err and not out.exists()
