@@ -7,11 +7,13 @@ the eyeball by
 
     ``yaw = asin(d_x w_cm / r)``,  ``pitch = asin(d_y w_cm / r)``                          (1)
 
-with ``r`` = 1.2 cm the eyeball's radius and ``w_cm`` = 2.6 cm an adult eye's width (the 3D
-face's, ICT-FaceKit); ``d`` is measured along the eye's corner-to-corner axis and across it. Straight
-ahead is each eye's median pupil position over the take (a take looks mostly at the camera or the
-scene ahead). While an eye is closed (its lid gap under half its median) its pupil is not seen:
-the last open frame's gaze is held.
+with ``r`` = 1.2 cm the eyeball's radius and ``w_cm`` = 2.6 cm an adult eye's width (a person's eye;
+ICT-FaceKit's generic face is 2.69 cm wide, but its eyeball is 3.2 cm across with the pupil 1.67 cm from
+the centre, so on the synthetic 3D take, whose eyes are ICT-FaceKit's, Eq. 1 reads the angles 1.15-1.44
+times their size from the exact landmarks); ``d`` is measured along the eye's corner-to-corner axis and
+across it. Straight ahead is each eye's median pupil position over the take (a take looks mostly at
+the camera or the scene ahead). While an eye is closed (its lid gap under half its median) its pupil
+is not seen: the last open frame's gaze is held.
 
 The lids' pull (:class:`LidDrag`): as the upper lid comes down it covers the iris from the top, and a
 tracker that places the pupil from the eye's appearance moves it down with the lid. On franck.mp4 the
