@@ -511,7 +511,6 @@ def head(tracks: Tracks) -> Head:
     writes to the Live Link CSV, the curves CSV's head columns and the .glb head node)."""
     from keyshape.base.errors import InputError
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.api import tracks_fps
     from keyshape.decompose.gaze import LidDrag, gaze_angles, has_gaze
     from keyshape.decompose.regions import head_points, head_pose_3d
 
@@ -525,6 +524,6 @@ def head(tracks: Tracks) -> Head:
     gaze = None
     if has_gaze(scheme):                                # the lids' pull on the pupils during blinks taken out
         shapes = est.transform(pts)[:, :tracks.n_points]
-        fps = tracks_fps(tracks) or 30.0
-        gaze = np.degrees(gaze_angles(LidDrag(fps=fps).fit_transform(shapes, scheme), scheme))
+        drag = LidDrag(fps=D.tracks_fps(tracks) or RA.DEFAULT_FPS)
+        gaze = np.degrees(gaze_angles(drag.fit_transform(shapes, scheme), scheme))
     return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)
