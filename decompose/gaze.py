@@ -101,7 +101,9 @@ class LidDrag:
     Parameters
     ----------
     fps : frames per second of the shapes
-    blink_s : the longest blink, seconds (the closure's brief part is what changes within ``2 blink_s``)
+    blink_s : the longest blink, seconds (the closure's brief part: its peaks shorter than ``blink_s``, what a
+        grey opening over ``blink_s`` takes away; the pupil's brief part for the fit: the pupil's offset less
+        its running median over twice that)
 
     Attributes
     ----------
@@ -135,8 +137,8 @@ class LidDrag:
     def fit(self, shapes: np.ndarray, scheme: Scheme) -> "LidDrag":
         """Fit ``k`` on head-frame ``shapes`` (n_frames, n_points, 2) in time order (NaN frames skipped).
 
-        ``k`` is the least-squares slope of the brief part of each pupil's offset on the brief part of its
-        eye's closure over the frames the eye is open (lid gap at least :data:`SHUT` of its median); 0
+        ``k`` is the least-squares slope of the brief part of each pupil's offset (less its running median)
+        on the brief part of its eye's closure (less its grey opening) over the frames the eye is open (lid gap at least :data:`SHUT` of its median); 0
         where the take has no brief closure or is shorter than two blinks.
 
         Raises :class:`InputError` when the scheme has no pupils or ``fps``/``blink_s`` are not positive."""
