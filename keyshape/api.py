@@ -511,7 +511,7 @@ def head(tracks: Tracks) -> Head:
     writes to the Live Link CSV, the curves CSV's head columns and the .glb head node)."""
     from keyshape.base.errors import InputError
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.gaze import gaze_angles, has_gaze
+    from keyshape.decompose.gaze import LidDrag, gaze_angles, has_gaze
     from keyshape.decompose.regions import head_points, head_pose_3d
 
     scheme = scheme_for_n_points(tracks.n_points)
@@ -521,5 +521,9 @@ def head(tracks: Tracks) -> Head:
         raise InputError(f"scheme {scheme.name!r} has no 3D face or no rigid points: no 3D head pose")
     est.fit(pts)
     hp = est.head_pose(pts)
-    gaze = np.degrees(gaze_angles(est.transform(pts)[:, :tracks.n_points], scheme)) if has_gaze(scheme) else None
+    gaze = None
+    if has_gaze(scheme):                                # the lids' pull on the pupils during blinks taken out
+        shapes = est.transform(pts)[:, :tracks.n_points]
+        drag = LidDrag(fps=D.tracks_fps(tracks) or RA.DEFAULT_FPS)
+        gaze = np.degrees(gaze_angles(drag.fit_transform(shapes, scheme), scheme))
     return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)

@@ -239,17 +239,22 @@ def head_3d_from_tracks(tracks: Tracks, source=None):
     return None if est is None or not tracks.success.any() else est.fit(pts)
 
 
-def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None) -> np.ndarray:
+def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None, lid_drag: bool = True) -> np.ndarray:
     """(n_frames, 4) eye angles of the weights' ``frames`` (left yaw, left pitch, right yaw, right pitch,
     radians; :func:`keyshape.decompose.gaze.gaze_angles`) from the pupils in the head's frame (``head``:
     a fitted :class:`~keyshape.decompose.head3d.HeadPose3D`, a KEYS.json ``head_pose`` entry, or None:
-    fitted here; the 2D rigid head where the scheme has no 3D face). Failed frames hold the last good
-    gaze. Raises :class:`InputError` when the scheme has no pupils."""
+    fitted here; the 2D rigid head where the scheme has no 3D face), the lids' pull on the pupils during
+    blinks taken out (``lid_drag``: :class:`~keyshape.decompose.gaze.LidDrag`, fitted on the take; live, which
+    sees no future frame, goes without). Failed frames hold the last good gaze. Raises :class:`InputError`
+    when the scheme has no pupils."""
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.gaze import gaze_angles
+    from keyshape.decompose.api import tracks_fps
+    from keyshape.decompose.gaze import LidDrag, gaze_angles, has_gaze
     from keyshape.decompose.regions import head_shapes
     scheme = scheme_for_n_points(tracks.n_points)
     shapes, _ = head_shapes(tracks, scheme, "3d" if head is None else head, source)
+    if lid_drag and has_gaze(scheme):
+        shapes = LidDrag(fps=tracks_fps(tracks) or DEFAULT_FPS).fit_transform(shapes, scheme)
     g = gaze_angles(shapes, scheme)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
@@ -332,6 +337,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``
     """
     from keyshape.base.schemes import load_scheme
+    from keyshape.decompose.api import tracks_fps
+    from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
     from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
     from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region, solve_curves
@@ -342,6 +349,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} "
                          f"{scheme.n_points}", source)
     shapes, _ = head_shapes(tracks, scheme, head_pose, source)
+    if gaze_lids and has_gaze(scheme):                  # the pupils the lids' region sees: no pull of the lids
+        shapes = LidDrag(fps=float(fps or tracks_fps(tracks) or DEFAULT_FPS)).fit_transform(shapes, scheme)
     W, _ = rig_landmarks(rig, scheme_name, landmarks)
     lm_neutral = project(W @ rig.neutral)
     lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))

