@@ -879,7 +879,7 @@ class Tracker:
         """
         rr = self._region_rows(rm, 2)
         x0, y0, w, h = rr.box
-        crop = rm.crop(patch)
+        crop = patch[y0:y0 + h, x0:x0 + w]
         tx = ty = 0.0
         best = None
         lim = 0.08 * self.model.face_width
@@ -959,7 +959,7 @@ class Tracker:
         t = [[0.0, 0.0] for _ in rms]
         st = kt = 0.0
         geo = [(*rr.box, rm.box_cx) for rr, rm in zip(rrs, rms)]
-        crops = [rm.crop(patch) for rm in rms]
+        crops = [patch[y0:y0 + h, x0:x0 + w] for x0, y0, w, h, _ in geo]
         best = None
         last = self.region_iter
         for it in range(last + 1):
