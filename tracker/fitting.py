@@ -153,29 +153,31 @@ class _RegionRows:
     """One region model's constant rows and work rows, so that one matrix product gives every inner
     product of a forward-additive step of :meth:`Tracker.read_region` and :meth:`Tracker.read_lips`.
 
-    ``rows`` is ``(q + 4 + p, n)``: the region's projection basis ``Qᵀ`` (``q`` rows: constant and
-    appearance, ``RegionModel.qt``), its mean appearance ``m``, a row of ones, ``QQᵀm`` (the mean's part in
-    the subspace), then, written per crop, the raw grey levels ``v`` of the region's ``n`` pixels and the
+    ``rows`` is ``(q + 5 + p, n)``: the region's projection basis ``Qᵀ`` (``q`` rows: constant and
+    appearance, ``RegionModel.qt``), its mean appearance ``m``, a row of ones, ``QQᵀm`` and ``QQᵀ1`` (the
+    mean's and the ones' parts in the subspace; ``QQᵀ1 = 1`` for the models' bases, which span the
+    constant), then, written per crop, the raw grey levels ``v`` of the region's ``n`` pixels and the
     ``p`` raw Jacobian rows ``G`` (the 3x3 Sobel gradients in x and y; for the lips also each times the
-    pixel's x from the box centre, ``p = 4``). ``A = rows @ rows[q + 3:]ᵀ`` holds ``C = [Qᵀv, QᵀG]`` (rows
-    ``:q``), ``m·v, m·G``, ``1·v, 1·G``, ``QQᵀm·v, QQᵀm·G``, ``v·v, v·G`` and ``G Gᵀ``. The normalised error
-    ``e = (v - μ)/σ - m`` and the Jacobian ``J = G / (8σ)`` are affine in ``v`` and ``G`` with scalar
-    coefficients: ``Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm`` (``s = 1/σ``), so with ``1`` in the span of ``Q``
-    (``QQᵀ1 = 1``) ``|e|²``, ``|Qᵀe|²``, ``(Qᵀe)ᵀQᵀG``, ``G e`` and ``(QᵀG)ᵀQᵀG`` follow from ``A`` and the small
-    Gram matrix ``CᵀC`` as scalars (:meth:`moments`), ``Qᵀe`` itself formed only where it is read; the
+    pixel's x from the box centre, ``p = 4``). ``A = rows @ rows[q + 4:]ᵀ`` holds ``C = [Qᵀv, QᵀG]`` (rows
+    ``:q``), ``m·v, m·G``, ``1·v, 1·G``, ``QQᵀm·v, QQᵀm·G``, ``QQᵀ1·v, QQᵀ1·G``, ``v·v, v·G`` and ``G Gᵀ``.
+    The normalised error ``e = (v - μ)/σ - m`` and the Jacobian ``J = G / (8σ)`` are affine in ``v`` and
+    ``G`` with scalar coefficients: ``Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm`` (``s = 1/σ``), so ``|e|²``, ``|Qᵀe|²``,
+    ``(Qᵀe)ᵀQᵀG``, ``G e`` and ``(QᵀG)ᵀQᵀG`` follow from ``A`` and the small Gram matrix ``CᵀC`` as scalars
+    (:meth:`moments`), ``Qᵀe`` itself formed only where it is read; the
     coefficients ``pinv_i e = (pinv_i Q) Qᵀe`` too (``coef``; the rows of ``pinv_i`` lie in the span of ``Q``).
     """
 
     def __init__(self, rm, p: int, xc: np.ndarray | None = None):
         q, n = rm.qt.shape
         self.q, self.n, self.p = q, n, p
-        self.rows = np.zeros((q + 4 + p, n))
+        self.rows = np.zeros((q + 5 + p, n))
         self.rows[:q] = rm.qt
         self.rows[q] = rm.mean_i
         self.rows[q + 1] = 1.0
         self.q1 = rm.qt.sum(1)                      # Qᵀ1
         self.qm = rm.qt @ rm.mean_i                 # Qᵀm
         self.rows[q + 2] = rm.qt.T @ self.qm        # QQᵀm
+        self.rows[q + 3] = rm.qt.T @ self.q1        # QQᵀ1
         self.m1, self.mm = float(rm.mean_i.sum()), float(rm.mean_i @ rm.mean_i)
         # |Qᵀ1|², Qᵀ1·Qᵀm, |Qᵀm|²
         self.q1q1, self.q1qm, self.qmqm = float(self.q1 @ self.q1), float(self.q1 @ self.qm), float(self.qm @ self.qm)
@@ -186,25 +188,25 @@ class _RegionRows:
         self.box = tuple(int(v) for v in rm.box)
         self.xc = xc
         # the crop's gradients in x and y and its grey levels, one int16 image each, gathered by one take
-        # into rows q + 3 (v), q + 4 (gx), q + 5 (gy)
+        # into rows q + 4 (v), q + 5 (gx), q + 6 (gy)
         w, h = self.box[2:]
         self.planes = np.empty((3, h, w), np.int16)
         self.take = np.concatenate([2 * h * w + rm.index, rm.index, h * w + rm.index])
 
     def load(self, crop: np.ndarray, grad: bool) -> np.ndarray:
         """Write ``crop``'s grey levels (and with ``grad`` its Jacobian rows) and return ``A``
-        (``rows @ rows[q + 3:]ᵀ``; without ``grad`` only its first column, ``rows[:q + 4] @ v``)."""
+        (``rows @ rows[q + 4:]ᵀ``; without ``grad`` only its first column, ``rows[:q + 5] @ v``)."""
         q, rows = self.q, self.rows
         if not grad:
-            rows[q + 3] = crop.ravel().take(self.index)
-            return rows[:q + 4] @ rows[q + 3]
+            rows[q + 4] = crop.ravel().take(self.index)
+            return rows[:q + 5] @ rows[q + 4]
         g = self.planes
         cv2.spatialGradient(crop, g[0], g[1])      # written in place (3x3 Sobel, unscaled, exact)
         g[2] = crop
-        rows[q + 3:q + 6] = g.ravel().take(self.take).reshape(3, -1)
+        rows[q + 4:q + 7] = g.ravel().take(self.take).reshape(3, -1)
         if self.p == 4:
-            np.multiply(rows[q + 4:q + 6], self.xc, out=rows[q + 6:q + 8])
-        return rows @ rows[q + 3:].T
+            np.multiply(rows[q + 5:q + 7], self.xc, out=rows[q + 7:q + 9])
+        return rows @ rows[q + 4:].T
 
     def moments(self, a: np.ndarray) -> tuple:
         """``(r, s, μ, m0, M, B)`` from ``A`` (:meth:`load`): the distance ``r = |e|² - |Qᵀe|²`` of the crop
@@ -217,23 +219,23 @@ class _RegionRows:
         if grad:
             m = (c.T @ c).tolist()
             b = a[q:].tolist()
-            mv, sv, pv, vv = b[0][0], b[1][0], b[2][0], b[3][0]
+            mv, sv, pv, ov, vv = b[0][0], b[1][0], b[2][0], b[3][0], b[4][0]
             cc = m[0][0]
         else:
-            mv, sv, pv, vv = a[q:].tolist()
+            mv, sv, pv, ov, vv = a[q:].tolist()
             cc = float(c @ c)
         mu = sv / n
         e0 = vv - sv * mu                           # |v - μ|²
         s = 1.0 / max(math.sqrt(max(e0, 0.0) / n), 1e-6)
         sm = s * mu
         ee = s * s * e0 - 2.0 * s * (mv - mu * self.m1) + self.mm
-        # |Qᵀe|² with Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm, Qᵀ1·Qᵀv = 1·v and Qᵀm·Qᵀv = QQᵀm·v
-        qeqe = (s * s * cc - 2.0 * s * sm * sv - 2.0 * s * pv + sm * sm * self.q1q1 + 2.0 * sm * self.q1qm
+        # |Qᵀe|² with Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm, Qᵀ1·Qᵀv = QQᵀ1·v and Qᵀm·Qᵀv = QQᵀm·v
+        qeqe = (s * s * cc - 2.0 * s * sm * ov - 2.0 * s * pv + sm * sm * self.q1q1 + 2.0 * sm * self.q1qm
                 + self.qmqm)
         if not grad:
             return ee - qeqe, s, mu, None, None, None
-        # (Qᵀe)ᵀQᵀG_j = s (Qᵀv)ᵀQᵀG_j - sμ 1·G_j - QQᵀm·G_j
-        m0 = [s * m[0][j] - sm * b[1][j] - b[2][j] for j in range(1, len(m))]
+        # (Qᵀe)ᵀQᵀG_j = s (Qᵀv)ᵀQᵀG_j - sμ QQᵀ1·G_j - QQᵀm·G_j
+        m0 = [s * m[0][j] - sm * b[3][j] - b[2][j] for j in range(1, len(m))]
         return ee - qeqe, s, mu, m0, m, b
 
     def qe(self, a: np.ndarray, s: float, mu: float) -> np.ndarray:
@@ -902,7 +904,7 @@ class Tracker:
             # closed forms of a 2x2 system), G e = s(G v - μ G 1) - G m
             m01, m02 = m0
             (_, m11, m12), (_, _, m22) = m[1], m[2]
-            (_, mgx, mgy), (_, sgx, sgy), _, (_, vgx, vgy), (_, gxx, gxy), (_, _, gyy) = b
+            (_, mgx, mgy), (_, sgx, sgy), _, _, (_, vgx, vgy), (_, gxx, gxy), (_, _, gyy) = b
             k = s / 8.0
             k2 = k * k
             h00 = k2 * (gxx - m11) + 1e-6
@@ -988,9 +990,9 @@ class Tracker:
             for ix, (_, s, mu, m0, m, b) in zip(blocks, moms):
                 k = s / 8.0
                 k2 = k * k
-                (_, *mg), (_, *sg), _, (_, *vg) = b[:4]
+                (_, *mg), (_, *sg), _, _, (_, *vg) = b[:5]
                 for j, rj in enumerate(ix):
-                    gr, mr, hr = b[4 + j], m[1 + j], hess[rj]
+                    gr, mr, hr = b[5 + j], m[1 + j], hess[rj]
                     for col, cl in enumerate(ix, 1):
                         hr[cl] += k2 * (gr[col] - mr[col])
                     grad[rj] += k * (s * (vg[j] - mu * sg[j]) - mg[j] - m0[j])
