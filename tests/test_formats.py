@@ -145,3 +145,39 @@ def test_tracks_nose_columns_beside_the_scheme(tmp_path):
     assert read_tracks(tmp_path / "old.csv").aux == {}
     with pytest.raises(InputError, match="Tracks.aux"):
         Tracks(t.frame, t.time, t.confidence, t.success, t.points, t.pose, {}, {"nose": np.zeros((2, 5, 2))})
+
+
+@pytest.mark.parametrize("aux", [None, {"nose": 5}], ids=["contours48", "with-nose"])
+def test_tracks_writer_rows_are_the_per_value_formats(aux):
+    """TracksWriter writes a row of finite values in one %-format (issue 26): the same text, value for
+    value, as formatting each field (``.6f`` time, ``.4f`` confidence and points, ``.8g`` pose, empty
+    where not finite), which rows with a NaN still take; negative zeros, tiny and large values included."""
+    import io
+    import math
+    from keyshape.base.formats.tracks import TracksWriter
+
+    def field(v, spec):
+        return format(v, spec) if math.isfinite(v) else ""
+
+    rng = np.random.default_rng(4)
+    n_aux = sum((aux or {}).values())
+    buf = io.StringIO()
+    w = TracksWriter(buf, 48, aux)
+    want = [buf.getvalue()]
+    for k in range(40):
+        pts = rng.normal(200, 90, (48 + n_aux, 2))
+        pose = rng.normal(0, 2, (2, 3))
+        pts[k % 7] = (-0.0, 1e-9) if k % 3 else (123456.78915, -5e-5)
+        if k % 9 == 4:
+            pts[:] = np.nan
+        if k % 11 == 5:
+            pose[0, 1] = np.nan
+        if k % 13 == 6 and n_aux:
+            pts[-1, 0] = np.nan
+        t, c, ok = k / 29.97, float(rng.random()), k % 9 != 4
+        w.write(k, t, c, ok, pts, pose)
+        vals = [field(v, ".4f") for v in np.concatenate([pts[:48, 0], pts[:48, 1]]).tolist()]
+        vals += [field(v, ".8g") for v in pose.ravel().tolist()]
+        vals += [field(v, ".4f") for v in np.concatenate([pts[48:, 0], pts[48:, 1]]).tolist()]
+        want.append(",".join([str(k), f"{t:.6f}", f"{c:.4f}", "1" if ok else "0"] + vals) + "\n")
+    assert buf.getvalue() == "".join(want) and w.n_rows == 40

@@ -394,6 +394,8 @@ def test_prefetched_decode_thread_keeps_order_errors_and_early_stop():
     from keyshape.tracker.commands import _prefetched
 
     assert list(_prefetched(iter(range(100)), depth=3)) == list(range(100))
+    for depth, batch in [(8, 4), (8, 1), (3, 5), (1, 7)]:       # whole lists, a partial last one, batch > depth
+        assert list(_prefetched(iter(range(23)), depth=depth, batch=batch)) == list(range(23))
     closed = []
 
     def gen():

@@ -162,9 +162,10 @@ def warp_level(pyramid: Pyramid, lvl: int, image_from_model: list, sw: int, sh: 
     # sample only the window the patch covers (bilinear reads one pixel beyond; 2 for safety)
     xs = (a02 - a00 - a01, a02 + a00 * sw - a01, a02 - a00 + a01 * sh, a02 + a00 * sw + a01 * sh)
     ys = (a12 - a10 - a11, a12 + a10 * sw - a11, a12 - a10 + a11 * sh, a12 + a10 * sw + a11 * sh)
-    if all(map(math.isfinite, xs + ys)) and max(map(abs, xs + ys)) < 1e7:
-        img = pyramid.window(lvl, math.floor(min(xs)) - 2, math.floor(min(ys)) - 2,
-                             math.ceil(max(xs)) + 3, math.ceil(max(ys)) + 3)
+    x0, x1, y0, y1 = min(xs), max(xs), min(ys), max(ys)
+    # all eight finite (a NaN or an infinity makes the sum non-finite) and within 1e7 of the origin
+    if math.isfinite(sum(xs) + sum(ys)) and -1e7 < x0 and x1 < 1e7 and -1e7 < y0 and y1 < 1e7:
+        img = pyramid.window(lvl, math.floor(x0) - 2, math.floor(y0) - 2, math.ceil(x1) + 3, math.ceil(y1) + 3)
     else:
         img = pyramid[lvl]
     return cv2.warpAffine(img, np.array([[a00, a01, a02], [a10, a11, a12]]), (sw, sh),

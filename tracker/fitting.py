@@ -29,7 +29,6 @@ from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, p
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
-_DIAG6 = np.diag_indices(6)
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
 
 _BLAS = None        # threadpoolctl's controller of the loaded BLAS libraries (False: not available)
@@ -154,72 +153,97 @@ class _RegionRows:
     """One region model's constant rows and work rows, so that one matrix product gives every inner
     product of a forward-additive step of :meth:`Tracker.read_region` and :meth:`Tracker.read_lips`.
 
-    ``rows`` is ``(q + 3 + p, n)``: the region's projection basis ``Qᵀ`` (``q`` rows: constant and
-    appearance, ``RegionModel.qt``), its mean appearance ``m``, a row of ones, then, written per crop,
-    the raw grey levels ``v`` of the region's ``n`` pixels and the ``p`` raw Jacobian rows ``G`` (the
-    3x3 Sobel gradients in x and y; for the lips also each times the pixel's x from the box centre,
-    ``p = 4``). ``A = rows @ rows[q + 2:]ᵀ`` holds ``Qᵀv, QᵀG`` (rows ``:q``), ``m·v, m·G``, ``1·v, 1·G``,
-    ``v·v, v·G`` and ``G Gᵀ``. The normalised error ``e = (v - μ)/σ - m`` and the Jacobian
-    ``J = G / (8σ)`` are affine in ``v`` and ``G`` with scalar coefficients, so ``Qᵀe``, ``|e|²``, ``J e``,
-    ``QᵀJ`` and ``J Jᵀ`` follow from ``A`` without forming ``e`` or ``J`` (:meth:`moments`); the
+    ``rows`` is ``(q + 5 + p, n)``: the region's projection basis ``Qᵀ`` (``q`` rows: constant and
+    appearance, ``RegionModel.qt``), its mean appearance ``m``, a row of ones, ``QQᵀm`` and ``QQᵀ1`` (the
+    mean's and the ones' parts in the subspace; ``QQᵀ1 = 1`` for the models' bases, which span the
+    constant), then, written per crop, the raw grey levels ``v`` of the region's ``n`` pixels and the
+    ``p`` raw Jacobian rows ``G`` (the 3x3 Sobel gradients in x and y; for the lips also each times the
+    pixel's x from the box centre, ``p = 4``). ``A = rows @ rows[q + 4:]ᵀ`` holds ``C = [Qᵀv, QᵀG]`` (rows
+    ``:q``), ``m·v, m·G``, ``1·v, 1·G``, ``QQᵀm·v, QQᵀm·G``, ``QQᵀ1·v, QQᵀ1·G``, ``v·v, v·G`` and ``G Gᵀ``.
+    The normalised error ``e = (v - μ)/σ - m`` and the Jacobian ``J = G / (8σ)`` are affine in ``v`` and
+    ``G`` with scalar coefficients: ``Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm`` (``s = 1/σ``), so ``|e|²``, ``|Qᵀe|²``,
+    ``(Qᵀe)ᵀQᵀG``, ``G e`` and ``(QᵀG)ᵀQᵀG`` follow from ``A`` and the small Gram matrix ``CᵀC`` as scalars
+    (:meth:`moments`), ``Qᵀe`` itself formed only where it is read; the
     coefficients ``pinv_i e = (pinv_i Q) Qᵀe`` too (``coef``; the rows of ``pinv_i`` lie in the span of ``Q``).
     """
 
     def __init__(self, rm, p: int, xc: np.ndarray | None = None):
         q, n = rm.qt.shape
         self.q, self.n, self.p = q, n, p
-        self.rows = np.zeros((q + 3 + p, n))
+        self.rows = np.zeros((q + 5 + p, n))
         self.rows[:q] = rm.qt
         self.rows[q] = rm.mean_i
         self.rows[q + 1] = 1.0
         self.q1 = rm.qt.sum(1)                      # Qᵀ1
         self.qm = rm.qt @ rm.mean_i                 # Qᵀm
+        self.rows[q + 2] = rm.qt.T @ self.qm        # QQᵀm
+        self.rows[q + 3] = rm.qt.T @ self.q1        # QQᵀ1
         self.m1, self.mm = float(rm.mean_i.sum()), float(rm.mean_i @ rm.mean_i)
+        # |Qᵀ1|², Qᵀ1·Qᵀm, |Qᵀm|²
+        self.q1q1, self.q1qm, self.qmqm = float(self.q1 @ self.q1), float(self.q1 @ self.qm), float(self.qm @ self.qm)
         self.coef = rm.pinv_i @ rm.qt.T              # (n_coef, q): c = coef Qᵀe
         self.inv_var = 1.0 / rm.variance
         self.mean_l, self.ul = rm.mean_l, rm.ul
         self.index = rm.index
         self.box = tuple(int(v) for v in rm.box)
         self.xc = xc
+        # the crop's gradients in x and y and its grey levels, one int16 image each, gathered by one take
+        # into rows q + 4 (v), q + 5 (gx), q + 6 (gy)
+        w, h = self.box[2:]
+        self.planes = np.empty((3, h, w), np.int16)
+        self.take = np.concatenate([2 * h * w + rm.index, rm.index, h * w + rm.index])
 
     def load(self, crop: np.ndarray, grad: bool) -> np.ndarray:
         """Write ``crop``'s grey levels (and with ``grad`` its Jacobian rows) and return ``A``
-        (``rows @ rows[q + 2:]ᵀ``; without ``grad`` only its first column, ``rows[:q + 3] @ v``)."""
-        q, rows, idx = self.q, self.rows, self.index
-        rows[q + 2] = crop.ravel()[idx]
+        (``rows @ rows[q + 4:]ᵀ``; without ``grad`` only its first column, ``rows[:q + 5] @ v``)."""
+        q, rows = self.q, self.rows
         if not grad:
-            return rows[:q + 3] @ rows[q + 2]
-        gx, gy = cv2.spatialGradient(np.ascontiguousarray(crop))
-        rows[q + 3] = gx.ravel()[idx]
-        rows[q + 4] = gy.ravel()[idx]
+            rows[q + 4] = crop.ravel().take(self.index)
+            return rows[:q + 5] @ rows[q + 4]
+        g = self.planes
+        cv2.spatialGradient(crop, g[0], g[1])      # written in place (3x3 Sobel, unscaled, exact)
+        g[2] = crop
+        rows[q + 4:q + 7] = g.ravel().take(self.take).reshape(3, -1)
         if self.p == 4:
-            np.multiply(rows[q + 3:q + 5], self.xc, out=rows[q + 5:q + 7])
-        return rows @ rows[q + 2:].T
+            np.multiply(rows[q + 5:q + 7], self.xc, out=rows[q + 7:q + 9])
+        return rows @ rows[q + 4:].T
 
     def moments(self, a: np.ndarray) -> tuple:
-        """``(r, Qᵀe, s, M, B)`` from ``A`` (:meth:`load`): the distance ``r = |e|² - |Qᵀe|²`` of the
-        crop from the region's subspace, ``Qᵀe`` (a view of ``A``, overwritten in place), the scale
-        ``s = 1/σ``, and with the Jacobian rows ``M = [Qᵀe, QᵀG]ᵀ[Qᵀe, QᵀG]`` and ``B = A[q:]`` (lists)."""
+        """``(r, s, μ, m0, M, B)`` from ``A`` (:meth:`load`): the distance ``r = |e|² - |Qᵀe|²`` of the crop
+        from the region's subspace, the scale ``s = 1/σ`` and mean ``μ`` of its grey levels, and with the
+        Jacobian rows ``m0 = (Qᵀe)ᵀQᵀG`` (``p``), ``M = CᵀC`` (``C = [Qᵀv, QᵀG]``; ``M[1:, 1:] = (QᵀG)ᵀQᵀG``) and
+        ``B = A[q:]`` (lists of floats)."""
         q, n = self.q, self.n
         grad = a.ndim == 2
-        qe = a[:q, 0] if grad else a[:q]
+        c = a[:q]
         if grad:
+            m = (c.T @ c).tolist()
             b = a[q:].tolist()
-            mv, sv, vv = b[0][0], b[1][0], b[2][0]
+            mv, sv, pv, ov, vv = b[0][0], b[1][0], b[2][0], b[3][0], b[4][0]
+            cc = m[0][0]
         else:
-            mv, sv, vv = a[q:].tolist()
-            b = None
+            mv, sv, pv, ov, vv = a[q:].tolist()
+            cc = float(c @ c)
         mu = sv / n
         e0 = vv - sv * mu                           # |v - μ|²
         s = 1.0 / max(math.sqrt(max(e0, 0.0) / n), 1e-6)
-        qe *= s
+        sm = s * mu
+        ee = s * s * e0 - 2.0 * s * (mv - mu * self.m1) + self.mm
+        # |Qᵀe|² with Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm, Qᵀ1·Qᵀv = QQᵀ1·v and Qᵀm·Qᵀv = QQᵀm·v
+        qeqe = (s * s * cc - 2.0 * s * sm * ov - 2.0 * s * pv + sm * sm * self.q1q1 + 2.0 * sm * self.q1qm
+                + self.qmqm)
+        if not grad:
+            return ee - qeqe, s, mu, None, None, None
+        # (Qᵀe)ᵀQᵀG_j = s (Qᵀv)ᵀQᵀG_j - sμ QQᵀ1·G_j - QQᵀm·G_j
+        m0 = [s * m[0][j] - sm * b[3][j] - b[2][j] for j in range(1, len(m))]
+        return ee - qeqe, s, mu, m0, m, b
+
+    def qe(self, a: np.ndarray, s: float, mu: float) -> np.ndarray:
+        """``Qᵀe`` of the crop whose ``A`` (:meth:`load`), scale and mean (:meth:`moments`) are given."""
+        qe = (a[:self.q, 0] if a.ndim == 2 else a[:self.q]) * s
         qe -= (s * mu) * self.q1
         qe -= self.qm
-        ee = s * s * e0 - 2.0 * s * (mv - mu * self.m1) + self.mm
-        if not grad:
-            return ee - float(qe @ qe), qe, s, None, None
-        m = a[:q].T @ a[:q]
-        return ee - float(m[0, 0]), qe, s, m, b
+        return qe
 
     def read(self, qe: np.ndarray) -> tuple[np.ndarray, float]:
         """Model-frame points (box coordinates = model) and ``mean c²/λ`` of the coefficients at ``Qᵀe``."""
@@ -423,7 +447,6 @@ class Tracker:
         self.typical_shape_m2 = min(8.0, 0.5 * self.max_shape_m2)
         self._region_shift: dict = {}
         self._rows: dict = {}              # the regions' _RegionRows (work rows: per tracker, trackers may share a model)
-        self._lip_index: dict = {}
         self._m2 = 0.0
         m = model
         size = m.patch_size_
@@ -546,11 +569,11 @@ class Tracker:
             np.multiply(jt[4:], lv.x32, out=jt[:2])
             np.multiply(jt[4:], lv.y32, out=jt[2:4])
             rows[nq] = e
-            prods = (rows @ rows[nq:].T).astype(np.float64)  # (k' + 7, 7): [Qᵀ; eᵀ; Jᵀ] [e J]
-            qj, jte, jtj = prods[:nq, 1:], prods[nq, 1:], prods[nq + 1:, 1:]
+            prods = (rows @ jt.T).astype(np.float64)        # (k' + 7, 6): [Qᵀ; eᵀ; Jᵀ] J
+            qj, jte, jtj = prods[:nq], prods[nq], prods[nq + 1:]
             # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
             hess = jtj - qj.T @ qj
-            hess[_DIAG6] += 1e-9
+            hess.flat[::7] += 1e-9
             ok, sol = cv2.solve(hess, (qj.T @ qe - jte)[:, None], flags=cv2.DECOMP_LU)
             if not ok:
                 break
@@ -858,8 +881,7 @@ class Tracker:
         """
         rr = self._region_rows(rm, 2)
         x0, y0, w, h = rr.box
-        n = rr.n
-        crop = rm.crop(patch)
+        crop = patch[y0:y0 + h, x0:x0 + w]
         tx = ty = 0.0
         best = None
         lim = 0.08 * self.model.face_width
@@ -871,17 +893,19 @@ class Tracker:
                 bx, by = x0 + tx, y0 + ty
                 crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
                                              [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
-            r, qe, s, m, b = rr.moments(rr.load(crop, it < last))
+            a = rr.load(crop, it < last)
+            r, s, mu, m0, m, b = rr.moments(a)
             if best is not None and r >= best[0]:
                 break
-            best = (r, tx, ty, qe)
+            best = (r, tx, ty, a, s, mu)
             if it == last:
                 break
             # J = k G (k = 1/(8σ)): J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe) (issue 16:
             # closed forms of a 2x2 system), G e = s(G v - μ G 1) - G m
-            (_, m01, m02), (_, m11, m12), (_, _, m22) = m.tolist()
-            (_, mgx, mgy), (sv, sgx, sgy), (_, vgx, vgy), (_, gxx, gxy), (_, _, gyy) = b
-            mu, k = sv / n, s / 8.0
+            m01, m02 = m0
+            (_, m11, m12), (_, _, m22) = m[1], m[2]
+            (_, mgx, mgy), (_, sgx, sgy), _, _, (_, vgx, vgy), (_, gxx, gxy), (_, _, gyy) = b
+            k = s / 8.0
             k2 = k * k
             h00 = k2 * (gxx - m11) + 1e-6
             h01 = k2 * (gxy - m12)
@@ -894,10 +918,10 @@ class Tracker:
             # Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px, |t| <= lim
             tx = max(-lim, min(lim, tx + max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))))
             ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))))
-        _, tx, ty, qe = best
+        _, tx, ty, a, s, mu = best
         t = np.array([tx, ty])
         self._region_shift[rm.name] = t
-        pts, m2 = rr.read(qe)
+        pts, m2 = rr.read(rr.qe(a, s, mu))
         self._m2 = max(self._m2, m2)
         return pts + t
 
@@ -933,14 +957,11 @@ class Tracker:
         (a00, a01, a02), (a10, a11, a12) = pose.tolist()
         rrs = [self._region_rows(rm, 4) for rm in rms]
         # each lip's rows/columns of the system: its translation (2 i, 2 i + 1), the shared stretch and tilt
-        blocks = self._lip_index.get(n)
-        if blocks is None:
-            blocks = self._lip_index[n] = [(np.ix_(b, b), b) for b in
-                                           (np.array([2 * i, 2 * i + 1, npar - 2, npar - 1]) for i in range(n))]
+        blocks = [(2 * i, 2 * i + 1, npar - 2, npar - 1) for i in range(n)]
         t = [[0.0, 0.0] for _ in rms]
         st = kt = 0.0
         geo = [(*rr.box, rm.box_cx) for rr, rm in zip(rrs, rms)]
-        crops = [rm.crop(patch) for rm in rms]
+        crops = [patch[y0:y0 + h, x0:x0 + w] for x0, y0, w, h, _ in geo]
         best = None
         last = self.region_iter
         for it in range(last + 1):
@@ -957,19 +978,27 @@ class Tracker:
             r = sum(mo[0] for mo in moms)
             if best is not None and r >= best[0]:
                 break
-            best = (r, [list(v) for v in t], st, kt, [mo[1] for mo in moms])
+            best = (r, [list(v) for v in t], st, kt, [(a, mo[1], mo[2]) for a, mo in zip(mats, moms)])
             if it == last:
                 break
-            hess = np.zeros((npar, npar))
-            grad = np.zeros(npar)
-            for rr, a, (_, _, s, m, b), (hix, gix) in zip(rrs, mats, moms, blocks):
-                # projected out as in read_region, J = G/(8σ) with rows x, y, x (b_x - c_x), y (b_x - c_x):
-                # J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe), G e = s(G v - μ G 1) - G m
-                q = rr.q
+            # each lip's 4x4 block and 4 gradient entries added at its translation and the shared pair, in
+            # Python floats (a 6x6 system): projected out as in read_region, J = G/(8σ) with rows x, y,
+            # x (b_x - c_x), y (b_x - c_x): J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe),
+            # G e = s(G v - μ G 1) - G m
+            hess = [[0.0] * npar for _ in range(npar)]
+            grad = [0.0] * npar
+            for ix, (_, s, mu, m0, m, b) in zip(blocks, moms):
                 k = s / 8.0
-                hess[hix] += (k * k) * (a[q + 3:, 1:] - m[1:, 1:])
-                grad[gix] += k * (s * (a[q + 2, 1:] - (b[1][0] / rr.n) * a[q + 1, 1:]) - a[q, 1:] - m[0, 1:])
-            hess.flat[::npar + 1] += 1e-6
+                k2 = k * k
+                (_, *mg), (_, *sg), _, _, (_, *vg) = b[:5]
+                for j, rj in enumerate(ix):
+                    gr, mr, hr = b[5 + j], m[1 + j], hess[rj]
+                    for col, cl in enumerate(ix, 1):
+                        hr[cl] += k2 * (gr[col] - mr[col])
+                    grad[rj] += k * (s * (vg[j] - mu * sg[j]) - mg[j] - m0[j])
+            for i in range(npar):
+                hess[i][i] += 1e-6
+            hess, grad = np.array(hess), np.array(grad)
             ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
             if not ok:
                 break
@@ -979,11 +1008,11 @@ class Tracker:
                 v[1] = max(-lim, min(lim, v[1] + max(-2.0, min(2.0, sol[2 * i + 1]))))
             st = max(-slim, min(slim, st + sol[-2]))
             kt = max(-slim, min(slim, kt + sol[-1]))
-        _, t, st, kt, qes = best
+        _, t, st, kt, reads = best
         out = []
-        for rm, rr, qe, (x0, y0, w, h, cx), (tx, ty) in zip(rms, rrs, qes, geo, t):
+        for rm, rr, (a, s, mu), (x0, y0, w, h, cx), (tx, ty) in zip(rms, rrs, reads, geo, t):
             self._region_shift[rm.name] = np.array([tx, ty, st, kt])
-            pts, m2 = rr.read(qe)
+            pts, m2 = rr.read(rr.qe(a, s, mu))
             self._m2 = max(self._m2, m2)
             bx = pts[:, 0] - (x0 + cx)
             pts[:, 0] += tx + st * bx

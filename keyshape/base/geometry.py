@@ -16,15 +16,22 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from skimage.measure import ransac
-from skimage.transform import EuclideanTransform
 
-if hasattr(EuclideanTransform, "from_estimate"):     # scikit-image >= 0.26: dimension from the data
-    _Euclidean3D = EuclideanTransform
-else:                                                # older: ``ransac`` builds ``model_class()`` itself
-    class _Euclidean3D(EuclideanTransform):
+
+def _ransac_euclidean3d():
+    """scikit-image's ``ransac`` and a 3D ``EuclideanTransform`` class for it, imported when first needed
+    (scikit-image and the SciPy it loads take about a second to import; ``keyshape track`` never needs them)."""
+    from skimage.measure import ransac
+    from skimage.transform import EuclideanTransform
+
+    if hasattr(EuclideanTransform, "from_estimate"):     # scikit-image >= 0.26: dimension from the data
+        return ransac, EuclideanTransform
+
+    class _Euclidean3D(EuclideanTransform):              # older: ``ransac`` builds ``model_class()`` itself
         def __init__(self):
             super().__init__(dimensionality=3)
+
+    return ransac, _Euclidean3D
 
 
 def apply_affine(affine: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -192,6 +199,8 @@ def robust_rigid_fit(ref: np.ndarray, frames: np.ndarray, threshold: float, weig
     res = np.linalg.norm(apply_rigid(r, rot, trans) - x, axis=2)
     suspect = (np.where(ok, res, 0.0) > threshold).any(axis=1) & (ok.sum(axis=1) >= 4)
     rejected = np.zeros(x.shape[:2], dtype=bool)
+    if suspect.any():
+        ransac, _Euclidean3D = _ransac_euclidean3d()
     for f in np.flatnonzero(suspect):              # the few frames with a fault; clean ones skip this
         vis = np.flatnonzero(ok[f])
         with warnings.catch_warnings():            # "No inliers found": handled below (plain fit kept)

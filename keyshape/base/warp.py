@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.spatial import Delaunay
 
 
 def triangulate(points: np.ndarray) -> np.ndarray:
     """Delaunay triangles ``(n_triangles, 3)`` of ``points`` (n, 2)."""
+    from scipy.spatial import Delaunay          # imported when first needed (training; not ``keyshape track``)
+
     return Delaunay(np.asarray(points, np.float64)).simplices.astype(np.intp)
 
 

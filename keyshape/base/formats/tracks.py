@@ -377,6 +377,17 @@ class TracksWriter:
         self.n_points = n_points
         self.aux = dict(aux or {})                  # group -> number of points, written after the pose
         self.n_rows = 0
+        # a row of finite values: one %-format (the same text as the per-field formats below) of the
+        # values gathered in the columns' order from [points (x, y interleaved), pose]
+        n_all = n_points + sum(self.aux.values())
+        order = [np.arange(n_points) * 2, np.arange(n_points) * 2 + 1, 2 * n_all + np.arange(6)]
+        start = n_points
+        for k in self.aux.values():
+            order += [(start + np.arange(k)) * 2, (start + np.arange(k)) * 2 + 1]
+            start += k
+        self._order, self._n_all = np.concatenate(order), n_all
+        self._fmt = ",".join(["%d", "%.6f", "%.4f", "%d"] + ["%.4f"] * (2 * n_points) + ["%.8g"] * 6
+                             + ["%.4f"] * (2 * sum(self.aux.values()))) + "\n"
         f.write(",".join(tracks_header(n_points, self.aux)) + "\n")
 
     def write(self, frame: int, time: float, confidence: float, success: bool, points: np.ndarray,
@@ -384,10 +395,17 @@ class TracksWriter:
         """One row; ``points`` (n_points + the auxiliary points, 2): the scheme's, then each group's."""
         p = np.asarray(points, np.float64)
         n = self.n_points
+        pose = np.asarray(pose, np.float64).ravel()
+        if p.shape == (self._n_all, 2) and pose.shape == (6,):
+            every = np.concatenate([p.ravel(), pose]).take(self._order)
+            if np.isfinite(every).all():
+                self.f.write(self._fmt % (int(frame), time, confidence, 1 if success else 0, *every.tolist()))
+                self.n_rows += 1
+                return
         vals = np.concatenate([p[:n, 0], p[:n, 1]]).tolist()     # Python floats: formatting without numpy scalars
         fields = [str(int(frame)), f"{time:.6f}", f"{confidence:.4f}", "1" if success else "0"]
         fields += [f"{v:.4f}" if math.isfinite(v) else "" for v in vals]
-        fields += [f"{v:.8g}" if math.isfinite(v) else "" for v in np.asarray(pose, np.float64).ravel().tolist()]
+        fields += [f"{v:.8g}" if math.isfinite(v) else "" for v in pose.tolist()]
         for k in self.aux.values():
             fields += [f"{v:.4f}" if math.isfinite(v) else "" for v in
                        np.concatenate([p[n:n + k, 0], p[n:n + k, 1]]).tolist()]
