@@ -363,9 +363,12 @@ class Tracker:
         confidence falls linearly to 0 here. Measured: at most 8 on tracked
         synthetic footage, 99th percentile 20-23 on franck and cap12_edit,
         about 47 on a 47-degree synthetic head turn read wrongly.
-    region_iter : int
+    region_iter : int or None
         Translation refinements of each region model per frame (0: read the
         regions where the global pose puts them; -1: ignore the region models).
+        None: 4 for a model whose eye regions were trained on crops that follow their centroid
+        (``AppearanceModel(centre_eyes=True)``: the box alignment reads the eye's displacement,
+        a few pixels, from a start at the global pose), else 2.
     global_weight : float
         Weight of the global model's reading in the points the region models
         read: ``(1 - w) region + w global``. The two read the same pixels with
@@ -406,7 +409,7 @@ class Tracker:
     """
 
     def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 3.0, search: bool = True,
-                 reinit_every: int = 3, n_polish: int = 3, region_iter: int = 2, min_contrast: float = 3.0,
+                 reinit_every: int = 3, n_polish: int = 3, region_iter: int | None = None, min_contrast: float = 3.0,
                  max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15,
                  batch_regions: bool = False, region_step: str = "forward"):
         model._check_fitted()
@@ -415,6 +418,8 @@ class Tracker:
         self.search = search
         self.reinit_every = max(1, int(reinit_every))
         self.n_polish = int(n_polish)
+        if region_iter is None:
+            region_iter = 4 if any(rm.centred for rm in model.region_models_) else 2
         self.region_iter = int(region_iter)
         self.min_contrast = float(min_contrast)
         self.max_shape_m2 = float(max_shape_m2)
