@@ -431,8 +431,8 @@ class AppearanceModel:
         with 4 box-alignment steps (``Tracker(region_iter=None)``). Measured (``docs/tracker.md``):
         3D take NME 0.0155 -> 0.0150 and 0.0126 -> 0.0120 (seeds 0 / 1), lid gaps' gain 0.74 / 0.63
         -> 0.89 / 0.74 (seed 0); the real clips' own error unchanged; but the rig chain's curves
-        are mixed (blinks' gain up, brows down on seed 0 and on the real clips' judge), so it is
-        off by default. Centring the brows, nose or lips as well gave no more (lips: cap12_edit's
+        are mixed (blinks' gain up; browDown down on seed 0, outer brows and franck's jaw down in
+        the real clips' judge), so it is off by default. Centring the brows, nose or lips as well gave no more (lips: cap12_edit's
         own error 0.0060 -> 0.0066).
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
