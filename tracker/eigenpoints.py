@@ -427,9 +427,9 @@ class AppearanceModel:
         centroid (its points keep their place in the box), so that the tracker's alignment of the
         box reads where the eye is and the region's eigen-points only its shape (issue 23: a linear
         reading of a feature's displacement shrinks toward the labelled frames' mean; on the 3D
-        synthetic take the lid gaps read at 0.63-0.74 of their true size). Such a model is tracked
-        with 4 box-alignment steps (``Tracker(region_iter=None)``). Measured (``docs/tracker.md``):
-        3D take NME 0.0155 -> 0.0150 and 0.0126 -> 0.0120 (seeds 0 / 1), lid gaps' gain 0.74 / 0.63
+        synthetic take the lid gaps read at 0.63-0.74 of their true size). The tracker aligns those
+        boxes in 4 steps (``Tracker(region_iter=None)``). Measured (``docs/tracker.md``):
+        3D take NME 0.0155 -> 0.0152 and 0.0126 -> 0.0122 (seeds 0 / 1), lid gaps' gain 0.74 / 0.63
         -> 0.89 / 0.74 (seed 0); the real clips' own error unchanged; but the rig chain's curves
         are mixed (blinks' gain up; browDown down on seed 0, outer brows and franck's jaw down in
         the real clips' judge), so it is off by default. Centring the brows, nose or lips as well gave no more (lips: cap12_edit's
