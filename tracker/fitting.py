@@ -368,7 +368,8 @@ class Tracker:
         regions where the global pose puts them; -1: ignore the region models).
         None: 2, and 4 for the region models trained on crops that follow their centroid
         (``AppearanceModel(centre_eyes=True)``: the box alignment reads the eye's displacement,
-        a few pixels, from a start at the global pose; the batched path gives every region 4 then).
+        a few pixels, from a start at the global pose; those regions' counts are in ``region_steps``;
+        the batched path gives every region 4 then).
     global_weight : float
         Weight of the global model's reading in the points the region models
         read: ``(1 - w) region + w global``. The two read the same pixels with
