@@ -445,6 +445,36 @@ def test_brow_border_is_its_own_and_reads_held_out_brows(footage, tmp_path):
     assert AppearanceModel.from_file(mf).brow_grow is None
 
 
+def test_centred_eye_regions_read_their_own_labels_and_survive_the_model_file(footage, tmp_path):
+    """``centre_eyes`` (issue 23): the eye regions are trained on crops that follow each eye's centroid.
+    With every component kept a training frame is read back exactly (``predict`` places the box at the
+    global reading's centroid, the same shift the training crop had); only the eye regions are centred;
+    the tracker then aligns their boxes in 4 steps (the other regions 2); the flags survive the model file,
+    and files written before them load as not centred."""
+    frames, labels = footage
+    full = AppearanceModel("contours48", n_components=1000, n_morphs=20, ridge=0.0, rng=0,
+                           centre_eyes=True).fit(list(frames), labels)
+    assert {r.name for r in full.region_models_ if r.centred} == {"eye_left", "eye_right"}
+    for i in range(len(frames)):
+        pts, r = full.predict(frames[i], full.train_poses_[i])
+        assert np.abs(pts - labels[i]).max() < 0.05, i
+    model = AppearanceModel("contours48", n_morphs=10, rng=0, centre_eyes=True).fit(list(frames[:8]), labels[:8])
+    tracker = Tracker(model)
+    assert tracker.region_iter == 2 and tracker.region_steps == {"eye_left": 4, "eye_right": 4}
+    assert Tracker(model, region_iter=1).region_iter == 1 and not Tracker(model, region_iter=1).region_steps
+    model.save(tmp_path / "m.npz")
+    back = AppearanceModel.load(tmp_path / "m.npz")
+    assert back.centre_eyes and [r.centred for r in back.region_models_] == [r.centred for r in model.region_models_]
+    np.testing.assert_allclose(back.predict(frames[9], model.train_poses_[0])[0],
+                               model.predict(frames[9], model.train_poses_[0])[0], atol=1e-9)
+    mf = model.to_file()
+    del mf.params["centre_eyes"]
+    for r in mf.state["region_models"]:
+        del r["centred"]
+    old = AppearanceModel.from_file(mf)
+    assert not old.centre_eyes and not any(r.centred for r in old.region_models_) and not Tracker(old).region_steps
+
+
 def test_decode_thread_converts_to_gray_as_the_tracker_does(files, tmp_path):
     """Issue 26: with the decode thread the frames reach the tracker already gray (converted in that
     thread): the same points, poses and kept (colour) frames as the tracker converting them itself."""

@@ -387,9 +387,13 @@ class Tracker:
         confidence falls linearly to 0 here. Measured: at most 8 on tracked
         synthetic footage, 99th percentile 20-23 on franck and cap12_edit,
         about 47 on a 47-degree synthetic head turn read wrongly.
-    region_iter : int
+    region_iter : int or None
         Translation refinements of each region model per frame (0: read the
         regions where the global pose puts them; -1: ignore the region models).
+        None: 2, and 4 for the region models trained on crops that follow their centroid
+        (``AppearanceModel(centre_eyes=True)``: the box alignment reads the eye's displacement,
+        a few pixels, from a start at the global pose; those regions' counts are in ``region_steps``;
+        the batched path gives every region 4 then).
     global_weight : float
         Weight of the global model's reading in the points the region models
         read: ``(1 - w) region + w global``. The two read the same pixels with
@@ -430,7 +434,7 @@ class Tracker:
     """
 
     def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 3.0, search: bool = True,
-                 reinit_every: int = 3, n_polish: int = 3, region_iter: int = 2, min_contrast: float = 3.0,
+                 reinit_every: int = 3, n_polish: int = 3, region_iter: int | None = None, min_contrast: float = 3.0,
                  max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15,
                  batch_regions: bool = False, region_step: str = "forward"):
         model._check_fitted()
@@ -439,7 +443,11 @@ class Tracker:
         self.search = search
         self.reinit_every = max(1, int(reinit_every))
         self.n_polish = int(n_polish)
-        self.region_iter = int(region_iter)
+        # steps per region: region_iter, or (None) 2 and 4 for a region trained on centred crops
+        # (region_steps: the regions whose count differs from region_iter)
+        self.region_steps = {} if region_iter is not None else {
+            rm.name: 4 for rm in model.region_models_ if rm.centred}
+        self.region_iter = 2 if region_iter is None else int(region_iter)
         self.min_contrast = float(min_contrast)
         self.max_shape_m2 = float(max_shape_m2)
         self.global_weight = float(global_weight)
@@ -679,7 +687,8 @@ class Tracker:
         best_e = b.best_e
         jac, motion, v = b.jac, b.motion, b.v
         atlas = patch.ravel().take(b.patch_idx)
-        for it in range(self.region_iter + 1):
+        n_it = max(self.region_steps.values(), default=self.region_iter)
+        for it in range(n_it + 1):
             if it:
                 # image_from_box of region r: pose ∘ [[1 + s, 0, x0 + t_x - s c_x], [k, 1, y0 + t_y - k c_x]]
                 # (s = k = 0 but for the lips), at the pyramid level; one map for every atlas pixel
@@ -722,7 +731,7 @@ class Tracker:
             best_t = [list(tr) if k else bt for tr, bt, k in zip(t, best_t, keep)]
             if n_lip and active[-1]:
                 best_sk = (st, kt)
-            if it == self.region_iter:
+            if it == n_it:
                 break
             gx, gy = cv2.spatialGradient(atlas)
             scale = b.mask * (1.0 / (8.0 * sd))[:, None]
@@ -817,7 +826,8 @@ class Tracker:
         lim = 0.08 * self.model.face_width
         (a00, a01, a02), (a10, a11, a12) = pose.tolist()
         lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
-        for it in range(self.region_iter + 1):
+        last = self.region_steps.get(rm.name, self.region_iter)
+        for it in range(last + 1):
             if it:
                 bx, by = x0 + tx, y0 + ty
                 crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
@@ -826,7 +836,7 @@ class Tracker:
             if best is not None and r >= best[0]:
                 break
             best = (r, (tx, ty), e)
-            if it == self.region_iter:
+            if it == last:
                 break
             d = delta(crop, e, state)
             if d is None:
@@ -885,7 +895,7 @@ class Tracker:
         tx = ty = 0.0
         best = None
         lim = 0.08 * self.model.face_width
-        last = self.region_iter
+        last = self.region_steps.get(rm.name, self.region_iter)
         (a00, a01, a02), (a10, a11, a12) = pose.tolist()
         lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
         for it in range(last + 1):
@@ -963,7 +973,7 @@ class Tracker:
         geo = [(*rr.box, rm.box_cx) for rr, rm in zip(rrs, rms)]
         crops = [patch[y0:y0 + h, x0:x0 + w] for x0, y0, w, h, _ in geo]
         best = None
-        last = self.region_iter
+        last = max([self.region_steps.get(rm.name, self.region_iter) for rm in rms])
         for it in range(last + 1):
             if it:
                 crops = []
