@@ -345,7 +345,7 @@ def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw
     leaves, under yaw ``theta``, each point of the face at depth ``z_i`` in front of the eye corners shifted
     sideways by about ``z_i sin(theta)`` (parallax), and the perspective tilts the mouth against the eye
     line; the rig solve read that as mouthLeft/Right and one-sided smiles (the 3D synthetic take from its
-    true landmarks, no sideways mouth in its truth: the rig's mouth slide followed head yaw at r 0.92).
+    true landmarks, 600 frames, no sideways mouth in its truth: the rig's mouth slide followed head yaw at r 0.92).
     A face is left-right symmetric and yaw is odd under the mirror (the mirrored turn is ``-theta``), so to
     first order yaw moves only the *antisymmetric* part of the motion, ``o = (u - M u) / 2`` with ``M``
     the mirror (``(M u)_i = (-u_x, u_y)`` of point ``i``'s partner), and moves it in proportion to ``sin(theta)``.
