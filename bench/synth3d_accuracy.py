@@ -14,6 +14,7 @@ the correlation of each tracked pupil's offset in its eye (fraction of the eye's
 corners' line) with the truth eye yaw, and the 2D pupil error in pixels (no angle estimator yet).
 
     PYTHONPATH=. python bench/synth3d_accuracy.py [--seed 0] [--frames 600] [--work DIR] [--rig DIR] [--gaze-lids]
+        [--from-truth] [--pitch-parallax]
 """
 from __future__ import annotations
 
@@ -27,8 +28,13 @@ REPO = Path(__file__).resolve().parents[1]
 SCORED = ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R")
 
 
-def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve", gaze_lids: bool = False) -> dict:
-    """Run the chain in ``work`` (re-using finished steps); returns the paths."""
+def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve", gaze_lids: bool = False,
+              from_truth: bool = False, pitch_parallax: bool = False) -> dict:
+    """Run the chain in ``work`` (re-using finished steps); returns the paths.
+
+    ``from_truth``: select and solve from the take's true landmarks (``take/truth.csv``, a tracks file) instead
+    of the tracker's: what the solve chain loses on its own (head removal, rest, priors), no tracker error in it.
+    Its outputs are ``keys_truth.json`` and ``curves_truth.csv`` (the tracked chain's are kept)."""
     from keyshape.cli import main
     work.mkdir(parents=True, exist_ok=True)
     take = work / "take"
@@ -36,6 +42,10 @@ def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve
         assert main(["synth", "face3d", str(take), "--rig", str(rig), "--frames", str(frames),
                      "--seed", str(seed)]) == 0
     p = {k: work / k for k in ("model.npz", "tracks.csv", "keys.json", "weights.csv", "poses.json", "curves.csv")}
+    if from_truth:
+        p.update({"tracks.csv": take / "truth.csv", "keys.json": work / "keys_truth.json",
+                  "weights.csv": work / "weights_truth.csv", "poses.json": work / "poses_truth.json",
+                  "curves.csv": work / "curves_truth.csv"})
     if not p["tracks.csv"].is_file():
         assert main(["train", str(take / "video.mp4"), "--labels", str(take / "labels"), "-o", str(p["model.npz"])]) == 0
         assert main(["track", str(take / "video.mp4"), "--model", str(p["model.npz"]), "-o", str(p["tracks.csv"]),
@@ -44,7 +54,8 @@ def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve
                  "-o", str(p["keys.json"])]) == 0
     if chain == "solve":                                   # README's rig chain
         assert main(["solve", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "--rig", str(rig),
-                     "-o", str(p["curves.csv"])] + (["--gaze-lids"] if gaze_lids else [])) == 0
+                     "-o", str(p["curves.csv"])] + (["--gaze-lids"] if gaze_lids else [])
+                    + (["--pitch-parallax"] if pitch_parallax else [])) == 0
     else:                                                  # the paper's route: key weights through poses
         assert main(["decompose", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "-o", str(p["weights.csv"])]) == 0
         assert main(["pose", str(p["keys.json"]), "--rig", str(rig), "-o", str(p["poses.json"])]) == 0
@@ -176,12 +187,17 @@ def main() -> None:
     ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
                     help="solve (README's rig chain) or poses (decompose, pose, retarget --poses)")
     ap.add_argument("--gaze-lids", action="store_true", help="solve with --gaze-lids (the lids with the pupils and eyeLook*)")
+    ap.add_argument("--from-truth", action="store_true",
+                    help="select and solve from the take's true landmarks (the solve chain's own loss, no tracker)")
+    ap.add_argument("--pitch-parallax", action="store_true", help="solve with --pitch-parallax")
     a = ap.parse_args()
     if a.work:
-        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids))))
+        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids, a.from_truth,
+                                     a.pitch_parallax))))
     else:
         with tempfile.TemporaryDirectory() as tmp:
-            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids))))
+            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids,
+                                         a.from_truth, a.pitch_parallax))))
 
 
 if __name__ == "__main__":
