@@ -27,7 +27,7 @@ from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
                                         OPPOSED, SOLVE_GAZE_LIDS, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY,
-                                        SOLVE_SYMMETRY, SOLVE_YAW_SLIDE, SPARSITY)
+                                        SOLVE_PITCH_PARALLAX, SOLVE_SYMMETRY, SOLVE_YAW_SLIDE, SPARSITY)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -313,7 +313,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
               sparsity: float = SOLVE_SPARSITY, symmetry: float = SOLVE_SYMMETRY, smooth: float = SOLVE_SMOOTH,
               calibrate: bool = True, rest_offset: bool = SOLVE_REST_OFFSET, gaze: str = GAZE, head: str = HEAD_MOTION,
               reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None,
-              gaze_lids: bool = SOLVE_GAZE_LIDS, yaw_slide: bool = SOLVE_YAW_SLIDE):
+              gaze_lids: bool = SOLVE_GAZE_LIDS, yaw_slide: bool = SOLVE_YAW_SLIDE,
+              pitch_parallax: bool = SOLVE_PITCH_PARALLAX):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
@@ -335,6 +336,9 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
         mouth's motion its antisymmetric part that follows the 3D head's yaw over the take
         (:func:`~keyshape.retarget.solve.yaw_slide`: the parallax of a mouth in front of the eye corners),
         zero at the yaw of the mouth's rest frame
+    pitch_parallax : likewise (a 2D head, a scheme with a 3D face), take out of the mouth's motion the vertical
+        parallax the 3D head's pitch gives its points at the rig's places, zero at the pitch of the mouth's rest
+        frame (:func:`~keyshape.retarget.solve.pitch_parallax`)
 
     Returns
     -------
@@ -375,35 +379,47 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
         # curves are written only with gaze="shapes" (from the eye angles), else the eye angles carry the gaze
         regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
         ceiling = gaze_ceiling(eyes, rig.names, rate)
-    yaw, rest_yaw = _solve_yaw(tracks, regions, head_pose, est, source) if yaw_slide else (None, 0.0)
+    yaw, rest_yaw, pitch, rest_pitch = (_solve_yaw(tracks, regions, head_pose, est, source)
+                                        if yaw_slide or pitch_parallax else (None, 0.0, None, 0.0))
+    yaw = yaw if yaw_slide else None
+    rel = None
+    if pitch_parallax and scheme.rigid:                 # the rig's points less its eye corners' mean
+        rel = W @ rig.neutral
+        rel = rel - rel[list(scheme.rigid)].mean(axis=0)
     curves = solve_curves(shapes, regs, scheme, lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme),
                           reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
-                          fixed=fixed, rest_offset=rest_offset, ceiling=ceiling, yaw=yaw, rest_yaw=rest_yaw)
+                          fixed=fixed, rest_offset=rest_offset, ceiling=ceiling, yaw=yaw, rest_yaw=rest_yaw,
+                          pitch=pitch, rest_pitch=rest_pitch, points3d=rel)
     if fixed is None and ceiling is not None:
         curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
     return curves, motion, rate, eyes
 
 
-def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source) -> tuple[np.ndarray | None, float]:
+def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source
+               ) -> tuple[np.ndarray | None, float, np.ndarray | None, float]:
     """The 3D head's yaw of every frame and of the mouth's rest frame (its median where the rest frame is not
-    one of these tracks'), for :func:`~keyshape.retarget.solve.yaw_slide`; ``(None, 0.0)`` where the keys'
+    one of these tracks'), for :func:`~keyshape.retarget.solve.yaw_slide`, then its pitch alike, for
+    :func:`~keyshape.retarget.solve.pitch_parallax`; ``(None, 0.0, None, 0.0)`` where the keys'
     shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: a fitted
     :class:`~keyshape.decompose.head3d.HeadPose3D` of ``tracks`` (None: fitted here)."""
     from keyshape.decompose.regions import fitted_head_points
+    none = (None, 0.0, None, 0.0)
     if (head_pose or {}).get("method") == "3d":
-        return None, 0.0
+        return none
     est = est if est is not None else head_3d_from_tracks(tracks, source)
     if est is None:
-        return None, 0.0
-    yaw = est.head_pose(fitted_head_points(est, tracks, source), est.camera_pose_)["angles"][:, 0]
-    ok = np.isfinite(yaw)
+        return none
+    ang = est.head_pose(fitted_head_points(est, tracks, source), est.camera_pose_)["angles"][:, :2]
+    ok = np.isfinite(ang).all(axis=1)
     if not ok.any():
-        return None, 0.0
-    yaw = np.where(ok, yaw, np.interp(np.arange(len(yaw)), np.flatnonzero(ok), yaw[ok]))
+        return none
+    t = np.arange(len(ang))
+    ang = np.column_stack([np.where(ok, a, np.interp(t, np.flatnonzero(ok), a[ok])) for a in ang.T])
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     rest = [rk.rest_frame for rk in regions if rk.region == "mouth" and rk.rest_frame is not None and rk.takes is None]
     row = pos.get(int(rest[0])) if rest else None
-    return yaw, float(yaw[row] if row is not None else np.median(yaw))
+    at = ang[row] if row is not None else np.median(ang, axis=0)
+    return ang[:, 0], float(at[0]), ang[:, 1], float(at[1])
 
 
 def override_poses(curves: np.ndarray, frames: np.ndarray, regions, weights: np.ndarray, columns: Sequence[str],

