@@ -106,7 +106,9 @@ def _worker(k: int, video: str, model_bytes: bytes, lo: int, own: int, end: int 
                 hashes.clear()
 
         with single_threaded():
-            for i, frame in reader.frames(lo, end):
+            # the first chunk decodes from the video's start, as a sequential run does (nothing checks it);
+            # the others seek, checked at their seams
+            for i, frame in reader.frames(lo, end, seek=k > 0):
                 if i < own or (hash_from is not None and i >= hash_from):
                     hashes[i] = _crc(frame)
                 r = tracker.step(to_gray(frame), i)

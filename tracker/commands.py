@@ -277,8 +277,7 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     jobs = auto_jobs(n_total) if jobs is None else int(jobs)
     with Progress(n_total if n_total > 0 else None, desc="keyshape track", enabled=show_progress) as prog:
         for pts, res, _ in iter_track(video, model, smooth, start, stop, tracker_options, reader=reader,
-                                       decode_thread=decode_thread, jobs=jobs, progress=prog,
-                                                  seams=seams):
+                                       decode_thread=decode_thread, jobs=jobs, progress=prog):
             rows.append((res.index, res.confidence, res.success, pts, res.pose))
             if jobs <= 1:
                 prog.update()
