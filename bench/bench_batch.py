@@ -120,7 +120,7 @@ def serial(manifest: Path, out: Path) -> float:
         takes = [t for t in m.takes if t.actor == name]
         for t in takes:
             run(KEYSHAPE + ["track", str(t.video), "--model", str(adir / "model.npz"), "-o",
-                            str(adir / t.name / "tracks.csv"), "--quiet"])
+                            str(adir / t.name / "tracks.csv"), "--quiet", "--jobs", "1"])   # one process, as batch's
         code = ("import sys; from keyshape import api; ts=[api.read_tracks(p) for p in sys.argv[4:]]; "
                 "api.select(ts, int(sys.argv[1]), sys.argv[2], ['mouth', 'eyes']).save(sys.argv[3])")
         run([sys.executable, "-c", code, str(actor.keys), actor.selector, str(adir / "keys.json")]

@@ -9,7 +9,8 @@ then the tracker with the region models' forward-additive steps (the default) ag
 inverse-compositional ones, and the forward steps of all regions at once (``Tracker(region_step=...,
 batch_regions=...)``, thread CPU time on the same decoded frames, interleaved),
 and the command-level ratio: ``keyshape track`` run as a command (imports and model loading
-included) against decoding the same file. The load average is printed beside the figures.
+included) against decoding the same file, with one job and with ``--jobs 2`` (two worker processes
+tracking halves of the video, stitched). The load average is printed beside the figures.
 Prints ratios, never asserts times.
 
     PYTHONPATH=. python bench/bench_tracker.py [--frames 600] [--video V --labels DIR --scheme S]
@@ -102,10 +103,13 @@ def main() -> None:
         # the command as a user runs it: a fresh process, imports and the model file included
         model_path = Path(tmp) / "model.npz"
         model.save(model_path)
-        t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "keyshape", "track", str(video), "--model", str(model_path), "-o",
-                        str(Path(tmp) / "tracks_cmd.csv"), "--quiet"], check=True, stdout=subprocess.DEVNULL)
-        t_cmd = time.perf_counter() - t0
+        t_cmd = {}
+        for jobs in (1, 2):      # one process, and two worker processes on chunks of the video (--jobs 2)
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "keyshape", "track", str(video), "--model", str(model_path), "-o",
+                            str(Path(tmp) / f"tracks_cmd{jobs}.csv"), "--quiet", "--jobs", str(jobs)], check=True,
+                           stdout=subprocess.DEVNULL)
+            t_cmd[jobs] = time.perf_counter() - t0
         decode2, cpu_decode2 = _decode_rate(video)
         decode, cpu_decode = max(decode, decode2), min(cpu_decode, cpu_decode2)
         load1 = os.getloadavg()[0]
@@ -118,8 +122,9 @@ def main() -> None:
         print(f"decode only: {decode:.0f} frames/s; decode + track: {summ.fps:.0f} frames/s; "
               f"ratio {summ.fps / decode:.2f} (aim >= 0.5; floor 150 frames/s); lost {summ.n_lost}")
         print(f"without the decode thread: decode + track {summ0.fps:.0f} frames/s; ratio {summ0.fps / decode:.2f}")
-        print(f"command level: `keyshape track` {t_cmd:.2f} s for {n} frames ({n / t_cmd:.0f} frames/s), decoding "
-              f"{n / decode:.2f} s: ratio {n / decode / t_cmd:.2f}")
+        for jobs, t in t_cmd.items():
+            print(f"command level: `keyshape track --jobs {jobs}` {t:.2f} s for {n} frames ({n / t:.0f} frames/s), "
+                  f"decoding {n / decode:.2f} s: ratio {n / decode / t:.2f}")
         # CPU seconds (time.process_time: all threads of this process) per frame: less sensitive than
         # frames/s to the other jobs of a shared machine
         print(f"CPU per frame: decode only {1e3 * cpu_decode:.3f} ms; decode + track {1e3 * cpu_thread:.3f} ms "

@@ -205,11 +205,14 @@ def train(video: str | Path, labels, *, scheme: str | None = None, components: i
 
 
 def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, stop: int | None = None,
-          progress: bool = False, decode_thread: bool = True) -> Tracks:
+          progress: bool = False, decode_thread: bool = True, jobs: int | None = 1) -> Tracks:
     """Track frames ``start``..``stop`` (exclusive) of ``video`` (``keyshape track``).
 
     ``model`` is a fitted model or a model file; ``smooth`` is ``none``, ``savgol`` or ``oneeuro``.
     ``decode_thread`` False decodes on the tracking thread (one core per call, as a batch worker is).
+    ``jobs``: worker processes tracking contiguous chunks of the range, stitched in frame order (the
+    same points within the tracker's convergence tolerance; None: one per core, at least 500 frames
+    each, as ``keyshape track`` does by default); 1 (default) tracks in this process.
     Returns :class:`~keyshape.base.formats.tracks.Tracks` (lost frames have ``success`` False).
     """
     from keyshape.tracker.commands import track_frames
@@ -217,7 +220,7 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
     _expect(model, (AppearanceModel, str, Path), "model", "a fitted AppearanceModel or a model file")
     _expect(video, (str, Path), "video", "a video file path")
     return track_frames(video, model, smooth=smooth, start=start, stop=stop, show_progress=progress,
-                        decode_thread=decode_thread)
+                        decode_thread=decode_thread, jobs=jobs)
 
 
 def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.METHOD,

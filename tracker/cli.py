@@ -33,7 +33,12 @@ def register(subparsers) -> None:
     p.add_argument("video")
     p.add_argument("--model", required=True, help="model file from `keyshape train`")
     p.add_argument("-o", "--output", required=True, metavar="TRACKS.csv")
-    p.add_argument("--overlay", metavar="OUT.mp4", help="also write the video with the tracked contours drawn")
+    p.add_argument("--overlay", metavar="OUT.mp4", help="also write the video with the tracked contours drawn "
+                   "(tracks in one process: not with --jobs above 1)")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="worker processes, each tracking a contiguous chunk of the video, stitched in frame "
+                        "order (the same points within the tracker's convergence tolerance, checked at every "
+                        "seam); default: one per core, at least 500 frames each (1 with --overlay)")
     p.add_argument("--smooth", default="none", choices=("none", "savgol", "oneeuro"),
                    help="temporal smoothing of the landmarks (default none)")
     p.add_argument("--scheme", default=None, help="refuse a model trained in another scheme (optional check)")
@@ -86,8 +91,12 @@ def _train(args) -> int:
 def _track(args) -> int:
     from keyshape.tracker.commands import track_video
 
+    from keyshape.base.errors import InputError
+
+    if args.jobs is not None and args.jobs < 1:
+        raise InputError(f"--jobs {args.jobs}: must be >= 1 (or leave it out: one per core)")
     summary = track_video(args.video, args.model, args.output, overlay=args.overlay, smooth=args.smooth,
-                          scheme=args.scheme, show_progress=not args.quiet)
+                          scheme=args.scheme, show_progress=not args.quiet, jobs=args.jobs)
     print(summary.message)
     if summary.interrupted:
         return 143 if summary.terminated else 130

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -202,7 +202,7 @@ def check_frame_size(model: AppearanceModel, width: int, height: int, video=None
 
 def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int = 0, stop: int | None = None,
                tracker_options: dict | None = None, keep_frames: bool = False, reader: VideoReader | None = None,
-               decode_thread: bool = True):
+               decode_thread: bool = True, jobs: int = 1, progress: Progress | None = None, seams: list | None = None):
     """Track frames ``start`` to ``stop`` (exclusive; None: the end) of ``video``, one at a time.
 
     Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the
@@ -213,12 +213,28 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     four at a time, :func:`_prefetched`) and converts them to gray (OpenCV's decoder and conversion
     release the GIL, so both overlap tracking; same frames, same order, the same gray levels as the
     tracker's own conversion).
+
+    ``jobs`` above 1 tracks contiguous chunks of the range in that many worker processes and stitches
+    them in frame order (:func:`keyshape.tracker.chunked.iter_track_chunked`: the same points within the
+    tracker's convergence tolerance, checked at every seam; frames are not kept, so not with
+    ``keep_frames``); ``progress`` then counts the frames as the workers track them (with one job it is
+    not touched: the caller counts the frames yielded) and ``seams`` (a list) receives how each seam was
+    crossed (:class:`keyshape.tracker.chunked.Seam`).
     """
     from keyshape.tracker.fitting import Tracker, single_threaded
     from keyshape.tracker.smoothing import StreamSmoother
 
     reader = reader or VideoReader(video)
     check_frame_size(model, reader.info.width, reader.info.height, video)
+    if jobs > 1:
+        if keep_frames:
+            raise InputError(f"jobs={jobs}: the frames are decoded in worker processes and not kept (an overlay "
+                             "needs one job)")
+        from keyshape.tracker.chunked import iter_track_chunked
+
+        yield from iter_track_chunked(video, model, smooth, start, stop, tracker_options, jobs=jobs, reader=reader,
+                                      progress=progress, seams=seams)
+        return
     tracker = Tracker(model, **(tracker_options or {}))
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
@@ -244,11 +260,13 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
 
 def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int | None = None,
                  tracker_options: dict | None = None, scheme=None, show_progress: bool = False,
-                 decode_thread: bool = True) -> Tracks:
+                 decode_thread: bool = True, jobs: int | None = 1) -> Tracks:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into :class:`Tracks` in memory.
 
     The same per-frame results as :func:`track_video` (which streams them to a file instead), with or
-    without the decode-ahead thread (``decode_thread``, :func:`iter_track`).
+    without the decode-ahead thread (``decode_thread``, :func:`iter_track`). ``jobs``: worker processes
+    tracking contiguous chunks of the range (:func:`iter_track`; None: :func:`auto_jobs`); 1 (default)
+    tracks in this process, as a batch worker must (it is one core already).
     """
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)
@@ -256,11 +274,13 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     fps = reader.info.fps
     rows = []
     n_total = (stop if stop is not None else reader.info.n_frames) - start
+    jobs = auto_jobs(n_total) if jobs is None else int(jobs)
     with Progress(n_total if n_total > 0 else None, desc="keyshape track", enabled=show_progress) as prog:
         for pts, res, _ in iter_track(video, model, smooth, start, stop, tracker_options, reader=reader,
-                                       decode_thread=decode_thread):
+                                       decode_thread=decode_thread, jobs=jobs, progress=prog):
             rows.append((res.index, res.confidence, res.success, pts, res.pose))
-            prog.update()
+            if jobs <= 1:
+                prog.update()
     if stop is not None and reader.n_read < stop and not rows:
         raise InputError(f"frame range {start}-{stop} is past the video's end ({reader.n_read} frames)", video)
     if not rows:
@@ -271,6 +291,19 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
                   points, np.stack([r[4] for r in rows]),
                   {"model": model_fingerprint(model), "scheme": model.scheme_.base_name,
                    "image_size": [int(reader.info.width), int(reader.info.height)]}, aux)
+
+
+#: the fewest frames a chunk gets from :func:`auto_jobs` (a worker's start, about a second, and its
+#: warm-up cost what tracking a few hundred frames does)
+AUTO_MIN_FRAMES = 500
+
+
+def auto_jobs(n_frames: int) -> int:
+    """Worker processes for ``n_frames`` frames when none are asked for: one per core this process may
+    use, with at least :data:`AUTO_MIN_FRAMES` frames each (1 for an unknown length)."""
+    from keyshape.tracker.chunked import available_cores
+
+    return max(1, min(available_cores(), int(n_frames) // AUTO_MIN_FRAMES)) if n_frames and n_frames > 0 else 1
 
 
 def check_label_geometry(frames: np.ndarray, shapes: np.ndarray, labels_dir) -> None:
@@ -301,15 +334,20 @@ class TrackSummary:
     interrupted: bool
     message: str
     terminated: bool = False
+    seams: list = field(default_factory=list)   # jobs > 1: how each seam was crossed (chunked.Seam)
 
 
 def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
-                tracker_options: dict | None = None, scheme=None, decode_thread: bool = True) -> TrackSummary:
+                tracker_options: dict | None = None, scheme=None, decode_thread: bool = True,
+                jobs: int | None = 1) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
 
     Frames are decoded, tracked, written and (with ``overlay``) drawn one at a
     time. A truncated video yields the frames that decoded; Ctrl-C stops the
-    loop and keeps the rows written so far (the summary says which).
+    loop and keeps the rows written so far (the summary says which). ``jobs``: worker processes
+    tracking contiguous chunks of the video (:func:`iter_track`; None: :func:`auto_jobs`, one with
+    ``overlay``); rows are written in frame order as the chunks are stitched, so an interrupted run
+    keeps the frames stitched so far (the first chunk's tracked frames at least).
     """
     import cv2
 
@@ -327,7 +365,11 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
         model = AppearanceModel.load(model, scheme)
     reader = VideoReader(video)
     info = reader.info
+    jobs = (1 if overlay else auto_jobs(info.n_frames)) if jobs is None else int(jobs)
+    if overlay and jobs > 1:
+        raise InputError(f"--overlay draws on the frames as they are tracked: it needs --jobs 1, not {jobs}")
     n_lost = 0
+    seams: list = []
     interrupted: KeyboardInterrupt | None = None
     prog = Progress(info.n_frames or None, desc="keyshape track", enabled=show_progress)
     t0 = time.perf_counter()
@@ -345,7 +387,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             try:
                 for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
                                                   keep_frames=vw is not None, reader=reader,
-                                                  decode_thread=decode_thread):
+                                                  decode_thread=decode_thread, jobs=jobs, progress=prog,
+                                                  seams=seams):
                     n_lost += not res.success
                     writer.write(res.index, res.index / info.fps, res.confidence, res.success, pts, res.pose)
                     if vw is not None:
@@ -353,7 +396,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
                         if not res.success:
                             cv2.putText(img, "lost", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 255), 2)
                         vw.write(img)
-                    prog.update()
+                    if jobs <= 1:
+                        prog.update()
             except KeyboardInterrupt as exc:
                 interrupted = exc
             prog.close()
@@ -381,11 +425,20 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     dt = time.perf_counter() - t0
     truncated = (interrupted is None) and reader.truncated
     if interrupted is None:
-        msg = (f"keyshape track: {n} frames, {n_lost} lost, {n / max(dt, 1e-9):.0f} frames/s -> {output}"
+        msg = (f"keyshape track: {n} frames, {n_lost} lost, {n / max(dt, 1e-9):.0f} frames/s"
+               + (f" ({jobs} jobs{_seams_text(seams)})" if jobs > 1 else "") + f" -> {output}"
                + (f" and {overlay}" if overlay else ""))
     else:
         msg = (f"keyshape track: interrupted: tracks written for frames 0-{n - 1} only, to "
                f"{partial_name(output)} (marked partial); {output} "
                f"{'is untouched' if output.exists() else 'was not written'}")
     return TrackSummary(n, info.n_frames, n_lost, n / max(dt, 1e-9), truncated, interrupted is not None, msg,
-                        terminated=type(interrupted).__name__ == "Terminated")
+                        terminated=type(interrupted).__name__ == "Terminated", seams=seams)
+
+
+def _seams_text(seams: list) -> str:
+    """``; seams: max 0.02 px, 0 frames re-tracked`` for the summary line (empty without seams)."""
+    if not seams:
+        return ""
+    mx = max((s.max_px for s in seams if s.max_px == s.max_px), default=float("nan"))
+    return f"; seams: points within {mx:.3f} px, {sum(s.repaired for s in seams)} frames re-tracked here"

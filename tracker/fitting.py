@@ -515,6 +515,21 @@ class Tracker:
         self.lost_for = 0
         self._last_r = 0.0
 
+    def state(self) -> dict:
+        """What the next :meth:`step` starts from (the previous frame's pose, the last good pose, how long
+        the track has been lost, the last residual): :meth:`restore` on another tracker of the same model
+        makes it continue exactly as this one would."""
+        return {"pose": None if self.pose is None else np.array(self.pose),
+                "last_good": None if self.last_good is None else np.array(self.last_good),
+                "lost_for": int(self.lost_for), "last_r": float(self._last_r)}
+
+    def restore(self, state: dict) -> None:
+        """Continue from a :meth:`state` (of this tracker or another of the same model)."""
+        self.pose = None if state["pose"] is None else np.array(state["pose"], np.float64)
+        self.last_good = None if state["last_good"] is None else np.array(state["last_good"], np.float64)
+        self.lost_for = int(state["lost_for"])
+        self._last_r = float(state["last_r"])
+
     # ---------------------------------------------------------------- core steps
     def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0,), n_iter: int | None = None) -> tuple[np.ndarray, int]:
         """Refine ``pose`` (image_from_model) by inverse-compositional alignment, coarse to fine."""

@@ -98,6 +98,46 @@ class VideoReader:
             raise InputError("video has no decodable frames", self.path)
         self.truncated = self.info.n_frames > 0 and self.n_read < self.info.n_frames
 
+    def frames(self, start: int = 0, stop: int | None = None, seek: bool = True) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(index, frame)`` for frames ``start`` to ``stop`` (exclusive; None: the end).
+
+        With ``seek`` (default) the decoder is positioned with OpenCV's frame seek (FFmpeg seeks to
+        the key frame before ``start`` and decodes forward to it): frame-exact on the constant-rate
+        mp4 and avi files tested (``tests/test_chunked_tracking.py`` compares the frames with a
+        sequential decode, byte for byte), and where OpenCV reports another position than ``start``
+        the frames before it are decoded and discarded instead. Without ``seek`` they always are
+        (exact on any file; slower). A caller that must be sure compares frames it also has from a
+        sequential decode (:mod:`keyshape.tracker.chunked` compares checksums at its seams).
+        Afterwards ``n_read`` is the index after the last frame decoded (0 if none was), and
+        ``truncated`` says whether a read to the end stopped before the announced frame count.
+        """
+        start = max(0, int(start))
+        cap = _open(self.path)
+        i = got = 0
+        try:
+            if start > 0:
+                if not (seek and cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+                        and int(round(cap.get(cv2.CAP_PROP_POS_FRAMES))) == start):
+                    cap.release()
+                    cap = _open(self.path)
+                    while i < start and cap.grab():
+                        i += 1
+                    if i < start:
+                        return
+                i = start
+            while stop is None or i < stop:
+                ok, frame = cap.read()
+                if not ok or frame is None:
+                    break
+                got += 1
+                yield i, self._convert(frame)
+                i += 1
+        finally:
+            cap.release()
+            self.n_read = i if (got or start == 0) else 0
+        if stop is None or i < stop:
+            self.truncated = self.info.n_frames > 0 and self.n_read < self.info.n_frames
+
     def read_frames(self, indices) -> np.ndarray:
         """Decode the frames at ``indices`` (any order); raises naming frames past the end."""
         indices = np.asarray(indices, dtype=np.intp)
