@@ -150,3 +150,27 @@ def test_cue_choice_labels_the_widest_mouth_of_real_footage(clip, shared_data):
     chosen = choose_frames_by_cues(dlib68, 12, min_gap=12)
     gap = np.linalg.norm(mp[:, 13] - mp[:, 14], axis=1) / np.linalg.norm(mp[:, 263] - mp[:, 33], axis=1)
     assert gap[chosen].max() >= 0.85 * np.percentile(gap, 99.5), (gap[chosen].round(3), np.percentile(gap, 99.5))
+
+
+def test_decorrelated_choice_sees_each_expression_at_each_pose():
+    """A take where the mouth opens mostly while the head is turned (corr 0.8 between a yaw cue and an
+    opening cue): a choice starting from the correlated frames (the diagonal) is exchanged into one
+    where every (yaw side, mouth state) quadrant of the truth is labelled at least twice."""
+    from keyshape.tracker.labelling.frames import decorrelate_choice
+
+    rng = np.random.default_rng(0)
+    n = 3000
+    yaw = rng.uniform(-1, 1, n)
+    mouth = np.clip(0.8 * yaw + 0.35 * rng.normal(size=n), -1, 1)
+    feats = np.column_stack([yaw, mouth])
+    assert np.corrcoef(yaw, mouth)[0, 1] > 0.75
+    diag = np.argsort(yaw + mouth)
+    start = [int(i) for i in np.concatenate([diag[:6], diag[-6:]])]        # both extremes: perfectly confounded
+    assert np.corrcoef(yaw[start], mouth[start])[0, 1] > 0.95
+    chosen = decorrelate_choice(feats, start, np.arange(n), min_gap=1)
+    assert len(chosen) == 12 and len(set(chosen)) == 12
+    # less confounded than the take itself (a closed mouth at full yaw is 5 sigma away: not in the take)
+    assert abs(np.corrcoef(yaw[chosen], mouth[chosen])[0, 1]) < 0.6
+    quadrant = (yaw[chosen] > 0).astype(int) * 2 + (mouth[chosen] > 0)
+    assert np.bincount(quadrant, minlength=4).min() >= 2, np.bincount(quadrant, minlength=4)
+    assert np.ptp(yaw[chosen]) > 1.5 and np.ptp(mouth[chosen]) > 1.5       # the ranges stay covered
