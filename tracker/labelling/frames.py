@@ -23,7 +23,9 @@ raised brows, head turns) rather than K similar frames. Over the whole video:
 With dlib's points over the whole video (the default of ``keyshape label``),
 :func:`choose_frames_by_cues` chooses instead from expression and pose cues
 (:func:`shape_cues`) and makes sure blinks are among the chosen frames (an
-eye-closure cue from the pixels, :func:`eye_profile`); :func:`worst_explained`
+eye-closure cue from the pixels, :func:`eye_profile`), optionally exchanged so
+that head pose and expression vary independently among the chosen frames
+(:func:`decorrelate_choice`, ``keyshape label --decorrelate``); :func:`worst_explained`
 picks the frames a first track explains worst (``keyshape label --more``).
 """
 from __future__ import annotations
@@ -316,6 +318,12 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     wider than those it was shown. Each cue's z-score scale is at least an
     eighth of its 1-99% range, so that a mouth closed most of the time does not
     make every opening look equally extreme.
+
+    With ``decorrelate`` (and ``count`` above the 8 parameters of the
+    design), the farthest-point choice is first exchanged towards a D-optimal
+    design of the 7 cues, each by its rank in the video
+    (:func:`decorrelate_choice`), so that head pose and expression vary
+    independently among the labels; the blinks and mouth extremes follow.
 
     With ``eye_profiles`` ((n, d) from :func:`eye_profile`), a blink must
     also show in the pixels: its profile far (robust z-score above 3) from
