@@ -150,3 +150,50 @@ def test_cue_choice_labels_the_widest_mouth_of_real_footage(clip, shared_data):
     chosen = choose_frames_by_cues(dlib68, 12, min_gap=12)
     gap = np.linalg.norm(mp[:, 13] - mp[:, 14], axis=1) / np.linalg.norm(mp[:, 263] - mp[:, 33], axis=1)
     assert gap[chosen].max() >= 0.85 * np.percentile(gap, 99.5), (gap[chosen].round(3), np.percentile(gap, 99.5))
+
+
+def test_decorrelated_choice_sees_each_expression_at_each_pose():
+    """A take where the mouth opens mostly while the head is turned (corr 0.8 between a yaw cue and an
+    opening cue): a choice starting from the correlated frames (the diagonal) is exchanged into one
+    where every (yaw side, mouth state) quadrant of the truth is labelled at least twice."""
+    from keyshape.tracker.labelling.frames import decorrelate_choice
+
+    rng = np.random.default_rng(0)
+    n = 3000
+    yaw = rng.uniform(-1, 1, n)
+    mouth = np.clip(0.8 * yaw + 0.35 * rng.normal(size=n), -1, 1)
+    feats = np.column_stack([yaw, mouth])
+    assert np.corrcoef(yaw, mouth)[0, 1] > 0.75
+    diag = np.argsort(yaw + mouth)
+    start = [int(i) for i in np.concatenate([diag[:6], diag[-6:]])]        # both extremes: perfectly confounded
+    assert np.corrcoef(yaw[start], mouth[start])[0, 1] > 0.95
+    chosen = decorrelate_choice(feats, start, np.arange(n), min_gap=1)
+    assert len(chosen) == 12 and len(set(chosen)) == 12
+    # less confounded than the take itself (a closed mouth at full yaw is 5 sigma away: not in the take)
+    assert abs(np.corrcoef(yaw[chosen], mouth[chosen])[0, 1]) < 0.6
+    quadrant = (yaw[chosen] > 0).astype(int) * 2 + (mouth[chosen] > 0)
+    assert np.bincount(quadrant, minlength=4).min() >= 2, np.bincount(quadrant, minlength=4)
+    assert np.ptp(yaw[chosen]) > 1.5 and np.ptp(mouth[chosen]) > 1.5       # the ranges stay covered
+
+
+def test_cue_choice_decorrelated_sees_open_and_closed_mouths_at_both_yaw_sides():
+    """dlib-like shapes whose mouth opens mostly while the head turns right (truth corr 0.5 between yaw
+    and opening): with ``decorrelate`` the 20 chosen frames hold at least 4 of each (yaw side, mouth
+    state) cell of the truth and their yaw-opening correlation falls below the plain choice's."""
+    from keyshape.tracker.labelling.frames import choose_frames_by_cues
+
+    rng = np.random.default_rng(1)
+    n = 1200
+    p = _shapes68(n, rng)
+    t = np.arange(n)
+    yaw = np.sin(t / 37.0)                                               # slow head turns, -1..1
+    opening = np.clip(0.5 * yaw + 0.7 * np.sin(t / 11.0), 0, None)       # opens mostly at yaw > 0
+    p[:, 27:36, 0] += 12 * yaw[:, None]                                  # nose (tip 30) to the side
+    p[:, [56, 57, 58, 65, 66, 67], 1] += 20 * opening[:, None]           # lower lip down
+    cell = (yaw > 0).astype(int) * 2 + (opening > 0.15)
+    plain = choose_frames_by_cues(p, 20, min_gap=10)
+    chosen = choose_frames_by_cues(p, 20, min_gap=10, decorrelate=True)
+    assert len(chosen) == 20 and np.all(np.diff(chosen) >= 10)
+    assert np.bincount(cell[chosen], minlength=4).min() >= 4, np.bincount(cell[chosen], minlength=4)
+    r_plain, r_dec = np.corrcoef(opening[plain], yaw[plain])[0, 1], np.corrcoef(opening[chosen], yaw[chosen])[0, 1]
+    assert r_dec < 0.45 and r_dec < r_plain - 0.1, (r_plain, r_dec)
