@@ -450,6 +450,13 @@ class HeadPose3D:
         H = frontalise(X, np.where(ok[:, None, None], p, 0.0), np.where(ok[:, None, None], R, np.eye(3)),
                        np.where(ok[:, None], t, 1.0), focal, centre)
         H[~ok] = np.nan
+        if self.eyeballs:
+            # each eyeball behind where its pupil sits looking straight ahead: the take's median pupil (the
+            # gaze's zero, keyshape.decompose.gaze), not the rest frame's, whose eyes may look elsewhere
+            eb = list(self.eyeballs)
+            X = X.copy()
+            X[eb, :2] = np.median(H[ok][:, eb, :2], axis=0)
+            self.template_ = X
         self.zero_frame_ = self._relaxed(H[..., :2], ok, R)
         self.zero_ = R[self.zero_frame_]
         # output frame: head-frame x, y scaled and shifted onto the rest frame's rigid points (pixels)
