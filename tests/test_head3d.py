@@ -599,3 +599,42 @@ def test_pupils_on_their_eyeballs_come_back_exactly_under_a_head_turn(eye_radius
     again = HeadPose3D.from_dict(est.to_dict())
     assert again.eyeballs == () and HeadPose3D.from_dict(
         HeadPose3D(X, W, SCHEME.rigid, eyeballs=(26, 27)).fit(turned).to_dict()).eyeballs == (26, 27)
+
+
+def test_tv1d_is_exact_on_a_step():
+    """Total variation's known solution on a step of ``A`` between plateaus of ``n``: each moves ``lam / n``."""
+    from keyshape.decompose.gaze import _tv1d
+    n, A, lam = 40, 10.0, 60.0
+    x = _tv1d(np.r_[np.zeros(n), np.full(n, A)], lam)
+    assert np.allclose(x[:n], lam / n, atol=1e-6) and np.allclose(x[n:], A - lam / n, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_denoise_gaze_against_world_fixations(seed):
+    """Ground truth: fixations on targets in the world (0.4-1.5 s, jumps of up to 30 degrees) seen by eyes
+    whose head sweeps 25 degrees (the eye counter-rotates), white noise of 1.5 degrees: in the world frame the
+    denoised eye angles come within 0.6 degrees RMS of the truth (noise 1.5), and the saccades stay sharp
+    (the steps' sizes, two frames either side, within 1.3 degrees RMS: 1.1 measured, the noisy angles' 1.8;
+    total variation shrinks a step between fixations of L frames by about 2 lam / L)."""
+    from keyshape.decompose.gaze import denoise_gaze, frame_noise
+    rng = np.random.default_rng(seed)
+    fps, n = 30.0, 900
+    cuts = np.cumsum(rng.uniform(0.4, 1.5, 60) * fps).astype(int)
+    cuts = cuts[cuts < n]
+    target = rng.uniform(-15, 15, (len(cuts) + 1, 2))[np.searchsorted(cuts, np.arange(n), side="right")]
+    head = np.column_stack([25 * np.sin(2 * np.pi * np.arange(n) / (7 * fps)), 6 * np.sin(2 * np.pi * np.arange(n) / (5 * fps))])
+    eye = target - head
+    noisy = eye + rng.normal(0, 1.5, eye.shape)
+    noisy[100] = np.nan
+    assert frame_noise(noisy[:, 0]) == pytest.approx(1.5, rel=0.2)
+    out = denoise_gaze(noisy, fps, head=head)
+    ok = np.isfinite(noisy).all(axis=1)
+    assert np.isnan(out[100]).all()
+    rms = np.sqrt(((out[ok] - eye[ok]) ** 2).mean(0))
+    assert (rms < 0.6).all(), rms
+    c = np.array([c for c in cuts[(cuts > 3) & (cuts < n - 3)] if ok[c - 3:c + 3].all()])
+    step = lambda a: a[c + 2] - a[c - 3]                                    # noqa: E731
+    raw, den = np.sqrt(((step(noisy) - step(eye)) ** 2).mean()), np.sqrt(((step(out) - step(eye)) ** 2).mean())
+    assert den < 0.7 * raw and den < 1.3, (den, raw)
+    with pytest.raises(InputError, match="must match"):
+        denoise_gaze(noisy, fps, head=head[:10])
