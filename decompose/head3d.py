@@ -39,6 +39,14 @@ shapes, head pose):
    plane, exact for a face that moves only in that plane (a rotated neutral comes back as the
    neutral). The shapes are in the rest frame's pixels (scaled and shifted so that the rest
    frame's rigid points lie where they are in the image).
+   The pupils are the exception (``eyeballs``): a pupil turns about its eyeball's centre, so a turned
+   eye's pupil lies behind its rest plane and Eq. 2, seen obliquely, slides it sideways by that depth times
+   the tangent of the head's turn (the gaze error followed the head's yaw, r -0.85 to -0.95 on the synthetic
+   3D take's true landmarks). Each pupil is taken back along its ray to its eyeball instead, a sphere of
+   radius ``r`` (``eye_radius``, 1.2 cm) centred ``r`` behind where the pupil sits looking straight ahead
+   (the take's median frontalised pupil, the gaze's zero): the ray's first crossing ``lambda`` of
+   ``|lambda q_i - C_i| = r``, ``C_i = R (X_i + r e_z) + t``                              (3)
+
 4. **Zero**: the most front-facing of the take's most relaxed frames (the 20% of frames whose
    head-frame shape is nearest the take's median shape); the angles are those of ``R_t R_0^T``.
    A light Gaussian smoothing over time (``smooth`` frames, 1 by default) of the rotation vectors
