@@ -163,7 +163,7 @@ def head_pose_3d(scheme: Scheme, image_size: Sequence[int] | None = None) -> Hea
     The scheme's pupils are frontalised on their eyeballs (``eyeballs``, radius
     :data:`~keyshape.decompose.gaze.EYE_RADIUS_CM`; Eq. 3 of :func:`~keyshape.decompose.head3d.frontalise`):
     on their rest plane the head's yaw leaked into the eye's (synthetic 3D take's true landmarks, the gaze
-    error's slope on the head's yaw -0.09 to -0.22 degrees per degree, -0.02 to -0.13 on the eyeballs)."""
+    error's slope on the head's yaw -0.09 to -0.22 degrees per degree, -0.04 to -0.14 on the eyeballs)."""
     if not scheme.rigid:
         return None
     try:
