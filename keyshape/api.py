@@ -514,7 +514,7 @@ def head(tracks: Tracks) -> Head:
     writes to the Live Link CSV, the curves CSV's head columns and the .glb head node)."""
     from keyshape.base.errors import InputError
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.gaze import LidDrag, gaze_angles, has_gaze
+    from keyshape.decompose.gaze import LidDrag, denoise_gaze, gaze_angles, has_gaze
     from keyshape.decompose.regions import head_points, head_pose_3d
 
     scheme = scheme_for_n_points(tracks.n_points)
@@ -527,6 +527,9 @@ def head(tracks: Tracks) -> Head:
     gaze = None
     if has_gaze(scheme):                                # the lids' pull on the pupils during blinks taken out
         shapes = est.transform(pts)[:, :tracks.n_points]
-        drag = LidDrag(fps=D.tracks_fps(tracks) or RA.DEFAULT_FPS)
+        fps = D.tracks_fps(tracks) or RA.DEFAULT_FPS
+        drag = LidDrag(fps=fps)
         gaze = np.degrees(gaze_angles(drag.fit_transform(shapes, scheme), scheme))
+        # the take's fixations denoised in the world frame (the eye angles plus the head's)
+        gaze = denoise_gaze(gaze, fps, head=np.degrees(hp["angles"][:, [0, 1, 0, 1]]))
     return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)

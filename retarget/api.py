@@ -239,23 +239,32 @@ def head_3d_from_tracks(tracks: Tracks, source=None):
     return None if est is None or not tracks.success.any() else est.fit(pts)
 
 
-def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None, lid_drag: bool = True) -> np.ndarray:
+def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None, lid_drag: bool = True,
+                     denoise: bool = True) -> np.ndarray:
     """(n_frames, 4) eye angles of the weights' ``frames`` (left yaw, left pitch, right yaw, right pitch,
     radians; :func:`keyshape.decompose.gaze.gaze_angles`) from the pupils in the head's frame (``head``:
     a fitted :class:`~keyshape.decompose.head3d.HeadPose3D`, a KEYS.json ``head_pose`` entry, or None:
     fitted here; the 2D rigid head where the scheme has no 3D face), the lids' pull on the pupils during
     blinks taken out (``lid_drag``: :class:`~keyshape.decompose.gaze.LidDrag`, fitted on the take; live, which
-    sees no future frame, goes without). Failed frames hold the last good gaze. Raises :class:`InputError`
-    when the scheme has no pupils."""
+    sees no future frame, goes without), and the take's fixations denoised in the world frame (``denoise``:
+    :func:`~keyshape.decompose.gaze.denoise_gaze`, the eye angles plus the 3D head's; the head frame where the
+    head is 2D; offline only, like ``lid_drag``). Failed frames hold the last good gaze. Raises
+    :class:`InputError` when the scheme has no pupils."""
     from keyshape.base.schemes import scheme_for_n_points
     from keyshape.decompose.api import tracks_fps
-    from keyshape.decompose.gaze import LidDrag, gaze_angles, has_gaze
-    from keyshape.decompose.regions import head_shapes
+    from keyshape.decompose.gaze import LidDrag, denoise_gaze, gaze_angles, has_gaze
+    from keyshape.decompose.head3d import HeadPose3D
+    from keyshape.decompose.regions import fitted_head_points, head_shapes
     scheme = scheme_for_n_points(tracks.n_points)
-    shapes, _ = head_shapes(tracks, scheme, "3d" if head is None else head, source)
+    shapes, stab = head_shapes(tracks, scheme, "3d" if head is None else head, source)
     if lid_drag and has_gaze(scheme):
         shapes = LidDrag(fps=tracks_fps(tracks) or DEFAULT_FPS).fit_transform(shapes, scheme)
     g = gaze_angles(shapes, scheme)
+    if denoise:
+        ang = None
+        if isinstance(stab, HeadPose3D):
+            ang = stab.head_pose(fitted_head_points(stab, tracks, source))["angles"][:, [0, 1, 0, 1]]
+        g = denoise_gaze(g, tracks_fps(tracks) or DEFAULT_FPS, head=ang)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
     if missing:

@@ -157,8 +157,9 @@ def test_head_and_eye_angles_equal_the_offline_ones(take):
     ``gaze_from_tracks`` on the whole take; live fits the first once on the calibration (here the take's own
     tracks, the key set's) and applies the others to each frame alone with the 3D head's temporal smoothing
     off (offline's is a Gaussian over past and future frames). Offline with that smoothing off (and without the
-    lids' pull on the pupils taken out, fitted on the whole take's blinks), every frame's 9 head and eye values
-    are equal; the command's file differs by its smoothing and that pull."""
+    lids' pull on the pupils taken out, fitted on the whole take's blinks, and without the whole take's gaze
+    denoising), every frame's 9 head and eye values are equal; the command's file differs by its smoothing,
+    that pull and the denoising."""
     import copy
 
     from keyshape.base.formats.tracks import read_tracks
@@ -171,7 +172,7 @@ def test_head_and_eye_angles_equal_the_offline_ones(take):
     causal = copy.copy(head_3d_from_tracks(tr))
     causal.smooth = 0.0
     head, _ = head_from_tracks(tr, tr.frame, None, 1.0, head=causal)
-    eyes = gaze_from_tracks(tr, tr.frame, causal, lid_drag=False)            # live sees no future frame
+    eyes = gaze_from_tracks(tr, tr.frame, causal, lid_drag=False, denoise=False)   # live sees no future frame
     names = load_rig(take / "rig", with_mesh=False).names
     ref = livelink_values(names, np.zeros((N_FRAMES, len(names))), head, eyes)
     # float32 packets; live's points are the tracker's, the file's rounded to 1e-4 px (measured 3.8e-6 rad)

@@ -220,6 +220,8 @@ def _head_pose_3d(hp: dict, n: int, path) -> dict:
         adapt, zf, anchor = bool(hp["adapt"]), int(hp["zero_frame"]), bool(hp["anchor"])
         rounds = int(hp["robust_rounds"])
         ref = np.asarray(hp["reference"], dtype=np.float64)
+        eyes = [int(i) for i in hp.get("eyeballs", [])]           # optional (older files: none)
+        eye_radius = float(hp.get("eye_radius", 1.2))
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise InputError(f"malformed head_pose (missing or bad field: {exc})", path) from None
     if arr["generic"].ndim == 2 and len(arr["generic"]) > n:
@@ -240,7 +242,9 @@ def _head_pose_3d(hp: dict, n: int, path) -> dict:
         raise InputError("head_pose zero is not a rotation", path)
     if ref.shape != (len(pts), 2) or not np.isfinite(ref).all() or np.linalg.norm(ref - ref.mean(0)) < 1e-9:
         raise InputError(f"head_pose reference must be {len(pts)} distinct finite points", path)
+    if not all(0 <= i < n for i in eyes) or not (np.isfinite(eye_radius) and eye_radius > 0):
+        raise InputError(f"head_pose eyeballs {eyes} must be points in 0..{n - 1}, eye_radius > 0", path)
     return {"method": "3d", "points": pts, **scal, "adapt": adapt, "zero_frame": zf, "anchor": anchor,
-            "robust_rounds": rounds,
+            "robust_rounds": rounds, "eyeballs": eyes, "eye_radius": eye_radius,
             "reference": ref.tolist(),
             **{k: v.tolist() for k, v in arr.items()}}
