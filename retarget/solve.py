@@ -424,6 +424,7 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
     U[..., 1] -= U[:, rigid, 1].mean(axis=1)[:, None]
     return U
 
+
 def mirror_partners(rig_points: np.ndarray) -> np.ndarray:
     """Index of each point's left-right mirror image: the rig point nearest its reflection about the rig's
     midline (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`), itself on the midline."""
