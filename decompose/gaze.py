@@ -341,3 +341,29 @@ def denoise_gaze(angles: np.ndarray, fps: float, head: np.ndarray | None = None,
         w = A[ok, j] + Hd[ok, j]
         out[ok, j] = _tv1d(w, frame_noise(w) * np.sqrt(L)) - Hd[ok, j]
     return out
+
+
+def take_gaze(shapes: np.ndarray, scheme: Scheme, fps: float, head: np.ndarray | None = None,
+              lid_drag: bool = True, denoise: bool = True) -> np.ndarray:
+    """A whole take's eye angles from its head-frame shapes, offline: the lids' pull taken out of the pupils
+    (:class:`LidDrag`, Eq. 2; ``lid_drag``), each eye's yaw and pitch (:func:`gaze_angles`, Eq. 1) and the
+    take's fixations denoised in the world frame (:func:`denoise_gaze`; ``denoise``).
+
+    Parameters
+    ----------
+    shapes : (n_frames, n_points, 2) head-frame shapes in time order (NaN rows: failed frames)
+    scheme : their landmark scheme (:func:`has_gaze`)
+    fps : frames per second
+    head : (n_frames, >= 2) the head's yaw and pitch (radians, :func:`~keyshape.decompose.head3d.euler_angles`)
+        that take the eye angles to the world frame for the denoising; None: the head frame (a 2D head)
+
+    Returns
+    -------
+    (n_frames, 4) left yaw, left pitch, right yaw, right pitch in radians (NaN where a frame failed)
+    """
+    if lid_drag:
+        shapes = LidDrag(fps=fps).fit_transform(shapes, scheme)
+    g = gaze_angles(shapes, scheme)
+    if not denoise:
+        return g
+    return denoise_gaze(g, fps, head=None if head is None else np.asarray(head)[:, [0, 1, 0, 1]])

@@ -514,7 +514,7 @@ def head(tracks: Tracks) -> Head:
     writes to the Live Link CSV, the curves CSV's head columns and the .glb head node)."""
     from keyshape.base.errors import InputError
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.gaze import LidDrag, denoise_gaze, gaze_angles, has_gaze
+    from keyshape.decompose.gaze import has_gaze, take_gaze
     from keyshape.decompose.regions import head_points, head_pose_3d
 
     scheme = scheme_for_n_points(tracks.n_points)
@@ -525,11 +525,7 @@ def head(tracks: Tracks) -> Head:
     est.fit(pts)
     hp = est.head_pose(pts)
     gaze = None
-    if has_gaze(scheme):                                # the lids' pull on the pupils during blinks taken out
+    if has_gaze(scheme):                                # the same chain as retarget's gaze_from_tracks
         shapes = est.transform(pts)[:, :tracks.n_points]
-        fps = D.tracks_fps(tracks) or RA.DEFAULT_FPS
-        drag = LidDrag(fps=fps)
-        gaze = np.degrees(gaze_angles(drag.fit_transform(shapes, scheme), scheme))
-        # the take's fixations denoised in the world frame (the eye angles plus the head's)
-        gaze = denoise_gaze(gaze, fps, head=np.degrees(hp["angles"][:, [0, 1, 0, 1]]))
+        gaze = np.degrees(take_gaze(shapes, scheme, D.tracks_fps(tracks) or RA.DEFAULT_FPS, head=hp["angles"]))
     return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)

@@ -248,7 +248,6 @@ class LiveHead:
 
         est = copy.copy(estimator)
         est.smooth = 0.0                                  # causal: each frame posed alone
-        _share_camera_pose(est)
         self.estimator, self.scheme, self.gaze, self.source = est, scheme, gaze, source
         self.context = None                               # calibration shapes (twice) + a slot for the frame
         self.last_head = None                             # the last frame's head (held where a pose fails)
@@ -299,20 +298,6 @@ class LiveHead:
                 eyes[c] = self.last_eyes[c]
         self.last_eyes = eyes
         return head, eyes
-
-
-def _share_camera_pose(est) -> None:
-    """Let ``est.head_pose`` and ``est.transform`` of the same points share one pose solve (both call
-    :meth:`~keyshape.decompose.head3d.HeadPose3D.camera_pose`; the last call's result is kept)."""
-    solve = est.camera_pose
-    memo: dict = {}
-
-    def camera_pose(points):
-        key = np.asarray(points, np.float64).tobytes()
-        if memo.get("key") != key:
-            memo["key"], memo["pose"] = key, solve(points)
-        return memo["pose"]
-    est.camera_pose = camera_pose
 
 
 def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", say=None,

@@ -252,19 +252,16 @@ def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None,
     :class:`InputError` when the scheme has no pupils."""
     from keyshape.base.schemes import scheme_for_n_points
     from keyshape.decompose.api import tracks_fps
-    from keyshape.decompose.gaze import LidDrag, denoise_gaze, gaze_angles, has_gaze
+    from keyshape.decompose.gaze import has_gaze, take_gaze
     from keyshape.decompose.head3d import HeadPose3D
     from keyshape.decompose.regions import fitted_head_points, head_shapes
     scheme = scheme_for_n_points(tracks.n_points)
     shapes, stab = head_shapes(tracks, scheme, "3d" if head is None else head, source)
-    if lid_drag and has_gaze(scheme):
-        shapes = LidDrag(fps=tracks_fps(tracks) or DEFAULT_FPS).fit_transform(shapes, scheme)
-    g = gaze_angles(shapes, scheme)
-    if denoise:
-        ang = None
-        if isinstance(stab, HeadPose3D):
-            ang = stab.head_pose(fitted_head_points(stab, tracks, source))["angles"][:, [0, 1, 0, 1]]
-        g = denoise_gaze(g, tracks_fps(tracks) or DEFAULT_FPS, head=ang)
+    ang = None
+    if denoise and isinstance(stab, HeadPose3D):        # the pose solve head_shapes made (HeadPose3D keeps it)
+        ang = stab.head_pose(fitted_head_points(stab, tracks, source))["angles"]
+    g = take_gaze(shapes, scheme, tracks_fps(tracks) or DEFAULT_FPS, head=ang, lid_drag=lid_drag and has_gaze(scheme),
+                  denoise=denoise)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
     if missing:

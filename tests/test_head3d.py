@@ -638,3 +638,55 @@ def test_denoise_gaze_against_world_fixations(seed):
     assert den < 0.7 * raw and den < 1.3, (den, raw)
     with pytest.raises(InputError, match="must match"):
         denoise_gaze(noisy, fps, head=head[:10])
+
+
+def test_one_pose_solve_is_shared_and_keyed_by_the_points_and_settings(monkeypatch):
+    """fit's solve serves head_pose/transform of the same points (no second solve: 1.4 s of CPU on franck.mp4's
+    4,800 frames); other points, or other solve settings (live sets smooth 0 on a copy), are solved afresh and
+    give what a fresh estimator gives."""
+    yaw, pitch, roll, pts, _ = _take(n=60)
+    est = HeadPose3D(X, W, SCHEME.rigid, centre=CENTRE, focal=FOCAL).fit(pts)
+    calls = []
+    solve = est._poses
+    monkeypatch.setattr(est, "_poses", lambda *a: calls.append(1) or solve(*a))
+    hp, H = est.head_pose(pts), est.transform(pts)
+    assert calls == []
+    R, t = est.camera_pose_
+    assert np.array_equal(hp["rotation"], FLIP @ np.einsum("tij,kj->tik", R, est.zero_) @ FLIP)
+    R[:] = np.nan                                        # what a caller does to a returned pose stays with it
+    assert np.isfinite(est.camera_pose(pts)[0]).all() and calls == []
+    other = pts[:20] + 0.5
+    a = est.camera_pose(other)
+    assert len(calls) == 1 and np.array_equal(est.camera_pose(other)[0], a[0]) and len(calls) == 1
+    import copy
+    live = copy.copy(est)
+    live.smooth = 0.0
+    fresh = HeadPose3D(X, W, SCHEME.rigid, centre=CENTRE, focal=FOCAL).fit(pts)
+    fresh.smooth = 0.0
+    fresh._pose_memo = None
+    assert np.allclose(live.camera_pose(pts)[0], fresh.camera_pose(pts)[0])
+    assert not np.allclose(live.camera_pose(pts)[0], est.camera_pose(pts)[0])
+    assert np.array_equal(H, est.transform(pts))
+
+
+def test_take_gaze_is_the_chain_and_free_of_units():
+    """take_gaze is LidDrag -> gaze_angles -> denoise_gaze (the one chain keyshape.api.head and retarget's
+    gaze_from_tracks share), and its denoising gives the same angles whatever the unit (total variation's
+    strength is the take's own noise)."""
+    from keyshape.decompose.gaze import LidDrag, denoise_gaze, gaze_angles, take_gaze
+    rng = np.random.default_rng(3)
+    n = 200
+    yaw = 10 * np.sin(np.linspace(0, 6, n))
+    pts = _render(yaw, np.zeros(n), np.zeros(n))
+    pts = pts + rng.normal(0, 0.3, pts.shape)
+    est = HeadPose3D(X, W, SCHEME.rigid, centre=CENTRE, focal=FOCAL).fit(pts)
+    S = est.transform(pts)[:, :SCHEME.n_points]
+    ang = est.head_pose(pts)["angles"]
+    g = take_gaze(S, SCHEME, 30.0, head=ang)
+    manual = denoise_gaze(gaze_angles(LidDrag(fps=30.0).fit_transform(S, SCHEME), SCHEME), 30.0,
+                          head=ang[:, [0, 1, 0, 1]])
+    assert np.allclose(g, manual, atol=1e-12)
+    deg = np.degrees(gaze_angles(LidDrag(fps=30.0).fit_transform(S, SCHEME), SCHEME))
+    assert np.allclose(np.degrees(g), denoise_gaze(deg, 30.0, head=np.degrees(ang[:, [0, 1, 0, 1]])), atol=1e-9)
+    assert np.array_equal(take_gaze(S, SCHEME, 30.0, lid_drag=False, denoise=False), gaze_angles(S, SCHEME))
+    assert not np.allclose(g, gaze_angles(S, SCHEME))
