@@ -11,9 +11,10 @@ both decoded must be the same bytes (checksums of the overlap frames: the seek w
 and on the last ``SEAM_FRAMES`` frames before the seam chunk ``k + 1``'s warm-up must agree with
 what was emitted (the same success flags, the last frame tracked in both, every point within
 ``seam_tol`` pixels). Where it does not, this process tracks on from chunk ``k``'s final tracker
-state (:meth:`~keyshape.tracker.fitting.Tracker.state`), the same frames decoded sequentially, frame by
-frame, until the chunk's own rows agree again on ``SEAM_FRAMES`` frames; so the result differs from
-one sequential run only within the tracker's own convergence tolerance (its alignment stops when a
+state (:meth:`~keyshape.tracker.fitting.Tracker.state`), the same frames decoded sequentially (from a
+seek to ``SEAM_FRAMES`` frames before the seam when those decode to the checksums of the frames
+emitted there, else from the video's start), frame by frame, until the chunk's own rows agree again
+on ``SEAM_FRAMES`` frames; so the result differs from one sequential run only within the tracker's own convergence tolerance (its alignment stops when a
 step moves the patch less than 0.01-0.03 px, so two runs that start apart end up that close, not
 equal), and never by a wrong frame.
 
@@ -93,7 +94,6 @@ def _worker(k: int, video: str, model_bytes: bytes, lo: int, own: int, end: int 
         from keyshape.tracker.fitting import Tracker, single_threaded
 
         model = pickle.loads(model_bytes)
-        tracker = Tracker(model, **tracker_options)
         reader = VideoReader(video)
         rows: list = []
         hashes: dict = {}
@@ -106,6 +106,7 @@ def _worker(k: int, video: str, model_bytes: bytes, lo: int, own: int, end: int 
                 hashes.clear()
 
         with single_threaded():
+            tracker = Tracker(model, **tracker_options)       # its QR factorisations on one thread too
             # the first chunk decodes from the video's start, as a sequential run does (nothing checks it);
             # the others seek, checked at their seams
             for i, frame in reader.frames(lo, end, seek=k > 0):
@@ -143,6 +144,23 @@ def _agree(emitted: deque, rows: dict, seam_tol: float) -> tuple[bool, float, fl
     mx = float(np.nanmax(d)) if diffs else float("nan")
     ok = ok and bool(diffs) and mx <= seam_tol
     return ok, mx, float(np.nanmedian(d)) if diffs else float("nan")
+
+
+def _resume(reader: VideoReader, i: int, stop: int | None, known: dict):
+    """Frames ``i`` to ``stop`` of ``reader`` for a seam's repair: from a seek to ``SEAM_FRAMES`` frames
+    before ``i`` when those decode to the checksums ``known`` (index -> :func:`_crc`) of the frames
+    emitted there (the seek was frame-exact), else decoded from the video's start (``seek=False``)."""
+    back = range(i - SEAM_FRAMES, i)
+    if i >= SEAM_FRAMES and all(f in known for f in back):
+        frames = reader.frames(back[0], stop, seek=True)
+        for f in back:
+            got = next(frames, None)
+            if got is None or got[0] != f or _crc(got[1]) != known[f]:
+                frames.close()
+                break
+        else:
+            return frames
+    return reader.frames(i, stop, seek=False)
 
 
 def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop: int | None = None,
@@ -272,7 +290,7 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
                             pump()
                         seq = Tracker(model, **options)
                         seq.restore(done[src][0])
-                        seq_frames = reader.frames(i, stop, seek=False)
+                        seq_frames = _resume(reader, i, stop, emitted_hash)
                         src = None
                 if src is None:
                     nxt = next(seq_frames, None)
