@@ -85,15 +85,16 @@ def _crc(frame: np.ndarray) -> int:
     return zlib.crc32(np.ascontiguousarray(frame))
 
 
-def _worker(k: int, video: str, model_bytes: bytes, lo: int, own: int, end: int | None, warmup: int,
+def _worker(k: int, video: str, inbox, lo: int, own: int, end: int | None, warmup: int,
             tracker_options: dict, out) -> None:
-    """Track frames ``lo``..``end`` of ``video``; send rows (and the overlap frames' checksums) to ``out``."""
+    """Track frames ``lo``..``end`` of ``video`` with the pickled model taken from ``inbox``; send rows (and the
+    overlap frames' checksums) to ``out``."""
     os.environ["OPENCV_FFMPEG_THREADS"] = "1"          # the decoder of the video opened below: one thread
     try:
         from keyshape.tracker.eigenpoints import to_gray
         from keyshape.tracker.fitting import Tracker, single_threaded
 
-        model = pickle.loads(model_bytes)
+        model = pickle.loads(inbox.get())
         reader = VideoReader(video)
         rows: list = []
         hashes: dict = {}
@@ -202,13 +203,19 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
         ends[-1] = None                               # the last chunk reads to the video's real end
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
+    # the model goes to the workers through a queue, not as a process argument: a spawned process's
+    # arguments (a few MB here) are written to it by start(), which then waits until the child has
+    # started Python and imported what it needs, 0.6-1.1 s each on a loaded 2-core machine (issue 26),
+    # so the chunks after the first started that much later; the queue's thread writes meanwhile
+    inbox = ctx.Queue()
     model_bytes = pickle.dumps(model, protocol=pickle.HIGHEST_PROTOCOL)
     procs = []
     main = threading.current_thread() is threading.main_thread()
     old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None   # children ignore Ctrl-C from birth
     try:
         for k, (lo, own, _) in enumerate(chunks):
-            p = ctx.Process(target=_worker, args=(k, str(reader.path), model_bytes, lo, own, ends[k], warmup,
+            inbox.put(model_bytes)
+            p = ctx.Process(target=_worker, args=(k, str(reader.path), inbox, lo, own, ends[k], warmup,
                                                   options, out), daemon=True, name=f"keyshape-track-{k}")
             p.start()
             procs.append(p)
@@ -318,8 +325,9 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
                 p.terminate()
         for p in procs:
             p.join(5.0)
-        out.close()
-        out.cancel_join_thread()
+        for q in (out, inbox):
+            q.close()
+            q.cancel_join_thread()
     yield from ((pts, rr, None) for pts, rr in smoother.flush())
     if interrupted is not None:
         raise interrupted
