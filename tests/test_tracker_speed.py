@@ -280,3 +280,31 @@ def test_inverse_region_step_tracks_as_well_as_the_forward_one(model, footage): 
     assert gains[:, 0].mean() < 0.02 and gains[:, 0].max() < 0.1, (gains.mean(0), gains.max(0))
     with pytest.raises(ValueError, match="region_step"):
         Tracker(model, region_step="sideways")
+
+
+def test_read_takes_the_patch_polish_sampled_last_and_tracks_the_same(model, footage):  # noqa: F811
+    """Issue 26: where polish() ends on a step it does not keep, read() takes the patch polish() sampled at
+    the pose it returns instead of sampling it again; the tracks are the same as with a fresh sample."""
+    frames, _ = footage
+    seq = [f for f in frames for _ in range(2)]          # each frame twice: polish often ends on a step undone
+
+    class Fresh(Tracker):
+        def read(self, pyr, pose):
+            self._polished = None                      # always sample the patch again
+            return super().read(pyr, pose)
+
+    reused = []
+
+    class Counting(Tracker):
+        def read(self, pyr, pose):
+            got = self._polished
+            reused.append(got is not None and got[0] is pyr and got[1] == pose.tolist())
+            return super().read(pyr, pose)
+
+    a, b = Counting(model), Fresh(model)
+    for i, f in enumerate(seq):
+        ra, rb = a.step(f, i), b.step(f, i)
+        assert ra.success == rb.success and ra.residual == rb.residual
+        np.testing.assert_array_equal(ra.points, rb.points)
+        np.testing.assert_array_equal(ra.pose, rb.pose)
+    assert any(reused)                                  # the path was taken (2 of the 20 frames here)

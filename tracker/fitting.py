@@ -456,7 +456,7 @@ class Tracker:
         self._region_shift: dict = {}
         self._rows: dict = {}              # the regions' _RegionRows (work rows: per tracker, trackers may share a model)
         self._m2 = 0.0
-        # (pyramid, pose, patch): the full-resolution patch polish() sampled last at the pose it returned,
+        # (pyramid, pose as lists, patch): the full-resolution patch polish() sampled last at the pose it returned,
         # which read() takes instead of sampling it again (the same warp: the same uint8 values)
         self._polished: tuple | None = None
         m = model
@@ -588,7 +588,7 @@ class Tracker:
             r = max(float(e @ e) - float(qe @ qe), 0.0) / n
             if best_r is not None and r >= best_r:
                 a = prev
-                self._polished = (pyr, a, prev_patch)     # read() at this pose samples the same patch
+                self._polished = (pyr, a.tolist(), prev_patch)   # read() at this pose samples the same patch
                 break
             best_r, prev, prev_patch = r, a, patch
             gxi, gyi = cv2.spatialGradient(patch)          # 3x3 Sobel, unscaled (exact on uint8)
@@ -648,7 +648,7 @@ class Tracker:
         """
         m = self.model
         got, self._polished = self._polished, None
-        if got is not None and got[0] is pyr and got[1] is pose:
+        if got is not None and got[0] is pyr and got[1] == pose.tolist():
             patch = got[2]                      # polish() sampled this pose last (its step was not kept)
         else:
             patch = warp_patch_u8(pyr, pose, m.patch_size_)
