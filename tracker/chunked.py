@@ -14,9 +14,9 @@ what was emitted (the same success flags, the last frame tracked in both, every 
 state (:meth:`~keyshape.tracker.fitting.Tracker.state`), the same frames decoded sequentially (from a
 seek to ``SEAM_FRAMES`` frames before the seam when those decode to the checksums of the frames
 emitted there, else from the video's start), frame by frame, until the chunk's own rows agree again
-on ``SEAM_FRAMES`` frames; so the result differs from one sequential run only within the tracker's own convergence tolerance (its alignment stops when a
-step moves the patch less than 0.01-0.03 px, so two runs that start apart end up that close, not
-equal), and never by a wrong frame.
+on ``SEAM_FRAMES`` frames; so the result differs from one sequential run only within the tracker's
+own convergence tolerance (its alignment stops when a step moves the patch less than 0.01-0.03 px,
+so two runs that start apart end up that close, not equal), and never by a wrong frame.
 
 Temporal smoothing runs here, on the stitched stream, so it is the same as the sequential run's.
 Workers are spawned processes (the tracker is bound to Python's interpreter lock: threads would not
