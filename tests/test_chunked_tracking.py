@@ -12,7 +12,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import read_tracks
 from keyshape.base.formats.video import VideoReader, video_writer
 from keyshape.cli import main
-from keyshape.tracker.chunked import SEAM_FRAMES, iter_track_chunked, plan_chunks
+from keyshape.tracker.chunked import SEAM_FRAMES, _crc, _resume, iter_track_chunked, plan_chunks
 from keyshape.tracker.commands import track_frames, train_model
 
 
@@ -44,6 +44,35 @@ def test_frames_from_a_start_equal_the_sequential_decode(tmp_path, seek):
         for i, f in got:
             np.testing.assert_array_equal(f, every[i], err_msg=f"frame {i} read from {start}")
     assert list(reader.frames(95, seek=seek)) == []           # past the end: nothing, no error
+
+
+def test_a_repair_seeks_where_the_frames_before_it_match_and_decodes_from_the_start_otherwise(clip, monkeypatch):
+    """A seam's repair reads its frames from a seek to ``SEAM_FRAMES`` frames before the seam when those
+    decode to the checksums of the frames emitted there; with one checksum wrong it decodes from frame 0.
+    Either way the frames from the seam on are the sequential decode's, byte for byte."""
+    video, _, _ = clip
+    reader = VideoReader(video)
+    every = [f for _, f in reader]
+    calls = []
+    real = VideoReader.frames
+
+    def frames(self, start=0, stop=None, seek=True):
+        calls.append((start, seek))
+        return real(self, start, stop, seek)
+
+    monkeypatch.setattr(VideoReader, "frames", frames)
+    for seam in (SEAM_FRAMES, 37, 75):
+        known = {f: _crc(every[f]) for f in range(seam - 30, seam) if f >= 0}
+        for wrong, want in ((False, [(seam - SEAM_FRAMES, True)]),
+                            (True, [(seam - SEAM_FRAMES, True), (seam, False)])):
+            if wrong:
+                known[seam - 2] ^= 1
+            calls.clear()
+            got = list(_resume(reader, seam, seam + 6, known))
+            assert calls == want
+            assert [i for i, _ in got] == list(range(seam, seam + 6))
+            for i, f in got:
+                np.testing.assert_array_equal(f, every[i])
 
 
 def test_chunk_plan_partitions_the_range_with_warmups():

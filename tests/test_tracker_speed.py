@@ -158,6 +158,16 @@ def test_warp_level_is_bit_identical_to_the_old_warp():
         assert np.array_equal(got, warp_level(pyr, lvl, a.tolist(), *size))
         assert np.array_equal(got, _warp_reference(Pyramid(frame), a, size))
     assert levels >= {0, 1, 2}
+    # a NaN anywhere in the affine: the whole level is sampled, as before the window (an infinite a11
+    # crashes cv2.warpAffine itself, OpenCV 4.x, with or without the window: not tried here)
+    pyr = Pyramid(frame)
+    for k in range(6):
+        for bad in (math.nan,) + ((math.inf, -math.inf) if k != 4 else ()):
+            a = np.array([[1.1, 0.1, 200.0], [-0.1, 1.1, 150.0]])
+            a.flat[k] = bad
+            want = cv2.warpAffine(frame, a, (20, 20), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                  borderMode=cv2.BORDER_REPLICATE)
+            assert np.array_equal(warp_level(pyr, 0, a.tolist(), 20, 20), want)
 
 
 def test_region_reading_equals_the_reference(model, footage):  # noqa: F811
@@ -280,3 +290,31 @@ def test_inverse_region_step_tracks_as_well_as_the_forward_one(model, footage): 
     assert gains[:, 0].mean() < 0.02 and gains[:, 0].max() < 0.1, (gains.mean(0), gains.max(0))
     with pytest.raises(ValueError, match="region_step"):
         Tracker(model, region_step="sideways")
+
+
+def test_read_takes_the_patch_polish_sampled_last_and_tracks_the_same(model, footage):  # noqa: F811
+    """Issue 26: where polish() ends on a step it does not keep, read() takes the patch polish() sampled at
+    the pose it returns instead of sampling it again; the tracks are the same as with a fresh sample."""
+    frames, _ = footage
+    seq = [f for f in frames for _ in range(2)]          # each frame twice: polish often ends on a step undone
+
+    class Fresh(Tracker):
+        def read(self, pyr, pose):
+            self._polished = None                      # always sample the patch again
+            return super().read(pyr, pose)
+
+    reused = []
+
+    class Counting(Tracker):
+        def read(self, pyr, pose):
+            got = self._polished
+            reused.append(got is not None and got[0] is pyr and got[1] == pose.tolist())
+            return super().read(pyr, pose)
+
+    a, b = Counting(model), Fresh(model)
+    for i, f in enumerate(seq):
+        ra, rb = a.step(f, i), b.step(f, i)
+        assert ra.success == rb.success and ra.residual == rb.residual
+        np.testing.assert_array_equal(ra.points, rb.points)
+        np.testing.assert_array_equal(ra.pose, rb.pose)
+    assert any(reused)                                  # the path was taken (2 of the 20 frames here)

@@ -11,11 +11,12 @@ both decoded must be the same bytes (checksums of the overlap frames: the seek w
 and on the last ``SEAM_FRAMES`` frames before the seam chunk ``k + 1``'s warm-up must agree with
 what was emitted (the same success flags, the last frame tracked in both, every point within
 ``seam_tol`` pixels). Where it does not, this process tracks on from chunk ``k``'s final tracker
-state (:meth:`~keyshape.tracker.fitting.Tracker.state`), the same frames decoded sequentially, frame by
-frame, until the chunk's own rows agree again on ``SEAM_FRAMES`` frames; so the result differs from
-one sequential run only within the tracker's own convergence tolerance (its alignment stops when a
-step moves the patch less than 0.01-0.03 px, so two runs that start apart end up that close, not
-equal), and never by a wrong frame.
+state (:meth:`~keyshape.tracker.fitting.Tracker.state`), the same frames decoded sequentially (from a
+seek to ``SEAM_FRAMES`` frames before the seam when those decode to the checksums of the frames
+emitted there, else from the video's start), frame by frame, until the chunk's own rows agree again
+on ``SEAM_FRAMES`` frames; so the result differs from one sequential run only within the tracker's
+own convergence tolerance (its alignment stops when a step moves the patch less than 0.01-0.03 px,
+so two runs that start apart end up that close, not equal), and never by a wrong frame.
 
 Temporal smoothing runs here, on the stitched stream, so it is the same as the sequential run's.
 Workers are spawned processes (the tracker is bound to Python's interpreter lock: threads would not
@@ -84,16 +85,16 @@ def _crc(frame: np.ndarray) -> int:
     return zlib.crc32(np.ascontiguousarray(frame))
 
 
-def _worker(k: int, video: str, model_bytes: bytes, lo: int, own: int, end: int | None, warmup: int,
+def _worker(k: int, video: str, inbox, lo: int, own: int, end: int | None, warmup: int,
             tracker_options: dict, out) -> None:
-    """Track frames ``lo``..``end`` of ``video``; send rows (and the overlap frames' checksums) to ``out``."""
+    """Track frames ``lo``..``end`` of ``video`` with the pickled model taken from ``inbox``; send rows (and the
+    overlap frames' checksums) to ``out``."""
     os.environ["OPENCV_FFMPEG_THREADS"] = "1"          # the decoder of the video opened below: one thread
     try:
         from keyshape.tracker.eigenpoints import to_gray
         from keyshape.tracker.fitting import Tracker, single_threaded
 
-        model = pickle.loads(model_bytes)
-        tracker = Tracker(model, **tracker_options)
+        model = pickle.loads(inbox.get())
         reader = VideoReader(video)
         rows: list = []
         hashes: dict = {}
@@ -106,6 +107,7 @@ def _worker(k: int, video: str, model_bytes: bytes, lo: int, own: int, end: int 
                 hashes.clear()
 
         with single_threaded():
+            tracker = Tracker(model, **tracker_options)       # its QR factorisations on one thread too
             # the first chunk decodes from the video's start, as a sequential run does (nothing checks it);
             # the others seek, checked at their seams
             for i, frame in reader.frames(lo, end, seek=k > 0):
@@ -143,6 +145,23 @@ def _agree(emitted: deque, rows: dict, seam_tol: float) -> tuple[bool, float, fl
     mx = float(np.nanmax(d)) if diffs else float("nan")
     ok = ok and bool(diffs) and mx <= seam_tol
     return ok, mx, float(np.nanmedian(d)) if diffs else float("nan")
+
+
+def _resume(reader: VideoReader, i: int, stop: int | None, known: dict):
+    """Frames ``i`` to ``stop`` of ``reader`` for a seam's repair: from a seek to ``SEAM_FRAMES`` frames
+    before ``i`` when those decode to the checksums ``known`` (index -> :func:`_crc`) of the frames
+    emitted there (the seek was frame-exact), else decoded from the video's start (``seek=False``)."""
+    back = range(i - SEAM_FRAMES, i)
+    if i >= SEAM_FRAMES and all(f in known for f in back):
+        frames = reader.frames(back[0], stop, seek=True)
+        for f in back:
+            got = next(frames, None)
+            if got is None or got[0] != f or _crc(got[1]) != known[f]:
+                frames.close()
+                break
+        else:
+            return frames
+    return reader.frames(i, stop, seek=False)
 
 
 def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop: int | None = None,
@@ -184,13 +203,19 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
         ends[-1] = None                               # the last chunk reads to the video's real end
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
+    # the model goes to the workers through a queue, not as a process argument: a spawned process's
+    # arguments (a few MB here) are written to it by start(), which then waits until the child has
+    # started Python and imported what it needs, 0.6-1.1 s each on a loaded 2-core machine (issue 26),
+    # so the chunks after the first started that much later; the queue's thread writes meanwhile
+    inbox = ctx.Queue()
     model_bytes = pickle.dumps(model, protocol=pickle.HIGHEST_PROTOCOL)
     procs = []
     main = threading.current_thread() is threading.main_thread()
     old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None   # children ignore Ctrl-C from birth
     try:
         for k, (lo, own, _) in enumerate(chunks):
-            p = ctx.Process(target=_worker, args=(k, str(reader.path), model_bytes, lo, own, ends[k], warmup,
+            inbox.put(model_bytes)
+            p = ctx.Process(target=_worker, args=(k, str(reader.path), inbox, lo, own, ends[k], warmup,
                                                   options, out), daemon=True, name=f"keyshape-track-{k}")
             p.start()
             procs.append(p)
@@ -272,7 +297,7 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
                             pump()
                         seq = Tracker(model, **options)
                         seq.restore(done[src][0])
-                        seq_frames = reader.frames(i, stop, seek=False)
+                        seq_frames = _resume(reader, i, stop, emitted_hash)
                         src = None
                 if src is None:
                     nxt = next(seq_frames, None)
@@ -300,8 +325,9 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
                 p.terminate()
         for p in procs:
             p.join(5.0)
-        out.close()
-        out.cancel_join_thread()
+        for q in (out, inbox):
+            q.close()
+            q.cancel_join_thread()
     yield from ((pts, rr, None) for pts, rr in smoother.flush())
     if interrupted is not None:
         raise interrupted

@@ -235,13 +235,16 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
         yield from iter_track_chunked(video, model, smooth, start, stop, tracker_options, jobs=jobs, reader=reader,
                                       progress=progress, seams=seams)
         return
-    tracker = Tracker(model, **(tracker_options or {}))
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
     try:
         # OpenCV and BLAS single-threaded while tracking (issue 16: less CPU per frame, the
-        # same points); restored when the loop ends or the generator is closed
+        # same points); restored when the loop ends or the generator is closed. The tracker is built
+        # there too: its QR factorisations of a few thousand by a dozen took 0.18 s of wall time
+        # each with OpenBLAS's threads on a loaded 2-core machine against 2 ms on one (issue 26;
+        # the same factors, bit for bit, on the synthetic and franck.mp4 models)
         with single_threaded():
+            tracker = Tracker(model, **(tracker_options or {}))
             frames = _prefetched(_with_gray(reader, start)) if decode_thread else ((i, f, f) for i, f in reader)
             for i, frame, gray in frames:
                 if i < start:

@@ -159,12 +159,16 @@ def warp_level(pyramid: Pyramid, lvl: int, image_from_model: list, sw: int, sh: 
         f = 0.5 ** lvl
         d = 0.5 * f - 0.5
         a00, a01, a02, a10, a11, a12 = a00 * f, a01 * f, a02 * f + d, a10 * f, a11 * f, a12 * f + d
-    # sample only the window the patch covers (bilinear reads one pixel beyond; 2 for safety)
-    xs = (a02 - a00 - a01, a02 + a00 * sw - a01, a02 - a00 + a01 * sh, a02 + a00 * sw + a01 * sh)
-    ys = (a12 - a10 - a11, a12 + a10 * sw - a11, a12 - a10 + a11 * sh, a12 + a10 * sw + a11 * sh)
-    x0, x1, y0, y1 = min(xs), max(xs), min(ys), max(ys)
-    # all eight finite (a NaN or an infinity makes the sum non-finite) and within 1e7 of the origin
-    if math.isfinite(sum(xs) + sum(ys)) and -1e7 < x0 and x1 < 1e7 and -1e7 < y0 and y1 < 1e7:
+    # sample only the window the patch covers (bilinear reads one pixel beyond; 2 for safety): the
+    # corners (-1, -1) to (sw, sh), x = a02 + a00 u + a01 v, each term's extremes taken apart
+    u0, u1, v0, v1 = -a00, a00 * sw, -a01, a01 * sh
+    x0 = a02 + (u0 if u0 < u1 else u1) + (v0 if v0 < v1 else v1)
+    x1 = a02 + (u1 if u0 < u1 else u0) + (v1 if v0 < v1 else v0)
+    u0, u1, v0, v1 = -a10, a10 * sw, -a11, a11 * sh
+    y0 = a12 + (u0 if u0 < u1 else u1) + (v0 if v0 < v1 else v1)
+    y1 = a12 + (u1 if u0 < u1 else u0) + (v1 if v0 < v1 else v0)
+    # within 1e7 of the origin (a NaN or an infinity among the coefficients fails one of the tests)
+    if -1e7 < x0 and x1 < 1e7 and -1e7 < y0 and y1 < 1e7:
         img = pyramid.window(lvl, math.floor(x0) - 2, math.floor(y0) - 2, math.ceil(x1) + 3, math.ceil(y1) + 3)
     else:
         img = pyramid[lvl]

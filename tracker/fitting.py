@@ -456,6 +456,9 @@ class Tracker:
         self._region_shift: dict = {}
         self._rows: dict = {}              # the regions' _RegionRows (work rows: per tracker, trackers may share a model)
         self._m2 = 0.0
+        # (pyramid, pose as lists, patch): the full-resolution patch polish() sampled last at the pose it returned,
+        # which read() takes instead of sampling it again (the same warp: the same uint8 values)
+        self._polished: tuple | None = None
         m = model
         size = m.patch_size_
         n_pix = len(m.index_)
@@ -570,6 +573,8 @@ class Tracker:
         rows = lv.rows32
         jt = rows[nq + 1:]                                  # Jᵀ: gx x, gy x, gx y, gy y, gx, gy
         best_r, its = None, 0
+        prev = prev_patch = None                            # the last pose kept and its patch
+        self._polished = None
         for _ in range(self.n_polish):
             patch = warp_patch_u8(pyr, a, lv.size)
             flat = patch.ravel()[lv.index].astype(np.float64)
@@ -583,8 +588,9 @@ class Tracker:
             r = max(float(e @ e) - float(qe @ qe), 0.0) / n
             if best_r is not None and r >= best_r:
                 a = prev
+                self._polished = (pyr, a.tolist(), prev_patch)   # read() at this pose samples the same patch
                 break
-            best_r, prev = r, a
+            best_r, prev, prev_patch = r, a, patch
             gxi, gyi = cv2.spatialGradient(patch)          # 3x3 Sobel, unscaled (exact on uint8)
             jt[4] = gxi.ravel()[lv.index]
             jt[5] = gyi.ravel()[lv.index]
@@ -641,7 +647,11 @@ class Tracker:
         ``|e - U_I c|²`` expanded as ``|e|² - 2 cᵀU_Iᵀe + cᵀ(U_IᵀU_I)c``.
         """
         m = self.model
-        patch = warp_patch_u8(pyr, pose, m.patch_size_)
+        got, self._polished = self._polished, None
+        if got is not None and got[0] is pyr and got[1] == pose.tolist():
+            patch = got[2]                      # polish() sampled this pose last (its step was not kept)
+        else:
+            patch = warp_patch_u8(pyr, pose, m.patch_size_)
         flat = patch.ravel()[m.index_].astype(np.float64)
         n = len(flat)
         e = flat - flat.sum() / n
