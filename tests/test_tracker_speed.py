@@ -158,16 +158,15 @@ def test_warp_level_is_bit_identical_to_the_old_warp():
         assert np.array_equal(got, warp_level(pyr, lvl, a.tolist(), *size))
         assert np.array_equal(got, _warp_reference(Pyramid(frame), a, size))
     assert levels >= {0, 1, 2}
-    # a NaN anywhere in the affine: the whole level is sampled, as before the window (an infinite a11
-    # crashes cv2.warpAffine itself, OpenCV 4.x, with or without the window: not tried here)
+    # a NaN, an infinity or an absurd value anywhere in the affine: a blank patch, not a crash (cv2.warpAffine
+    # kills the process on a coefficient of 1e30 or an infinity, OpenCV 4.x)
     pyr = Pyramid(frame)
     for k in range(6):
-        for bad in (math.nan,) + ((math.inf, -math.inf) if k != 4 else ()):
+        for bad in (math.nan, math.inf, -math.inf, 1e30):
             a = np.array([[1.1, 0.1, 200.0], [-0.1, 1.1, 150.0]])
             a.flat[k] = bad
-            want = cv2.warpAffine(frame, a, (20, 20), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                  borderMode=cv2.BORDER_REPLICATE)
-            assert np.array_equal(warp_level(pyr, 0, a.tolist(), 20, 20), want)
+            out = warp_level(pyr, 0, a.tolist(), 20, 20)
+            assert out.shape == (20, 20) and out.dtype == np.uint8 and not out.any()
 
 
 def test_region_reading_equals_the_reference(model, footage):  # noqa: F811

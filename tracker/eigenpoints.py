@@ -167,11 +167,12 @@ def warp_level(pyramid: Pyramid, lvl: int, image_from_model: list, sw: int, sh: 
     u0, u1, v0, v1 = -a10, a10 * sw, -a11, a11 * sh
     y0 = a12 + (u0 if u0 < u1 else u1) + (v0 if v0 < v1 else v1)
     y1 = a12 + (u1 if u0 < u1 else u0) + (v1 if v0 < v1 else v0)
-    # within 1e7 of the origin (a NaN or an infinity among the coefficients fails one of the tests)
-    if -1e7 < x0 and x1 < 1e7 and -1e7 < y0 and y1 < 1e7:
-        img = pyramid.window(lvl, math.floor(x0) - 2, math.floor(y0) - 2, math.ceil(x1) + 3, math.ceil(y1) + 3)
-    else:
-        img = pyramid[lvl]
+    # within 1e7 of the origin (a NaN or an infinity among the coefficients fails one of the tests); a patch
+    # beyond it is no view of this image, and cv2.warpAffine kills the process on such coefficients (1e30,
+    # an infinity: OpenCV 4.x), so it is a blank patch (the tracker's residual then calls the frame lost)
+    if not (-1e7 < x0 and x1 < 1e7 and -1e7 < y0 and y1 < 1e7):
+        return np.zeros((sh, sw), np.uint8)
+    img = pyramid.window(lvl, math.floor(x0) - 2, math.floor(y0) - 2, math.ceil(x1) + 3, math.ceil(y1) + 3)
     return cv2.warpAffine(img, np.array([[a00, a01, a02], [a10, a11, a12]]), (sw, sh),
                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
