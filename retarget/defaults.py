@@ -34,4 +34,6 @@ SOLVE_GAZE_LIDS = False      # keyshape solve --gaze-lids: the lids' region solv
                              # (a look down is not a blink). 3D synthetic take, the true landmarks, seeds 0/1: eyeBlink
                              # r 0.80/0.83, 0.71/0.91 -> 0.94/0.89, 0.78/0.95; but rig_fidelity eye closure on
                              # franck.mp4 0.92/0.93 -> 0.88/0.90 (cap12_edit 0.75/0.75 -> 0.77/0.75): off until a
-                             # real clip shows it helps
+                             # real clip shows it helps. With the pupils read in the skull's frame (solve.rigid_frame_deltas' keep), tracks,
+                             # seeds 0/1: 0.80/0.81, 0.92/0.84 -> 0.87/0.86, 0.96/0.89; rig_fidelity eyes franck
+                             # 0.91/0.92 -> 0.89/0.90, cap12_edit 0.75/0.74 -> 0.76/0.74, short counts 1/3 either way

@@ -583,6 +583,9 @@ def test_rigid_frame_deltas_hold_the_rigid_points_height(seed):
     assert np.allclose(got, expr, atol=1e-12)
     assert np.allclose(rigid_frame_deltas(P, 2 * lift + expr, rigid)[:, rigid, 1].mean(axis=1), 0.0, atol=1e-12)
     assert np.allclose(rigid_frame_deltas(P, expr + lift, ()), expr + lift)
+    kept = rigid_frame_deltas(P, expr + lift, rigid, keep=[26, 27])             # the pupils: as given
+    assert np.allclose(kept[:, [26, 27]], (expr + lift)[:, [26, 27]]) and np.allclose(np.delete(kept, [26, 27], 1),
+                                                                                    np.delete(expr, [26, 27], 1))
 
 
 def test_lid_shapes_that_move_the_eye_corners_do_not_shrink_the_brows(shared_data):
@@ -622,3 +625,38 @@ def test_lid_shapes_that_move_the_eye_corners_do_not_shrink_the_brows(shared_dat
                 j = names.index(n)
                 assert np.corrcoef(C[:, j], got[:, j])[0, 1] >= 0.97, n
                 assert 0.9 <= np.polyfit(C[:, j], got[:, j], 1)[0] <= 1.1, n
+
+
+def test_gaze_lids_pupils_in_the_skulls_frame_do_not_read_parallax_as_blinks(shared_data):
+    """The actor is the rig itself (blinks, looks up and down), stabilised on the eye corners as ``keyshape solve``
+    does, its pupils also moving up and down as a nod moves them (parallax: the pupils lie in front of the eye
+    corners) where the eye angles, from the 3D head, see no gaze. The lid shapes move the eye corners, so in the
+    corner frame each of them would move the pupils too (``eyeBlink`` lifts them 0.003 of the inter-ocular distance);
+    the pupils' rows are read in the skull's frame instead, where only the gaze shapes turn them, and the pupils'
+    parallax does not drive the blinks: eyeBlink r 0.92/0.92 (in the corner frame 0.81/0.81), although the actor's
+    pupils, fixed in its skull, do rise with its blinks here."""
+    from keyshape.decompose.gaze import gaze_angles
+    from keyshape.decompose.stabilize import RigidStabilizer
+    from keyshape.retarget.rig import gaze_pupil_deltas
+    from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region
+    rig, ln, ld, rs = _ict(shared_data)
+    names = rig.names
+    n = 300
+    C = _performance(names, n=n, seed=5)
+    t = np.arange(n)
+    for side in ("L", "R"):
+        C[:, names.index(f"eyeLookDown_{side}")] = 0.6 * ((t % 100 > 55) & (t % 100 < 90))
+    gd = gaze_pupil_deltas(ln, ld, names, SCHEME)
+    raw = ln[None] + np.einsum("ts,spd->tpd", C, gd)
+    angles = gaze_angles(RigidStabilizer(SCHEME.rigid).fit(raw).transform(raw), SCHEME)   # the gaze, no nod
+    raw[:, [26, 27], 1] += 0.15 * np.sin(t / 23.0)[:, None]           # a nod's parallax (rig units, cm)
+    X = RigidStabilizer(SCHEME.rigid).fit(raw).transform(raw)
+    rest = X[np.argmin(np.abs(C).sum(axis=1))]
+    regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
+    regs, rs = gaze_in_eye_region(X, regs, rs, SCHEME, names)
+    got = solve_curves(X, regs, SCHEME, ln, gd, rs, names, ceiling=gaze_ceiling(angles, names, 30.0),
+                       rigid=SCHEME.rigid)
+    for s in ("eyeBlink_L", "eyeBlink_R"):
+        j = names.index(s)
+        assert np.corrcoef(C[:, j], got[:, j])[0, 1] >= 0.88, s
+        assert 0.85 <= np.polyfit(C[:, j], got[:, j], 1)[0] <= 1.15, s
