@@ -445,6 +445,38 @@ def test_brow_border_is_its_own_and_reads_held_out_brows(footage, tmp_path):
     assert AppearanceModel.from_file(mf).brow_grow is None
 
 
+def test_eye_variance_is_the_eye_regions_own_and_survives_the_model_file(footage, tmp_path):
+    """``eye_variance`` sets the fraction of variance only the eye regions keep (None: ``variance``, the
+    earlier model): more of it keeps more eye components and changes nothing else (the global model and
+    every other region are bit-identical); a model keeping it all reads its labelled frames' eyes and
+    pupils back within 0.05 model pixels; the parameter survives the model file, and files written before it
+    existed load as None."""
+    frames, labels = footage
+    old = AppearanceModel("contours48", n_morphs=10, rng=0, eye_variance=None).fit(list(frames[:8]), labels[:8])
+    more = AppearanceModel("contours48", n_morphs=10, rng=0, eye_variance=0.999).fit(list(frames[:8]), labels[:8])
+    np.testing.assert_array_equal(more.components_, old.components_)
+    for a, b in zip(old.region_models_, more.region_models_):
+        if a.name.startswith("eye"):
+            assert len(b.variance) > len(a.variance), a.name
+        else:
+            np.testing.assert_array_equal(a.components, b.components)
+    from keyshape.tracker.eigenpoints import build_pyramid, warp_patch
+    full = AppearanceModel("contours48", n_morphs=10, ridge=0.0, rng=0, eye_variance=1.0).fit(list(frames[:8]),
+                                                                                               labels[:8])
+    eyes = {i for c, v in SCHEME.contours.items() if c.startswith(("eye", "pupil")) for i in v}
+    rm = {r.name: r for r in full.region_models_ if r.name.startswith("eye")}
+    assert eyes == {int(p) for r in rm.values() for p in r.points}
+    for i in range(8):
+        patch = warp_patch(build_pyramid(frames[i]), full.train_poses_[i], full.patch_size_)
+        for name, r in rm.items():          # model-frame points against the label's, in model pixels
+            assert np.abs(r.read(r.crop(patch)) - full.train_shapes_[i][r.points]).max() < 0.05, (i, name)
+    more.save(tmp_path / "m.npz")
+    assert AppearanceModel.load(tmp_path / "m.npz").eye_variance == 0.999
+    mf = more.to_file()
+    del mf.params["eye_variance"]
+    assert AppearanceModel.from_file(mf).eye_variance is None
+
+
 def test_centred_eye_regions_read_their_own_labels_and_survive_the_model_file(footage, tmp_path):
     """``centre_eyes`` (issue 23): the eye regions are trained on crops that follow each eye's centroid.
     With every component kept a training frame is read back exactly (``predict`` places the box at the
