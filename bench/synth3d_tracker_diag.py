@@ -40,7 +40,7 @@ def load(work: Path):
     truth = read_tracks(work / "take" / "truth.csv").points
     frames = VideoReader(work / "take" / "video.mp4", gray=True).read_frames(np.arange(len(truth)))
     head = np.genfromtxt(work / "take" / "head.csv", delimiter=",", names=True)
-    labs, _ = read_labels(work / "take" / "labels", n_points=48)
+    labs, _ = read_labels(work / "take" / "labels")     # 48 points, or 53 with the nose
     return frames, truth, head, np.asarray(labs, np.intp)
 
 

@@ -27,7 +27,8 @@ from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
                                         OPPOSED, SOLVE_GAZE_LIDS, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY,
-                                        SOLVE_PITCH_PARALLAX, SOLVE_SYMMETRY, SOLVE_YAW_SLIDE, SPARSITY)
+                                        SOLVE_PITCH_PARALLAX, SOLVE_SYMMETRY, SOLVE_YAW_SLIDE, SOLVE_YAW_STRETCH,
+                                        SPARSITY)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -320,7 +321,7 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
               calibrate: bool = True, rest_offset: bool = SOLVE_REST_OFFSET, gaze: str = GAZE, head: str = HEAD_MOTION,
               reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None,
               gaze_lids: bool = SOLVE_GAZE_LIDS, yaw_slide: bool = SOLVE_YAW_SLIDE,
-              pitch_parallax: bool = SOLVE_PITCH_PARALLAX):
+              pitch_parallax: bool = SOLVE_PITCH_PARALLAX, yaw_stretch: bool = SOLVE_YAW_STRETCH):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
@@ -345,6 +346,9 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     pitch_parallax : likewise (a 2D head, a scheme with a 3D face), take out of the mouth's motion the vertical
         parallax the 3D head's pitch gives its points at the rig's places, zero at the pitch of the mouth's rest
         frame (:func:`~keyshape.retarget.solve.pitch_parallax`)
+    yaw_stretch : likewise (a 2D head stabilised on rigid points, a scheme with a 3D face), bring the mouth's heights
+        from the eye line back from the ``1 / cos(yaw)`` the stabilisation's one scale stretches them by under the 3D
+        head's yaw, to the rest frame's (:func:`~keyshape.retarget.solve.yaw_stretch`)
 
     Returns
     -------
@@ -388,8 +392,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
         regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
         ceiling = gaze_ceiling(eyes, rig.names, rate)
     yaw, rest_yaw, pitch, rest_pitch = (_solve_yaw(tracks, regions, head_pose, est, source)
-                                        if yaw_slide or pitch_parallax else (None, 0.0, None, 0.0))
-    yaw = yaw if yaw_slide else None
+                                        if yaw_slide or yaw_stretch or pitch_parallax else (None, 0.0, None, 0.0))
+    yaw = yaw if yaw_slide or yaw_stretch else None
     rel = None
     if pitch_parallax and scheme.rigid:                 # the rig's points less its eye corners' mean
         rel = W @ rig.neutral
@@ -397,7 +401,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     curves = solve_curves(shapes, regs, scheme, lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme),
                           reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
                           fixed=fixed, rest_offset=rest_offset, ceiling=ceiling, yaw=yaw, rest_yaw=rest_yaw,
-                          pitch=pitch, rest_pitch=rest_pitch, points3d=rel, rigid=rigid)
+                          pitch=pitch, rest_pitch=rest_pitch, points3d=rel, rigid=rigid,
+                          slide=yaw_slide, stretch=yaw_stretch)
     if fixed is None and ceiling is not None:
         curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
     return curves, motion, rate, eyes

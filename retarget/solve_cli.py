@@ -44,6 +44,10 @@ def register(subparsers) -> None:
                    help="keep the mouth's sideways parallax under head yaw (default: with a 2D head, the mouth's "
                         "antisymmetric motion that follows the 3D head's yaw over the take is taken out before the "
                         "solve, so a head turn does not read as mouthLeft/Right)")
+    p.add_argument("--keep-yaw-stretch", dest="yaw_stretch", action="store_false", default=A.SOLVE_YAW_STRETCH,
+                   help="keep the mouth's vertical stretch under head yaw (default: with a 2D head stabilised on the eye "
+                        "corners, the mouth's heights from the eye line are brought back from the 1/cos(yaw) the "
+                        "stabilisation stretches them by, so a turned head does not read as an open jaw)")
     p.add_argument("--pitch-parallax", action="store_true", default=A.SOLVE_PITCH_PARALLAX,
                    help="with a 2D head, take out of the mouth's motion the vertical parallax the 3D head's pitch gives its "
                         "points at the rig's depths, so a nod does not read as a smile or a frown")
@@ -106,7 +110,7 @@ def run(args) -> int:
         rest_offset=args.rest_offset,
         gaze=args.gaze, head=args.head_pose, reference_frame=args.reference_frame, head_units=args.head_units,
         fps=args.fps, source=args.tracks, gaze_lids=args.gaze_lids, yaw_slide=args.yaw_slide,
-        pitch_parallax=args.pitch_parallax)
+        pitch_parallax=args.pitch_parallax, yaw_stretch=args.yaw_stretch)
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,

@@ -4,13 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from keyshape.base.errors import InputError
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.decompose.regions import available_regions, region_points
 from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
 from keyshape.retarget.solve import (box_lsq, brow_calibration, contour_measures, eye_calibration, eye_width_motions,
                                      mirror_pairs, mirror_partners, pitch_parallax, pose_override, solve_curves,
-                                     symmetric_offsets, yaw_slide)
+                                     symmetric_offsets, yaw_slide, yaw_stretch)
 
 SCHEME = load_scheme("contours48")
 
@@ -448,6 +449,39 @@ def test_pitch_parallax_is_what_a_nod_leaves_after_the_eye_corners_similarity(se
     assert np.abs(motion[:, 4:] - got[:, 4:]).max() < 0.01 * size
     assert np.allclose(got[rest], 0.0)
 
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_yaw_stretch_is_what_a_turn_leaves_in_the_heights_after_the_eye_corners_similarity(seed):
+    """Face-like 3D points (eye corners, a mouth in front of and below them) turned through +-30 degrees of yaw,
+    seen from the front (orthographic) and stabilised as the chain does (a similarity on the eye corners onto the
+    rest frame's): the vertical motion left in the mouth is :func:`yaw_stretch` of the stabilised heights (within
+    2% of its size, where leaving it in errs by all of it: 15% of each height at 30 degrees), nothing at the rest's
+    yaw, and nothing along x."""
+    from keyshape.retarget.poses import fit_similarity
+    rng = np.random.default_rng(seed)
+    corners = np.array([[-4.5, 0.0, 0.0], [-1.8, 0.0, 0.4], [1.8, 0.0, 0.4], [4.5, 0.0, 0.0]])
+    mouth = np.column_stack([rng.uniform(-2.5, 2.5, 12), rng.uniform(-7.0, -5.0, 12), rng.uniform(1.0, 3.0, 12)])
+    X = np.vstack([corners, mouth])
+    yaw = np.radians(30.0) * np.sin(np.linspace(0, 6 * np.pi, 200) + seed)
+    rest = 7
+    c, s = np.cos(yaw), np.sin(yaw)
+    Ry = np.zeros((len(yaw), 3, 3))
+    Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 1, 1], Ry[:, 2, 0], Ry[:, 2, 2] = c, s, 1.0, -s, c
+    img = project(np.einsum("tij,pj->tpi", Ry, X))                # front view, image axes (y down)
+    stab = np.empty_like(img)
+    for t in range(len(img)):                                     # frames in a test, not a hot path
+        k, R, tr = fit_similarity(img[t, :4], img[rest, :4])
+        stab[t] = k * img[t] @ R.T + tr
+    line = stab[:, :4, 1].mean(axis=1)
+    got = yaw_stretch(stab, line, yaw, yaw[rest])
+    left = (stab - got)[:, 4:, 1] - stab[rest, 4:, 1]             # the heights' motion once the stretch is out
+    size = np.abs(stab[:, 4:, 1] - stab[rest, 4:, 1]).max()
+    assert size > 0.05 * np.abs(stab[rest, 4:, 1] - line[rest]).max()     # the turn does stretch them
+    assert np.abs(left).max() < 0.02 * size
+    assert np.allclose(got[rest], 0.0) and np.allclose(got[..., 0], 0.0)
+    with pytest.raises(InputError):
+        yaw_stretch(stab, line[:-1], yaw, 0.0)
 
 @pytest.mark.slow
 def test_a_nod_is_not_read_as_a_smile(shared_data):
