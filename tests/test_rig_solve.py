@@ -420,6 +420,23 @@ def test_yaw_slide_is_the_antisymmetric_motion_that_follows_yaw(seed):
     assert np.allclose(yaw_slide(motion, partner, np.full(T, 0.2)), 0.0)  # no turn, nothing to take out
 
 
+def _face_turned(R: np.ndarray, seed: int, rest: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """Face-like 3D points (four eye corners at about one depth, twelve mouth points in front of and below them)
+    turned by the rotations ``R`` (T, 3, 3), seen from the front (orthographic, image axes) and stabilised as the
+    chain does (each frame's similarity on the eye corners onto frame ``rest``'s): ``(points X, stabilised)``."""
+    from keyshape.retarget.poses import fit_similarity
+    rng = np.random.default_rng(seed)
+    corners = np.array([[-4.5, 0.0, 0.0], [-1.8, 0.0, 0.4], [1.8, 0.0, 0.4], [4.5, 0.0, 0.0]])
+    mouth = np.column_stack([rng.uniform(-2.5, 2.5, 12), rng.uniform(-7.0, -5.0, 12), rng.uniform(1.0, 3.0, 12)])
+    X = np.vstack([corners, mouth])
+    img = project(np.einsum("tij,pj->tpi", R, X))                 # front view, image axes (y down)
+    stab = np.empty_like(img)
+    for t in range(len(img)):                                     # frames in a test, not a hot path
+        k, Rs, tr = fit_similarity(img[t, :4], img[rest, :4])
+        stab[t] = k * img[t] @ Rs.T + tr
+    return X, stab
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_pitch_parallax_is_what_a_nod_leaves_after_the_eye_corners_similarity(seed):
     """Face-like 3D points (eye corners at one depth, a mouth in front of them, its corners deeper than its
@@ -427,28 +444,17 @@ def test_pitch_parallax_is_what_a_nod_leaves_after_the_eye_corners_similarity(se
     similarity on the eye corners onto the rest frame's): the motion left in the mouth is :func:`pitch_parallax`
     of the points' places from the eye corners (within 1% of its size, where leaving it in errs by all of it), and
     nothing at the rest's pitch."""
-    from keyshape.retarget.poses import fit_similarity
-    rng = np.random.default_rng(seed)
-    corners = np.array([[-4.5, 0.0, 0.0], [-1.8, 0.0, 0.4], [1.8, 0.0, 0.4], [4.5, 0.0, 0.0]])
-    mouth = np.column_stack([rng.uniform(-2.5, 2.5, 12), rng.uniform(-7.0, -5.0, 12), rng.uniform(1.0, 3.0, 12)])
-    X = np.vstack([corners, mouth])
     pitch = np.radians(15.0) * np.sin(np.linspace(0, 6 * np.pi, 200) + seed)
     rest = 7
     c, s = np.cos(pitch), np.sin(pitch)
     Rx = np.zeros((len(pitch), 3, 3))
     Rx[:, 0, 0], Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = 1.0, c, -s, s, c
-    Y = np.einsum("tij,pj->tpi", Rx, X)
-    img = project(Y)                                              # front view, image axes (y down)
-    stab = np.empty_like(img)
-    for t in range(len(img)):                                     # frames in a test, not a hot path
-        k, R, tr = fit_similarity(img[t, :4], img[rest, :4])
-        stab[t] = k * img[t] @ R.T + tr
+    X, stab = _face_turned(Rx, seed, rest)
     motion = stab - stab[rest]
     got = pitch_parallax(X - X[:4].mean(0), pitch, pitch[rest])
     size = np.abs(motion[:, 4:]).max()
     assert np.abs(motion[:, 4:] - got[:, 4:]).max() < 0.01 * size
     assert np.allclose(got[rest], 0.0)
-
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -458,21 +464,12 @@ def test_yaw_stretch_is_what_a_turn_leaves_in_the_heights_after_the_eye_corners_
     rest frame's): the vertical motion left in the mouth is :func:`yaw_stretch` of the stabilised heights (within
     2% of its size, where leaving it in errs by all of it: 15% of each height at 30 degrees), nothing at the rest's
     yaw, and nothing along x."""
-    from keyshape.retarget.poses import fit_similarity
-    rng = np.random.default_rng(seed)
-    corners = np.array([[-4.5, 0.0, 0.0], [-1.8, 0.0, 0.4], [1.8, 0.0, 0.4], [4.5, 0.0, 0.0]])
-    mouth = np.column_stack([rng.uniform(-2.5, 2.5, 12), rng.uniform(-7.0, -5.0, 12), rng.uniform(1.0, 3.0, 12)])
-    X = np.vstack([corners, mouth])
     yaw = np.radians(30.0) * np.sin(np.linspace(0, 6 * np.pi, 200) + seed)
     rest = 7
     c, s = np.cos(yaw), np.sin(yaw)
     Ry = np.zeros((len(yaw), 3, 3))
     Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 1, 1], Ry[:, 2, 0], Ry[:, 2, 2] = c, s, 1.0, -s, c
-    img = project(np.einsum("tij,pj->tpi", Ry, X))                # front view, image axes (y down)
-    stab = np.empty_like(img)
-    for t in range(len(img)):                                     # frames in a test, not a hot path
-        k, R, tr = fit_similarity(img[t, :4], img[rest, :4])
-        stab[t] = k * img[t] @ R.T + tr
+    _, stab = _face_turned(Ry, seed, rest)
     line = stab[:, :4, 1].mean(axis=1)
     got = yaw_stretch(stab, line, yaw, yaw[rest])
     left = (stab - got)[:, 4:, 1] - stab[rest, 4:, 1]             # the heights' motion once the stretch is out
@@ -482,6 +479,7 @@ def test_yaw_stretch_is_what_a_turn_leaves_in_the_heights_after_the_eye_corners_
     assert np.allclose(got[rest], 0.0) and np.allclose(got[..., 0], 0.0)
     with pytest.raises(InputError):
         yaw_stretch(stab, line[:-1], yaw, 0.0)
+
 
 @pytest.mark.slow
 def test_a_nod_is_not_read_as_a_smile(shared_data):
