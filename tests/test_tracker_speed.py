@@ -159,7 +159,7 @@ def test_warp_level_is_bit_identical_to_the_old_warp():
         assert np.array_equal(got, _warp_reference(Pyramid(frame), a, size))
     assert levels >= {0, 1, 2}
     # a NaN, an infinity or an absurd value anywhere in the affine: a blank patch, not a crash (cv2.warpAffine
-    # kills the process on a coefficient of 1e30 or an infinity, OpenCV 4.x)
+    # kills the process on a coefficient of 1e30 or an infinity, seen with OpenCV 5.1)
     pyr = Pyramid(frame)
     for k in range(6):
         for bad in (math.nan, math.inf, -math.inf, 1e30):

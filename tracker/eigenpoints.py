@@ -169,7 +169,7 @@ def warp_level(pyramid: Pyramid, lvl: int, image_from_model: list, sw: int, sh: 
     y1 = a12 + (u1 if u0 < u1 else u0) + (v1 if v0 < v1 else v0)
     # within 1e7 of the origin (a NaN or an infinity among the coefficients fails one of the tests); a patch
     # beyond it is no view of this image, and cv2.warpAffine kills the process on such coefficients (1e30,
-    # an infinity: OpenCV 4.x), so it is a blank patch (the tracker's residual then calls the frame lost)
+    # an infinity: seen with OpenCV 5.1), so it is a blank patch (the tracker's residual then calls the frame lost)
     if not (-1e7 < x0 and x1 < 1e7 and -1e7 < y0 and y1 < 1e7):
         return np.zeros((sh, sw), np.uint8)
     img = pyramid.window(lvl, math.floor(x0) - 2, math.floor(y0) - 2, math.ceil(x1) + 3, math.ceil(y1) + 3)
