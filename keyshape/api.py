@@ -317,7 +317,7 @@ class PoseLibrary:
 
 
 def pose(keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.SPARSITY,
-         nuisance: str = RA.NUISANCE, opposed: float = RA.OPPOSED) -> PoseLibrary:
+         nuisance: str = RA.NUISANCE, opposed: float = RA.OPPOSED, symmetry: float = RA.SYMMETRY) -> PoseLibrary:
     """Suggest every key's pose on an artist's blendshape rig (``keyshape pose``, with its defaults).
 
     ``rig``: a :class:`~keyshape.retarget.rig.Rig` (:func:`load_rig`) or its folder / OBJ files
@@ -325,7 +325,8 @@ def pose(keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.
     ICT-FaceKit rigs). See :func:`keyshape.retarget.api.fit_poses`.
     """
     r = load_rig(rig, neutral, with_mesh=False)
-    data, fit = RA.fit_poses(keys.regions, keys.scheme, r, keys.head_pose, landmarks, sparsity, nuisance, opposed)
+    data, fit = RA.fit_poses(keys.regions, keys.scheme, r, keys.head_pose, landmarks, sparsity, nuisance, opposed,
+                             symmetry)
     return PoseLibrary({"keys": {"scheme": keys.scheme}, **data}, fit)
 
 

@@ -28,7 +28,7 @@ from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
                                         OPPOSED, SOLVE_GAZE_LIDS, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY,
                                         SOLVE_PITCH_PARALLAX, SOLVE_SYMMETRY, SOLVE_YAW_SLIDE, SOLVE_YAW_STRETCH,
-                                        SPARSITY)
+                                        SPARSITY, SYMMETRY)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -139,7 +139,8 @@ def rig_head_units(rig, tracks: Tracks, landmarks=None) -> float:
 
 
 def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, landmarks=None,
-              sparsity: float = SPARSITY, nuisance: str = NUISANCE, opposed: float = OPPOSED) -> tuple[dict, dict]:
+              sparsity: float = SPARSITY, nuisance: str = NUISANCE, opposed: float = OPPOSED,
+              symmetry: float = SYMMETRY) -> tuple[dict, dict]:
     """Suggest every key's pose on ``rig`` (``keyshape pose``): the pose library and each fit's residual.
 
     Parameters
@@ -149,7 +150,7 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     rig : a :class:`~keyshape.retarget.rig.Rig`
     head_pose : the keys' KEYS.json ``head_pose`` entry (rigid stabilisation frees fewer nuisances)
     landmarks : rig landmark JSON (default: the shipped one for ICT-FaceKit rigs)
-    sparsity, nuisance, opposed : see :func:`~keyshape.retarget.poses.pose_library`
+    sparsity, nuisance, opposed, symmetry : see :func:`~keyshape.retarget.poses.pose_library`
 
     Returns
     -------
@@ -164,8 +165,9 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
 
     if not (np.isfinite(opposed) and -1.0 <= opposed <= 0.0):
         raise InputError(f"--opposed {opposed}: a cosine from -1 to 0")
-    if not (np.isfinite(sparsity) and 0.0 <= sparsity <= 100.0):
-        raise InputError(f"--sparsity {sparsity}: a number from 0 to 100")
+    for flag, v in (("--sparsity", sparsity), ("--symmetry", symmetry)):
+        if not (np.isfinite(v) and 0.0 <= v <= 100.0):
+            raise InputError(f"{flag} {v}: a number from 0 to 100")
     W, lm_path = rig_landmarks(rig, scheme_name, landmarks)
     scheme = load_scheme(scheme_name)
     lm_neutral = project(W @ rig.neutral)
@@ -174,7 +176,7 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     stabilized = (head_pose or {}).get("method") in ("rigid", "3d")
     lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, sparsity, nuisance,
-                       stabilized, opposed)
+                       stabilized, opposed, symmetry)
     fit = lib.pop("_fit")
     data = {"rig": {"neutral": str(rig.neutral_file), "n_vertices": rig.n_vertices, "shapes": list(rig.names),
                     "landmarks": str(lm_path)},

@@ -33,6 +33,9 @@ def register(subparsers) -> None:
                    help="two shapes of a region whose landmark motions have a cosine below this (antagonists: "
                         "browDown and browOuterUp, mouthLeft and mouthRight) are never used in one pose; -1 "
                         "allows every combination")
+    p.add_argument("--symmetry", type=float, default=A.SYMMETRY,
+                   help="left-right prior (dimensionless): a key is fitted with mirrored shapes (mouthSmile_L and "
+                        "_R) alike unless its motion is one-sided; 0 turns it off")
     p.add_argument("-o", "--output", required=True, help="POSES.json to write")
     p.add_argument("--edit", action="store_true",
                    help="then serve a local page (127.0.0.1) to correct the poses by hand; Ctrl-C stops it")
@@ -83,7 +86,7 @@ def run(args) -> int:
           f"fitting {n_keys} keys of {len(regions)} regions ...", flush=True)
     t1 = time.perf_counter()
     data, fit = fit_poses(regions, scheme_name, rig, read_keys_head_pose(args.keys), args.landmarks, args.sparsity,
-                          args.nuisance, args.opposed)
+                          args.nuisance, args.opposed, args.symmetry)
     data = {"keys": {"file": str(args.keys), "scheme": scheme_name}, **data}
     src = read_keys_source(args.keys)
     if src.get("model"):

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from keyshape.base.errors import InputError
+from keyshape.retarget.rig import mirror_pairs
 
 
 def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -51,7 +52,8 @@ def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray,
     return s, R, md - s * R @ ms
 
 
-def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float = -0.5) -> list[tuple[int, int]]:
+def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float = -0.5,
+                  mirrored: Sequence[tuple[int, int]] = ()) -> list[tuple[int, int]]:
     """Pairs of rig shapes whose landmark motions point against each other (antagonists).
 
     Parameters
@@ -60,25 +62,40 @@ def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float =
     free : (m, k) nuisance motions, projected out of the columns first (what the fit ignores)
     cosine : pairs whose motions' cosine is below this are opposed (ARKit's browDown and browOuterUp
         of one side: -0.75; mouthLeft and mouthRight: -0.89; jawOpen and mouthClose: -0.99)
+    mirrored : mirror-image pairs (:func:`~keyshape.retarget.rig.mirror_pairs`) that are opposed when their
+        motions *before* the nuisances are projected out have a cosine below ``cosine``: a sideways
+        pair (mouthLeft and mouthRight) opposes by its translation, which a free translation hides;
+        both at once is then a narrowing of the lips no artist sculpts (on the synthetic take of
+        ``bench/rig_accuracy.py``, seed 11, it stood in for mouthPucker and mouthFunnel: 0.31 of each)
 
     Returns
     -------
     list of (i, j), i < j
     """
     A = np.asarray(A, float)
-    if free is not None:
-        A = A - free @ np.linalg.lstsq(free, A, rcond=None)[0]
-    norm = np.linalg.norm(A, axis=0)
-    live = norm > 1e-12 * max(norm.max(initial=0.0), 1e-300)
-    C = (A.T @ A) / np.outer(np.where(live, norm, 1.0), np.where(live, norm, 1.0))
-    i, j = np.nonzero(np.triu(C < cosine, 1) & live[:, None] & live[None, :])
+
+    def cosines(M):
+        norm = np.linalg.norm(M, axis=0)
+        live = norm > 1e-12 * max(norm.max(initial=0.0), 1e-300)
+        C = (M.T @ M) / np.outer(np.where(live, norm, 1.0), np.where(live, norm, 1.0))
+        return np.where(live[:, None] & live[None, :], C, 0.0)
+
+    raw = cosines(A)
+    C = raw if free is None else cosines(A - free @ np.linalg.lstsq(free, A, rcond=None)[0])
+    opposed = np.triu(C < cosine, 1)
+    for i, j in mirrored:
+        i, j = min(i, j), max(i, j)
+        opposed[i, j] |= raw[i, j] < cosine
+    i, j = np.nonzero(opposed)
     return list(zip(i.tolist(), j.tolist()))
 
 
 def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
              sparsity: float = 0.02, scale: float | None = None, free: np.ndarray | None = None,
-             exclusive: Sequence[tuple[int, int]] = ()) -> np.ndarray:
-    """Bounded, sparse least squares: ``argmin ||A p + F q - b||^2 / scale^2 + sparsity * sum_j p_j``.
+             exclusive: Sequence[tuple[int, int]] = (), symmetry: float = 0.0,
+             mirrored: Sequence[tuple[int, int]] = ()) -> np.ndarray:
+    """Bounded, sparse least squares with a left-right prior:
+    ``argmin ||A p + F q - b||^2 / scale^2 + sparsity * sum_j p_j + symmetry * a * sum_(i,j) (p_i - p_j)^2``.
 
     Parameters
     ----------
@@ -98,6 +115,12 @@ def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1
         raised at once: a frown the actor never made); while a pair is both on, the pair's
         weaker use (the smaller of the two weights) is settled by refitting without either shape
         and keeping the better fit, one shape of the pair dropped
+    symmetry : dimensionless weight of the left-right prior over the ``mirrored`` pairs (``a`` is the
+        mean squared column norm of ``A / scale``, so the prior does not depend on units): a face is
+        near symmetric, and a 2D fit can trade one side's shape for the other's neighbours (a smile
+        fitted as mouthSmile_L with mouthStretch_R). The same prior as ``keyshape solve``'s
+        (:func:`~keyshape.retarget.solve.solve_region`); a one-sided key still fits one-sided
+    mirrored : mirror-image shape pairs (:func:`~keyshape.retarget.rig.mirror_pairs`)
 
     Returns
     -------
@@ -117,12 +140,17 @@ def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1
     k = F.shape[1]
     As = np.hstack([A, F]) / scale                         # keep the objective O(1)
     bs = b / scale
-    G, h = As.T @ As, As.T @ bs
+    G, h, c = As.T @ As, As.T @ bs, float(bs @ bs)
+    if len(mirrored) and symmetry > 0:
+        S = np.zeros((len(mirrored), n + k))
+        for r, (i, j) in enumerate(mirrored):
+            S[r, i], S[r, j] = 1.0, -1.0
+        G = G + symmetry * float(np.mean((As[:, :n] ** 2).sum(axis=0))) * S.T @ S
     l1 = np.concatenate([np.full(n, sparsity), np.zeros(k)])
 
     def f(x):
-        r = As @ x - bs
-        return r @ r + l1 @ x, 2 * (G @ x - h) + l1
+        Gx = G @ x
+        return x @ Gx - 2 * h @ x + c + l1 @ x, 2 * (Gx - h) + l1
 
     def solve(off):
         """Minimise with the shapes in ``off`` held at ``lo``; returns (weights, objective)."""
@@ -248,7 +276,7 @@ def auto_nuisance(region: str, stabilized: bool) -> str:
 def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
                  region_shapes: Mapping[str, np.ndarray], bounds: tuple[float, float] = (0.0, 1.0),
                  sparsity: float = 0.01, nuisance: str | Mapping[str, str] = "auto",
-                 stabilized: bool = False, exclusive: float | None = -0.5) -> dict:
+                 stabilized: bool = False, exclusive: float | None = -0.5, symmetry: float = 0.03) -> dict:
     """Suggest a rig pose for every key of every region (the ``regions`` part of POSES.json).
 
     Parameters
@@ -270,7 +298,9 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
         ``rigid``), which "auto" uses
     exclusive : shapes of a region whose landmark motions (nuisances projected out) have a cosine
         below this are never used together in one pose (:func:`opposed_pairs`, :func:`fit_pose`);
-        None allows every combination
+        None allows every combination; mirror-image pairs opposed before the nuisances are projected
+        out (mouthLeft and mouthRight) count too
+    symmetry : weight of the left-right prior over the region's mirror-image shapes (:func:`fit_pose`)
 
     Returns
     -------
@@ -298,13 +328,14 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
         kind = nuisance.get(rk.region, "auto") if isinstance(nuisance, Mapping) else nuisance
         kind = auto_nuisance(rk.region, stabilized) if kind == "auto" else kind
         F = nuisance_motions(rest[rk.region] @ M.T, kind)
-        pairs = opposed_pairs(A, F, exclusive) if exclusive is not None and len(shapes) else []
+        mirrored = mirror_pairs(names)
+        pairs = opposed_pairs(A, F, exclusive, mirrored) if exclusive is not None and len(shapes) else []
         motions = [((x - rest[rk.region]) @ M.T).ravel() for x in [*rk.keys, rk.neutral]]
         scale = max(float(np.linalg.norm(m)) for m in motions)
         entry = {"shapes": names, "neutral": {}, "keys": {}}
 
         def solve(b):
-            p = fit_pose(A, b, bounds, sparsity, scale, F, pairs)
+            p = fit_pose(A, b, bounds, sparsity, scale, F, pairs, symmetry, mirrored)
             r = A @ p - b
             if F is not None:
                 r = r - F @ np.linalg.lstsq(F, r, rcond=None)[0]

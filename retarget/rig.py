@@ -452,3 +452,29 @@ def support_regions(shapes: np.ndarray, neutral: np.ndarray, columns: Sequence[s
     if empty:
         raise InputError(f"the targets of region(s) {empty} move no vertex: give --regions REGIONS.json")
     return out
+
+
+#: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
+MIRROR = (("_L", "_R"), ("Left", "Right"))
+#: Shapes whose mirror image is another shape of the other side: the eyes turn together (a look to
+#: the actor's left is the left eye's ``eyeLookOut`` and the right eye's ``eyeLookIn``).
+CONJUGATE = (("eyeLookIn", "eyeLookOut"), ("eyeLookOut", "eyeLookIn"))
+
+
+def mirror_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
+    """Index pairs ``(i, j)`` of mirrored shapes: names that differ only by the side (``_L``/``_R``,
+    ``Left``/``Right``), the horizontal gaze shapes crossed (``eyeLookIn_L`` with ``eyeLookOut_R``, :data:`CONJUGATE`)."""
+    pos = {n: i for i, n in enumerate(names)}
+    out = []
+    for i, n in enumerate(names):
+        for a, b in MIRROR:
+            if not n.endswith(a):
+                continue
+            base = n[: -len(a)]
+            for x, y in CONJUGATE:
+                if base.startswith(x):
+                    base = y + base[len(x):]
+                    break
+            if base + b in pos:
+                out.append((i, pos[base + b]))
+    return out

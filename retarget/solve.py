@@ -118,6 +118,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
+from keyshape.retarget.rig import mirror_pairs
 
 #: Frames (spread evenly over the take) the rest's offset is estimated on: a statistic of the take's
 #: relaxed state, which most frames show, so a subsample serves (and keeps the extra solve short).
@@ -127,30 +128,6 @@ OFFSET_FRAMES = 300
 #: the mouth, in front of the eye corners the 2D head is stabilised on, slides sideways with yaw.
 YAW_REGIONS = ("mouth",)
 
-#: Mirrored shape names: ``X_L``/``X_R`` (ICT-FaceKit) and ``XLeft``/``XRight`` (ARKit).
-MIRROR = (("_L", "_R"), ("Left", "Right"))
-#: Shapes whose mirror image is another shape of the other side: the eyes turn together (a look to
-#: the actor's left is the left eye's ``eyeLookOut`` and the right eye's ``eyeLookIn``).
-CONJUGATE = (("eyeLookIn", "eyeLookOut"), ("eyeLookOut", "eyeLookIn"))
-
-
-def mirror_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
-    """Index pairs ``(i, j)`` of mirrored shapes: names that differ only by the side (``_L``/``_R``,
-    ``Left``/``Right``), the horizontal gaze shapes crossed (``eyeLookIn_L`` with ``eyeLookOut_R``, :data:`CONJUGATE`)."""
-    pos = {n: i for i, n in enumerate(names)}
-    out = []
-    for i, n in enumerate(names):
-        for a, b in MIRROR:
-            if not n.endswith(a):
-                continue
-            base = n[: -len(a)]
-            for x, y in CONJUGATE:
-                if base.startswith(x):
-                    base = y + base[len(x):]
-                    break
-            if base + b in pos:
-                out.append((i, pos[base + b]))
-    return out
 
 
 def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
