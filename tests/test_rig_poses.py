@@ -168,7 +168,9 @@ def test_pose_library_recovers_the_poses_of_keys_made_from_the_rig():
     names = list(SHAPES)
     assert [names[j] for j in rs["mouth"]] == ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthPucker"]
     assert "PupilDilate_L" not in [names[j] for r in rs.values() for j in r]        # moves nothing
-    lib = pose_library(actor_keys(TRUE), names, project(verts[:48]), ld, rs, sparsity=0.001, nuisance="none")
+    # with the priors near zero (sparsity 0.001, no left-right prior) the fit is exact
+    lib = pose_library(actor_keys(TRUE), names, project(verts[:48]), ld, rs, sparsity=0.001, nuisance="none",
+                       symmetry=0.0)
     fit = lib.pop("_fit")
     for k, pose in TRUE.items():
         region = k.split("_")[0]
@@ -266,6 +268,7 @@ def test_rig_with_a_shape_of_another_vertex_count_is_refused(tmp_path, capsys):
     ("--opposed", "nan", "--opposed nan: a cosine from -1 to 0"),
     ("--sparsity", "-1", "--sparsity -1.0: a number from 0 to 100"),
     ("--sparsity", "inf", "--sparsity inf: a number from 0 to 100"),
+    ("--symmetry", "-1", "--symmetry -1.0: a number from 0 to 100"),
 ])
 def test_pose_options_out_of_range_are_refused_and_nothing_written(tmp_path, capsys, option, value, message):
     from keyshape.base.formats.keys import write_keys
@@ -523,6 +526,53 @@ def test_exclusive_pairs_hold_on_random_problems(seed):
     p = fit_pose(A, b, sparsity=0.01, exclusive=pairs)
     assert all(not (p[i] > 0 and p[j] > 0) for i, j in pairs)
     assert ((p >= 0) & (p <= 1)).all()
+
+
+def test_left_right_prior_evens_a_symmetric_key_and_keeps_a_one_sided_one():
+    """The left-right prior (``pose --symmetry``): two mirrored shapes of which each also makes a little
+    of the other side's motion. A key made of both, read a little stronger on one side, is fitted more
+    evenly than it reads; a one-sided key stays one-sided (within 5%); mirror-image keys get
+    mirror-image poses."""
+    rng = np.random.default_rng(5)
+    side, both = rng.normal(size=20), rng.normal(size=20)
+    L = np.concatenate([side, 0.3 * side])                        # the left shape, some motion on the right
+    R = np.concatenate([0.3 * side, side])                        # its mirror image
+    shared = np.concatenate([both, both])                         # a third shape: both sides at once
+    A = np.stack([L, R, shared], axis=1)
+    mirrored = [(0, 1)]
+    b = A @ [0.55, 0.45, 0.0]                 # an even key read a little stronger on one side
+    free = fit_pose(A, b, sparsity=0.0)
+    even = fit_pose(A, b, sparsity=0.0, symmetry=0.03, mirrored=mirrored)
+    assert free[0] - free[1] == pytest.approx(0.1, abs=1e-4)
+    assert 0.06 < even[0] - even[1] < 0.095 and even[:2].sum() == pytest.approx(1.0, abs=0.02)
+    one = fit_pose(A, A @ [0.6, 0.0, 0.0], sparsity=0.01, symmetry=0.03, mirrored=mirrored)
+    assert one[0] == pytest.approx(0.6, abs=0.05) and one[1] < 0.05
+    other = fit_pose(A, A @ [0.0, 0.6, 0.0], sparsity=0.01, symmetry=0.03, mirrored=mirrored)
+    np.testing.assert_allclose(other[[1, 0, 2]], one, atol=1e-4)
+    assert fit_pose(A, A @ [0.6, 0.0, 0.0], sparsity=0.01)[0] == pytest.approx(0.6, abs=0.02)
+
+
+def test_a_sideways_pair_stays_opposed_under_a_free_translation():
+    """mouthLeft and mouthRight move the lips mostly sideways, against each other; with the mouth's
+    translation free that part is projected out and what is left of the two (each narrows the lips a
+    little) no longer opposes, so both at once would make a narrowing: a mirrored pair opposed by its
+    motions before the nuisances are projected out stays opposed."""
+    from keyshape.retarget.poses import nuisance_motions, opposed_pairs
+    rng = np.random.default_rng(7)
+    pts = rng.normal(size=(12, 2))
+    narrow = (-pts * [1.0, 0.0]).ravel()                        # corners in
+    side = np.tile([1.0, 0.0], 12)
+    A = np.stack([side + 0.3 * narrow, -side + 0.3 * narrow, narrow], axis=1)
+    F = nuisance_motions(pts, "translation")
+    assert opposed_pairs(A) == [(0, 1)]
+    assert opposed_pairs(A, F) == []
+    assert opposed_pairs(A, F, mirrored=[(1, 0)]) == [(0, 1)]
+    assert opposed_pairs(A, F, mirrored=[(0, 2)]) == []         # a mirrored pair that does not oppose
+    b = A @ [0.0, 0.0, 0.6]
+    both = fit_pose(A[:, :2], b, sparsity=0.0, free=F)
+    assert (both > 0.1).all()                                   # the two together fake the narrowing
+    p = fit_pose(A, b, sparsity=0.01, free=F, exclusive=opposed_pairs(A, F, mirrored=[(0, 1)]))
+    assert not (p[0] > 0 and p[1] > 0) and p[2] == pytest.approx(0.6, abs=0.05)
 
 
 def test_ict_antagonists_and_eye_shapes_of_the_real_rig(shared_data):
