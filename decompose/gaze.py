@@ -50,6 +50,13 @@ EYE_RADIUS_CM = 1.2
 EYE_WIDTH_CM = 2.6
 #: the scheme's (eye contour, pupil contour) of the actor's left and right eye (image right and left)
 EYES = (("eye_right", "pupil_right"), ("eye_left", "pupil_left"))
+
+
+def pupil_points(scheme: Scheme) -> list[int]:
+    """Indices of the scheme's pupil points: each eye's pupil contour of :data:`EYES`, the right eye's first."""
+    return [int(p) for _, pupil in EYES for p in scheme.contours.get(pupil, ())]
+
+
 #: the longest blink (seconds): the brief part of the lids' closure that :class:`LidDrag` fits on
 BLINK_S = 0.4
 #: an eye whose lid gap is under this fraction of its median is shut (its pupil unseen: the gaze is held)

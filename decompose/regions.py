@@ -34,7 +34,7 @@ from keyshape.base.formats.keys import REGIONS, RegionKeys
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme
 from keyshape.base.schemes import load_head_template
-from keyshape.decompose.gaze import EYE_RADIUS_CM, EYES
+from keyshape.decompose.gaze import EYE_RADIUS_CM, pupil_points
 from keyshape.decompose.head3d import HeadPose3D
 from keyshape.decompose.defaults import HEAD_POSE
 from keyshape.decompose.stabilize import HEAD_POSES, RigidStabilizer, stabilizer_from_entry
@@ -175,8 +175,7 @@ def head_pose_3d(scheme: Scheme, image_size: Sequence[int] | None = None) -> Hea
     centre = None
     if image_size is not None:
         centre = (np.asarray(image_size, np.float64)[:2] - 1.0) / 2.0
-    pupils = [scheme.contours[pupil][0] for _, pupil in EYES if pupil in scheme.contours]
-    return HeadPose3D(X, w, scheme.rigid, centre=centre, eyeballs=pupils, eye_radius=EYE_RADIUS_CM)
+    return HeadPose3D(X, w, scheme.rigid, centre=centre, eyeballs=pupil_points(scheme), eye_radius=EYE_RADIUS_CM)
 
 
 def head_shapes(tracks: Tracks, scheme: Scheme, head: str | dict | RigidStabilizer | HeadPose3D | None = HEAD_POSE,

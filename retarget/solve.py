@@ -313,7 +313,8 @@ def _is_eye(scheme, name: str) -> bool:
 def held_rest_points(scheme) -> list[int]:
     """Points whose rest the rest's offset leaves alone: the lids (the open eye :func:`eye_calibration`
     measures closure from) and the pupils (``pupil*`` contours; straight ahead is a gaze, not an expression)."""
-    return [p for name, pts in scheme.contours.items() if _is_eye(scheme, name) or name.startswith("pupil") for p in pts]
+    from keyshape.decompose.gaze import pupil_points
+    return [p for name, pts in scheme.contours.items() if _is_eye(scheme, name) for p in pts] + pupil_points(scheme)
 
 
 def eye_width_motions(scheme, points: np.ndarray, rest: np.ndarray) -> np.ndarray:
@@ -873,8 +874,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     src = np.concatenate([r for _, r in regions.values()])
     s, R, _ = fit_similarity(src, landmark_neutral[pts])
     Msim = s * R
-    pupils = [int(p) for name, ps in scheme.contours.items() if name.startswith("pupil") for p in ps]
-    landmark_deltas = rigid_frame_deltas(landmark_neutral, landmark_deltas, rigid, keep=pupils)
+    from keyshape.decompose.gaze import pupil_points
+    landmark_deltas = rigid_frame_deltas(landmark_neutral, landmark_deltas, rigid, keep=pupil_points(scheme))
     out = np.full((len(X), len(shape_names)), float(bounds[0]))
     held = held_rest_points(scheme)
     for region, (idx, rest) in regions.items():
