@@ -175,6 +175,11 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     stabilized = (head_pose or {}).get("method") in ("rigid", "3d")
+    if (head_pose or {}).get("method") == "rigid":
+        # the keys' eye corners were held still: read the rig's motion in that frame too (as keyshape solve does)
+        from keyshape.decompose.gaze import pupil_points
+        from keyshape.retarget.solve import rigid_frame_deltas
+        lm_deltas = rigid_frame_deltas(lm_neutral, lm_deltas, head_pose.get("points", ()), keep=pupil_points(scheme))
     lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, sparsity, nuisance,
                        stabilized, opposed, symmetry)
     fit = lib.pop("_fit")

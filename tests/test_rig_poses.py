@@ -104,27 +104,27 @@ SHAPES = {  # contours48 point motions (image axes, y down) of each toy rig shap
 }
 
 
-def toy_rig_arrays():
+def toy_rig_arrays(shapes: dict = SHAPES):
     """Rig vertices = the 48 contours48 points of a mean face (+ 2 off-face vertices), z = 0."""
     from keyshape.data_synth.face_model import FaceModel
     neutral2d, _ = FaceModel(rng=3).basis()
     neutral2d = np.asarray(neutral2d).reshape(-1, 2)[:48] / 20.0     # rig units ~ cm
     v2d = np.concatenate([neutral2d, [[0, -6], [0, 8]]])
     verts = np.column_stack([v2d[:, 0], -v2d[:, 1], np.zeros(len(v2d))])   # y up in the rig
-    deltas = np.zeros((len(SHAPES), len(verts), 3))
-    for j, motion in enumerate(SHAPES.values()):
+    deltas = np.zeros((len(shapes), len(verts), 3))
+    for j, motion in enumerate(shapes.values()):
         for p, (dx, dy) in motion.items():
             deltas[j, p] = [dx / 20.0, -dy / 20.0, 0.0]
     return verts, deltas
 
 
-def write_toy_rig(folder, n_bad: int | None = None):
-    verts, deltas = toy_rig_arrays()
+def write_toy_rig(folder, n_bad: int | None = None, shapes: dict = SHAPES):
+    verts, deltas = toy_rig_arrays(shapes)
     polys = [np.array([i, i + 1, 48]) for i in range(0, 47)]
     mesh = Mesh(verts, polys)
     folder.mkdir(parents=True, exist_ok=True)
     write_obj(folder / "neutral.obj", mesh)
-    for name, d in zip(SHAPES, deltas):
+    for name, d in zip(shapes, deltas):
         write_obj(folder / f"{name}.obj", mesh, verts + d)
     if n_bad is not None:
         write_obj(folder / "broken.obj", Mesh(verts[:n_bad], []))
@@ -178,6 +178,31 @@ def test_pose_library_recovers_the_poses_of_keys_made_from_the_rig():
         for n in names:
             assert got.get(n, 0.0) == pytest.approx(pose.get(n, 0.0), abs=0.01), (k, n, got)
         assert fit[k] < 0.01
+
+
+def test_pose_reads_the_rig_in_the_frame_the_keys_were_stabilised_in(tmp_path):
+    """A rig blink that also lowers its eye's corners (ICT-FaceKit's does), and the actor's blink key
+    stabilised on the eye corners (``select --head-pose rigid``), which therefore never shows the corners
+    move: ``pose`` reads the rig's motion in that same frame (the rigid points' mean height held,
+    :func:`~keyshape.retarget.solve.rigid_frame_deltas`, as ``solve`` does) and gets the blink whole. Read
+    in the rig's own frame, the key's corners held still took the brows down with them: eyeBlink_L 0.66
+    and browInnerUp 0.17 on both sides, residual 39%."""
+    from keyshape.retarget.api import fit_poses
+    shapes = dict(SHAPES)
+    shapes["eyeBlink_L"] = {p: (0, 5.0) for p in (19, 20, 21)} | {18: (0, 1.5), 22: (0, 1.5)}
+    folder, lm = write_toy_rig(tmp_path / "rig", shapes=shapes)
+    rig = load_rig(folder, with_mesh=False)
+    verts, deltas = toy_rig_arrays(shapes)
+    rest = project(verts[:48])
+    key = project(verts[:48] + 0.8 * deltas[list(shapes).index("eyeBlink_L"), :48])
+    rigid = list(SCHEME.rigid)
+    key = key - (key - rest)[rigid].mean(axis=0)             # the stabiliser holds the corners' mean still
+    idx = region_points(SCHEME, "eyes")
+    regions = [RegionKeys("eyes", "greedy", idx, np.arange(1), key[idx][None], rest[idx], None, rest[idx], 0)]
+    lib, fit = fit_poses(regions, "contours48", rig, {"method": "rigid", "points": rigid}, lm, sparsity=0.001,
+                         symmetry=0.0)
+    assert lib["regions"]["eyes"]["keys"]["eyes_0"] == pytest.approx({"eyeBlink_L": 0.8}, abs=0.01)
+    assert fit["eyes_0"] < 0.01
 
 
 def test_pose_and_retarget_commands_end_to_end(tmp_path):
