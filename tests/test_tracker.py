@@ -390,6 +390,33 @@ def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, ca
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
 
 
+def test_an_interruption_stops_the_decode_thread_before_the_caller_sees_it(files, monkeypatch):
+    """Ctrl-C or SIGTERM in the tracker's step: by the time the caller holds the interruption (whose
+    traceback keeps the tracking loop's frame alive), the decode thread has stopped. Left running to the
+    interpreter's exit, a daemon thread inside OpenCV's decoder is ended there in C++ and the process
+    aborts (SIGABRT, "FATAL: exception not rethrown") instead of exiting 130 / 143."""
+    import threading
+    from keyshape.tracker.commands import iter_track
+    from keyshape.tracker.eigenpoints import AppearanceModel as Model
+    d, video, model, _ = files
+    real_step = Tracker.step
+
+    def step(self, frame, index=0):
+        if index == 4:
+            raise KeyboardInterrupt
+        return real_step(self, frame, index)
+
+    monkeypatch.setattr(Tracker, "step", step)
+    held = None
+    try:
+        for _ in iter_track(video, Model.load(model), decode_thread=True):
+            pass
+    except KeyboardInterrupt as exc:
+        held = exc                                  # the caller keeps it, as `keyshape track` does
+    assert held is not None
+    assert not [t for t in threading.enumerate() if t.name == "keyshape-decode"]
+
+
 def test_prefetched_decode_thread_keeps_order_errors_and_early_stop():
     from keyshape.tracker.commands import _prefetched
 

@@ -246,14 +246,21 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
         with single_threaded():
             tracker = Tracker(model, **(tracker_options or {}))
             frames = _prefetched(_with_gray(reader, start)) if decode_thread else ((i, f, f) for i, f in reader)
-            for i, frame, gray in frames:
-                if i < start:
-                    continue
-                if stop is not None and i >= stop:
-                    break
-                res = tracker.step(gray, i)
-                yield from ((pts, r, fr) for pts, (r, fr) in
-                            smoother.push(res.points, (res, frame if keep_frames else None)))
+            try:
+                for i, frame, gray in frames:
+                    if i < start:
+                        continue
+                    if stop is not None and i >= stop:
+                        break
+                    res = tracker.step(gray, i)
+                    yield from ((pts, r, fr) for pts, (r, fr) in
+                                smoother.push(res.points, (res, frame if keep_frames else None)))
+            finally:
+                # stop and join the decode thread now: an interruption's traceback keeps this frame, and
+                # so the producer, alive until the process ends, and a daemon thread still decoding in
+                # OpenCV then is ended by the interpreter inside C++ ("FATAL: exception not rethrown",
+                # SIGABRT instead of exit status 143; seen once in CI)
+                frames.close()
     except KeyboardInterrupt as exc:
         interrupted = exc
     yield from ((pts, r, fr) for pts, (r, fr) in smoother.flush())
