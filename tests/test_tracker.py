@@ -367,16 +367,21 @@ def test_model_from_another_scheme_or_corrupt(files, tmp_path, capsys):
     assert "broken.npz: not a keyshape model file" in capsys.readouterr().err
 
 
-def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, capsys):
-    d, video, model, _ = files
+def interrupt_at(monkeypatch, at: int) -> None:
+    """Make the tracker's step raise KeyboardInterrupt (Ctrl-C, or SIGTERM as keyshape raises it) at frame ``at``."""
     real_step = Tracker.step
 
     def step(self, frame, index=0):
-        if index == 4:
+        if index == at:
             raise KeyboardInterrupt
         return real_step(self, frame, index)
 
     monkeypatch.setattr(Tracker, "step", step)
+
+
+def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, capsys):
+    d, video, model, _ = files
+    interrupt_at(monkeypatch, 4)
     out = tmp_path / "t.csv"
     out.write_text("earlier complete tracks\n")
     assert main(["track", str(video), "--model", str(model), "-o", str(out), "--smooth", "savgol", "--quiet"]) == 130
@@ -399,14 +404,7 @@ def test_an_interruption_stops_the_decode_thread_before_the_caller_sees_it(files
     from keyshape.tracker.commands import iter_track
     from keyshape.tracker.eigenpoints import AppearanceModel as Model
     d, video, model, _ = files
-    real_step = Tracker.step
-
-    def step(self, frame, index=0):
-        if index == 4:
-            raise KeyboardInterrupt
-        return real_step(self, frame, index)
-
-    monkeypatch.setattr(Tracker, "step", step)
+    interrupt_at(monkeypatch, 4)
     held = None
     try:
         for _ in iter_track(video, Model.load(model), decode_thread=True):
