@@ -90,6 +90,15 @@ def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float =
     return list(zip(i.tolist(), j.tolist()))
 
 
+def mirror_differences(mirrored: Sequence[tuple[int, int]], n: int) -> np.ndarray:
+    """(len(mirrored), n) rows ``e_i - e_j`` of the mirrored pairs: ``|S p|^2 = sum (p_i - p_j)^2``, the
+    left-right prior of :func:`fit_pose` and of ``keyshape solve`` (:func:`~keyshape.retarget.solve.solve_region`)."""
+    S = np.zeros((len(mirrored), n))
+    for r, (i, j) in enumerate(mirrored):
+        S[r, i], S[r, j] = 1.0, -1.0
+    return S
+
+
 def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
              sparsity: float = 0.02, scale: float | None = None, free: np.ndarray | None = None,
              exclusive: Sequence[tuple[int, int]] = (), symmetry: float = 0.0,
@@ -142,9 +151,7 @@ def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1
     bs = b / scale
     G, h, c = As.T @ As, As.T @ bs, float(bs @ bs)
     if len(mirrored) and symmetry > 0:
-        S = np.zeros((len(mirrored), n + k))
-        for r, (i, j) in enumerate(mirrored):
-            S[r, i], S[r, j] = 1.0, -1.0
+        S = mirror_differences(mirrored, n + k)
         G = G + symmetry * float(np.mean((As[:, :n] ** 2).sum(axis=0))) * S.T @ S
     l1 = np.concatenate([np.full(n, sparsity), np.zeros(k)])
 

@@ -795,9 +795,8 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
     col = float(np.mean((Aw ** 2).sum(axis=0))) or 1.0
     Q = None
     if pairs and symmetry > 0:
-        S = np.zeros((len(pairs), n))
-        for r, (i, j) in enumerate(pairs):
-            S[r, i], S[r, j] = 1.0, -1.0
+        from keyshape.retarget.poses import mirror_differences
+        S = mirror_differences(pairs, n)
         Q = symmetry * col * S.T @ S
     l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
     if rest_offset is not None and rest_offset.shape[1]:
