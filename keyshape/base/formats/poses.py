@@ -53,12 +53,16 @@ def write_poses(path: str | Path, data: dict) -> None:
     """Write a pose library (the dict layout of the module docstring) atomically."""
     out = dict(data)
     out["format"], out["version"] = FORMAT, 1
+    def rounded(pose: dict) -> dict:
+        # rounded first, then the zeros left out: a weight that rounds to 0 is an absent shape, never a
+        # written 0 that a range excluding 0 would refuse on reading
+        pose = {s: round(float(v), 5) for s, v in pose.items()}
+        return {s: v for s, v in pose.items() if v != 0}
+
     regions = {}
     for r, reg in data["regions"].items():
-        regions[r] = {"shapes": list(reg["shapes"]),
-                      "neutral": {k: round(float(v), 5) for k, v in reg.get("neutral", {}).items() if v != 0},
-                      "keys": {k: {s: round(float(v), 5) for s, v in pose.items() if v != 0}
-                               for k, pose in reg["keys"].items()}}
+        regions[r] = {"shapes": list(reg["shapes"]), "neutral": rounded(reg.get("neutral", {})),
+                      "keys": {k: rounded(pose) for k, pose in reg["keys"].items()}}
     out["regions"] = regions
     with atomic_write(path) as f:
         json.dump(out, f, indent=1)
