@@ -29,14 +29,15 @@ from pathlib import Path
 from footage import add_footage_args, footage
 
 
-def _decode_rate(video) -> tuple[float, float]:
-    """Frames/s and CPU seconds per frame of decoding ``video`` (the better of two passes)."""
+def _decode_rate(video, **reader) -> tuple[float, float]:
+    """Frames/s and CPU seconds per frame of decoding ``video`` (the better of two passes); ``reader``:
+    :class:`VideoReader` options (none: plain BGR decoding, the issue's baseline)."""
     from keyshape.base.formats.video import VideoReader
 
     best = (0.0, float("inf"))
     for _ in range(2):
         t0, c0 = time.perf_counter(), time.process_time()
-        n = sum(1 for _ in VideoReader(video))
+        n = sum(1 for _ in VideoReader(video, **reader))
         best = (max(best[0], n / (time.perf_counter() - t0)), min(best[1], (time.process_time() - c0) / n))
     return best
 
@@ -49,7 +50,7 @@ def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
     from keyshape.tracker.fitting import Tracker, single_threaded
 
     frames = []
-    for i, f in VideoReader(video):
+    for i, f in VideoReader(video, gray=True, luma=True):      # the frames the tracker is given
         if i >= n_frames:
             break
         frames.append(f)
@@ -112,6 +113,9 @@ def main() -> None:
             t_cmd[jobs] = time.perf_counter() - t0
         decode2, cpu_decode2 = _decode_rate(video)
         decode, cpu_decode = max(decode, decode2), min(cpu_decode, cpu_decode2)
+        # what the tracker decodes: the luma plane alone where it gives the BGR's gray (VideoReader(luma=True))
+        luma, cpu_luma = _decode_rate(video, gray=True, luma=True)
+        luma_on = VideoReader(video, gray=True, luma=True).luma_table_ is not None
         load1 = os.getloadavg()[0]
         print(f"video {video.name}: {n} frames {info.width}x{info.height}; load average {load0:.2f} at the start, "
               f"{load1:.2f} at the end (2 cores: above 2 the figures are slowed by other work)")
@@ -124,7 +128,10 @@ def main() -> None:
         print(f"without the decode thread: decode + track {summ0.fps:.0f} frames/s; ratio {summ0.fps / decode:.2f}")
         for jobs, t in t_cmd.items():
             print(f"command level: `keyshape track --jobs {jobs}` {t:.2f} s for {n} frames ({n / t:.0f} frames/s), "
-                  f"decoding {n / decode:.2f} s: ratio {n / decode / t:.2f}")
+                  f"decoding {n / decode:.2f} s: ratio {n / decode / t:.2f}; against decoding the luma alone "
+                  f"({n / luma:.2f} s) {n / luma / t:.2f}")
+        print(f"the tracker's frames: {'the luma plane alone' if luma_on else 'gray from BGR (no luma table)'}; "
+              f"luma-only decode {luma:.0f} frames/s, {1e3 * cpu_luma:.3f} ms CPU a frame")
         # CPU seconds (time.process_time: all threads of this process) per frame: less sensitive than
         # frames/s to the other jobs of a shared machine
         print(f"CPU per frame: decode only {1e3 * cpu_decode:.3f} ms; decode + track {1e3 * cpu_thread:.3f} ms "

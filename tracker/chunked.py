@@ -95,7 +95,7 @@ def _worker(k: int, video: str, inbox, lo: int, own: int, end: int | None, warmu
         from keyshape.tracker.fitting import Tracker, single_threaded
 
         model = pickle.loads(inbox.get())
-        reader = VideoReader(video)
+        reader = VideoReader(video, gray=True, luma=True)     # as iter_track_chunked's own reader (the seams' checksums)
         rows: list = []
         hashes: dict = {}
         hash_from = None if end is None else end - warmup
@@ -192,7 +192,7 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
 
     if warmup < SEAM_FRAMES:
         raise InputError(f"warmup {warmup}: need at least {SEAM_FRAMES} frames to check the seams")
-    reader = reader or VideoReader(video)
+    reader = reader or VideoReader(video, gray=True, luma=True)
     options = dict(tracker_options or {})
     n_total = reader.info.n_frames
     last = stop if stop is not None else n_total

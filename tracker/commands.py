@@ -70,7 +70,7 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
         raise InputError(f"labels for frames {bad[:5]} but the video has {info.n_frames} frames "
                          f"(frames are numbered from 0)", source)
     check_label_geometry(frames, shapes, source)
-    images = VideoReader(video, gray=True).read_frames(frames)
+    images = VideoReader(video, gray=True, luma=True).read_frames(frames)     # as iter_track decodes them
     h, w = images.shape[1:3]
     outside = (shapes[..., 0] < -0.5 * w) | (shapes[..., 0] > 1.5 * w) | (shapes[..., 1] < -0.5 * h) | \
               (shapes[..., 1] > 1.5 * h)
@@ -224,7 +224,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     from keyshape.tracker.fitting import Tracker, single_threaded
     from keyshape.tracker.smoothing import StreamSmoother
 
-    reader = reader or VideoReader(video)
+    reader = reader or VideoReader(video, gray=not keep_frames, luma=True)
     check_frame_size(model, reader.info.width, reader.info.height, video)
     if jobs > 1:
         if keep_frames:
@@ -280,7 +280,7 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     """
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)
-    reader = VideoReader(video)
+    reader = VideoReader(video, gray=True, luma=True)
     fps = reader.info.fps
     rows = []
     n_total = (stop if stop is not None else reader.info.n_frames) - start
@@ -373,7 +373,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
                   inputs=[video, model if not isinstance(model, AppearanceModel) else None])
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)
-    reader = VideoReader(video)
+    reader = VideoReader(video, gray=not overlay, luma=True)      # the overlay draws on the colour frames
     info = reader.info
     jobs = (1 if overlay else auto_jobs(info.n_frames)) if jobs is None else int(jobs)
     if overlay and jobs > 1:
