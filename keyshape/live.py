@@ -53,6 +53,9 @@ class FrameSource:
     Attributes
     ----------
     info : ``fps``, ``width``, ``height`` (an object like :class:`~keyshape.base.formats.video.VideoInfo`)
+    luma_table : a file's frames are its luma plane through this table, gray, as ``keyshape track`` decodes
+        them (:func:`~keyshape.base.formats.video.luma_table`); None: BGR frames (a camera, or a file the
+        table does not fit)
     captured : {index: ``time.perf_counter()`` when the frame was captured (or became due)}
     lost : frames dropped or missed so far
     """
@@ -70,10 +73,15 @@ class FrameSource:
                 raise InputError(f"camera {source}: cannot open it (no such device, or it is busy)")
             self.name = f"camera {source}"
         else:
-            from keyshape.base.formats.video import video_info
+            from keyshape.base.formats.video import luma_table, video_info
             video_info(source)                                     # one-line errors naming the file
             cap = cv2.VideoCapture(str(require_file(source, "video")))
             self.name = str(source)
+            # a file is decoded as `keyshape track` decodes it (the luma plane alone where it gives the gray),
+            # so that live and offline see the same gray levels
+            self.luma_table = luma_table(source)
+            if self.luma_table is not None:
+                cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         self.cap = cap
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         self.info = type("Info", (), {})()
@@ -83,16 +91,23 @@ class FrameSource:
         self.captured: dict[int, float] = {}
         self.lost = 0
         self.n_read = 0
+        if self.camera:
+            self.luma_table = None
 
     def __iter__(self):
+        import cv2
+        from keyshape.base.formats.video import read_raw
         period = 1.0 / self.info.fps
         t0 = last = None
         i = -1
+        table = self.luma_table
         try:
             while self.max_frames is None or self.n_read < self.max_frames:
-                ok, frame = self.cap.read()
+                ok, frame = read_raw(self.cap) if table is not None else self.cap.read()
                 if not ok:
                     return
+                if table is not None:
+                    frame = cv2.LUT(frame, table)
                 i += 1
                 now = time.perf_counter()
                 if self.camera:

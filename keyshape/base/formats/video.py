@@ -41,7 +41,7 @@ def _open(path: Path, raw: bool = False) -> cv2.VideoCapture:
     return cap
 
 
-def _read_raw(cap: cv2.VideoCapture):
+def read_raw(cap: cv2.VideoCapture):
     """``cap.read()`` without OpenCV's once-per-process warning that the raw picture format (yuv420p) "will be
     treated as 8UC1": that is what is wanted here."""
     logging = cv2.utils.logging
@@ -74,7 +74,7 @@ def luma_table(path: str | Path) -> np.ndarray | None:
     path = Path(path)
     try:
         cap = _open(path, raw=True)
-        ok, y = _read_raw(cap)
+        ok, y = read_raw(cap)
         cap.release()
         cap = _open(path)
         ok2, bgr = cap.read()
@@ -150,7 +150,7 @@ class VideoReader:
         return _open(self.path, raw=self.luma_table_ is not None)
 
     def _read(self, cap: cv2.VideoCapture):
-        return _read_raw(cap) if self.luma_table_ is not None else cap.read()
+        return read_raw(cap) if self.luma_table_ is not None else cap.read()
 
     def __iter__(self) -> Iterator[tuple[int, np.ndarray]]:
         cap = self._capture()
