@@ -124,23 +124,48 @@ def test_ctrl_c_stops_the_workers_and_keeps_the_stitched_frames(clip, tmp_path, 
     video, model, _ = clip
     model_path = tmp_path / "model.npz"
     model.save(model_path)
-    from keyshape.base.progress import Progress
+    from keyshape.base.formats.tracks import TracksWriter
 
-    real = Progress.update
+    real = TracksWriter.write
 
-    def update(self, n=1):
-        real(self, n)
-        if self.n >= 40:
+    def write(self, *a, **k):
+        # Ctrl-C once 40 stitched rows are written (the workers' progress may run ahead of the stitched
+        # stream: the second chunk's worker can count 40 frames before the first row is emitted)
+        if self.n_rows >= 40:
             raise KeyboardInterrupt
+        real(self, *a, **k)
 
-    monkeypatch.setattr(Progress, "update", update)
+    monkeypatch.setattr(TracksWriter, "write", write)
     out = tmp_path / "t.csv"
     out.write_text("earlier complete tracks\n")
     assert main(["track", str(video), "--model", str(model_path), "-o", str(out), "--jobs", "2", "--quiet"]) == 130
-    assert "interrupted: tracks written for frames 0-" in capsys.readouterr().out
+    assert "interrupted: tracks written for frames 0-39 only" in capsys.readouterr().out
     assert out.read_text() == "earlier complete tracks\n"
     tr = read_tracks(tmp_path / "t.partial.csv", accept_partial=True)
-    np.testing.assert_array_equal(tr.frame, np.arange(tr.n_frames))   # a contiguous prefix
+    np.testing.assert_array_equal(tr.frame, np.arange(40))              # the contiguous prefix stitched
+    assert not mp.active_children()
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_ctrl_c_before_any_frame_writes_nothing(clip, tmp_path, monkeypatch, capsys, jobs):
+    """Interrupted before a row is ready: no partial file (one with a header and no rows is unreadable),
+    the earlier output untouched, exit 130, a message that says so."""
+    video, model, _ = clip
+    model_path = tmp_path / "model.npz"
+    model.save(model_path)
+    from keyshape.base.formats.tracks import TracksWriter
+
+    def write(self, *a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(TracksWriter, "write", write)
+    out = tmp_path / "t.csv"
+    out.write_text("earlier complete tracks\n")
+    assert main(["track", str(video), "--model", str(model_path), "-o", str(out), "--jobs", jobs, "--quiet"]) == 130
+    said = capsys.readouterr().out
+    assert "interrupted before any frame was tracked: nothing written" in said and "is untouched" in said
+    assert out.read_text() == "earlier complete tracks\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.npz", "t.csv"]
     assert not mp.active_children()
 
 

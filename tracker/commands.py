@@ -419,7 +419,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             os.replace(tmp_csv, output)
             if overlay:
                 os.replace(tmp_vid, overlay)
-        else:
+        elif n:
             # the earlier complete outputs stay; what was tracked goes to NAME.partial.csv, marked partial
             part = partial_name(output)
             with atomic_write(part) as pf, open(tmp_csv) as src:
@@ -438,6 +438,9 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
         msg = (f"keyshape track: {n} frames, {n_lost} lost, {n / max(dt, 1e-9):.0f} frames/s"
                + (f" ({jobs} jobs{_seams_text(seams)})" if jobs > 1 else "") + f" -> {output}"
                + (f" and {overlay}" if overlay else ""))
+    elif not n:                         # stopped before a frame was ready: no partial file without rows
+        msg = (f"keyshape track: interrupted before any frame was tracked: nothing written; {output} "
+               f"{'is untouched' if output.exists() else 'was not written'}")
     else:
         msg = (f"keyshape track: interrupted: tracks written for frames 0-{n - 1} only, to "
                f"{partial_name(output)} (marked partial); {output} "
