@@ -64,6 +64,7 @@ class FrameSource:
         import cv2
         self.camera = re.fullmatch(r"\d+", str(source)) is not None
         self.pace, self.max_frames = pace, max_frames
+        self.luma_table = None
         if self.camera:
             with _quiet_opencv():
                 cap = cv2.VideoCapture(int(source))
@@ -73,15 +74,13 @@ class FrameSource:
                 raise InputError(f"camera {source}: cannot open it (no such device, or it is busy)")
             self.name = f"camera {source}"
         else:
-            from keyshape.base.formats.video import luma_table, video_info
+            from keyshape.base.formats.video import luma_table, open_capture, video_info
             video_info(source)                                     # one-line errors naming the file
-            cap = cv2.VideoCapture(str(require_file(source, "video")))
-            self.name = str(source)
             # a file is decoded as `keyshape track` decodes it (the luma plane alone where it gives the gray),
             # so that live and offline see the same gray levels
             self.luma_table = luma_table(source)
-            if self.luma_table is not None:
-                cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
+            cap = open_capture(require_file(source, "video"), self.luma_table)
+            self.name = str(source)
         self.cap = cap
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         self.info = type("Info", (), {})()
@@ -91,23 +90,17 @@ class FrameSource:
         self.captured: dict[int, float] = {}
         self.lost = 0
         self.n_read = 0
-        if self.camera:
-            self.luma_table = None
 
     def __iter__(self):
-        import cv2
-        from keyshape.base.formats.video import read_raw
+        from keyshape.base.formats.video import read_frame
         period = 1.0 / self.info.fps
         t0 = last = None
         i = -1
-        table = self.luma_table
         try:
             while self.max_frames is None or self.n_read < self.max_frames:
-                ok, frame = read_raw(self.cap) if table is not None else self.cap.read()
+                ok, frame = read_frame(self.cap, self.luma_table)
                 if not ok:
                     return
-                if table is not None:
-                    frame = cv2.LUT(frame, table)
                 i += 1
                 now = time.perf_counter()
                 if self.camera:

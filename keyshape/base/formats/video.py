@@ -41,7 +41,7 @@ def _open(path: Path, raw: bool = False) -> cv2.VideoCapture:
     return cap
 
 
-def read_raw(cap: cv2.VideoCapture):
+def _read_raw(cap: cv2.VideoCapture):
     """``cap.read()`` without OpenCV's once-per-process warning that the raw picture format (yuv420p) "will be
     treated as 8UC1": that is what is wanted here."""
     logging = cv2.utils.logging
@@ -50,6 +50,21 @@ def read_raw(cap: cv2.VideoCapture):
         return cap.read()
     finally:
         logging.setLogLevel(level)
+
+
+def open_capture(path: str | Path, table: np.ndarray | None = None) -> cv2.VideoCapture:
+    """OpenCV's capture of ``path`` (one-line error naming it where it cannot be opened); with a
+    :func:`luma_table`, one that hands out the decoder's luma plane (read it with :func:`read_frame`)."""
+    return _open(Path(path), raw=table is not None)
+
+
+def read_frame(cap: cv2.VideoCapture, table: np.ndarray | None = None):
+    """``(ok, frame)`` of ``cap.read()``; with ``table`` (the capture opened with it, :func:`open_capture`) the
+    luma plane through the table: the gray frame of the BGR one."""
+    if table is None:
+        return cap.read()
+    ok, frame = _read_raw(cap)
+    return ok, (cv2.LUT(frame, table) if ok and frame is not None else frame)
 
 
 def luma_table(path: str | Path) -> np.ndarray | None:
@@ -74,7 +89,7 @@ def luma_table(path: str | Path) -> np.ndarray | None:
     path = Path(path)
     try:
         cap = _open(path, raw=True)
-        ok, y = read_raw(cap)
+        ok, y = _read_raw(cap)
         cap.release()
         cap = _open(path)
         ok2, bgr = cap.read()
@@ -142,15 +157,14 @@ class VideoReader:
         return self.info.n_frames
 
     def _convert(self, frame: np.ndarray) -> np.ndarray:
-        if self.luma_table_ is not None:
-            return cv2.LUT(frame, self.luma_table_)
-        return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if self.gray else frame
+        # a luma frame is gray already (read_frame)
+        return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if self.gray and self.luma_table_ is None else frame
 
     def _capture(self) -> cv2.VideoCapture:
-        return _open(self.path, raw=self.luma_table_ is not None)
+        return open_capture(self.path, self.luma_table_)
 
     def _read(self, cap: cv2.VideoCapture):
-        return read_raw(cap) if self.luma_table_ is not None else cap.read()
+        return read_frame(cap, self.luma_table_)
 
     def __iter__(self) -> Iterator[tuple[int, np.ndarray]]:
         cap = self._capture()
