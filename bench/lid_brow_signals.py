@@ -3,7 +3,7 @@
 Per frame, four signals from each of the track (contours48 or ibug68), dlib's 68 points and MediaPipe's
 478 (``../shared/data/video/references/CLIP_references.npz``), in inter-ocular units in the eye line's
 frame: outer-brow height, inner-brow height (above the eye centres), each eye's lid gap. When the three
-measure one signal ``s`` with gains ``g`` and independent errors, ``cov(X, Y) = g_X g_Y var(s)``, so
+measure one signal ``s`` with gains ``g`` and independent errors, ``cov(X, Y) = g_X g_Y var(s)``, so (``bench/three_hat.py``)
 
 - ``gT/gD = cov(T, M) / cov(D, M)``: the track's gain relative to dlib's, free of the attenuation that
   dlib's own error puts on a least-squares slope of T on D (what ``rig_fidelity.py`` reports as gain);
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.formats.tracks import read_tracks
+from three_hat import common_signal
 
 REFS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "video" / "references"
 # per scheme (point count): eye corners (outer, inner of the image-left eye, inner, outer of the
@@ -79,15 +80,12 @@ def main() -> None:
           f"{'r T,M':>5s} {'r D,M':>5s} | jitter T / D / M")
     for k in st:
         x = np.stack([st[k], sd[k], sm[k]])
-        C = np.cov(x)
-
-        def rho(i, j, l):
-            return np.sqrt(max(C[i, j] * C[i, l] / C[j, l], 0.0) / C[i, i])
-
+        hat = common_signal(x)
+        rho = hat["rho"]
         jit = [np.std(np.diff(v, 2)) / np.std(v) for v in x]
         r = np.corrcoef(x)
-        print(f"{k:11s} | {r[0, 1]:5.3f} {np.polyfit(x[1], x[0], 1)[0]:5.3f} | {C[0, 2] / C[1, 2]:5.3f} | "
-              f"{rho(0, 1, 2):5.3f} {rho(1, 0, 2):5.3f} {rho(2, 0, 1):5.3f} | {r[0, 2]:5.3f} {r[1, 2]:5.3f} | "
+        print(f"{k:11s} | {r[0, 1]:5.3f} {np.polyfit(x[1], x[0], 1)[0]:5.3f} | {hat['gain'][0, 1]:5.3f} | "
+              f"{rho[0]:5.3f} {rho[1]:5.3f} {rho[2]:5.3f} | {r[0, 2]:5.3f} {r[1, 2]:5.3f} | "
               f"{jit[0]:.2f} / {jit[1]:.2f} / {jit[2]:.2f}")
 
 

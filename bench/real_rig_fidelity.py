@@ -9,6 +9,14 @@ per feature r and gain for keyshape's curves and for MediaPipe's 52 blendshape s
 A contact sheet (actor | keyshape's rig | the rig driven by MediaPipe's scores, at six frames spread over
 the frames where the actor's expression is farthest from rest) goes to ``bench/results/rig_fidelity_<clip>.png``.
 
+After the judge's lines, what its reference allows (``--ceilings``, on by default): the judge's features measured
+three ways, on the rig driven by keyshape's curves (R), on dlib's points (D, the judge's reference) and on
+MediaPipe's 478 points of the same frames (M, an independent landmarker; ``*_references.npz``). When the three
+measure one signal with independent errors, ``rho_X = sqrt(cov(X, Y) cov(X, Z) / cov(Y, Z)) / sd(X)`` is X's
+correlation with that signal (the three-cornered hat, ``bench/three_hat.py``), so a rig's r against
+dlib cannot exceed ``rho_D`` however faithful the rig is; ``cov(R, M) / cov(D, M)`` is the rig's gain free
+of the attenuation that dlib's own error puts on the judge's least-squares slope.
+
     python bench/real_rig_fidelity.py [--clips franck cap12_edit] [--work /tmp/fid_bench] [--chain solve|poses] [--gaze-lids]
 """
 from __future__ import annotations
@@ -21,6 +29,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from three_hat import common_signal
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -75,6 +84,65 @@ def judge(clip: str, curves: Path, ll: Path, out_json: Path) -> int:
     r = subprocess.run([*base, "--judge"], capture_output=True, text=True)
     print(r.stdout.strip().splitlines()[-1])
     return r.returncode
+
+
+#: MediaPipe Face Mesh's counterparts of the iBUG-68 points the judge's features read (brow ends, eye corners and
+#: lids, mouth corners, outer and inner lip mid points; ``real_accuracy.py``'s correspondences where it has them)
+MP_FOR_68 = {17: 46, 21: 55, 22: 285, 26: 276, 36: 33, 37: 160, 38: 158, 39: 133, 40: 153, 41: 144, 42: 362, 43: 385,
+             44: 387, 45: 263, 46: 373, 47: 380, 48: 61, 51: 0, 54: 291, 57: 17, 61: 82, 62: 13, 63: 312, 65: 317,
+             66: 14, 67: 87}
+
+
+def _judge_module():
+    """``rig_fidelity.py`` imported from ``../shared/tools`` (its features, closure and rig driving, not copied)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("rig_fidelity", TOOL)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def ceilings(clip: str, curves: Path) -> dict:
+    """Per judged feature: the judge's r and gain, dlib's ``rho_D`` (the most any rig's r against dlib can be),
+    the rig's ``rho_R`` and its gain against the common signal in dlib's units (see the module docstring)."""
+    rf = _judge_module()
+    names = [s for s in json.loads((RIG / "vertex_indices.json").read_text())["expressions"] if (RIG / f"{s}.obj").exists()]
+    n, D = rf.rig_landmarks(str(RIG), names)
+    frames, C = rf.curves_from_csv(str(curves), names)
+    refs = np.load(VIDEOS / "references" / f"{clip}_references.npz")
+    mp = np.load(VIDEOS / "references" / f"{clip}_mediapipe_blendshapes.npz")
+    dlib = refs["dlib68"].astype(float)
+    mesh = np.full_like(dlib, np.nan)
+    idx = np.array(list(MP_FOR_68))
+    mesh[:, idx] = refs["mediapipe478"].astype(float)[:, [MP_FOR_68[i] for i in idx]]
+    ok = np.array([f < len(dlib) and np.isfinite(dlib[f][idx]).all() and np.isfinite(mesh[f][idx]).all() for f in frames])
+    fr = frames[ok]
+    R = mp["head_matrix"][fr, :3, :3]
+    feats = [rf.closure(rf.features(x)) for x in (rf.drive(n, D, C[ok], R), dlib[fr], mesh[fr])]
+    out = {}
+    for k in feats[0]:
+        if k.startswith("_") or k == "mouth sideways":
+            continue
+        x = np.stack([f[k] for f in feats])
+        if np.var(x, axis=1).min() < 1e-12:
+            continue
+        hat = common_signal(x)
+        rho, gain = hat["rho"].tolist(), hat["gain"]
+        out[k] = {"r": float(np.corrcoef(x[0], x[1])[0, 1]), "gain": float(np.polyfit(x[1], x[0], 1)[0]),
+                  "rho_dlib": rho[1], "rho_rig": rho[0], "rho_mediapipe": rho[2],
+                  "gain_common": float(gain[0, 1]), "gain_mediapipe": float(gain[0, 2])}
+    return out
+
+
+def print_ceilings(table: dict) -> None:
+    print("what the judge's reference allows (three-cornered hat of the rig R, dlib D and MediaPipe's points M;"
+          " rho: correlation with their shared signal; r >= 0.85 against D needs rho_D >= 0.85):")
+    print(f"  {'feature':16s} {'r':>5s} {'gain':>5s} | {'rho_D':>5s} {'reach':>5s} | {'rho_R':>5s} {'rho_M':>5s} | "
+          f"{'gain in D units':>15s} {'in M units':>10s}")
+    for k, v in table.items():
+        print(f"  {k:16s} {v['r']:5.2f} {v['gain']:5.2f} | {v['rho_dlib']:5.2f} {'yes' if v['rho_dlib'] >= 0.85 else 'no':>5s} | "
+              f"{v['rho_rig']:5.2f} {v['rho_mediapipe']:5.2f} | {v['gain_common']:15.2f} {v['gain_mediapipe']:10.2f}")
 
 
 def contact_sheet(clip: str, tracks: Path, curves: Path, out: Path, n: int = 6, height: int = 240) -> None:
@@ -145,6 +213,7 @@ def main() -> None:
                     help="solve: README's default (per-frame rig solve); poses: decompose + pose + retarget")
     ap.add_argument("--no-sheet", action="store_true")
     ap.add_argument("--gaze-lids", action="store_true", help="solve with --gaze-lids (the lids with the pupils and eyeLook*)")
+    ap.add_argument("--no-ceilings", action="store_true", help="leave out the table of what dlib's points allow")
     a = ap.parse_args()
     failed = []
     for clip in a.clips:
@@ -156,6 +225,10 @@ def main() -> None:
         print(f"== {clip} ({a.chain} chain)", flush=True)
         if judge(clip, curves, ll, out / "fidelity.json"):
             failed.append(clip)
+        if not a.no_ceilings:
+            table = ceilings(clip, curves)
+            print_ceilings(table)
+            (out / "ceilings.json").write_text(json.dumps(table, indent=1))
         if not a.no_sheet:
             sheet = ROOT / "bench" / "results" / f"rig_fidelity_{clip}.png"
             contact_sheet(clip, tracks, curves, sheet)

@@ -342,6 +342,8 @@ class RigAnimation:
     fps : frame rate
     head : :class:`~keyshape.retarget.headpose.HeadMotion` in the rig's units, or None
     eyes : (n_frames, 4) eye angles from the pupils (left yaw, pitch, right yaw, pitch; radians), or None
+    calibration : what :func:`solve`'s calibrations did (``"eyes"``: one
+        :class:`~keyshape.retarget.solve.EyeCalibration` per eye, ``"brows"``: {shape: scale}), or None
     """
 
     rig: object
@@ -350,6 +352,7 @@ class RigAnimation:
     fps: float = RA.DEFAULT_FPS
     head: object = None
     eyes: np.ndarray | None = None
+    calibration: dict | None = None
 
     def vertices(self) -> np.ndarray:
         """The rig per frame: (n_frames, n_vertices, 3)."""
@@ -386,10 +389,11 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
     _expect(tracks, Tracks, "tracks", "Tracks (read a file with read_tracks)")
     _expect(keys, Keys, "keys", "Keys (read a file with Keys.load)")
     r = load_rig(rig, neutral, with_mesh=False)
+    report: dict = {}
     curves, motion, rate, eyes = RA.solve_rig(
         tracks, keys.regions, keys.scheme, keys.head_pose, r, landmarks=landmarks, sparsity=sparsity,
         symmetry=symmetry, smooth=smooth, calibrate=calibrate, rest_offset=rest_offset, gaze=gaze, head=head,
-        reference_frame=reference_frame, head_units=head_units, fps=fps, gaze_lids=gaze_lids)
+        reference_frame=reference_frame, head_units=head_units, fps=fps, gaze_lids=gaze_lids, report=report)
     if (poses is None) != (weights is None):
         raise InputError("solve: poses and weights go together (the artist's pose library and the key weights)")
     if poses is not None:
@@ -397,7 +401,7 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
         lib = poses if isinstance(poses, PoseLibrary) else PoseLibrary.load(poses, r)
         curves = RA.override_poses(curves, tracks.frame, keys.regions, weights.values, weights.names, weights.frames,
                                    lib.data, r, None if isinstance(poses, PoseLibrary) else poses)
-    return RigAnimation(r, tracks.frame.copy(), curves, rate, motion, eyes)
+    return RigAnimation(r, tracks.frame.copy(), curves, rate, motion, eyes, report)
 
 
 def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary | str | Path | None = None,

@@ -328,7 +328,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
               calibrate: bool = True, rest_offset: bool = SOLVE_REST_OFFSET, gaze: str = GAZE, head: str = HEAD_MOTION,
               reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None,
               gaze_lids: bool = SOLVE_GAZE_LIDS, yaw_slide: bool = SOLVE_YAW_SLIDE,
-              pitch_parallax: bool = SOLVE_PITCH_PARALLAX, yaw_stretch: bool = SOLVE_YAW_STRETCH):
+              pitch_parallax: bool = SOLVE_PITCH_PARALLAX, yaw_stretch: bool = SOLVE_YAW_STRETCH,
+              report: dict | None = None):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
@@ -356,6 +357,8 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     yaw_stretch : likewise (a 2D head stabilised on rigid points, a scheme with a 3D face), bring the mouth's heights
         from the eye line back from the ``1 / cos(yaw)`` the stabilisation's one scale stretches them by under the 3D
         head's yaw, to the rest frame's (:func:`~keyshape.retarget.solve.yaw_stretch`)
+    report : a dict that receives what the eye and brow calibrations did
+        (:func:`~keyshape.retarget.solve.solve_curves`)
 
     Returns
     -------
@@ -409,7 +412,7 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
                           reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
                           fixed=fixed, rest_offset=rest_offset, ceiling=ceiling, yaw=yaw, rest_yaw=rest_yaw,
                           pitch=pitch, rest_pitch=rest_pitch, points3d=rel, rigid=rigid,
-                          slide=yaw_slide, stretch=yaw_stretch)
+                          slide=yaw_slide, stretch=yaw_stretch, report=report)
     if fixed is None and ceiling is not None:
         curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
     return curves, motion, rate, eyes

@@ -113,6 +113,7 @@ lid shapes lift and lower theirs, and the brows' height above the eyes lost what
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -562,7 +563,8 @@ def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 
 
 
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
-                    frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5) -> np.ndarray:
+                    frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5,
+                    report: list | None = None) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
 
     For each eye contour (a closed contour named ``eye*`` with corners) in the region: the
@@ -588,6 +590,7 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
     frames : the deepest closure is the ``frames``-th deepest frame's
     min_closure : least closure (fraction of the opening) that counts as a blink
     max_scale : largest scale
+    report : a list that receives one :class:`EyeCalibration` per eye calibrated
 
     Returns
     -------
@@ -609,7 +612,37 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
         k = min(r0 / g0 / (deepest if deepest >= min_closure else 1.0), max_scale)
         contour = [loc[int(p)] for p in scheme.contours[name[: -len(" opening")]] if int(p) in loc]
         scale[contour] = k
+        if report is not None:
+            report.append(EyeCalibration(name[: -len(" opening")], deepest, k, deepest >= min_closure,
+                                         k >= max_scale, r0 / g0))
     return scale
+
+
+@dataclass(frozen=True)
+class EyeCalibration:
+    """How :func:`eye_calibration` scaled one eye: ``contour`` (the scheme's name, image-left or -right), the
+    take's ``deepest`` closure (fraction of the open lid gap), the ``scale`` of the lids' motion, whether that
+    closure counted as a ``blink`` (else the eye is only sized to the rig's, ``size``), and whether the scale hit
+    its ``capped`` maximum (the rig's lids then do not quite meet at the deepest closure)."""
+
+    contour: str
+    deepest: float
+    scale: float
+    blink: bool
+    capped: bool
+    size: float
+
+    def describe(self) -> str:
+        """One line an animator reads."""
+        side = self.contour.rsplit("_", 1)[-1]
+        eye = (f"the image-{side} eye (the actor's {'right' if side == 'left' else 'left'})"
+               if side in ("left", "right") else self.contour)
+        if not self.blink:
+            return (f"{eye}: no blink in the take (deepest closure {self.deepest:.2f} of the open lid), "
+                    f"the lids keep their tracked travel at the rig's eye size")
+        tail = ", the most it may: the rig's lids do not quite meet there" if self.capped else ""
+        return (f"{eye}: the take's deepest closure, {self.deepest:.2f} of the open lid, closes the rig's "
+                f"eye (lid travel x{self.scale / self.size:.2f} over the rig's eye size{tail})")
 
 
 def brow_calibration(scheme, points: np.ndarray, A: np.ndarray, motion: np.ndarray, curves: np.ndarray,
@@ -819,7 +852,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
                  ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
                  yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True, pitch: np.ndarray | None = None,
                  rest_pitch: float = 0.0, points3d: np.ndarray | None = None,
-                 rigid: Sequence[int] = (), slide: bool = True, stretch: bool = True) -> np.ndarray:
+                 rigid: Sequence[int] = (), slide: bool = True, stretch: bool = True,
+                 report: dict | None = None) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -859,6 +893,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     rigid : the points the actor's shapes were stabilised on (a :class:`~keyshape.decompose.stabilize.RigidStabilizer`'s):
         the rig's landmark motion is taken in the same frame (:func:`rigid_frame_deltas`; the pupils' in the
         skull's); empty: as given
+    report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
+        ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
 
     Returns
     -------
@@ -897,7 +933,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         if pitch is not None and points3d is not None and region in yaw_regions:
             motion = motion - pitch_parallax(np.asarray(points3d, float)[idx], np.asarray(pitch, float)[ok], rest_pitch)
         if calibrate:
-            motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx])[None, :, None]
+            motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx],
+                                              report=None if report is None else report.setdefault("eyes", []))[None, :, None]
         D, _ = region_rows(scheme, idx, motion)
         kind = (nuisance or {}).get(region) or auto_nuisance(region, True)
         F = nuisance_motions(rest_r, kind)
@@ -912,6 +949,8 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         if calibrate:
             g = brow_calibration(scheme, idx, landmark_deltas[sh][:, idx], motion, c, mirror_pairs(names))
             c = np.clip(c * g[None], *bounds)
+            if report is not None:
+                report.setdefault("brows", {}).update({names[j]: float(g[j]) for j in np.flatnonzero(g != 1.0)})
         full = np.empty((len(X), len(sh)))
         full[ok] = c
         if not ok.all():

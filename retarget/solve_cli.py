@@ -104,13 +104,16 @@ def run(args) -> int:
                          args.tracks)
     needs_mesh = not str(args.output).lower().endswith(".csv")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    report: dict = {}
     curves, head, fps, eyes = solve_rig(
         tracks, regions, scheme_name, read_keys_head_pose(args.keys), rig, landmarks=args.landmarks,
         sparsity=args.sparsity, symmetry=args.symmetry, smooth=args.smooth, calibrate=args.calibrate,
         rest_offset=args.rest_offset,
         gaze=args.gaze, head=args.head_pose, reference_frame=args.reference_frame, head_units=args.head_units,
         fps=args.fps, source=args.tracks, gaze_lids=args.gaze_lids, yaw_slide=args.yaw_slide,
-        pitch_parallax=args.pitch_parallax, yaw_stretch=args.yaw_stretch)
+        pitch_parallax=args.pitch_parallax, yaw_stretch=args.yaw_stretch, report=report)
+    for line in calibration_lines(report):
+        print(f"keyshape: {line}")
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
@@ -119,6 +122,19 @@ def run(args) -> int:
     print(f"keyshape solve: {len(curves)} frames -> {used} of {rig.n_shapes} rig shapes moving at {fps:g} fps "
           f"-> {info['path']} ({info['kind']})")
     return 0
+
+
+def calibration_lines(report: dict) -> list[str]:
+    """What the solve's calibrations did (:func:`keyshape.retarget.solve.solve_curves`' ``report``), for the
+    animator: each eye's deepest closure and how far its lids' travel was scaled, the brow shapes' scales."""
+    lines = [e.describe() for e in report.get("eyes", [])]
+    brows = report.get("brows", {})
+    if brows:
+        lines.append("brows: curves scaled so the brow ends rise as far as the actor's: "
+                     + ", ".join(f"{n} x{g:.2f}" for n, g in sorted(brows.items())))
+    if lines:
+        lines[-1] += " (--no-calibrate keeps the tracked sizes)"
+    return lines
 
 
 def _override(args, curves, frames, rig, regions):

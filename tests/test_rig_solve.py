@@ -116,12 +116,20 @@ def test_eye_calibration_maps_the_deepest_closure_onto_the_rigs_closed_eye():
     rig_rest[:, 1] *= 1.5                              # the rig's eyes are taller: openings 1.5x the actor's
     blink = np.r_[np.zeros(100), 0.5, 0.5, 0.5, np.zeros(100)]           # three frames half closed
     _, mo = _eye_motion(blink, rest)
-    k = eye_calibration(SCHEME, pts, rest, mo, rig_rest)
+    report = []
+    k = eye_calibration(SCHEME, pts, rest, mo, rig_rest, report=report)
     eye = [i for i, p in enumerate(pts) if 10 <= p <= 25]
     assert np.allclose(k[eye], min(1.5 / 0.5, 2.5))
     assert np.allclose(np.delete(k, eye), 1.0)
+    # what it did, for the animator: both eyes, half closed at the deepest, the scale capped at 2.5 (< 3)
+    assert sorted(r.contour for r in report) == ["eye_left", "eye_right"]
+    for r in report:
+        assert r.blink and r.capped and r.deepest == pytest.approx(0.5, abs=0.01) and r.scale == pytest.approx(2.5)
+        assert r.size == pytest.approx(1.5) and "do not quite meet" in r.describe()
     _, still = _eye_motion(np.full(203, 0.1), rest)                      # no blink: the eyes' size only
-    assert np.allclose(eye_calibration(SCHEME, pts, rest, still, rig_rest)[eye], 1.5)
+    report = []
+    assert np.allclose(eye_calibration(SCHEME, pts, rest, still, rig_rest, report=report)[eye], 1.5)
+    assert all(not r.blink and not r.capped for r in report) and "no blink" in report[0].describe()
     _, two = _eye_motion(np.r_[np.zeros(100), 0.9, 0.9, np.zeros(100)], rest)   # two wild frames do not count
     assert np.allclose(eye_calibration(SCHEME, pts, rest, two, rig_rest)[eye], 1.5)
 
@@ -316,7 +324,14 @@ def test_solve_command_end_to_end(tmp_path, capsys):
     write_keys(tmp_path / "keys.json", "contours48", 48, regions, head_pose={"method": "tracker"})
     args = ["solve", str(tmp_path / "t.csv"), "--keys", str(tmp_path / "keys.json"), "--rig", str(rig_dir),
             "--landmarks", str(lm)]
+    capsys.readouterr()
     assert main([*args, "-o", str(tmp_path / "c.csv")]) == 0
+    out = capsys.readouterr().out      # what the calibration did, each eye (the toy's lids close 0.19 at most)
+    assert "the image-left eye (the actor's right): no blink in the take (deepest closure 0.19" in out, out
+    assert "the image-right eye (the actor's left): no blink" in out
+    assert "--no-calibrate keeps the tracked sizes" in out
+    assert main([*args, "--no-calibrate", "-o", str(tmp_path / "c0.csv")]) == 0
+    assert "deepest closure" not in capsys.readouterr().out
     _, cols, got, _ = read_weights(tmp_path / "c.csv")
     j = cols.index("jawOpen")
     assert np.corrcoef(got[:, j], C[:, names.index("jawOpen")])[0, 1] > 0.99
@@ -334,6 +349,9 @@ def test_solve_command_end_to_end(tmp_path, capsys):
     from keyshape.base.formats.tracks import read_tracks
     anim = api.solve(read_tracks(tmp_path / "t.csv"), api.Keys.load(tmp_path / "keys.json"), rig_dir,
                      landmarks=lm)
+    assert [e.describe() for e in anim.calibration["eyes"]] == [
+        line[len("keyshape: "):].replace(" (--no-calibrate keeps the tracked sizes)", "")
+        for line in out.splitlines() if " eye (the actor's " in line]
     anim.export(tmp_path / "api.csv")
     assert (tmp_path / "api.csv").read_bytes() == (tmp_path / "c.csv").read_bytes()
 
