@@ -19,7 +19,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from keyshape.base.errors import KeyshapeError
+from keyshape.base.errors import InputError, KeyshapeError
 
 TOKENS = [b"1e300", b"-1e300", b"nan", b"NaN", b"inf", b"-inf", b"Infinity", b"1e999", b"", b"0", b"-1", b"1e-320",
           b"99999999999999999999999", b"\xff\xfe\x00", b",", b"\n", b"{", b"}", b"[", b"]", b'"', b"null", b"true",
@@ -308,6 +308,7 @@ def _fuzz_model(model_arrays, n):
     @settings(max_examples=n, deadline=None, database=None, derandomize=n < 1000,
               suppress_health_check=list(HealthCheck))
     @given(st.one_of(model_edits(sorted(arrays)), mutated((d / "m.npz").read_bytes()).map(lambda b: b)))
+    @example([("components", "meta", 138145, b"null")])     # a null in the header's parameters (the long run's find)
     def run(edit):
         p = d / "f.npz"
         if isinstance(edit, bytes):
@@ -323,6 +324,27 @@ def _fuzz_model(model_arrays, n):
         assert np.isfinite(m.components_).all() and np.isfinite(m.mean_).all()
 
     run()
+
+
+@pytest.mark.parametrize("name, value", [("ridge", None), ("ridge", -1.0), ("ridge", "1"), ("margin", -0.5),
+                                         ("face_width", 6.5), ("variance", 0.0), ("regions", 1), ("n_components", 0),
+                                         ("lip_grow", True), ("ridge", 1e300), ("bogus", 1)])
+def test_model_parameters_out_of_kind_or_range_are_refused(model_arrays, tmp_path, name, value):
+    """A model file's constructor parameters are checked when it is read: a null ridge (found by the long fuzz
+    test) crashed the load with a TypeError; every such file is a one-line InputError naming the parameter."""
+    import json
+
+    from keyshape.tracker.eigenpoints import AppearanceModel
+
+    _, arrays = model_arrays
+    meta = json.loads(str(arrays["meta"]))
+    meta["params"][name] = value
+    p = tmp_path / "m.npz"
+    with open(p, "wb") as f:
+        np.savez(f, **{**arrays, "meta": np.array(json.dumps(meta))})
+    with pytest.raises(InputError, match=f"parameter.*{name}") as exc:
+        AppearanceModel.load(p)
+    assert "m.npz" in str(exc.value) and "\n" not in str(exc.value).strip()
 
 
 @pytest.mark.filterwarnings("ignore::hypothesis.errors.HypothesisWarning")

@@ -754,6 +754,32 @@ class AppearanceModel:
                 arrays[f"region{i}_{k}"] = getattr(r, k)
         return ModelFile(self.scheme_, {k: getattr(self, k) for k in self._PARAMS}, state, arrays)
 
+    #: each saved parameter's kind and range: (type, allows None, lowest, highest), bounds inclusive
+    _PARAM_RANGES = {"n_components": (int, True, 1, 100_000), "variance": (float, False, 1e-6, 1.0),
+                     "face_width": (int, False, 8, 4096), "margin": (float, False, 0.0, 10.0),
+                     "n_morphs": (int, False, 0, 1_000_000), "landmark_weight": (float, False, 1e-9, 1e9),
+                     "ridge": (float, False, 0.0, 1e9), "regions": (bool, False, None, None),
+                     "split_mouth": (bool, False, None, None), "region_grow": (float, False, 0.0, 10.0),
+                     "lip_grow": (float, True, 0.0, 10.0), "brow_grow": (float, True, 0.0, 10.0),
+                     "centre_eyes": (bool, False, None, None), "eye_variance": (float, True, 1e-6, 1.0)}
+
+    @classmethod
+    def _check_params(cls, params: dict, path=None) -> None:
+        """Refuse a model file whose parameters are not of their kind and range (a ``null`` ridge, a
+        negative margin): :class:`InputError` naming ``path`` and the parameter."""
+        for k, v in params.items():
+            if k not in cls._PARAM_RANGES:
+                raise InputError(f"model file has an unknown parameter {k!r}", path)
+            kind, none, lo, hi = cls._PARAM_RANGES[k]
+            if v is None and none:
+                continue
+            ok = isinstance(v, bool) if kind is bool else (
+                not isinstance(v, bool) and isinstance(v, (int, float)) and (kind is float or float(v).is_integer())
+                and lo <= v <= hi)
+            if not ok:
+                want = "true or false" if kind is bool else f"a number in [{lo:g}, {hi:g}]" + (" or null" if none else "")
+                raise InputError(f"model file: parameter {k} is {v!r}, not {want}", path)
+
     @classmethod
     def from_file(cls, mf: ModelFile) -> "AppearanceModel":
         """Rebuild a fitted model from :meth:`to_file`'s content; an inconsistent file is an
@@ -764,6 +790,7 @@ class AppearanceModel:
             for k, old in (("regions", False), ("split_mouth", False), ("region_grow", 0.06), ("lip_grow", None),
                            ("brow_grow", None), ("centre_eyes", False), ("eye_variance", None)):
                 params.setdefault(k, old)         # files written before region models existed
+            cls._check_params(params, path)
             model = cls(mf.scheme, **params)
             for k in cls._ARRAYS:
                 a = np.asarray(mf.arrays[k.rstrip("_")])
