@@ -735,8 +735,15 @@ class AppearanceModel:
     # ---------------------------------------------------------------- persistence
     _ARRAYS = ("reference_", "mask_", "mean_", "components_", "explained_variance_ratio_", "explained_variance_",
                "train_residuals_", "train_poses_", "train_shapes_")
-    _PARAMS = ("n_components", "variance", "face_width", "margin", "n_morphs", "landmark_weight", "ridge", "regions",
-               "split_mouth", "region_grow", "lip_grow", "brow_grow", "centre_eyes", "eye_variance")
+    #: each saved parameter's kind and range: (type, allows None, lowest, highest), bounds inclusive
+    _PARAM_RANGES = {"n_components": (int, True, 1, 100_000), "variance": (float, False, 1e-6, 1.0),
+                     "face_width": (int, False, 8, 4096), "margin": (float, False, 0.0, 10.0),
+                     "n_morphs": (int, False, 0, 1_000_000), "landmark_weight": (float, False, 1e-9, 1e9),
+                     "ridge": (float, False, 0.0, 1e9), "regions": (bool, False, None, None),
+                     "split_mouth": (bool, False, None, None), "region_grow": (float, False, 0.0, 10.0),
+                     "lip_grow": (float, True, 0.0, 10.0), "brow_grow": (float, True, 0.0, 10.0),
+                     "centre_eyes": (bool, False, None, None), "eye_variance": (float, True, 1e-6, 1.0)}
+    _PARAMS = tuple(_PARAM_RANGES)                       # the constructor parameters a model file keeps
     _STATE = ("landmark_scale_", "patch_size_", "n_samples_")
 
     def to_file(self) -> ModelFile:
@@ -753,15 +760,6 @@ class AppearanceModel:
             for k in RegionModel.ARRAYS:
                 arrays[f"region{i}_{k}"] = getattr(r, k)
         return ModelFile(self.scheme_, {k: getattr(self, k) for k in self._PARAMS}, state, arrays)
-
-    #: each saved parameter's kind and range: (type, allows None, lowest, highest), bounds inclusive
-    _PARAM_RANGES = {"n_components": (int, True, 1, 100_000), "variance": (float, False, 1e-6, 1.0),
-                     "face_width": (int, False, 8, 4096), "margin": (float, False, 0.0, 10.0),
-                     "n_morphs": (int, False, 0, 1_000_000), "landmark_weight": (float, False, 1e-9, 1e9),
-                     "ridge": (float, False, 0.0, 1e9), "regions": (bool, False, None, None),
-                     "split_mouth": (bool, False, None, None), "region_grow": (float, False, 0.0, 10.0),
-                     "lip_grow": (float, True, 0.0, 10.0), "brow_grow": (float, True, 0.0, 10.0),
-                     "centre_eyes": (bool, False, None, None), "eye_variance": (float, True, 1e-6, 1.0)}
 
     @classmethod
     def _check_params(cls, params: dict, path=None) -> None:
