@@ -120,17 +120,15 @@ def ceilings(clip: str, curves: Path) -> dict:
     fr = frames[ok]
     R = mp["head_matrix"][fr, :3, :3]
     feats = [rf.closure(rf.features(x)) for x in (rf.drive(n, D, C[ok], R), dlib[fr], mesh[fr])]
+    judged = rf.score(feats[1], feats[0])                      # the judge's own r and gain of the rig on dlib
     out = {}
-    for k in feats[0]:
-        if k.startswith("_") or k == "mouth sideways":
-            continue
+    for k, (r, g) in judged.items():
         x = np.stack([f[k] for f in feats])
         if np.var(x, axis=1).min() < 1e-12:
             continue
         hat = common_signal(x)
         rho, gain = hat["rho"].tolist(), hat["gain"]
-        out[k] = {"r": float(np.corrcoef(x[0], x[1])[0, 1]), "gain": float(np.polyfit(x[1], x[0], 1)[0]),
-                  "rho_dlib": rho[1], "rho_rig": rho[0], "rho_mediapipe": rho[2],
+        out[k] = {"r": r, "gain": g, "rho_dlib": rho[1], "rho_rig": rho[0], "rho_mediapipe": rho[2],
                   "gain_common": float(gain[0, 1]), "gain_mediapipe": float(gain[0, 2])}
     return out
 
