@@ -279,11 +279,12 @@ class _maybe_writer:
     def __enter__(self):
         if self.path is None:
             return None
-        import queue
         import threading
-        self.q = queue.Queue(self.size)
+
+        from keyshape.base.interrupts import Handoff, start_thread
+        self.q = Handoff(self.size)         # Ctrl-C in a full queue's put cannot wedge it (interrupts)
         self.thread = threading.Thread(target=self._encode, name="keyshape-encode", daemon=True)
-        self.thread.start()
+        start_thread(self.thread)
         return self._write
 
     def _encode(self):

@@ -252,6 +252,7 @@ def test_ctrl_c_stops_cleanly_with_exit_130(take):
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.communicate()          # reaped, pipes closed: nothing spills into later tests
     assert proc.returncode == 130, err
     assert "frames" in err and "interrupted" in err and "Traceback" not in err
     assert 0 < len(rx.join()) < N_FRAMES                                         # paced: stopped part way

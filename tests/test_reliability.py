@@ -288,6 +288,17 @@ def _keyshape(*args, **kw) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, env=env, **kw)
 
 
+def _finish(proc: subprocess.Popen, timeout: float) -> tuple[str, str]:
+    """``proc.communicate(timeout)``; a process still running then is killed and reaped (its pipes
+    closed) before the failure is raised, so that it does not spill into later tests' warnings."""
+    try:
+        return proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        raise AssertionError(f"still running {timeout:g} s after the signal; stderr: {err[-1500:]}") from None
+
+
 def _wait_for(cond, proc, timeout=120.0) -> None:
     t0 = time.monotonic()
     while not cond():
@@ -322,7 +333,7 @@ def test_interrupted_track_keeps_the_earlier_tracks(long_take, tmp_path, sig, st
 
     _wait_for(rows_written, proc)
     proc.send_signal(sig)
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = _finish(proc, 60)
     assert proc.returncode == status, stderr
     assert out.read_text() == "earlier complete tracks\n"
     part = tmp_path / "tracks.partial.csv"
@@ -343,7 +354,7 @@ def test_interrupted_retarget_keeps_the_earlier_frames(work, tmp_path, sig, stat
     proc = _keyshape("retarget", tmp_path / "long.csv", "--targets", work / "targets", "-o", out)
     _wait_for(lambda: any(out.glob(".keyshape-*.partial/*")), proc)
     proc.send_signal(sig)
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = _finish(proc, 60)
     assert proc.returncode == status, stderr
     assert "interrupted" in stderr or "terminated" in stderr
     assert snapshot(out) == before
@@ -356,7 +367,7 @@ def test_interrupted_demo_exits_130_and_leaves_the_folder_as_it_was(tmp_path):
     proc = _keyshape("demo", out, "--frames", "60", "--labels", "6", "--overwrite")
     _wait_for(lambda: any(out.glob(".keyshape-*.partial/footage/video.mp4")), proc, timeout=300)
     proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=120)
+    stdout, stderr = _finish(proc, 120)
     assert proc.returncode == 130, stderr
     assert sorted(p.name for p in out.iterdir()) == ["old_result.txt"]
 

@@ -123,21 +123,12 @@ def _prefetched(items, depth: int = 8, batch: int = 4):
     after the items produced before them; leaving the loop early (``break``, Ctrl-C, an error) stops
     the producer and closes ``items`` in its thread.
     """
-    import queue
     import threading
 
-    q: queue.Queue = queue.Queue(maxsize=max(1, depth // max(1, batch)))
-    stop = threading.Event()
-    end = object()
+    from keyshape.base.interrupts import Handoff, start_thread
 
-    def put(x) -> bool:
-        while not stop.is_set():
-            try:
-                q.put(x, timeout=0.05)
-                return True
-            except queue.Full:
-                continue
-        return False
+    q = Handoff(max(1, depth // max(1, batch)))
+    end = object()
 
     def produce():
         it = iter(items)
@@ -146,33 +137,34 @@ def _prefetched(items, depth: int = 8, batch: int = 4):
             for x in it:
                 buf.append(x)
                 if len(buf) >= batch:
-                    if not put(buf):
+                    if not q.put(buf):
                         break
                     buf = []
             else:
-                if not buf or put(buf):
-                    put(end)
+                if not buf or q.put(buf):
+                    q.put(end)
         except BaseException as exc:  # noqa: BLE001 - handed over to the consumer
-            if not buf or put(buf):
-                put(_Raised(exc))
+            if not buf or q.put(buf):
+                q.put(_Raised(exc))
         finally:
             close = getattr(it, "close", None)
             if close is not None:
                 close()
 
     thread = threading.Thread(target=produce, name="keyshape-decode", daemon=True)
-    thread.start()
     try:
+        start_thread(thread)
         while True:
-            x = q.get()
+            x = q.get()             # Ctrl-C / SIGTERM here cannot wedge the hand-over (interrupts)
             if x is end:
                 break
             if isinstance(x, _Raised):
                 raise x.exc
             yield from x
     finally:
-        stop.set()
-        thread.join()
+        q.close()
+        if thread.ident is not None:      # started (an interrupt may land inside start())
+            thread.join()
 
 
 def _labelled_scheme(scheme, shapes: np.ndarray):
