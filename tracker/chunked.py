@@ -208,6 +208,8 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
     # started Python and imported what it needs, 0.6-1.1 s each on a loaded 2-core machine (issue 26),
     # so the chunks after the first started that much later; the queue's thread writes meanwhile
     inbox = ctx.Queue()
+    for q in (out, inbox):
+        q.cancel_join_thread()      # never wait at exit for a queue's feeder thread, even after an interrupt
     model_bytes = pickle.dumps(model, protocol=pickle.HIGHEST_PROTOCOL)
     procs = []
     main = threading.current_thread() is threading.main_thread()
@@ -327,7 +329,6 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
             p.join(5.0)
         for q in (out, inbox):
             q.close()
-            q.cancel_join_thread()
     yield from ((pts, rr, None) for pts, rr in smoother.flush())
     if interrupted is not None:
         raise interrupted
