@@ -105,19 +105,24 @@ def test_handoff_close_releases_a_waiting_producer():
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 def test_deferred_interrupts_hold_the_signal_until_the_block_ends():
     steps = []
-    with pytest.raises(KeyboardInterrupt):
-        with deferred_interrupts():
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)            # Python runs handlers between bytecodes: it would have raised here
-            steps.append("block finished")
-    assert steps == ["block finished"]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler    # restored
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)   # as Python sets it (unless started ignored)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with deferred_interrupts():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)        # Python runs handlers between bytecodes: it would have raised here
+                steps.append("block finished")
+        assert steps == ["block finished"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler    # restored
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_deferred_interrupts_without_a_signal_and_off_the_main_thread():
+    before = signal.getsignal(signal.SIGINT)
     with deferred_interrupts():
         pass
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is before
     out = []
     t = threading.Thread(target=lambda: out.append(start_thread(threading.Thread(target=lambda: None)) or 1))
     t.start()

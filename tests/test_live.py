@@ -243,7 +243,8 @@ def test_osc_one_message_per_rig_curve(take, capsys):
 def test_ctrl_c_stops_cleanly_with_exit_130(take):
     rx = Receiver()
     proc = subprocess.Popen([sys.executable, "-m", "keyshape", *live_args(take, None, "--port", str(rx.port))],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))   # as a terminal's
     try:
         assert rx.first.wait(60), "no packet arrived"
         time.sleep(0.3)
