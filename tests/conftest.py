@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,13 @@ if "KEYSHAPE_CACHE" not in os.environ:
     import tempfile
     os.environ["KEYSHAPE_CACHE"] = tempfile.mkdtemp(prefix="keyshape-test-cache-")
     atexit.register(shutil.rmtree, os.environ["KEYSHAPE_CACHE"], ignore_errors=True)
+
+
+def sigint_as_a_terminal_gives_it() -> None:
+    """``preexec_fn`` for a ``keyshape`` subprocess that a test stops with Ctrl-C: SIGINT's default
+    action, also where the test runner was started with SIGINT ignored (a background job of a
+    non-interactive shell), which the child would inherit and Python then keep."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 @pytest.fixture(scope="session")

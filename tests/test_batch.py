@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import sigint_as_a_terminal_gives_it
 
 from keyshape.base.errors import InputError
 from keyshape.batch import run_batch
@@ -444,7 +445,7 @@ def test_ctrl_c_leaves_only_complete_outputs_and_a_rerun_finishes(library, tmp_p
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "keyshape", "batch", str(library), "-o", str(out), "--workers", "2"],
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            preexec_fn=sigint_as_a_terminal_gives_it)
     try:
         deadline = time.monotonic() + 240
         for line in proc.stderr:

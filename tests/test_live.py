@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import sigint_as_a_terminal_gives_it
 
 from keyshape.base.errors import InputError
 from keyshape.base.formats.livelink import (CSV_NAMES, N_VALUES, PACKET_NAMES, csv_to_packet, decode_packet,
@@ -244,7 +245,7 @@ def test_ctrl_c_stops_cleanly_with_exit_130(take):
     rx = Receiver()
     proc = subprocess.Popen([sys.executable, "-m", "keyshape", *live_args(take, None, "--port", str(rx.port))],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))   # as a terminal's
+                            preexec_fn=sigint_as_a_terminal_gives_it)
     try:
         assert rx.first.wait(60), "no packet arrived"
         time.sleep(0.3)

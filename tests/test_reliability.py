@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import sigint_as_a_terminal_gives_it
 
 from keyshape.base.errors import InputError
 from keyshape.base.files import MANIFEST, atomic_dir, check_output, check_outputs
@@ -284,11 +285,9 @@ def test_check_outputs(tmp_path):
 # --------------------------------------------------------------------------- interruption (real processes)
 def _keyshape(*args, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    # Ctrl-C as a terminal gives it, even where the test runner was started with SIGINT ignored (a
-    # background job of a non-interactive shell), which a child would inherit and Python then keeps
     return subprocess.Popen([sys.executable, "-m", "keyshape", *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=sigint_as_a_terminal_gives_it,
+                            **kw)
 
 
 def _finish(proc: subprocess.Popen, timeout: float) -> tuple[str, str]:
