@@ -344,7 +344,7 @@ def register(subparsers) -> None:
                     "only what changed. --example OUT_DIR runs it on the clip shipped with keyshape.")
     p.add_argument("video", nargs="?", help="the take")
     p.add_argument("--rig", metavar="DIR", help="the rig: a neutral OBJ and one OBJ per shape, one topology")
-    p.add_argument("-o", "--output", action="append", default=[], metavar="OUT",
+    p.add_argument("-o", "--output", action="append", default=None, metavar="OUT",
                    help="OUT.glb, OUT.usda/.usdc/.usd or OUT.csv (the rig's curves); repeat for several")
     p.add_argument("--livelink", metavar="OUT.csv", help="also a Live Link Face CSV (ARKit names)")
     p.add_argument("--preview", metavar="OUT.mp4",
@@ -375,7 +375,7 @@ def run(args) -> int:
         if args.video is None or args.rig is None:
             raise InputError("give the take and the rig: keyshape animate VIDEO --rig DIR -o OUT.glb "
                              "(or --example OUT_DIR)")
-        res = animate(args.video, args.rig, args.output, livelink=args.livelink, preview=args.preview,
+        res = animate(args.video, args.rig, args.output or [], livelink=args.livelink, preview=args.preview,
                       labels=args.labels, work=args.work, landmarks=args.landmarks)
     print("\n".join(summary(res)))
     return 0
