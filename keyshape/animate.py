@@ -97,12 +97,11 @@ def _check_dlib() -> None:
                          'pip install "keyshape[label]"')
 
 
-def _check_work(work: Path, inputs: Sequence) -> dict:
-    """The work folder's record (empty for a new folder); refuse a folder that keyshape animate did not make."""
-    from keyshape.base.files import check_output
+def _check_work(work: Path) -> dict:
+    """The work folder's record (empty for a new folder); refuse a folder that keyshape animate did not make
+    (after :func:`~keyshape.base.files.check_outputs` has checked it as a folder output)."""
     from keyshape.batch import read_record
 
-    check_output(work, "folder", inputs, what="work folder")
     if not work.is_dir() or not any(work.iterdir()):
         return {}
     rec = read_record(work / RECORD)
@@ -169,7 +168,7 @@ def animate(video: str | Path, rig, outputs: Sequence[str | Path] = (), *, livel
     work = Path(work) if work is not None else default_work(video, first)
     inputs = [video, labels, rig, landmarks]
     check_outputs([*outputs, livelink, preview], [work], inputs)
-    rec = _check_work(work, inputs)
+    rec = _check_work(work)
     label_dir = Path(labels) if labels is not None else work / "labels"
     video_rec = file_sha(video, rec.get("video"))
     if labels is None:
@@ -317,7 +316,7 @@ def example(out_dir: str | Path, say: Callable[[str], None] = _say_to_stderr) ->
     from keyshape.base.files import check_outputs
 
     check_outputs([*files, preview], [work])
-    _check_work(work, [])
+    _check_work(work)
     rig, lm = work / "rig", work / "rig_landmarks.json"
     if not (rig / "neutral.obj").is_file() or not lm.is_file():
         from keyshape.batch import read_record, write_record

@@ -141,7 +141,13 @@ def test_bad_input_is_one_line_before_any_work(take, tmp_path, capsys, monkeypat
     (tmp_path / "w" / "mine.txt").write_text("x")
     assert main([*base, "--labels", str(foot / "labels"), "-o", str(tmp_path / "x.glb")]) == 2
     assert "not made by keyshape animate" in capsys.readouterr().err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["w"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["w"]                # nothing written
+    # labels it made for another take are not used for this one
+    other = tmp_path / "other"
+    (other / "labels").mkdir(parents=True)
+    (other / "animate.json").write_text(json.dumps({"format": "keyshape-animate", "labels_video_sha256": "0" * 64}))
+    assert main([*base[:-1], str(other), "-o", str(tmp_path / "x.glb")]) == 2
+    assert "holds labels of another video" in capsys.readouterr().err
     assert main(["animate", "--example", str(tmp_path / "e"), "-o", str(tmp_path / "x.glb")]) == 2
     assert "--example" in capsys.readouterr().err
 
