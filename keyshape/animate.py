@@ -336,6 +336,8 @@ def register(subparsers) -> None:
     """Add ``keyshape animate`` to ``subparsers``."""
     p = subparsers.add_parser(
         "animate", help="footage to a rig in one command: label, train, track, select, solve, outputs, preview",
+        usage="keyshape animate VIDEO --rig DIR -o OUT [-o OUT ...] [--livelink OUT.csv] [--preview OUT.mp4] "
+              "[--labels DIR] [--landmarks JSON] [--work DIR] | keyshape animate --example OUT_DIR",
         description="Run the video path on one take with the step-by-step commands' defaults (label 12 frames "
                     "with dlib's pre-fill unless --labels, train, track, select -k 8 --region mouth --region eyes, "
                     "solve) and write the rig's curves to each -o, the Live Link CSV and the side-by-side preview. "
