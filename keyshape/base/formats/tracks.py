@@ -123,6 +123,17 @@ class Tracks:
             return int(size[0]), int(size[1])
         return None
 
+    @property
+    def fps(self) -> float | None:
+        """The video's frame rate: what the tracker recorded (the metadata's ``fps``), else, for tracks written
+        without it, the median of the timestamps' steps rounded to 3 decimals; None where neither gives one."""
+        fps = self.meta.get("fps") if isinstance(self.meta, dict) else None
+        if isinstance(fps, (int, float)) and not isinstance(fps, bool) and np.isfinite(fps) and 0 < fps < 1e6:
+            return float(fps)
+        dt = np.diff(self.time)
+        dt = dt[np.isfinite(dt) & (dt > 0)]
+        return round(float(1.0 / np.median(dt)), 3) if len(dt) else None
+
     def __getitem__(self, idx) -> "Tracks":
         return Tracks(self.frame[idx], self.time[idx], self.confidence[idx], self.success[idx],
                       self.points[idx], self.pose[idx], dict(self.meta), {k: v[idx] for k, v in self.aux.items()})
