@@ -24,9 +24,11 @@ empty).
 
 The CSV itself is plain (its first line is the header), so OpenFace-style readers,
 ``csv.DictReader`` and pandas read it unchanged. Which model and scheme made the
-tracks (``Tracks.meta``) goes into a sidecar ``NAME.meta.json`` beside ``NAME.csv``::
+tracks, the frames' size and the video's frame rate (``Tracks.meta``; ``Tracks.fps``) go into a sidecar
+``NAME.meta.json`` beside ``NAME.csv``::
 
-    {"keyshape_tracks": 1, "csv_sha256": "...", "model": "sha256:...", "scheme": "contours48"}
+    {"keyshape_tracks": 1, "csv_sha256": "...", "model": "sha256:...", "scheme": "contours48",
+     "image_size": [640, 480], "fps": 29.97}
 
 ``csv_sha256`` ties the sidecar to one version of the CSV: a CSV edited or replaced
 afterwards reads with empty metadata and a warning. Files without a sidecar read with
