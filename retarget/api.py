@@ -14,6 +14,7 @@ their defaults from here:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -343,15 +344,68 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     Returns
     -------
     ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``; the frame rate is the tracks'
-    (:func:`~keyshape.decompose.api.take_fps`)
+    (:func:`~keyshape.decompose.api.take_fps`). :func:`fit_solve` gives the solver too.
     """
+    solve, motion, rate, eyes = fit_solve(tracks, regions, scheme_name, head_pose, rig, options, source=source,
+                                          report=report)
+    return solve.curves_, motion, rate, eyes
+
+
+@dataclass
+class TakeSolve:
+    """:func:`solve_rig`'s solve fitted on a take, and what it needs to read other frames alike (``keyshape live``).
+
+    Attributes
+    ----------
+    solver : the fitted :class:`~keyshape.retarget.solve.RigSolver`
+    scheme, head_pose : the keys' scheme and KEYS.json ``head_pose`` entry (the head-frame shapes of new frames)
+    estimator : the take's :class:`~keyshape.decompose.head3d.HeadPose3D` (the yaw and pitch of new frames, each
+        posed alone), or None where the solve took no yaw out
+    gaze : ``SolveOptions.gaze`` (``shapes``: the eyes' ``eyeLook*`` curves held fixed in the solve)
+    rig_names : the rig's shape names
+    curves_ : the take's curves (what :func:`solve_rig` returns)
+    """
+
+    solver: object
+    scheme: object
+    head_pose: dict | None
+    estimator: object
+    gaze: str
+    rig_names: list
+    curves_: np.ndarray
+
+    def curves(self, tracks: Tracks, eyes: np.ndarray | None = None) -> np.ndarray:
+        """The curves (n_frames, n_shapes) of new ``tracks`` (``eyes``: their eye angles (n_frames, 4), for
+        ``gaze="shapes"``), solved with the take's statistics
+        (:meth:`~keyshape.retarget.solve.RigSolver.transform`)."""
+        from keyshape.decompose.regions import fitted_head_points, head_shapes
+        from keyshape.retarget.rig import gaze_curves
+
+        shapes, _ = head_shapes(tracks, self.scheme, self.head_pose)
+        yaw = pitch = None
+        if self.estimator is not None:
+            ang = self.estimator.head_pose(fitted_head_points(self.estimator, tracks))["angles"]
+            yaw, pitch = ang[:, 0], ang[:, 1]
+            shapes = np.where(np.isfinite(ang[:, :2]).all(axis=1)[:, None, None], shapes, np.nan)
+        fixed = None
+        if eyes is not None and self.gaze == "shapes":
+            fixed, cols = gaze_curves(np.asarray(eyes, float), self.rig_names)
+            keep = np.zeros(len(self.rig_names), bool)
+            keep[cols] = True
+            fixed = np.where(keep[None], fixed, 0.0)
+        return self.solver.transform(shapes, yaw, pitch, fixed)
+
+
+def fit_solve(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig,
+              options: SolveOptions = SolveOptions(), *, source=None, report: dict | None = None):
+    """:func:`solve_rig`, keeping the fitted solve: ``(TakeSolve, head motion, fps, eye angles or None)``."""
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.api import take_fps
     from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
     from keyshape.decompose.stabilize import RigidStabilizer
     from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
-    from keyshape.retarget.solve import HeadParallax, RigLandmarks, gaze_ceiling, gaze_in_eye_region, solve_curves
+    from keyshape.retarget.solve import HeadParallax, RigLandmarks, RigSolver, gaze_ceiling, gaze_in_eye_region
 
     o = options
     check_solve_options(o.sparsity, o.symmetry, o.smooth)
@@ -383,8 +437,10 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
         # curves are written only with gaze="shapes" (from the eye angles), else the eye angles carry the gaze
         regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
         ceiling = gaze_ceiling(eyes, rig.names, rate)
-    yaw, rest_yaw, pitch, rest_pitch = (_solve_yaw(tracks, regions, head_pose, est, source)
-                                        if o.yaw_slide or o.yaw_stretch or o.pitch_parallax else (None, 0.0, None, 0.0))
+    if o.yaw_slide or o.yaw_stretch or o.pitch_parallax:
+        yaw, rest_yaw, pitch, rest_pitch, est = _solve_yaw(tracks, regions, head_pose, est, source)
+    else:
+        yaw, rest_yaw, pitch, rest_pitch, est = None, 0.0, None, 0.0, None
     yaw = yaw if o.yaw_slide or o.yaw_stretch else None
     rel = None
     if o.pitch_parallax and scheme.rigid:               # the rig's points less its eye corners' mean
@@ -393,21 +449,22 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     lm = RigLandmarks(lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme), reg_shapes, rig.names,
                       rig.value_range)
     parallax = HeadParallax(yaw, rest_yaw, pitch, rest_pitch, rel, rigid)
-    curves = solve_curves(shapes, regs, scheme, lm, o, head=parallax, fixed=fixed, ceiling=ceiling, report=report)
+    solver = RigSolver(scheme, lm, o).fit(shapes, regs, parallax, fixed, ceiling, report)
+    curves = solver.curves_
     if fixed is None and ceiling is not None:
         curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
-    return curves, motion, rate, eyes
+    return (TakeSolve(solver, scheme, head_pose, est if yaw is not None or rel is not None else None, o.gaze,
+                      list(rig.names), curves), motion, rate, eyes)
 
 
-def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source
-               ) -> tuple[np.ndarray | None, float, np.ndarray | None, float]:
+def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source):
     """The 3D head's yaw of every frame and of the mouth's rest frame (its median where the rest frame is not
     one of these tracks'), for :func:`~keyshape.retarget.solve.yaw_slide`, then its pitch alike, for
-    :func:`~keyshape.retarget.solve.pitch_parallax`; ``(None, 0.0, None, 0.0)`` where the keys'
-    shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: a fitted
+    :func:`~keyshape.retarget.solve.pitch_parallax`, and the fitted head; ``(None, 0.0, None, 0.0, None)`` where the
+    keys' shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: a fitted
     :class:`~keyshape.decompose.head3d.HeadPose3D` of ``tracks`` (None: fitted here)."""
     from keyshape.decompose.regions import fitted_head_points
-    none = (None, 0.0, None, 0.0)
+    none = (None, 0.0, None, 0.0, None)
     if (head_pose or {}).get("method") == "3d":
         return none
     est = est if est is not None else head_3d_from_tracks(tracks, source)
@@ -423,7 +480,7 @@ def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source
     rest = [rk.rest_frame for rk in regions if rk.region == "mouth" and rk.rest_frame is not None and rk.takes is None]
     row = pos.get(int(rest[0])) if rest else None
     at = ang[row] if row is not None else np.median(ang, axis=0)
-    return ang[:, 0], float(at[0]), ang[:, 1], float(at[1])
+    return ang[:, 0], float(at[0]), ang[:, 1], float(at[1]), est
 
 
 def override_poses(curves: np.ndarray, frames: np.ndarray, regions, weights: np.ndarray, columns: Sequence[str],

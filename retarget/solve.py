@@ -476,18 +476,22 @@ def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw
     (T, n_points, 2) the slide, to subtract from ``motion`` (zeros where ``yaw`` does not vary)
     """
     U = np.asarray(motion, float)
-    partner = np.asarray(partner, np.intp)
     s = np.sin(np.asarray(yaw, float)) - np.sin(float(rest_yaw))
     if len(s) != len(U):
         raise InputError(f"yaw_slide: {len(s)} yaw values for {len(U)} frames of motion")
-    out = np.zeros_like(U)
+    b = _yaw_slope(U, np.asarray(partner, np.intp), s)
+    return np.zeros_like(U) if b is None else s[:, None, None] * b[None]
+
+
+def _yaw_slope(U: np.ndarray, partner: np.ndarray, s: np.ndarray) -> np.ndarray | None:
+    """:func:`yaw_slide`'s slope ``b`` (n_points, 2) of each point's odd motion on ``s = sin(yaw) - sin(rest_yaw)``
+    over the take (None where ``s`` does not vary or the points are not closed under the mirror)."""
     sc = s - s.mean()
     var = float(sc @ sc)
     if var <= 1e-12 * len(s) or len(partner) != U.shape[1] or (partner[partner] != np.arange(len(partner))).any():
-        return out
+        return None
     odd = (U - U[:, partner] * [-1.0, 1.0]) / 2
-    b = np.einsum("t,tpd->pd", sc, odd) / var          # slope of each point's odd motion on sin(yaw)
-    return s[:, None, None] * b[None]
+    return np.einsum("t,tpd->pd", sc, odd) / var          # slope of each point's odd motion on sin(yaw)
 
 
 def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
@@ -820,28 +824,55 @@ def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple
     -------
     (T, n_shapes)
     """
-    n = len(A)
-    if n == 0:
+    if len(A) == 0:
         return np.zeros((len(motion), 0))
-    Aw = np.einsum("rpd,spd->rs", D, A)
-    Bw = np.einsum("rpd,tpd->tr", D, motion)
-    Fw = None if free is None else np.einsum("rpd,pdk->rk", D, free.reshape(len(D[0]), 2, -1))
-    col = float(np.mean((Aw ** 2).sum(axis=0))) or 1.0
-    Q = None
-    if pairs and symmetry > 0:
-        from keyshape.retarget.poses import mirror_differences
-        S = mirror_differences(pairs, n)
-        Q = symmetry * col * S.T @ S
-    l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
-    if rest_offset is not None and rest_offset.shape[1]:
-        # the rest's offset under the box and the L1 term alone (with the left-right prior a constant
-        # of the weaker side would buy symmetry), then the curves from the corrected rest
-        E = D.reshape(len(D), -1) @ rest_offset
-        some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
-        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
-                       ceiling=None if ceiling is None else ceiling[some])
-        Bw = Bw - E @ d
-    return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw, ceiling=ceiling)
+    system = _RegionSystem.fit(A, motion, D, bounds, (sparsity, symmetry, smooth), pairs, free, rest_offset, ceiling)
+    return system.solve(np.einsum("rpd,tpd->tr", D, motion), ceiling)
+
+
+@dataclass(frozen=True)
+class _RegionSystem:
+    """:func:`solve_region`'s weighted system, fitted on a take: what :meth:`solve` needs to solve any frames alike
+    (the L1 weight is scaled by the take's motion, the rest's offset solved on the take)."""
+
+    Aw: np.ndarray
+    Fw: np.ndarray | None
+    Q: np.ndarray | None
+    l1: float
+    smooth: float
+    shift: np.ndarray | None          # the rest offset's motion in the weighted rows, subtracted from every frame's
+    bounds: tuple[float, float]
+
+    @classmethod
+    def fit(cls, A, motion, D, bounds, priors, pairs, free, rest_offset, ceiling) -> "_RegionSystem":
+        sparsity, symmetry, smooth = priors
+        n = len(A)
+        Aw = np.einsum("rpd,spd->rs", D, A)
+        Bw = np.einsum("rpd,tpd->tr", D, motion)
+        Fw = None if free is None else np.einsum("rpd,pdk->rk", D, free.reshape(len(D[0]), 2, -1))
+        col = float(np.mean((Aw ** 2).sum(axis=0))) or 1.0
+        Q = None
+        if pairs and symmetry > 0:
+            from keyshape.retarget.poses import mirror_differences
+            S = mirror_differences(pairs, n)
+            Q = symmetry * col * S.T @ S
+        l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
+        shift = None
+        if rest_offset is not None and rest_offset.shape[1]:
+            # the rest's offset under the box and the L1 term alone (with the left-right prior a constant
+            # of the weaker side would buy symmetry), then the curves from the corrected rest
+            E = D.reshape(len(D), -1) @ rest_offset
+            some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
+            _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
+                           ceiling=None if ceiling is None else ceiling[some])
+            shift = E @ d
+        return cls(Aw, Fw, Q, l1, smooth * col, shift, bounds)
+
+    def solve(self, Bw: np.ndarray, ceiling: np.ndarray | None = None) -> np.ndarray:
+        """The curves of the weighted motions ``Bw`` (T, r)."""
+        if self.shift is not None:
+            Bw = Bw - self.shift
+        return box_lsq(self.Aw, Bw, self.bounds, self.l1, self.Q, self.smooth, self.Fw, ceiling=ceiling)
 
 
 @dataclass(frozen=True)
@@ -929,72 +960,175 @@ def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.
     -------
     (T, n_shapes) curves within ``bounds`` (shapes of no region stay at ``lo``)
     """
-    landmark_neutral, landmark_deltas, region_shapes, shape_names, bounds = (
-        rig.neutral, rig.deltas, rig.region_shapes, rig.names, rig.bounds)
-    o, yaw, rest_yaw, rigid, yaw_regions = options, head.yaw, head.rest_yaw, head.rigid, head.regions
-    from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
-    X = np.asarray(shapes, float)
-    ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
-    if not ok.any():
-        raise InputError("no successful frame to solve the rig's curves from")
-    pts = np.concatenate([p for p, _ in regions.values()])
-    src = np.concatenate([r for _, r in regions.values()])
-    s, R, _ = fit_similarity(src, landmark_neutral[pts])
-    Msim = s * R
-    from keyshape.decompose.gaze import pupil_points
-    landmark_deltas = rigid_frame_deltas(landmark_neutral, landmark_deltas, rigid, keep=pupil_points(scheme))
-    out = np.full((len(X), len(shape_names)), float(bounds[0]))
-    held = held_rest_points(scheme)
-    for region, (idx, rest) in regions.items():
-        sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
-        if not len(sh):
-            continue
-        idx = np.asarray(idx)
-        rest_r = np.asarray(rest, float) @ Msim.T
-        Xr = X[ok][:, idx]
-        if yaw is not None and o.yaw_stretch and len(rigid) and region in yaw_regions:
-            Xr = Xr - yaw_stretch(Xr, X[ok][:, list(rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok], rest_yaw)
-        motion = (Xr - rest) @ Msim.T
+    return RigSolver(scheme, rig, options, nuisance).fit(shapes, regions, head, fixed, ceiling, report).curves_
+
+
+@dataclass
+class _RegionFit:
+    """One region's statistics of the take (:class:`RigSolver`)."""
+
+    name: str
+    idx: np.ndarray
+    sh: np.ndarray
+    rest: np.ndarray
+    slope: np.ndarray | None           # the yaw slide's (yaw_slide)
+    scale: np.ndarray | None           # each point's (eye_calibration)
+    D: np.ndarray
+    system: _RegionSystem
+    gain: np.ndarray | None            # each shape's (brow_calibration)
+
+
+class RigSolver:
+    """The rig's per-frame solve (:func:`solve_curves`), fitted once on a take and then applied to any frame.
+
+    :meth:`fit` solves the take's curves (``curves_``) and keeps what it learnt of the take: the
+    neutral-to-neutral similarity, each region's row weights (:func:`region_rows`), the yaw slide's slopes
+    (:func:`yaw_slide`), each eye's and brow's calibration (:func:`eye_calibration`, :func:`brow_calibration`), the
+    L1 weight and the rest's offset (:func:`solve_region`). :meth:`transform` solves new frames (``keyshape live``,
+    one at a time) with those, so a frame gives the curves it gives in the take the solver was fitted on (to the
+    solver's tolerance; ``smooth`` couples frames and is not applied).
+
+    Parameters
+    ----------
+    scheme, rig, options, nuisance : as :func:`solve_curves`
+    """
+
+    def __init__(self, scheme, rig: RigLandmarks, options: SolveOptions = SolveOptions(),
+                 nuisance: Mapping[str, str] | None = None):
+        self.scheme, self.rig, self.options, self.nuisance = scheme, rig, options, nuisance
+
+    def fit(self, shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
+            head: HeadParallax = HeadParallax(), fixed: np.ndarray | None = None, ceiling: np.ndarray | None = None,
+            report: dict | None = None) -> "RigSolver":
+        """Solve the take ``shapes`` (:func:`solve_curves`' arguments); sets ``curves_`` and the take's statistics."""
+        from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
+        scheme, rig, o = self.scheme, self.rig, self.options
+        landmark_neutral, region_shapes, shape_names, bounds = rig.neutral, rig.region_shapes, rig.names, rig.bounds
+        yaw, rest_yaw, rigid, yaw_regions = head.yaw, head.rest_yaw, head.rigid, head.regions
+        X = np.asarray(shapes, float)
+        ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
+        if not ok.any():
+            raise InputError("no successful frame to solve the rig's curves from")
+        pts = np.concatenate([p for p, _ in regions.values()])
+        src = np.concatenate([r for _, r in regions.values()])
+        sc, R, _ = fit_similarity(src, landmark_neutral[pts])
+        self.similarity_ = Msim = sc * R
+        from keyshape.decompose.gaze import pupil_points
+        self.deltas_ = landmark_deltas = rigid_frame_deltas(landmark_neutral, rig.deltas, rigid,
+                                                            keep=pupil_points(scheme))
+        self.head_, self.regions_ = head, []
+        out = np.full((len(X), len(shape_names)), float(bounds[0]))
+        held = held_rest_points(scheme)
+        for region, (idx, rest) in regions.items():
+            sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
+            if not len(sh):
+                continue
+            idx = np.asarray(idx)
+            rest_r = np.asarray(rest, float) @ Msim.T
+            Xr = X[ok][:, idx]
+            if yaw is not None and o.yaw_stretch and len(rigid) and region in yaw_regions:
+                Xr = Xr - yaw_stretch(Xr, X[ok][:, list(rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok], rest_yaw)
+            motion = (Xr - rest) @ Msim.T
+            if fixed is not None:
+                fx = np.asarray(fixed, float)[ok]
+                sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
+                motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
+            slope = None
+            if yaw is not None and o.yaw_slide and region in yaw_regions:
+                sy = np.sin(np.asarray(yaw, float)[ok]) - np.sin(float(rest_yaw))
+                slope = _yaw_slope(motion, mirror_partners(landmark_neutral[idx]), sy)
+                if slope is not None:
+                    motion = motion - sy[:, None, None] * slope[None]
+            if head.pitch is not None and head.points3d is not None and region in yaw_regions:
+                motion = motion - pitch_parallax(np.asarray(head.points3d, float)[idx],
+                                                 np.asarray(head.pitch, float)[ok], head.rest_pitch)
+            scale = None
+            if o.calibrate:
+                scale = eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx],
+                                        report=None if report is None else report.setdefault("eyes", []))
+                motion = motion * scale[None, :, None]
+            D, _ = region_rows(scheme, idx, motion)
+            kind = (self.nuisance or {}).get(region) or auto_nuisance(region, True)
+            F = nuisance_motions(rest_r, kind)
+            if head.eye_width:
+                Fe = eye_width_motions(scheme, idx, rest_r)
+                F = Fe if F is None else np.concatenate([F, Fe], axis=1)
+            names = [shape_names[j] for j in sh]
+            top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
+            A = landmark_deltas[sh][:, idx]
+            system = None
+            if len(A):
+                system = _RegionSystem.fit(A, motion, D, bounds, (o.sparsity, o.symmetry, o.smooth), mirror_pairs(names),
+                                           F, symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held))
+                                           if o.rest_offset else None, top)
+                c = system.solve(np.einsum("rpd,tpd->tr", D, motion), top)
+            else:
+                c = np.zeros((len(motion), 0))
+            gain = None
+            if o.calibrate:
+                gain = brow_calibration(scheme, idx, A, motion, c, mirror_pairs(names))
+                c = np.clip(c * gain[None], *bounds)
+                if report is not None:
+                    report.setdefault("brows", {}).update({names[j]: float(gain[j]) for j in np.flatnonzero(gain != 1.0)})
+            if system is not None:
+                self.regions_.append(_RegionFit(region, idx, sh, np.asarray(rest, float), slope, scale, D, system, gain))
+            full = np.empty((len(X), len(sh)))
+            full[ok] = c
+            if not ok.all():
+                t = np.arange(len(X))
+                for j in range(len(sh)):          # loop over shapes, not frames
+                    full[~ok, j] = np.interp(t[~ok], t[ok], c[:, j])
+            out[:, sh] = full
         if fixed is not None:
-            fx = np.asarray(fixed, float)[ok]
-            sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
-            motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
-        if yaw is not None and o.yaw_slide and region in yaw_regions:
-            motion = motion - yaw_slide(motion, mirror_partners(landmark_neutral[idx]), np.asarray(yaw, float)[ok],
-                                        rest_yaw)
-        if head.pitch is not None and head.points3d is not None and region in yaw_regions:
-            motion = motion - pitch_parallax(np.asarray(head.points3d, float)[idx], np.asarray(head.pitch, float)[ok],
-                                             head.rest_pitch)
-        if o.calibrate:
-            motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx],
-                                              report=None if report is None else report.setdefault("eyes", []))[None, :, None]
-        D, _ = region_rows(scheme, idx, motion)
-        kind = (nuisance or {}).get(region) or auto_nuisance(region, True)
-        F = nuisance_motions(rest_r, kind)
-        if head.eye_width:
-            Fe = eye_width_motions(scheme, idx, rest_r)
-            F = Fe if F is None else np.concatenate([F, Fe], axis=1)
-        names = [shape_names[j] for j in sh]
-        top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
-        c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, o.sparsity, o.symmetry, o.smooth,
-                         mirror_pairs(names), F,
-                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if o.rest_offset else None, top)
-        if o.calibrate:
-            g = brow_calibration(scheme, idx, landmark_deltas[sh][:, idx], motion, c, mirror_pairs(names))
-            c = np.clip(c * g[None], *bounds)
-            if report is not None:
-                report.setdefault("brows", {}).update({names[j]: float(g[j]) for j in np.flatnonzero(g != 1.0)})
-        full = np.empty((len(X), len(sh)))
-        full[ok] = c
-        if not ok.all():
-            t = np.arange(len(X))
-            for j in range(len(sh)):          # loop over shapes, not frames
-                full[~ok, j] = np.interp(t[~ok], t[ok], c[:, j])
-        out[:, sh] = full
-    if fixed is not None:
-        live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
-        out[:, live] = np.asarray(fixed, float)[:, live]
-    return out
+            live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
+            out[:, live] = np.asarray(fixed, float)[:, live]
+        self.curves_ = out
+        return self
+
+    def transform(self, shapes: np.ndarray, yaw: np.ndarray | None = None, pitch: np.ndarray | None = None,
+                  fixed: np.ndarray | None = None) -> np.ndarray:
+        """The curves (T, n_shapes) of new frames ``shapes`` (T, n_points, 2) with the fitted take's statistics.
+
+        ``yaw``, ``pitch`` : (T,) the frames' head yaw and pitch (as :class:`HeadParallax`'s, the same zero; needed
+        where the fit took them out); ``fixed`` : (T, n_shapes) curves known beforehand (the gaze shapes'). Frames
+        with a NaN point get the curves' lower bound.
+        """
+        if not hasattr(self, "curves_"):
+            from keyshape.base.errors import NotFittedError
+            raise NotFittedError("RigSolver.transform before fit")
+        o, head, bounds = self.options, self.head_, self.rig.bounds
+        X = np.asarray(shapes, float)
+        ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
+        out = np.full((len(X), len(self.rig.names)), float(bounds[0]))
+        if yaw is None and head.yaw is not None and (o.yaw_slide or o.yaw_stretch):
+            raise InputError("RigSolver.transform: the solver was fitted with the head's yaw; give the frames'")
+        for f in self.regions_:
+            along = f.name in head.regions                 # the yaw and pitch corrections' regions
+            Xr = X[ok][:, f.idx]
+            if head.yaw is not None and o.yaw_stretch and len(head.rigid) and along:
+                Xr = Xr - yaw_stretch(Xr, X[ok][:, list(head.rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok],
+                                      head.rest_yaw)
+            motion = (Xr - f.rest) @ self.similarity_.T
+            if fixed is not None:
+                motion = motion - np.einsum("ts,spd->tpd", np.asarray(fixed, float)[ok], self.deltas_[:, f.idx])
+            if f.slope is not None:
+                sy = np.sin(np.asarray(yaw, float)[ok]) - np.sin(float(head.rest_yaw))
+                motion = motion - sy[:, None, None] * f.slope[None]
+            if pitch is not None and head.pitch is not None and head.points3d is not None and along:
+                motion = motion - pitch_parallax(np.asarray(head.points3d, float)[f.idx], np.asarray(pitch, float)[ok],
+                                                 head.rest_pitch)
+            if f.scale is not None:
+                motion = motion * f.scale[None, :, None]
+            c = f.system.solve(np.einsum("rpd,tpd->tr", f.D, motion))
+            if f.gain is not None:
+                c = np.clip(c * f.gain[None], *bounds)
+            full = np.full((len(X), len(f.sh)), float(bounds[0]))
+            full[ok] = c
+            out[:, f.sh] = full
+        if fixed is not None:
+            live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
+            out[:, live] = np.asarray(fixed, float)[:, live]
+        return out
 
 
 def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, columns: Sequence[str],
