@@ -23,9 +23,6 @@ def register(subparsers) -> None:
     p.add_argument("--size", type=int, default=None,
                    help="height of the output in pixels (default: the video's height)")
     p.add_argument("--sheet", default=None, help="also write a contact sheet (actor | character), .jpg or .png")
-    p.add_argument("--sheet-frames", type=int, default=12, help="frames in the contact sheet, spread over the range")
-    p.add_argument("--crop", choices=("face", "full"), default="face",
-                   help="actor panel: a steady square around the tracked face over the range, or the full frame")
     p.add_argument("--contours", action=argparse.BooleanOptionalAction, default=None,
                    help="draw the rig's own lid, brow and lip contours over it (default: when the rig's "
                         "landmarks are known: shipped for ICT-FaceKit, or --landmarks)")
@@ -33,10 +30,6 @@ def register(subparsers) -> None:
                    help="rig landmark JSON for --contours (default: the shipped one for ICT-FaceKit rigs)")
     p.add_argument("--compare", default=None, metavar="CURVES.csv",
                    help="a second set of rig curves (another solver, another tool's) rendered in a third panel")
-    p.add_argument("--captions", default="actor,keyshape,compare", metavar="A,B[,C]",
-                   help="panel captions, comma separated ('' for none)")
-    p.add_argument("--threads", type=int, default=None,
-                   help="rendering threads (default: one per core, at most 4)")
     p.add_argument("-o", "--output", default=None, help="OUT.mp4 / .avi (optional with --sheet)")
     p.set_defaults(func=run)
 
@@ -69,7 +62,7 @@ def run(args) -> int:
     from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.rig import load_rig
 
-    _check_outputs(args.output, args.sheet, args.sheet_frames, args.size)
+    _check_outputs(args.output, args.sheet, size=args.size)
     if bool(args.curves) == bool(args.weights or args.poses):
         raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
@@ -100,10 +93,8 @@ def run(args) -> int:
         curves, _ = apply_gaze(curves, rig, tracks, frames, source=args.tracks, say=lambda _: None)
         head = head_rotations_of(head_from_tracks(tracks, frames, source=args.tracks)[0])
     info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
-                         size=args.size, sheet_frames=args.sheet_frames, threads=args.threads,
-                         tracks_source=args.tracks, head=head, compare=compare, crop=args.crop,
-                         contours=args.contours, landmarks=args.landmarks,
-                         captions=[c.strip() for c in args.captions.split(",")] if args.captions else [])
+                         size=args.size, tracks_source=args.tracks, head=head, compare=compare,
+                         contours=args.contours, landmarks=args.landmarks)
     n, dt = info["frames"], info["seconds"]
     print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
           f"{info['rig_frames'] / max(info['render_cpu_seconds'], 1e-9):.1f} rig frames per CPU second, "
