@@ -17,9 +17,10 @@ from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme, load_scheme, scheme_for_n_points
 from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, face_rest_frame, head_shapes,
                                         select_region)
-from keyshape.decompose.defaults import (DEFAULT_FPS, HEAD_POSE, HEAD_POSES, METHOD, METHODS, MIN_KEY_DISTANCE,  # noqa: F401
+from keyshape.decompose.defaults import (HEAD_POSE, HEAD_POSES, METHOD, METHODS, MIN_KEY_DISTANCE,  # noqa: F401
                                          NEUTRAL_FRAME, RIDGE, SEED, SMOOTH_LAMBDA, SOLVER, SOLVERS)
 from keyshape.decompose.stabilize import head_pose_entry
+from keyshape.decompose.take import Take, take_fps  # noqa: F401  (the take, fitted once)
 
 
 def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:
@@ -34,12 +35,6 @@ def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:
     cat = [np.concatenate([getattr(t, a) for t in tracks]) for a in ("time", "confidence", "success", "points",
                                                                       "pose")]
     return Tracks(np.arange(n), *cat)
-
-
-def take_fps(tracks: Tracks | None = None, fallback: float | None = None) -> float:
-    """The take's frame rate, the one rule every stage uses: the tracks' (:attr:`Tracks.fps`, what the tracker
-    recorded of the video), else ``fallback`` (a WEIGHTS.csv's), else :data:`~keyshape.decompose.defaults.DEFAULT_FPS`."""
-    return float((tracks.fps if tracks is not None else None) or fallback or DEFAULT_FPS)
 
 
 def tracks_scheme(tracks: Tracks, scheme: str | Scheme | None = None, source=None) -> Scheme:

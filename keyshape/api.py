@@ -387,7 +387,7 @@ def solve(tracks: Tracks, keys: Keys, rig, options: SolveOptions | None = None, 
     _expect(keys, Keys, "keys", "Keys (read a file with Keys.load)")
     r = load_rig(rig, neutral, with_mesh=False)
     report: dict = {}
-    curves, motion, rate, eyes = RA.solve_rig(tracks, keys.regions, keys.scheme, keys.head_pose, r,
+    curves, motion, rate, eyes = RA.solve_rig(D.Take.fit(tracks), keys.regions, keys.scheme, keys.head_pose, r,
                                               options or SolveOptions(), report=report)
     if (poses is None) != (weights is None):
         raise InputError("solve: poses and weights go together (the artist's pose library and the key weights)")
@@ -437,30 +437,33 @@ def retarget(weights: Weights, targets=None, regions=None, options: RetargetOpti
         lib = poses if isinstance(poses, PoseLibrary) else PoseLibrary.load(poses, r)
         curves = RA.rig_curves(weights.values, weights.names, lib.data, r,
                                None if isinstance(poses, PoseLibrary) else poses)
-        motion, fps = _head(weights, tracks, o, r)
+        motion, fps, kind = _head(weights, tracks, o, r)
         eyes = None
         if tracks is not None:
-            curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, o.head, gaze=o.gaze)
+            curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, kind, gaze=o.gaze)
         return RigAnimation(r, weights.frames, curves, fps, motion, eyes)
     if targets is None:
         raise InputError("give targets (one target per key) or poses and a rig")
     rt = RA.fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=o.form, band=o.band,
                            metric=o.metric)
-    motion, fps = _head(weights, tracks, o)
+    motion, fps, _ = _head(weights, tracks, o)
     return Animation(rt, weights, fps, motion)
 
 
 def _head(weights: Weights, tracks, o: RetargetOptions, rig=None):
-    """Head motion (or None) and the frame rate (:func:`keyshape.decompose.api.take_fps`: the tracks', else the
-    weights', else 30)."""
+    """Head motion (or None), the frame rate (:func:`keyshape.decompose.api.take_fps`: the tracks', else the
+    weights', else 30) and the head the gaze is read in (the take's fitted 3D head, or a 2D kind; None without
+    tracks)."""
     fps = D.take_fps(tracks, weights.fps)
     if tracks is None:
-        return None, fps
+        return None, fps, None
     units = o.head_units
     if units is None:
         units = 1.0 if rig is None else RA.rig_head_units(rig, tracks, o.landmarks)
-    head, _ = RA.head_from_tracks(tracks, weights.frames, o.reference_frame, units, head=o.head)
-    return head, fps
+    take = D.Take.fit(tracks)                       # the 3D head fitted once, for the head and the gaze
+    kind = take.head3d if o.head == "3d" and take.head3d is not None else o.head
+    head, _ = RA.head_from_tracks(tracks, weights.frames, o.reference_frame, units, head=kind)
+    return head, fps, kind
 
 
 def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: str | Path | None = None, *,

@@ -223,7 +223,7 @@ class LiveHead:
     """The 3D head's angles and the eyes' angles of one frame, from a calibration fitted offline, once.
 
     What offline (``retarget --tracks``, ``solve``) fits over the whole take is fitted here once on a
-    calibration take's tracks with the same function (:func:`keyshape.retarget.api.head_3d_from_tracks`):
+    calibration take's tracks with the same function (:meth:`keyshape.decompose.take.Take.fit`):
     the actor-adapted 3D face, the camera's focal length and principal point (guessed from the face's
     size and place in that take) and the front-facing zero. Each live frame is then posed alone by that
     :class:`~keyshape.decompose.head3d.HeadPose3D` with its temporal smoothing off (offline's is a
@@ -343,13 +343,12 @@ def calibration_tracks(calibration, keys_path, scheme_name: str, model: str | No
     return tracks, calibration
 
 
-def load_head(tracks, calibration, scheme, gaze: str = "angles", say=None) -> LiveHead | None:
-    """The :class:`LiveHead` fitted to the calibration ``tracks`` (the file ``calibration``), or None (the 2D head
-    roll) where their scheme has no 3D face; what happened is said in one line through ``say``."""
-    from keyshape.retarget.api import head_3d_from_tracks
-
+def load_head(take, scheme, gaze: str = "angles", say=None) -> LiveHead | None:
+    """The :class:`LiveHead` of the calibration ``take`` (a :class:`~keyshape.decompose.take.Take`: its fitted
+    3D head), or None (the 2D head roll) where its scheme has no 3D face; what happened is said in one line
+    through ``say``."""
     say = say or (lambda line: print(line, file=sys.stderr))
-    est = head_3d_from_tracks(tracks, calibration)
+    tracks, calibration, est = take.tracks, take.source, take.head3d
     if est is None:
         say(f"keyshape live: scheme {scheme.name!r} has no 3D face (or {calibration} no tracked frame): "
             "sending the 2D head roll and no eye angles")
@@ -442,6 +441,7 @@ def load_chain(model_path, keys_path, rig, *, poses=None, calibration=None, head
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose
     from keyshape.base.formats.poses import read_poses
     from keyshape.base.schemes import load_scheme
+    from keyshape.decompose.take import Take
     from keyshape.retarget.api import fit_solve
     from keyshape.retarget.export import livelink_values
     from keyshape.retarget.rig import load_rig
@@ -465,8 +465,9 @@ def load_chain(model_path, keys_path, rig, *, poses=None, calibration=None, head
     lib = read_poses(poses, rig_obj.names) if poses else None
     from keyshape.tracker.commands import model_fingerprint
     tracks, cal_path = calibration_tracks(calibration, keys_path, scheme, model_fingerprint(model))
+    take = Take.fit(tracks, cal_path)                   # fitted once: the solve's statistics and the head
     report: dict = {}
-    solve, *_ = fit_solve(tracks, regions, scheme, head_entry, rig_obj, options, source=cal_path, report=report)
+    solve, *_ = fit_solve(take, regions, scheme, head_entry, rig_obj, options, report=report)
     if solve.estimator is not None:                   # each frame's yaw posed alone (live has no future frame)
         solve.estimator = copy.copy(solve.estimator)
         solve.estimator.smooth = 0.0
@@ -482,7 +483,7 @@ def load_chain(model_path, keys_path, rig, *, poses=None, calibration=None, head
             raise InputError(f"--poses: the keys' frames {missing[:5]} are not frames of the calibration {cal_path}: "
                              "calibrate on the key set's own tracks", poses)
         key_curves = solve.curves_[[pos[f] for f in sorted(set(key_frames.values()))]]
-    live_head = load_head(tracks, cal_path, load_scheme(scheme), options.gaze, say) if head == "3d" else None
+    live_head = load_head(take, load_scheme(scheme), options.gaze, say) if head == "3d" else None
     chain = LiveChain(scheme, regions, head_entry, list(rig_obj.names), solve, lib, key_frames, key_curves,
                       head=live_head, model_scheme=mf.scheme)
     return model, chain

@@ -22,6 +22,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
+from keyshape.decompose.take import Take
 from keyshape.retarget.headpose import HeadMotion, head_motion, hold_invalid
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
@@ -231,26 +232,12 @@ def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_u
     return head_motion_3d(R, t, ang, head_units * iod_model / iod_face).take(rows)
 
 
-def head_3d_from_tracks(tracks: Tracks, source=None):
-    """The :class:`~keyshape.decompose.head3d.HeadPose3D` fitted to ``tracks`` (None where their scheme
-    has no 3D face): give it to :func:`head_from_tracks` and :func:`gaze_from_tracks` to fit once."""
-    from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.regions import head_points, head_pose_3d
-    try:
-        scheme = scheme_for_n_points(tracks.n_points)
-    except InputError:
-        return None
-    pts, full = head_points(tracks, scheme, source)
-    est = head_pose_3d(full, tracks.image_size)
-    return None if est is None or not tracks.success.any() else est.fit(pts)
-
-
 def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None, lid_drag: bool = True,
                      denoise: bool = True) -> np.ndarray:
     """(n_frames, 4) eye angles of the weights' ``frames`` (left yaw, left pitch, right yaw, right pitch,
     radians; :func:`keyshape.decompose.gaze.gaze_angles`) from the pupils in the head's frame (``head``:
-    a fitted :class:`~keyshape.decompose.head3d.HeadPose3D`, a KEYS.json ``head_pose`` entry, or None:
-    fitted here; the 2D rigid head where the scheme has no 3D face), the lids' pull on the pupils during
+    a fitted :class:`~keyshape.decompose.head3d.HeadPose3D`, a :class:`~keyshape.decompose.take.Take`'s ``head3d``,
+    a KEYS.json ``head_pose`` entry, or None: fitted here; the 2D rigid head where the scheme has no 3D face), the lids' pull on the pupils during
     blinks taken out (``lid_drag``: :class:`~keyshape.decompose.gaze.LidDrag`, fitted on the take; live, which
     sees no future frame, goes without), and the take's fixations denoised in the world frame (``denoise``:
     :func:`~keyshape.decompose.gaze.denoise_gaze`, the eye angles plus the 3D head's; the head frame where the
@@ -321,13 +308,13 @@ def check_solve_options(sparsity: float, symmetry: float, smooth: float) -> None
             raise InputError(f"{name} {v}: a number from 0 to {hi:g}")
 
 
-def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig,
-              options: SolveOptions = SolveOptions(), *, source=None, report: dict | None = None):
+def solve_rig(take: Take, regions, scheme_name: str, head_pose: dict | None, rig,
+              options: SolveOptions = SolveOptions(), *, report: dict | None = None):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
     ----------
-    tracks : the take's :class:`Tracks`
+    take : the :class:`~keyshape.decompose.take.Take` (the tracks with their frame rate and fitted 3D head)
     regions, scheme_name, head_pose : the key set's regions (their ``points`` and the actor's neutral, ``rest``),
         scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
     rig : a :class:`~keyshape.retarget.rig.Rig`
@@ -343,11 +330,10 @@ def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
 
     Returns
     -------
-    ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``; the frame rate is the tracks'
-    (:func:`~keyshape.decompose.api.take_fps`). :func:`fit_solve` gives the solver too.
+    ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``; the frame rate is the take's.
+    :func:`fit_solve` gives the solver too.
     """
-    solve, motion, rate, eyes = fit_solve(tracks, regions, scheme_name, head_pose, rig, options, source=source,
-                                          report=report)
+    solve, motion, rate, eyes = fit_solve(take, regions, scheme_name, head_pose, rig, options, report=report)
     return solve.curves_, motion, rate, eyes
 
 
@@ -396,11 +382,10 @@ class TakeSolve:
         return self.solver.transform(shapes, yaw, pitch, fixed)
 
 
-def fit_solve(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig,
-              options: SolveOptions = SolveOptions(), *, source=None, report: dict | None = None):
+def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig,
+              options: SolveOptions = SolveOptions(), *, report: dict | None = None):
     """:func:`solve_rig`, keeping the fitted solve: ``(TakeSolve, head motion, fps, eye angles or None)``."""
     from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.api import take_fps
     from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
     from keyshape.decompose.stabilize import RigidStabilizer
@@ -410,10 +395,10 @@ def fit_solve(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     o = options
     check_solve_options(o.sparsity, o.symmetry, o.smooth)
     scheme = load_scheme(scheme_name)
+    tracks, source, rate = take.tracks, take.source, take.fps
     if tracks.n_points != scheme.n_points:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} "
                          f"{scheme.n_points}", source)
-    rate = take_fps(tracks)
     shapes, stab = head_shapes(tracks, scheme, head_pose, source)
     rigid = stab.points if isinstance(stab, RigidStabilizer) else ()   # the frame the rig's motion is read in
     if o.gaze_lids and has_gaze(scheme):                # the pupils the lids' region sees: no pull of the lids
@@ -425,7 +410,7 @@ def fit_solve(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
     units = o.head_units if o.head_units is not None else rig_head_units(rig, tracks, o.landmarks)
-    est = head_3d_from_tracks(tracks, source) if o.head == "3d" else None
+    est = take.head3d if o.head == "3d" else None
     kind = est if est is not None else o.head
     motion, _ = head_from_tracks(tracks, tracks.frame, o.reference_frame, units, source, head=kind)
     gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
@@ -438,7 +423,7 @@ def fit_solve(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
         regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
         ceiling = gaze_ceiling(eyes, rig.names, rate)
     if o.yaw_slide or o.yaw_stretch or o.pitch_parallax:
-        yaw, rest_yaw, pitch, rest_pitch, est = _solve_yaw(tracks, regions, head_pose, est, source)
+        yaw, rest_yaw, pitch, rest_pitch, est = _solve_yaw(take, regions, head_pose, est)
     else:
         yaw, rest_yaw, pitch, rest_pitch, est = None, 0.0, None, 0.0, None
     yaw = yaw if o.yaw_slide or o.yaw_stretch else None
@@ -457,17 +442,18 @@ def fit_solve(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None,
                       list(rig.names), curves), motion, rate, eyes)
 
 
-def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source):
+def _solve_yaw(take: Take, regions, head_pose: dict | None, est):
     """The 3D head's yaw of every frame and of the mouth's rest frame (its median where the rest frame is not
     one of these tracks'), for :func:`~keyshape.retarget.solve.yaw_slide`, then its pitch alike, for
     :func:`~keyshape.retarget.solve.pitch_parallax`, and the fitted head; ``(None, 0.0, None, 0.0, None)`` where the
-    keys' shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: a fitted
-    :class:`~keyshape.decompose.head3d.HeadPose3D` of ``tracks`` (None: fitted here)."""
+    keys' shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: the take's
+    fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (None: ``take.head3d``)."""
     from keyshape.decompose.regions import fitted_head_points
     none = (None, 0.0, None, 0.0, None)
     if (head_pose or {}).get("method") == "3d":
         return none
-    est = est if est is not None else head_3d_from_tracks(tracks, source)
+    tracks, source = take.tracks, take.source
+    est = est if est is not None else take.head3d
     if est is None:
         return none
     ang = est.head_pose(fitted_head_points(est, tracks, source), est.camera_pose_)["angles"][:, :2]

@@ -152,8 +152,8 @@ def _head(args, weights, rig=None):
     The head is the 3D head; the translation's units: with a rig the rig's inter-ocular distance over the
     actor's, else 1."""
     from keyshape.base.formats.weights import read_weights_fps
-    from keyshape.decompose.api import take_fps
-    from keyshape.retarget.api import head_3d_from_tracks, head_from_tracks, rig_head_units
+    from keyshape.decompose.take import Take, take_fps
+    from keyshape.retarget.api import head_from_tracks, rig_head_units
 
     wfps = read_weights_fps(args.weights)
     if not args.tracks:
@@ -165,7 +165,7 @@ def _head(args, weights, rig=None):
     if rig is not None:
         print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
               "(rig inter-ocular distance / actor's)")
-    est = head_3d_from_tracks(tr, args.tracks)
+    est = Take.fit(tr, args.tracks).head3d               # fitted once: the head and the gaze
     kind = est if est is not None else "3d"
     head, _ = head_from_tracks(tr, weights.frames, None, units, args.tracks, head=kind)
     return head, take_fps(tr, wfps), (tr, kind)

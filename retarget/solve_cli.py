@@ -51,6 +51,7 @@ def run(args) -> int:
     from keyshape.base.files import check_output
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose
     from keyshape.base.formats.tracks import read_tracks
+    from keyshape.decompose.take import Take
     from keyshape.retarget.api import solve_rig
     from keyshape.retarget.defaults import SolveOptions
     from keyshape.retarget.rig import load_rig
@@ -68,9 +69,9 @@ def run(args) -> int:
     needs_mesh = not str(args.output).lower().endswith(".csv")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
     report: dict = {}
-    curves, head, fps, eyes = solve_rig(tracks, regions, scheme_name, read_keys_head_pose(args.keys), rig,
-                                        SolveOptions(gaze=args.gaze, landmarks=args.landmarks), source=args.tracks,
-                                        report=report)
+    curves, head, fps, eyes = solve_rig(Take.fit(tracks, args.tracks), regions, scheme_name,
+                                        read_keys_head_pose(args.keys), rig,
+                                        SolveOptions(gaze=args.gaze, landmarks=args.landmarks), report=report)
     for line in calibration_lines(report):
         print(f"keyshape: {line}")
     if args.poses:

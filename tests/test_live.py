@@ -153,13 +153,14 @@ def test_every_packet_equals_the_offline_solve(take, capsys):
     import copy
 
     from keyshape import api
+    from keyshape.decompose.take import Take
     from keyshape.retarget.api import fit_solve
     from keyshape.retarget.export import livelink_values
     from keyshape.retarget.rig import load_rig
     tracks = api.track(take / "take.mp4", api.AppearanceModel.load(take / "model.npz"))
     keys = api.Keys.load(take / "k.json")
     rig = load_rig(take / "rig", with_mesh=False)
-    solve, *_ = fit_solve(api.read_tracks(take / "t.csv"), keys.regions, keys.scheme, keys.head_pose, rig,
+    solve, *_ = fit_solve(Take.fit(api.read_tracks(take / "t.csv")), keys.regions, keys.scheme, keys.head_pose, rig,
                           api.SolveOptions(landmarks=str(take / "lm.json")))
     solve.estimator = copy.copy(solve.estimator)
     solve.estimator.smooth = 0.0
@@ -180,7 +181,8 @@ def test_the_pose_library_overrides_live_as_offline(take):
 
 
 def test_head_and_eye_angles_equal_the_offline_ones(take):
-    """The 3D head and the gaze: ``retarget --tracks`` calls ``head_3d_from_tracks``, ``head_from_tracks`` and
+    """The 3D head and the gaze: ``retarget --tracks`` fits the take's 3D head once (``Take.fit``), then calls
+    ``head_from_tracks`` and
     ``gaze_from_tracks`` on the whole take; live fits the first once on the calibration (here the take's own
     tracks, the key set's) and applies the others to each frame alone with the 3D head's temporal smoothing
     off (offline's is a Gaussian over past and future frames). Offline with that smoothing off (and without the
@@ -190,13 +192,14 @@ def test_head_and_eye_angles_equal_the_offline_ones(take):
     import copy
 
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.retarget.api import gaze_from_tracks, head_3d_from_tracks, head_from_tracks
+    from keyshape.decompose.take import Take
+    from keyshape.retarget.api import gaze_from_tracks, head_from_tracks
     from keyshape.retarget.export import livelink_values
     from keyshape.retarget.rig import load_rig
     _, live = _receive(take)
     tr = read_tracks(take / "t.csv")
     assert tr.aux["nose"].shape == (N_FRAMES, 5, 2)                  # the model's nose: the 3D head's too
-    causal = copy.copy(head_3d_from_tracks(tr))
+    causal = copy.copy(Take.fit(tr).head3d)
     causal.smooth = 0.0
     head, _ = head_from_tracks(tr, tr.frame, None, 1.0, head=causal)
     eyes = gaze_from_tracks(tr, tr.frame, causal, lid_drag=False, denoise=False)   # live sees no future frame

@@ -8,6 +8,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.decompose.regions import available_regions, region_points
+from keyshape.decompose.take import Take
 from keyshape.retarget.defaults import SolveOptions
 from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
 from keyshape.retarget.solve import (HeadParallax, RigLandmarks, box_lsq, brow_calibration, contour_measures, eye_calibration, eye_width_motions,
@@ -521,7 +522,7 @@ def test_a_nod_is_not_read_as_a_smile(shared_data):
     scheme, regions, head = select_keys(tracks, 8, regions=["mouth", "eyes"])
     r = {}
     for on in (False, True):
-        got, *_ = solve_rig(tracks, regions, scheme.name, head, rig, SolveOptions(gaze="none", pitch_parallax=on))
+        got, *_ = solve_rig(Take.fit(tracks), regions, scheme.name, head, rig, SolveOptions(gaze="none", pitch_parallax=on))
         r[on] = {n: np.corrcoef(s.performance.curves[:, DRIVEN.index(n)], got[:, rig.names.index(n)])[0, 1]
                  for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R")}
     assert r[False]["mouthSmile_L"] < 0.85, r                     # the nod read as a smile
@@ -557,8 +558,8 @@ def test_the_rigs_mouth_does_not_slide_with_head_yaw(shared_data):
         mid = X[:, [10, 14, 18, 22]].mean(1)
         return (X[:, [28, 34], 0].mean(1) - mid[:, 0]) / np.linalg.norm(X[:, 10] - X[:, 22], axis=-1)
 
-    kept, *_ = solve_rig(tracks, regions, scheme.name, head, rig, SolveOptions(yaw_slide=False, gaze="none"))
-    got, *_ = solve_rig(tracks, regions, scheme.name, head, rig, SolveOptions(gaze="none"))
+    kept, *_ = solve_rig(Take.fit(tracks), regions, scheme.name, head, rig, SolveOptions(yaw_slide=False, gaze="none"))
+    got, *_ = solve_rig(Take.fit(tracks), regions, scheme.name, head, rig, SolveOptions(gaze="none"))
     assert np.corrcoef(slide(kept), yaw)[0, 1] > 0.6                  # today's leak
     assert abs(np.corrcoef(slide(got), yaw)[0, 1]) < 0.3
     for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R"):
