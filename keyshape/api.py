@@ -457,12 +457,7 @@ def _head(weights: Weights, tracks, o: RetargetOptions, rig=None):
     fps = D.take_fps(tracks, weights.fps)
     if tracks is None:
         return None, fps, None
-    units = o.head_units
-    if units is None:
-        units = 1.0 if rig is None else RA.rig_head_units(rig, tracks, o.landmarks)
-    take = D.Take.fit(tracks)                       # the 3D head fitted once, for the head and the gaze
-    kind = take.head3d if o.head == "3d" and take.head3d is not None else o.head
-    head, _ = RA.head_from_tracks(tracks, weights.frames, o.reference_frame, units, head=kind)
+    head, kind = RA.take_head(D.Take.fit(tracks), weights.frames, rig, o)     # the 3D head fitted once
     return head, fps, kind
 
 

@@ -291,7 +291,7 @@ class LiveHead:
         from keyshape.retarget.api import head_from_tracks
 
         try:
-            head, _ = head_from_tracks(tracks, tracks.frame, None, 1.0, self.source, head=self.estimator)
+            head = head_from_tracks(tracks, tracks.frame, None, 1.0, self.source, head=self.estimator)
             self.last_head = head
         except InputError:                                 # no pose found: hold the last one (offline holds too)
             head = self.last_head

@@ -28,7 +28,7 @@ from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
-                                        OPPOSED, SPARSITY, SYMMETRY, SolveOptions)
+                                        OPPOSED, SPARSITY, SYMMETRY, RetargetOptions, SolveOptions)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -65,9 +65,24 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
     return Retargeter(form=form, band=band, metric=metric).fit(ts, regions, source)
 
 
+def take_head(take: Take, frames: np.ndarray, rig=None, options: RetargetOptions = RetargetOptions(), say=None):
+    """The head motion of ``frames`` written beside the curves (``keyshape retarget --tracks``, the API's retarget)
+    and the head the gaze is read in: the take's fitted 3D head where ``options.head`` is ``3d``, else the 2D kind.
+    The translation's units: ``options.head_units``, else with a ``rig`` its inter-ocular distance over the actor's
+    (said through ``say``), else 1."""
+    units = options.head_units
+    if units is None:
+        units = 1.0 if rig is None else rig_head_units(rig, take.tracks, options.landmarks)
+        if rig is not None and say is not None:
+            say(f"head translation in rig units: {units:.4g} rig units per model unit (rig inter-ocular distance / "
+                "actor's)")
+    kind = take.head3d if options.head == "3d" and take.head3d is not None else options.head
+    return head_from_tracks(take.tracks, frames, options.reference_frame, units, take.source, head=kind), kind
+
+
 def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | None = None, head_units: float = 1.0,
-                     source=None, head: str | dict = HEAD_MOTION) -> tuple[HeadMotion, float | None]:
-    """Head motion of the weights' ``frames`` from the tracks' 2D pose, and the tracks' frame rate.
+                     source=None, head: str | dict = HEAD_MOTION) -> HeadMotion:
+    """Head motion of the weights' ``frames`` from the tracks' pose.
 
     ``head_units``: model units to mesh units of the translation.
 
@@ -81,7 +96,6 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
     took up does not move the character's head; ``tracker``: the tracker's pose as it is (also
     for tracks of a point count no built-in scheme has). Failed frames hold the last good pose.
     ``reference_frame``: the frame of the rest pose (2D default: the first frame).
-    The frame rate is the tracks' (:attr:`~keyshape.base.formats.tracks.Tracks.fps`; None where unknown).
     """
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
@@ -96,12 +110,11 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
         head = head if head.get("method") == "3d" else head.get("method", "tracker")
     if not isinstance(head, (dict, HeadPose3D)) and head not in HEAD_POSES:
         raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
-    fps = tracks.fps
     if (isinstance(head, (dict, HeadPose3D)) or head == "3d") and tracks.success.any():
         motion = _head_3d(tracks, head, rows, None if reference_frame is None else pos[reference_frame],
                           head_units, source)
         if motion is not None:
-            return motion, fps
+            return motion
         head = "rigid"
     if reference_frame is None:
         reference_frame = int(tracks.frame[0])
@@ -118,9 +131,7 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
             pose = np.where(tracks.success[:, None, None], stable_pose(tracks, stab, source), tracks.pose)
     full = hold_invalid(pose, tracks.success)
     pose = np.concatenate([full[rows], full[[pos[reference_frame]]]])
-    head = head_motion(pose, reference=len(rows), units_per_model=head_units)
-    head = head.take(slice(0, -1))
-    return head, fps
+    return head_motion(pose, reference=len(rows), units_per_model=head_units).take(slice(0, -1))
 
 
 def rig_head_units(rig, tracks: Tracks, landmarks=None) -> float:
@@ -319,14 +330,14 @@ def solve_rig(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
         scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
     rig : a :class:`~keyshape.retarget.rig.Rig`
     options : :class:`~keyshape.retarget.defaults.SolveOptions`: the solve's priors and calibrations
-        (:func:`~keyshape.retarget.solve.solve_curves`), the gaze (:func:`apply_gaze`; with ``gaze_lids`` the lids'
+        (:class:`~keyshape.retarget.solve.RigSolver`), the gaze (:func:`apply_gaze`; with ``gaze_lids`` the lids'
         region solved with the pupils and the rig's gaze shapes, :func:`~keyshape.retarget.solve.gaze_in_eye_region`),
         the head motion written beside the curves (:func:`head_from_tracks`) and, where the keys' head is 2D and the
         scheme has a 3D face, the mouth's parallax under the 3D head's yaw (and pitch) taken out
         (:func:`~keyshape.retarget.solve.yaw_slide`, :func:`~keyshape.retarget.solve.yaw_stretch`,
         :func:`~keyshape.retarget.solve.pitch_parallax`), zero at the mouth's rest frame
     report : a dict that receives what the eye and brow calibrations did
-        (:func:`~keyshape.retarget.solve.solve_curves`)
+        (:class:`~keyshape.retarget.solve.RigSolver`)
 
     Returns
     -------
@@ -412,7 +423,7 @@ def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
     units = o.head_units if o.head_units is not None else rig_head_units(rig, tracks, o.landmarks)
     est = take.head3d if o.head == "3d" else None
     kind = est if est is not None else o.head
-    motion, _ = head_from_tracks(tracks, tracks.frame, o.reference_frame, units, source, head=kind)
+    motion = head_from_tracks(tracks, tracks.frame, o.reference_frame, units, source, head=kind)
     gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
                              gaze=o.gaze)
     fixed = gazed if eyes is not None and o.gaze == "shapes" else None      # the eyeLook* curves, the rest 0

@@ -147,13 +147,11 @@ def run_rig(args, inputs: list) -> int:
 
 def _head(args, weights, rig=None):
     """Head motion from ``--tracks`` (or None), the frame rate (:func:`keyshape.decompose.api.take_fps`: the
-    tracks', else the weights' own, else 30) and, with ``--tracks``, ``(tracks, head kind)`` for the gaze (else None).
-
-    The head is the 3D head; the translation's units: with a rig the rig's inter-ocular distance over the
-    actor's, else 1."""
+    tracks', else the weights' own, else 30) and, with ``--tracks``, ``(tracks, head kind)`` for the gaze (else None):
+    :func:`keyshape.retarget.api.take_head` with the command's defaults."""
     from keyshape.base.formats.weights import read_weights_fps
     from keyshape.decompose.take import Take, take_fps
-    from keyshape.retarget.api import head_from_tracks, rig_head_units
+    from keyshape.retarget.api import RetargetOptions, take_head
 
     wfps = read_weights_fps(args.weights)
     if not args.tracks:
@@ -161,11 +159,6 @@ def _head(args, weights, rig=None):
     from keyshape.base.formats.tracks import read_tracks
 
     tr = read_tracks(args.tracks, accept_partial=args.accept_partial)
-    units = 1.0 if rig is None else rig_head_units(rig, tr, args.landmarks)
-    if rig is not None:
-        print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
-              "(rig inter-ocular distance / actor's)")
-    est = Take.fit(tr, args.tracks).head3d               # fitted once: the head and the gaze
-    kind = est if est is not None else "3d"
-    head, _ = head_from_tracks(tr, weights.frames, None, units, args.tracks, head=kind)
+    head, kind = take_head(Take.fit(tr, args.tracks), weights.frames, rig, RetargetOptions(landmarks=args.landmarks),
+                           say=lambda line: print(f"keyshape retarget: {line}"))
     return head, take_fps(tr, wfps), (tr, kind)

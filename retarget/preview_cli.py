@@ -9,14 +9,11 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "preview", help="side-by-side video of a take: footage with contours | the shaded rig (and a contact sheet)",
         description="Render the footage with its tracked contours beside the rig driven by the take's curves "
-                    "(a curves CSV from 'keyshape retarget ... --poses ... -o curves.csv', or key weights with "
-                    "--poses), with a progress bar.",
+                    "(a curves CSV of 'keyshape solve' or 'keyshape retarget ... --poses'), with a progress bar.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("video", help="the take's video")
     p.add_argument("--tracks", required=True, help="the take's tracks CSV (contours drawn on the footage)")
-    p.add_argument("--curves", help="rig curves CSV (frame,<rig shape>,...)")
-    p.add_argument("--weights", help="key weights CSV (keyshape decompose), with --poses")
-    p.add_argument("--poses", help="POSES.json (keyshape pose), with --weights")
+    p.add_argument("--curves", required=True, help="rig curves CSV (frame,<rig shape>,...; the head's columns turn it)")
     p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE", help="the rig (folder of shape OBJs)")
     p.add_argument("--neutral", default=None, help="the rig's neutral OBJ (default: found in the folder)")
     p.add_argument("--frames", default=None, metavar="A:B", help="frame range, B exclusive (default: all)")
@@ -59,24 +56,11 @@ def run(args) -> int:
 
     from keyshape.base.errors import InputError
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.rig import load_rig
 
     _check_outputs(args.output, args.sheet, size=args.size)
-    if bool(args.curves) == bool(args.weights or args.poses):
-        raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
-    head = None
-    if args.curves:
-        frames, curves, head = _curves_on_rig(args.curves, rig)
-    else:
-        if not (args.weights and args.poses):
-            raise InputError("--weights and --poses go together")
-        from keyshape.base.formats.poses import read_poses
-        from keyshape.retarget.api import rig_curves
-        frames, cols, w, _ = read_weights(args.weights)
-        curves = rig_curves(w, cols, read_poses(args.poses, rig.names), rig, args.poses)
-        head = "tracks"                     # the head and the gaze from the tracks, as retarget --tracks
+    frames, curves, head = _curves_on_rig(args.curves, rig)
     compare = None
     if args.compare:
         f2, c2, h2 = _curves_on_rig(args.compare, rig)
@@ -87,11 +71,6 @@ def run(args) -> int:
         idx = np.array([row2[int(f)] for f in frames])
         compare = (c2[idx], h2[idx] if h2 is not None else head)
     tracks = read_tracks(args.tracks)
-    if isinstance(head, str):
-        from keyshape.retarget.api import apply_gaze, head_from_tracks
-        from keyshape.retarget.headpose import head_rotations_of
-        curves, _ = apply_gaze(curves, rig, tracks, frames, source=args.tracks, say=lambda _: None)
-        head = head_rotations_of(head_from_tracks(tracks, frames, source=args.tracks)[0])
     info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
                          size=args.size, tracks_source=args.tracks, head=head, compare=compare,
                          contours=args.contours, landmarks=args.landmarks)

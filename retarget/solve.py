@@ -856,7 +856,7 @@ class RigLandmarks:
 
 @dataclass(frozen=True)
 class HeadParallax:
-    """What a 2D head stabilisation leaves in the shapes, for :func:`solve_curves` to take out.
+    """What a 2D head stabilisation leaves in the shapes, for :class:`RigSolver` to take out.
 
     Attributes
     ----------
@@ -885,43 +885,6 @@ class HeadParallax:
     eye_width: bool = True
 
 
-def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]], scheme,
-                 rig: RigLandmarks, options: SolveOptions = SolveOptions(), *, head: HeadParallax = HeadParallax(),
-                 nuisance: Mapping[str, str] | None = None, fixed: np.ndarray | None = None,
-                 ceiling: np.ndarray | None = None, report: dict | None = None) -> np.ndarray:
-    """The rig's curves of every frame straight from the head-stabilised contours.
-
-    Parameters
-    ----------
-    shapes : (T, n_points, 2) head-frame shapes (:func:`~keyshape.decompose.regions.head_shapes`;
-        NaN rows: failed frames, whose curves are interpolated linearly in time)
-    regions : {region: (point indices, the actor's neutral of those points)}
-    scheme : the landmark scheme (contours for :func:`region_rows`)
-    rig : the rig's projected landmarks and shapes (:class:`RigLandmarks`)
-    options : the solve's priors and calibrations (:class:`~keyshape.retarget.defaults.SolveOptions`: ``sparsity``,
-        ``symmetry``, ``smooth`` as :func:`solve_region`; ``calibrate``: each eye's lid motion scaled by
-        :func:`eye_calibration`, the brow shapes' curves by :func:`brow_calibration`; ``rest_offset``: an offset
-        of the actor's rest shared by every frame solved with the curves, each region's points but the lids',
-        whose rest is the open eye that :func:`eye_calibration` measures; ``yaw_slide``, ``yaw_stretch``: with
-        ``head.yaw``)
-    head : the head's parallax to take out (:class:`HeadParallax`)
-    nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
-        mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
-    ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
-        pupils show); NaN or None: ``bounds``' top
-    fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
-        their landmark motion is taken from the actor's before the solve, and they are kept in
-        the result where non-zero (the solved shapes are the others)
-    report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
-        ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
-
-    Returns
-    -------
-    (T, n_shapes) curves within ``bounds`` (shapes of no region stay at ``lo``)
-    """
-    return RigSolver(scheme, rig, options, nuisance).fit(shapes, regions, head, fixed, ceiling, report).curves_
-
-
 @dataclass
 class _RegionFit:
     """One region's statistics of the take (:class:`RigSolver`)."""
@@ -938,7 +901,8 @@ class _RegionFit:
 
 
 class RigSolver:
-    """The rig's per-frame solve (:func:`solve_curves`), fitted once on a take and then applied to any frame.
+    """The rig's curves of every frame straight from the head-stabilised contours, fitted once on a take and then
+    applied to any frame.
 
     :meth:`fit` solves the take's curves (``curves_``) and keeps what it learnt of the take: the
     neutral-to-neutral similarity, each region's row weights (:func:`region_rows`), the yaw slide's slopes
@@ -949,7 +913,16 @@ class RigSolver:
 
     Parameters
     ----------
-    scheme, rig, options, nuisance : as :func:`solve_curves`
+    scheme : the landmark scheme (contours for :func:`region_rows`)
+    rig : the rig's projected landmarks and shapes (:class:`RigLandmarks`)
+    options : the solve's priors and calibrations (:class:`~keyshape.retarget.defaults.SolveOptions`: ``sparsity``,
+        ``symmetry``, ``smooth`` as :func:`solve_region`; ``calibrate``: each eye's lid motion scaled by
+        :func:`eye_calibration`, the brow shapes' curves by :func:`brow_calibration`; ``rest_offset``: an offset
+        of the actor's rest shared by every frame solved with the curves, each region's points but the lids',
+        whose rest is the open eye that :func:`eye_calibration` measures; ``yaw_slide``, ``yaw_stretch``: with
+        the head's yaw)
+    nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
+        mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
     """
 
     def __init__(self, scheme, rig: RigLandmarks, options: SolveOptions = SolveOptions(),
@@ -959,7 +932,23 @@ class RigSolver:
     def fit(self, shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
             head: HeadParallax = HeadParallax(), fixed: np.ndarray | None = None, ceiling: np.ndarray | None = None,
             report: dict | None = None) -> "RigSolver":
-        """Solve the take ``shapes`` (:func:`solve_curves`' arguments); sets ``curves_`` and the take's statistics."""
+        """Solve the take ``shapes``: sets ``curves_`` (T, n_shapes), within the rig's bounds (shapes of no region
+        stay at the lower bound), and the take's statistics.
+
+        Parameters
+        ----------
+        shapes : (T, n_points, 2) head-frame shapes (:func:`~keyshape.decompose.regions.head_shapes`;
+            NaN rows: failed frames, whose curves are interpolated linearly in time)
+        regions : {region: (point indices, the actor's neutral of those points)}
+        head : the head's parallax to take out (:class:`HeadParallax`)
+        fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
+            their landmark motion is taken from the actor's before the solve, and they are kept in
+            the result where non-zero (the solved shapes are the others)
+        ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
+            pupils show); NaN or None: the bounds' top
+        report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
+            ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
+        """
         from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
         scheme, rig, o = self.scheme, self.rig, self.options
         landmark_neutral, region_shapes, shape_names, bounds = rig.neutral, rig.region_shapes, rig.names, rig.bounds
@@ -1103,7 +1092,7 @@ def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, c
 
     Parameters
     ----------
-    curves : (T, n_shapes) solved curves (:func:`solve_curves`) of the frames ``frames``
+    curves : (T, n_shapes) solved curves (:class:`RigSolver`) of the frames ``frames``
     weights : (T, n_keys) key weights of the same frames, columns ``columns``
     library : POSES.json dict (``regions`` -> ``shapes``, ``keys``), ``range``
     shape_names : the rig's shape names

@@ -85,7 +85,7 @@ def run(args) -> int:
 
 
 def calibration_lines(report: dict) -> list[str]:
-    """What the solve's calibrations did (:func:`keyshape.retarget.solve.solve_curves`' ``report``), for the
+    """What the solve's calibrations did (:meth:`keyshape.retarget.solve.RigSolver.fit`'s ``report``), for the
     animator: each eye's deepest closure and how far its lids' travel was scaled, the brow shapes' scales."""
     lines = [e.describe() for e in report.get("eyes", [])]
     brows = report.get("brows", {})

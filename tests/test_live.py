@@ -201,7 +201,7 @@ def test_head_and_eye_angles_equal_the_offline_ones(take):
     assert tr.aux["nose"].shape == (N_FRAMES, 5, 2)                  # the model's nose: the 3D head's too
     causal = copy.copy(Take.fit(tr).head3d)
     causal.smooth = 0.0
-    head, _ = head_from_tracks(tr, tr.frame, None, 1.0, head=causal)
+    head = head_from_tracks(tr, tr.frame, None, 1.0, head=causal)
     eyes = gaze_from_tracks(tr, tr.frame, causal, lid_drag=False, denoise=False)   # live sees no future frame
     names = load_rig(take / "rig", with_mesh=False).names
     ref = livelink_values(names, np.zeros((N_FRAMES, len(names))), head, eyes)

@@ -96,9 +96,8 @@ def test_every_stage_api_and_command_with_no_options_give_the_same_files(take, t
                      "--landmarks", str(lm), "--tracks", str(c / "tracks.csv"), *extra, "-o", str(c / name)]) == 0
         ranim.export(p / name, livelink=bool(extra))
         assert same(c / name, p / name), name
-    assert main(["preview", str(video), "--tracks", str(c / "tracks.csv"), "--weights", str(c / "weights.csv"),
-                 "--poses", str(c / "poses.json"), "--rig", str(rig), "--frames", "0:6", "--size", "96",
-                 "--sheet", str(c / "sheet.png")]) == 0
+    assert main(["preview", str(video), "--tracks", str(c / "tracks.csv"), "--curves", str(c / "curves.csv"),
+                 "--rig", str(rig), "--frames", "0:6", "--size", "96", "--sheet", str(c / "sheet.png")]) == 0
     api.preview(video, tracks, ranim, sheet=p / "sheet.png", frames="0:6", size=96)
     assert same(c / "sheet.png", p / "sheet.png")
 

@@ -11,8 +11,9 @@ from keyshape.decompose.regions import available_regions, region_points
 from keyshape.decompose.take import Take
 from keyshape.retarget.defaults import SolveOptions
 from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
-from keyshape.retarget.solve import (HeadParallax, RigLandmarks, box_lsq, brow_calibration, contour_measures, eye_calibration, eye_width_motions,
-                                     mirror_pairs, mirror_partners, pitch_parallax, pose_override, solve_curves,
+from keyshape.retarget.solve import (HeadParallax, RigLandmarks, RigSolver, box_lsq, brow_calibration, contour_measures,
+                                     eye_calibration, eye_width_motions,
+                                     mirror_pairs, mirror_partners, pitch_parallax, pose_override,
                                      symmetric_offsets, yaw_slide, yaw_stretch)
 
 SCHEME = load_scheme("contours48")
@@ -28,6 +29,11 @@ def test_box_lsq_matches_scipy_bounded_least_squares_frame_by_frame(seed):
     for t in range(len(B)):
         ref = lsq_linear(A, B[t], bounds=(0, 1), tol=1e-12).x
         assert np.allclose(C[t], ref, atol=1e-5)
+
+
+def solve_curves(shapes, regions, scheme, rig, options=SolveOptions(), **kw):
+    """The take's curves of a :class:`RigSolver` fitted on it (``head``, ``fixed``, ``ceiling``, ``report``)."""
+    return RigSolver(scheme, rig, options).fit(shapes, regions, **kw).curves_
 
 
 def test_box_lsq_ignores_free_motions_and_smooths_in_time():
