@@ -63,8 +63,6 @@ def _input_files(args) -> list:
 
 
 def run(args) -> int:
-    import numpy as np
-
     from keyshape.base.errors import InputError
     from keyshape.base.files import check_output, check_output_dir
     from keyshape.base.formats.weights import read_weights
@@ -95,11 +93,10 @@ def run(args) -> int:
     head, fps, _ = _head(args, weights)
     info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, livelink=args.livelink,
                   overwrite=args.overwrite, inputs=inputs)
-    extra = ""
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
           f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
           f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"
-          f"{extra} -> {info['path']} ({info['kind']})")
+          f" -> {info['path']} ({info['kind']})")
     return 0
 
 
