@@ -758,41 +758,19 @@ def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarra
     return regions, region_shapes
 
 
-def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
-                 sparsity: float = 0.01, symmetry: float = 0.03, smooth: float = 0.0,
-                 pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None,
-                 rest_offset: np.ndarray | None = None, ceiling: np.ndarray | None = None) -> np.ndarray:
-    """One region's curves for every frame: :func:`box_lsq` on the weighted rows.
-
-    Parameters
-    ----------
-    A : (n_shapes, n_points, 2) the rig's projected motion per unit of each of the region's shapes
-    motion : (T, n_points, 2) the actor's motion from the neutral in the rig's frame (no NaN)
-    D : (r, n_points, 2) row weighting (:func:`region_rows`)
-    sparsity : dimensionless L1 weight (times the rows' typical size, so it does not depend on units)
-    symmetry : dimensionless weight of ``||c_L - c_R||^2`` for each mirrored pair (times the mean
-        squared column norm of the weighted ``A``)
-    smooth : dimensionless temporal smoothness (same scale)
-    pairs : mirrored shape pairs (:func:`mirror_pairs`)
-    free : (n_points * 2, k) nuisance motions (flattened like the points)
-    rest_offset : (n_points * 2, k) motions (flattened like the points) of an unknown offset of the
-        rest shared by every frame (:func:`box_lsq`'s ``offset``), solved with the curves; None: none
-    ceiling : (T, n_shapes) per-frame upper bounds of the curves (:func:`box_lsq`); None: ``bounds``' top
-
-    Returns
-    -------
-    (T, n_shapes)
-    """
-    if len(A) == 0:
-        return np.zeros((len(motion), 0))
-    system = _RegionSystem.fit(A, motion, D, bounds, (sparsity, symmetry, smooth), pairs, free, rest_offset, ceiling)
-    return system.solve(np.einsum("rpd,tpd->tr", D, motion), ceiling)
-
-
 @dataclass(frozen=True)
 class _RegionSystem:
-    """:func:`solve_region`'s weighted system, fitted on a take: what :meth:`solve` needs to solve any frames alike
-    (the L1 weight is scaled by the take's motion, the rest's offset solved on the take)."""
+    """One region's weighted system (:func:`box_lsq` on the rows ``D``, :func:`region_rows`), fitted on a take: what
+    :meth:`solve` needs to solve any frames alike (the L1 weight is scaled by the take's motion, the rest's offset
+    solved on the take).
+
+    :meth:`fit`'s ``A`` (n_shapes, n_points, 2) is the rig's projected motion per unit of each of the region's
+    shapes, ``motion`` (T, n_points, 2) the actor's from the neutral in the rig's frame (no NaN); ``priors``:
+    ``(sparsity, symmetry, smooth)``, dimensionless: the L1 weight times the rows' typical size, the weight of
+    ``||c_L - c_R||^2`` for each mirrored pair of ``pairs`` and the temporal smoothness times the mean squared
+    column norm of the weighted ``A``; ``free`` (n_points * 2, k) nuisance motions and ``rest_offset``
+    (n_points * 2, k) the motions of an unknown offset of the rest shared by every frame (:func:`box_lsq`'s
+    ``offset``), flattened like the points; ``ceiling`` (T, n_shapes) per-frame upper bounds."""
 
     Aw: np.ndarray
     Fw: np.ndarray | None
@@ -907,7 +885,7 @@ class RigSolver:
     :meth:`fit` solves the take's curves (``curves_``) and keeps what it learnt of the take: the
     neutral-to-neutral similarity, each region's row weights (:func:`region_rows`), the yaw slide's slopes
     (:func:`yaw_slide`), each eye's and brow's calibration (:func:`eye_calibration`, :func:`brow_calibration`), the
-    L1 weight and the rest's offset (:func:`solve_region`). :meth:`transform` solves new frames (``keyshape live``,
+    L1 weight and the rest's offset. :meth:`transform` solves new frames (``keyshape live``,
     one at a time) with those, so a frame gives the curves it gives in the take the solver was fitted on (to the
     solver's tolerance; ``smooth`` couples frames and is not applied).
 
@@ -916,7 +894,7 @@ class RigSolver:
     scheme : the landmark scheme (contours for :func:`region_rows`)
     rig : the rig's projected landmarks and shapes (:class:`RigLandmarks`)
     options : the solve's priors and calibrations (:class:`~keyshape.retarget.defaults.SolveOptions`: ``sparsity``,
-        ``symmetry``, ``smooth`` as :func:`solve_region`; ``calibrate``: each eye's lid motion scaled by
+        ``symmetry``, ``smooth`` as :class:`_RegionSystem`; ``calibrate``: each eye's lid motion scaled by
         :func:`eye_calibration`, the brow shapes' curves by :func:`brow_calibration`; ``rest_offset``: an offset
         of the actor's rest shared by every frame solved with the curves, each region's points but the lids',
         whose rest is the open eye that :func:`eye_calibration` measures; ``yaw_slide``, ``yaw_stretch``: with

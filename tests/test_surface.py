@@ -24,8 +24,7 @@ STILL_OVER = {"retarget/preview_cli.py:write_preview", "retarget/export.py:expor
               "tracker/eigenpoints.py:fit_region", "tracker/commands.py:iter_track",
               "tracker/chunked.py:iter_track_chunked", "retarget/solve.py:box_lsq",
               "retarget/dense/transfer.py:transfer_sequence", "tracker/labelling/frames.py:choose_frames_by_cues",
-              "retarget/solve.py:solve_region", "retarget/poses.py:pose_library",
-              "decompose/regions.py:select_region", "decompose/api.py:select_keys", "data_synth/library.py:synth_library"}
+              "retarget/poses.py:pose_library", "decompose/regions.py:select_region", "decompose/api.py:select_keys", "data_synth/library.py:synth_library"}
 
 
 def commands() -> dict[str, argparse.ArgumentParser]:
