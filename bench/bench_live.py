@@ -10,7 +10,7 @@ the packets go to a UDP socket on 127.0.0.1 that drains them. Three runs:
   from a frame's capture (the moment it is due) to its packet sent: median and 95th percentile;
 * **unpaced** (``--no-pace``): frames as fast as they decode: the chain's throughput ceiling and its
   per-frame latency (decode excluded: a frame counts as captured once decoded);
-* **unpaced, 2D head** (``--head-pose 2d``): the same without the 3D head and gaze, for their cost.
+* **unpaced, 2D head** (``load_chain(head="2d")``): the same without the 3D head and gaze, for their cost.
 
 Each line carries the 1-minute load average read right after its run (the machine may be shared).
 
@@ -65,8 +65,9 @@ def run(work: Path, pace: bool, head: str = "3d") -> dict:
                 got.append(len(sink.recv(4096)))
         except OSError:
             pass
-    model, chain = load_chain(work / "model.npz", work / "k.json", work / "poses.json", [str(work / "rig")],
-                              head=head, say=lambda line: None)
+    from keyshape.retarget.defaults import SolveOptions
+    model, chain = load_chain(work / "model.npz", work / "k.json", [str(work / "rig")], head=head,
+                              options=SolveOptions(landmarks=str(work / "toy_landmarks.json")), say=lambda line: None)
     th = threading.Thread(target=drain, daemon=True)        # after the calibration: it waits 2 s at most
     th.start()
     sender = LiveLinkSender("127.0.0.1", sink.getsockname()[1])
@@ -95,7 +96,7 @@ def main() -> None:
         print(f"keyshape live at 640x480, {a.frames} frames, {os.cpu_count()} CPUs, load average "
               f"{os.getloadavg()[0]:.2f}")
         runs = ((True, "3d", "paced (30 fps video as a camera)"), (False, "3d", "unpaced (--no-pace)"),
-                (False, "2d", "unpaced, 2D head (--head-pose 2d)"))
+                (False, "2d", "unpaced, 2D head (load_chain(head=\"2d\"))"))
         for pace, head, label in runs:
             r = run(work, pace, head)
             print(f"{label:34s} {r['fps']:6.1f} frames/s  lost {r['lost']:3d}  latency median "

@@ -52,10 +52,13 @@ def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve
                      "--quiet"]) == 0
     assert main(["select", str(p["tracks.csv"]), "-k", "8", "--region", "mouth", "--region", "eyes",
                  "-o", str(p["keys.json"])]) == 0
-    if chain == "solve":                                   # README's rig chain
+    if chain == "solve" and (gaze_lids or pitch_parallax):   # the experiments: SolveOptions fields, not flags
+        from keyshape import api
+        opts = api.SolveOptions(gaze_lids=gaze_lids, pitch_parallax=pitch_parallax)
+        api.solve(api.read_tracks(p["tracks.csv"]), api.Keys.load(p["keys.json"]), rig, opts).export(p["curves.csv"])
+    elif chain == "solve":                                 # README's rig chain
         assert main(["solve", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "--rig", str(rig),
-                     "-o", str(p["curves.csv"])] + (["--gaze-lids"] if gaze_lids else [])
-                    + (["--pitch-parallax"] if pitch_parallax else [])) == 0
+                     "-o", str(p["curves.csv"])]) == 0
     else:                                                  # the paper's route: key weights through poses
         assert main(["decompose", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "-o", str(p["weights.csv"])]) == 0
         assert main(["pose", str(p["keys.json"]), "--rig", str(rig), "-o", str(p["poses.json"])]) == 0
@@ -186,10 +189,10 @@ def main() -> None:
     ap.add_argument("--rig", default=str(REPO.parent / "shared" / "data" / "ict-facekit"))
     ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
                     help="solve (README's rig chain) or poses (decompose, pose, retarget --poses)")
-    ap.add_argument("--gaze-lids", action="store_true", help="solve with --gaze-lids (the lids with the pupils and eyeLook*)")
+    ap.add_argument("--gaze-lids", action="store_true", help="solve with SolveOptions(gaze_lids=True) (the lids with the pupils and eyeLook*)")
     ap.add_argument("--from-truth", action="store_true",
                     help="select and solve from the take's true landmarks (the solve chain's own loss, no tracker)")
-    ap.add_argument("--pitch-parallax", action="store_true", help="solve with --pitch-parallax")
+    ap.add_argument("--pitch-parallax", action="store_true", help="solve with SolveOptions(pitch_parallax=True)")
     a = ap.parse_args()
     if a.work:
         print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids, a.from_truth,

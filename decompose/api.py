@@ -20,6 +20,7 @@ from keyshape.decompose.regions import (RegionKeys, available_regions, decompose
 from keyshape.decompose.defaults import (HEAD_POSE, HEAD_POSES, METHOD, METHODS, MIN_KEY_DISTANCE,  # noqa: F401
                                          NEUTRAL_FRAME, RIDGE, SEED, SMOOTH_LAMBDA, SOLVER, SOLVERS)
 from keyshape.decompose.stabilize import head_pose_entry
+from keyshape.decompose.take import Take, take_fps  # noqa: F401  (the take, fitted once)
 
 
 def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:
@@ -34,16 +35,6 @@ def concat_tracks(tracks: Sequence[Tracks]) -> Tracks:
     cat = [np.concatenate([getattr(t, a) for t in tracks]) for a in ("time", "confidence", "success", "points",
                                                                       "pose")]
     return Tracks(np.arange(n), *cat)
-
-
-def tracks_fps(tracks: Tracks) -> float | None:
-    """The tracks' frame rate: the median of the timestamps' steps, rounded to 3 decimals (None when
-    they do not give one)."""
-    if len(tracks.time) > 1:
-        dt = np.diff(tracks.time)
-        dt = dt[np.isfinite(dt) & (dt > 0)]
-        return round(float(1.0 / np.median(dt)), 3) if len(dt) else None
-    return None
 
 
 def tracks_scheme(tracks: Tracks, scheme: str | Scheme | None = None, source=None) -> Scheme:

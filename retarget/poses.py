@@ -92,7 +92,7 @@ def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float =
 
 def mirror_differences(mirrored: Sequence[tuple[int, int]], n: int) -> np.ndarray:
     """(len(mirrored), n) rows ``e_i - e_j`` of the mirrored pairs: ``|S p|^2 = sum (p_i - p_j)^2``, the
-    left-right prior of :func:`fit_pose` and of ``keyshape solve`` (:func:`~keyshape.retarget.solve.solve_region`)."""
+    left-right prior of :func:`fit_pose` and of ``keyshape solve`` (:class:`~keyshape.retarget.solve.RigSolver`)."""
     S = np.zeros((len(mirrored), n))
     for r, (i, j) in enumerate(mirrored):
         S[r, i], S[r, j] = 1.0, -1.0
@@ -128,7 +128,7 @@ def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1
         mean squared column norm of ``A / scale``, so the prior does not depend on units): a face is
         near symmetric, and a 2D fit can trade one side's shape for the other's neighbours (a smile
         fitted as mouthSmile_L with mouthStretch_R). The same prior as ``keyshape solve``'s
-        (:func:`~keyshape.retarget.solve.solve_region`); a one-sided key still fits one-sided
+        (:class:`~keyshape.retarget.solve.RigSolver`); a one-sided key still fits one-sided
     mirrored : mirror-image shape pairs (:func:`~keyshape.retarget.rig.mirror_pairs`)
 
     Returns

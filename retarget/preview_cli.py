@@ -9,23 +9,17 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "preview", help="side-by-side video of a take: footage with contours | the shaded rig (and a contact sheet)",
         description="Render the footage with its tracked contours beside the rig driven by the take's curves "
-                    "(a curves CSV from 'keyshape retarget ... --poses ... -o curves.csv', or key weights with "
-                    "--poses), with a progress bar.",
+                    "(a curves CSV of 'keyshape solve' or 'keyshape retarget ... --poses'), with a progress bar.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("video", help="the take's video")
     p.add_argument("--tracks", required=True, help="the take's tracks CSV (contours drawn on the footage)")
-    p.add_argument("--curves", help="rig curves CSV (frame,<rig shape>,...)")
-    p.add_argument("--weights", help="key weights CSV (keyshape decompose), with --poses")
-    p.add_argument("--poses", help="POSES.json (keyshape pose), with --weights")
+    p.add_argument("--curves", required=True, help="rig curves CSV (frame,<rig shape>,...; the head's columns turn it)")
     p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE", help="the rig (folder of shape OBJs)")
     p.add_argument("--neutral", default=None, help="the rig's neutral OBJ (default: found in the folder)")
     p.add_argument("--frames", default=None, metavar="A:B", help="frame range, B exclusive (default: all)")
     p.add_argument("--size", type=int, default=None,
                    help="height of the output in pixels (default: the video's height)")
     p.add_argument("--sheet", default=None, help="also write a contact sheet (actor | character), .jpg or .png")
-    p.add_argument("--sheet-frames", type=int, default=12, help="frames in the contact sheet, spread over the range")
-    p.add_argument("--crop", choices=("face", "full"), default="face",
-                   help="actor panel: a steady square around the tracked face over the range, or the full frame")
     p.add_argument("--contours", action=argparse.BooleanOptionalAction, default=None,
                    help="draw the rig's own lid, brow and lip contours over it (default: when the rig's "
                         "landmarks are known: shipped for ICT-FaceKit, or --landmarks)")
@@ -33,10 +27,6 @@ def register(subparsers) -> None:
                    help="rig landmark JSON for --contours (default: the shipped one for ICT-FaceKit rigs)")
     p.add_argument("--compare", default=None, metavar="CURVES.csv",
                    help="a second set of rig curves (another solver, another tool's) rendered in a third panel")
-    p.add_argument("--captions", default="actor,keyshape,compare", metavar="A,B[,C]",
-                   help="panel captions, comma separated ('' for none)")
-    p.add_argument("--threads", type=int, default=None,
-                   help="rendering threads (default: one per core, at most 4)")
     p.add_argument("-o", "--output", default=None, help="OUT.mp4 / .avi (optional with --sheet)")
     p.set_defaults(func=run)
 
@@ -66,24 +56,11 @@ def run(args) -> int:
 
     from keyshape.base.errors import InputError
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.rig import load_rig
 
-    _check_outputs(args.output, args.sheet, args.sheet_frames, args.size)
-    if bool(args.curves) == bool(args.weights or args.poses):
-        raise InputError("give either --curves CURVES.csv or --weights WEIGHTS.csv with --poses POSES.json")
+    _check_outputs(args.output, args.sheet, size=args.size)
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
-    head = None
-    if args.curves:
-        frames, curves, head = _curves_on_rig(args.curves, rig)
-    else:
-        if not (args.weights and args.poses):
-            raise InputError("--weights and --poses go together")
-        from keyshape.base.formats.poses import read_poses
-        from keyshape.retarget.api import rig_curves
-        frames, cols, w, _ = read_weights(args.weights)
-        curves = rig_curves(w, cols, read_poses(args.poses, rig.names), rig, args.poses)
-        head = "tracks"                     # the head and the gaze from the tracks, as retarget --tracks
+    frames, curves, head = _curves_on_rig(args.curves, rig)
     compare = None
     if args.compare:
         f2, c2, h2 = _curves_on_rig(args.compare, rig)
@@ -94,16 +71,9 @@ def run(args) -> int:
         idx = np.array([row2[int(f)] for f in frames])
         compare = (c2[idx], h2[idx] if h2 is not None else head)
     tracks = read_tracks(args.tracks)
-    if isinstance(head, str):
-        from keyshape.retarget.api import apply_gaze, head_from_tracks
-        from keyshape.retarget.headpose import head_rotations_of
-        curves, _ = apply_gaze(curves, rig, tracks, frames, source=args.tracks, say=lambda _: None)
-        head = head_rotations_of(head_from_tracks(tracks, frames, source=args.tracks)[0])
     info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
-                         size=args.size, sheet_frames=args.sheet_frames, threads=args.threads,
-                         tracks_source=args.tracks, head=head, compare=compare, crop=args.crop,
-                         contours=args.contours, landmarks=args.landmarks,
-                         captions=[c.strip() for c in args.captions.split(",")] if args.captions else [])
+                         size=args.size, tracks_source=args.tracks, head=head, compare=compare,
+                         contours=args.contours, landmarks=args.landmarks)
     n, dt = info["frames"], info["seconds"]
     print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
           f"{info['rig_frames'] / max(info['render_cpu_seconds'], 1e-9):.1f} rig frames per CPU second, "

