@@ -246,17 +246,15 @@ class Tracker:
         regions where the global pose puts them; -1: ignore the region models).
         None: 2, and 4 for the region models trained on crops that follow their centroid
         (``AppearanceModel(centre_eyes=True)``: the box alignment reads the eye's displacement,
-        a few pixels, from a start at the global pose; those regions' counts are in ``region_steps``;
-        the batched path gives every region 4 then).
+        a few pixels, from a start at the global pose; those regions' counts are in ``region_steps``).
     global_weight : float
         Weight of the global model's reading in the points the region models
         read: ``(1 - w) region + w global``. The two read the same pixels with
         models trained on the same labels but err differently (the region
         model has fewer pixels and a translation of its own, the global one a
-        whole face of context), so a blend has less error than either: on
-        ``franck.mp4`` own error 0.0093 with the regions alone, 0.0083 with
-        ``w = 0.3`` (``docs/tracker.md``); on synthetic footage the regions
-        alone are a little better (NME 0.0032 against 0.0037, seed 0).
+        whole face of context), so a blend has less error than either on real
+        footage; on synthetic footage the regions alone are a little better
+        (measured in ``docs/tracker.md``).
     lip_stretch : float
         The lip regions are read together (:meth:`read_lips`): besides each lip's translation,
         their boxes share a horizontal stretch and a tilt, each at most this fraction (0: the lips
@@ -633,9 +631,7 @@ class Tracker:
         they share its width and tilt (estimated apart on ``franck.mp4`` they correlate 0.95).
         Why (``docs/tracker.md``): a smile or a pucker widens or narrows the mouth beyond what
         twelve labelled frames span, and the lower face shears against the global affine when the
-        head turns and tilts; the regions' PCA read both as smaller changes of shape (on
-        ``franck.mp4`` the track's mouth width moved 0.88 times as much as MediaPipe's, dlib's
-        0.97). The vertical stretch is left out: the lips' opening is the shape modes' to read.
+        head turns and tilts; the regions' PCA read both as smaller changes of shape. The vertical stretch is left out: the lips' opening is the shape modes' to read.
         """
         pts = self._run_tables(self._group_tables[tuple(rm.name for rm in rms)], pyr, pose, patch)
         return [pts[i, :len(rm.points)].copy() for i, rm in enumerate(rms)]
