@@ -208,6 +208,11 @@ class _RegionTables:
         self.scatter = np.zeros((n_points, n_reg * pmax))
         for r, rm in enumerate(regions):
             self.scatter[rm.points, r * pmax + np.arange(len(rm.points))] = 1.0
+        # what refine_regions takes: the constant tables and the work arrays
+        self.tables = (self.groups, self.geo, self.box_cx, self.index, self.mean_i, self.xc, self.qt, self.coef,
+                       self.inv_var, self.mean_l, self.ul, self.lims)
+        self.work = (self.crop, self.gxy, self.e, self.jac, self.qj, self.qe, self.best_qe, self.hess, self.grad,
+                     self.sol, self.t, self.pts)
 
 
 class Tracker:
@@ -337,6 +342,8 @@ class Tracker:
         self._read_inv_var = 1.0 / m.explained_variance_
         self._read_index = m.index_.astype(np.int64)
         self._read_e, self._read_c, self._read_shape = np.zeros(len(m.index_)), np.zeros(m.k_), np.zeros(2 * m.n_points)
+        self._reading = (self._read_index, self._read_mean_i, self._read_mat, self._read_gram, self._read_ul,
+                         self._read_mean_l, self._read_inv_var)
         regions = list(m.region_models_)
         if region_step not in ("inverse", "forward"):
             raise InputError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
@@ -422,14 +429,14 @@ class Tracker:
         """
         lv = self.levels[-1]
         a = np.asarray(pose, np.float64)
-        gxy, e, jac, qe, qj, hess, rhs, sol = self._polish_work
+        sol = self._polish_work[-1]
+        level = (lv.index, lv.qt, lv.template, lv.xx, lv.yy)
         best_r, its = None, 0
         prev = prev_patch = None                            # the last pose kept and its patch
         self._polished = None
         for _ in range(self.n_polish):
             patch = warp_patch_u8(pyr, a, lv.size)
-            r, ok = polish_step(patch, lv.index, lv.qt, lv.template, lv.xx, lv.yy, gxy, e, jac, qe, qj, hess, rhs,
-                                sol)
+            r, ok = polish_step(patch, level, self._polish_work)
             if best_r is not None and r >= best_r:
                 a = prev
                 self._polished = (pyr, a.tolist(), prev_patch)   # read() at this pose samples the same patch
@@ -484,9 +491,7 @@ class Tracker:
         else:
             patch = warp_patch_u8(pyr, pose, m.patch_size_)
         flat = self._read_shape
-        r, self._contrast, self._m2 = read_global(patch, self._read_index, self._read_mean_i, self._read_mat,
-                                                  self._read_gram, self._read_ul, self._read_mean_l,
-                                                  self._read_inv_var, self._read_e, self._read_c, flat)
+        r, self._contrast, self._m2 = read_global(patch, self._reading, (self._read_e, self._read_c, flat))
         shape = flat.reshape(-1, 2).copy()
         if m.region_models_ and self.region_iter >= 0:
             hit, reg = self.read_regions(pyr, pose, patch)
@@ -529,9 +534,7 @@ class Tracker:
             img = pyr.window(lvl, math.floor(lx0) - 2, math.floor(ly0) - 2, math.ceil(lx1) + 3, math.ceil(ly1) + 3)
         else:
             img = pyr[lvl]
-        m2 = refine_regions(img, f, pose.ravel(), patch, tb.groups, tb.geo, tb.box_cx, tb.index, tb.mean_i, tb.xc,
-                            tb.qt, tb.coef, tb.inv_var, tb.mean_l, tb.ul, tb.lims, tb.crop, tb.gxy, tb.e, tb.jac, tb.qj,
-                            tb.qe, tb.best_qe, tb.hess, tb.grad, tb.sol, tb.t, tb.pts)
+        m2 = refine_regions(img, f, pose.ravel(), patch, tb.tables, tb.work)
         self._m2 = max(self._m2, m2)
         return tb.pts
 

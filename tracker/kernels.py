@@ -274,8 +274,7 @@ def _box_normal_equations(gxy, idx, k, xc, stretch, qt, q, e, qe, jac, qj, at, s
 
 
 @njit(**_JIT)
-def refine_regions(img, f, pose, patch, groups, geo, box_cx, index, mean_i, xc, qt, coef, inv_var, mean_l, ul,
-                   lims, crop, gxy, e, jac, qj, qe, best_qe, hess, grad, sol, t, pts):
+def refine_regions(img, f, pose, patch, tables, work):
     """Refine and read region models' boxes in the model frame: Gauss-Newton on each group's summed
     distance from its regions' appearance subspaces, then the eigen-points at the best motion.
 
@@ -293,6 +292,8 @@ def refine_regions(img, f, pose, patch, groups, geo, box_cx, index, mean_i, xc, 
     model-frame patch at ``pose``, ``image_from_model`` (6,)), later ones sample ``img`` (the pyramid
     level of scale ``f = 0.5 ** level``) at ``pose ∘ box motion``.
 
+    ``tables`` is ``(groups, geo, box_cx, index, mean_i, xc, qt, coef, inv_var, mean_l, ul, lims)``, ``work``
+    ``(crop, gxy, e, jac, qj, qe, best_qe, hess, grad, sol, t, pts)``.
     Tables (regions in order, padded): ``geo`` (r, 6) box ``x0, y0, w, h``, ``n`` pixels and ``q`` basis rows, ``box_cx``
     (r,) the box centre's x from its corner; ``index`` (r, n) flat pixel indices in the box; ``mean_i``, ``xc``
     (r, n); ``qt`` (r, q, n); ``coef`` (r, c, q) = ``pinv_i Q`` (coefficients from ``Qᵀe``);
@@ -302,6 +303,8 @@ def refine_regions(img, f, pose, patch, groups, geo, box_cx, index, mean_i, xc, 
     (8,) (up to 3 lips). Outputs: ``t`` (r, 4) each box's ``t_x, t_y, s, k``; ``pts`` (r, p, 2) each region's
     points in the model frame (zero past its own). Returns the largest ``mean c²/λ``.
     """
+    groups, geo, box_cx, index, mean_i, xc, qt, coef, inv_var, mean_l, ul, lims = tables
+    crop, gxy, e, jac, qj, qe, best_qe, hess, grad, sol, t, pts = work
     a00, a01, a02, a10, a11, a12 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5]
     d = 0.5 * f - 0.5                 # the level's pixel centres: x_l = f x_0 + 0.5 f - 0.5
     lim, slim = lims[0], lims[1]
@@ -420,7 +423,7 @@ def refine_regions(img, f, pose, patch, groups, geo, box_cx, index, mean_i, xc, 
 
 
 @njit(**_JIT)
-def polish_step(patch, index, qt, template, xx, yy, gxy, e, jac, qe, qj, hess, rhs, sol):
+def polish_step(patch, level, work):
     """One forward-compositional Gauss-Newton evaluation of the pose polish at a model-frame ``patch``.
 
     ``e`` the normalised error against ``template`` at the pixels ``index``, ``Qᵀe`` (``qt`` the
@@ -428,8 +431,12 @@ def polish_step(patch, index, qt, template, xx, yy, gxy, e, jac, qe, qj, hess, r
     six affine parameters ``(gx x, gy x, gx y, gy y, gx, gy)/(8σ)`` (3x3 Sobel gradients of the patch
     at pixel ``(x, y)``), and the step ``sol = (J⊥ᵀJ⊥)⁻¹ (QᵀJ)ᵀQᵀe - Jᵀe`` with ``J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀQᵀJ``
     (``1e-9`` on the diagonal, Gaussian elimination with partial pivoting). Returns ``(distance, ok)``;
-    ``ok`` False where the system is singular.
+    ``ok`` False where the system is singular. ``level`` is ``(index, qt, template, xx, yy)`` (the pixels'
+    flat indices in the patch and their x, y), ``work`` ``(gxy, e, jac, qe, qj, hess, rhs, sol)``, ``sol``
+    the step.
     """
+    index, qt, template, xx, yy = level
+    gxy, e, jac, qe, qj, hess, rhs, sol = work
     n = index.size
     h, w = patch.shape
     flat = patch.reshape(h * w)
@@ -539,12 +546,15 @@ def polish_step(patch, index, qt, template, xx, yy, gxy, e, jac, qe, qj, hess, r
 
 
 @njit(**_JIT)
-def read_global(patch, index, mean_i, pinv, gram, basis, mean_l, inv_var, e, c, shape):
+def read_global(patch, reading, work):
     """The global eigen-points reading of a model-frame ``patch``: coefficients ``c = pinv_I e`` of the
     normalised error ``e`` (``mean_i`` the mean appearance), landmarks ``shape`` (flat, ``mean_l + basis c``
     with ``basis`` (2 n_points, k)) and ``(residual, σ, mean c²/λ)``, the residual ``|e - U_I c|²/n``
     expanded as ``(|e|² - 2 cᵀU_Iᵀe + cᵀ(U_IᵀU_I)c)/n``. ``pinv`` (2k, n) stacks ``pinv_I`` over ``U_Iᵀ``;
-    ``gram`` is ``U_IᵀU_I``, ``inv_var`` (k,) the components' ``1/λ``."""
+    ``gram`` is ``U_IᵀU_I``, ``inv_var`` (k,) the components' ``1/λ``. ``reading`` is ``(index, mean_i, pinv,
+    gram, basis, mean_l, inv_var)``, ``work`` ``(e, c, shape)``."""
+    index, mean_i, pinv, gram, basis, mean_l, inv_var = reading
+    e, c, shape = work
     n = index.size
     k = c.size
     sd, ee = _normalised_error(patch.reshape(patch.size), index, mean_i, e)
