@@ -14,7 +14,7 @@ take), each in float64 (the default, equal to a pair-by-pair evaluation of eqs. 
 rounding) and float32 (what ``keyshape mocap`` uses; within 5e-7 of the mesh's extent), then what the
 batched float32 frame is made of: the linear part alone (the fixed columns of the one sparse
 matrix, all frames of a chunk side by side) and the wedge part of eq. (10) (its factor ``D/d``
-is nonlinear in each frame's corner angles, so it is refilled and multiplied per frame).
+is nonlinear in each frame's corner angles: a compiled pass over the wedge pairs, 8 frames at a time).
 
     PYTHONPATH=. python bench/bench_mocap.py [--bones 100] [--frames 600] [--repeat 5] [--threads 1|0]
         [--compare OLD_planar_bones.py]
@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from keyshape.retarget.mocap.planar_bones import PlanarBones, _add_product  # noqa: E402
+from keyshape.retarget.mocap.planar_bones import PlanarBones  # noqa: E402
 from keyshape.retarget.mocap.triangulate import triangulate_markers  # noqa: E402
 from keyshape.base.formats.obj import read_obj_vertices  # noqa: E402
 
@@ -84,13 +84,11 @@ def linear_part(bones, frames, chunk=32):
 
 
 def wedge_part(bones, frames):
-    """The per-frame wedge part alone: refill ``w c D/d`` (eq. 10) and multiply, frame by frame."""
+    """The wedge pairs alone (eq. 10, the compiled pass), 8 frames at a time as ``deform_many`` does."""
     y, g = bones._y(frames)
-    nfc = bones._fixed_csr.shape[1]
-    out = np.zeros((bones.n_vertices_, 3), bones.dtype_)
-    for f in range(len(frames)):
-        bones._refill(g[f])
-        _add_product(bones._Tw, y[f, nfc:], out)
+    out = np.zeros((len(frames), bones.n_vertices_, 3), bones.dtype_)
+    for f0 in range(0, len(frames), 8):
+        bones._add_wedges(y[f0:f0 + 8], g[f0:f0 + 8], out[f0:f0 + 8])
     return out
 
 
@@ -156,7 +154,7 @@ def main(n_bones=100, n_frames=600, repeat=5, threads=True, seed=0, compare=None
     print(f"mesh {len(v)} vertices, {len(markers)} markers, {len(tri)} bones, "
           f"{len(b64.pair_weight_)} vertex-bone pairs ({b64.bound_.sum()} vertices bound, "
           f"{len(b64._wedge_corner)} of the pairs in wedges); helper thread: {threads}")
-    print(f"sparse matrix: {b64._fixed_csc.nnz} fixed entries + {2 * len(b64._wedge_corner)} wedge entries; "
+    print(f"sparse matrix: {b64._fixed_csc.nnz} fixed entries, {len(b64._wedge_corner)} wedge pairs apart; "
           f"float32 vs float64 max difference {err:.2g} (mesh extent {np.abs(v).max():.1f})")
     print(f"bind: {t_bind:.2f} s")
     print(f"{'per frame':46s} {'wall ms':>8s} {'cpu ms':>8s}   {'x plain (wall)':>14s} {'x plain (cpu)':>13s}")

@@ -5,10 +5,10 @@ its labels (timed) and reports frames/s of decode-only, of decode + tracking
 (decoding in a background thread, the default) and their ratio, and the same
 without the decode thread, and the CPU time per frame of each (``time.process_time``), and on
 synthetic footage the track's NME against the true points;
-then the tracker with the region models' forward-additive steps (the default) against the
-inverse-compositional ones, and the forward steps of all regions at once (``Tracker(region_step=...,
-batch_regions=...)``, thread CPU time on the same decoded frames, interleaved),
-and the command-level ratio: ``keyshape track`` run as a command (imports and model loading
+then the tracker with the region models' forward-additive steps (the default, compiled) against the
+inverse-compositional ones (``Tracker(region_step="inverse")``, thread CPU time on the same decoded frames,
+interleaved), the compiled kernels' first-run compile time (a fresh process with an empty numba cache,
+then one that loads them from it), and the command-level ratio: ``keyshape track`` run as a command (imports and model loading
 included) against decoding the same file, with one job and with ``--jobs 2`` (two worker processes
 tracking halves of the video, stitched). The load average is printed beside the figures.
 Prints ratios, never asserts times.
@@ -44,8 +44,7 @@ def _decode_rate(video, **reader) -> tuple[float, float]:
 
 def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
     """Thread CPU seconds per frame of ``Tracker.step`` with the region models' steps forward-additive (the
-    default), inverse-compositional, and forward-additive all at once (``batch_regions=True``), on the same
-    decoded frames (interleaved, best of ``reps``)."""
+    default) and inverse-compositional, on the same decoded frames (interleaved, best of ``reps``)."""
     from keyshape.base.formats.video import VideoReader
     from keyshape.tracker.fitting import Tracker, single_threaded
 
@@ -54,7 +53,7 @@ def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
         if i >= n_frames:
             break
         frames.append(f)
-    options = {"forward": {}, "inverse": {"region_step": "inverse"}, "batched": {"batch_regions": True}}
+    options = {"forward": {}, "inverse": {"region_step": "inverse"}}
     out = {k: float("inf") for k in options}
     with single_threaded():
         for _ in range(reps):
@@ -65,6 +64,32 @@ def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
                     tr.step(f, i)
                 out[k] = min(out[k], (time.thread_time() - c0) / len(frames))
     return out
+
+
+_FIRST_STEPS = """
+import itertools, sys, time
+from keyshape.base.formats.video import VideoReader
+from keyshape.tracker.eigenpoints import AppearanceModel
+from keyshape.tracker.fitting import Tracker
+model = AppearanceModel.load(sys.argv[1])
+frames = [f for _, f in itertools.islice(VideoReader(sys.argv[2], gray=True, luma=True), 2)]
+tracker = Tracker(model)
+t0 = time.perf_counter()
+tracker.step(frames[0])
+t1 = time.perf_counter()
+tracker.step(frames[1])
+print(t1 - t0, time.perf_counter() - t1)
+"""
+
+
+def _compile_time(model_path, video) -> tuple[float, float, float]:
+    """Seconds of a fresh process's first ``Tracker.step`` with an empty numba cache (the kernels compiled),
+    the same with the cache that run wrote (loaded), and a second step's (neither)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        runs = [subprocess.run([sys.executable, "-c", _FIRST_STEPS, str(model_path), str(video)], env=env,
+                               check=True, capture_output=True, text=True).stdout.split() for _ in range(2)]
+    return float(runs[0][0]), float(runs[1][0]), float(runs[1][1])
 
 
 def _nme(tracks, truth, scheme) -> float:
@@ -104,6 +129,7 @@ def main() -> None:
         # the command as a user runs it: a fresh process, imports and the model file included
         model_path = Path(tmp) / "model.npz"
         model.save(model_path)
+        compiled, cached, plain = _compile_time(model_path, video)
         t_cmd = {}
         for jobs in (1, 2):      # one process, and two worker processes on chunks of the video (--jobs 2)
             t0 = time.perf_counter()
@@ -120,6 +146,8 @@ def main() -> None:
         print(f"video {video.name}: {n} frames {info.width}x{info.height}; load average {load0:.2f} at the start, "
               f"{load1:.2f} at the end (2 cores: above 2 the figures are slowed by other work)")
         print(f"training on {len(model.train_poses_)} labels: {t_train:.1f} s")
+        print(f"first run's compile time: a fresh process's first frame {compiled:.2f} s with an empty numba cache "
+              f"(the kernels compiled), {cached:.2f} s with the cache it wrote, {1e3 * plain:.1f} ms for the next frame")
         if truth is not None:
             print(f"synthetic NME of the track (mean point error / inter-ocular distance): "
                   f"{_nme(Path(tmp) / 'tracks.csv', truth, model.scheme_):.5f}")
@@ -137,11 +165,9 @@ def main() -> None:
         print(f"CPU per frame: decode only {1e3 * cpu_decode:.3f} ms; decode + track {1e3 * cpu_thread:.3f} ms "
               f"(without the decode thread {1e3 * cpu_plain:.3f} ms); tracking alone about "
               f"{1e3 * (cpu_plain - cpu_decode):.3f} ms")
-        print(f"tracker step, thread CPU per frame: region steps forward-additive (default) "
+        print(f"tracker step, thread CPU per frame: region steps forward-additive (default, compiled) "
               f"{1e3 * modes['forward']:.3f} ms; inverse-compositional (region_step='inverse') "
-              f"{1e3 * modes['inverse']:.3f} ms (speed ratio {modes['forward'] / modes['inverse']:.2f}); forward, all "
-              f"regions at once (batch_regions=True) {1e3 * modes['batched']:.3f} ms "
-              f"(ratio {modes['forward'] / modes['batched']:.2f})")
+              f"{1e3 * modes['inverse']:.3f} ms (speed ratio {modes['forward'] / modes['inverse']:.2f})")
 
 
 if __name__ == "__main__":

@@ -116,10 +116,8 @@ def _prefetched(items, depth: int = 8, batch: int = 4):
 
     The producer hands them over in lists of ``batch`` (the queue holds ``depth // batch`` lists, so
     with the list being filled and the one being consumed up to ``depth + 2 * batch`` items are held):
-    each hand-over wakes the other thread and passes the GIL back and forth, which cost the consumer
-    (the tracker) about 130 µs of CPU a frame handed over one at a time against about 55 µs in lists
-    of 4, and the process about 0.4 ms of CPU a frame in all (issue 26; 640x480 frames, a simulated
-    1.5 ms step, loaded 2-core machine). The producer's exceptions are re-raised in the consumer
+    each hand-over wakes the other thread and passes the GIL back and forth, so lists cost the consumer
+    (the tracker) less CPU a frame than single items (measured in ``docs/benchmarks.md``). The producer's exceptions are re-raised in the consumer
     after the items produced before them; leaving the loop early (``break``, Ctrl-C, an error) stops
     the producer and closes ``items`` in its thread.
     """
@@ -232,9 +230,8 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     try:
         # OpenCV and BLAS single-threaded while tracking (issue 16: less CPU per frame, the
         # same points); restored when the loop ends or the generator is closed. The tracker is built
-        # there too: its QR factorisations of a few thousand by a dozen took 0.18 s of wall time
-        # each with OpenBLAS's threads on a loaded 2-core machine against 2 ms on one (issue 26;
-        # the same factors, bit for bit, on the synthetic and franck.mp4 models)
+        # there too: its QR factorisations of a few thousand by a dozen are far slower with OpenBLAS's
+        # threads on a loaded machine than on one (docs/benchmarks.md; the same factors, bit for bit)
         with single_threaded():
             tracker = Tracker(model, **(tracker_options or {}))
             frames = _prefetched(_with_gray(reader, start)) if decode_thread else ((i, f, f) for i, f in reader)

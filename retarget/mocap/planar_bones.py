@@ -62,23 +62,19 @@ Every (vertex, bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)
 every origin and frame row is a control point, a difference of two, or one of the unit
 vectors ``n, m_0, m_1, m_2`` of its bone. So for frame ``t``, with
 ``Y = [control points; n of every bone; m_i of every bone corner; m_i + m_{i-1}; m_{i-1}]``
-(``n_controls + 10 n_bones`` rows), ``deform = T @ Y + still`` where the sparse ``T``
-(n_vertices x that, CSC) is built once at fit (bind) time (a vertex's entries on a shared control
-point merged). This is the "fixed matrix of weighted local coordinates times each frame's bone
-frames" of linear skinning, except for one genuinely nonlinear part: in a wedge ``R_C,i`` the
+(``n_controls + 10 n_bones`` rows), everything outside the wedges is ``T @ Y + still`` where the sparse
+``T`` (n_vertices x ``n_controls + 4 n_bones``, CSC) is built once at fit (bind) time (a vertex's entries
+on a shared control point merged). This is the "fixed matrix of weighted local coordinates times each
+frame's bone frames" of linear skinning, except for one genuinely nonlinear part: in a wedge ``R_C,i`` the
 factor ``D/d`` of eq. (10) depends on the pair's own ``(c_1, c_2)`` and on the deformed corner
 angle, ``d = sqrt((c_1 - c_2)^2 + 2 c_1 c_2 (1 + m_i' . m_{i-1}'))``, with no finite set of
 per-frame columns that reproduces it exactly (it is not separable in the pair and the frame).
-So the wedge entries (``w c_1 D/d`` and ``w c_2 D/d``) live on the two extra copies of the
-``m`` rows, with the pairs sorted by bone corner, so they form the last two blocks of ``T``'s
-data in the same pair order: per frame one dot product per bone corner (vectorised over
-bones), one square root per wedge pair and two divisions refill them in place, and a frame is
-one sparse product, accumulated onto the start value; with a second core a helper thread
-multiplies the fixed columns while the wedge block is refilled and multiplied. ``deform_many``
-does the fixed columns of ``T`` for 32 frames at once (the frames side by side as columns of
-the right-hand side, where scipy's sparse product costs about a third as much per frame as
-with 3 columns) and only the wedge block per frame (its lengths ``d`` for 8 frames in one pass of
-each operation), the two halves of the take in two threads.
+The wedge pairs, sorted by bone corner, are one compiled pass (numba, cached on disk) that reads each
+pair's constants once for several frames and adds ``(w c_1 D/d) (m_i' + m_{i-1}') + (w (c_2 - c_1) D/d)
+m_{i-1}'`` to its vertex: one square root and two divisions per pair and frame. ``deform_many`` does the
+fixed columns of ``T`` for 32 frames at once (the frames side by side as columns of the right-hand side,
+where scipy's sparse product costs about a third as much per frame as with 3 columns) and the wedge
+pairs 8 frames at a time, the two halves of the take in two threads.
 
 *Displacement form and precision.* The fixed columns act on ``Y - Y_rest`` and the start value
 is ``still + T_fixed Y_rest`` (the same sum regrouped, formed in float64 at bind time), so the
@@ -93,6 +89,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 from scipy.spatial import cKDTree
 
 from keyshape.base.errors import InputError, NotFittedError
@@ -102,7 +99,7 @@ try:  # out += A @ X for a CSC A, in place (scipy's own kernel behind ``A @ X``;
 except ImportError:  # pragma: no cover - a scipy without it: the public product below
     _csc_matvecs = None
 
-#: frames whose wedge lengths ``d`` (eq. 10) deform_many computes in one pass (8 x 140k pairs of float32: 4.5 MB)
+#: frames whose wedge pairs (eq. 10) deform_many evaluates in one pass over the pairs
 _WEDGE_FRAMES = 8
 N_SLOTS = 7  # per bone: A, B_0, B_1, B_2, C_0, C_1, C_2
 REGION_NAMES = ("A", "B0", "B1", "B2", "C0", "C1", "C2")
@@ -396,43 +393,27 @@ class PlanarBones:
         fdata = np.bincount(inv, weights=vals, minlength=len(uniq))
         frows = (uniq % nv).astype(np.int32)
         findptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // nv, minlength=n_fixed_cols))])
-        # The wedge entries (w c_1 D/d on m_i + m_{i-1}, w (c_2 - c_1) D/d on m_{i-1}; eq. 10) change every frame.
-        # Pairs sorted by (bone corner, vertex): the (m_i + m_{i-1}) rows' columns then hold them in that order
-        # and the m_{i-1} rows' columns hold them again in the same order, so the two blocks at
-        # the end of the CSC data are refilled in place, no gather, from one factor per pair.
+        # The wedge pairs (w c_1 D/d on m_i + m_{i-1}, w (c_2 - c_1) D/d on m_{i-1}; eq. 10) change every frame:
+        # evaluated per frame by _add_wedges, the pairs sorted by (bone corner, vertex) so that each corner's
+        # pairs are one run and their vertices ascend.
         wi = np.flatnonzero(wedge)
         wcorner = 3 * pb[wi] + side[wi]                                           # which (bone, corner)
         worder = np.lexsort((pv[wi], wcorner))
         wi, wcorner = wi[worder], wcorner[worder]
-        wrows = pv[wi].astype(np.int32)
-        wcount = np.bincount(wcorner, minlength=3 * nb)
-        nf, npw = len(fdata), len(wi)
-        indptr = np.concatenate([findptr, nf + np.cumsum(wcount), nf + npw + np.cumsum(wcount)])
-        self._T = sp.csc_matrix((np.concatenate([fdata, np.zeros(2 * npw)]).astype(dt),
-                                 np.concatenate([frows, wrows, wrows]), indptr),
-                                shape=(nv, nc + 10 * nb))
-        self._wedge_data = (self._T.data[nf:nf + npw], self._T.data[nf + npw:])   # views, refilled
         D = self.pair_D_[wi]
         c1w, c2w = c1[wi], c2[wi]
         # w c D over d per frame, on the rows m_i + m_{i-1} and m_{i-1}: c_1 m_i + c_2 m_{i-1} =
         # c_1 (m_i + m_{i-1}) + (c_2 - c_1) m_{i-1}, whose terms do not cancel where the corner closes
         self._wedge_num = ((w[wi] * c1w * D).astype(dt), (w[wi] * (c2w - c1w) * D).astype(dt))
         self._wedge_corner = wcorner
+        self._wedge_rows = pv[wi].astype(np.int64)
+        self._wedge_ptr = np.concatenate([[0], np.cumsum(np.bincount(wcorner, minlength=3 * nb))]).astype(np.int64)
         # d^2 = sq + cross * (1 + g), no cancellation; sq at least the smallest normal number, so that with
         # 1 + g clamped at 0 per bone corner d^2 is positive for every pair without a clamp per pair
-        self._tiny = 1e-300 if dt == np.float64 else float(np.finfo(dt).tiny)
-        self._wedge_sq = np.maximum((c1w - c2w) ** 2, self._tiny).astype(dt)
+        tiny = 1e-300 if dt == np.float64 else float(np.finfo(dt).tiny)
+        self._wedge_sq = np.maximum((c1w - c2w) ** 2, tiny).astype(dt)
         self._wedge_cross = (2.0 * c1w * c2w).astype(dt)
-        self._wedge_count = wcount
-        # the same wedge columns alone, sharing the data (for deform_many, whose fixed part is
-        # done for many frames at once): rows n_controls + 4 n_bones on of Y
-        self._Tw = sp.csc_matrix((self._T.data[nf:], self._T.indices[nf:], self._T.indptr[n_fixed_cols:] - nf),
-                                 shape=(nv, 6 * nb))
-        self._Tw.data = self._T.data[nf:]                                           # a view, not a copy
-        if not np.shares_memory(self._Tw.data, self._wedge_data[0]) and npw:
-            raise RuntimeError("wedge matrices must share their data")
         self._fixed_csc = sp.csc_matrix((fdata, frows, findptr), shape=(nv, n_fixed_cols))
-        self._Tw_spare = None
         self.dtype_ = dt
         self.triangles_ = tri.astype(np.intp)
         # Displacement form: the fixed columns act on Y - Y_rest and the start value is
@@ -496,61 +477,41 @@ class PlanarBones:
         y = np.concatenate([c, n, m, m + mp, mp], axis=-2)
         return y, g.reshape(lead + (-1,))
 
-    def _inverse_d(self, g: np.ndarray) -> np.ndarray:
-        """``d`` of eq. (10) for every wedge pair, from ``g = 1 + m_i' . m_{i-1}'`` per bone corner: ``g`` of one
-        frame ``(3 n_bones,)`` gives ``(n_wedge_pairs,)``, of several frames ``(n, 3 n_bones)`` gives
-        ``(n, n_wedge_pairs)`` (all frames in one pass of each operation).
-
-        With unit rows ``m_i', m_{i-1}'`` the wedge length is
-        ``d = sqrt(c_1^2 + c_2^2 + 2 c_1 c_2 (m_i' . m_{i-1}')) = sqrt((c_1 - c_2)^2 + 2 c_1 c_2 g)``;
-        the second form has no cancellation (both terms >= 0; ``c_1, c_2 >= 0`` in a wedge) where
-        the deformed corner closes (``g -> 0``), which float32 needs. ``g`` is clamped at 0 per corner
-        (rounding), and the first term is at least the smallest normal number (bind time), so ``d > 0``.
-        """
-        k = np.repeat(np.maximum(g, 0), self._wedge_count, axis=-1)                    # pairs by corner
-        k *= self._wedge_cross
-        k += self._wedge_sq
-        np.sqrt(k, out=k)
-        return k
+    def _add_wedges(self, y: np.ndarray, g: np.ndarray, out: np.ndarray) -> None:
+        """``out += `` the wedge pairs' part (eq. 10) of frames ``y`` (n, rows of Y, 3), ``g`` (n, 3 n_bones)
+        (:meth:`_y`), ``out`` (n, n_vertices, 3)."""
+        if len(self._wedge_corner):
+            nfc = self._fixed_csc.shape[1]
+            nb3 = 3 * self.n_bones_
+            _add_wedges(out, y[:, nfc:nfc + nb3], y[:, nfc + nb3:], g, self._wedge_ptr, self._wedge_rows,
+                        self._wedge_sq, self._wedge_cross, self._wedge_num[0], self._wedge_num[1])
 
     def deform(self, control_points) -> np.ndarray:
         """Deformed mesh ``(n_vertices, 3)`` for one frame of the control surface ``(n_controls, 3)``.
 
-        The wedge entries of the one sparse matrix are refilled in place (eq. 10), then a frame is
-        one sparse product; with a second core (and ``self.threads``) a helper thread multiplies
-        the fixed columns meanwhile. Not safe to call from several threads on the same bones
-        (the wedge entries are shared state).
+        The fixed columns are one sparse product; the wedge pairs (eq. 10) are evaluated by a compiled
+        loop; with a second core (and ``self.threads``) a helper thread does the sparse product meanwhile.
         """
         c = self._check_controls(control_points)
         if c.ndim != 2:
             raise InputError(f"`control_points`: expected one frame (n_controls, 3), got {c.shape}; use deform_many")
         y, g = self._y(c)
         out = self._still.copy()
+        nfc = self._fixed_csc.shape[1]
         pool = _worker() if self.threads else None
         if pool is None or not len(self._wedge_corner):
-            self._refill(g)
-            _add_product(self._T, y, out)
+            _add_product(self._fixed_csc, y[:nfc], out)
+            self._add_wedges(y[None], g[None], out[None])
             return out
-        nfc = self._fixed_csc.shape[1]
         fixed = pool.submit(_add_product, self._fixed_csc, y[:nfc], out)    # fixed part meanwhile
-        self._refill(g)
-        wedge = self._Tw @ y[nfc:]
+        wedge = np.zeros_like(out)
+        self._add_wedges(y[None], g[None], wedge[None])
         fixed.result()
         out += wedge
         return out
 
-    def _refill(self, g: np.ndarray, data=None, d=None) -> None:
-        """Write this frame's wedge entries ``w c_1 D/d``, ``w c_2 D/d`` (eq. 10) in place into ``T``
-        (or into ``data``, the data of a copy of the wedge block); ``d``: this frame's, when already computed."""
-        if len(self._wedge_corner):
-            d = self._inverse_d(g) if d is None else d
-            npw = len(d)
-            targets = self._wedge_data if data is None else (data[:npw], data[npw:])
-            np.divide(self._wedge_num[0], d, out=targets[0])
-            np.divide(self._wedge_num[1], d, out=targets[1])
-
-    def _deform_range(self, y, g, out, start, stop, chunk, tw) -> None:
-        """Frames ``start:stop`` of ``deform_many`` into ``out``, refilling the wedge block ``tw``."""
+    def _deform_range(self, y, g, out, start, stop, chunk) -> None:
+        """Frames ``start:stop`` of ``deform_many`` into ``out``."""
         nfc = self._fixed_csr.shape[1]
         nv = self.n_vertices_
         for f0 in range(start, stop, chunk):
@@ -561,21 +522,19 @@ class PlanarBones:
             # the chunk at once (a strided pass per frame misses the cache on every vertex)
             for v0 in range(0, nv, 2048):
                 np.add(res[v0:v0 + 2048].transpose(1, 0, 2), self._still[v0:v0 + 2048], out=out[f0:f1, v0:v0 + 2048])
-            for w0 in range(f0, f1, _WEDGE_FRAMES) if len(self._wedge_corner) else ():
-                d = self._inverse_d(g[w0:min(w0 + _WEDGE_FRAMES, f1)])        # eq. (10)'s d, several frames at once
-                for f in range(w0, w0 + len(d)):
-                    self._refill(g[f], None if tw is self._Tw else tw.data, d[f - w0])
-                    _add_product(tw, y[f, nfc:], out[f])
+            for w0 in range(f0, f1, _WEDGE_FRAMES):
+                w1 = min(w0 + _WEDGE_FRAMES, f1)
+                self._add_wedges(y[w0:w1], g[w0:w1], out[w0:w1])
 
     def deform_many(self, control_points, chunk: int = 32) -> np.ndarray:
         """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``.
 
         The bone frames of all frames are one batched call; the fixed part of the map is one
         sparse product for ``chunk`` frames at a time (the frames side by side as the columns of
-        the right-hand side); only the wedge part (its factor differs per frame and pair) is
-        refilled and multiplied per frame. With a second core (and ``self.threads``, default
-        True) a helper thread does the second half of the take with its own copy of the wedge
-        block (scipy's sparse kernels release the GIL).
+        the right-hand side); the wedge pairs (their factor differs per frame and pair) are one
+        compiled pass over the pairs for a few frames at a time. With a second core (and
+        ``self.threads``, default True) a helper thread does the second half of the take (scipy's
+        sparse kernels and the compiled loop release the GIL).
         """
         c = self._check_controls(control_points)
         if c.ndim != 3:
@@ -584,16 +543,54 @@ class PlanarBones:
         out = np.empty((len(c), self.n_vertices_, 3), self.dtype_)
         pool = _worker() if self.threads else None
         if pool is None or len(c) < 2 * chunk:
-            self._deform_range(y, g, out, 0, len(c), chunk, self._Tw)
+            self._deform_range(y, g, out, 0, len(c), chunk)
             return out
-        # two halves of the take at once, the helper thread with its own copy of the wedge block
-        if self._Tw_spare is None:
-            self._Tw_spare = self._Tw.copy()
         mid = len(c) // 2
-        other = pool.submit(self._deform_range, y, g, out, mid, len(c), chunk, self._Tw_spare)
-        self._deform_range(y, g, out, 0, mid, chunk, self._Tw)
+        other = pool.submit(self._deform_range, y, g, out, mid, len(c), chunk)
+        self._deform_range(y, g, out, 0, mid, chunk)
         other.result()
         return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")     # numpy's model: divisions vectorise (d > 0 always)
+def _add_wedges(out, y_sum, y_prev, g, ptr, rows, sq, cross, num_sum, num_prev):
+    """``out[f, v] += (w c_1 D / d) (m_i' + m_{i-1}') + (w (c_2 - c_1) D / d) m_{i-1}'`` for every wedge pair of
+    every frame ``f`` (eq. 10; the pair's vertex ``v = rows[p]``, corner ``i`` of bone ``b``).
+
+    ``y_sum``, ``y_prev`` (n_frames, 3 n_bones, 3): ``m_i' + m_{i-1}'`` and ``m_{i-1}'`` of each bone corner;
+    ``g`` (n_frames, 3 n_bones): ``1 + m_i' . m_{i-1}'``; the pairs of corner ``k`` are ``ptr[k]:ptr[k + 1]``
+    with ``sq = (c_1 - c_2)^2``, ``cross = 2 c_1 c_2`` and the numerators ``num_sum = w c_1 D``,
+    ``num_prev = w (c_2 - c_1) D``. The wedge length ``d = sqrt(sq + cross max(g, 0))``
+    (:class:`PlanarBones`), computed in the arrays' precision.
+    """
+    n_frames = out.shape[0]
+    longest = 0
+    for k in range(ptr.size - 1):
+        longest = max(longest, ptr[k + 1] - ptr[k])
+    ks = np.empty(longest, sq.dtype)
+    kp = np.empty(longest, sq.dtype)
+    for k in range(ptr.size - 1):
+        p0, p1 = ptr[k], ptr[k + 1]
+        n = p1 - p0
+        # this corner's pairs as slices (indexed from 0: no test for negative indices in the loops)
+        sq_k, cross_k, ns_k, np_k, rows_k = sq[p0:p1], cross[p0:p1], num_sum[p0:p1], num_prev[p0:p1], rows[p0:p1]
+        for f in range(n_frames):
+            gk = g[f, k]
+            if gk < 0:
+                gk = gk * 0                     # (in the arrays' precision)
+            # the factors first, a loop without scatter (vectorised square roots and divisions)
+            for i in range(n):
+                d = np.sqrt(sq_k[i] + cross_k[i] * gk)
+                ks[i] = ns_k[i] / d
+                kp[i] = np_k[i] / d
+            u0, u1, u2 = y_sum[f, k, 0], y_sum[f, k, 1], y_sum[f, k, 2]
+            w0, w1, w2 = y_prev[f, k, 0], y_prev[f, k, 1], y_prev[f, k, 2]
+            o = out[f]
+            for i in range(n):
+                v = np.uint64(rows_k[i])        # unsigned: no test for a negative index
+                o[v, 0] += ks[i] * u0 + kp[i] * w0
+                o[v, 1] += ks[i] * u1 + kp[i] * w1
+                o[v, 2] += ks[i] * u2 + kp[i] * w2
 
 
 _POOL: ThreadPoolExecutor | None = None
