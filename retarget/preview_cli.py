@@ -14,7 +14,7 @@ def register(subparsers) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("video", help="the take's video")
     p.add_argument("--tracks", required=True, help="the take's tracks CSV (contours drawn on the footage)")
-    p.add_argument("--curves", help="rig curves CSV (frame,<rig shape>,...)")
+    p.add_argument("--curves", help="rig curves CSV (frame,time,<rig shape>,...)")
     p.add_argument("--weights", help="key weights CSV (keyshape decompose), with --poses")
     p.add_argument("--poses", help="POSES.json (keyshape pose), with --weights")
     p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE", help="the rig (folder of shape OBJs)")
