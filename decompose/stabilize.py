@@ -11,9 +11,8 @@ each frame is mapped by the similarity (rotation, uniform scale, translation; Um
 that brings its rigid points (the scheme's ``rigid``: the four eye corners of
 ``contours48``) onto their reference position, the take's per-point median.
 
-Measured on the synthetic takes of ``bench/rig_accuracy.py`` (seeds 11-13, tracked): the
-RMS error of the tracked eyes-and-brows points in the head frame against the truth went
-from 2.1-2.5 to 0.39-0.50 model units, the mouth's from 2.5-2.6 to 1.1-2.1 (``docs/decompose.md``).
+The head-frame error of the tracked points against the truth, with and without it, is measured
+by ``bench/rig_accuracy.py`` (docs/benchmarks.md, docs/decompose.md).
 """
 from __future__ import annotations
 

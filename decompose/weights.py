@@ -352,9 +352,8 @@ def nnls_result(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None
         Optional Tikhonov term ``ridge * (trace(G) / n_keys) * ||w_t||^2`` added to eq. (4)
         (0, the default, is the paper's NNLS). Tracked shapes carry noise, and NNLS explains
         it with extra weight on keys whose 2D deltas are small; a 3D target face shows those
-        weights as exaggerated expressions (depth motion the 2D contours hardly see). In
-        ``keyshape demo`` (20 labels, greedy k=8) ridge 0.03 lowers the target-face vertex
-        error from 1.08 to 0.68 mm. Where targets are exactly the 2D key shapes (the toy
+        weights as exaggerated expressions (depth motion the 2D contours hardly see); the
+        demo's figures with and without it are in docs/benchmarks.md. Where targets are exactly the 2D key shapes (the toy
         tracks of ``decompose.toy``) it only adds bias: leave it at 0 there.
 
     Returns

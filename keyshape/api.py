@@ -128,7 +128,7 @@ class Weights:
                              f"got {self.values.shape}")
 
     def save(self, path: str | Path) -> None:
-        """Write WEIGHTS.csv atomically (``%.6f``, the ``interpolated`` flag last, the frame rate in a leading comment)."""
+        """Write WEIGHTS.csv atomically (``%.6f``, the ``time`` column where ``fps`` is known, the ``interpolated`` flag last)."""
         from keyshape.base.formats.weights import write_weights
 
         write_weights(path, self.frames, list(self.names), self.values, self.interpolated, fps=self.fps)

@@ -544,13 +544,17 @@ def check_layout(m: Manifest, out: Path) -> None:
                 ours(tdir / OUTPUT_FILES[o], o in rec.get("outputs", {}) or o in rec.get("outputs_sha256", {}), who)
 
 
+#: how long ``--scheduler`` keeps trying to reach the scheduler before the one-line error
+CONNECT_TIMEOUT = "20s"
+
+
 def _client(scheduler: str | None, workers: int | None, processes: bool):
     from distributed import Client, LocalCluster
 
     if scheduler:
         check_scheduler(scheduler)
         try:
-            return Client(scheduler, timeout="20s"), None
+            return Client(scheduler, timeout=CONNECT_TIMEOUT), None
         except (OSError, TimeoutError, ValueError, TypeError) as exc:
             raise InputError(f"--scheduler {scheduler}: cannot connect "
                              f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None

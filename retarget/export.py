@@ -4,7 +4,7 @@
 ``OUT.glb``        glTF 2.0 binary: mesh, morph targets, weight + head animation (3D)
 ``OUT.usda/.usdc``  USD (also ``.usd``): the mesh with UsdSkel blend shapes, a head joint with the
                    head motion, the weights per time code (3D; needs ``keyshape[usd]``)
-``OUT.csv``        per-frame weights per target name (``frame,<name>,...``), or the
+``OUT.csv``        per-frame weights per target name (``frame,time,<name>,...``), or the
                    Live Link Face layout with ``livelink=True``
 ``OUT.mp4/.avi``   rendered animation: the drawn character (2D) or the shaded mesh (3D)
 ``OUT`` (folder)   one OBJ per frame (3D) or one PNG per frame (2D), written atomically
@@ -238,7 +238,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
                 wr.writerows(rows)
         else:
             from keyshape.retarget.retargeter import _unique
-            write_weights(path, frames, _unique(names, ts.columns), w)
+            write_weights(path, frames, _unique(names, ts.columns), w, fps=fps)
         return info
     out = rt.transform(weights, chunk_frames=chunk_frames)
     if kind == "obj_frames":

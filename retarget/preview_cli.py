@@ -13,7 +13,7 @@ def register(subparsers) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("video", help="the take's video")
     p.add_argument("--tracks", required=True, help="the take's tracks CSV (contours drawn on the footage)")
-    p.add_argument("--curves", required=True, help="rig curves CSV (frame,<rig shape>,...; the head's columns turn it)")
+    p.add_argument("--curves", required=True, help="rig curves CSV (frame,time,<rig shape>,...; the head's columns turn it)")
     p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE", help="the rig (folder of shape OBJs)")
     p.add_argument("--neutral", default=None, help="the rig's neutral OBJ (default: found in the folder)")
     p.add_argument("--frames", default=None, metavar="A:B", help="frame range, B exclusive (default: all)")

@@ -1,7 +1,7 @@
 """Write a rig's own curves (from a pose library) by the output's extension.
 
 =================  ==========================================================
-``OUT.csv``        ``frame,<rig shape names>`` (what DCC import scripts read), or the
+``OUT.csv``        ``frame,time,<rig shape names>`` (what DCC import scripts read), or the
                    Live Link Face layout with ``livelink=True``
 ``OUT.glb``        the rig's neutral with every rig shape that moves in the take (a curve
                    not 0 throughout) as a morph target, their curves as the weight
@@ -57,9 +57,9 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
             from keyshape.base.formats.weights import write_weights
             if head is not None:
                 write_weights(path, frames, list(rig.names) + list(HEAD_COLUMNS),
-                              np.concatenate([curves, head_columns(head)], 1))
+                              np.concatenate([curves, head_columns(head)], 1), fps=fps)
             else:
-                write_weights(path, frames, list(rig.names), curves)
+                write_weights(path, frames, list(rig.names), curves, fps=fps)
         return info
     if rig.mesh is None or not rig.mesh.polygons:
         raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)

@@ -149,8 +149,11 @@ def test_a_bad_scheduler_is_one_line_and_creates_nothing(small, tmp_path, capsys
     assert not out.exists()
 
 
-def test_an_unreachable_scheduler_is_one_line_and_creates_nothing(small, tmp_path, capsys):
+def test_an_unreachable_scheduler_is_one_line_and_creates_nothing(small, tmp_path, capsys, monkeypatch):
     import socket
+
+    import keyshape.batch
+    monkeypatch.setattr(keyshape.batch, "CONNECT_TIMEOUT", "1s")   # the same refusal, without 20 s of retries
     with socket.socket() as s:                                   # a free port nobody listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

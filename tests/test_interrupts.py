@@ -64,7 +64,7 @@ STRESS = textwrap.dedent("""
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 def test_sigterm_anywhere_in_the_decode_handover_neither_hangs_nor_leaves_threads():
-    n = 300
+    n = 100                             # the old hand-over failed one run in seven: 100 runs miss it with p < 1e-6
     proc = subprocess.run([sys.executable, "-c", STRESS, str(n), "7"], capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-2000:]
     stopped, left = map(int, proc.stdout.split())

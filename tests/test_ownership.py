@@ -49,7 +49,7 @@ def one_line_error(capsys) -> str:
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("own") / "d2"
-    assert main(["demo", str(d), "--frames", "40", "--labels", "6", "--keys", "3"]) == 0
+    assert main(["demo", str(d), "--frames", "10", "--labels", "4", "--keys", "2"]) == 0
     from keyshape.base.formats.keys import read_keys_source                # the demo's key set names its model
     assert read_keys_source(d / "keys.json")["model"].startswith("sha256:")
     return d
@@ -87,7 +87,7 @@ def test_demo_rerun_keeps_other_commands_files(d2):
     assert main(["retarget", str(d2 / "weights.csv"), "--targets", str(d2 / "targets"), "-o", str(d2)]) == 0
     frames = {k: v for k, v in tree(d2).items() if k.startswith("frame_")}
     (d2 / "notes.txt").write_text("mine")
-    assert main(["demo", str(d2), "--frames", "40", "--labels", "6", "--keys", "3"]) == 0
+    assert main(["demo", str(d2), "--frames", "10", "--labels", "4", "--keys", "2"]) == 0
     after = tree(d2)
     assert all(after.get(k) == v for k, v in frames.items())
     assert (d2 / "notes.txt").read_text() == "mine"
@@ -95,7 +95,7 @@ def test_demo_rerun_keeps_other_commands_files(d2):
 
 def test_compare_then_retarget_into_one_folder(d2, tmp_path):
     out = tmp_path / "out"
-    assert main(["compare", str(d2 / "tracks.csv"), "-o", str(out), "--kmax", "2"]) == 0
+    assert main(["compare", str(d2 / "tracks.csv"), "-o", str(out), "--kmax", "2", "--methods", "spread", "--region", "mouth"]) == 0
     before = tree(out)
     assert main(["retarget", str(d2 / "weights.csv"), "--targets", str(d2 / "targets"), "-o", str(out)]) == 0
     after = tree(out)
@@ -107,7 +107,7 @@ def test_compare_then_retarget_into_one_folder(d2, tmp_path):
 def test_compare_dot_inside_the_demo_folder(d2, monkeypatch):
     monkeypatch.chdir(d2)
     before = tree(d2)
-    assert main(["compare", "tracks.csv", "-o", ".", "--kmax", "2"]) == 0
+    assert main(["compare", "tracks.csv", "-o", ".", "--kmax", "2", "--methods", "spread", "--region", "mouth"]) == 0
     after = tree(d2)
     assert_kept(before, after, {MANIFEST})
     assert set(after) - set(before) == {"errors.csv", "errors.png"}

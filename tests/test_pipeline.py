@@ -103,8 +103,9 @@ def test_every_stage_api_and_command_with_no_options_give_the_same_files(take, t
 
 
 def test_the_take_frame_rate_travels_with_the_weights(tmp_path, capsys):
-    """WEIGHTS.csv carries the take's frame rate: ``retarget`` without ``--tracks`` keeps a 24 fps take at 24
-    fps (not 30); a file without the comment (older ones) still reads, at 30 fps."""
+    """WEIGHTS.csv carries the take's frame rate in its ``time`` column: ``retarget`` without ``--tracks``
+    keeps a 24 fps take at 24 fps (not 30); an older file with the rate in a leading comment reads at its
+    rate, and one with neither still reads, at 30 fps."""
     import pygltflib
 
     from keyshape import api
@@ -114,7 +115,7 @@ def test_the_take_frame_rate_travels_with_the_weights(tmp_path, capsys):
     regions = grid_targets(tmp_path / "targets", {"mouth": 2})
     w = api.Weights(np.arange(5), ["mouth_0", "mouth_1"], np.full((5, 2), 0.5), fps=24.0)
     w.save(tmp_path / "w.csv")
-    assert (tmp_path / "w.csv").read_text().startswith("# keyshape weights, fps=24\nframe,mouth_0,mouth_1,")
+    assert (tmp_path / "w.csv").read_text().startswith("frame,time,mouth_0,mouth_1,interpolated\n0,0.000000,")
     assert read_weights_fps(tmp_path / "w.csv") == 24.0 and api.Weights.load(tmp_path / "w.csv").fps == 24.0
     np.testing.assert_array_equal(read_weights(tmp_path / "w.csv").weights, w.values)
     (tmp_path / "r.json").write_text(json.dumps(regions))
@@ -123,8 +124,11 @@ def test_the_take_frame_rate_travels_with_the_weights(tmp_path, capsys):
     assert "at 24 fps" in capsys.readouterr().out
     assert pygltflib.GLTF2().load(str(tmp_path / "a.glb")).scenes[0].extras["fps"] == 24.0
     assert api.retarget(api.Weights.load(tmp_path / "w.csv"), tmp_path / "targets").fps == 24.0
+    commented = tmp_path / "commented.csv"          # the form keyshape wrote before the time column
+    commented.write_text("# keyshape weights, fps=24\nframe,mouth_0,mouth_1\n0,0.5,0.5\n1,0.5,0.5\n")
+    assert read_weights_fps(commented) == 24.0 and read_weights(commented).names == ["mouth_0", "mouth_1"]
     old = tmp_path / "old.csv"
-    old.write_text("\n".join((tmp_path / "w.csv").read_text().splitlines()[1:]) + "\n")
+    old.write_text("frame,mouth_0,mouth_1\n0,0.5,0.5\n1,0.5,0.5\n")
     assert read_weights_fps(old) is None and api.Weights.load(old).fps is None
     assert main(["retarget", str(old), "--targets", str(tmp_path / "targets"), "-o", str(tmp_path / "b.csv")]) == 0
     assert "at 30 fps" in capsys.readouterr().out

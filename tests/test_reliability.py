@@ -81,7 +81,9 @@ def _cases(work: Path, tmp: Path):
             vw.write(f)
     wl = _weights_text(work).splitlines()
     bad_w = wl[:]
-    bad_w[2] = ",".join([bad_w[2].split(",")[0], "1e300"] + bad_w[2].split(",")[2:])
+    col = 2 if wl[0].split(",")[1] == "time" else 1              # the first weight column
+    cells = bad_w[2].split(",")
+    bad_w[2] = ",".join(cells[:col] + ["1e300"] + cells[col + 1:])
     (tmp / "file").write_text("a file, not a folder")
     case_dir = tmp / "casedir"
     case_dir.mkdir()

@@ -1,4 +1,4 @@
-"""Blender script: key a mesh's shape keys from a keyshape curves CSV (``frame,<shape>,...``).
+"""Blender script: key a mesh's shape keys from a keyshape curves CSV (``frame,time,<shape>,...``).
 
 Run inside Blender (Text Editor, or headless)::
 
@@ -11,7 +11,8 @@ Every column whose name is a shape key of OBJECT (default: the active object, el
 mesh with shape keys) is keyed at every frame (``value`` of the shape key, linear
 interpolation); the slider range is widened to the values met. Unknown columns are listed
 and skipped. The scene's frame range is set to the CSV's frames and the frame rate to
-``--fps`` (default: the scene extras ``fps`` of an imported keyshape .glb, else 30).
+``--fps`` (default: the scene extras ``fps`` of an imported keyshape .glb, else the CSV's
+``time`` column, else 30).
 With ``--glb FILE`` the .glb is imported first (Blender's glTF importer) and its scene
 extras ``frame_start``/``frame_end``/``fps`` set the range. Needs no package beyond Blender.
 """
@@ -43,17 +44,21 @@ def read_curves(path):
         rows = list(csv.reader(f))
     head = [h.strip() for h in rows[0]]
     body = [r for r in rows[1:] if r and any(c.strip() for c in r)]
+    fps = None
     if head[0] == "frame":
         frames = [int(float(r[0])) for r in body]
-        cols = head[1:]
-        values = [[float(x) for x in r[1:]] for r in body]
+        first = 2 if head[1:2] == ["time"] else 1               # frame,time,<shape>,...
+        if first == 2 and len(body) > 1 and float(body[-1][1]) > float(body[0][1]):
+            fps = (frames[-1] - frames[0]) / (float(body[-1][1]) - float(body[0][1]))
+        cols = head[first:]
+        values = [[float(x) for x in r[first:]] for r in body]
     elif head[0] == "Timecode":                                 # Live Link Face: skip BlendShapeCount
         frames = list(range(len(body)))
         cols = head[2:]
         values = [[float(x) for x in r[2:]] for r in body]
     else:
         raise SystemExit(f"{path}: expected a 'frame,...' or Live Link 'Timecode,...' header")
-    return frames, cols, values
+    return frames, cols, values, fps
 
 
 def find_object(name):
@@ -78,9 +83,9 @@ def main():
         fps = ext.get("fps")
         if "frame_start" in ext:
             scene.frame_start, scene.frame_end = int(ext["frame_start"]), int(ext["frame_end"])
-    fps = float(o["fps"] or fps or 30)
+    frames, cols, values, csv_fps = read_curves(o["csv"])
+    fps = float(o["fps"] or fps or csv_fps or 30)
     scene.render.fps, scene.render.fps_base = round(fps), round(fps) / fps
-    frames, cols, values = read_curves(o["csv"])
     ob = find_object(o["object"])
     keys = ob.data.shape_keys.key_blocks
     used, skipped = [], []

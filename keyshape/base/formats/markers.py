@@ -14,8 +14,12 @@ Conventions
 * Frame counts come from the data, not ``POINT:FRAMES`` (an INT16 that overflows in
   long takes).
 
-CSV layout (read and written): a header ``frame,time,<label>_x,<label>_y,<label>_z,...``
-and optional first comment lines ``# rate=120`` and ``# units=mm``.
+CSV layout (read and written): a header ``frame,time,<label>_x,<label>_y,<label>_z,...`` on the
+first line (``csv.DictReader`` and pandas read it with their defaults). The rate and the units go
+to a sidecar ``NAME.meta.json`` beside ``NAME.csv`` (``{"keyshape_markers": 1, "csv_sha256": ...,
+"rate": 120, "units": "mm"}``, tied to one version of the CSV by its hash, as the tracks' sidecar);
+without it the rate comes from the time column and the units are mm. Older files' first comment
+lines ``# rate=120`` and ``# units=mm`` are read too.
 
 Markers on a mesh (JSON, :func:`read_mesh_markers` / :func:`write_mesh_markers`): where each
 marker sits on a face mesh, ``{"name": vertex index or [x, y, z], ...}`` (a bare list is
@@ -24,6 +28,7 @@ named ``"0"``, ``"1"``...); ``keyshape register --out-markers`` writes placed ma
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import warnings
@@ -34,6 +39,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.base.files import atomic_path, atomic_write, read_json, write_json
+from keyshape.base.formats.tracks import rate_from_times
 
 
 @dataclass
@@ -445,18 +451,49 @@ def write_trc(path, markers: Markers) -> None:
 
 
 # ---------------------------------------------------------------------------------------- CSV
+#: key that marks a JSON file as a marker CSV's sidecar written by keyshape
+CSV_META_KEY = "keyshape_markers"
+
+
+def _csv_meta_path(path: Path) -> Path:
+    return path.with_name(path.stem + ".meta.json")
+
+
 def write_csv(path, markers: Markers) -> None:
-    """Write ``frame,time,<label>_x,...`` with ``# rate=`` and ``# units=`` comment lines, atomically."""
+    """Write ``frame,time,<label>_x,...`` and the sidecar ``NAME.meta.json`` (rate, units), atomically."""
     nf = markers.n_frames
     head = "frame,time," + ",".join(f"{s}_{a}" for s in markers.labels for a in "xyz")
     cells = _fmt(markers.positions.reshape(nf, -1))
     body = [",".join([str(i), f"{t:.6f}", *row]) for i, (t, row) in enumerate(zip(markers.times, cells))]
-    with atomic_write(path) as f:
-        f.write(f"# rate={markers.rate:g}\n# units={markers.units}\n{head}\n" + "\n".join(body) + "\n")
+    text = f"{head}\n" + "\n".join(body) + "\n"
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="\n", encoding="utf-8") as f:     # the bytes on disk are the text hashed
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        write_json(_csv_meta_path(path), {CSV_META_KEY: 1, "csv_sha256": hashlib.sha256(text.encode()).hexdigest(),
+                                          "rate": float(markers.rate), "units": markers.units})
+
+
+def _read_csv_meta(path: Path) -> dict:
+    """The sidecar's ``rate``/``units`` for the marker CSV ``path`` ({} if none, not keyshape's, or stale)."""
+    side = _csv_meta_path(path)
+    if not side.is_file():
+        return {}
+    meta = read_json(side, "marker CSV sidecar")
+    if not isinstance(meta, dict) or CSV_META_KEY not in meta:
+        return {}
+    if meta.get("csv_sha256") != hashlib.sha256(path.read_bytes()).hexdigest():
+        warnings.warn(f"{side}: written for another version of {path.name} (the CSV changed since); "
+                      "its rate and units are ignored", stacklevel=3)
+        return {}
+    return {k: str(meta[k]) for k in ("rate", "units") if k in meta}
 
 
 def read_csv(path, rate: float | None = None, units: str | None = None, duplicates: str = "error") -> Markers:
-    """Read the CSV layout written by :func:`write_csv` (``rate`` from a comment or the time column)."""
+    """Read the CSV layout written by :func:`write_csv` (``rate`` and ``units`` from the sidecar or an
+    older file's comments, else the rate from the time column and mm)."""
     path = require_file(path, "CSV file")
     lines = path.read_text(errors="replace").splitlines()
     meta, start = {}, 0
@@ -465,6 +502,8 @@ def read_csv(path, rate: float | None = None, units: str | None = None, duplicat
         if m:
             meta[m.group(1).lower()] = m.group(2)
         start += 1
+    if not start:
+        meta = _read_csv_meta(path)
     if start >= len(lines):
         raise InputError("no header row", path)
     head = [s.strip() for s in lines[start].split(",")]
@@ -482,9 +521,9 @@ def read_csv(path, rate: float | None = None, units: str | None = None, duplicat
             raise InputError(f"broken data row: expected {len(head)} numbers", path, start + 2 + r) from None
     if rate is None:
         rate = float(meta["rate"]) if "rate" in meta else (
-            1.0 / float(np.median(np.diff(data[:, 1]))) if len(rows) > 1 else None)
+            rate_from_times(len(rows) - 1, float(data[-1, 1] - data[0, 1])) if len(rows) > 1 else None)
     if not rate or not rate > 0:
-        raise InputError("frame rate unknown: add '# rate=120' or a time column", path)
+        raise InputError("frame rate unknown: give the time column (seconds) of at least two frames", path)
     fr = data[:, 0]
     if not np.isfinite(fr).all() or (np.diff(fr) != 1).any():
         raise InputError("frame numbers must be unique, sorted and contiguous", path)

@@ -219,31 +219,57 @@ def read_obj_vertices(path: str | Path, n_vertices: int | None = None) -> np.nda
     return v
 
 
+def _rows(fmt: str, a: np.ndarray) -> str:
+    """``fmt % row`` for every row of ``a``, joined by new lines (one C-level format for all rows)."""
+    a = np.asarray(a)
+    return ((fmt + "\n") * len(a) % tuple(a.ravel().tolist()))[:-1] if len(a) else ""
+
+
+def _face_lines(mesh: Mesh) -> str:
+    """The ``g``/``f`` lines of ``mesh`` (one-based indices; ``v/vt`` where the face has UVs): runs of
+    faces of one size, with or without UVs, between group changes are formatted at once."""
+    polys = mesh.polygons
+    uvs = mesh.polygon_uvs or [None] * len(polys)
+    n = min(len(polys), len(uvs))
+    if n == 0:
+        return ""
+    names = list(mesh.groups)
+    gi = np.full(n, -1)
+    for j, faces in enumerate(mesh.groups.values()):    # a face in several groups: the last one's
+        f = np.asarray(faces, dtype=np.int64)
+        gi[f[(f >= 0) & (f < n)]] = j
+    # a "g" line where a face's group differs from the last group named (faces of no group name none)
+    named = np.flatnonzero(gi >= 0)
+    g_at = named[np.r_[True, gi[named][1:] != gi[named][:-1]]] if len(named) else named
+    size = np.fromiter((len(p) for p in polys[:n]), dtype=np.int64, count=n)
+    has_uv = np.fromiter((t is not None for t in uvs[:n]), dtype=bool, count=n)
+    cut = np.flatnonzero(np.r_[True, (size[1:] != size[:-1]) | (has_uv[1:] != has_uv[:-1])])
+    starts = np.union1d(cut, g_at)
+    g_set = set(g_at.tolist())
+    lines = []
+    for s, e in zip(starts.tolist(), [*starts[1:].tolist(), n]):
+        if s in g_set:
+            lines.append(f"g {names[gi[s]]}")
+        k = int(size[s])
+        idx = np.asarray(polys[s:e], dtype=np.int64).reshape(e - s, k) + 1
+        if has_uv[s]:
+            t = np.asarray(uvs[s:e], dtype=np.int64).reshape(e - s, k) + 1
+            lines.append(_rows("f" + " %d/%d" * k, np.stack([idx, t], axis=2).reshape(e - s, 2 * k)))
+        else:
+            lines.append(_rows("f" + " %d" * k if k else "f ", idx))
+    return "\n".join(lines)
+
+
 def write_obj(path: str | Path, mesh: Mesh, vertices: np.ndarray | None = None) -> None:
     """Write ``mesh`` (optionally with other ``vertices`` of the same count) atomically."""
     v = mesh.vertices if vertices is None else np.asarray(vertices, dtype=np.float64)
     if v.shape != mesh.vertices.shape:
         raise InputError(f"vertices: expected shape {mesh.vertices.shape}, got {v.shape}", path)
-    face_group = {}
-    for name, faces in mesh.groups.items():
-        for f in faces:
-            face_group[int(f)] = name
-    out = ["# written by keyshape"]
-    out.append("\n".join("v %.6f %.6f %.6f" % tuple(r) for r in v))
+    out = ["# written by keyshape", _rows("v %.6f %.6f %.6f", v)]
     if len(mesh.uvs):
-        out.append("\n".join("vt %.6f %.6f" % tuple(r) for r in mesh.uvs))
-    group = None
-    flines = []
-    for i, (p, t) in enumerate(zip(mesh.polygons, mesh.polygon_uvs or [None] * len(mesh.polygons))):
-        g = face_group.get(i)
-        if g is not None and g != group:
-            flines.append(f"g {g}")
-            group = g
-        if t is None:
-            flines.append("f " + " ".join(str(a + 1) for a in p))
-        else:
-            flines.append("f " + " ".join(f"{a + 1}/{b + 1}" for a, b in zip(p, t)))
+        out.append(_rows("vt %.6f %.6f", mesh.uvs))
+    flines = _face_lines(mesh)
     if flines:
-        out.append("\n".join(flines))
+        out.append(flines)
     with atomic_write(path) as f:
         f.write("\n".join(out) + "\n")

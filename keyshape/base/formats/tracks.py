@@ -350,6 +350,21 @@ def _check_track_values(a: np.ndarray, header: list[str], path, lns: list[int]) 
                         "with success=0 and empty coordinates)")
 
 
+def rate_from_times(n_steps: float, span: float, resolution: float = 1e-6) -> float | None:
+    """The frame rate of ``n_steps`` frame steps over ``span`` seconds of times written to
+    ``resolution`` (``%.6f``: a span known to within 1e-6 s), with the fewest significant digits
+    consistent with them: 24 reads back as 24, 30000/1001 as 29.97003 from a long take. None where
+    the span is too short to tell."""
+    if not (n_steps > 0 and span > resolution):
+        return None
+    lo, hi, rate = n_steps / (span + resolution), n_steps / (span - resolution), n_steps / span
+    for digits in range(1, 10):
+        r = float(f"{rate:.{digits}g}")
+        if lo <= r <= hi:
+            return r
+    return rate
+
+
 def check_frame_numbers(fr: np.ndarray, path, lines: list[int], gap_hint: str) -> None:
     """Frame numbers whole, from 0, unique, increasing and contiguous (one row per frame), else an
     :class:`InputError` naming ``path`` and the line (``lines[i]`` of row ``i``); ``gap_hint`` says

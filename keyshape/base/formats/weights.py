@@ -1,12 +1,17 @@
 """WEIGHTS.csv: per-frame key-shape weights (or retargeted curves); the one reader and writer.
 
-Layout: a header ``frame,<name>,...[,interpolated]``, then one row per frame::
+Layout: a header ``frame,time,<name>,...[,interpolated]`` on the first line, then one row per
+frame, so that ``csv.DictReader`` and ``pandas.read_csv`` read it with their defaults::
 
-    frame,mouth_0,mouth_1,eyes_0,interpolated
-    0,0.125000,0.000000,0.500000,0
-    1,0.130000,0.000000,0.490000,1
+    frame,time,mouth_0,mouth_1,eyes_0,interpolated
+    0,0.000000,0.125000,0.000000,0.500000,0
+    1,0.041667,0.130000,0.000000,0.490000,1
 
 * ``frame`` is the video frame number (an integer).
+* ``time`` is the frame's time in seconds (``frame / fps``, ``%.6f``), as in the tracks CSV; the
+  take's frame rate is read back from it (:func:`read_weights_fps`), so that ``keyshape retarget``
+  without the tracks plays the animation at the take's rate. A writer that does not know the frame
+  rate leaves the column out.
 * One column per key shape. ``keyshape decompose`` names them ``REGION_K``
   (``mouth_0``...); ``keyshape retarget`` writes its target names, and any other
   names (ARKit curves such as ``jawOpen``) are read as they are.
@@ -14,10 +19,8 @@ Layout: a header ``frame,<name>,...[,interpolated]``, then one row per frame::
   flags) is 1 where the tracker failed on that frame (``success=0``) and the
   weights were filled in from neighbouring frames; it is not a key shape.
 * Values are written ``%.6f``; any finite decimal number is read.
-* ``keyshape decompose`` starts the file with a comment line giving the take's frame rate,
-  ``# keyshape weights, fps=24``, so that ``keyshape retarget`` without the tracks plays the
-  animation at the take's rate (:func:`read_weights_fps`). Lines starting with ``#`` before the
-  header are comments; files without them (older ones) read as before.
+* Older files (keyshape before the ``time`` column) may start with comment lines, the first
+  giving the frame rate (``# keyshape weights, fps=24``); they read as before.
 """
 from __future__ import annotations
 
@@ -30,9 +33,10 @@ import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.base.files import atomic_write
-from keyshape.base.formats.tracks import check_frame_numbers
+from keyshape.base.formats.tracks import check_frame_numbers, rate_from_times
 
 FLAG = "interpolated"
+TIME = "time"
 KEY_NAME = re.compile(r"([a-z]+)_(\d+)")
 
 
@@ -63,10 +67,10 @@ def _check_names(names, path, line=None, key_names: bool = False) -> None:
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise InputError(f"duplicate columns {dup}", path, line)
-    odd = [n for n in names if not n or any(c in n for c in ',"\r\n') or n in ("frame", FLAG)]
+    odd = [n for n in names if not n or any(c in n for c in ',"\r\n') or n in ("frame", TIME, FLAG)]
     if odd:
         raise InputError(f"column names must be non-empty, without commas, quotes or line breaks and not "
-                         f"'frame'/'{FLAG}'; got {odd[:3]}", path, line)
+                         f"'frame'/'{TIME}'/'{FLAG}'; got {odd[:3]}", path, line)
 
 
 #: largest plausible weight magnitude (weights are about 0..1; far beyond is a damaged file)
@@ -74,7 +78,7 @@ MAX_WEIGHT = 1e6
 
 
 def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
-    """Read a WEIGHTS.csv.
+    """Read a WEIGHTS.csv (with or without the ``time`` column; older files' leading comments skipped).
 
     Parameters
     ----------
@@ -86,6 +90,11 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     InputError
         Naming the file and line for a bad header, a short row, a non-number or a NaN.
     """
+    return _read(path, key_names)[0]
+
+
+def _read(path, key_names: bool = False) -> tuple[WeightsTable, np.ndarray | None, list[str]]:
+    """The table, the ``time`` column (None where the file has none) and the leading comment lines."""
     path = require_file(path, "weights file")
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:     # a byte-order mark is not part of 'frame'
@@ -97,16 +106,20 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     skip = 0
     while skip < len(rows) and rows[skip] and rows[skip][0].lstrip().startswith("#"):
         skip += 1
+    comments = [",".join(r) for r in rows[:skip]]
     if skip:
         rows = rows[skip:]
     if not rows or not rows[0] or rows[0][0].strip() != "frame":
-        raise InputError("expected a header 'frame,<key shape>,...'", path, 1 + skip)
+        raise InputError("expected a header 'frame,time,<key shape>,...'", path, 1 + skip)
     names = [c.strip() for c in rows[0][1:]]
+    timed = bool(names) and names[0] == TIME
+    if timed:
+        names = names[1:]
     flag = bool(names) and names[-1] == FLAG
     if flag:
         names = names[:-1]
     _check_names(names, path, 1 + skip, key_names)
-    n_cols = len(names) + 1 + flag
+    n_cols = len(names) + 1 + timed + flag
     body = [(i, r) for i, r in enumerate(rows[1:], start=2 + skip) if any(c.strip() for c in r)]
     if not body:
         raise InputError("no frames", path)
@@ -126,12 +139,14 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     bad = ~np.isfinite(a)
     if bad.any():
         i, j = np.argwhere(bad)[0]
-        col = (["frame", *names, FLAG])[j]
+        col = (["frame", *([TIME] if timed else []), *names, FLAG])[j]
         raise InputError(f"{a[i, j]} in column {col!r} (weights must be finite numbers)", path, body[i][0])
-    big = np.abs(a[:, 1:1 + len(names)]) > MAX_WEIGHT
+    time = a[:, 1] if timed else None
+    w = a[:, 1 + timed:1 + timed + len(names)]
+    big = np.abs(w) > MAX_WEIGHT
     if big.any():
         i, j = np.argwhere(big)[0]
-        raise InputError(f"{a[i, j + 1]:g} in column {names[j]!r}: implausible weight (beyond +-{MAX_WEIGHT:g})",
+        raise InputError(f"{w[i, j]:g} in column {names[j]!r}: implausible weight (beyond +-{MAX_WEIGHT:g})",
                          path, body[i][0])
     if flag and not np.isin(a[:, -1], (0, 1)).all():
         i = int(np.flatnonzero(~np.isin(a[:, -1], (0, 1)))[0])
@@ -139,7 +154,7 @@ def read_weights(path: str | Path, key_names: bool = False) -> WeightsTable:
     check_frame_numbers(a[:, 0], path, [ln for ln, _ in body],
                         "one row per frame is needed for an animation at a steady rate")
     interp = a[:, -1] != 0 if flag else np.zeros(len(a), dtype=bool)
-    return WeightsTable(a[:, 0].astype(np.int64), names, a[:, 1:1 + len(names)], interp)
+    return WeightsTable(a[:, 0].astype(np.int64), names, w, interp), time, comments
 
 
 def _check_writable(frames: np.ndarray, names: list[str], weights: np.ndarray, path) -> None:
@@ -169,27 +184,30 @@ def _check_writable(frames: np.ndarray, names: list[str], weights: np.ndarray, p
 _FPS = re.compile(r"\bfps\s*=\s*([0-9]+(?:\.[0-9]*)?(?:[eE][-+]?[0-9]+)?)")
 
 
+def _plausible(fps: float) -> float | None:
+    return fps if np.isfinite(fps) and 0 < fps < 1e6 else None
+
+
 def read_weights_fps(path: str | Path) -> float | None:
-    """The frame rate a WEIGHTS.csv's leading comment gives (``# keyshape weights, fps=24``), or None."""
-    path = require_file(path, "weights file")
-    try:
-        with open(path, encoding="utf-8") as f:
-            for line in f:
-                if not line.lstrip().startswith("#"):
-                    return None
-                m = _FPS.search(line)
-                if m:
-                    fps = float(m.group(1))
-                    return fps if np.isfinite(fps) and 0 < fps < 1e6 else None
-    except UnicodeDecodeError:
-        return None
+    """The take's frame rate: from the ``time`` column (frames over seconds between the first and the
+    last row, :func:`~keyshape.base.formats.tracks.rate_from_times`), or from an older file's leading
+    comment (``# keyshape weights, fps=24``); None where the file gives neither (no ``time`` column,
+    or a single frame)."""
+    table, time, comments = _read(path)
+    if time is not None:
+        fps = rate_from_times(float(table.frames[-1] - table.frames[0]), float(time[-1] - time[0]))
+        return None if fps is None else _plausible(fps)
+    for line in comments:
+        m = _FPS.search(line)
+        if m:
+            return _plausible(float(m.group(1)))
     return None
 
 
 def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weights: np.ndarray,
                   interpolated: np.ndarray | None = None, fps: float | None = None) -> None:
-    """Write a WEIGHTS.csv atomically: ``frame``, one ``%.6f`` column per name, then ``interpolated``
-    (0/1) when ``interpolated`` is given; with ``fps``, the leading comment ``# keyshape weights, fps=F``."""
+    """Write a WEIGHTS.csv atomically: ``frame``, with ``fps`` the ``time`` column (``frame / fps``),
+    one ``%.6f`` column per name, then ``interpolated`` (0/1) when ``interpolated`` is given."""
     frames = np.asarray(frames)
     names = [str(n) for n in names]
     weights = np.asarray(weights, dtype=np.float64)
@@ -197,16 +215,18 @@ def write_weights(path: str | Path, frames: np.ndarray, names: list[str], weight
         raise InputError(f"weights: expected shape {(len(frames), len(names))}, got {weights.shape}", path)
     _check_names(names, path)
     _check_writable(frames, names, weights, path)
-    header = ["frame", *names]
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"frame rate must be a positive number, got {fps}; nothing written", path)
+    timed = fps is not None
+    header = ["frame", *([TIME] if timed else []), *names]
     # one %-format per row (Python's "%.6f", as np.char.mod gives it, a few times faster)
-    fmt = ",".join(["%d"] + ["%.6f"] * len(names) + (["%d"] if interpolated is not None else []))
-    rows = [frames.astype(np.int64).tolist(), *weights.T.tolist()]
+    fmt = ",".join(["%d"] + ["%.6f"] * (timed + len(names)) + (["%d"] if interpolated is not None else []))
+    fr = frames.astype(np.int64)
+    rows = [fr.tolist(), *([(fr / float(fps)).tolist()] if timed else []), *weights.T.tolist()]
     if interpolated is not None:
         rows.append(np.asarray(interpolated).astype(bool).astype(int).tolist())
         header.append(FLAG)
     with atomic_write(path) as f:
-        if fps is not None:
-            f.write(f"# keyshape weights, fps={float(fps):g}\n")
         f.write(",".join(header) + "\n")
         if len(frames):
             f.write("\n".join(fmt % r for r in zip(*rows)) + "\n")
