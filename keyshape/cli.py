@@ -56,7 +56,23 @@ def build_parser() -> argparse.ArgumentParser:
                 groups[group] = gp.add_subparsers(dest=f"{group}_command", metavar="KIND")
                 gp.set_defaults(func=lambda args, _gp=gp: _gp.error("choose what to synthesise"))
             module.register(groups[group])
+    for sp in _subparsers(parser):
+        if not any("--overwrite" in a.option_strings for a in sp._actions):
+            sp.add_argument("--overwrite", action="store_true",
+                            help="replace an existing output file that keyshape's record does not show it wrote "
+                                 "(never an input, never a symbolic link)")
     return parser
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """Every leaf subcommand's parser (``synth video``, ``track``, ...)."""
+    out = []
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for sp in a.choices.values():
+                subs = _subparsers(sp)
+                out += subs if subs else [sp]
+    return out
 
 
 class Terminated(KeyboardInterrupt):
@@ -119,7 +135,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = _command_name(args)
     try:
         _check_common_options(args)
-        with sigterm_as_interrupt():
+        from keyshape.base.files import run_rules
+        from keyshape.declare import check_declared
+        run = check_declared(name, args)
+        with sigterm_as_interrupt(), (run_rules(run) if run is not None else contextlib.nullcontext()):
             rc = args.func(args)
     except KeyshapeError as exc:
         print(f"keyshape {name}: error: {exc}", file=sys.stderr)

@@ -186,8 +186,9 @@ def test_disk_full_is_one_line_and_leaves_no_temporary(work, tmp_path, monkeypat
 
     monkeypatch.setattr(files.os, "fsync", full)
     out = tmp_path / "w.csv"
-    out.write_text("earlier")
-    rc = main(["decompose", str(work / "foot" / "truth.csv"), "--keys", str(work / "keys.json"), "-o", str(out)])
+    out.write_text("earlier")                   # the user's own file: replaced only with --overwrite
+    rc = main(["decompose", str(work / "foot" / "truth.csv"), "--keys", str(work / "keys.json"), "-o", str(out),
+               "--overwrite"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "disk full" in err and "\n" not in err
     assert out.read_text() == "earlier" and sorted(p.name for p in tmp_path.iterdir()) == ["w.csv"]
@@ -325,9 +326,9 @@ def long_take(tmp_path_factory):
 @pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_interrupted_track_keeps_the_earlier_tracks(long_take, tmp_path, sig, status):
     out = tmp_path / "tracks.csv"
-    out.write_text("earlier complete tracks\n")
+    out.write_text("earlier complete tracks\n")              # the user's own: replaced only with --overwrite
     proc = _keyshape("track", long_take / "foot" / "video.mp4", "--model", long_take / "model.npz", "-o", out,
-                     "--quiet", cwd=tmp_path)
+                     "--quiet", "--overwrite", cwd=tmp_path)
 
     def rows_written():
         tmp = [p for p in tmp_path.glob(".tracks.csv.*.partial")]
@@ -341,7 +342,7 @@ def test_interrupted_track_keeps_the_earlier_tracks(long_take, tmp_path, sig, st
     part = tmp_path / "tracks.partial.csv"
     assert part.read_text().startswith("# keyshape partial tracks: interrupted after")
     assert "interrupted" in stdout and "Traceback" not in stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["tracks.csv", "tracks.partial.csv"]   # no hidden temporaries
+    assert sorted(p.name for p in tmp_path.iterdir()) == [MANIFEST, "tracks.csv", "tracks.partial.csv"]  # no temporaries
 
 
 @pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
