@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import re
 import signal
 import sys
 from typing import Sequence
@@ -38,8 +39,21 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
 ]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (``keyshape COMMAND: error: argument --fps: ...``, exit 2);
+    ``keyshape COMMAND --help`` shows the usage."""
+
+    def error(self, message: str):
+        m = re.fullmatch(r"argument ([^:]+): (.*)", message, re.S)
+        if m:                       # "argument --port: 99999: a port must be ..." -> "--port 99999: a port ..."
+            opt, rest = m.group(1).split("/")[0], m.group(2)
+            own = not rest.startswith(("invalid ", "expected ", "ambiguous ", "one of ", "not allowed "))
+            message = f"{opt} {rest}" if own else f"{opt}: {rest}"
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="keyshape",
         description="Turn a filmed facial performance (video or 3D markers) into animation "
                     "of an artist's own blendshapes.",
@@ -128,7 +142,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     from keyshape.base.files import describe_os_error
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:            # a bad option (one line, exit 2) or --help (0)
+        return exc.code if isinstance(exc.code, int) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 1

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
+from keyshape.base import options
 from keyshape.decompose import defaults as D
 from keyshape.retarget.defaults import GAZE, GAZES
 
@@ -40,6 +41,9 @@ GAZE_FRAMES = 301
 
 
 # ----------------------------------------------------------------------------------------------- sources
+#: highest camera number accepted as a source (OpenCV's device indices are small integers)
+CAMERA_MAX = 9999
+
 class FrameSource:
     """Frames of a camera (OpenCV device index) or of a video file, with their capture times.
 
@@ -63,6 +67,8 @@ class FrameSource:
     def __init__(self, source: str, pace: bool = True, max_frames: int | None = None):
         import cv2
         self.camera = re.fullmatch(r"\d+", str(source)) is not None
+        if self.camera and int(source) > CAMERA_MAX:
+            raise InputError(f"camera {source}: a camera number is from 0 to {CAMERA_MAX} (or give a video file)")
         self.pace, self.max_frames = pace, max_frames
         self.luma_table = None
         if self.camera:
@@ -577,8 +583,8 @@ def register(subparsers) -> None:
     p.add_argument("--rig", required=True, nargs="+", metavar="DIR|FILE", help="the rig (as for retarget --rig)")
     p.add_argument("--neutral", help="the rig's neutral mesh (default: the folder's neutral.*)")
     p.add_argument("--host", default="127.0.0.1", help="where Unreal listens (the Live Link Face source)")
-    p.add_argument("--port", type=int, default=11111, help="its UDP port")
-    p.add_argument("--local-port", type=int, default=None, help="send from this local UDP port (default any)")
+    p.add_argument("--port", type=options.port, default=11111, help="its UDP port")
+    p.add_argument("--local-port", type=options.port, default=None, help="send from this local UDP port (default any)")
     p.add_argument("--subject", default="keyshape", help="the Live Link subject name Unreal shows")
     p.add_argument("--osc", metavar="HOST:PORT", help="also send OSC: one message per rig curve "
                                                       "(needs python-osc: pip install 'keyshape[osc]')")

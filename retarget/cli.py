@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from keyshape.base import options
+
 
 def register(subparsers) -> None:
     """Add ``retarget`` to ``subparsers``."""
@@ -49,7 +51,7 @@ def register(subparsers) -> None:
     p.add_argument("--gaze", choices=A.GAZES, default=A.GAZE,
                    help="with --rig and --tracks, the pupils' gaze: angles (the Live Link eye angles), shapes (also "
                         "the rig's eyeLook* shapes; on ICT-FaceKit they move the lids too) or none")
-    p.add_argument("--head-units", type=float, default=None,
+    p.add_argument("--head-units", type=options.head_units, default=None,
                    help="mesh units per tracker model unit, scales the head translation (default: with --rig, "
                         "the rig's inter-ocular distance over the actor's, so the head moves in the rig's units; "
                         "with --targets, 1)")
@@ -59,7 +61,7 @@ def register(subparsers) -> None:
     p.add_argument("--mesh-units", choices=("mm", "cm", "m", "in"), default="cm",
                    help="length unit of the target or rig meshes: USD metersPerUnit (ICT-FaceKit is in cm)")
     p.add_argument("--bake-head", action="store_true", help="apply head motion to OBJ/PNG/video frames")
-    p.add_argument("--fps", type=float, default=None,
+    p.add_argument("--fps", type=options.fps, default=None,
                    help="frame rate (default: from the tracks' timestamps, else the weights' own, else 30)")
     p.add_argument("--clamp", action="store_true", help="clamp weights to [0, 1] in .glb/.csv (default keep)")
     p.add_argument("--livelink", action="store_true", help=".csv in the Live Link Face layout (ARKit names)")

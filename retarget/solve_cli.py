@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from keyshape.base import options
+
 
 def register(subparsers) -> None:
     """Add ``solve`` to ``subparsers``."""
@@ -57,8 +59,8 @@ def register(subparsers) -> None:
                         "proportion to the key's weight in every frame")
     p.add_argument("--weights", default=None, help="WEIGHTS.csv (keyshape decompose) for --poses")
     p.add_argument("--livelink", action="store_true", help=".csv in the Live Link Face layout (ARKit names)")
-    p.add_argument("--fps", type=float, default=None, help="frame rate (default: from the tracks' timestamps, else 30)")
-    p.add_argument("--head-units", type=float, default=None,
+    p.add_argument("--fps", type=options.fps, default=None, help="frame rate (default: from the tracks' timestamps, else 30)")
+    p.add_argument("--head-units", type=options.head_units, default=None,
                    help="mesh units per tracker model unit for the head translation (default: the rig's "
                         "inter-ocular distance over the actor's)")
     p.add_argument("--reference-frame", type=int, default=None,

@@ -124,6 +124,14 @@ def user_save() -> Iterator[None]:
         _USER_SAVE.on = old
 
 
+@contextlib.contextmanager
+def keyshape_store() -> Iterator[None]:
+    """Writes in this block (this thread only) go to keyshape's own store (the rig cache under
+    ``~/.cache/keyshape``), not to an output the user named: the output rule does not apply."""
+    with user_save():
+        yield
+
+
 def _ruled(path: Path) -> bool:
     return (_RUN is not None and not getattr(_USER_SAVE, "on", False) and not _in_temp_folder(path)
             and path.name != MANIFEST)

@@ -302,12 +302,27 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     pose = a[:, end:end + 6].reshape(n, 2, 3) if with_pose else np.broadcast_to(
         np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 2, 3)).copy()
     pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:end]], axis=-1)
+    _check_not_collapsed(pts, a[:, 3] != 0, path, lns)
     i = end + (6 if with_pose else 0)
     extra = {}
     for g, k in aux.items():
         extra[g] = np.stack([a[:, i:i + k], a[:, i + k:i + 2 * k]], axis=-1)
         i += 2 * k
     return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose, meta, extra)
+
+
+def _check_not_collapsed(pts: np.ndarray, success: np.ndarray, path, lns: list[int]) -> None:
+    """A tracked frame (success 1) whose points all lie on one spot (spread under 1e-3 px) is no face:
+    the maths downstream divides by the face's size. Refused naming the first such row."""
+    if pts.shape[1] < 2:
+        return
+    with np.errstate(invalid="ignore"):
+        spread = np.nanmax(np.abs(pts - np.nanmean(pts, axis=1, keepdims=True)), axis=(1, 2))
+    bad = success & np.isfinite(spread) & (spread < 1e-3)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"the {pts.shape[1]} points of a tracked frame lie on one spot (collapsed; "
+                         f"{int(bad.sum())} such frame(s)): not a tracked face", path, lns[i])
 
 
 #: largest plausible pixel coordinate or pose translation (no video is 100 000 pixels wide)
@@ -333,6 +348,12 @@ def _check_track_values(a: np.ndarray, header: list[str], path, lns: list[int]) 
     t = a[:, 1]
     if (np.abs(np.nan_to_num(t)) > 1e7).any():
         fail(int(np.flatnonzero(np.abs(np.nan_to_num(t)) > 1e7)[0]), 1, "implausible time (seconds)")
+    from keyshape.base.options import FPS_MAX
+    steps = np.diff(t[np.isfinite(t)])
+    steps = steps[steps > 0]
+    if len(steps) and np.median(steps) < 1.0 / FPS_MAX:
+        raise InputError(f"the times advance by {np.median(steps):.3g} s per frame (median), faster than "
+                         f"{FPS_MAX:g} frames per second: not a frame clock (times that do not advance)", path)
     check_frame_numbers(a[:, 0], path, lns, "keyshape needs one row per frame (write the missing frames "
                         "with success=0 and empty coordinates)")
 
