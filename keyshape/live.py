@@ -606,6 +606,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-pace", action="store_true",
                    help="a video file: hand over frames as fast as they decode instead of at the video's rate")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--allow-foreign-keys", action="store_true",
+                   help="use keys chosen from tracks of another tracker model (refused by default, as decompose does)")
     p.set_defaults(func=run)
 
 
@@ -619,12 +621,17 @@ def run(args) -> int:
     if args.calibration and args.head_pose != "3d":
         raise InputError("--calibration fits the 3D head: it goes with --head-pose 3d (the default)")
     camera = re.fullmatch(r"\d+", args.source) is not None
+    if camera and int(args.source) > CAMERA_MAX:
+        raise InputError(f"camera {args.source}: a camera number is from 0 to {CAMERA_MAX} (or give a video file)")
     if not camera:
         require_file(args.source, "video")
     osc_addr = parse_host_port(args.osc, "--osc") if args.osc else None
     notes: list[str] = []                       # said once everything has opened (bad input stays one line)
     model, chain = load_chain(args.model, args.keys, args.poses, args.rig, args.neutral, args.solver, args.ridge,
                               args.head_pose, args.calibration, args.gaze, say=notes.append)
+    from keyshape.base.formats.keys import check_keys_model
+    from keyshape.tracker.commands import model_fingerprint
+    check_keys_model(args.keys, model_fingerprint(model), args.allow_foreign_keys, "the live model")
     sender = LiveLinkSender(args.host, args.port, args.local_port, args.subject)
     osc = None
     try:

@@ -59,6 +59,8 @@ def register(subparsers) -> None:
                         "proportion to the key's weight in every frame")
     p.add_argument("--weights", default=None, help="WEIGHTS.csv (keyshape decompose) for --poses")
     p.add_argument("--livelink", action="store_true", help=".csv in the Live Link Face layout (ARKit names)")
+    p.add_argument("--allow-foreign-keys", action="store_true",
+                   help="use keys chosen from tracks of another tracker model (refused by default, as decompose does)")
     p.add_argument("--fps", type=options.fps, default=None, help="frame rate (default: from the tracks' timestamps, else 30)")
     p.add_argument("--head-units", type=options.head_units, default=None,
                    help="mesh units per tracker model unit for the head translation (default: the rig's "
@@ -101,6 +103,8 @@ def run(args) -> int:
     check_output(args.output, "file", inputs)
     scheme_name, n_points, regions = read_keys(args.keys)
     tracks = read_tracks(args.tracks, accept_partial=args.accept_partial)
+    from keyshape.base.formats.keys import check_keys_model
+    check_keys_model(args.keys, tracks.meta.get("model"), args.allow_foreign_keys)
     if tracks.n_points != n_points:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} {n_points}",
                          args.tracks)

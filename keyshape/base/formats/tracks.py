@@ -316,11 +316,12 @@ def _check_not_collapsed(pts: np.ndarray, success: np.ndarray, path, lns: list[i
     the maths downstream divides by the face's size. Refused naming the first such row."""
     if pts.shape[1] < 2:
         return
-    with np.errstate(invalid="ignore"):
-        spread = np.nanmax(np.abs(pts - np.nanmean(pts, axis=1, keepdims=True)), axis=(1, 2))
-    bad = success & np.isfinite(spread) & (spread < 1e-3)
+    rows = np.flatnonzero(success & np.isfinite(pts).all(axis=(1, 2)))
+    p = pts[rows]
+    spread = np.abs(p - p.mean(axis=1, keepdims=True)).max(axis=(1, 2)) if len(rows) else np.zeros(0)
+    bad = spread < 1e-3
     if bad.any():
-        i = int(np.flatnonzero(bad)[0])
+        i = int(rows[np.flatnonzero(bad)[0]])
         raise InputError(f"the {pts.shape[1]} points of a tracked frame lie on one spot (collapsed; "
                          f"{int(bad.sum())} such frame(s)): not a tracked face", path, lns[i])
 
