@@ -386,3 +386,27 @@ def test_target_markers_far_or_collapsed_are_refused(tmp_path):
         read_target_markers(tmp_path / "one.json", len(v), v)
     (tmp_path / "ok.json").write_text(json.dumps({"a": 3, "b": [5.0, 5.0, 5.0], "c": 7}))
     assert sorted(read_target_markers(tmp_path / "ok.json", len(v), v)) == ["a", "b", "c"]
+
+
+def test_a_rig_edited_in_place_keeping_size_and_time_is_read_again(tmp_path, monkeypatch):
+    """issue 37: the rig cache is keyed by content; an edit that keeps the file's size and modification
+    time (as ``cp -p``, ``rsync -a`` or tar leave it) is not served from the stale cache."""
+    from test_rig_poses import write_toy_rig
+
+    from keyshape.retarget.rig import load_rig
+    monkeypatch.setenv("KEYSHAPE_CACHE", str(tmp_path / "cache"))
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    first = load_rig(rig)
+    shape = sorted(p for p in rig.glob("*.obj") if p.name != "neutral.obj")[0]
+    st = os.stat(shape)
+    lines = shape.read_text().splitlines(keepends=True)
+    i = next(k for k, line in enumerate(lines) if line.startswith("v "))
+    x = lines[i].split()
+    x[1] = x[1][:-1] + ("1" if x[1][-1] != "1" else "2")        # same length: one digit changed
+    lines[i] = " ".join(x) + "\n"
+    shape.write_text("".join(lines))
+    os.utime(shape, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert os.stat(shape).st_size == st.st_size and os.stat(shape).st_mtime_ns == st.st_mtime_ns
+    second = load_rig(rig)
+    k = first.names.index(shape.stem)
+    assert not np.array_equal(first.deltas[k], second.deltas[k])
