@@ -76,7 +76,7 @@ def _track_sidecars(args) -> list[Path]:
 
 def _label_files(args) -> list[Path]:
     out = Path(args.out)
-    return [out / "session.json", out / "contact_sheet.png"]
+    return [out / "session.json", out / "contact_sheet.png", out / "footage.json"]
 
 
 #: command -> the further files it writes beside its declared outputs (sidecars), same rule

@@ -302,7 +302,8 @@ def _tracks(value: float, model: str):
 
     from keyshape.base.formats.tracks import Tracks
     n = 3
-    return Tracks(np.arange(n), np.arange(n) / 30.0, np.ones(n), np.ones(n, bool), np.full((n, 4, 2), value),
+    return Tracks(np.arange(n), np.arange(n) / 30.0, np.ones(n), np.ones(n, bool),
+                  np.full((n, 4, 2), value) + np.arange(4)[None, :, None],          # 4 points, not collapsed
                   np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 1, 1)), {"model": model})
 
 

@@ -228,5 +228,7 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
                                     {frames[k] for k, p in zip(missing, filled) if p is None})
     with atomic_write(sess_path) as fh:
         json.dump(session, fh, indent=1)
+    from keyshape.base.formats.labels import footage_record, write_footage  # noqa: PLC0415
+    write_footage(out, footage_record(info.path))
     write_contact_sheet(out, frames, scheme)
     return session
