@@ -55,6 +55,9 @@ def run_footage(args, kind: str, make, check=None) -> int:
     out_dir = Path(args.out_dir)
     check_output_dir(out_dir, args.overwrite)
     if args.preview:
+        if Path(args.preview).suffix.lower() != ".png":
+            from keyshape.base.errors import InputError
+            raise InputError("--preview: the contact sheet must be a .png file", args.preview)
         check_output(args.preview)
     t0 = time.perf_counter()
     with atomic_dir(out_dir, args.overwrite, kind=f"synth {kind}") as tmp:

@@ -128,6 +128,8 @@ def run_edit(args) -> int:
     from keyshape.retarget.pose_edit import serve
     from keyshape.retarget.rig import load_rig
 
+    from keyshape.base.errors import require_file
+    require_file(args.poses, "pose library (POSES.json)")           # before the rig is loaded
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
     serve(args.poses, rig, args.keys, args.port)
     return 0

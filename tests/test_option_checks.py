@@ -43,6 +43,8 @@ SOLVE = ["solve", "t.csv", "--keys", "k.json", "--rig", "rig", "-o", "c.csv"]
     (["live", "v.mp4", "--model", "m.npz", "--keys", "k.json", "--poses", "p.json", "--rig", "r",
       "--local-port", "99999999999999999999"], "--local-port"),
     (["label", "v.mp4", "-o", "lab", "--port", "70000"], "--port 70000"),
+    (["synth", "video", "v", "--frames", "100000", "--preview", "sheet.txt"], "--preview"),
+    (["pose-edit", "missing.json", "--rig", "rig", "--port", "0"], "missing.json"),
 ])
 def test_a_bad_option_is_one_line_before_work(tmp_path, monkeypatch, capsys, argv, phrase):
     monkeypatch.chdir(tmp_path)

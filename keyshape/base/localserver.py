@@ -208,6 +208,8 @@ def listen(make, port: int):
     try:
         return make()
     except OSError as exc:
+        if exc.filename is not None or exc.errno not in (errno.EADDRINUSE, errno.EACCES, errno.EADDRNOTAVAIL):
+            raise                                  # a file the server reads, not the socket
         raise InputError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror}): try --port 0") from None
 
 
