@@ -179,3 +179,28 @@ def test_every_output_is_refused_before_work(name, dest, role, tmp_path, monkeyp
             side.unlink()
     failures = [f for f in failures if f]
     assert not failures, "\n".join(failures[:6])
+
+
+def test_a_rerun_replaces_the_commands_own_outputs_and_records_them(tmp_path, capsys):
+    """The other side of the rule: what keyshape wrote (recorded with its hash) a rerun replaces, for
+    single files, sidecars and streamed outputs (track's CSV and overlay) alike; an edit stops it."""
+    foot = tmp_path / "foot"
+    assert main(["synth", "video", str(foot), "--frames", "16", "--size", "160x120", "--labels", "6"]) == 0
+    model, tracks = tmp_path / "m.npz", tmp_path / "t.csv"
+    runs = [["train", str(foot / "video.mp4"), "--labels", str(foot / "labels"), "--components", "2",
+             "-o", str(model)],
+            ["track", str(foot / "video.mp4"), "--model", str(model), "-o", str(tracks), "--overlay",
+             str(tmp_path / "o.mp4"), "--quiet"],
+            ["select", str(tracks), "-k", "2", "--region", "mouth", "-o", str(tmp_path / "k.json")],
+            ["decompose", str(tracks), "--keys", str(tmp_path / "k.json"), "-o", str(tmp_path / "w.csv")]]
+    for argv in runs:
+        assert main(argv) == 0, capsys.readouterr().err
+        assert main(argv) == 0, capsys.readouterr().err                    # the rerun replaces its own
+    record = json.loads((tmp_path / MANIFEST).read_text())
+    assert set(record["outputs"]["files"]) >= {"m.npz", "t.csv", "t.meta.json", "o.mp4", "k.json", "w.csv"}
+    assert record["sha256"]["t.csv"] == hashlib.sha256(tracks.read_bytes()).hexdigest()
+    (tmp_path / "w.csv").write_text((tmp_path / "w.csv").read_text() + "\n")   # the user edits it
+    capsys.readouterr()
+    assert main(runs[-1]) == 2
+    assert "changed since keyshape wrote it" in capsys.readouterr().err
+    assert main([*runs[-1], "--overwrite"]) == 0

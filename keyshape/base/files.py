@@ -24,6 +24,7 @@ import hashlib
 import json
 import os
 import posixpath
+import re
 import secrets
 import shutil
 import tempfile
@@ -132,9 +133,12 @@ def keyshape_store() -> Iterator[None]:
         yield
 
 
+_OUR_TEMP = re.compile(r"^\..+\.ks[0-9a-f]+-[^.]+\.partial(\.[^.]+)?$")
+
+
 def _ruled(path: Path) -> bool:
     return (_RUN is not None and not getattr(_USER_SAVE, "on", False) and not _in_temp_folder(path)
-            and path.name != MANIFEST)
+            and path.name != MANIFEST and not _OUR_TEMP.match(path.name))
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -654,6 +658,23 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
                 path.rmdir()
         raise
     shutil.rmtree(tmp, ignore_errors=True)
+
+
+def commit(tmp: str | Path, path: str | Path) -> None:
+    """Rename the complete temporary file ``tmp`` (from :func:`_tmp_sibling`) over ``path`` under the
+    output rule (:func:`guard_file`), and record it: for writers that keep their temporary open while
+    they work (``keyshape track``'s streamed CSV and overlay)."""
+    path, tmp = Path(path), Path(tmp)
+    ruled = _ruled(path)
+    if ruled:
+        guard_file(path)
+        digest = sha256_file(tmp)
+    try:
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise _about(exc, path, tmp) from None
+    if ruled:
+        _remember(path, digest)
 
 
 def partial_name(path: str | Path) -> Path:
