@@ -191,3 +191,13 @@ def test_degenerate_points_and_unwritable_saves_are_http_errors(running, monkeyp
     assert snapshot(root) == before
     st, body = request(server, "GET", "/api/points/000005.pts")
     assert st == 200 and np.allclose(json.loads(body)["points"], pts)
+
+
+def test_the_contact_sheet_survives_a_collapsed_label_file(tmp_path):
+    """issue 37: a hand-edited .pts with every point on one spot no longer crashes the redraw at Ctrl-C."""
+    from keyshape.base.formats.labels import write_pts
+    from keyshape.base.schemes import load_scheme
+    from keyshape.tracker.labelling.prepare import write_contact_sheet
+    folder = make_folder(tmp_path)
+    write_pts(folder / "000005.pts", np.full((48, 2), 50.0))
+    assert write_contact_sheet(folder, [5, 40], load_scheme("contours48")).is_file()
