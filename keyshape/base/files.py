@@ -660,6 +660,15 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
     shutil.rmtree(tmp, ignore_errors=True)
 
 
+def may_delete(path: str | Path) -> bool:
+    """Whether keyshape may delete ``path``: never a symbolic link; under a command (:func:`run_rules`)
+    only a file its record shows it wrote with exactly this content (:func:`written_by_keyshape`)."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_file():
+        return False
+    return _RUN is None or written_by_keyshape(path)
+
+
 def commit(tmp: str | Path, path: str | Path) -> None:
     """Rename the complete temporary file ``tmp`` (from :func:`_tmp_sibling`) over ``path`` under the
     output rule (:func:`guard_file`), and record it: for writers that keep their temporary open while

@@ -181,7 +181,8 @@ def write_meta(path: str | Path, meta: dict | None, csv_sha256: str) -> None:
             old = json.loads(side.read_text())
         except (OSError, ValueError, UnicodeDecodeError):
             return
-        if isinstance(old, dict) and META_KEY in old:
+        from keyshape.base.files import may_delete
+        if isinstance(old, dict) and META_KEY in old and may_delete(side):
             side.unlink(missing_ok=True)
 
 
