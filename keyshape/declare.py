@@ -127,21 +127,11 @@ def declared(command: str, args: argparse.Namespace) -> tuple[list[Path], list[P
 def check_declared(command: str, args: argparse.Namespace):
     """Check every declared output of ``args`` against the output rule before any work; return the
     :class:`~keyshape.base.files.Run` to run the command under."""
-    from keyshape.base.files import Run, _same_file, guard_file
+    from keyshape.base.files import Run, _same_file, check_output, run_rules
 
     inputs, files, folders = declared(command, args)
     run = Run(inputs, overwrite=bool(getattr(args, "overwrite", False)), can_overwrite=True, command=command)
-    from keyshape.base.files import run_rules
     with run_rules(run):
-        seen: list[Path] = []
-        for f in files:
-            if f.is_dir() and not f.is_symlink():
-                raise InputError("is a folder; the output must be a file name", f)
-            guard_file(f)
-            for s in seen:
-                if f == s or _same_file(f, s) and f.exists():
-                    raise InputError("named twice as an output", f)
-            seen.append(f)
         for d in folders:
             if d.is_symlink():
                 raise InputError("is a symbolic link; keyshape never writes through a link: choose another "
@@ -149,4 +139,14 @@ def check_declared(command: str, args: argparse.Namespace):
             for inp in inputs:
                 if (d.exists() or inp.exists()) and _same_file(d, inp):
                     raise InputError(f"the output folder is an input folder ({inp}); choose another folder", d)
+            check_output(d, "folder")
+        seen: list[Path] = []
+        for f in files:
+            if f.is_dir() and not f.is_symlink():
+                raise InputError("is a folder; the output must be a file name", f)
+            check_output(f, "file")          # writable folder, a file name, and the rule (guard_file)
+            for s in seen:
+                if f == s or _same_file(f, s) and f.exists():
+                    raise InputError("named twice as an output", f)
+            seen.append(f)
     return None if command in OWN_RECORD else run
