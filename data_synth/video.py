@@ -27,7 +27,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir, atomic_path, atomic_write
 from keyshape.base.progress import Progress
 from keyshape.base.formats.tracks import Tracks, write_tracks
-from keyshape.base.formats.labels import write_labels
+from keyshape.base.formats.labels import footage_record, write_footage, write_labels
 from keyshape.base.formats.video import video_writer
 
 #: Fraction of the frame interval the shutter is open (sets the motion blur length).
@@ -288,6 +288,7 @@ def write_truth(paths: dict, sv, labels: int, preview, kept: dict, preview_write
     with atomic_dir(paths["labels"], kind="synth labels") as tmp:
         idx = sv.label_frames(labels)
         write_labels(tmp, idx, sv.points[idx])
+        write_footage(tmp, footage_record(paths["video"]))
     with atomic_write(paths["truth_json"]) as f:
         json.dump(sv.truth(), f, separators=(",", ":"))
     if preview:

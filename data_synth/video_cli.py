@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import time
 
+from keyshape.base import options
+
 
 def register(subparsers) -> None:
     """Add ``video`` under ``keyshape synth``."""
@@ -18,10 +20,10 @@ def register(subparsers) -> None:
 
 def add_footage_options(p, frames: int) -> None:
     """The options every synthetic footage command shares (``synth video``, ``synth face3d``)."""
-    p.add_argument("--frames", type=int, default=frames, help=f"number of frames (default {frames})")
+    p.add_argument("--frames", type=options.synth_frames, default=frames, help=f"number of frames (default {frames})")
     p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same footage (default 0)")
     p.add_argument("--size", default="640x480", help="frame size WIDTHxHEIGHT (default 640x480)")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    p.add_argument("--fps", type=options.fps, default=30.0, help="frame rate (default 30)")
     p.add_argument("--labels", type=int, default=12, help="suggested training frames written to labels/ (default 12)")
     p.add_argument("--preview", metavar="PNG", default=None,
                    help="also write a contact sheet of 12 frames with the ground truth drawn")
@@ -53,6 +55,9 @@ def run_footage(args, kind: str, make, check=None) -> int:
     out_dir = Path(args.out_dir)
     check_output_dir(out_dir, args.overwrite)
     if args.preview:
+        if Path(args.preview).suffix.lower() != ".png":
+            from keyshape.base.errors import InputError
+            raise InputError("--preview: the contact sheet must be a .png file", args.preview)
         check_output(args.preview)
     t0 = time.perf_counter()
     with atomic_dir(out_dir, args.overwrite, kind=f"synth {kind}") as tmp:

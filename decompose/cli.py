@@ -209,14 +209,9 @@ def _decompose(args) -> int:
     check_outputs([args.output], inputs=[args.tracks, args.keys])
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
-    from keyshape.base.formats.keys import read_keys_head_pose, read_keys_source
-    src = read_keys_source(args.keys)
+    from keyshape.base.formats.keys import check_keys_model, read_keys_head_pose
     head = read_keys_head_pose(args.keys)
-    mk, mt = src.get("model"), tracks.meta.get("model")
-    if mk and mt and mk != mt and not args.allow_foreign_keys:
-        raise InputError(f"these keys were chosen from tracks of another tracker model ({mk}; these tracks: {mt}): "
-                         "keys belong to one actor's model. Select keys from this model's tracks, or pass "
-                         "--allow-foreign-keys", args.keys)
+    check_keys_model(args.keys, tracks.meta.get("model"), args.allow_foreign_keys)
     if n_points != tracks.n_points:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)

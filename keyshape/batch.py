@@ -52,7 +52,9 @@ from keyshape.manifest import OUTPUT_FILES, Actor, Manifest, Settings, Take, rea
 REPORT_FORMAT = "keyshape-batch-report"
 
 RECORD = "batch.json"
-_PARTIAL = re.compile(r"^\..+\.[A-Za-z0-9_]+\.partial(\.[A-Za-z0-9]+)?$")
+def _partial_pattern(token: str) -> re.Pattern:
+    """Names of the hidden temporaries this run made (``.NAME.<token>-XXXX.partial[.SUFFIX]``)."""
+    return re.compile(r"^\..+\." + re.escape(token) + r"-[A-Za-z0-9_]+\.partial(\.[A-Za-z0-9]+)?$")
 
 
 # ---------------------------------------------------------------- hashing and records
@@ -383,9 +385,21 @@ def task_poses(actor: Actor, keys: dict, out: str) -> dict:
         key = digest(["poses", keys["sha256"], tree_sha(actor.rig), tree_sha(actor.neutral),
                       tree_sha(actor.landmarks), __version__])
         path = adir / "poses.json"
-        if rec.get("poses_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("poses_sha256"):
+        now = file_sha(path)["sha256"] if path.is_file() else None
+        if rec.get("poses_key") == key and now is not None and now == rec.get("poses_sha256"):
             return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["poses_sha256"],
                     "seconds": 0.0}
+        if now is not None and "poses_sha256" in rec and now != rec["poses_sha256"]:
+            # the artist corrected it (pose-edit): the corrections are why the file exists
+            if rec.get("poses_key") != key:
+                raise InputError("was changed since keyshape batch wrote it (corrected in pose-edit?) and its key "
+                                 "set or rig has changed since: batch does not refit over your corrections. To "
+                                 "keep them, give the file as the actor's 'poses' in the manifest; to discard "
+                                 "them, delete it and rerun", path)
+            from keyshape import api
+            api.PoseLibrary.load(path, api.load_rig(actor.rig, actor.neutral, with_mesh=False))
+            return {"ok": True, "status": "edited", "path": str(path), "sha256": now,
+                    "seconds": time.perf_counter() - t0}
         from keyshape import api
         lib = api.pose(api.Keys.load(keys["path"]), actor.rig, neutral=actor.neutral, landmarks=actor.landmarks)
         lib.data["keys"]["file"] = str(keys["path"])
@@ -447,15 +461,19 @@ def task_finish(take: Take, actor: Actor, settings: Settings, tracked: dict, key
 
 # ---------------------------------------------------------------- the driver
 
-def remove_partials(out: Path, manifest: Manifest) -> int:
-    """Remove temporary files an interrupted run left in the folders the batch writes (only keyshape's own
-    ``.NAME.XXXX.partial`` files); return how many."""
+def remove_partials(out: Path, manifest: Manifest, token: str | None = None) -> int:
+    """Remove the hidden temporary files this interrupted run left in the folders the batch writes; return how
+    many. Only names carrying this run's token (:func:`keyshape.base.files.run_token`, shared with the workers
+    through ``KEYSHAPE_RUN_TOKEN``) are removed: a user's file that merely looks like a temporary is kept."""
+    from keyshape.base.files import run_token
+
+    partial = _partial_pattern(token or run_token())
     n = 0
     dirs = {actor_dir(out, a) for a in manifest.actors} | {take_dir(out, t) for t in manifest.takes} | {Path(out)}
     for d in dirs:
         if d.is_dir():
             for p in d.iterdir():
-                if _PARTIAL.match(p.name) and p.is_file():
+                if partial.match(p.name) and p.is_file() and not p.is_symlink():
                     p.unlink(missing_ok=True)
                     n += 1
     return n
@@ -509,6 +527,13 @@ def check_layout(m: Manifest, out: Path) -> None:
             raise InputError(f"exists and was not written by keyshape batch ({who} writes it): move it away or "
                              "choose another output folder", path)
 
+    def unchanged(path: Path, recorded: str | None, who: str) -> None:
+        """A file batch wrote that the user changed since: never replaced; the run stops before work."""
+        if recorded and path.is_file() and not path.is_symlink() and file_sha(path)["sha256"] != recorded:
+            raise InputError(f"was changed since keyshape batch wrote it ({who}); batch does not replace your "
+                             "edits: to discard them delete the file and rerun, or choose another output "
+                             "folder", path)
+
     report = out / "report.json"
     try:
         is_report = json.loads(report.read_text()).get("format") == REPORT_FORMAT
@@ -525,6 +550,7 @@ def check_layout(m: Manifest, out: Path) -> None:
         if actor.model is None:
             ours(adir / "model.npz", "model_sha256" in rec, who)
         ours(adir / "keys.json", "keys_sha256" in rec, who)
+        unchanged(adir / "keys.json", rec.get("keys_sha256"), who)
     for t in m.takes:
         tdir = take_dir(out, t)
         who = f"take {t.name!r} of actor {t.actor!r}"
@@ -539,6 +565,7 @@ def check_layout(m: Manifest, out: Path) -> None:
         rec = rec or {}
         ours(tdir / OUTPUT_FILES["tracks"], "tracks_sha256" in rec, who)
         ours(tdir / "tracks.meta.json", "tracks_sha256" in rec, who)
+        unchanged(tdir / OUTPUT_FILES["tracks"], rec.get("tracks_sha256"), who)
         for o in m.settings.outputs:
             if o != "tracks":
                 ours(tdir / OUTPUT_FILES[o], o in rec.get("outputs", {}) or o in rec.get("outputs_sha256", {}), who)
@@ -601,10 +628,18 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
     check_layout(m, out)
     t0 = time.perf_counter()
     say = (lambda *a: print(*a, file=sys.stderr, flush=True)) if show_progress else (lambda *a: None)
-    client, cluster = _client(scheduler, workers, processes)   # nothing is created before this connects
+    import secrets
+
+    token_before = os.environ.get("KEYSHAPE_RUN_TOKEN")
+    os.environ["KEYSHAPE_RUN_TOKEN"] = secrets.token_hex(4)     # this run's temporaries, workers' included
+    try:
+        client, cluster = _client(scheduler, workers, processes)   # nothing is created before this connects
+    except BaseException:
+        if token_before is None:
+            os.environ.pop("KEYSHAPE_RUN_TOKEN", None)
+        raise
     try:
         out.mkdir(parents=True, exist_ok=True)
-        remove_partials(out, m)
         n_workers = len(client.scheduler_info().get("workers", {}))
         say(f"keyshape batch: {len(m.takes)} takes of {len(m.actors)} actors on "
             f"{scheduler or 'a local cluster'} ({n_workers} workers)")
@@ -655,6 +690,10 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
             client.close()
         if cluster is not None:
             cluster.close()
+        if token_before is None:
+            os.environ.pop("KEYSHAPE_RUN_TOKEN", None)
+        else:
+            os.environ["KEYSHAPE_RUN_TOKEN"] = token_before
     report = _report(m, out, scheduler, n_workers, processes, [results[f.key] for f in finals], model_res, keys_res,
                      time.perf_counter() - t0, poses_res)
     report["tasks"] = spans

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import re
 import signal
 import sys
 from typing import Sequence
@@ -39,8 +40,21 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
 ]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (``keyshape COMMAND: error: argument --fps: ...``, exit 2);
+    ``keyshape COMMAND --help`` shows the usage."""
+
+    def error(self, message: str):
+        m = re.fullmatch(r"argument ([^:]+): (.*)", message, re.S)
+        if m:                       # "argument --port: 99999: a port must be ..." -> "--port 99999: a port ..."
+            opt, rest = m.group(1).split("/")[0], m.group(2)
+            own = not rest.startswith(("invalid ", "expected ", "ambiguous ", "one of ", "not allowed "))
+            message = f"{opt} {rest}" if own else f"{opt}: {rest}"
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="keyshape",
         description="Turn a filmed facial performance (video or 3D markers) into animation "
                     "of an artist's own blendshapes.",
@@ -57,7 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
                 groups[group] = gp.add_subparsers(dest=f"{group}_command", metavar="KIND")
                 gp.set_defaults(func=lambda args, _gp=gp: _gp.error("choose what to synthesise"))
             module.register(groups[group])
-    _defaults_once(parser)
+    for sp in _subparsers(parser):
+        if issubclass(sp.formatter_class, argparse.ArgumentDefaultsHelpFormatter):
+            sp.formatter_class = DefaultsOnce   # each default printed once and true
+        if not any("--overwrite" in a.option_strings for a in sp._actions):
+            sp.add_argument("--overwrite", action="store_true",
+                            help="replace an existing output file that keyshape's record does not show it wrote "
+                                 "(never an input, never a symbolic link)")
     return parser
 
 
@@ -75,14 +95,15 @@ class DefaultsOnce(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def _defaults_once(parser: argparse.ArgumentParser) -> None:
-    """:class:`DefaultsOnce` for every command that prints its defaults (set here, once for all of them)."""
+def _subparsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """Every leaf subcommand's parser (``synth video``, ``track``, ...)."""
+    out = []
     for a in parser._actions:
         if isinstance(a, argparse._SubParsersAction):
             for sp in a.choices.values():
-                if issubclass(sp.formatter_class, argparse.ArgumentDefaultsHelpFormatter):
-                    sp.formatter_class = DefaultsOnce
-                _defaults_once(sp)
+                subs = _subparsers(sp)
+                out += subs if subs else [sp]
+    return out
 
 
 class Terminated(KeyboardInterrupt):
@@ -138,14 +159,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     from keyshape.base.files import describe_os_error
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:            # a bad option (one line, exit 2) or --help (0)
+        return exc.code if isinstance(exc.code, int) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
     name = _command_name(args)
     try:
         _check_common_options(args)
-        with sigterm_as_interrupt():
+        from keyshape.base.files import run_rules
+        from keyshape.declare import check_declared
+        run = check_declared(name, args)
+        with sigterm_as_interrupt(), (run_rules(run) if run is not None else contextlib.nullcontext()):
             rc = args.func(args)
     except KeyshapeError as exc:
         print(f"keyshape {name}: error: {exc}", file=sys.stderr)

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from keyshape.base import options
 from keyshape.decompose import defaults as D
 from keyshape.decompose.defaults import METHODS, SOLVERS
 
@@ -38,7 +39,7 @@ _REGION_OF = {"jaw": "mouth", "mouth": "mouth", "eye": "eyes", "brow": "eyes"}
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the whole video path on built-in synthetic footage")
     p.add_argument("out_dir", nargs="?", default="keyshape_demo", help="output folder (default: keyshape_demo)")
-    p.add_argument("--frames", type=int, default=300, help="frames of synthetic footage (default 300)")
+    p.add_argument("--frames", type=options.synth_frames, default=300, help="frames of synthetic footage (default 300)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic performance (default 0)")
     p.add_argument("--keys", type=int, default=8, help="key shapes per region (default 8)")
     p.add_argument("--method", default=D.METHOD, choices=METHODS,

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
+from keyshape.base import options
 from keyshape.decompose import defaults as D
 from keyshape.retarget.defaults import GAZE, GAZES, SolveOptions
 
@@ -40,6 +41,9 @@ GAZE_FRAMES = 301
 
 
 # ----------------------------------------------------------------------------------------------- sources
+#: highest camera number accepted as a source (OpenCV's device indices are small integers)
+CAMERA_MAX = 9999
+
 class FrameSource:
     """Frames of a camera (OpenCV device index) or of a video file, with their capture times.
 
@@ -63,6 +67,8 @@ class FrameSource:
     def __init__(self, source: str, pace: bool = True, max_frames: int | None = None):
         import cv2
         self.camera = re.fullmatch(r"\d+", str(source)) is not None
+        if self.camera and int(source) > CAMERA_MAX:
+            raise InputError(f"camera {source}: a camera number is from 0 to {CAMERA_MAX} (or give a video file)")
         self.pace, self.max_frames = pace, max_frames
         self.luma_table = None
         if self.camera:
@@ -620,7 +626,7 @@ def register(subparsers) -> None:
                    help="the pupils' gaze (as solve --gaze): angles (the Live Link eye angles), shapes (also the "
                         "rig's eyeLook* curves) or none")
     p.add_argument("--host", default="127.0.0.1", help="where Unreal listens (the Live Link Face source)")
-    p.add_argument("--port", type=int, default=11111, help="its UDP port")
+    p.add_argument("--port", type=options.port, default=11111, help="its UDP port")
     p.add_argument("--subject", default="keyshape", help="the Live Link subject name Unreal shows")
     p.add_argument("--osc", metavar="HOST:PORT", help="also send OSC: one message per rig curve, /keyshape/<curve> "
                                                       "(needs python-osc: pip install 'keyshape[osc]')")
@@ -633,6 +639,8 @@ def run(args) -> int:
     if not 0 < args.port < 65536:
         raise InputError(f"--port {args.port}: must be in 1..65535")
     camera = re.fullmatch(r"\d+", args.source) is not None
+    if camera and int(args.source) > CAMERA_MAX:
+        raise InputError(f"camera {args.source}: a camera number is from 0 to {CAMERA_MAX} (or give a video file)")
     if not camera:
         require_file(args.source, "video")
     osc_addr = parse_host_port(args.osc, "--osc") if args.osc else None

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from keyshape.base import options
+
 
 def register(subparsers) -> None:
     """Add ``retarget`` to ``subparsers``."""

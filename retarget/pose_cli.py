@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from keyshape.base import options
+
 
 def register(subparsers) -> None:
     """Add ``pose`` to ``subparsers``."""
@@ -39,7 +41,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, help="POSES.json to write")
     p.add_argument("--edit", action="store_true",
                    help="then serve a local page (127.0.0.1) to correct the poses by hand; Ctrl-C stops it")
-    p.add_argument("--port", type=int, default=8766, help="port of the --edit page (0: any free port)")
+    p.add_argument("--port", type=options.port, default=8766, help="port of the --edit page (0: any free port)")
     p.set_defaults(func=run)
 
     e = subparsers.add_parser(
@@ -54,7 +56,7 @@ def register(subparsers) -> None:
     e.add_argument("--neutral", default=None, help="the rig's neutral OBJ (default: as for keyshape pose)")
     e.add_argument("--keys", default=None,
                    help="KEYS.json the poses were fitted from (default: the one POSES.json names, if found)")
-    e.add_argument("--port", type=int, default=8766, help="port on 127.0.0.1 (0: any free port)")
+    e.add_argument("--port", type=options.port, default=8766, help="port on 127.0.0.1 (0: any free port)")
     e.set_defaults(func=run_edit)
 
 
@@ -126,6 +128,8 @@ def run_edit(args) -> int:
     from keyshape.retarget.pose_edit import serve
     from keyshape.retarget.rig import load_rig
 
+    from keyshape.base.errors import require_file
+    require_file(args.poses, "pose library (POSES.json)")           # before the rig is loaded
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
     serve(args.poses, rig, args.keys, args.port)
     return 0

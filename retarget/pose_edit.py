@@ -98,31 +98,23 @@ class PoseHandler(LocalHandler):
         else:
             self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
 
-    def do_PUT(self) -> None:  # noqa: N802
-        if not self.is_local():
-            return
-        path = self.path.split("?", 1)[0]
-        if not path.startswith("/api/poses/"):
-            self.send_error_json(HTTPStatus.METHOD_NOT_ALLOWED, "only key poses can be written")
-            return
-        key = unquote(path[len("/api/poses/"):])
+    put_prefix = "/api/poses/"
+    put_what = "the pose"
+    put_expected = 'expected {"pose": {"shape": weight, ...}}'
+    put_refused = "only key poses can be written"
+
+    def put_target(self, key: str):
         if not self.server.has_key(key):
             self.send_error_json(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
-            return
-        body = self.read_json_body("the pose", 'expected {"pose": {"shape": weight, ...}}')
-        if body is NO_BODY:
-            return
+            return NO_BODY
+        return key
+
+    def put(self, key: str, body) -> dict:
         try:
             pose = body["pose"]
         except (KeyError, TypeError):
-            self.send_error_json(HTTPStatus.BAD_REQUEST, 'expected {"pose": {"shape": weight, ...}}')
-            return
-        try:
-            saved = self.server.set_pose(key, pose)
-        except KeyshapeError as exc:
-            self.send_error_json(HTTPStatus.BAD_REQUEST, str(exc))
-            return
-        self.send_json(HTTPStatus.OK, {"saved": key, "pose": saved})
+            raise InputError(self.put_expected) from None
+        return {"saved": key, "pose": self.server.set_pose(key, pose)}
 
 
 class PoseServer(LocalServer):
@@ -189,10 +181,16 @@ class PoseServer(LocalServer):
     def set_pose(self, key: str, pose) -> dict:
         """Replace ``key``'s pose after checking it, and rewrite POSES.json atomically."""
         from keyshape.base.formats.poses import write_poses
+        import copy
+
+        from keyshape.base.files import user_save
         region, clean = check_pose(self.library, key, pose, self.path)
         with self.lock:
-            self.library["regions"][region]["keys"][key] = clean
-            write_poses(self.path, self.library)
+            library = copy.deepcopy(self.library)
+            library["regions"][region]["keys"][key] = clean
+            with user_save():
+                write_poses(self.path, library)     # an OSError leaves the library what the file holds
+            self.library = library
         return clean
 
     def render_png(self, key: str) -> bytes:

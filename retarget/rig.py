@@ -126,13 +126,15 @@ def cache_dir() -> Path:
 
 
 def _file_hashes(paths: Sequence[Path]) -> list[str]:
-    """sha256 of each file's content; a file whose path, size and modification time are those recorded in
-    the cache folder's ``hashes.json`` (when its hash was last computed) is not read again, as
-    ``keyshape batch`` does for videos (hashing ICT-FaceKit's 152 MB on every command costs a quarter
-    of a second)."""
+    """sha256 of each file's content; a file whose path, device, inode, size, modification time and
+    status-change time (ctime) are those recorded in the cache folder's ``hashes.json`` (when its hash
+    was last computed) is not read again (hashing ICT-FaceKit's 152 MB on every command costs a
+    quarter of a second). The ctime is set by the kernel on every write and cannot be set back (``cp
+    -p``, ``rsync -a`` and tar restore the modification time, not the ctime), so a file edited in
+    place keeping its size and modification time is hashed again."""
     import os
 
-    from keyshape.base.files import read_json, sha256_file, write_json
+    from keyshape.base.files import keyshape_store, read_json, sha256_file, write_json
 
     index_path = cache_dir() / "hashes.json"
     try:
@@ -145,17 +147,19 @@ def _file_hashes(paths: Sequence[Path]) -> list[str]:
         st = os.stat(p)
         key = str(Path(p).resolve())
         rec = index.get(key)
-        if isinstance(rec, list) and len(rec) == 3 and rec[:2] == [st.st_size, st.st_mtime_ns] \
-                and isinstance(rec[2], str) and len(rec[2]) == 64:
-            out.append(rec[2])
+        stamp = [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
+        if isinstance(rec, list) and len(rec) == 6 and rec[:5] == stamp \
+                and isinstance(rec[5], str) and len(rec[5]) == 64:
+            out.append(rec[5])
             continue
         h = sha256_file(p)
-        index[key] = [st.st_size, st.st_mtime_ns, h]
+        index[key] = [*stamp, h]
         out.append(h)
         changed = True
     if changed:
         try:
-            write_json(index_path, index, indent=None)
+            with keyshape_store():
+                write_json(index_path, index, indent=None)
         except OSError:
             pass
     return out
@@ -225,8 +229,10 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
         except InputError:
             pass                                  # damaged: parse again and rewrite it below
     base, deltas, mesh = _parse_rig(files, neutral, True)
+    from keyshape.base.files import keyshape_store
     try:
-        write_rig_cache(path, names, base, deltas, mesh)
+        with keyshape_store():
+            write_rig_cache(path, names, base, deltas, mesh)
     except OSError:
         pass                                      # a read-only home: the rig is parsed each time
     return Rig(names, base, deltas, mesh if with_mesh else None, files, neutral)

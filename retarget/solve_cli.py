@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from keyshape.base import options
+
 
 def register(subparsers) -> None:
     """Add ``solve`` to ``subparsers``."""
@@ -63,6 +65,8 @@ def run(args) -> int:
     check_output(args.output, "file", inputs)
     scheme_name, n_points, regions = read_keys(args.keys)
     tracks = read_tracks(args.tracks, accept_partial=args.accept_partial)
+    from keyshape.base.formats.keys import check_keys_model
+    check_keys_model(args.keys, tracks.meta.get("model"), False)
     if tracks.n_points != n_points:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} {n_points}",
                          args.tracks)

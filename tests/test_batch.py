@@ -195,6 +195,17 @@ def test_a_rig_library_writes_curves_and_live_link_resumably_as_the_commands_do(
                  "--landmarks", str(lm), "--poses", str(tmp_path / "fixed.json"), "--weights", str(d0 / "weights.csv"),
                  "-o", str(tmp_path / "fixed_curves.csv")]) == 0
     assert filecmp.cmp(tmp_path / "fixed_curves.csv", d0 / "curves.csv", shallow=False)
+    # issue 37: the artist corrects OUT/actor1/poses.json in pose-edit; a rerun keeps it and uses it
+    edited = json.loads((out / "actor1" / "poses.json").read_text())
+    key = next(iter(edited["regions"]["mouth"]["keys"]))
+    edited["regions"]["mouth"]["keys"][key] = {"jawOpen": 0.5}
+    (out / "actor1" / "poses.json").write_text(json.dumps(edited))
+    kept = (out / "actor1" / "poses.json").read_bytes()
+    rep = run_batch(manifest, out, workers=1, processes=False, show_progress=False)
+    assert rep["actors"]["actor1"]["poses_status"] == "edited", rep["actors"]
+    assert (out / "actor1" / "poses.json").read_bytes() == kept
+    stages = {(r["actor"], r["take"]): r["stages"] for r in rep["takes"]}
+    assert stages[("actor1", "take00")] == {"track": "skipped", "finish": "done"}, stages
 
 
 def test_the_report_says_when_and_where_each_task_ran(first_run):

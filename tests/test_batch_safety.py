@@ -162,3 +162,34 @@ def test_an_unreachable_scheduler_is_one_line_and_creates_nothing(small, tmp_pat
     err = capsys.readouterr().err.strip()
     assert "cannot connect" in err and "\n" not in err, err
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- user edits survive a rerun (issue 37)
+def test_a_rerun_keeps_edited_keys_and_tracks_and_says_which(small, tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(small.parent / "out", out)
+    for rel in ("actor0/keys.json", "actor0/take00/tracks.csv"):
+        p = out / rel
+        original = p.read_bytes()
+        p.write_bytes(original + b"\n")                               # the user's edit
+        before = tree(out)
+        with pytest.raises(InputError, match="changed since keyshape batch wrote it") as exc:
+            run_batch(small, out, workers=1, processes=False, show_progress=False)
+        assert p.name in str(exc.value) and "delete" in str(exc.value) and "\n" not in str(exc.value)
+        assert tree(out) == before
+        p.write_bytes(original)
+
+
+def test_remove_partials_deletes_only_this_runs_temporaries(small, tmp_path):
+    from keyshape.batch import remove_partials
+    m = read_manifest(small)
+    out = tmp_path / "out"
+    take = out / "actor0" / "take00"
+    take.mkdir(parents=True)
+    mine = [take / ".notes.v2.partial.txt", take / ".draft.abc.partial", out / ".x.y.partial.csv"]
+    for p in mine:
+        p.write_text("the user's")
+    ours = take / ".weights.csv.ksdeadbeef-abc123.partial.csv"
+    ours.write_text("temporary")
+    assert remove_partials(out, m, token="ksdeadbeef") == 1
+    assert not ours.exists() and all(p.read_text() == "the user's" for p in mine)

@@ -137,8 +137,9 @@ def test_ctrl_c_stops_the_workers_and_keeps_the_stitched_frames(clip, tmp_path, 
 
     monkeypatch.setattr(TracksWriter, "write", write)
     out = tmp_path / "t.csv"
-    out.write_text("earlier complete tracks\n")
-    assert main(["track", str(video), "--model", str(model_path), "-o", str(out), "--jobs", "2", "--quiet"]) == 130
+    out.write_text("earlier complete tracks\n")              # the user's own: replaced only with --overwrite
+    assert main(["track", str(video), "--model", str(model_path), "-o", str(out), "--jobs", "2", "--quiet",
+                 "--overwrite"]) == 130
     assert "interrupted: tracks written for frames 0-39 only" in capsys.readouterr().out
     assert out.read_text() == "earlier complete tracks\n"
     tr = read_tracks(tmp_path / "t.partial.csv", accept_partial=True)
@@ -160,8 +161,9 @@ def test_ctrl_c_before_any_frame_writes_nothing(clip, tmp_path, monkeypatch, cap
 
     monkeypatch.setattr(TracksWriter, "write", write)
     out = tmp_path / "t.csv"
-    out.write_text("earlier complete tracks\n")
-    assert main(["track", str(video), "--model", str(model_path), "-o", str(out), "--jobs", jobs, "--quiet"]) == 130
+    out.write_text("earlier complete tracks\n")              # the user's own: replaced only with --overwrite
+    assert main(["track", str(video), "--model", str(model_path), "-o", str(out), "--jobs", jobs, "--quiet",
+                 "--overwrite"]) == 130
     said = capsys.readouterr().out
     assert "interrupted before any frame was tracked: nothing written" in said and "is untouched" in said
     assert out.read_text() == "earlier complete tracks\n"

@@ -104,7 +104,7 @@ def test_more_adds_the_frames_the_track_explains_worst(small_video, tmp_path, ca
     ok[lost] = False
     conf[lost] = 0.0
     conf[weak] = 0.3
-    pts = np.zeros((n, 48, 2))
+    pts = np.random.default_rng(0).normal(60, 15, (n, 48, 2))          # a face-like spread (not collapsed)
     pose = np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 1, 1))
     write_tracks(tmp_path / "t.csv", Tracks(np.arange(n), np.arange(n) / 25, conf, ok, pts, pose))
     assert main(["label", str(small_video), "-o", str(out), "--no-prefill", "--quiet", "--more", "2",

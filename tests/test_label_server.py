@@ -166,3 +166,38 @@ def test_corrupt_pts_gives_an_error_response(running):
     assert st == 422 and b"000040.pts" in body and b"closing brace" in body
     st, _ = request(server, "GET", "/api/session")
     assert st == 200
+
+
+def test_degenerate_points_and_unwritable_saves_are_http_errors(running, monkeypatch):
+    """issue 37: 53 identical points are refused (400); a .pts that cannot be written is a 507 with one
+    line naming it, and the server keeps serving what the file holds."""
+    import errno
+
+    import keyshape.base.formats.labels as labels_mod
+    server, root = running
+    before = snapshot(root)
+    n = server.scheme.n_points
+    st, body = request(server, "PUT", "/api/points/000005.pts", {"points": [[100.0, 100.0]] * n})
+    assert st == 400 and "collapsed" in json.loads(body)["error"]
+
+    def full(path, points):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(labels_mod, "write_pts", full)
+    pts = read_pts(server.folder / "000005.pts")
+    st, body = request(server, "PUT", "/api/points/000005.pts", {"points": (pts + 1).tolist()})
+    err = json.loads(body)["error"]
+    assert st == 507 and "000005.pts" in err and "\n" not in err
+    assert snapshot(root) == before
+    st, body = request(server, "GET", "/api/points/000005.pts")
+    assert st == 200 and np.allclose(json.loads(body)["points"], pts)
+
+
+def test_the_contact_sheet_survives_a_collapsed_label_file(tmp_path):
+    """issue 37: a hand-edited .pts with every point on one spot no longer crashes the redraw at Ctrl-C."""
+    from keyshape.base.formats.labels import write_pts
+    from keyshape.base.schemes import load_scheme
+    from keyshape.tracker.labelling.prepare import write_contact_sheet
+    folder = make_folder(tmp_path)
+    write_pts(folder / "000005.pts", np.full((48, 2), 50.0))
+    assert write_contact_sheet(folder, [5, 40], load_scheme("contours48")).is_file()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import importlib.util
+import json
 import shutil
 import signal
 import socket
@@ -302,7 +303,8 @@ def test_ctrl_c_stops_cleanly_with_exit_130(take):
 
 
 @pytest.mark.parametrize("case", ["host", "broadcast", "camera", "scheme", "osc", "osc_missing",
-                                  "calibration", "calibration_scheme", "calibration_model", "poses_elsewhere"])
+                                  "calibration", "calibration_scheme", "calibration_model", "poses_elsewhere",
+                                  "foreign_keys", "huge_camera"])
 def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, case):
     extra: list[str] = ["--no-pace"]
     source = None
@@ -345,6 +347,15 @@ def test_bad_input_is_one_line_and_exit_2(take, tmp_path, capsys, monkeypatch, c
         write_tracks(tmp_path / "other.csv", tr)
         extra += ["--calibration", str(tmp_path / "other.csv")]
         want = "another tracker model"
+    elif case == "foreign_keys":                       # issue 37: as decompose and solve refuse them
+        keys = json.loads((take / "k.json").read_text())
+        keys.setdefault("source", {})["model"] = "sha256:0123456789abcdef"
+        (tmp_path / "fk.json").write_text(json.dumps(keys))
+        extra += ["--keys", str(tmp_path / "fk.json")]
+        want = "another tracker model"
+    elif case == "huge_camera":
+        source = "99999999999999999999"
+        want = "camera 99999999999999999999"
     elif case == "osc":
         extra += ["--osc", "127.0.0.1"]
         want = "HOST:PORT"

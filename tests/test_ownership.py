@@ -255,13 +255,19 @@ def test_an_input_folder_inside_the_output_gets_no_new_file(tmp_path):
     assert sorted(p.name for p in (out / "targets").iterdir()) == ["a.obj"]
 
 
-def test_legacy_records_are_replaced_by_name_but_never_pruned(tmp_path):
+def test_legacy_records_are_claims_without_proof_never_replaced_or_pruned(tmp_path):
+    """A record without content hashes (an older keyshape's, or a planted one) proves nothing: its
+    files are replaced only with --overwrite and never pruned."""
     out = tmp_path / "o"
     out.mkdir()
     (out / "a").write_text("old a")
     (out / "b").write_text("old b")
     (out / MANIFEST).write_text(json.dumps({"written_by": "keyshape", "files": ["a", "b"]}))
-    with atomic_dir(out, kind="demo") as d:
+    with pytest.raises(InputError, match="exists and was written by keyshape legacy"):
+        with atomic_dir(out, kind="demo") as d:
+            (d / "a").write_text("new a")
+    assert (out / "a").read_text() == "old a"
+    with atomic_dir(out, kind="demo", overwrite=True) as d:
         (d / "a").write_text("new a")
     assert (out / "a").read_text() == "new a" and (out / "b").read_text() == "old b"
     assert json.loads((out / MANIFEST).read_text())["outputs"] == {"demo": ["a"], "legacy": ["b"]}
@@ -270,13 +276,34 @@ def test_legacy_records_are_replaced_by_name_but_never_pruned(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "b", "c"]
 
 
+@pytest.mark.parametrize("claims", [["precious.txt", "sub/notes.md"]])
+def test_a_planted_record_is_verified_against_content_hashes(tmp_path, claims):
+    """issue 37: a record listing a user's files under the run's own kind deletes nothing and replaces nothing."""
+    out = tmp_path / "d"
+    (out / "sub").mkdir(parents=True)
+    (out / "precious.txt").write_text("mine")
+    (out / "sub" / "notes.md").write_text("mine too")
+    for sha in ({}, {c: "0" * 64 for c in claims}):
+        (out / MANIFEST).write_text(json.dumps({"written_by": "keyshape", "outputs": {"synth video": claims},
+                                                "sha256": sha}))
+        with atomic_dir(out, kind="synth video") as d:
+            (d / "video.mp4").write_text("v")
+        assert (out / "precious.txt").read_text() == "mine" and (out / "sub" / "notes.md").read_text() == "mine too"
+        with pytest.raises(InputError, match="precious.txt"):
+            with atomic_dir(out, kind="synth video") as d:
+                (d / "precious.txt").write_text("v")
+        assert (out / "precious.txt").read_text() == "mine"
+        (out / "video.mp4").unlink()
+
+
 # --------------------------------------------------------------------------- write order: data before sidecar
 def _tracks(value: float, model: str):
     import numpy as np
 
     from keyshape.base.formats.tracks import Tracks
     n = 3
-    return Tracks(np.arange(n), np.arange(n) / 30.0, np.ones(n), np.ones(n, bool), np.full((n, 4, 2), value),
+    return Tracks(np.arange(n), np.arange(n) / 30.0, np.ones(n), np.ones(n, bool),
+                  np.full((n, 4, 2), value) + np.arange(4)[None, :, None],          # 4 points, not collapsed
                   np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 1, 1)), {"model": model})
 
 

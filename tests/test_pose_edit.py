@@ -99,3 +99,25 @@ def test_pose_edit_command_refuses_a_bad_library_naming_it(tmp_path, capsys):
     (tmp_path / "poses.json").write_text('{"format": "something-else"}')
     assert main(["pose-edit", str(tmp_path / "poses.json"), "--rig", str(rig), "--port", "0"]) == 2
     assert "poses.json" in capsys.readouterr().err
+
+
+def test_a_save_that_cannot_be_written_is_an_http_error_and_changes_nothing(running, monkeypatch):
+    """issue 37: a PUT whose POSES.json cannot be written answers 507 with one line naming the file;
+    the server keeps serving and its library stays what the file holds."""
+    import errno
+
+    import keyshape.base.formats.poses as poses_mod
+    server, tmp = running
+    before = (tmp / "poses.json").read_bytes()
+    lib0 = json.loads(request(server, "GET", "/api/library")[1])
+
+    def full(path, library):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(poses_mod, "write_poses", full)
+    status, body = request(server, "PUT", "/api/poses/mouth_0", {"pose": {"jawOpen": 0.0, "mouthSmile_L": 0.9}})
+    err = json.loads(body)["error"]
+    assert status == 507 and "poses.json" in err and "\n" not in err
+    assert (tmp / "poses.json").read_bytes() == before
+    status, body = request(server, "GET", "/api/library")
+    assert status == 200 and json.loads(body) == lib0                # not the unsaved value

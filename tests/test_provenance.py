@@ -261,3 +261,28 @@ def test_preview_refuses_a_video_of_another_size_than_the_tracks(tmp_path, capsy
     err = one_line(capsys)
     assert "160x120" in err and "320x240" in err
     assert not sheet.exists()
+
+
+# --------------------------------------------------------------------------- labels know their footage (issue 37)
+def test_labels_of_another_video_or_size_are_refused_before_training(tmp_path, capsys):
+    from keyshape.base.formats.labels import FOOTAGE_FILE, read_footage
+    for name, extra in (("a", []), ("b", ["--seed", "5"]), ("small", ["--size", "160x120"])):
+        assert main(["synth", "video", str(tmp_path / name), "--frames", "12", "--labels", "8", "--size", "192x144",
+                     *extra]) == 0
+    rec = read_footage(tmp_path / "a" / "labels")
+    assert rec["width"] == 192 and rec["n_frames"] == 12 and len(rec["sha256"]) == 64
+    capsys.readouterr()
+    labels = str(tmp_path / "a" / "labels")
+    for video, phrase in (("small", "160x120"), ("b", "another video")):
+        rc = main(["train", str(tmp_path / video / "video.mp4"), "--labels", labels, "-o", str(tmp_path / "m.npz")])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and phrase in err and "labels" in err and "\n" not in err, err
+        assert not (tmp_path / "m.npz").exists()
+    rc = main(["train", str(tmp_path / "small" / "video.mp4"), "--labels", labels, "--labels-from-other-video",
+               "-o", str(tmp_path / "m.npz")])
+    assert rc == 2 and "160x120" in capsys.readouterr().err          # another size: never meaningful
+    (tmp_path / "a" / "labels" / FOOTAGE_FILE).unlink()                  # an older folder: trains, says so
+    assert main(["train", str(tmp_path / "a" / "video.mp4"), "--labels", labels, "--components", "2",
+                 "-o", str(tmp_path / "m.npz")]) == 0
+    err = capsys.readouterr().err
+    assert f"no {FOOTAGE_FILE}" in err

@@ -186,8 +186,9 @@ def test_disk_full_is_one_line_and_leaves_no_temporary(work, tmp_path, monkeypat
 
     monkeypatch.setattr(files.os, "fsync", full)
     out = tmp_path / "w.csv"
-    out.write_text("earlier")
-    rc = main(["decompose", str(work / "foot" / "truth.csv"), "--keys", str(work / "keys.json"), "-o", str(out)])
+    out.write_text("earlier")                   # the user's own file: replaced only with --overwrite
+    rc = main(["decompose", str(work / "foot" / "truth.csv"), "--keys", str(work / "keys.json"), "-o", str(out),
+               "--overwrite"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "disk full" in err and "\n" not in err
     assert out.read_text() == "earlier" and sorted(p.name for p in tmp_path.iterdir()) == ["w.csv"]
@@ -325,9 +326,9 @@ def long_take(tmp_path_factory):
 @pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_interrupted_track_keeps_the_earlier_tracks(long_take, tmp_path, sig, status):
     out = tmp_path / "tracks.csv"
-    out.write_text("earlier complete tracks\n")
+    out.write_text("earlier complete tracks\n")              # the user's own: replaced only with --overwrite
     proc = _keyshape("track", long_take / "foot" / "video.mp4", "--model", long_take / "model.npz", "-o", out,
-                     "--quiet", cwd=tmp_path)
+                     "--quiet", "--overwrite", cwd=tmp_path)
 
     def rows_written():
         tmp = [p for p in tmp_path.glob(".tracks.csv.*.partial")]
@@ -341,7 +342,7 @@ def test_interrupted_track_keeps_the_earlier_tracks(long_take, tmp_path, sig, st
     part = tmp_path / "tracks.partial.csv"
     assert part.read_text().startswith("# keyshape partial tracks: interrupted after")
     assert "interrupted" in stdout and "Traceback" not in stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["tracks.csv", "tracks.partial.csv"]   # no hidden temporaries
+    assert sorted(p.name for p in tmp_path.iterdir()) == [MANIFEST, "tracks.csv", "tracks.partial.csv"]  # no temporaries
 
 
 @pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
@@ -385,3 +386,27 @@ def test_target_markers_far_or_collapsed_are_refused(tmp_path):
         read_target_markers(tmp_path / "one.json", len(v), v)
     (tmp_path / "ok.json").write_text(json.dumps({"a": 3, "b": [5.0, 5.0, 5.0], "c": 7}))
     assert sorted(read_target_markers(tmp_path / "ok.json", len(v), v)) == ["a", "b", "c"]
+
+
+def test_a_rig_edited_in_place_keeping_size_and_time_is_read_again(tmp_path, monkeypatch):
+    """issue 37: the rig cache is keyed by content; an edit that keeps the file's size and modification
+    time (as ``cp -p``, ``rsync -a`` or tar leave it) is not served from the stale cache."""
+    from test_rig_poses import write_toy_rig
+
+    from keyshape.retarget.rig import load_rig
+    monkeypatch.setenv("KEYSHAPE_CACHE", str(tmp_path / "cache"))
+    rig, _ = write_toy_rig(tmp_path / "rig")
+    first = load_rig(rig)
+    shape = sorted(p for p in rig.glob("*.obj") if p.name != "neutral.obj")[0]
+    st = os.stat(shape)
+    lines = shape.read_text().splitlines(keepends=True)
+    i = next(k for k, line in enumerate(lines) if line.startswith("v "))
+    x = lines[i].split()
+    x[1] = x[1][:-1] + ("1" if x[1][-1] != "1" else "2")        # same length: one digit changed
+    lines[i] = " ".join(x) + "\n"
+    shape.write_text("".join(lines))
+    os.utime(shape, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert os.stat(shape).st_size == st.st_size and os.stat(shape).st_mtime_ns == st.st_mtime_ns
+    second = load_rig(rig)
+    k = first.names.index(shape.stem)
+    assert not np.array_equal(first.deltas[k], second.deltas[k])

@@ -151,8 +151,9 @@ def test_glb_passes_khronos_validator(scene, form):
     n = 10
     pose = np.tile(np.array([[1.0, 0, 0], [0, 1, 0]]), (n, 1, 1))
     pose[:, 0, 2] = np.arange(n)
+    tri = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])                 # 3 points, not collapsed
     write_tracks(tracks, Tracks(np.arange(n), np.arange(n) / 25, np.ones(n), np.ones(n, bool),
-                                np.zeros((n, 3, 2)), pose))
+                                np.tile(tri, (n, 1, 1)), pose))
     out = tmp / f"{form}.glb"
     from keyshape.base.formats.tracks import read_tracks
     api.retarget(api.Weights.load(tmp / "w.csv"), d, options=api.RetargetOptions(form=form),

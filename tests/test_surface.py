@@ -45,10 +45,15 @@ def commands() -> dict[str, argparse.ArgumentParser]:
     return out
 
 
+#: options every command has, added once for all in keyshape/cli.py (counted like ``-h``, not per command)
+COMMON = {"--overwrite"}
+
+
 def options(parser: argparse.ArgumentParser) -> list[argparse.Action]:
-    """The options a user sees: not ``-h``, not the hidden ones, not the positional arguments."""
+    """The options a user sees: not ``-h`` or the options every command shares (:data:`COMMON`), not the hidden
+    ones, not the positional arguments."""
     return [a for a in parser._actions if a.option_strings and not isinstance(a, argparse._HelpAction)
-            and a.help != argparse.SUPPRESS]
+            and a.help != argparse.SUPPRESS and not COMMON & set(a.option_strings)]
 
 
 def test_command_line_options_counted():

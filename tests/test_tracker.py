@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from keyshape.base.files import MANIFEST
 from keyshape.cli import main
 from keyshape.base.errors import InputError, NotFittedError
 from keyshape.tracker.eigenpoints import AppearanceModel
@@ -383,8 +384,9 @@ def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, ca
     d, video, model, _ = files
     interrupt_at(monkeypatch, 4)
     out = tmp_path / "t.csv"
-    out.write_text("earlier complete tracks\n")
-    assert main(["track", str(video), "--model", str(model), "-o", str(out), "--smooth", "savgol", "--quiet"]) == 130
+    out.write_text("earlier complete tracks\n")                    # the user's own: replaced only with --overwrite
+    assert main(["track", str(video), "--model", str(model), "-o", str(out), "--smooth", "savgol", "--quiet",
+                 "--overwrite"]) == 130
     assert "interrupted: tracks written for frames 0-3 only, to " in capsys.readouterr().out
     assert out.read_text() == "earlier complete tracks\n"          # the earlier output is untouched
     part = tmp_path / "t.partial.csv"
@@ -392,7 +394,7 @@ def test_ctrl_c_keeps_the_frames_tracked_so_far(files, tmp_path, monkeypatch, ca
         read_tracks(part)
     tr = read_tracks(part, accept_partial=True)
     np.testing.assert_array_equal(tr.frame, [0, 1, 2, 3])
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == [MANIFEST]   # no temporaries
 
 
 def test_an_interruption_stops_the_decode_thread_before_the_caller_sees_it(files, monkeypatch):

@@ -221,3 +221,32 @@ def test_usd_of_2d_targets_and_without_usd_core_are_one_line_errors(scene, tmp_p
 def test_batch_manifest_accepts_usd_output():
     from keyshape.manifest import OUTPUT_FILES, OUTPUTS
     assert "usd" in OUTPUTS and OUTPUT_FILES["usd"].endswith(".usdc")
+
+
+def test_a_usd_write_that_fails_for_want_of_room_is_one_line(tmp_path):
+    """issue 37: USD output onto a full disk (here: a file-size limit, EFBIG) is one line naming the
+    user's file, without USD's own error lines, and leaves no temporary."""
+    import subprocess
+    script = f"""
+import resource, signal, sys
+import numpy as np
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
+from keyshape.base.files import describe_os_error
+from keyshape.base.formats.usd import write_usd
+rng = np.random.default_rng(0)
+v = rng.normal(size=(3000, 3))
+polys = [np.array([i, i + 1, i + 2]) for i in range(0, 2997)]
+try:
+    write_usd({str(tmp_path / 'out.usdc')!r}, v, polys, rng.normal(size=(4, 3000, 3)), list('abcd'),
+              rng.uniform(size=(50, 4)))
+except OSError as exc:
+    print(describe_os_error(exc))
+    sys.exit(2)
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    line = r.stdout.strip()
+    assert "\n" not in line and "out.usdc" in line and ".partial" not in line, line
+    assert len(r.stderr.splitlines()) <= 1, r.stderr[:500]
+    assert [p.name for p in tmp_path.iterdir()] == []

@@ -16,6 +16,9 @@ def register(subparsers) -> None:
                                           "zero-based frame index (000123.pts = frame 123).")
     p.add_argument("video", help="the video the labels belong to")
     p.add_argument("--labels", required=True, metavar="DIR", help="folder of NNNNNN.pts label files")
+    p.add_argument("--labels-from-other-video", action="store_true",
+                   help="train on labels whose footage record names another video of the same frame size (the "
+                        "same footage re-encoded); refused by default")
     p.add_argument("--scheme", default=None,
                    help="contours48, ibug68 or a scheme JSON file (default: the scheme the labels were made in "
                         "by 'keyshape label', else contours48)")
@@ -62,6 +65,30 @@ def _scheme(args) -> int:
 RECOMMENDED_LABELS = 8
 
 
+def _check_footage(args) -> None:
+    """Labels belong to the footage they were made on (their folder's ``footage.json``): another frame
+    size is refused; another video (content or frame count) unless ``--labels-from-other-video``.
+    A folder without a record (made before keyshape wrote one) trains, said in one line."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.formats.labels import FOOTAGE_FILE, footage_record, read_footage
+
+    rec = read_footage(args.labels)
+    if rec is None:
+        print(f"keyshape train: note: {args.labels} has no {FOOTAGE_FILE} (made before keyshape recorded the "
+              f"footage of its labels): not checked against {args.video}", file=sys.stderr)
+        return
+    now = footage_record(args.video)
+    if (now["width"], now["height"]) != (rec["width"], rec["height"]):
+        raise InputError(f"these labels were made on footage of {rec['width']}x{rec['height']} ({rec.get('video')}), "
+                         f"{args.video} is {now['width']}x{now['height']}: label positions are pixels of that footage",
+                         args.labels)
+    if (now["sha256"], now["n_frames"]) != (rec["sha256"], rec["n_frames"]) and not args.labels_from_other_video:
+        raise InputError(f"these labels were made on another video ({rec.get('video')}, {rec['n_frames']} frames, "
+                         f"sha256 {rec['sha256'][:12]}...; {args.video}: {now['n_frames']} frames, sha256 "
+                         f"{now['sha256'][:12]}...): train on that video, or pass --labels-from-other-video if "
+                         "this is the same footage re-encoded", args.labels)
+
+
 def _train(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.files import check_outputs
@@ -72,6 +99,7 @@ def _train(args) -> int:
     if args.morphs < 0:
         raise InputError(f"--morphs {args.morphs}: must be >= 0")
     check_outputs([args.output], inputs=[args.video])
+    _check_footage(args)
     model, seconds = train_model(args.video, args.labels, args.scheme, n_components=args.components,
                                  n_morphs=args.morphs, rng=args.seed)
     model.save(args.output)

@@ -356,7 +356,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
     import os
     import shutil
 
-    from keyshape.base.files import _tmp_sibling, check_outputs, partial_name, sha256_file
+    from keyshape.base.files import _tmp_sibling, check_outputs, commit, partial_name, sha256_file
 
     check_outputs([output, meta_path(output), overlay],
                   inputs=[video, model if not isinstance(model, AppearanceModel) else None])
@@ -405,9 +405,9 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
         n = writer.n_rows
         if interrupted is None:
             write_meta(output, meta, sha256_file(tmp_csv))
-            os.replace(tmp_csv, output)
+            commit(tmp_csv, output)
             if overlay:
-                os.replace(tmp_vid, overlay)
+                commit(tmp_vid, overlay)
         elif n:
             # the earlier complete outputs stay; what was tracked goes to NAME.partial.csv, marked partial
             part = partial_name(output)
@@ -416,7 +416,7 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
                          "read it with --accept-partial\n" + meta_line(meta))
                 shutil.copyfileobj(src, pf)
             if overlay:
-                os.replace(tmp_vid, partial_name(overlay))
+                commit(tmp_vid, partial_name(overlay))
     finally:
         tmp_csv.unlink(missing_ok=True)
         if tmp_vid is not None:

@@ -1,17 +1,22 @@
-"""Safe outputs: a crash never leaves a half-written file that looks complete, and keyshape
-never deletes what it did not write.
+"""Safe outputs, and the one output rule every command follows (``docs/reliability.md``).
 
 * Every file keyshape writes goes to a temporary sibling first and is renamed
   over the destination only once complete (``os.replace`` is atomic on POSIX
   and Windows within one file system); on any error or interruption the
   temporary file is removed and the destination is untouched.
+* The output rule (:func:`guard_file`, applied to every write while a command runs
+  under :func:`run_rules`; ``keyshape.cli.main`` checks each command's declared
+  outputs, :mod:`keyshape.declare`, before any work): never an input (same device
+  and inode, or same resolved path), never a symbolic link, and an existing file
+  only where keyshape's record (:data:`MANIFEST`, with each file's SHA-256) shows
+  keyshape wrote exactly that content, or with ``--overwrite``. Every file written
+  is recorded with its hash. A record is a claim, verified against the content
+  before anything is replaced or deleted.
 * A folder output (:func:`atomic_dir`) is filled in a hidden temporary folder
-  inside it and its files are moved in only when all are complete. Only the
-  files keyshape writes are touched: a small manifest (:data:`MANIFEST`)
-  records them, so a later run may replace and prune its own earlier outputs
-  but never anything else. A non-empty folder without a manifest is refused
-  unless ``overwrite`` is given (then still only keyshape's own file names are
-  written).
+  inside it and its files are moved in only when all are complete. It replaces
+  and prunes only its own kind's earlier files whose content is the recorded one.
+  A non-empty folder without a record of a folder output is refused unless
+  ``overwrite`` is given (then still only keyshape's own file names are written).
 * :func:`check_outputs` checks every output path before any computation
   starts: parent a writable folder, output not a folder (or a file, for a
   folder output) and not one of the inputs.
@@ -24,8 +29,11 @@ import hashlib
 import json
 import os
 import posixpath
+import re
+import secrets
 import shutil
 import tempfile
+import threading
 from pathlib import Path
 from typing import IO, Iterable, Iterator
 
@@ -33,6 +41,8 @@ from keyshape.base.errors import InputError, require_file
 
 #: file recording, in a folder output, the files keyshape wrote there (relative paths)
 MANIFEST = ".keyshape-outputs.json"
+#: the record's kind for single-file outputs (every command's ``-o FILE``, sidecars included)
+FILES_KIND = "files"
 
 
 def _umask_mode(base: int = 0o666) -> int:
@@ -47,10 +57,199 @@ def _tmp_sibling(path: Path, suffix: str = "") -> Path:
     ``mkstemp`` creates files readable by their owner only; outputs that users
     share (videos, .glb) must get the usual umask-derived mode instead.
     """
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial" + suffix, dir=path.parent)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.{run_token()}-", suffix=".partial" + suffix, dir=path.parent)
     os.close(fd)
     os.chmod(name, _umask_mode())
     return Path(name)
+
+
+_TOKEN = os.environ.get("KEYSHAPE_RUN_TOKEN") or secrets.token_hex(4)
+
+
+def run_token() -> str:
+    """This run's token, part of every hidden temporary file's name (``.NAME.ks<token>-XXXX.partial``):
+    a cleanup deletes only temporaries carrying its own run's token, never a user's file that merely
+    looks like one. ``keyshape batch`` sets ``KEYSHAPE_RUN_TOKEN`` so that its workers share it."""
+    return "ks" + (os.environ.get("KEYSHAPE_RUN_TOKEN") or _TOKEN)
+
+
+class Run:
+    """The output rule's view of one command run: its declared inputs and whether ``--overwrite`` was given.
+
+    While a run is active (:func:`run_rules`, which ``keyshape.cli.main`` enters for every command),
+    every file written through :func:`atomic_path` / :func:`atomic_write` is checked by
+    :func:`guard_file` just before it is created and again before it replaces anything, and is
+    then recorded with its SHA-256 in its folder's :data:`MANIFEST`.
+    """
+
+    def __init__(self, inputs: Iterable[str | Path | None] = (), overwrite: bool = False,
+                 can_overwrite: bool = False, command: str = "keyshape"):
+        self.inputs = [Path(i) for i in inputs if i is not None and str(i) != ""]
+        self.overwrite = bool(overwrite)
+        self.can_overwrite = bool(can_overwrite)
+        self.command = command
+
+
+_RUN: Run | None = None
+
+
+@contextlib.contextmanager
+def run_rules(run: Run) -> Iterator[Run]:
+    """Apply the output rule to every file written while the block runs (see :class:`Run`)."""
+    global _RUN
+    old, _RUN = _RUN, run
+    try:
+        yield run
+    finally:
+        _RUN = old
+
+
+def current_run() -> Run | None:
+    """The active :class:`Run`, or None (library use: no rule applied, nothing recorded)."""
+    return _RUN
+
+
+def _in_temp_folder(path: Path) -> bool:
+    """True inside a folder output's hidden temporary folder (checked and recorded when moved in)."""
+    return any(_is_hidden_temp(part) for part in Path(os.path.abspath(path)).parts[:-1])
+
+
+_USER_SAVE = threading.local()
+
+
+@contextlib.contextmanager
+def user_save() -> Iterator[None]:
+    """Writes in this block (this thread only) are the user's own saves from a web page (pose-edit's
+    POSES.json, label's ``.pts``): the user asked for exactly that file to change, so the output rule
+    does not apply to them (they are still atomic)."""
+    old = getattr(_USER_SAVE, "on", False)
+    _USER_SAVE.on = True
+    try:
+        yield
+    finally:
+        _USER_SAVE.on = old
+
+
+@contextlib.contextmanager
+def keyshape_store() -> Iterator[None]:
+    """Writes in this block (this thread only) go to keyshape's own store (the rig cache under
+    ``~/.cache/keyshape``), not to an output the user named: the output rule does not apply."""
+    with user_save():
+        yield
+
+
+_OUR_TEMP = re.compile(r"^\..+\.ks[0-9a-f]+-[^.]+\.partial(\.[^.]+)?$")
+
+
+def _ruled(path: Path) -> bool:
+    return (_RUN is not None and not getattr(_USER_SAVE, "on", False) and not _in_temp_folder(path)
+            and path.name != MANIFEST and not _OUR_TEMP.match(path.name))
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Same file: same device and inode (hard links, symlinks, ``..``, ``.``) or the same resolved path."""
+    try:
+        sa, sb = os.stat(a), os.stat(b)
+        if (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino):
+            return True
+    except OSError:
+        pass
+    return _real(a) == _real(b)
+
+
+def recorded_sha(path: str | Path) -> str | None:
+    """The SHA-256 keyshape's record (its folder's :data:`MANIFEST`) holds for ``path``, or None
+    (no record, a record keyshape did not write, or no hash for this file)."""
+    path = Path(path)
+    try:
+        record = _read_manifest(path.parent)
+    except InputError:
+        return None
+    return None if record is None else record.sha.get(path.name)
+
+
+def written_by_keyshape(path: str | Path) -> bool:
+    """True when ``path`` is a plain file (not a link) whose content has exactly the SHA-256 that
+    keyshape's record in its folder holds for it: the record is a claim, verified here."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_file():
+        return False
+    want = recorded_sha(path)
+    try:
+        return want is not None and sha256_file(path) == want
+    except OSError:
+        return False
+
+
+def guard_file(path: str | Path, what: str = "output") -> Path:
+    """The output rule for one file output of the active run (a no-op without one).
+
+    Refused (:class:`InputError` naming ``path``): a symbolic link (never written through or
+    replaced); a path that is one of the run's inputs (same device and inode, or the same resolved
+    path); an existing file that keyshape's record does not show it wrote with exactly this content,
+    unless the run was given ``--overwrite``.
+    """
+    path = Path(path)
+    run = _RUN
+    if run is None or getattr(_USER_SAVE, "on", False):
+        return path
+    if path.name == MANIFEST:
+        raise InputError(f"{MANIFEST} is the name of keyshape's own record; choose another name", path)
+    if path.is_symlink():
+        raise InputError("is a symbolic link; keyshape never writes through or replaces a link: "
+                         "choose another name", path)
+    for inp in run.inputs:
+        if (path.exists() or inp.exists()) and _same_file(path, inp):
+            raise InputError(f"the {what} is one of the inputs ({inp}); choose another name", path)
+    if path.exists() and not path.is_dir() and not run.overwrite and not written_by_keyshape(path):
+        why = ("was changed since keyshape wrote it" if recorded_sha(path) is not None
+               else "was not written by keyshape")
+        hint = ", or pass --overwrite" if run.can_overwrite else ""
+        raise InputError(f"exists and {why}; keyshape replaces only files its record ({MANIFEST}) shows it "
+                         f"wrote with this content: choose another name, move it away{hint}", path)
+    return path
+
+
+@contextlib.contextmanager
+def _locked(folder: Path) -> Iterator[None]:
+    """An exclusive lock on ``folder`` while its record is read and rewritten (parallel writers)."""
+    try:
+        import fcntl
+        fd = os.open(folder, os.O_RDONLY)
+    except (ImportError, OSError):
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _write_record(folder: Path, kinds: dict[str, Iterable[str]], sha: dict[str, str]) -> None:
+    kinds = {k: sorted(v) for k, v in sorted(kinds.items()) if v}
+    listed = {f for v in kinds.values() for f in v}
+    with atomic_write(folder / MANIFEST) as f:
+        json.dump({"written_by": "keyshape", "version": 3, "outputs": kinds,
+                   "sha256": {k: v for k, v in sorted(sha.items()) if k in listed}}, f, indent=0)
+
+
+def _remember(path: Path, digest: str) -> None:
+    """Record in ``path``'s folder that keyshape wrote ``path`` with content hash ``digest``
+    (kind :data:`FILES_KIND`). A record keyshape did not write is left alone (nothing recorded)."""
+    folder = path.parent
+    with _locked(folder):
+        try:
+            record = _read_manifest(folder) or _Record()
+        except InputError:
+            return
+        name = path.name
+        kinds = {k: set(v) - {name} for k, v in record.items()}
+        kinds.setdefault(FILES_KIND, set()).add(name)
+        sha = dict(record.sha)
+        sha[name] = digest
+        with contextlib.suppress(OSError):
+            _write_record(folder, kinds, sha)
 
 
 @contextlib.contextmanager
@@ -62,6 +261,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     exits without error and removed otherwise.
     """
     path = Path(path)
+    ruled = _ruled(path)
+    if ruled:
+        guard_file(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = _tmp_sibling(path, suffix=path.suffix)
@@ -69,7 +271,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise _about(exc, path, None) from None
     try:
         yield tmp
+        if ruled:
+            guard_file(path)
+            digest = sha256_file(tmp)
         os.replace(tmp, path)
+        if ruled:
+            _remember(path, digest)
     except BaseException as exc:
         tmp.unlink(missing_ok=True)
         if isinstance(exc, OSError):
@@ -163,6 +370,11 @@ def check_output(path: str | Path, kind: str = "file", inputs: Iterable[str | Pa
         if len(os.fsencode(path.name)) + 20 > name_max:
             raise InputError(f"file name too long ({len(os.fsencode(path.name))} bytes; at most "
                              f"{name_max - 20} here)", path)
+    if kind == "file":
+        guard_file(path, what)
+    elif _RUN is not None and path.is_symlink():
+        raise InputError(f"is a symbolic link; keyshape never writes through a link: choose another {what} folder",
+                         path)
     for inp in inputs:
         if inp is None:
             continue
@@ -214,7 +426,18 @@ def _valid_entry(entry, folder: Path) -> str:
     return entry
 
 
-def _read_manifest(folder: Path) -> dict[str, set[str]] | None:
+class _Record(dict):
+    """Command kind -> the files that kind wrote (a dict), with ``sha`` : file -> SHA-256 as recorded."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.sha: dict[str, str] = {}
+
+
+_HEX64 = frozenset("0123456789abcdef")
+
+
+def _read_manifest(folder: Path) -> _Record | None:
     """The ownership record of ``folder``: command kind -> the files that kind wrote there.
 
     None when there is none. The record is untrusted input: anything but a JSON object written
@@ -236,7 +459,7 @@ def _read_manifest(folder: Path) -> dict[str, set[str]] | None:
         raise _manifest_error(folder, "is nested too deeply") from None
     if not isinstance(data, dict) or data.get("written_by") != "keyshape":
         raise _manifest_error(folder, "was not written by keyshape")
-    record: dict[str, set[str]] = {}
+    record = _Record()
     if "outputs" in data:
         outs = data["outputs"]
         if not isinstance(outs, dict):
@@ -249,6 +472,13 @@ def _read_manifest(folder: Path) -> dict[str, set[str]] | None:
         record[_LEGACY] = {_valid_entry(e, folder) for e in data["files"]}
     else:
         raise _manifest_error(folder, "has no list of files")
+    sha = data.get("sha256", {})
+    if not isinstance(sha, dict):
+        raise _manifest_error(folder, "has a 'sha256' that is not an object")
+    for entry, digest in sha.items():
+        if not (isinstance(digest, str) and len(digest) == 64 and set(digest) <= _HEX64):
+            raise _manifest_error(folder, f"has a bad content hash for {entry!r}")
+        record.sha[_valid_entry(entry, folder)] = digest
     return record
 
 
@@ -314,7 +544,7 @@ def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable
     inputs = [i for i in inputs if i is not None]
     path = check_output(path, "folder", inputs)
     record = _read_manifest(path) if path.is_dir() else None
-    if path.is_dir() and not overwrite and record is None:
+    if path.is_dir() and not overwrite and not (record and set(record) - {FILES_KIND}):
         others = [p.name for p in path.iterdir() if not _is_hidden_temp(p.name)]
         if others:
             raise InputError(f"folder is not empty and was not made by keyshape ({len(others)} entries, e.g. "
@@ -367,46 +597,65 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
     try:
         yield tmp
         new = _rel_files(tmp)
-        record = _read_manifest(path) or {}
-        own = record.get(kind, set())
-        replaceable = own | record.get(_LEGACY, set())
-        for rel in new:
-            dest = path / rel
-            link = _link_on_the_way(path, rel)
-            if link is not None:
-                raise InputError(f"{link} is a symbolic link; keyshape does not write through links: "
-                                 "move it away or choose another folder", dest)
-            inp = guard.touched_by(dest)
-            if inp is not None:
-                raise InputError(f"this run would overwrite its input {inp}; choose another folder", dest)
-            if dest.is_dir() and not dest.is_symlink():
-                raise InputError("is a folder where keyshape writes a file; move it away", dest)
-            if (dest.exists() or dest.is_symlink()) and rel not in replaceable and not overwrite:
-                owner = next((k for k, v in record.items() if rel in v), None)
-                who = f"by keyshape {owner}" if owner else "not by keyshape"
-                raise InputError(f"exists and was written {who}; keyshape {kind} replaces only its own earlier "
-                                 "files: choose another folder, or pass --overwrite", dest)
-        for rel in new:
-            dest = path / rel
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(tmp / rel, dest)
-        for rel in sorted(own - set(new)):
-            stale = path / rel
-            if (_link_on_the_way(path, rel) is not None or stale.is_symlink() or not stale.is_file()
-                    or guard.touched_by(stale) is not None):
-                continue
-            stale.unlink()
-            parent = stale.parent
-            while parent != path and not parent.is_symlink() and parent.is_dir() and not any(parent.iterdir()):
-                parent.rmdir()
-                parent = parent.parent
-        taken = set(new)
-        outputs = {k: sorted(f for f in v - taken if os.path.lexists(path / f))
-                   for k, v in record.items() if k != kind}
-        outputs[kind] = new
-        with atomic_write(path / MANIFEST) as f:
-            json.dump({"written_by": "keyshape", "version": 2,
-                       "outputs": {k: v for k, v in sorted(outputs.items()) if v or k == kind}}, f, indent=0)
+        new_sha = {rel: sha256_file(tmp / rel) for rel in new if not (tmp / rel).is_symlink()}
+        with _locked(path):
+            record = _read_manifest(path) or _Record()
+            own = record.get(kind, set())
+
+            def verified(rel: str) -> bool:
+                """The record's claim checked: a plain file whose content has the recorded hash."""
+                p = path / rel
+                if rel not in record.sha or _link_on_the_way(path, rel) is not None or p.is_symlink() \
+                        or not p.is_file():
+                    return False
+                try:
+                    return sha256_file(p) == record.sha[rel]
+                except OSError:
+                    return False
+
+            for rel in new:
+                dest = path / rel
+                link = _link_on_the_way(path, rel)
+                if link is not None:
+                    raise InputError(f"{link} is a symbolic link; keyshape does not write through links: "
+                                     "move it away or choose another folder", dest)
+                inp = guard.touched_by(dest)
+                if inp is not None:
+                    raise InputError(f"this run would overwrite its input {inp}; choose another folder", dest)
+                if dest.is_symlink():
+                    raise InputError("is a symbolic link; keyshape never writes through or replaces a link: "
+                                     "move it away or choose another folder", dest)
+                if dest.is_dir():
+                    raise InputError("is a folder where keyshape writes a file; move it away", dest)
+                if dest.exists() and not overwrite and not (rel in own and verified(rel)):
+                    owner = next((k for k, v in record.items() if rel in v), None)
+                    if owner == kind:
+                        who = "by keyshape but has been changed since (its content is not the one recorded)"
+                    elif owner:
+                        who = f"by keyshape {owner}"
+                    else:
+                        who = "not by keyshape"
+                    raise InputError(f"exists and was written {who}; keyshape {kind} replaces only its own "
+                                     "earlier files, unchanged: choose another folder, or pass --overwrite", dest)
+            prune = [rel for rel in sorted(own - set(new))
+                     if verified(rel) and guard.touched_by(path / rel) is None]
+            for rel in new:
+                dest = path / rel
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(tmp / rel, dest)
+            for rel in prune:
+                stale = path / rel
+                stale.unlink()
+                parent = stale.parent
+                while parent != path and not parent.is_symlink() and parent.is_dir() and not any(parent.iterdir()):
+                    parent.rmdir()
+                    parent = parent.parent
+            taken = set(new)
+            kinds = {k: {f for f in v - taken if os.path.lexists(path / f)} for k, v in record.items() if k != kind}
+            kinds[kind] = set(new)
+            sha = {k: v for k, v in record.sha.items() if k not in taken}
+            sha.update(new_sha)
+            _write_record(path, kinds, sha)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         if created:
@@ -414,6 +663,32 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
                 path.rmdir()
         raise
     shutil.rmtree(tmp, ignore_errors=True)
+
+
+def may_delete(path: str | Path) -> bool:
+    """Whether keyshape may delete ``path``: never a symbolic link; under a command (:func:`run_rules`)
+    only a file its record shows it wrote with exactly this content (:func:`written_by_keyshape`)."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_file():
+        return False
+    return _RUN is None or written_by_keyshape(path)
+
+
+def commit(tmp: str | Path, path: str | Path) -> None:
+    """Rename the complete temporary file ``tmp`` (from :func:`_tmp_sibling`) over ``path`` under the
+    output rule (:func:`guard_file`), and record it: for writers that keep their temporary open while
+    they work (``keyshape track``'s streamed CSV and overlay)."""
+    path, tmp = Path(path), Path(tmp)
+    ruled = _ruled(path)
+    if ruled:
+        guard_file(path)
+        digest = sha256_file(tmp)
+    try:
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise _about(exc, path, tmp) from None
+    if ruled:
+        _remember(path, digest)
 
 
 def partial_name(path: str | Path) -> Path:

@@ -15,14 +15,16 @@ one static page and accept one kind of JSON write. Both rest on the rules here:
 """
 from __future__ import annotations
 
+import errno
 import ipaddress
 import json
 import signal
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from urllib.parse import unquote
 
-from keyshape.base.errors import InputError
+from keyshape.base.errors import InputError, KeyshapeError
 
 #: largest JSON body accepted (bytes)
 MAX_BODY = 1 << 20
@@ -130,6 +132,53 @@ class LocalHandler(BaseHTTPRequestHandler):
             self.send_error_json(HTTPStatus.BAD_REQUEST, expected)
             return NO_BODY
 
+    #: PUT routing, set by a subclass: the URL prefix of the one kind of write, what it is, the 400
+    #: message for a body of the wrong form, and the 405 message for any other URL
+    put_prefix: str | None = None
+    put_what = "the data"
+    put_expected = "expected a JSON object"
+    put_refused = "this page writes nothing"
+
+    def put_target(self, name: str):
+        """The item ``name`` (the URL after :attr:`put_prefix`) names, or :data:`NO_BODY` after
+        answering (404). Subclasses override."""
+        self.send_error_json(HTTPStatus.NOT_FOUND, f"no {name!r} here")
+        return NO_BODY
+
+    def put(self, target, body) -> dict:
+        """Check and save ``body`` for ``target``; the JSON answer. A :class:`KeyshapeError` is a
+        400 with its message, an ``OSError`` (the file cannot be written) a 507 or 500 with one line
+        naming the file; either way the server's state stays what the file holds."""
+        raise NotImplementedError
+
+    def do_PUT(self) -> None:  # noqa: N802
+        """The one write of a page: local only, routed by :attr:`put_prefix`, checked by :meth:`put`;
+        every failure is an HTTP error with a one-line ``{"error": ...}`` the page shows."""
+        if not self.is_local():
+            return
+        path = self.path.split("?", 1)[0]
+        if self.put_prefix is None or not path.startswith(self.put_prefix):
+            self.send_error_json(HTTPStatus.METHOD_NOT_ALLOWED, self.put_refused)
+            return
+        target = self.put_target(unquote(path[len(self.put_prefix):]))
+        if target is NO_BODY:
+            return
+        body = self.read_json_body(self.put_what, self.put_expected)
+        if body is NO_BODY:
+            return
+        try:
+            reply = self.put(target, body)
+        except KeyshapeError as exc:
+            self.send_error_json(HTTPStatus.BAD_REQUEST, str(exc))
+            return
+        except OSError as exc:
+            from keyshape.base.files import describe_os_error
+            status = HTTPStatus.INSUFFICIENT_STORAGE if exc.errno in (errno.ENOSPC, errno.EDQUOT) \
+                else HTTPStatus.INTERNAL_SERVER_ERROR
+            self.send_error_json(status, f"not saved: {describe_os_error(exc)}")
+            return
+        self.send_json(HTTPStatus.OK, reply)
+
     def _refuse(self) -> None:
         if self.is_local():
             self.send_error_json(HTTPStatus.METHOD_NOT_ALLOWED, "method not allowed")
@@ -159,6 +208,8 @@ def listen(make, port: int):
     try:
         return make()
     except OSError as exc:
+        if exc.filename is not None or exc.errno not in (errno.EADDRINUSE, errno.EACCES, errno.EADDRNOTAVAIL):
+            raise                                  # a file the server reads, not the socket
         raise InputError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror}): try --port 0") from None
 
 

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from keyshape.base import options
+
 
 def register(subparsers) -> None:
     """Add ``keyshape label`` to ``subparsers``."""
@@ -37,7 +39,7 @@ def register(subparsers) -> None:
                         "docs/label_count.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the frame clustering")
     p.add_argument("--serve", action="store_true", help="start the correction page after preparing")
-    p.add_argument("--port", type=int, default=8765, help="port of the correction page (0: any free port)")
+    p.add_argument("--port", type=options.port, default=8765, help="port of the correction page (0: any free port)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_run)
 

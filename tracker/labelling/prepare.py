@@ -99,12 +99,13 @@ def write_contact_sheet(folder: Path, frames, scheme, path: Path | None = None) 
         if im is None:
             raise InputError(f"frame image {f:06d}.png missing or unreadable", folder / "frames")
         p = folder / pts_name(f)
-        if p.is_file():
-            pts = read_pts(p)
+        pts = read_pts(p) if p.is_file() else None
+        collapsed = pts is not None and float(np.ptp(pts, axis=0).max()) < 1.0      # nothing to crop around
+        if pts is not None and not collapsed:
             big = cv2.resize(im, None, fx=3, fy=3, interpolation=cv2.INTER_CUBIC)  # room for sub-pixel lines
             im, _ = crop_around(draw_shape(big, pts * 3 + 1, scheme), pts * 3 + 1, margin=0.3)
         tiles.append(im)
-        caps.append(f"frame {f}" + ("" if p.is_file() else " (no points)"))
+        caps.append(f"frame {f}" + (" (no points)" if pts is None else " (points collapsed)" if collapsed else ""))
     sheet = contact_sheet(tiles, caps, columns=4, tile_width=360)
     path = path or folder / "contact_sheet.png"
     _write_png(path, sheet)
@@ -228,5 +229,7 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
                                     {frames[k] for k, p in zip(missing, filled) if p is None})
     with atomic_write(sess_path) as fh:
         json.dump(session, fh, indent=1)
+    from keyshape.base.formats.labels import footage_record, write_footage  # noqa: PLC0415
+    write_footage(out, footage_record(info.path))
     write_contact_sheet(out, frames, scheme)
     return session

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from keyshape.base.errors import KeyshapeError
+from keyshape.base.errors import InputError, KeyshapeError
 from keyshape.base.formats.labels import read_session
 from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, is_loopback, page_files  # noqa: F401
 
@@ -96,33 +96,29 @@ class LabelHandler(LocalHandler):
         else:
             self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
 
-    def do_PUT(self) -> None:  # noqa: N802
-        if not self.is_local():
-            return
-        path = self.path.split("?", 1)[0]
-        if not path.startswith("/api/points/"):
-            self.send_error_json(HTTPStatus.METHOD_NOT_ALLOWED, "only .pts files can be written")
-            return
-        f = self._frame_of(path[len("/api/points/"):], PTS_RE)
-        if f is None:
-            return
-        body = self.read_json_body("the points", 'expected {"points": [[x, y], ...]}')
-        if body is NO_BODY:
-            return
+    put_prefix = "/api/points/"
+    put_what = "the points"
+    put_expected = 'expected {"points": [[x, y], ...]}'
+    put_refused = "only .pts files can be written"
+
+    def put_target(self, name: str):
+        f = self._frame_of(name, PTS_RE)
+        return NO_BODY if f is None else f
+
+    def put(self, f: int, body) -> dict:
+        from keyshape.tracker.commands import check_label_geometry  # noqa: PLC0415
         try:
             pts = np.asarray(body["points"], dtype=np.float64)
         except (KeyError, TypeError, ValueError, IndexError, RecursionError):
-            self.send_error_json(HTTPStatus.BAD_REQUEST, 'expected {"points": [[x, y], ...]}')
-            return
+            raise InputError(self.put_expected) from None
         n = self.server.scheme.n_points
         if pts.shape != (n, 2) or not np.all(np.isfinite(pts)):
-            self.send_error_json(HTTPStatus.BAD_REQUEST, f"expected {n} finite (x, y) points, got shape {pts.shape}")
-            return
+            raise InputError(f"expected {n} finite (x, y) points, got shape {pts.shape}")
         if np.abs(pts).max() > MAX_COORDINATE:
-            self.send_error_json(HTTPStatus.BAD_REQUEST, f"coordinates beyond {MAX_COORDINATE:g} pixels are not image points")
-            return
+            raise InputError(f"coordinates beyond {MAX_COORDINATE:g} pixels are not image points")
+        check_label_geometry(np.array([f]), pts[None], None)
         self.server.write_points(f, pts)
-        self.send_json(HTTPStatus.OK, {"saved": f"{f:06d}.pts"})
+        return {"saved": f"{f:06d}.pts"}
 
 
 class LabelServer(LocalServer):
@@ -161,6 +157,7 @@ class LabelServer(LocalServer):
 
     def write_points(self, frame: int, points: np.ndarray) -> None:
         """Replace ``frame``'s .pts file atomically (the only write this server does)."""
+        from keyshape.base.files import user_save  # noqa: PLC0415
         from keyshape.base.formats.labels import write_pts  # noqa: PLC0415
-        with self._lock:
+        with self._lock, user_save():
             write_pts(self.pts_path(frame), points)

@@ -182,6 +182,17 @@ def read_keys_source(path: str | Path) -> dict:
     return src if isinstance(src, dict) else {}
 
 
+def check_keys_model(path: str | Path, model: str | None, allow: bool = False, what: str = "these tracks") -> None:
+    """Refuse a key set chosen from tracks of another tracker model than ``model`` (a fingerprint,
+    ``sha256:...``; None: unknown, not checked) unless ``allow`` (``--allow-foreign-keys``): keys belong
+    to one actor's model, and another model's points mean other things. One line naming the key set."""
+    mk = read_keys_source(path).get("model")
+    if mk and model and mk != model and not allow:
+        raise InputError(f"these keys were chosen from tracks of another tracker model ({mk}; {what}: {model}): "
+                         "keys belong to one actor's model. Select keys from this model's tracks, or pass "
+                         "--allow-foreign-keys", path)
+
+
 def read_keys_head_pose(path: str | Path) -> dict:
     """The ``head_pose`` of a KEYS.json file, checked (``{"method": "tracker"}`` when it has none)."""
     path = require_file(path, "key-shapes file")

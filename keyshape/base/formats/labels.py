@@ -164,3 +164,41 @@ def write_labels(folder: str | Path, frames, shapes: np.ndarray) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for f, s in zip(frames, shapes):
         write_pts(folder / pts_name(f), s)
+
+
+#: the label folder's record of the footage its labels were made on (``keyshape label``, ``keyshape synth``)
+FOOTAGE_FILE = "footage.json"
+FOOTAGE_FORMAT = "keyshape-label-footage"
+
+
+def footage_record(video: str | Path) -> dict:
+    """What identifies a video for its labels: file name, content SHA-256, frame size and frame count."""
+    from keyshape.base.files import sha256_file
+    from keyshape.base.formats.video import video_info
+
+    info = video_info(video)
+    return {"format": FOOTAGE_FORMAT, "version": 1, "video": Path(video).name, "sha256": sha256_file(video),
+            "width": int(info.width), "height": int(info.height), "n_frames": int(info.n_frames)}
+
+
+def write_footage(folder: str | Path, record: dict) -> None:
+    """Write the footage record (:func:`footage_record`) into a label folder."""
+    with atomic_write(Path(folder) / FOOTAGE_FILE) as f:
+        json.dump(record, f, indent=1)
+
+
+def read_footage(folder: str | Path) -> dict | None:
+    """The footage record of a label folder, or None where it has none (folders made before keyshape
+    recorded it). A record that is not one is a one-line :class:`InputError` naming it."""
+    path = Path(folder) / FOOTAGE_FILE
+    if not path.exists():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        ok = (isinstance(data, dict) and data.get("format") == FOOTAGE_FORMAT and isinstance(data.get("sha256"), str)
+              and all(isinstance(data.get(k), int) and data[k] >= 0 for k in ("width", "height", "n_frames")))
+    except (OSError, ValueError, RecursionError):
+        ok = False
+    if not ok:
+        raise InputError("not a label footage record (expected the video's sha256, width, height, n_frames)", path)
+    return data

@@ -167,6 +167,9 @@ def read_rig_landmarks(path: str | Path, n_vertices: int | None = None) -> tuple
                 if not 0 <= int(v) < nv:
                     raise InputError(f"point {i}: vertex {v} outside 0..{nv - 1}", path)
                 W[i, int(v)] += float(w)
+        if not np.isfinite(W).all():
+            raise InputError(f"point {int(np.flatnonzero(~np.isfinite(W).all(axis=1))[0])}: a vertex weight is "
+                             "not a finite number", path)
         s = W.sum(axis=1)
         if np.any(np.abs(s - 1) > 1e-6):
             raise InputError(f"point {int(np.argmax(np.abs(s - 1)))}: vertex weights must sum to 1", path)
@@ -174,4 +177,7 @@ def read_rig_landmarks(path: str | Path, n_vertices: int | None = None) -> tuple
         if isinstance(exc, InputError):
             raise
         raise InputError(f"malformed rig landmark file (missing or bad field: {exc})", path) from None
+    if len(W) >= 3 and len(np.unique(W, axis=0)) < 3:
+        raise InputError(f"the {len(W)} points sit on {len(np.unique(W, axis=0))} place(s) of the rig: a degenerate "
+                         "landmark map (every point on one vertex?)", path)
     return scheme, W

@@ -194,7 +194,8 @@ def write_meta(path: str | Path, meta: dict | None, csv_sha256: str) -> None:
             old = json.loads(side.read_text())
         except (OSError, ValueError, UnicodeDecodeError):
             return
-        if isinstance(old, dict) and META_KEY in old:
+        from keyshape.base.files import may_delete
+        if isinstance(old, dict) and META_KEY in old and may_delete(side):
             side.unlink(missing_ok=True)
 
 
@@ -315,12 +316,28 @@ def read_tracks(path: str | Path, accept_partial: bool = False) -> Tracks:
     pose = a[:, end:end + 6].reshape(n, 2, 3) if with_pose else np.broadcast_to(
         np.array([[1.0, 0, 0], [0, 1.0, 0]]), (n, 2, 3)).copy()
     pts = np.stack([a[:, 4:4 + n_points], a[:, 4 + n_points:end]], axis=-1)
+    _check_not_collapsed(pts, a[:, 3] != 0, path, lns)
     i = end + (6 if with_pose else 0)
     extra = {}
     for g, k in aux.items():
         extra[g] = np.stack([a[:, i:i + k], a[:, i + k:i + 2 * k]], axis=-1)
         i += 2 * k
     return Tracks(a[:, 0].astype(np.int64), a[:, 1], a[:, 2], a[:, 3] != 0, pts, pose, meta, extra)
+
+
+def _check_not_collapsed(pts: np.ndarray, success: np.ndarray, path, lns: list[int]) -> None:
+    """A tracked frame (success 1) whose points all lie on one spot (spread under 1e-3 px) is no face:
+    the maths downstream divides by the face's size. Refused naming the first such row."""
+    if pts.shape[1] < 2:
+        return
+    rows = np.flatnonzero(success & np.isfinite(pts).all(axis=(1, 2)))
+    p = pts[rows]
+    spread = np.abs(p - p.mean(axis=1, keepdims=True)).max(axis=(1, 2)) if len(rows) else np.zeros(0)
+    bad = spread < 1e-3
+    if bad.any():
+        i = int(rows[np.flatnonzero(bad)[0]])
+        raise InputError(f"the {pts.shape[1]} points of a tracked frame lie on one spot (collapsed; "
+                         f"{int(bad.sum())} such frame(s)): not a tracked face", path, lns[i])
 
 
 #: largest plausible pixel coordinate or pose translation (no video is 100 000 pixels wide)
@@ -346,6 +363,12 @@ def _check_track_values(a: np.ndarray, header: list[str], path, lns: list[int]) 
     t = a[:, 1]
     if (np.abs(np.nan_to_num(t)) > 1e7).any():
         fail(int(np.flatnonzero(np.abs(np.nan_to_num(t)) > 1e7)[0]), 1, "implausible time (seconds)")
+    from keyshape.base.options import FPS_MAX
+    steps = np.diff(t[np.isfinite(t)])
+    steps = steps[steps > 0]
+    if len(steps) and np.median(steps) < 1.0 / FPS_MAX:
+        raise InputError(f"the times advance by {np.median(steps):.3g} s per frame (median), faster than "
+                         f"{FPS_MAX:g} frames per second: not a frame clock (times that do not advance)", path)
     check_frame_numbers(a[:, 0], path, lns, "keyshape needs one row per frame (write the missing frames "
                         "with success=0 and empty coordinates)")
 

@@ -28,6 +28,10 @@ machinery (:class:`pxr.UsdSkel.Cache`, the blend-shape query and the skinning qu
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import re
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -61,6 +65,44 @@ def _prim_names(names: Sequence[str], tf) -> list[str]:
         seen.add(p)
         out.append(p)
     return out
+
+
+@contextlib.contextmanager
+def _stderr_captured():
+    """Send file descriptor 2 to a temporary file while the block runs; yields a function that returns
+    what was written there (so that a failing USD save is one line, not thousands)."""
+    import sys
+    import tempfile
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as buf:
+        os.dup2(buf.fileno(), 2)
+        text: list[str] = []
+        try:
+            yield lambda: "".join(text)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            buf.seek(0)
+            text.append(buf.read(1 << 16).decode("utf-8", "replace"))
+
+
+def _save_error(path: Path, said: str) -> OSError:
+    """One line for a USD save that failed: disk full when the folder's disk has no room left, else what
+    USD said first (the hidden temporary's name replaced by the user's path)."""
+    import errno
+    import shutil
+
+    try:
+        full = shutil.disk_usage(path.parent).free < (1 << 20)
+    except OSError:
+        full = False
+    if full:
+        return OSError(errno.ENOSPC, "no space left on the device", str(path))
+    first = next((ln.strip() for ln in said.splitlines() if ln.strip()), "")
+    first = re.sub(r"\S*\.partial\S*", path.name, first)[:200]
+    return OSError(errno.EIO, f"USD could not write the file{': ' + first if first else ''}", str(path))
 
 
 def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarray], deltas: np.ndarray,
@@ -212,7 +254,13 @@ def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarra
             targets.append(bs.GetPath())
             n_offsets += len(idx)
         binding.CreateBlendShapeTargetsRel().SetTargets(targets)
-        stage.GetRootLayer().Save()
+        with _stderr_captured() as said:                  # USD prints its C++ errors line by line
+            try:
+                saved = bool(stage.GetRootLayer().Save())
+            except Tf.ErrorException:
+                saved = False
+        if not saved:
+            raise _save_error(path, said())
         del stage, layer
     return {"names": tokens, "n_shapes": len(names), "start": start, "end": end, "n_offsets": n_offsets}
 
