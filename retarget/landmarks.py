@@ -217,6 +217,40 @@ def feature_deltas(deltas: np.ndarray, names: Sequence[str]) -> dict[str, np.nda
     return out
 
 
+def face_axes(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], clear: float = 0.8) -> np.ndarray | None:
+    """The axis-aligned rotation taking a rig to the solve's view (x to the subject's left, y up, z to the
+    viewer), read from its shapes: right = the left blink's centroid less the right's, up = from the
+    jawOpen region to the eyes (made orthogonal to right), front = right x up; each snapped to the
+    nearest signed axis. None when the rig lacks those shapes or an axis is not clear (its largest
+    component under ``clear``)."""
+    f = feature_deltas(deltas, names)
+    if not all(k in f for k in REQUIRED):
+        return None
+    V = np.asarray(neutral, np.float64)
+    w = {k: np.linalg.norm(f[k], axis=1) ** 2 for k in REQUIRED}
+    c = {k: (w[k][:, None] * V).sum(axis=0) / max(w[k].sum(), 1e-300) for k in REQUIRED}
+    right = c["blink_left"] - c["blink_right"]
+    up = 0.5 * (c["blink_left"] + c["blink_right"]) - c["jaw"]
+    nr = np.linalg.norm(right)
+    if not nr > 0:
+        return None
+    right = right / nr
+    up = up - (up @ right) * right
+    nu = np.linalg.norm(up)
+    if not nu > 0:
+        return None
+    up = up / nu
+    axes = np.stack([right, up, np.cross(right, up)])
+    if (np.abs(axes).max(axis=1) < clear).any():
+        return None
+    R = np.zeros((3, 3))
+    k = np.argmax(np.abs(axes), axis=1)
+    if len(set(k.tolist())) < 3:
+        return None
+    R[np.arange(3), k] = np.sign(axes[np.arange(3), k])
+    return R
+
+
 def vertex_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(n_vertices,) a third of the area of the triangles around each vertex."""
     t = np.asarray(triangles, np.intp)

@@ -46,6 +46,7 @@ class Rig:
     files : list of n_shapes Paths
     neutral_file : Path
     value_range : (lo, hi) weights a shape takes (blendshapes: 0..1)
+    turned : (3, 3) the rotation :func:`load_rig` gave a rig that was not y-up facing +z, or None
     """
 
     names: list
@@ -55,6 +56,7 @@ class Rig:
     files: list = field(default_factory=list)
     neutral_file: Path | None = None
     value_range: tuple = (0.0, 1.0)
+    turned: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -213,7 +215,7 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
         raise InputError(f"rig shape names {dup} appear twice", files[names.index(dup[0])])
     if not cache:
         base, deltas, mesh = _parse_rig(files, neutral, with_mesh)
-        return Rig(names, base, deltas, mesh, files, neutral)
+        return upright(Rig(names, base, deltas, mesh, files, neutral))
     from keyshape.base.formats.rigcache import read_rig_cache, write_rig_cache
 
     path = cache_dir() / f"{rig_digest(files, neutral)}.npz"
@@ -221,7 +223,7 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
         try:
             cnames, base, deltas, mesh = read_rig_cache(path, with_mesh)
             if cnames == names:
-                return Rig(names, base, deltas, mesh if with_mesh else None, files, neutral)
+                return upright(Rig(names, base, deltas, mesh if with_mesh else None, files, neutral))
         except InputError:
             pass                                  # damaged: parse again and rewrite it below
     base, deltas, mesh = _parse_rig(files, neutral, True)
@@ -229,7 +231,26 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
         write_rig_cache(path, names, base, deltas, mesh)
     except OSError:
         pass                                      # a read-only home: the rig is parsed each time
-    return Rig(names, base, deltas, mesh if with_mesh else None, files, neutral)
+    return upright(Rig(names, base, deltas, mesh if with_mesh else None, files, neutral))
+
+
+def upright(rig: Rig) -> Rig:
+    """The rig turned to the solve's view (y up, the face towards +z) when its shapes say it is not
+    (a Z-up rig, or one facing -z): :func:`keyshape.retarget.landmarks.face_axes` from its blinks and
+    jawOpen; ``rig.turned`` is the (3, 3) rotation applied (``new = old @ turned.T``), None when none was.
+    A rig without those shapes, or whose axes are not clear, is left as it is. Units need no change
+    (the solve compares shapes, not sizes)."""
+    from keyshape.retarget.landmarks import face_axes
+    R = face_axes(rig.neutral, rig.deltas, rig.names)
+    rig.turned = None
+    if R is None or np.allclose(R, np.eye(3)):
+        return rig
+    rig.neutral = rig.neutral @ R.T
+    rig.deltas = rig.deltas @ R.T
+    if rig.mesh is not None:
+        rig.mesh = rig.mesh.with_vertices(rig.mesh.vertices @ R.T)
+    rig.turned = R
+    return rig
 
 
 def default_landmarks(n_vertices: int, scheme: str) -> Path | None:
