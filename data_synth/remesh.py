@@ -144,11 +144,13 @@ def restyle_shapes(vertices: np.ndarray, deltas: np.ndarray, amount: float, seed
 
 
 def remeshed_ict_rig(folder: str | Path, fraction: float = 0.4, seed: int = 0, units: str = "cm",
-                     up: str = "y", names=None, reshape: float = 0.0) -> dict:
+                     up: str = "y", names=None, reshape: float = 0.0, mask: bool = False) -> dict:
     """Write a remeshed rig from the shipped ICT-FaceKit subset into ``folder`` (see the module docstring).
 
     ``reshape`` (cm, default 0): another face's proportions (:func:`reshape_face`) and another artist's
     shapes (:func:`restyle_shapes`): the automatic landmarks then cannot rely on ICT-FaceKit's face.
+    ``mask``: only the face's front is kept (forehead to chin, ear to ear less the ears, as ARKit's face
+    mesh), no back of the head, neck or ears.
 
     Returns ``{"rig": folder, "landmarks": the true contours48 file, "ibug68": the published-style list
     (one index a line), "scale": mesh units per ICT centimetre, "rotation": (3, 3) the rig's axes from ICT's}``.
@@ -168,6 +170,15 @@ def remeshed_ict_rig(folder: str | Path, fraction: float = 0.4, seed: int = 0, u
         d = restyle_shapes(v, d, reshape, seed)
         v = reshape_face(v, reshape, seed)
     ibug = new_index[ex.landmarks]
+    if mask:                                                              # the face's front only (ARKit's mesh)
+        c = ex.neutral[ex.landmarks].mean(axis=0)
+        inside = (np.abs(v[:, 0] - c[0]) < 7.0) & (v[:, 1] > c[1] - 7.0) & (v[:, 1] < c[1] + 6.0) & (v[:, 2] > c[2] - 3.5)
+        inside |= np.linalg.norm(v[:, None] - v[ibug][None], axis=-1).min(axis=1) < 1.0    # the jaw line too
+        tri = tri[inside[tri].all(axis=1)]
+        used = np.unique(tri)
+        remap = np.full(len(v), -1)
+        remap[used] = np.arange(len(used))
+        v, d, tri, ibug = v[used], d[:, used], remap[tri], remap[ibug]
     W = contours48_from_ibug68(one_hot(ibug, len(v)), v).W                # no eyeballs: pupils between corners
     scale = {"cm": 1.0, "m": 0.01}[units]
     rot = {"y": np.eye(3), "z": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])}[up]   # z-up: front to -y

@@ -321,36 +321,53 @@ def used_vertices(triangles: np.ndarray) -> np.ndarray:
 
 
 def _smooth_step(Y: np.ndarray, dy: np.ndarray, V: np.ndarray, dv: np.ndarray, eyes: float,
-                 n_centres: int = 150, width: float = 0.35, ridge: float = 1e-2) -> np.ndarray:
+                 n_centres: int = 150, width: float = 0.35, ridge: float = 1e-2, symmetric: bool = True) -> np.ndarray:
     """One non-rigid ICP step: each reference point ``Y`` goes toward its nearest rig point in position and
     motion (``dy``, ``dv``), pairs further than three times the median dropped; the displacement is a sum of
     Gaussians ``width`` eye distances wide on ``n_centres`` reference points (ridge ``ridge``), so it is smooth."""
     from scipy.spatial import cKDTree
-    _, nn = cKDTree(np.concatenate([V, dv], 1)).query(np.concatenate([Y, dy], 1))
-    r = V[nn] - Y
+    a, b = np.concatenate([Y, dy], 1), np.concatenate([V, dv], 1)
+    _, nn = cKDTree(b).query(a)                                           # each reference point's rig point
+    src, r = np.arange(len(Y)), V[nn] - Y
+    if symmetric:                                                         # and each rig point's reference point
+        _, back = cKDTree(a).query(b)
+        src, r = np.concatenate([src, back]), np.concatenate([r, V - Y[back]])
     dist = np.linalg.norm(r, axis=1)
     ok = dist < 3 * np.median(dist) + 1e-12
     rng = np.random.default_rng(0)
     C = Y[rng.choice(len(Y), min(n_centres, len(Y)), replace=False)]
     sig = width * eyes
     phi = np.exp(-0.5 * (np.linalg.norm(Y[:, None] - C[None], axis=-1) / sig) ** 2)
-    A = phi[ok]
+    A = phi[src[ok]]
     coef = np.linalg.solve(A.T @ A + ridge * len(A) * np.eye(len(C)), A.T @ r[ok])
     return phi @ coef
 
 
 def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], triangles: np.ndarray,
-                reference, widths: Sequence[float] = (0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.15, 0.15),
-                ridge: float = 1e-2, n_dims: int = 16, motion_weight: float = 0.6) -> np.ndarray:
+                reference, widths: Sequence[float] = tuple(np.linspace(0.5, 0.1, 14)),
+                ridge: float = 1e-2, n_dims: int = 16, motion_weight: float = 0.6,
+                face_margin: float = 0.35, symmetric: bool = True) -> np.ndarray:
     """The 68 iBUG points found on a rig with no correspondence, as (68, n_vertices) weight rows.
 
     ``reference``: a face with known iBUG-68 vertices and the same :data:`FEATURES` (the shipped
-    ICT-FaceKit subset, :func:`keyshape.retarget.demo_targets.load_expressions`). The reference's
-    feature centroids (:func:`feature_centroid`) are mapped onto the rig's by a similarity
-    (Umeyama; it also takes the rig's units and axes); each reference landmark then goes to the rig
-    vertex nearest it in position and in the motion the :data:`TELLING` features give it (each
-    feature's motion relative to its largest on its own face, times a tenth of the distance between
-    the eyes), then to the nearest point of the triangles around that vertex (three weights).
+    ICT-FaceKit subset, :func:`keyshape.retarget.demo_targets.load_expressions`).
+
+    1. The reference's feature centroids (:func:`feature_centroid`: the regions the blinks, jawOpen,
+       browInnerUp and the smiles move) are mapped onto the rig's by a similarity (Umeyama): it takes
+       the rig's units and axes.
+    2. The reference's face (its vertices within ``face_margin`` eye distances of its landmarks: no
+       scalp, ears or neck, which a face mask lacks) is fitted onto the rig by non-rigid ICP: each
+       reference point and (``symmetric``) each rig vertex is paired with its nearest point of the other
+       face in position and motion (:func:`_shared_motion`: how every shape the two faces share by name
+       moves it, each relative to its largest, times ``motion_weight`` eye distances), pairs beyond three
+       times the median distance dropped; the displacement is a ridge-regularised sum of Gaussians on 150
+       reference points, ``widths`` eye distances wide, one width per iteration, from coarse to fine.
+    3. Each fitted landmark goes to the rig vertex nearest it in position and in the motion the
+       :data:`TELLING` shapes (jawOpen, the blinks) give it, then to the point of the triangles around
+       that vertex nearest it in position and that motion (three weights): an upper-lip point lands on
+       the upper lip that jawOpen leaves, not on the lower lip it touches in a closed-mouth neutral.
+
+    Measured on remeshed ICT-FaceKit rigs (``bench/rig_landmarks_accuracy.py``, docs/benchmarks.md).
 
     Raises
     ------
@@ -381,9 +398,13 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     match_ref, match_rig = _shared_motion(reference.deltas, reference.names, deltas, names, rot, n_dims)
     match_ref, match_rig = match_ref * L, match_rig * L
     used = used_vertices(tri)
+    # the reference's face (its points near its landmarks): no scalp, ears or neck, which a face mask lacks
+    face = np.flatnonzero(cKDTree(Y[lm]).query(Y)[0] < face_margin * eyes)
+    at = np.searchsorted(face, lm)
+    Y, match_ref = Y[face], match_ref[face]
     for w in widths:
-        Y = Y + _smooth_step(Y, match_ref, V[used], match_rig[used], eyes, width=w, ridge=ridge)
-    target = Y[lm]
+        Y = Y + _smooth_step(Y, match_ref, V[used], match_rig[used], eyes, width=w, ridge=ridge, symmetric=symmetric)
+    target = Y[at]
     desc_ref = desc_ref[lm]
     tree = cKDTree(V[used])
     _, near = tree.query(target, k=min(64, len(used)))
