@@ -144,13 +144,14 @@ def restyle_shapes(vertices: np.ndarray, deltas: np.ndarray, amount: float, seed
 
 
 def remeshed_ict_rig(folder: str | Path, fraction: float = 0.4, seed: int = 0, units: str = "cm",
-                     up: str = "y", names=None, reshape: float = 0.0, mask: bool = False) -> dict:
+                     up: str = "y", names=None, reshape: float = 0.0, mask: bool = False, arkit: bool = False) -> dict:
     """Write a remeshed rig from the shipped ICT-FaceKit subset into ``folder`` (see the module docstring).
 
     ``reshape`` (cm, default 0): another face's proportions (:func:`reshape_face`) and another artist's
     shapes (:func:`restyle_shapes`): the automatic landmarks then cannot rely on ICT-FaceKit's face.
     ``mask``: only the face's front is kept (forehead to chin, ear to ear less the ears, as ARKit's face
-    mesh), no back of the head, neck or ears.
+    mesh), no back of the head, neck or ears. ``arkit``: the shapes named as ARKit names them
+    (``eyeBlinkLeft`` for ``eyeBlink_L``), one ``browInnerUp`` (both sides').
 
     Returns ``{"rig": folder, "landmarks": the true contours48 file, "ibug68": the published-style list
     (one index a line), "scale": mesh units per ICT centimetre, "rotation": (3, 3) the rig's axes from ICT's}``.
@@ -186,9 +187,14 @@ def remeshed_ict_rig(folder: str | Path, fraction: float = 0.4, seed: int = 0, u
     d = scale * d @ rot.T
     mesh = Mesh(v, list(tri))
     write_obj(folder / "neutral.obj", mesh)
-    for j, n in enumerate(ex.names):
+    shapes = dict(zip(ex.names, d))
+    if arkit:                                     # ARKit's spelling, one browInnerUp
+        shapes["browInnerUp"] = shapes.pop("browInnerUp_L") + shapes.pop("browInnerUp_R")
+        shapes = {n[:-2] + ("Left" if n.endswith("_L") else "Right") if n[-2:] in ("_L", "_R") else n: x
+                  for n, x in shapes.items()}
+    for n, x in shapes.items():
         if names is None or n in names:
-            write_obj(folder / f"{n}.obj", mesh, v + d[j])
+            write_obj(folder / f"{n}.obj", mesh, v + x)
     points = []
     for row in W:
         nz = np.flatnonzero(row)

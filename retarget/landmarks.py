@@ -315,6 +315,19 @@ def _shared_motion(ref_deltas, ref_names, deltas, names, rot, n_dims):
     return a @ basis, b @ basis
 
 
+def skin_triangles(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
+    """The triangles of the mesh's largest connected piece (by triangle count): a face's skin, where
+    eyeballs, teeth, the tongue and the shells around the eyes are pieces of their own."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    t = np.asarray(triangles, np.intp)
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]]])
+    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
+    _, label = connected_components(g, directed=False)
+    piece = label[t[:, 0]]
+    return t[piece == np.bincount(piece).argmax()]
+
+
 def used_vertices(triangles: np.ndarray) -> np.ndarray:
     """The vertices some triangle uses (sorted)."""
     return np.unique(np.asarray(triangles, np.intp))
@@ -346,12 +359,14 @@ def _smooth_step(Y: np.ndarray, dy: np.ndarray, V: np.ndarray, dv: np.ndarray, e
 def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], triangles: np.ndarray,
                 reference, widths: Sequence[float] = tuple(np.linspace(0.5, 0.1, 14)),
                 ridge: float = 1e-2, n_dims: int = 16, motion_weight: float = 0.6,
-                face_margin: float = 0.35, symmetric: bool = True) -> np.ndarray:
+                face_margin: float = 0.35, symmetric: bool = True, skin_only: bool = True) -> np.ndarray:
     """The 68 iBUG points found on a rig with no correspondence, as (68, n_vertices) weight rows.
 
     ``reference``: a face with known iBUG-68 vertices and the same :data:`FEATURES` (the shipped
     ICT-FaceKit subset, :func:`keyshape.retarget.demo_targets.load_expressions`).
 
+    0. With ``skin_only``, the rig's skin alone is used (:func:`skin_triangles`: its largest connected
+       piece; eyeballs, teeth, the tongue and the eye shells, and their motion, are left out).
     1. The reference's feature centroids (:func:`feature_centroid`: the regions the blinks, jawOpen,
        browInnerUp and the smiles move) are mapped onto the rig's by a similarity (Umeyama): it takes
        the rig's units and axes.
@@ -385,6 +400,13 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     if missing:
         raise ValueError(f"the rig has no {SPELLED[missing[0]]} shape to find its face by")
     common = [f for f in FEATURES if f in fg and f in fr]
+    if skin_only:                                     # the face's skin: no eyeballs, teeth, tongue or eye shells
+        tri = skin_triangles(tri, len(V))
+        off = np.ones(len(V), bool)
+        off[used_vertices(tri)] = False
+        if off.any():                                 # their motion is not the skin's (motion scales, pairs)
+            deltas = np.where(off[None, :, None], 0.0, np.asarray(deltas, np.float64))
+            fg = feature_deltas(deltas, names)
     ar, ag = vertex_areas(reference.neutral, reference.triangles), vertex_areas(V, tri)
     src = np.stack([feature_centroid(reference.neutral, fr[f], ar) for f in common])
     dst = np.stack([feature_centroid(V, fg[f], ag) for f in common])
