@@ -309,9 +309,7 @@ def _shared_motion(ref_deltas, ref_names, deltas, names, rot, n_dims):
     if a.shape[1] <= n_dims:
         return a, b
     _, _, vt = np.linalg.svd(np.concatenate([a, b]), full_matrices=False)
-    sv = np.linalg.svd(np.concatenate([a, b]) @ vt[:n_dims].T, compute_uv=False)
-    basis = vt[:n_dims].T
-    # the projection keeps each motion's length (it drops the components both faces hardly use)
+    basis = vt[:n_dims].T                             # drops the components both faces hardly use
     return a @ basis, b @ basis
 
 
