@@ -33,6 +33,7 @@ COMMAND_MODULES: list[tuple[str, str | None]] = [
     ("keyshape.retarget.solve_cli", None),
     ("keyshape.retarget.cli", None),
     ("keyshape.retarget.preview_cli", None),
+    ("keyshape.retarget.landmarks_cli", None),
     ("keyshape.live", None),
     ("keyshape.retarget.mocap.cli", None),
     ("keyshape.retarget.dense_cli", None),

@@ -23,8 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("--neutral", default=None,
                    help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
     p.add_argument("--landmarks", default=None,
-                   help="rig landmark JSON: the rig vertices of the scheme's points (default: the shipped "
-                        "correspondence for ICT-FaceKit rigs)")
+                   help="rig landmarks: a keyshape-rig-landmarks JSON (the rig vertices of the scheme's points) or "
+                        "the rig's iBUG-68 vertex list (default: the shipped correspondence for ICT-FaceKit rigs, "
+                        "else found on the rig and written beside the output, OUT.landmarks.json)")
     p.add_argument("--sparsity", type=float, default=A.SPARSITY,
                    help="L1 weight (dimensionless): larger gives fewer shapes per pose")
     p.add_argument("--nuisance", choices=("auto", "translation", "similarity", "none"), default=A.NUISANCE,
@@ -86,6 +87,8 @@ def run(args) -> int:
     n_keys = sum(len(rk.keys) for rk in regions)
     print(f"keyshape pose: {rig.n_shapes} shapes of {rig.n_vertices} vertices ({time.perf_counter() - t0:.1f} s); "
           f"fitting {n_keys} keys of {len(regions)} regions ...", flush=True)
+    from keyshape.retarget.landmarks_cli import resolve_landmarks
+    args.landmarks = resolve_landmarks(rig, scheme_name, args.landmarks, args.output)
     t1 = time.perf_counter()
     data, fit = fit_poses(regions, scheme_name, rig, read_keys_head_pose(args.keys), args.landmarks, args.sparsity,
                           args.nuisance, args.opposed, args.symmetry)

@@ -46,6 +46,7 @@ class Rig:
     files : list of n_shapes Paths
     neutral_file : Path
     value_range : (lo, hi) weights a shape takes (blendshapes: 0..1)
+    turned : (3, 3) the rotation :func:`load_rig` gave a rig that was not y-up facing +z, or None
     """
 
     names: list
@@ -55,6 +56,7 @@ class Rig:
     files: list = field(default_factory=list)
     neutral_file: Path | None = None
     value_range: tuple = (0.0, 1.0)
+    turned: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -217,7 +219,7 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
         raise InputError(f"rig shape names {dup} appear twice", files[names.index(dup[0])])
     if not cache:
         base, deltas, mesh = _parse_rig(files, neutral, with_mesh)
-        return Rig(names, base, deltas, mesh, files, neutral)
+        return upright(Rig(names, base, deltas, mesh, files, neutral))
     from keyshape.base.formats.rigcache import read_rig_cache, write_rig_cache
 
     path = cache_dir() / f"{rig_digest(files, neutral)}.npz"
@@ -225,7 +227,7 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
         try:
             cnames, base, deltas, mesh = read_rig_cache(path, with_mesh)
             if cnames == names:
-                return Rig(names, base, deltas, mesh if with_mesh else None, files, neutral)
+                return upright(Rig(names, base, deltas, mesh if with_mesh else None, files, neutral))
         except InputError:
             pass                                  # damaged: parse again and rewrite it below
     base, deltas, mesh = _parse_rig(files, neutral, True)
@@ -235,7 +237,26 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
             write_rig_cache(path, names, base, deltas, mesh)
     except OSError:
         pass                                      # a read-only home: the rig is parsed each time
-    return Rig(names, base, deltas, mesh if with_mesh else None, files, neutral)
+    return upright(Rig(names, base, deltas, mesh if with_mesh else None, files, neutral))
+
+
+def upright(rig: Rig) -> Rig:
+    """The rig turned to the solve's view (y up, the face towards +z) when its shapes say it is not
+    (a Z-up rig, or one facing -z): :func:`keyshape.retarget.landmarks.face_axes` from its blinks and
+    jawOpen; ``rig.turned`` is the (3, 3) rotation applied (``new = old @ turned.T``), None when none was.
+    A rig without those shapes, or whose axes are not clear, is left as it is. Units need no change
+    (the solve compares shapes, not sizes)."""
+    from keyshape.retarget.landmarks import face_axes
+    R = face_axes(rig.neutral, rig.deltas, rig.names)
+    rig.turned = None
+    if R is None or np.allclose(R, np.eye(3)):
+        return rig
+    rig.neutral = rig.neutral @ R.T
+    rig.deltas = rig.deltas @ R.T
+    if rig.mesh is not None:
+        rig.mesh = rig.mesh.with_vertices(rig.mesh.vertices @ R.T)
+    rig.turned = R
+    return rig
 
 
 def default_landmarks(n_vertices: int, scheme: str) -> Path | None:
@@ -249,19 +270,87 @@ def default_landmarks(n_vertices: int, scheme: str) -> Path | None:
 def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None) -> tuple[np.ndarray, Path]:
     """The (n_points, n_vertices) weight matrix taking rig vertices to the scheme's points.
 
-    ``path`` is a rig landmark JSON; default: the shipped one for ICT-FaceKit rigs.
-    Raises :class:`InputError` when there is none or it is for another scheme.
+    ``path`` is a rig landmark JSON, or the rig's published iBUG-68 vertex list (a JSON list or one
+    index a line: contours48's points are derived from it, :func:`keyshape.retarget.landmarks.contours48_from_ibug68`);
+    default: the shipped one for ICT-FaceKit rigs, else the landmarks found on the rig
+    (:func:`found_landmarks`; the path returned is then ``Path("automatic")``).
+    Raises :class:`InputError` naming the file when it is for another scheme, has another number of points
+    than the scheme, or puts them in an order the rig's geometry refutes
+    (:func:`keyshape.retarget.landmarks.landmark_problem`).
     """
-    from keyshape.base.formats.poses import read_rig_landmarks
+    from keyshape.base.formats.poses import read_landmark_list, read_rig_landmarks
+    from keyshape.base.schemes import load_scheme
+    from keyshape.retarget.landmarks import landmark_problem
+    sch = load_scheme(scheme)
     if path is None:
         path = default_landmarks(rig.n_vertices, scheme)
         if path is None:
+            return found_landmarks(rig, scheme).W, Path("automatic")
+    indices = read_landmark_list(path)
+    if indices is not None:
+        W = _from_published_list(rig, sch, indices, path)
+    else:
+        s, W = read_rig_landmarks(path, rig.n_vertices)
+        if s != scheme:
+            raise InputError(f"landmarks are for scheme {s!r}, the keys for {scheme!r}", path)
+        if len(W) != sch.n_points:
+            hint = (" (iBUG-68's 68 vertex indices? give the list alone, a JSON list or one index a line, and the "
+                    f"{scheme} points are derived from it)" if len(W) == 68 else "")
+            raise InputError(f"{len(W)} points, scheme {scheme!r} has {sch.n_points}{hint}", path)
+    problem = landmark_problem(W @ rig.neutral, sch, rig.neutral.mean(axis=0))
+    if problem:
+        raise InputError(f"these landmarks do not fit the rig: {problem}", path)
+    return W, Path(path)
+
+
+def _from_published_list(rig: Rig, sch, indices: np.ndarray, path) -> np.ndarray:
+    """The scheme's weight rows from a rig's published iBUG-68 vertex list (checked)."""
+    from keyshape.retarget.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
+    if len(indices) != 68:
+        raise InputError(f"{len(indices)} vertex indices: a rig's published landmark list must hold iBUG-68's 68 "
+                         "(jaw 0-16, brows 17-26, nose 27-35, eyes 36-47, lips 48-67)", path)
+    bad = indices[(indices < 0) | (indices >= rig.n_vertices)]
+    if len(bad):
+        raise InputError(f"vertex {int(bad[0])} outside 0..{rig.n_vertices - 1} (this rig has {rig.n_vertices} "
+                         "vertices; indices count from 0)", path)
+    W68 = one_hot(indices, rig.n_vertices)
+    if sch.name == "ibug68":
+        return W68
+    if sch.name != "contours48":
+        raise InputError(f"an iBUG-68 vertex list gives the contours48 or ibug68 schemes' points, not {sch.name!r}",
+                         path)
+    return contours48_from_ibug68(W68, rig.neutral,
+                                  still_vertices(rig.deltas, rig.names, eye_width(W68, rig.neutral))).W
+
+
+def found_landmarks(rig: Rig, scheme: str):
+    """The scheme's points found on a rig with no correspondence
+    (:func:`keyshape.retarget.landmarks.find_landmarks`), once per rig object:
+    a :class:`~keyshape.retarget.landmarks.Derived` (``W``, ``notes``)."""
+    from keyshape.retarget.demo_targets import load_expressions
+    from keyshape.retarget.landmarks import find_landmarks
+    memo = rig.__dict__.setdefault("_found_landmarks", {})
+    if scheme not in memo:
+        if scheme not in ("contours48", "ibug68"):
             raise InputError(f"no landmark correspondence for this rig ({rig.n_vertices} vertices) and scheme "
                              f"{scheme!r}: give --landmarks FILE (a keyshape-rig-landmarks JSON)", rig.neutral_file)
-    s, W = read_rig_landmarks(path, rig.n_vertices)
-    if s != scheme:
-        raise InputError(f"landmarks are for scheme {s!r}, the keys for {scheme!r}", path)
-    return W, Path(path)
+        mesh = rig.mesh if rig.mesh is not None else read_obj(rig.neutral_file)
+        try:
+            memo[scheme] = find_landmarks(rig.neutral, rig.deltas, rig.names, mesh.triangles, load_expressions(),
+                                          scheme)
+        except ValueError as exc:
+            raise InputError(f"no landmark correspondence for this rig ({rig.n_vertices} vertices), and none found "
+                             f"automatically: {exc}; give --landmarks FILE (the rig's iBUG-68 vertex list or a "
+                             "keyshape-rig-landmarks JSON)", rig.neutral_file) from None
+        from keyshape.base.schemes import load_scheme
+        from keyshape.retarget.landmarks import landmark_problem
+        problem = landmark_problem(memo[scheme].W @ rig.neutral, load_scheme(scheme), rig.neutral.mean(axis=0))
+        if problem:
+            del memo[scheme]
+            raise InputError(f"no landmark correspondence for this rig ({rig.n_vertices} vertices), and the one found "
+                             f"automatically is wrong ({problem}); give --landmarks FILE (the rig's iBUG-68 vertex "
+                             "list or a keyshape-rig-landmarks JSON)", rig.neutral_file)
+    return memo[scheme]
 
 
 def project(points3d: np.ndarray) -> np.ndarray:

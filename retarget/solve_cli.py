@@ -29,7 +29,9 @@ def register(subparsers) -> None:
     p.add_argument("--neutral", default=None,
                    help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
     p.add_argument("--landmarks", default=None,
-                   help="rig landmark JSON (default: the shipped correspondence for ICT-FaceKit rigs)")
+                   help="rig landmarks: a keyshape-rig-landmarks JSON, or the rig's iBUG-68 vertex list (a JSON list or one "
+                        "index a line) (default: the shipped correspondence for ICT-FaceKit rigs, else found on "
+                        "the rig and written beside the output, OUT.landmarks.json)")
     p.add_argument("--poses", default=None,
                    help="POSES.json (keyshape pose, corrected by hand): with --weights, each key's rig pose is "
                         "what the rig shows at that key; the difference from the solve there is added in "
@@ -72,6 +74,8 @@ def run(args) -> int:
                          args.tracks)
     needs_mesh = not str(args.output).lower().endswith(".csv")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    from keyshape.retarget.landmarks_cli import resolve_landmarks
+    args.landmarks = resolve_landmarks(rig, scheme_name, args.landmarks, args.output)
     report: dict = {}
     curves, head, fps, eyes = solve_rig(Take.fit(tracks, args.tracks), regions, scheme_name,
                                         read_keys_head_pose(args.keys), rig,

@@ -306,11 +306,14 @@ def test_pose_options_out_of_range_are_refused_and_nothing_written(tmp_path, cap
 
 
 def test_rig_without_landmarks_asks_for_them(tmp_path, capsys):
+    """No correspondence and no blink shapes to find one by (retarget/landmarks.py): one line asks for
+    --landmarks and says what was missing."""
     from keyshape.base.formats.keys import write_keys
-    rig, _ = write_toy_rig(tmp_path / "rig")
+    rig, _ = write_toy_rig(tmp_path / "rig", shapes={k: v for k, v in SHAPES.items() if not k.startswith("eyeBlink")})
     write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
     assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "-o", str(tmp_path / "p.json")]) == 2
-    assert "--landmarks" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--landmarks" in err and "eyeBlinkLeft (eyeBlink_L)" in err and len(err.strip().splitlines()) == 1
 
 
 # ----------------------------------------------------------------------------------------- a .glb that opens right

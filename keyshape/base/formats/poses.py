@@ -24,6 +24,10 @@ Rig landmark JSON (which rig vertices the scheme's points are)::
 
 one entry per scheme point: a vertex index, or ``[[vertex, weight], ...]`` (a point
 between vertices; weights sum to 1).
+
+A rig's published landmark list (:func:`read_landmark_list`): the 68 iBUG (Multi-PIE) vertex indices
+as rigs publish them, a JSON list (``[1225, 1888, ...]``, or ICT-FaceKit's ``vertex_indices.json`` with its
+``idx_to_landmark_verts``) or a text file of one index a line (blank lines and ``#`` comments ignored).
 """
 from __future__ import annotations
 
@@ -181,3 +185,38 @@ def read_rig_landmarks(path: str | Path, n_vertices: int | None = None) -> tuple
         raise InputError(f"the {len(W)} points sit on {len(np.unique(W, axis=0))} place(s) of the rig: a degenerate "
                          "landmark map (every point on one vertex?)", path)
     return scheme, W
+
+
+def read_landmark_list(path: str | Path) -> np.ndarray | None:
+    """Read a rig's published landmark vertex list (see the module docstring): (n,) int array, zero-based;
+    None when the file is a keyshape-rig-landmarks JSON (read it with :func:`read_rig_landmarks`)."""
+    path = require_file(path, "rig landmark file")
+    try:
+        text = Path(path).read_text()
+    except UnicodeDecodeError:
+        raise InputError("not a landmark file (not text)", path) from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError:
+        data = None
+        rows = []
+        for i, line in enumerate(text.splitlines(), 1):
+            line = line.split("#", 1)[0].strip()
+            if not line:
+                continue
+            try:
+                rows.append(int(line))
+            except ValueError:
+                raise InputError(f"line {i}: {line[:40]!r} is not a vertex index (one index a line, or a JSON list)",
+                                 path) from None
+        if not rows:
+            raise InputError("no vertex indices (one index a line, or a JSON list)", path)
+        return np.asarray(rows, np.int64)
+    if isinstance(data, dict) and data.get("format") == LANDMARKS_FORMAT:
+        return None
+    if isinstance(data, dict) and "idx_to_landmark_verts" in data:            # ICT-FaceKit's vertex_indices.json
+        data = data["idx_to_landmark_verts"]
+    if not isinstance(data, list) or not data or not all(isinstance(v, int) and not isinstance(v, bool) for v in data):
+        raise InputError(f"not a rig landmark file: expected a keyshape-rig-landmarks JSON (\"format\": "
+                         f"\"{LANDMARKS_FORMAT}\") or a list of vertex indices", path)
+    return np.asarray(data, np.int64)
