@@ -49,16 +49,13 @@ ROLES: dict[str, dict[str, str]] = {
     # POSES.json is the file the page edits on the user's request (keyshape.base.files.user_save)
     "pose-edit": {"poses": "in", "rig": "in", "neutral": "in", "keys": "in"},
     "solve": {"tracks": "in", "keys": "in", "rig": "in", "neutral": "in", "landmarks": "in", "poses": "in",
-              "weights": "in", "head_pose": _TEXT, "gaze": _TEXT, "output": "file"},
-    "retarget": {"weights": "in", "targets": "in", "poses": "in", "rig": "in", "mapping": "in", "neutral": "in",
-                 "form": _TEXT, "regions": "in", "metric": _TEXT, "tracks": "in", "head_pose": _TEXT,
-                 "gaze": _TEXT, "landmarks": "in", "mesh_units": _TEXT, "scheme": _TEXT, "output": "file|folder"},
-    "preview": {"video": "in", "tracks": "in", "curves": "in", "weights": "in", "poses": "in", "rig": "in",
-                "neutral": "in", "frames": _TEXT, "sheet": "file", "crop": _TEXT, "landmarks": "in",
-                "compare": "in", "captions": _TEXT, "output": "file"},
-    "live": {"source": "in", "model": "in", "keys": "in", "poses": "in", "rig": "in", "neutral": "in",
-             "host": _TEXT, "subject": _TEXT, "osc": _TEXT, "osc_prefix": _TEXT, "solver": _TEXT,
-             "head_pose": _TEXT, "calibration": "in", "gaze": _TEXT, "smooth": _TEXT},
+              "weights": "in", "gaze": _TEXT, "output": "file"},
+    "retarget": {"weights": "in", "targets": "in", "poses": "in", "rig": "in", "neutral": "in", "regions": "in",
+                 "tracks": "in", "gaze": _TEXT, "landmarks": "in", "output": "file|folder"},
+    "preview": {"video": "in", "tracks": "in", "curves": "in", "rig": "in", "neutral": "in", "frames": _TEXT,
+                "sheet": "file", "landmarks": "in", "compare": "in", "contours": _TEXT, "output": "file"},
+    "live": {"source": "in", "model": "in", "keys": "in", "poses": "in", "rig": "in", "landmarks": "in",
+             "host": _TEXT, "subject": _TEXT, "osc": _TEXT, "calibration": "in", "gaze": _TEXT},
     "mocap": {"markers": "in", "target": "in", "target_markers": "in", "rigid": _TEXT, "masks": "in",
               "method": _TEXT, "duplicate_labels": _TEXT, "up": _TEXT, "output": "file|folder"},
     "register": {"reference": "in", "target": "in", "landmarks": "in", "output": "file", "markers": "in",
@@ -66,6 +63,9 @@ ROLES: dict[str, dict[str, str]] = {
     "keypoints": {"sequence": "in", "initial": "in", "output": "file"},
     "transfer": {"sequence": "in", "target": "in", "keypoints": "in", "landmarks": "in", "output": "file"},
     "batch": {"manifest": "in", "output": "folder", "scheduler": _TEXT},
+    "animate": {"video": "in", "rig": "in", "output": "file", "livelink": "file", "preview": "file", "labels": "in",
+                "landmarks": "in", "work": "folder", "example": "folder"},
+    "rig-check": {"rig": "in", "neutral": "in", "landmarks": "in", "output": "file"},
 }
 
 

@@ -647,6 +647,9 @@ def run(args) -> int:
     notes: list[str] = []                       # said once everything has opened (bad input stays one line)
     model, chain = load_chain(args.model, args.keys, args.rig, poses=args.poses, calibration=args.calibration,
                               options=SolveOptions(gaze=args.gaze, landmarks=args.landmarks), say=notes.append)
+    from keyshape.base.formats.keys import check_keys_model
+    from keyshape.tracker.commands import model_fingerprint
+    check_keys_model(args.keys, model_fingerprint(model), False, "the live model")
     sender = LiveLinkSender(args.host, args.port, subject=args.subject)
     osc = None
     try:

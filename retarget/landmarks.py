@@ -354,10 +354,22 @@ def _smooth_step(Y: np.ndarray, dy: np.ndarray, V: np.ndarray, dv: np.ndarray, e
     return phi @ coef
 
 
+@dataclass(frozen=True)
+class FitOptions:
+    """The landmark search's settings (:func:`find_ibug68`), chosen on the remeshed test rigs
+    (``bench/rig_landmarks_accuracy.py``)."""
+
+    widths: Sequence[float] = tuple(np.linspace(0.5, 0.1, 14))
+    ridge: float = 1e-2
+    n_dims: int = 16
+    motion_weight: float = 0.6
+    face_margin: float = 0.35
+    symmetric: bool = True
+    skin_only: bool = True
+
+
 def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], triangles: np.ndarray,
-                reference, widths: Sequence[float] = tuple(np.linspace(0.5, 0.1, 14)),
-                ridge: float = 1e-2, n_dims: int = 16, motion_weight: float = 0.6,
-                face_margin: float = 0.35, symmetric: bool = True, skin_only: bool = True) -> np.ndarray:
+                reference, options: FitOptions = FitOptions()) -> np.ndarray:
     """The 68 iBUG points found on a rig with no correspondence, as (68, n_vertices) weight rows.
 
     ``reference``: a face with known iBUG-68 vertices and the same :data:`FEATURES` (the shipped
@@ -387,6 +399,8 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     ValueError
         The rig lacks a required feature's shape (blinks, jawOpen).
     """
+    widths, ridge, n_dims, motion_weight = options.widths, options.ridge, options.n_dims, options.motion_weight
+    face_margin, symmetric, skin_only = options.face_margin, options.symmetric, options.skin_only
     from scipy.spatial import cKDTree
 
     from keyshape.base.geometry import rigid_fit
@@ -444,10 +458,11 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     return W
 
 
-def find_landmarks(neutral, deltas, names, triangles, reference, scheme_name: str = "contours48", **fit) -> Derived:
+def find_landmarks(neutral, deltas, names, triangles, reference, scheme_name: str = "contours48",
+                   options: FitOptions = FitOptions()) -> Derived:
     """The scheme's points found on a rig (:func:`find_ibug68`, then for contours48
     :func:`contours48_from_ibug68`, with the rig's eyeballs where it has some)."""
-    W68 = find_ibug68(neutral, deltas, names, triangles, reference, **fit)
+    W68 = find_ibug68(neutral, deltas, names, triangles, reference, options)
     width = eye_width(W68, np.asarray(neutral, np.float64))
     if scheme_name == "ibug68":
         return Derived(W68, [])

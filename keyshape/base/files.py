@@ -229,9 +229,13 @@ def _locked(folder: Path) -> Iterator[None]:
 def _write_record(folder: Path, kinds: dict[str, Iterable[str]], sha: dict[str, str]) -> None:
     kinds = {k: sorted(v) for k, v in sorted(kinds.items()) if v}
     listed = {f for v in kinds.values() for f in v}
+    text = json.dumps({"written_by": "keyshape", "version": 3, "outputs": kinds,
+                       "sha256": {k: v for k, v in sorted(sha.items()) if k in listed}}, indent=0)
+    with contextlib.suppress(OSError):
+        if (folder / MANIFEST).read_text() == text:     # unchanged: a rerun that rewrote nothing leaves it be
+            return
     with atomic_write(folder / MANIFEST) as f:
-        json.dump({"written_by": "keyshape", "version": 3, "outputs": kinds,
-                   "sha256": {k: v for k, v in sorted(sha.items()) if k in listed}}, f, indent=0)
+        f.write(text)
 
 
 def _remember(path: Path, digest: str) -> None:
