@@ -15,8 +15,8 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme, load_scheme, scheme_for_n_points
-from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, face_rest_frame, head_shapes,
-                                        select_region)
+from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, drop_near_duplicates,
+                                        face_rest_frame, head_shapes, select_region)
 from keyshape.decompose.defaults import (HEAD_POSE, HEAD_POSES, METHOD, METHODS, MIN_KEY_DISTANCE,  # noqa: F401
                                          NEUTRAL_FRAME, RIDGE, SEED, SMOOTH_LAMBDA, SOLVER, SOLVERS)
 from keyshape.decompose.stabilize import head_pose_entry
@@ -109,9 +109,9 @@ def select_keys(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = 
     regions = list(regions or available_regions(sch))
     try:
         rest = face_rest_frame(tracks, shapes, sch, regions) if nf in (None, "auto") else None
-        chosen = [select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes, neutral_frame=nf,
-                                min_distance=MIN_KEY_DISTANCE, progress=progress, rest_frame=rest)
-                  for r in regions]
+        chosen = [drop_near_duplicates(select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes,
+                                                     neutral_frame=nf, progress=progress, rest_frame=rest),
+                                       MIN_KEY_DISTANCE) for r in regions]
     except InputError as exc:
         if source is None:
             raise
