@@ -6,8 +6,6 @@ import argparse
 
 def register(subparsers) -> None:
     """Add ``pose`` to ``subparsers``."""
-    from keyshape.retarget import defaults as A
-
     p = subparsers.add_parser(
         "pose", help="suggest a rig pose (rig shape weights) for every key shape -> POSES.json",
         description="For every key of every region of KEYS.json, find non-negative, sparse weights of the rig's "
