@@ -271,9 +271,6 @@ class Head3D:
         return alb
 
     # ------------------------------------------------------------------ posing
-    def driven_index(self) -> dict[str, int]:
-        return {n: i for i, n in enumerate(DRIVEN)}
-
     def pose_vertices(self, curves: np.ndarray, eye_yaw: np.ndarray, eye_pitch: np.ndarray) -> np.ndarray:
         """Head-frame vertices (n_vertices, 3) for one frame: curves (len(DRIVEN),), eye angles (2,) (left, right)."""
         c = np.asarray(curves, dtype=np.float64)
@@ -300,11 +297,6 @@ class Head3D:
         pu = self.pupils(eye_yaw, eye_pitch)
         p[26], p[27] = pu[1], pu[0]            # point 26 is the image-left pupil: the subject's right eye
         return p
-
-
-def _interp_rows(bary: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Barycentric mix of per-corner ``values`` (k, 3) with ``bary`` (k, 3): (k,)."""
-    return (bary * values).sum(1)
 
 
 def _polyline_distance(p: np.ndarray, line: np.ndarray, along: bool = False):

@@ -20,8 +20,6 @@ def register(subparsers) -> None:
     from keyshape.data_synth.video_cli import add_footage_options
 
     add_footage_options(p, frames=300)
-    p.add_argument("--identity", choices=("mixed", "generic"), default="mixed",
-                   help="mixed: a seeded mix of ICT-FaceKit's identities, rescaled; generic: its neutral (default mixed)")
     p.set_defaults(func=run)
 
 
@@ -31,4 +29,4 @@ def run(args) -> int:
 
     return run_footage(args, "face3d", lambda tmp, size, preview: synthesize(
         tmp, args.rig, frames=args.frames, seed=args.seed, size=size, fps=args.fps, labels=args.labels,
-        identity=args.identity, preview=preview, verbose=True), check=lambda: check_facekit(args.rig))
+        preview=preview, verbose=True), check=lambda: check_facekit(args.rig))

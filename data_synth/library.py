@@ -36,8 +36,7 @@ def grid_targets(folder: str | Path, keys: dict[str, int], seed: int = 0, n: int
 
 
 def synth_library(folder: str | Path, actors: int = 2, takes: int = 2, frames: int = 60, seed: int = 0,
-                  keys: int = 4, morphs: int = 120, labels: int = 12, targets: bool = True,
-                  size=(640, 480), verbose: bool = False) -> Path:
+                  keys: int = 4, morphs: int = 120, labels: int = 12, size=(640, 480)) -> Path:
     """Write ``actors`` x ``takes`` synthetic takes of ``frames`` frames and a ``manifest.toml``; return its path.
 
     Actor ``a`` has seed ``seed + a``; ``size`` is the frame size (width, height). Existing videos are kept (a benchmark can reuse the library).
@@ -52,7 +51,7 @@ def synth_library(folder: str | Path, actors: int = 2, takes: int = 2, frames: i
         name = f"actor{a}"
         foot = folder / name / "footage"
         if not (foot / "video.mp4").is_file():
-            synthesize(foot, frames=frames * takes, seed=seed + a, size=size, labels=labels, verbose=verbose)
+            synthesize(foot, frames=frames * takes, seed=seed + a, size=size, labels=labels)
         paths = [folder / name / f"take{t:02d}.mp4" for t in range(takes)]
         if not all(p.is_file() for p in paths):
             reader = VideoReader(foot / "video.mp4")
@@ -65,10 +64,9 @@ def synth_library(folder: str | Path, actors: int = 2, takes: int = 2, frames: i
             take_lines += ["[[takes]]", f'actor = "{name}"', f'video = "{name}/take{t:02d}.mp4"', ""]
         lines += [f"[actors.{name}]", f'video = "{name}/footage/video.mp4"', f'labels = "{name}/footage/labels"',
                   f"keys = {keys}", f"morphs = {morphs}", 'regions = ["mouth", "eyes"]']
-        if targets:
-            regions = grid_targets(folder / name / "targets", {"mouth": keys, "eyes": keys}, seed=a)
-            (folder / name / "regions.json").write_text(json.dumps(regions))
-            lines += [f'targets = "{name}/targets"', f'target_regions = "{name}/regions.json"']
+        regions = grid_targets(folder / name / "targets", {"mouth": keys, "eyes": keys}, seed=a)
+        (folder / name / "regions.json").write_text(json.dumps(regions))
+        lines += [f'targets = "{name}/targets"', f'target_regions = "{name}/regions.json"']
         lines.append("")
     manifest = folder / "manifest.toml"
     manifest.write_text("\n".join(lines + take_lines))

@@ -58,13 +58,6 @@ RIGID_NAMES = list(JIG)
 SKULL_NAMES = ["forehead_R", "forehead_C", "forehead_L", "nose_bridge", "templeR", "templeL"]
 
 
-def inner_lip_siblings(labels) -> dict:
-    """``{inner index: outer index}`` by name: ``lipInner*`` pairs with ``lipOuter*``."""
-    pos = {s: i for i, s in enumerate(labels)}
-    return {i: pos[s.replace("Inner", "Outer")] for i, s in enumerate(labels)
-            if "lipInner" in s and s.replace("Inner", "Outer") in pos}
-
-
 @dataclass
 class FaceKit:
     """The ICT-FaceKit pieces the generator needs (centimetres)."""

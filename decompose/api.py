@@ -15,8 +15,8 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.schemes import Scheme, load_scheme, scheme_for_n_points
-from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, face_rest_frame, head_shapes,
-                                        select_region)
+from keyshape.decompose.regions import (RegionKeys, available_regions, decompose_region, drop_near_duplicates,
+                                        face_rest_frame, head_shapes, select_region)
 from keyshape.decompose.defaults import (HEAD_POSE, HEAD_POSES, METHOD, METHODS, MIN_KEY_DISTANCE,  # noqa: F401
                                          NEUTRAL_FRAME, RIDGE, SEED, SMOOTH_LAMBDA, SOLVER, SOLVERS)
 from keyshape.decompose.stabilize import head_pose_entry
@@ -60,8 +60,7 @@ def parse_neutral_frame(value: int | str | None) -> int | str | None:
 def select_keys(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = METHOD,
                 regions: Sequence[str] | None = None, scheme: str | Scheme | None = None, seed: int = SEED,
                 source=None, progress: bool = False, head: str = HEAD_POSE,
-                neutral_frame: int | str | None = NEUTRAL_FRAME,
-                min_key_distance: float = MIN_KEY_DISTANCE) -> tuple[Scheme, list[RegionKeys], dict]:
+                neutral_frame: int | str | None = NEUTRAL_FRAME) -> tuple[Scheme, list[RegionKeys], dict]:
     """Choose ``k`` key shapes per region from ``tracks`` (see :func:`~keyshape.decompose.regions.select_region`).
 
     The product's defaults live here (``keyshape select``, :func:`keyshape.api.select`, ``keyshape
@@ -83,8 +82,6 @@ def select_keys(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = 
     neutral_frame : what the weights are relative to: ``"auto"`` (the actor's most relaxed frame,
         one for the whole face, the default), a frame number (one take only), or None / ``"mean"``
         (the take's mean shape, the paper's centring)
-    min_key_distance : drop a key closer to an earlier key than this fraction of the median
-        key-to-neutral distance (0 keeps all)
 
     Returns
     -------
@@ -98,8 +95,6 @@ def select_keys(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = 
         raise InputError(f"-k is required for --method {method}")
     if k is not None and k < 1:
         raise InputError(f"-k {k}: need at least 1 key shape per region")
-    if not (np.isfinite(min_key_distance) and min_key_distance >= 0):
-        raise InputError(f"--min-key-distance {min_key_distance}: must be a finite number >= 0")
     nf = parse_neutral_frame(neutral_frame)
     if len(takes) > 1 and nf not in (None, "auto"):
         raise InputError("--neutral-frame F is ambiguous with several tracks files: use auto")
@@ -114,9 +109,9 @@ def select_keys(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = 
     regions = list(regions or available_regions(sch))
     try:
         rest = face_rest_frame(tracks, shapes, sch, regions) if nf in (None, "auto") else None
-        chosen = [select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes, neutral_frame=nf,
-                                min_distance=min_key_distance, progress=progress, rest_frame=rest)
-                  for r in regions]
+        chosen = [drop_near_duplicates(select_region(tracks, sch, r, k, method, rng=seed, shapes=shapes,
+                                                     neutral_frame=nf, progress=progress, rest_frame=rest),
+                                       MIN_KEY_DISTANCE) for r in regions]
     except InputError as exc:
         if source is None:
             raise

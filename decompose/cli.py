@@ -29,16 +29,12 @@ def register(subparsers) -> None:
     p.add_argument("--region", action="append", default=None,
                    help="mouth, eyes (with brows) or pupils; repeat for several (default: all the scheme has)")
     p.add_argument("--scheme", default=None, help="landmark scheme (default: the built-in one with as many points)")
-    p.add_argument("--seed", type=int, default=D.SEED, help=f"seed of kmeans/random/greedy (default {D.SEED})")
     p.add_argument("--head-pose", choices=D.HEAD_POSES, default=D.HEAD_POSE,
                    help="how the head's motion is taken out of the shapes: 3d (the head's 3D pose, fitted to the "
                         "points rigid with the skull on a 3D face, is removed and the shapes are brought to the "
                         "front; rigid where the scheme has no 3D face), rigid (the tracker's pose, then "
                         "a 2D similarity on the rigid points, the eye corners) or tracker (the tracker's pose "
                         "alone); default " + D.HEAD_POSE + ". Recorded in KEYS.json; decompose, pose and retarget do the same")
-    p.add_argument("--min-key-distance", type=float, default=D.MIN_KEY_DISTANCE,
-                   help="drop near-duplicate keys: a key closer to an earlier key than this fraction of the "
-                        f"median key-to-neutral distance (default {D.MIN_KEY_DISTANCE:g}; 0 keeps all)")
     p.add_argument("-o", "--output", required=True, help="KEYS.json to write")
     p.add_argument("--sheet", default=None, help="also write a key-frame sheet, .png or .jpg (needs --video)")
     p.add_argument("--video", default=None, help="the video the tracks came from (for --sheet)")
@@ -51,8 +47,6 @@ def register(subparsers) -> None:
     p.add_argument("--solver", choices=SOLVERS, default=D.SOLVER,
                    help=f"nnls (the paper's), lstsq (unconstrained), smooth (NNLS + temporal smoothness); "
                         f"default {D.SOLVER}")
-    p.add_argument("--smooth-lambda", type=float, default=D.SMOOTH_LAMBDA,
-                   help=f"weight of the frame-to-frame change penalty for --solver smooth (default {D.SMOOTH_LAMBDA:g})")
     p.add_argument("--ridge", type=float, default=D.RIDGE,
                    help="shrink weights towards 0 against tracking noise: Tikhonov term, dimensionless "
                         f"(default {D.RIDGE:g}; 0 with --solver nnls is the paper's NNLS)")
@@ -68,10 +62,6 @@ def register(subparsers) -> None:
     p.add_argument("--kmax", type=int, default=24, help="largest k (default 24)")
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="selectors to compare")
     p.add_argument("--region", action="append", default=None, help="regions (default: all the scheme has)")
-    p.add_argument("--amplitude", type=float, default=2.0,
-                   help="target-domain check: amplitude (px) of the smooth field displacing the keys (default 2)")
-    p.add_argument("--scheme", default=None, help="landmark scheme (default: by number of points)")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, help="folder for errors.csv and errors.png")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
@@ -147,9 +137,8 @@ def _select(args) -> int:
         from keyshape.base.formats.tracks import check_frame_size
         check_frame_size(tracks.meta, info.width, info.height, args.video, args.tracks[0])
     scheme, chosen, head_pose = A.select_keys(
-        loaded if len(loaded) > 1 else tracks, args.k, args.method, args.region, args.scheme, args.seed,
-        source=args.tracks[0], progress=True, head=args.head_pose, neutral_frame=nf,
-        min_key_distance=args.min_key_distance)
+        loaded if len(loaded) > 1 else tracks, args.k, args.method, args.region, args.scheme,
+        source=args.tracks[0], progress=True, head=args.head_pose, neutral_frame=nf)
     # the sheet is made (video decoded) before any output is written: a failure writes nothing
     sheet = encode_sheet(args.sheet, args.video, tracks, scheme, chosen, stable_pose(tracks, head_pose)) \
         if args.sheet else None
@@ -203,9 +192,8 @@ def _decompose(args) -> int:
     from keyshape.base.files import check_outputs
     from keyshape.decompose.api import decompose_keys
 
-    for name, v in (("--smooth-lambda", args.smooth_lambda), ("--ridge", args.ridge)):
-        if not (np.isfinite(v) and 0 <= v <= 1e6):      # before any work (decompose_keys checks it too)
-            raise InputError(f"{name} {v}: must be a finite number from 0 to 1e6")
+    if not (np.isfinite(args.ridge) and 0 <= args.ridge <= 1e6):      # before any work (decompose_keys checks it too)
+        raise InputError(f"--ridge {args.ridge}: must be a finite number from 0 to 1e6")
     check_outputs([args.output], inputs=[args.tracks, args.keys])
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
@@ -215,7 +203,7 @@ def _decompose(args) -> int:
     if n_points != tracks.n_points:
         raise InputError(f"key shapes are for {n_points} points ({scheme_name}), the tracks have "
                          f"{tracks.n_points}", args.keys)
-    names, w = decompose_keys(tracks, regions, args.solver, args.smooth_lambda, args.ridge, args.tracks, head)
+    names, w = decompose_keys(tracks, regions, args.solver, ridge=args.ridge, source=args.tracks, head_pose=head)
     write_weights(args.output, tracks.frame, names, w, ~tracks.success, fps=tracks.fps)
     n_fail = int((~tracks.success).sum())
     print(f"wrote {args.output}: {tracks.n_frames} frames x {len(names)} weights ({args.solver})"
@@ -226,8 +214,6 @@ def _decompose(args) -> int:
 def _compare(args) -> int:
     from pathlib import Path
 
-    import math
-
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_dir, check_output_dir
     from keyshape.decompose.compare import compare, plot_errors, write_errors
@@ -236,13 +222,11 @@ def _compare(args) -> int:
 
     if not 1 <= args.kmin <= args.kmax:
         raise InputError(f"--kmin {args.kmin} --kmax {args.kmax}: need 1 <= kmin <= kmax")
-    if not (math.isfinite(args.amplitude) and args.amplitude >= 0):
-        raise InputError(f"--amplitude {args.amplitude}: must be a finite number >= 0")
     check_output_dir(args.output, args.overwrite, inputs=[args.tracks])
     tracks, scheme = _load(args)
     with Progress(desc="keyshape compare", unit="rows") as bar:
         rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
-                       amplitude=args.amplitude, rng=args.seed, progress=bar)
+                       amplitude=2.0, rng=0, progress=bar)
     out = Path(args.output)
     with atomic_dir(out, args.overwrite, inputs=[args.tracks], kind="compare") as tmp:
         write_errors(tmp / "errors.csv", rows)

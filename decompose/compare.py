@@ -67,39 +67,9 @@ def smooth_field(points: np.ndarray, amplitude: float, rng=None, n_waves: int = 
     return lambda p: np.asarray(p, dtype=np.float64) + amplitude * phi(p) / norm
 
 
-def target_distortion(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray, weights: np.ndarray,
-                      pose: np.ndarray, amplitude: float, n_fields: int = 3, rng=None) -> float:
-    """RMS (px) of ``F(w, f(S)) - f(Q)`` over frames and points, averaged over ``n_fields`` random fields."""
-    rng = np.random.default_rng(rng)
-    out = []
-    for _ in range(n_fields):
-        f = smooth_field(shapes.reshape(-1, 2)[::max(1, shapes.size // 2000)], amplitude, rng)
-        rec = reconstruct(weights, f(keys), f(neutral))
-        out.append(pixel_errors(f(shapes), rec, pose)[1])
-    return float(np.mean(out))
-
-
-def key_noise_amplification(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray, weights: np.ndarray,
-                            pose: np.ndarray, amplitude: float, n_fields: int = 3, rng=None) -> float:
-    """RMS (px) of ``F(w, S + E) - F(w, S)`` where every key and the neutral get their own smooth field.
-
-    Stands in for an artist re-drawing each key shape with small independent errors
-    (the traced lips of Figures 4 and 5): weights that sum to about one pass the
-    errors through at about ``amplitude``; large weights of both signs amplify them.
-    """
-    rng = np.random.default_rng(rng)
-    sample = shapes.reshape(-1, 2)[::max(1, shapes.size // 2000)]
-    out = []
-    for _ in range(n_fields):
-        fk = np.stack([smooth_field(sample, amplitude, rng)(s) for s in np.concatenate([keys, neutral[None]])])
-        rec0 = reconstruct(weights, keys, neutral)
-        rec = reconstruct(weights, fk[:-1], fk[-1])
-        out.append(pixel_errors(rec0, rec, pose)[1])
-    return float(np.mean(out))
-
-
 def _field_cache(shapes: np.ndarray, amplitude: float, n_fields: int, rng) -> list:
-    """The ``n_fields`` random fields of :func:`target_distortion` (same draws) with ``f(shapes)``."""
+    """``n_fields`` random fields ``f`` (:func:`smooth_field`) with ``f(shapes)``: the target-domain check moves the
+    keys, the neutral and the frames by one field (the RMS of ``F(w, f(S)) - f(Q)``)."""
     rng = np.random.default_rng(rng)
     out = []
     for _ in range(n_fields):
@@ -110,7 +80,8 @@ def _field_cache(shapes: np.ndarray, amplitude: float, n_fields: int, rng) -> li
 
 def _key_fields(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray, amplitude: float, n_fields: int,
                 rng) -> list:
-    """The displaced keys and neutral of :func:`key_noise_amplification` (same draws), per field."""
+    """Per field, the keys and the neutral each displaced by its own smooth field: an artist re-drawing each key
+    with small independent errors (weights of both signs amplify them; the RMS of ``F(w, S + E) - F(w, S)``)."""
     rng = np.random.default_rng(rng)
     sample = shapes.reshape(-1, 2)[::max(1, shapes.size // 2000)]
     return [np.stack([smooth_field(sample, amplitude, rng)(s) for s in np.concatenate([keys, neutral[None]])])

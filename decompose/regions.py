@@ -25,6 +25,7 @@ moves with the expression; :func:`stable_pose` is the head pose that goes with t
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
@@ -253,7 +254,7 @@ def to_image(model_pts: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | None, method: str = "spread",
                   rng=None, shapes: np.ndarray | None = None, neutral_frame: int | str | None = None,
-                  min_distance: float = 0.0, progress: bool = False, rest_frame: int | None = None) -> RegionKeys:
+                  progress: bool = False, rest_frame: int | None = None) -> RegionKeys:
     """Choose ``n_keys`` key shapes of ``region`` from the successful frames of ``tracks``.
 
     Failed frames (``success=0``) are never candidates. ``shapes`` may pass the
@@ -262,9 +263,7 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
     when given (:func:`face_rest_frame`: one relaxed frame for all regions), else the
     region's most relaxed frame (:func:`relaxed_frame`). With ``neutral_frame`` given (a frame number or
     ``"auto"``) the weights are relative to that neutral; without it, to the take's mean
-    (the paper's centring). ``min_distance`` > 0 drops near-duplicate keys: a key closer to
-    an earlier key than ``min_distance`` times the median distance of the keys from the
-    neutral (RMS point distance) is left out (so fewer than ``n_keys`` may come back).
+    (the paper's centring). :func:`drop_near_duplicates` then leaves out near-duplicate keys.
     """
     idx = region_points(scheme, region)
     shapes = model_shapes(tracks) if shapes is None else shapes
@@ -292,9 +291,17 @@ def select_region(tracks: Tracks, scheme: Scheme, region: str, n_keys: int | Non
     if getattr(sel, "centre", "nearest") == "mean":
         from_frame[:] = False
     neutral = sel.neutral_ if neutral_frame is None else rest
-    keep = near_duplicates(sel.keys_, rest, min_distance) if min_distance > 0 else np.arange(len(sel.keys_))
-    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_[keep]]], sel.keys_[keep], neutral,
-                      from_frame[keep], rest, int(tracks.frame[row]))
+    return RegionKeys(region, method, idx, tracks.frame[ok[sel.indices_]], sel.keys_, neutral, from_frame, rest,
+                      int(tracks.frame[row]))
+
+
+def drop_near_duplicates(rk: RegionKeys, min_distance: float) -> RegionKeys:
+    """``rk`` without its near-duplicate keys: a key closer to an earlier key than ``min_distance`` times the
+    median distance of the keys from the neutral ``rk.rest`` (RMS point distance) is left out (0 keeps all)."""
+    if min_distance <= 0:
+        return rk
+    keep = near_duplicates(rk.keys, rk.rest, min_distance)
+    return dataclasses.replace(rk, frames=rk.frames[keep], keys=rk.keys[keep], from_frame=rk.from_frame[keep])
 
 
 def face_rest_frame(tracks: Tracks, shapes: np.ndarray, scheme: Scheme, regions) -> int:

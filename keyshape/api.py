@@ -227,8 +227,7 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
 
 def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.METHOD,
            regions: Sequence[str] | None = None, *, scheme: str | None = None, seed: int = D.SEED,
-           head: str = D.HEAD_POSE, neutral_frame: int | str | None = D.NEUTRAL_FRAME,
-           min_key_distance: float = D.MIN_KEY_DISTANCE, progress: bool = False) -> Keys:
+           head: str = D.HEAD_POSE, neutral_frame: int | str | None = D.NEUTRAL_FRAME, progress: bool = False) -> Keys:
     """Choose ``k`` key shapes per region (``keyshape select``, with its defaults).
 
     ``tracks`` may be a list (several takes of one actor, one key set for all): the keys' ``frames``
@@ -237,7 +236,7 @@ def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.MET
     hull2, random. ``head``: ``3d`` (the head's 3D pose removed, the shapes brought to the front), ``rigid``
     (a 2D similarity on the scheme's rigid points) or ``tracker`` (its pose alone); default as the command's. ``neutral_frame``: ``"auto"`` (weights relative to the actor's
     most relaxed frame, the default), a frame number, or ``"mean"`` (the take's mean, the paper's
-    centring). ``min_key_distance``: near-duplicate keys dropped (0 keeps all). See
+    centring). Near-duplicate keys are dropped (:data:`keyshape.decompose.defaults.MIN_KEY_DISTANCE`). See
     :func:`keyshape.decompose.api.select_keys`.
     """
     takes = [tracks] if isinstance(tracks, Tracks) else tracks
@@ -249,8 +248,7 @@ def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.MET
         regions = [regions]
     models = {t.meta.get("model") for t in takes}
     sch, chosen, head_pose = D.select_keys(takes[0] if len(takes) == 1 else list(takes), k, method, regions, scheme,
-                                           seed, progress=progress, head=head, neutral_frame=neutral_frame,
-                                           min_key_distance=min_key_distance)
+                                           seed, progress=progress, head=head, neutral_frame=neutral_frame)
     model = models.pop() if len(models) == 1 else None
     source = {"model": model, "scheme": sch.name} if model else None
     return Keys(sch.name, sch.n_points, chosen, head_pose, source)

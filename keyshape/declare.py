@@ -33,19 +33,19 @@ _TEXT = "text"
 
 #: command -> argument dest -> role; a dest absent from a command's entry is an error in the test
 ROLES: dict[str, dict[str, str]] = {
-    "demo": {"out_dir": "folder", "method": _TEXT, "solver": _TEXT},
+    "demo": {"out_dir": "folder"},
     "synth video": {"out_dir": "folder", "size": _TEXT, "preview": "file"},
     "synth mocap": {"out_dir": "folder", "facekit": "in"},
-    "synth face3d": {"out_dir": "folder", "rig": "in", "size": _TEXT, "preview": "file", "identity": _TEXT},
+    "synth face3d": {"out_dir": "folder", "rig": "in", "size": _TEXT, "preview": "file"},
     "label": {"video": "in", "out": "folder", "scheme": _TEXT, "tracks": "in"},
     "scheme": {"name": _TEXT},
     "train": {"video": "in", "labels": "in", "scheme": _TEXT, "output": "file"},
-    "track": {"video": "in", "model": "in", "output": "file", "overlay": "file", "smooth": _TEXT, "scheme": _TEXT},
+    "track": {"video": "in", "model": "in", "output": "file", "overlay": "file", "smooth": _TEXT},
     "select": {"tracks": "in", "method": _TEXT, "neutral_frame": _TEXT, "region": _TEXT, "scheme": _TEXT,
                "head_pose": _TEXT, "output": "file", "sheet": "file", "video": "in"},
     "decompose": {"tracks": "in", "keys": "in", "solver": _TEXT, "output": "file"},
-    "compare": {"tracks": "in", "methods": _TEXT, "region": _TEXT, "scheme": _TEXT, "output": "folder"},
-    "pose": {"keys": "in", "rig": "in", "neutral": "in", "landmarks": "in", "nuisance": _TEXT, "output": "file"},
+    "compare": {"tracks": "in", "methods": _TEXT, "region": _TEXT, "output": "folder"},
+    "pose": {"keys": "in", "rig": "in", "neutral": "in", "landmarks": "in", "output": "file"},
     # POSES.json is the file the page edits on the user's request (keyshape.base.files.user_save)
     "pose-edit": {"poses": "in", "rig": "in", "neutral": "in", "keys": "in"},
     "solve": {"tracks": "in", "keys": "in", "rig": "in", "neutral": "in", "landmarks": "in", "poses": "in",
@@ -59,7 +59,7 @@ ROLES: dict[str, dict[str, str]] = {
     "mocap": {"markers": "in", "target": "in", "target_markers": "in", "rigid": _TEXT, "masks": "in",
               "method": _TEXT, "duplicate_labels": _TEXT, "up": _TEXT, "output": "file|folder"},
     "register": {"reference": "in", "target": "in", "landmarks": "in", "output": "file", "markers": "in",
-                 "out_markers": "file", "masks": "in", "out_masks": "file", "solver": _TEXT},
+                 "out_markers": "file", "masks": "in", "out_masks": "file"},
     "keypoints": {"sequence": "in", "initial": "in", "output": "file"},
     "transfer": {"sequence": "in", "target": "in", "keypoints": "in", "landmarks": "in", "output": "file"},
     "batch": {"manifest": "in", "output": "folder", "scheduler": _TEXT},

@@ -30,7 +30,6 @@ import numpy as np
 
 from keyshape.base import options
 from keyshape.decompose import defaults as D
-from keyshape.decompose.defaults import METHODS, SOLVERS
 
 # synthetic components -> demo region (contours48 regions used by decompose)
 _REGION_OF = {"jaw": "mouth", "mouth": "mouth", "eye": "eyes", "brow": "eyes"}
@@ -40,15 +39,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the whole video path on built-in synthetic footage")
     p.add_argument("out_dir", nargs="?", default="keyshape_demo", help="output folder (default: keyshape_demo)")
     p.add_argument("--frames", type=options.synth_frames, default=300, help="frames of synthetic footage (default 300)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic performance (default 0)")
     p.add_argument("--keys", type=int, default=8, help="key shapes per region (default 8)")
-    p.add_argument("--method", default=D.METHOD, choices=METHODS,
-                   help=f"key-shape selector (default {D.METHOD}; spread is the paper's)")
     p.add_argument("--labels", type=int, default=20, help="labelled training frames (default 20)")
-    p.add_argument("--solver", default=D.SOLVER, choices=SOLVERS,
-                   help=f"weight solver of keyshape decompose (default {D.SOLVER})")
-    p.add_argument("--ridge", type=float, default=D.RIDGE,
-                   help=f"keyshape decompose --ridge (default {D.RIDGE:g}; 0 with --solver nnls is the paper's NNLS)")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
     p.set_defaults(func=run)
@@ -80,8 +72,8 @@ def _region_coeffs(names, w, region: str) -> dict[str, float]:
 
 
 def run(args) -> int:
-    run_demo(args.out_dir, frames=args.frames, seed=args.seed, keys=args.keys, method=args.method,
-             labels=args.labels, solver=args.solver, ridge=args.ridge, overwrite=args.overwrite)
+    run_demo(args.out_dir, frames=args.frames, keys=args.keys,
+             labels=args.labels, overwrite=args.overwrite)
     return 0
 
 

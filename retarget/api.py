@@ -170,7 +170,7 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     """
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import available_regions, region_points
-    from keyshape.retarget.poses import pose_library
+    from keyshape.retarget.poses import auto_nuisance, pose_library
     from keyshape.retarget.rig import project, rig_landmarks, shape_regions
 
     if not (np.isfinite(opposed) and -1.0 <= opposed <= 0.0):
@@ -190,8 +190,10 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
         from keyshape.decompose.gaze import pupil_points
         from keyshape.retarget.solve import rigid_frame_deltas
         lm_deltas = rigid_frame_deltas(lm_neutral, lm_deltas, head_pose.get("points", ()), keep=pupil_points(scheme))
+    if nuisance == "auto":
+        nuisance = {rk.region: auto_nuisance(rk.region, stabilized) for rk in regions}
     lib = pose_library(regions, rig.names, lm_neutral, lm_deltas, reg_shapes, rig.value_range, sparsity, nuisance,
-                       stabilized, opposed, symmetry)
+                       opposed, symmetry)
     fit = lib.pop("_fit")
     data = {"rig": {"neutral": str(rig.neutral_file), "n_vertices": rig.n_vertices, "shapes": list(rig.names),
                     "landmarks": str(lm_path)},

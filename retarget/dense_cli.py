@@ -18,9 +18,7 @@ def register(subparsers) -> None:
     p.add_argument("--out-markers", help="where to write the markers placed on the target")
     p.add_argument("--masks", help="reference masks JSON {name: [vertex index, ...]}")
     p.add_argument("--out-masks", help="where to write the masks as target vertex groups")
-    p.add_argument("--solver", choices=("lbfgs", "simplex"), default="lbfgs")
     p.add_argument("--controls", type=int, default=200, help="number of control vertices (default 200)")
-    p.add_argument("--max-evals", type=int, default=200, help="energy evaluations (default 200)")
     p.set_defaults(func=_register)
 
     p = subparsers.add_parser("keypoints", help="insert key points into a dense sequence (002 section 5)")
@@ -28,10 +26,8 @@ def register(subparsers) -> None:
     p.add_argument("--initial", required=True,
                    help="number K of initial key points (farthest-point sampled) or a KEYPOINTS.json")
     p.add_argument("-o", "--output", required=True, help="KEYPOINTS.json")
-    p.add_argument("--max-rounds", type=int, default=8)
     p.add_argument("--no-correspondence", action="store_true",
                    help="frames do not share point order: nearest-point errors and local registration")
-    p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_keypoints)
 
     p = subparsers.add_parser("transfer", help="transfer a dense sequence onto another face (002 section 6)")
@@ -41,10 +37,8 @@ def register(subparsers) -> None:
     p.add_argument("--landmarks", help="PAIRS.json mapping source vertices (reference) to the target; "
                                        "default: same vertex indices (same topology)")
     p.add_argument("-o", "--output", required=True, help="OUT.npz (vertices, faces of the target)")
-    p.add_argument("--gain", type=float, default=1.0, help="alpha / N_k of eq. 8 (default 1)")
     p.add_argument("--samples", type=int, default=6000,
                    help="number N_k of random target key points of eqs. 7-9 (default 6000)")
-    p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_transfer)
 
 
@@ -86,8 +80,8 @@ def _register(args) -> int:
         raise InputError("--markers and --out-markers go together")
     if bool(args.masks) != bool(args.out_masks):
         raise InputError("--masks and --out-masks go together")
-    if args.controls < 3 or args.max_evals < 1:
-        raise InputError("--controls must be >= 3 and --max-evals >= 1")
+    if args.controls < 3:
+        raise InputError("--controls must be >= 3")
     inputs = [args.reference, args.target, args.landmarks, args.markers, args.masks]
     check_outputs([args.output, args.out_markers, args.out_masks], inputs=inputs)
     ref = read_obj(args.reference, require_faces=True)
@@ -99,8 +93,8 @@ def _register(args) -> int:
         raise InputError("no region lists 'vertices' (image and vertex-group regions need no carrying)", args.masks)
     _check_markers(markers, ref.n_vertices, args.markers)
     _check_masks(masks.vertex_lists() if masks is not None else None, ref.n_vertices, args.masks)
-    res = register_mesh(ref.vertices, ref.triangles, tgt.vertices, tgt.triangles, pairs, solver=args.solver,
-                        n_controls=args.controls, max_evals=args.max_evals, source=args.landmarks)
+    res = register_mesh(ref.vertices, ref.triangles, tgt.vertices, tgt.triangles, pairs,
+                        n_controls=args.controls, source=args.landmarks)
     # every output computed before any is written: a failure writes nothing
     placed = None if markers is None else place_markers(markers, ref.vertices, ref.triangles, res.vertices,
                                                         tgt.vertices, tgt.triangles, source=args.markers)
@@ -136,13 +130,10 @@ def _keypoints(args) -> int:
     from keyshape.base.formats.sequence import read_sequence
     from keyshape.retarget.dense.keypoints import KeyPointInserter
 
-    if args.max_rounds < 0:
-        raise InputError(f"--max-rounds {args.max_rounds}: must be >= 0")
     check_outputs([args.output], inputs=[args.sequence, None if args.initial.isdigit() else args.initial])
     frames, _ = read_sequence(args.sequence)
-    init = _initial(args.initial, frames, args.seed)
-    ins = KeyPointInserter(max_rounds=args.max_rounds, correspondence=not args.no_correspondence,
-                           rng=args.seed).fit(frames, init)
+    init = _initial(args.initial, frames, 0)
+    ins = KeyPointInserter(correspondence=not args.no_correspondence, rng=0).fit(frames, init)
     write_keypoints(args.output, ins.key_indices_, ins.history_)
     h = ins.history_
     print(f"{len(init)} -> {len(ins.key_indices_)} key points in {len(h) - 1} round(s); "
@@ -162,8 +153,8 @@ def _transfer(args) -> int:
     from keyshape.base.formats.obj import read_obj
     from keyshape.base.files import check_outputs
 
-    if not (np.isfinite(args.gain) and abs(args.gain) < 1e6) or args.samples < 1:
-        raise InputError("--gain must be a finite number and --samples >= 1")
+    if args.samples < 1:
+        raise InputError(f"--samples {args.samples}: must be >= 1")
     check_outputs([args.output], inputs=[args.sequence, args.target, args.keypoints, args.landmarks])
     frames, _ = read_sequence(args.sequence)
     tgt = read_obj(args.target, require_faces=True)
@@ -180,9 +171,9 @@ def _transfer(args) -> int:
         if tgt.n_vertices != frames.shape[1]:
             raise InputError(f"target has {tgt.n_vertices} vertices, the sequence {frames.shape[1]} points: "
                              "give --landmarks PAIRS.json to say which points correspond", args.target)
-        sk = read_keypoints(args.keypoints, frames.shape[1]) if args.keypoints else _initial("68", frames, args.seed)
+        sk = read_keypoints(args.keypoints, frames.shape[1]) if args.keypoints else _initial("68", frames, 0)
         tk = sk
-    out = transfer_sequence(frames, sk, tgt.vertices, tk, gain=args.gain, n_samples=args.samples, rng=args.seed)
+    out = transfer_sequence(frames, sk, tgt.vertices, tk, n_samples=args.samples, rng=0)
     write_sequence(args.output, out, tgt.triangles)
     print(f"transferred {len(out)} frames onto {Path(args.target).name}; wrote {args.output}")
     return 0

@@ -8,8 +8,6 @@ from keyshape.base import options
 
 def register(subparsers) -> None:
     """Add ``pose`` to ``subparsers``."""
-    from keyshape.retarget import defaults as A
-
     p = subparsers.add_parser(
         "pose", help="suggest a rig pose (rig shape weights) for every key shape -> POSES.json",
         description="For every key of every region of KEYS.json, find non-negative, sparse weights of the rig's "
@@ -26,19 +24,6 @@ def register(subparsers) -> None:
                    help="rig landmarks: a keyshape-rig-landmarks JSON (the rig vertices of the scheme's points) or "
                         "the rig's iBUG-68 vertex list (default: the shipped correspondence for ICT-FaceKit rigs, "
                         "else found on the rig and written beside the output, OUT.landmarks.json)")
-    p.add_argument("--sparsity", type=float, default=A.SPARSITY,
-                   help="L1 weight (dimensionless): larger gives fewer shapes per pose")
-    p.add_argument("--nuisance", choices=("auto", "translation", "similarity", "none"), default=A.NUISANCE,
-                   help="region motions fitted freely besides the rig shapes (left by 2D head-pose removal): "
-                        "auto = translation of the mouth; for the eyes and brows nothing when the keys' head "
-                        "was stabilised on rigid points (select --head-pose rigid), else a similarity")
-    p.add_argument("--opposed", type=float, default=A.OPPOSED, metavar="COSINE",
-                   help="two shapes of a region whose landmark motions have a cosine below this (antagonists: "
-                        "browDown and browOuterUp, mouthLeft and mouthRight) are never used in one pose; -1 "
-                        "allows every combination")
-    p.add_argument("--symmetry", type=float, default=A.SYMMETRY,
-                   help="left-right prior (dimensionless): a key is fitted with mirrored shapes (mouthSmile_L and "
-                        "_R) alike unless its motion is one-sided; 0 turns it off")
     p.add_argument("-o", "--output", required=True, help="POSES.json to write")
     p.add_argument("--edit", action="store_true",
                    help="then serve a local page (127.0.0.1) to correct the poses by hand; Ctrl-C stops it")
@@ -90,8 +75,7 @@ def run(args) -> int:
     from keyshape.retarget.landmarks_cli import resolve_landmarks
     args.landmarks = resolve_landmarks(rig, scheme_name, args.landmarks, args.output)
     t1 = time.perf_counter()
-    data, fit = fit_poses(regions, scheme_name, rig, read_keys_head_pose(args.keys), args.landmarks, args.sparsity,
-                          args.nuisance, args.opposed, args.symmetry)
+    data, fit = fit_poses(regions, scheme_name, rig, read_keys_head_pose(args.keys), args.landmarks)
     data = {"keys": {"file": str(args.keys), "scheme": scheme_name}, **data}
     src = read_keys_source(args.keys)
     if src.get("model"):

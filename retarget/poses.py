@@ -283,7 +283,7 @@ def auto_nuisance(region: str, stabilized: bool) -> str:
 def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
                  region_shapes: Mapping[str, np.ndarray], bounds: tuple[float, float] = (0.0, 1.0),
                  sparsity: float = 0.01, nuisance: str | Mapping[str, str] = "auto",
-                 stabilized: bool = False, exclusive: float | None = -0.5, symmetry: float = 0.03) -> dict:
+                 exclusive: float | None = -0.5, symmetry: float = 0.03) -> dict:
     """Suggest a rig pose for every key of every region (the ``regions`` part of POSES.json).
 
     Parameters
@@ -300,9 +300,9 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
         (:func:`nuisance_motions`). Head motion the 2D head-pose removal leaves behind shifts a
         region (pitch moves the mouth against the eyes) and, with the tracker's pose alone, an
         expression shifts, turns and scales the others; "auto" is :func:`auto_nuisance`. A rig
-        shape that only translates (or scales) a region is then lost.
-    stabilized : whether the keys' head was stabilised on rigid points (KEYS.json ``head_pose``
-        ``rigid``), which "auto" uses
+        shape that only translates (or scales) a region is then lost. "auto" here assumes a head not
+        stabilised on rigid points (:func:`auto_nuisance`; :func:`~keyshape.retarget.api.fit_poses` resolves it
+        per region from the keys' ``head_pose``)
     exclusive : shapes of a region whose landmark motions (nuisances projected out) have a cosine
         below this are never used together in one pose (:func:`opposed_pairs`, :func:`fit_pose`);
         None allows every combination; mirror-image pairs opposed before the nuisances are projected
@@ -333,7 +333,7 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
         names = [shape_names[j] for j in shapes]
         A = landmark_motion(landmark_deltas[shapes], rk.points) if len(shapes) else np.zeros((2 * len(rk.points), 0))
         kind = nuisance.get(rk.region, "auto") if isinstance(nuisance, Mapping) else nuisance
-        kind = auto_nuisance(rk.region, stabilized) if kind == "auto" else kind
+        kind = auto_nuisance(rk.region, False) if kind == "auto" else kind
         F = nuisance_motions(rest[rk.region] @ M.T, kind)
         mirrored = mirror_pairs(names)
         pairs = opposed_pairs(A, F, exclusive, mirrored) if exclusive is not None and len(shapes) else []

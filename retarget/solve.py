@@ -32,7 +32,7 @@ frames together: one ``(T, n) @ (n, n)`` product per iteration, no loop over fra
 
 Per-actor neutral (``rest_offset``): the actor's rest (KEYS.json, the frame ``keyshape select``
 found relaxed) is corrected by one unknown offset ``E d`` shared by every frame, solved with the
-curves (:func:`box_lsq`): ``b_t = A c_t + E d``. Along the rig's shapes the box and the L1 term
+curves (:func:`_box_lsq`): ``b_t = A c_t + E d``. Along the rig's shapes the box and the L1 term
 decide it: each shape the actor relaxes starts from the take's lower envelope of that shape, so a
 rest frame that held a smile no longer reads as a frown in every other frame. Where two shapes pull
 opposite ways (eyeBlink and eyeWide, mouthLeft and mouthRight) the L1 term puts the rest at the take's
@@ -98,7 +98,7 @@ YAW_REGIONS = ("mouth",)
 
 
 
-def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
+def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
             Q: np.ndarray | None = None, smooth: float = 0.0, free: np.ndarray | None = None,
             offset: np.ndarray | None = None, max_iter: int = 2000, tol: float = 1e-7,
             return_offset: bool = False, ceiling: np.ndarray | None = None):
@@ -135,13 +135,13 @@ def box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.
     A, B = np.asarray(A, float), np.atleast_2d(np.asarray(B, float))
     lo, hi = bounds
     if lo < 0 or hi <= lo:
-        raise InputError(f"box_lsq needs 0 <= lo < hi, got {bounds}")
+        raise InputError(f"_box_lsq needs 0 <= lo < hi, got {bounds}")
     if A.ndim != 2 or B.shape[1] != A.shape[0]:
-        raise InputError(f"box_lsq: A {A.shape} and B {B.shape} do not match")
+        raise InputError(f"_box_lsq: A {A.shape} and B {B.shape} do not match")
     n = A.shape[1]
     E = np.zeros((A.shape[0], 0)) if offset is None else np.asarray(offset, float)
     if E.shape[0] != A.shape[0]:
-        raise InputError(f"box_lsq: offset {E.shape} and A {A.shape} do not match")
+        raise InputError(f"_box_lsq: offset {E.shape} and A {A.shape} do not match")
     if free is not None and free.shape[1]:
         F = np.asarray(free, float)
         P = np.eye(len(F)) - F @ np.linalg.pinv(F)
@@ -760,7 +760,7 @@ def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarra
 
 @dataclass(frozen=True)
 class _RegionSystem:
-    """One region's weighted system (:func:`box_lsq` on the rows ``D``, :func:`region_rows`), fitted on a take: what
+    """One region's weighted system (:func:`_box_lsq` on the rows ``D``, :func:`region_rows`), fitted on a take: what
     :meth:`solve` needs to solve any frames alike (the L1 weight is scaled by the take's motion, the rest's offset
     solved on the take).
 
@@ -769,7 +769,7 @@ class _RegionSystem:
     ``(sparsity, symmetry, smooth)``, dimensionless: the L1 weight times the rows' typical size, the weight of
     ``||c_L - c_R||^2`` for each mirrored pair of ``pairs`` and the temporal smoothness times the mean squared
     column norm of the weighted ``A``; ``free`` (n_points * 2, k) nuisance motions and ``rest_offset``
-    (n_points * 2, k) the motions of an unknown offset of the rest shared by every frame (:func:`box_lsq`'s
+    (n_points * 2, k) the motions of an unknown offset of the rest shared by every frame (:func:`_box_lsq`'s
     ``offset``), flattened like the points; ``ceiling`` (T, n_shapes) per-frame upper bounds."""
 
     Aw: np.ndarray
@@ -800,7 +800,7 @@ class _RegionSystem:
             # of the weaker side would buy symmetry), then the curves from the corrected rest
             E = D.reshape(len(D), -1) @ rest_offset
             some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
-            _, d = box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
+            _, d = _box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
                            ceiling=None if ceiling is None else ceiling[some])
             shift = E @ d
         return cls(Aw, Fw, Q, l1, smooth * col, shift, bounds)
@@ -809,7 +809,7 @@ class _RegionSystem:
         """The curves of the weighted motions ``Bw`` (T, r)."""
         if self.shift is not None:
             Bw = Bw - self.shift
-        return box_lsq(self.Aw, Bw, self.bounds, self.l1, self.Q, self.smooth, self.Fw, ceiling=ceiling)
+        return _box_lsq(self.Aw, Bw, self.bounds, self.l1, self.Q, self.smooth, self.Fw, ceiling=ceiling)
 
 
 @dataclass(frozen=True)

@@ -520,27 +520,21 @@ def test_compare_reused_factorisation_equals_direct_solves(toy):
 
 
 def test_target_domain_measures(toy):
-    from keyshape.decompose.compare import key_noise_amplification, pixel_errors, smooth_field, target_distortion
+    from keyshape.decompose.compare import compare, smooth_field
 
     tracks, _, Q = toy
-    pose = tracks.pose
-    sel = SpreadSelector(10).fit(Q)
-    w = nnls_weights(Q, sel.keys_, sel.neutral_)
-    rms = pixel_errors(Q, reconstruct(w, sel.keys_, sel.neutral_), pose)[1]
-    # no perturbation: the target-domain error is the source reconstruction error
-    assert target_distortion(Q, sel.keys_, sel.neutral_, w, pose, 0.0, rng=0) == pytest.approx(rms)
-    assert key_noise_amplification(Q, sel.keys_, sel.neutral_, w, pose, 0.0, rng=0) == pytest.approx(0.0)
+    scheme = SCHEME
+    # no perturbation: the target-domain error is the source reconstruction error, independent key errors nil
+    for row in compare(tracks, scheme, methods=["spread"], regions=["mouth"], kmin=6, kmax=6, amplitude=0.0, rng=0):
+        assert row["target_nnls_px"] == pytest.approx(row["rms_px"])
+        assert row["keynoise_nnls_px"] == pytest.approx(0.0, abs=1e-9)
     # the field has the amplitude asked (RMS over the points it was scaled on)
     f = smooth_field(Q.reshape(-1, 2), 2.0, rng=1)
     d = f(Q.reshape(-1, 2)) - Q.reshape(-1, 2)
     assert np.sqrt((d ** 2).sum(-1).mean()) == pytest.approx(2.0, rel=1e-6)
     # weights of both signs amplify independent key errors; NNLS on the same keys does not
-    wl = lstsq_weights(Q, sel.keys_, sel.neutral_)
-    big = np.zeros_like(wl)
-    big[:, 0], big[:, 1] = 5.0, -5.0
-    a = key_noise_amplification(Q, sel.keys_, sel.neutral_, np.abs(w), pose, 2.0, rng=3)
-    b = key_noise_amplification(Q, sel.keys_, sel.neutral_, w + big, pose, 2.0, rng=3)
-    assert b > 2 * a
+    row = compare(tracks, scheme, methods=["spread"], regions=["mouth"], kmin=10, kmax=10, amplitude=2.0, rng=3)[0]
+    assert row["keynoise_lstsq_px"] > row["keynoise_nnls_px"]
 
 
 @pytest.mark.slow

@@ -14,15 +14,8 @@ def one_line(capsys) -> str:
 
 
 @pytest.mark.parametrize("argv", [
-    ["train", "v.mp4", "--labels", "l", "-o", "m.npz"],
-    ["select", "t.csv", "-o", "k.json"],
-    ["compare", "t.csv", "-o", "out"],
     ["synth", "mocap", "out"],
     ["synth", "video", "out"],
-    ["keypoints", "s.npz", "--initial", "4", "-o", "k.json"],
-    ["transfer", "s.npz", "--target", "t.obj", "-o", "o.npz"],
-    ["demo", "out"],
-    ["label", "v.mp4", "-o", "lab"],
 ])
 @pytest.mark.parametrize("seed", ["-1", "4294967296", "99999999999999999999"])
 def test_a_seed_out_of_range_is_one_line(tmp_path, capsys, monkeypatch, argv, seed):

@@ -20,7 +20,7 @@ def pose_page_server(tmp_path) -> PoseServer:
     rig, lm = write_toy_rig(tmp_path / "rig")
     write_keys(tmp_path / "keys.json", "contours48", 48, actor_keys(TRUE))
     assert main(["pose", str(tmp_path / "keys.json"), "--rig", str(rig), "--landmarks", str(lm),
-                 "--nuisance", "none", "-o", str(tmp_path / "poses.json")]) == 0
+                 "-o", str(tmp_path / "poses.json")]) == 0
     return PoseServer(tmp_path / "poses.json", load_rig(rig), port=0, size=96)
 
 

@@ -11,7 +11,7 @@ from keyshape.decompose.regions import available_regions, region_points
 from keyshape.decompose.take import Take
 from keyshape.retarget.defaults import SolveOptions
 from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
-from keyshape.retarget.solve import (HeadParallax, RigLandmarks, RigSolver, box_lsq, brow_calibration, contour_measures,
+from keyshape.retarget.solve import (HeadParallax, RigLandmarks, RigSolver, _box_lsq, brow_calibration, contour_measures,
                                      eye_calibration, eye_width_motions,
                                      mirror_pairs, mirror_partners, pitch_parallax, pose_override,
                                      symmetric_offsets, yaw_slide, yaw_stretch)
@@ -25,7 +25,7 @@ def test_box_lsq_matches_scipy_bounded_least_squares_frame_by_frame(seed):
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(30, 6))
     B = rng.normal(size=(7, 30)) + (A @ rng.uniform(0, 1.2, size=(6, 7))).T
-    C = box_lsq(A, B, (0.0, 1.0), max_iter=20000, tol=1e-12)
+    C = _box_lsq(A, B, (0.0, 1.0), max_iter=20000, tol=1e-12)
     for t in range(len(B)):
         ref = lsq_linear(A, B[t], bounds=(0, 1), tol=1e-12).x
         assert np.allclose(C[t], ref, atol=1e-5)
@@ -42,10 +42,10 @@ def test_box_lsq_ignores_free_motions_and_smooths_in_time():
     F = np.stack([np.tile([1.0, 0.0], 20), np.tile([0.0, 1.0], 20)], 1)
     true = rng.uniform(0, 1, size=(50, 4))
     B = true @ A.T + rng.normal(size=(50, 2)) @ F.T * 5
-    assert np.allclose(box_lsq(A, B, free=F, max_iter=20000, tol=1e-12), true, atol=1e-5)
+    assert np.allclose(_box_lsq(A, B, free=F, max_iter=20000, tol=1e-12), true, atol=1e-5)
     noisy = B + rng.normal(scale=0.5, size=B.shape)
     jitter = lambda C: np.abs(np.diff(C, axis=0)).mean()  # noqa: E731
-    assert jitter(box_lsq(A, noisy, free=F, smooth=5.0)) < jitter(box_lsq(A, noisy, free=F))
+    assert jitter(_box_lsq(A, noisy, free=F, smooth=5.0)) < jitter(_box_lsq(A, noisy, free=F))
 
 
 @pytest.mark.parametrize("seed", [4, 5])
@@ -59,10 +59,10 @@ def test_box_lsq_solves_the_rests_offset_with_the_curves(seed):
     c_rest = np.array([0.4, 0.0, 0.4, 0.0])
     err = A @ c_rest + 0.2 * rng.normal(size=30)
     B = true @ A.T - err
-    C, d = box_lsq(A, B, offset=np.eye(30), l1=1e-4, max_iter=50000, tol=1e-12, return_offset=True)
+    C, d = _box_lsq(A, B, offset=np.eye(30), l1=1e-4, max_iter=50000, tol=1e-12, return_offset=True)
     assert np.abs(C - true).max() < 0.01
     assert np.allclose(-d, err, atol=0.02)                    # b_t = A c_t + E d: d is minus the error
-    assert np.abs(box_lsq(A, B, l1=1e-4) - true).max() > 0.3
+    assert np.abs(_box_lsq(A, B, l1=1e-4) - true).max() > 0.3
 
 
 def test_symmetric_offsets_span_mirrored_heights_and_not_a_sideways_slide():

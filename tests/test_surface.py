@@ -14,17 +14,13 @@ PACKAGE = ("keyshape", "tracker", "decompose", "retarget", "data_synth")
 #: the most options (``-h`` and hidden ones not counted) a command may have, and all of them together: the aim is
 #: 150 in all; MOST_TOTAL holds what the commands have now and may only come down
 MOST = {"solve": 10, "retarget": 12, "live": 12}
-MOST_TOTAL = 184
+MOST_TOTAL = 158
 #: public functions over 10 parameters that are still to be grouped into an options object: this list may only
 #: shrink (a function here that fits, or one not here that does not, fails the test)
 STILL_OVER = {"retarget/preview_cli.py:write_preview", "retarget/export.py:export",
-              "retarget/dense/registration.py:register_mesh", "keyshape/base/formats/gltf.py:write_glb",
-              "keyshape/base/formats/usd.py:write_usd", "keyshape/base/formats/gltf.py:build_gltf",
-              "retarget/rig_export.py:export_rig", "retarget/mocap/drive.py:drive_mesh",
-              "tracker/eigenpoints.py:fit_region", "tracker/commands.py:iter_track",
-              "tracker/chunked.py:iter_track_chunked", "retarget/solve.py:box_lsq",
-              "retarget/dense/transfer.py:transfer_sequence", "tracker/labelling/frames.py:choose_frames_by_cues",
-              "retarget/poses.py:pose_library", "decompose/regions.py:select_region", "decompose/api.py:select_keys", "data_synth/library.py:synth_library"}
+              "keyshape/base/formats/gltf.py:write_glb", "keyshape/base/formats/usd.py:write_usd",
+              "retarget/rig_export.py:export_rig", "tracker/eigenpoints.py:fit_region", "tracker/commands.py:iter_track",
+              "tracker/chunked.py:iter_track_chunked"}
 
 
 def commands() -> dict[str, argparse.ArgumentParser]:

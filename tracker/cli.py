@@ -22,10 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--scheme", default=None,
                    help="contours48, ibug68 or a scheme JSON file (default: the scheme the labels were made in "
                         "by 'keyshape label', else contours48)")
-    p.add_argument("--components", type=int, default=None, metavar="K",
-                   help="eigenvectors kept (default: enough for 98%% of the variance)")
     p.add_argument("--morphs", type=int, default=120, help="morphed images added to the training set (default 120)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the choice of morph pairs")
     p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model file to write (.npz)")
     p.set_defaults(func=_train)
 
@@ -44,7 +41,6 @@ def register(subparsers) -> None:
                         "seam); default: one per core, at least 500 frames each (1 with --overlay)")
     p.add_argument("--smooth", default="none", choices=("none", "savgol", "oneeuro"),
                    help="temporal smoothing of the landmarks (default none)")
-    p.add_argument("--scheme", default=None, help="refuse a model trained in another scheme (optional check)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_track)
 
@@ -94,14 +90,11 @@ def _train(args) -> int:
     from keyshape.base.files import check_outputs
     from keyshape.tracker.commands import train_model
 
-    if args.components is not None and args.components < 1:
-        raise InputError(f"--components {args.components}: need at least 1 (or leave it out: 98% of the variance)")
     if args.morphs < 0:
         raise InputError(f"--morphs {args.morphs}: must be >= 0")
     check_outputs([args.output], inputs=[args.video])
     _check_footage(args)
-    model, seconds = train_model(args.video, args.labels, args.scheme, n_components=args.components,
-                                 n_morphs=args.morphs, rng=args.seed)
+    model, seconds = train_model(args.video, args.labels, args.scheme, n_morphs=args.morphs)
     model.save(args.output)
     print(f"keyshape train: {len(model.train_poses_)} labelled frames + {model.n_samples_ - len(model.train_poses_)} "
           f"morphs, {model.k_} components ({100 * model.explained_variance_ratio_.sum():.1f}% of the variance), "
@@ -110,9 +103,6 @@ def _train(args) -> int:
     if n_labels < RECOMMENDED_LABELS:
         print(f"keyshape train: warning: only {n_labels} labelled frames; {RECOMMENDED_LABELS}-20 varied frames "
               "are recommended (the model cannot track expressions it has not seen)", file=sys.stderr)
-    if args.components is not None and model.k_ < args.components:
-        print(f"keyshape train: warning: --components {args.components} but {n_labels} labelled frames and "
-              f"{args.morphs} morphs support only {model.k_}", file=sys.stderr)
     return 0
 
 
@@ -124,7 +114,7 @@ def _track(args) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise InputError(f"--jobs {args.jobs}: must be >= 1 (or leave it out: one per core)")
     summary = track_video(args.video, args.model, args.output, overlay=args.overlay, smooth=args.smooth,
-                          scheme=args.scheme, show_progress=not args.quiet, jobs=args.jobs)
+                          show_progress=not args.quiet, jobs=args.jobs)
     print(summary.message)
     if summary.interrupted:
         return 143 if summary.terminated else 130

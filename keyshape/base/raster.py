@@ -34,15 +34,6 @@ class Fragments:
     triangle: np.ndarray
     bary: np.ndarray
 
-    def interpolate(self, triangles: np.ndarray, values: np.ndarray) -> np.ndarray:
-        """Per-vertex ``values`` (n_vertices, ...) interpolated at the fragments: (n, ...)."""
-        t = triangles[self.triangle]
-        b = self.bary
-        out = values[t[:, 0]] * b[:, 0, None] if values.ndim > 1 else values[t[:, 0]] * b[:, 0]
-        for k in (1, 2):
-            out = out + (values[t[:, k]] * (b[:, k, None] if values.ndim > 1 else b[:, k]))
-        return out
-
 
 def rasterize(xy: np.ndarray, depth: np.ndarray, triangles: np.ndarray, width: int, height: int,
               cull: bool = True) -> Fragments:

@@ -241,11 +241,13 @@ class MeshEnergy:
         return float(e), (self.B.T @ g).ravel()
 
 
+#: the weights of E_dist, E_strain, E_bend (eq. 17) and of the landmark term; the control RBF's ridge
+WEIGHTS, SMOOTHING = (1.0, 1.0, 0.01, 1.0), 1e-6
+
+
 def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_vertices: np.ndarray,
                   tgt_triangles: np.ndarray, pairs: list, *, solver: str = "lbfgs", n_controls: int = 200,
-                  alpha: float = 1.0, beta: float = 1.0, gamma: float = 0.01, delta: float = 1.0,
-                  max_evals: int = 200, smoothing: float = 1e-6, rng=0, source: str = "landmarks"
-                  ) -> RegistrationResult:
+                  max_evals: int = 200, source: str = "landmarks") -> RegistrationResult:
     """Fit the reference mesh onto the target (section 6 of 001); see the module notes.
 
     Parameters
@@ -254,8 +256,10 @@ def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_verti
     pairs : landmark pairs (see :func:`resolve_landmarks`).
     solver : ``"lbfgs"`` (analytic gradients, default) or ``"simplex"`` (Nelder-Mead baseline).
     n_controls : number of control vertices (farthest-point sampled on the fitted shell, landmarks included).
-    alpha, beta, gamma : weights of E_dist, E_strain, E_bend (eq. 17); delta: weight of the landmark term.
     max_evals : energy evaluations allowed to the solver.
+
+    The energy's weights are :data:`WEIGHTS`; the control vertices are sampled with seed 0 and interpolated
+    by a Gaussian RBF with the ridge :data:`SMOOTHING`.
 
     Only the reference shell holding the landmarks is pulled to the target,
     and only onto the target shell holding its landmarks (other shells such
@@ -275,12 +279,12 @@ def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_verti
     tmask = component_of(len(tv), tt, tt[tgt_face_near].ravel())
     surface = TriangleSurface(tv, tt[tmask[tt].all(1)])
     # control vertices: landmark vertices + farthest-point samples of the fitted shell
-    rng = np.random.default_rng(rng)
+    rng = np.random.default_rng(0)
     n_c = min(n_controls, len(fit))
     ctrl = fit[farthest_point_sample(warped[fit], n_c, rng)]
     ctrl = np.unique(np.concatenate([lidx[lidx >= 0], ctrl]))
     cw = warped[ctrl]
-    rbf = RBF("gaussian", affine=False, sigma_scale=1.5, smoothing=smoothing).fit(cw)
+    rbf = RBF("gaussian", affine=False, sigma_scale=1.5, smoothing=SMOOTHING).fit(cw)
     basis = rbf.interpolation_matrix(warped)                                   # (n_vertices, n_controls)
     # start: control vertices projected onto the target surface
     d0 = surface.closest(cw)[0] - cw
@@ -290,7 +294,7 @@ def register_mesh(ref_vertices: np.ndarray, ref_triangles: np.ndarray, tgt_verti
     shell_tris = local[rt[np.isin(rt, fit).all(1)]]
     lm_local = local[lidx[lidx >= 0]]
     energy = MeshEnergy(warped[fit], shell_tris, np.ascontiguousarray(basis[fit]), np.arange(len(fit)), surface,
-                        alpha, beta, gamma, delta, lm_local, lt[lidx >= 0])
+                        *WEIGHTS, lm_local, lt[lidx >= 0])
     x0 = d0.ravel()
     start = warped + basis @ d0
     e_start = energy(x0)[0]

@@ -62,10 +62,15 @@ from keyshape.base.errors import InputError
 from keyshape.retarget.dense.keypoints import check_sequence, face_rbf
 
 
+#: the deformation's kernel width over the median spacing of the target key points (3: enough overlap that the
+#: Gaussian interpolant does not sag between samples; ICT "talk", 5 frames, onto its own neutral, 6000 samples:
+#: mean skin error 1.22 mm at 1.25x, 0.66 mm at 2.5x, 0.59 mm at 3.5x); the RBF systems' ridge; target vertices
+#: deformed at a time (bounds the kernel matrix's memory)
+SPREAD, SMOOTHING, CHUNK = 3.0, 1e-2, 8192
+
+
 def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.ndarray, target_keys: np.ndarray,
-                      *, n_samples: int = 6000, gain: float = 1.0, sigma: float | None = None,
-                      smoothing: float = 1e-2, rng=None, chunk: int = 8192,
-                      spread: float = 3.0, include_keys: bool = True) -> np.ndarray:
+                      *, n_samples: int = 6000, gain: float = 1.0, rng=None) -> np.ndarray:
     """Carry the motion of ``frames`` (n_frames, n_points, 3) onto ``target`` (n_vertices, 3).
 
     Parameters
@@ -76,15 +81,12 @@ def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.nd
     target_keys : (n_keys, 3) positions (or (n_keys,) vertex indices) of the same key points on the target.
     n_samples : number ``N_k`` of target key points sampled for eqs. (7)-(9).
     gain : ``alpha / N_k`` of eq. (8).
-    sigma : kernel width of eq. (9)'s deformation (default: ``spread`` x the sampled key points' spacing);
-        the morph of eq. (6) uses :func:`keyshape.retarget.dense.keypoints.face_rbf`'s default from the source keys.
-    smoothing : ridge of both RBF systems.
     rng : None, int or Generator (the random sampling of 6.2).
-    chunk : target vertices deformed at a time (bounds the kernel matrix's memory).
-    spread : default ``sigma`` = ``spread`` x the median distance between neighbouring target key points
-        (3: enough overlap that the Gaussian interpolant does not sag between samples; ICT "talk", 5 frames,
-        onto its own neutral, 6000 samples: mean skin error 1.22 mm at 1.25x, 0.66 mm at 2.5x, 0.59 mm at 3.5x).
-    include_keys : also use the target key points of eq. (6) (``target_keys``) as samples of eqs. (7)-(9).
+
+    The kernel width of eq. (9)'s deformation is :data:`SPREAD` x the median distance between neighbouring
+    sampled key points (the morph of eq. (6) uses :func:`keyshape.retarget.dense.keypoints.face_rbf`'s default
+    from the source keys); both RBF systems have the ridge :data:`SMOOTHING`; the target key points of eq. (6)
+    are samples of eqs. (7)-(9) too; :data:`CHUNK` target vertices are deformed at a time.
 
     Returns
     -------
@@ -111,17 +113,14 @@ def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.nd
         raise InputError(f"n_samples must be at least 1, got {n_samples}")
     rng = np.random.default_rng(rng)
     # (6) FT^t = D(F^t -> T^0): the one space deformation K^0 -> K^T, applied to every frame
-    morph = face_rbf(None, smoothing).fit(frames[0, sk])
+    morph = face_rbf(None, SMOOTHING).fit(frames[0, sk])
     ft0 = morph.deform(frames[0], tk)
     # (6.2) random target key points Kt_i, paired once on the neutrals with their nearest point of FT^0
     distinct = np.unique(target, axis=0, return_index=True)[1]  # meshes repeat positions at seams
     n_k = min(int(n_samples), len(distinct))
     kt = target[rng.choice(np.sort(distinct), size=n_k, replace=False)]
-    if include_keys:  # the known correspondences (eq. 6's K^T) are key points too: they sit on the lips and eyes
-        kt = np.unique(np.concatenate([tk, kt]), axis=0)
-    if sigma is None:
-        d = cKDTree(kt).query(kt, k=2)[0][:, 1]
-        sigma = spread * float(np.median(d))
+    kt = np.unique(np.concatenate([tk, kt]), axis=0)   # eq. 6's K^T are key points too: on the lips and eyes
+    sigma = SPREAD * float(np.median(cKDTree(kt).query(kt, k=2)[0][:, 1]))
     src = cKDTree(ft0).query(kt)[1]
     # Kf^t_i: the same source point in every morphed frame (only the paired points need morphing)
     kf = np.stack([morph.deform(f[src], tk) for f in frames])       # (n_frames, n_k, 3)
@@ -130,9 +129,9 @@ def transfer_sequence(frames: np.ndarray, source_keys: np.ndarray, target: np.nd
     v = np.divide(disp, norm, out=np.zeros_like(disp), where=norm > 1e-12)   # (7)
     w = gain * norm                                                          # (8)
     moved = kt + w * v                                                       # (9)
-    rbf = face_rbf(sigma, smoothing).fit(kt)
+    rbf = face_rbf(sigma, SMOOTHING).fit(kt)
     out = np.empty((len(frames), len(target), 3))
-    for s in range(0, len(target), chunk):
-        out[:, s:s + chunk] = rbf.deform(target[s:s + chunk], moved)
+    for s in range(0, len(target), CHUNK):
+        out[:, s:s + CHUNK] = rbf.deform(target[s:s + CHUNK], moved)
     out[0] = target  # frame 0 is the neutral: its displacements are zero, this removes round-off
     return out

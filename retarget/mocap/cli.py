@@ -5,6 +5,10 @@ import sys
 from pathlib import Path
 
 
+#: the .glb's principal-component morph targets (at most)
+GLB_COMPONENTS = 32
+
+
 def register(subparsers) -> None:
     """Add ``keyshape mocap``."""
     p = subparsers.add_parser(
@@ -24,10 +28,6 @@ def register(subparsers) -> None:
     p.add_argument("--method", default="planar", choices=["planar", "imq", "tps", "gaussian"])
     p.add_argument("--duplicate-labels", default="error", choices=["error", "rename"],
                    help="a take with two markers of one label: stop (default) or rename the second X to X#2")
-    p.add_argument("--max-gap", type=int, default=12, help="longest gap (frames) filled without a report")
-    p.add_argument("--radius", type=float, default=1.5,
-                   help="planar-bone radius as a multiple of the shortest connected control edge")
-    p.add_argument("--components", type=int, default=32, help=".glb: number of morph targets")
     p.add_argument("--up", default="y", choices=["x", "y", "z"], help="the target mesh's up axis")
     p.add_argument("-o", "--output", required=True, help="OUT.npz, OUT.glb, or a folder for one OBJ per frame")
     p.add_argument("--overwrite", action="store_true",
@@ -121,12 +121,6 @@ def _mocap(args) -> int:
     from keyshape.base.formats.markers import read_markers
     from keyshape.base.formats.obj import read_obj, write_obj
 
-    if args.components < 1:
-        raise InputError(f"--components {args.components}: need at least 1 morph target")
-    if args.max_gap < 0:
-        raise InputError(f"--max-gap {args.max_gap}: must be >= 0")
-    if not (np.isfinite(args.radius) and 0 < args.radius < 1e6):
-        raise InputError(f"--radius {args.radius}: must be a finite number > 0")
     rigid = parse_rigid(args.rigid) if args.rigid else None
     inputs = [args.markers, args.target, args.target_markers, args.masks,
               args.rigid[1:] if args.rigid and args.rigid.startswith("@") else None]
@@ -153,7 +147,7 @@ def _mocap(args) -> int:
         regions = regions_from_masks(read_masks(args.masks), used, vertices=mesh.vertices,
                                      markers=np.array([tm[s] for s in used]), mesh=mesh, up=up, forward=fw)
     res = drive_mesh(take.positions, take.labels, mesh.vertices, tm, method=args.method, rigid_names=rigid,
-                     regions=regions, max_gap=args.max_gap, radius_scale=args.radius, up=up, forward=fw)
+                     regions=regions, up=up, forward=fw)
     print(f"{take.n_frames} frames at {take.rate:g} Hz, {take.n_markers} markers ({take.units}); "
           f"{len(res.labels)} drive the target; rigid set: {', '.join(res.rigid)}")
     print(res.gaps)
@@ -176,7 +170,7 @@ def _mocap(args) -> int:
         base = verts[0]
         d = (verts - base).reshape(len(verts), -1)
         u, s, vt = np.linalg.svd(d, full_matrices=False)
-        k = min(args.components, len(s))
+        k = min(GLB_COMPONENTS, len(s))
         energy = float((s[:k] ** 2).sum() / max((s ** 2).sum(), 1e-300))
         write_glb(out, base, mesh.triangles, vt[:k].reshape(k, -1, 3) * s[:k, None, None],
                   [f"pc{i:02d}" for i in range(k)], weights=u[:, :k], fps=take.rate)

@@ -89,10 +89,12 @@ def clean_take(positions, labels, rigid_names=None, max_gap: int = 12):
     return filled, used, report, notes
 
 
+#: the longest gap (frames) filled without a report; the planar bones' radius over the shortest control edge
+MAX_GAP, RADIUS_SCALE = 12, 1.5
+
+
 def drive_mesh(positions, labels, target_vertices, target_markers: dict, method: str = "planar",
-               rigid_names=None, regions=None, max_gap: int = 12, radius_scale: float = 1.5,
-               unbound: str = "fade", up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0),
-               forbid=None) -> DriveResult:
+               rigid_names=None, regions=None, up=(0.0, 1.0, 0.0), forward=(0.0, 0.0, 1.0)) -> DriveResult:
     """Drive ``target_vertices`` with a marker take.
 
     Parameters
@@ -104,8 +106,11 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
     method : "planar", "imq", "tps" or "gaussian"
     rigid_names : labels of a rigid set (head jig), optional
     regions : list of :class:`retarget.mocap.masks.Region`, optional (planar only)
-    forbid : list of (labels, labels) the triangulation must not join; default: upper vs lower
-        inner lips when present
+    up, forward : the target mesh's axes
+
+    Gaps up to :data:`MAX_GAP` frames are filled without a report; the planar bones' radius is
+    :data:`RADIUS_SCALE` times the shortest connected control edge; the triangulation never joins the upper
+    and the lower inner lips.
     """
     if method not in METHODS:
         raise InputError(f"--method: expected one of {', '.join(METHODS)}, got {method!r}")
@@ -118,7 +123,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
         notes.append(f"target markers not in the take (ignored): {missing_t}")
     if len(use) < 4:
         raise InputError(f"only {len(use)} marker label(s) of the take are in the target markers; need 4 or more")
-    x, rigid_used, gaps, clean_notes = clean_take(positions, labels, rigid_names, max_gap)
+    x, rigid_used, gaps, clean_notes = clean_take(positions, labels, rigid_names, MAX_GAP)
     notes += clean_notes
     idx = np.array([labels.index(s) for s in use])
     src = x[:, idx]
@@ -149,10 +154,9 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
     mk = retarget(src)                                                          # (n_frames, n_used, 3)
     tri = None
     if method == "planar":
-        if forbid is None:
-            up_in = {s for s in use if "Inner" in s and ("Up" in s or "Upper" in s)}
-            lo_in = {s for s in use if "Inner" in s and ("Lo" in s or "Lower" in s)}
-            forbid = [(up_in, lo_in)] if up_in and lo_in else []
+        up_in = {s for s in use if "Inner" in s and ("Up" in s or "Upper" in s)}
+        lo_in = {s for s in use if "Inner" in s and ("Lo" in s or "Lower" in s)}
+        forbid = [(up_in, lo_in)] if up_in and lo_in else []
         tri = triangulate_markers(mk[0], use, up, forward, forbid=forbid)
         masks = None
         if regions:
@@ -160,7 +164,7 @@ def drive_mesh(positions, labels, target_vertices, target_markers: dict, method:
 
             masks = allowed_matrix(regions, tri.triangles, use, len(tv))
         # float32: what the command stores; within 5e-7 of the mesh's extent from the float64 map, ~1.5x faster
-        bones = PlanarBones(radius_scale=radius_scale, unbound=unbound, labels=use,
+        bones = PlanarBones(radius_scale=RADIUS_SCALE, unbound="fade", labels=use,
                             dtype="float32").fit(tv, mk[0], tri.triangles, masks=masks)
         verts = bones.deform_many(mk)
     else:

@@ -33,11 +33,6 @@ def register(subparsers) -> None:
                         "--tracks explains worst (lost frames, then lowest confidence)")
     p.add_argument("--tracks", default=None, metavar="TRACKS.csv",
                    help="with --more: the tracks CSV of a first `keyshape track` of this video")
-    p.add_argument("--decorrelate", action="store_true",
-                   help="with the dlib pre-fill: exchange chosen frames so that head pose and expression vary "
-                        "independently among them (a D-optimal design of the cues; for --count 20 or more, "
-                        "docs/label_count.md)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the frame clustering")
     p.add_argument("--serve", action="store_true", help="start the correction page after preparing")
     p.add_argument("--port", type=options.port, default=8765, help="port of the correction page (0: any free port)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -80,8 +75,8 @@ def _run(args) -> int:
     if args.more is not None:
         args.frames = _worst_frames(args)
     session = prepare_label_folder(args.video, args.out, args.count, args.scheme,
-                                   use_prefill=not args.no_prefill, rng=args.seed, quiet=args.quiet,
-                                   frames=args.frames, decorrelate=args.decorrelate)
+                                   use_prefill=not args.no_prefill, quiet=args.quiet,
+                                   frames=args.frames)
     frames = session["frames"]
     print(f"{len(frames)} frames in {args.out}: {', '.join(map(str, frames))}")
     if session.get("no_face"):

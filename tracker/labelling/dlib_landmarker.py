@@ -171,13 +171,6 @@ class DlibLandmarker:
             acc += m
         return acc / (2 * len(_BOX_MOVES))
 
-    def box_from_points(self, points: np.ndarray):
-        """A ``dlib.rectangle`` around 68 points, sized like the HOG detector's boxes."""
-        lo, hi = np.min(points, axis=0), np.max(points, axis=0)
-        c = (lo + hi) / 2
-        half = 0.5 * max(hi - lo) * 0.9
-        return self._dlib.rectangle(int(c[0] - half), int(c[1] - half), int(c[0] + half), int(c[1] + half))
-
     def detect(self, image: np.ndarray, previous: np.ndarray | None = None,
                averaged: bool = False) -> np.ndarray | None:
         """Detect a face in ``image`` (gray or BGR) and return its (68, 2) points, or None.
@@ -200,61 +193,12 @@ class DlibLandmarker:
         self.timing.n_found += 1
         return pts
 
-    def detect_frames(self, frames, previous: np.ndarray | None = None) -> np.ndarray:
-        """Points of every frame of an iterable of images -> (n_frames, 68, 2), NaN where no face.
-
-        Each frame runs the detector (no tracking shortcut), choosing among
-        several detections the one nearest the previous frame's face.
-        """
-        out = []
-        for frame in frames:
-            pts, previous = self.detect_next(frame, previous)
-            out.append(pts)
-        return np.stack(out) if out else np.empty((0, 68, 2))
-
     def detect_next(self, image: np.ndarray, previous: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
         """One step over a video: (points or NaN (68, 2), the ``previous`` for the next frame)."""
         pts = self.detect(image, previous)
         if pts is None:
             return np.full((68, 2), np.nan), previous
         return pts, pts
-
-
-def landmark_video(path: str | Path, landmarker: DlibLandmarker | None = None, frames=None,
-                   progress=None) -> np.ndarray:
-    """Run dlib on every frame of the video at ``path`` -> (n_frames, 68, 2), NaN where no face.
-
-    Parameters
-    ----------
-    path : str or Path
-    landmarker : DlibLandmarker, optional
-        Reused (and its :attr:`~DlibLandmarker.timing` accumulated) when given.
-    frames : iterable of int, optional
-        Only these frame indices (the rest come back NaN).
-    progress : callable, optional
-        Called as ``progress(i, n)`` after each frame.
-    """
-    from keyshape.base.formats.video import VideoReader  # noqa: PLC0415
-
-    lm = landmarker if landmarker is not None else DlibLandmarker()
-    reader = VideoReader(path, gray=True)
-    n = len(reader)
-    want = None if frames is None else set(int(i) for i in frames)
-    pts_all: list[np.ndarray] = []
-    previous = None
-    for i, gray in reader:
-        if want is not None and i not in want:
-            pts_all.append(np.full((68, 2), np.nan))
-        else:
-            pts, previous = lm.detect_next(gray, previous)
-            pts_all.append(pts)
-        if progress is not None:
-            progress(i + 1, n)
-        if want is not None and want and i >= max(want):
-            break
-    while want is not None and len(pts_all) < n:  # stopped after the last wanted frame
-        pts_all.append(np.full((68, 2), np.nan))
-    return np.stack(pts_all)
 
 
 def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None = None, detect_every: int = 4,

@@ -23,9 +23,7 @@ raised brows, head turns) rather than K similar frames. Over the whole video:
 With dlib's points over the whole video (the default of ``keyshape label``),
 :func:`choose_frames_by_cues` chooses instead from expression and pose cues
 (:func:`shape_cues`) and makes sure blinks are among the chosen frames (an
-eye-closure cue from the pixels, :func:`eye_profile`), optionally exchanged so
-that head pose and expression vary independently among the chosen frames
-(:func:`decorrelate_choice`, ``keyshape label --decorrelate``); :func:`worst_explained`
+eye-closure cue from the pixels, :func:`eye_profile`); :func:`worst_explained`
 picks the frames a first track explains worst (``keyshape label --more``).
 """
 from __future__ import annotations
@@ -297,7 +295,7 @@ def eye_profile(gray: np.ndarray, points68: np.ndarray, width: int = 16, height:
 def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, min_gap: int = 12,
                           exclude=(), n_blinks: int | None = None, blink_ratio: float = 0.7,
                           sharp_window: int = 3, eye_profiles: np.ndarray | None = None,
-                          extreme_tol: float = 0.15, decorrelate: bool = False) -> np.ndarray:
+                          extreme_tol: float = 0.15) -> np.ndarray:
     """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
 
     Features: robust z-scores of :func:`shape_cues` (eye aperture and
@@ -318,12 +316,6 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     wider than those it was shown. Each cue's z-score scale is at least an
     eighth of its 1-99% range, so that a mouth closed most of the time does not
     make every opening look equally extreme.
-
-    With ``decorrelate`` (and ``count`` above the 8 parameters of the
-    design), the farthest-point choice is first exchanged towards a D-optimal
-    design of the 7 cues, each by its rank in the video
-    (:func:`decorrelate_choice`), so that head pose and expression vary
-    independently among the labels; the blinks and mouth extremes follow.
 
     With ``eye_profiles`` ((n, d) from :func:`eye_profile`), a blink must
     also show in the pixels: its profile far (robust z-score above 3) from
@@ -384,12 +376,6 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
         chosen.append(f)
         blocked |= np.abs(cand - f) < min_gap
         dist = np.minimum(dist, np.linalg.norm(X[cand] - X[f], axis=1))
-    if decorrelate and count > z.shape[1] + 1:
-        # each cue by its rank in the video (-1..1): the determinant then rewards decorrelation and an even
-        # spread over each cue's range, not a few glitch-far frames
-        rk = np.zeros((n, cues.shape[1]))
-        rk[ok] = (np.argsort(np.argsort(cues[ok], axis=0), axis=0) + 0.5) / ok.sum() * 2 - 1
-        chosen = decorrelate_choice(rk, chosen, cand, min_gap=min_gap)
     # blinks: make sure some chosen frames have the eyes closed
     n_blinks = max(1, count // 5) if n_blinks is None else int(n_blinks)
     eye_ap = cues[:, 0]
@@ -482,43 +468,6 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
             out.append(int(nb[np.argmax(sharp[nb])]) if len(nb) else f)
         chosen = out
     return np.array(sorted(chosen), dtype=np.intp)
-
-
-def decorrelate_choice(features: np.ndarray, chosen, candidates, *, min_gap: int = 12,
-                       max_passes: int = 3) -> list[int]:
-    """Exchange chosen frames so that their ``features`` (pose and expression cues) become a D-optimal design.
-
-    The determinant of the chosen frames' information matrix ``sum a a^T``
-    (``a = [1, features]``) is the product of each cue's spread and of how
-    little the cues correlate across the chosen frames; maximising it makes
-    each expression cue vary independently of the head pose among the labels,
-    so the person-specific model can tell a mouth opening from a head turn.
-    Fedorov's exchange: for each chosen frame in turn, the candidate frame (at
-    least ``min_gap`` from the other chosen ones) that most increases the
-    determinant replaces it, for ``max_passes`` passes or until no swap helps.
-    Returns the new chosen list (same length).
-    """
-    A = np.hstack([np.ones((len(features), 1)), np.asarray(features, np.float64)])
-    cand = np.asarray(candidates, np.intp)
-    chosen = [int(c) for c in chosen]
-    eye = 1e-6 * np.eye(A.shape[1])
-    for _ in range(max_passes):
-        swapped = False
-        for j in range(len(chosen)):
-            rest = chosen[:j] + chosen[j + 1:]
-            M = A[rest].T @ A[rest] + eye
-            Minv = np.linalg.inv(M)
-            gain = np.einsum("ij,jk,ik->i", A[cand], Minv, A[cand])    # det ratio - 1 of adding each
-            far = np.min(np.abs(cand[:, None] - np.array(rest)[None]), axis=1) >= min_gap
-            gain = np.where(far, gain, -np.inf)
-            own = float(A[chosen[j]] @ Minv @ A[chosen[j]])
-            b = int(np.argmax(gain))
-            if gain[b] > own * 1.01 + 1e-12:
-                chosen[j] = int(cand[b])
-                swapped = True
-        if not swapped:
-            break
-    return chosen
 
 
 def worst_explained(confidence: np.ndarray, success: np.ndarray, count: int, exclude=(), min_gap: int = 12,

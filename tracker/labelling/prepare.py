@@ -124,12 +124,10 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 
 def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, scheme_name: str = "contours48",
                          use_prefill: bool = True, exclude=(), rng=0, quiet: bool = False,
-                         frames=None, decorrelate: bool = False) -> dict:
+                         frames=None) -> dict:
     """Choose ``count`` frames of ``video`` and make the label folder ``out`` (see module docstring).
 
-    ``frames`` (zero-based indices) skips the choice and labels exactly those frames. ``decorrelate``
-    (with the pre-fill) makes head pose and expression vary independently among the chosen frames
-    (:func:`~keyshape.tracker.labelling.frames.decorrelate_choice`).
+    ``frames`` (zero-based indices) skips the choice and labels exactly those frames.
 
     Returns the session dict (``scheme``, ``video``, ``frames``, ``prefilled``).
     """
@@ -192,8 +190,7 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         gap = max(1, int(round(info.fps / 2))) if info.fps > 0 else 12
         gap = min(gap, max(1, len(pts68) // (2 * count)))
         if np.isfinite(pts68).all(axis=(1, 2)).sum() >= count:
-            chosen = choose_frames_by_cues(pts68, count, min_gap=gap, exclude=exclude, eye_profiles=prof,
-                                           decorrelate=decorrelate)
+            chosen = choose_frames_by_cues(pts68, count, min_gap=gap, exclude=exclude, eye_profiles=prof)
             session = {"scheme": scheme.name, "video": str(info.path.resolve()),
                        "frames": [int(f) for f in chosen], "chosen_by": "dlib cues",
                        "prefilled": True, "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}

@@ -128,7 +128,7 @@ def split_at_uv_seams(mesh) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     return pairs[:, 0], uv, tri
 
 
-def build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, names: Sequence[str],
+def _build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, names: Sequence[str],
                weights: np.ndarray | None = None, fps: float = 30.0, head=None,
                default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
                normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
@@ -262,7 +262,7 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas:
     See :func:`retarget.export.morph_targets` for how target shapes, regions and the
     absolute form become glTF deltas and weights exactly.
     """
-    gltf = build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs, normals,
+    gltf = _build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs, normals,
                       normal_deltas, parts, first_frame, sparse_targets)
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))

@@ -101,10 +101,6 @@ class Markers:
         idx = self.index(names)
         return Markers(self.positions[:, idx], [self.labels[i] for i in idx], self.rate, self.units)
 
-    def scaled_to(self, units: str) -> "Markers":
-        """The same take in other length units (mm, cm, m)."""
-        return Markers(self.positions * unit_scale(self.units, units), self.labels, self.rate, units)
-
 
 _SCALE = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "in": 0.0254}
 
