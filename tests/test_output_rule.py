@@ -187,7 +187,7 @@ def test_a_rerun_replaces_the_commands_own_outputs_and_records_them(tmp_path, ca
     foot = tmp_path / "foot"
     assert main(["synth", "video", str(foot), "--frames", "16", "--size", "160x120", "--labels", "6"]) == 0
     model, tracks = tmp_path / "m.npz", tmp_path / "t.csv"
-    runs = [["train", str(foot / "video.mp4"), "--labels", str(foot / "labels"), "--components", "2",
+    runs = [["train", str(foot / "video.mp4"), "--labels", str(foot / "labels"),
              "-o", str(model)],
             ["track", str(foot / "video.mp4"), "--model", str(model), "-o", str(tracks), "--overlay",
              str(tmp_path / "o.mp4"), "--quiet"],

@@ -282,7 +282,7 @@ def test_labels_of_another_video_or_size_are_refused_before_training(tmp_path, c
                "-o", str(tmp_path / "m.npz")])
     assert rc == 2 and "160x120" in capsys.readouterr().err          # another size: never meaningful
     (tmp_path / "a" / "labels" / FOOTAGE_FILE).unlink()                  # an older folder: trains, says so
-    assert main(["train", str(tmp_path / "a" / "video.mp4"), "--labels", labels, "--components", "2",
+    assert main(["train", str(tmp_path / "a" / "video.mp4"), "--labels", labels,
                  "-o", str(tmp_path / "m.npz")]) == 0
     err = capsys.readouterr().err
     assert f"no {FOOTAGE_FILE}" in err
