@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write
+from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import name_key
@@ -171,7 +171,7 @@ def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
            head: HeadMotion | None = None, clamp: bool = False, livelink: bool = False,
            bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480),
-           overwrite: bool = False, inputs=(), meters_per_unit: float = 0.01) -> dict:
+           meters_per_unit: float = 0.01) -> dict:
     """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
 
     Parameters
@@ -187,7 +187,8 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
 
     Returns
     -------
-    dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error.
+    dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error. A folder
+    output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.run_overwrite_inputs`).
     """
     rt._fitted()
     ts = rt.targets_
@@ -245,7 +246,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         from keyshape.base.formats.obj import write_obj
         if bake_head and head is not None:
             out = head.apply(out)
-        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
+        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
             for fr, v in zip(frames, out):
                 write_obj(tmp / f"frame_{int(fr):06d}.obj", ts.mesh, v)
         return info
@@ -258,7 +259,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
-        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
+        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
             for fr, img in zip(frames, images):
                 cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
     else:
