@@ -69,7 +69,7 @@ def run(args) -> int:
     from keyshape.base.files import check_output, check_output_dir
     from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.api import fit_retargeter
-    from keyshape.retarget.export import export
+    from keyshape.retarget.export import ExportOptions, export
 
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
@@ -93,7 +93,8 @@ def run(args) -> int:
         print("keyshape retarget: regions from the targets' own support: " + ", ".join(rt.region_names_ or []))
     ts = rt.targets_
     head, fps, _ = _head(args, weights)
-    info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, livelink=args.livelink)
+    info = export(args.output, rt, frames, weights.weights, fps=fps, head=head,
+                  options=ExportOptions(livelink=args.livelink))
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
           f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
           f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -168,10 +169,33 @@ def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
     return np.einsum("fij,fpj->fpi", rot, points - c) + c + t[:, None]
 
 
+#: frames transformed at a time (bounds the memory, not the output) and the drawn frames' size (PNG, video)
+CHUNK_FRAMES = 256
+FRAME_SIZE = (480, 480)
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """How :func:`export` writes an animation (what ``Animation.export`` takes as keywords).
+
+    Attributes
+    ----------
+    clamp : clamp weights to [0, 1] in .glb and .csv outputs (default keep: NNLS weights may exceed 1)
+    livelink : .csv in the Live Link Face layout instead of ``frame,<target names>``
+    bake_head : bake the head motion into OBJ/PNG/video frames (the .glb always carries it as node animation)
+    scheme : landmark scheme for drawing 2D targets (default: a built-in one with the same point count)
+    meters_per_unit : the meshes' length unit in metres (USD ``metersPerUnit``; default centimetres)
+    """
+
+    clamp: bool = False
+    livelink: bool = False
+    bake_head: bool = False
+    scheme: object = None
+    meters_per_unit: float = 0.01
+
+
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
-           head: HeadMotion | None = None, clamp: bool = False, livelink: bool = False,
-           bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480),
-           meters_per_unit: float = 0.01) -> dict:
+           head: HeadMotion | None = None, options: ExportOptions | None = None) -> dict:
     """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
 
     Parameters
@@ -179,17 +203,17 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     rt : fitted :class:`~retarget.retargeter.Retargeter`
     frames : (n_frames,) frame numbers; weights : (n_frames, n_keys)
     fps : frame rate of the animation (glTF sampler times ``i / fps``, Live Link timecode)
-    head : root motion (glTF node animation; baked into OBJ/PNG/video frames only with ``bake_head``)
-    clamp : clamp weights to [0, 1] in .glb and .csv outputs (default keep: NNLS weights may exceed 1)
-    livelink : .csv in the Live Link Face layout instead of ``frame,<target names>``
-    scheme : landmark scheme for drawing 2D targets (default: a built-in one with the same point count)
-    meters_per_unit : the meshes' length unit in metres (USD ``metersPerUnit``; default centimetres)
+    head : root motion (glTF node animation; baked into OBJ/PNG/video frames only with ``options.bake_head``)
+    options : :class:`ExportOptions` (default: its defaults)
 
     Returns
     -------
     dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error. A folder
     output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.run_overwrite_inputs`).
     """
+    o = options if options is not None else ExportOptions()
+    clamp, livelink, bake_head, scheme, meters_per_unit = o.clamp, o.livelink, o.bake_head, o.scheme, o.meters_per_unit
+    chunk_frames, size = CHUNK_FRAMES, FRAME_SIZE
     rt._fitted()
     ts = rt.targets_
     kind = output_kind(path, ts.dim)
