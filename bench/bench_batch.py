@@ -36,6 +36,9 @@ import time
 from pathlib import Path
 
 KEYSHAPE = [sys.executable, "-m", "keyshape"]
+#: ``keyshape`` with the batch's local cluster workers as threads of one process
+THREADS_MAIN = ("import sys, keyshape.batch as b; from keyshape.cli import main; b.PROCESSES = False; "
+                "sys.exit(main(sys.argv[1:]))")
 
 
 def run(cmd: list[str]) -> None:
@@ -74,8 +77,9 @@ def cores() -> list[int] | None:
 def batch_command(manifest: Path, out: Path, workers: int, affinity: list[int] | None,
                   threads: bool = False) -> dict:
     """``keyshape batch`` as a child process confined to ``affinity``: wall, CPU of its tree, load, report."""
-    cmd = KEYSHAPE + ["batch", str(manifest), "-o", str(out), "--workers", str(workers), "--quiet"]
-    cmd += ["--threads"] if threads else []
+    # thread workers: keyshape.batch.PROCESSES set to False in the child (no option on the command line)
+    start = KEYSHAPE if not threads else [sys.executable, "-c", THREADS_MAIN]
+    cmd = start + ["batch", str(manifest), "-o", str(out), "--workers", str(workers), "--quiet"]
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,

@@ -168,11 +168,11 @@ class Animation:
         """Write ``path`` atomically: ``.glb``, ``.usda``/``.usdc``/``.usd`` (``keyshape[usd]``; ``meters_per_unit``:
         the meshes' unit, default centimetres), ``.csv`` (curves, or Live Link with ``livelink``), ``.mp4``,
         or a folder of OBJ/PNG frames; see :func:`keyshape.retarget.export.export`."""
-        from keyshape.retarget.export import export
+        from keyshape.retarget.export import ExportOptions, export
 
         return export(path, self.retargeter, self.weights.frames, self.weights.values, fps=self.fps,
-                      head=self.head, clamp=clamp, livelink=livelink, bake_head=bake_head, scheme=scheme,
-                      meters_per_unit=meters_per_unit)
+                      head=self.head, options=ExportOptions(clamp=clamp, livelink=livelink, bake_head=bake_head,
+                                                            scheme=scheme, meters_per_unit=meters_per_unit))
 
 
 def _what(obj) -> str:

@@ -122,14 +122,17 @@ def _failure(exc: BaseException) -> dict:
 ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
                   "OPENCV_FFMPEG_THREADS": "1"}
 
-#: True in the process that runs :func:`run_batch` (the ``--threads`` workers share it: leave its libraries be).
+#: ``keyshape batch``'s local cluster workers: processes (threads of one process with False: for debugging, the
+#: tracker's Python holds the GIL; ``run_batch(processes=False)`` in the API)
+PROCESSES = True
+#: True in the process that runs :func:`run_batch` (thread workers share it: leave its libraries be).
 _CLIENT_PROCESS = False
 
 
 def _one_thread() -> None:
     """A worker is one core: its libraries run their parallel loops on the calling thread.
 
-    OpenCV's own pool is set to one thread; in a worker process (not the client's, where ``--threads``
+    OpenCV's own pool is set to one thread; in a worker process (not the client's, where thread
     workers run) also the BLAS/OpenMP pools, through threadpoolctl (the environment variables only act
     before the libraries load), and FFmpeg's decoder threads for the videos opened from now on. The
     tracker's decode-ahead thread stays (a worker tracks on one thread and decodes on another; see
@@ -238,7 +241,7 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
         from keyshape.tracker.eigenpoints import AppearanceModel
 
         m = AppearanceModel.load(model["path"], actor.scheme)
-        # a worker process is one core: it decodes on its tracking thread (the --threads workers share
+        # a worker process is one core: it decodes on its tracking thread (thread workers share
         # the client's process and keep the decode-ahead thread)
         tracks = api.track(take.video, m, smooth=settings.smooth, start=take.start, stop=take.stop,
                            decode_thread=_CLIENT_PROCESS)
@@ -763,8 +766,6 @@ def register(subparsers) -> None:
                    help="use a running Dask scheduler (default: a local cluster on this machine)")
     p.add_argument("--workers", type=int, default=None,
                    help="local cluster workers, one thread each (default: the number of cores)")
-    p.add_argument("--threads", action="store_true",
-                   help="local cluster workers as threads of one process instead of processes")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
 
@@ -772,11 +773,11 @@ def register(subparsers) -> None:
 def run(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
-    if args.scheduler and (args.workers or args.threads):
-        raise InputError("--workers and --threads are for the local cluster; not with --scheduler")
+    if args.scheduler and args.workers:
+        raise InputError("--workers is for the local cluster; not with --scheduler")
     check_scheduler(args.scheduler)
     rep = run_batch(args.manifest, args.output, scheduler=args.scheduler, workers=args.workers,
-                    processes=not args.threads, show_progress=not args.quiet)
+                    processes=PROCESSES, show_progress=not args.quiet)
     print(f"keyshape batch: {rep['n_takes']} takes ({rep['n_done']} done, {rep['n_skipped']} skipped, "
           f"{rep['n_failed']} failed), {rep['frames']} frames in {rep['seconds']:.1f} s -> "
           f"{Path(rep['out_dir']) / 'report.json'}")

@@ -35,12 +35,16 @@ from keyshape.decompose import defaults as D
 _REGION_OF = {"jaw": "mouth", "mouth": "mouth", "eye": "eyes", "brow": "eyes"}
 
 
+#: ``keyshape demo``'s key shapes per region and labelled training frames (``run_demo(keys=..., labels=...)``
+#: for others)
+KEYS = 8
+LABELS = 20
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the whole video path on built-in synthetic footage")
     p.add_argument("out_dir", nargs="?", default="keyshape_demo", help="output folder (default: keyshape_demo)")
     p.add_argument("--frames", type=options.synth_frames, default=300, help="frames of synthetic footage (default 300)")
-    p.add_argument("--keys", type=int, default=8, help="key shapes per region (default 8)")
-    p.add_argument("--labels", type=int, default=20, help="labelled training frames (default 20)")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder keyshape did not make (only its own files are replaced)")
     p.set_defaults(func=run)
@@ -72,8 +76,7 @@ def _region_coeffs(names, w, region: str) -> dict[str, float]:
 
 
 def run(args) -> int:
-    run_demo(args.out_dir, frames=args.frames, keys=args.keys,
-             labels=args.labels, overwrite=args.overwrite)
+    run_demo(args.out_dir, frames=args.frames, keys=KEYS, labels=LABELS, overwrite=args.overwrite)
     return 0
 
 
@@ -87,7 +90,7 @@ def run_demo(out_dir, frames: int = 300, seed: int = 0, keys: int = 8, method: s
     from keyshape.base.files import atomic_dir
 
     if frames < 2 or keys < 1 or labels < 2:
-        raise InputError("--frames and --labels must be >= 2 and --keys >= 1")
+        raise InputError(f"demo: frames {frames} and labels {labels} must be >= 2, keys {keys} >= 1")
     with atomic_dir(out_dir, overwrite, kind="demo") as tmp:
         figures = _run_demo(tmp, frames, seed, keys, method, labels, solver, ridge, final=Path(out_dir))
     _print_summary(Path(out_dir), figures)

@@ -69,7 +69,7 @@ def run(args) -> int:
     from keyshape.base.files import check_output, check_output_dir
     from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.api import fit_retargeter
-    from keyshape.retarget.export import export
+    from keyshape.retarget.export import ExportOptions, export
 
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
@@ -93,8 +93,8 @@ def run(args) -> int:
         print("keyshape retarget: regions from the targets' own support: " + ", ".join(rt.region_names_ or []))
     ts = rt.targets_
     head, fps, _ = _head(args, weights)
-    info = export(args.output, rt, frames, weights.weights, fps=fps, head=head, livelink=args.livelink,
-                  overwrite=args.overwrite, inputs=inputs)
+    info = export(args.output, rt, frames, weights.weights, fps=fps, head=head,
+                  options=ExportOptions(livelink=args.livelink))
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key shapes onto {ts.n_vertices} "
           f"{'vertices' if ts.dim == 3 else 'points'} ({rt.form_} form"
           f"{', regions ' + '+'.join(rt.region_names_) if rt.region_names_ else ''}) at {fps:g} fps"
@@ -137,7 +137,7 @@ def run_rig(args, inputs: list) -> int:
         from keyshape.retarget.api import apply_gaze
         curves, eyes = apply_gaze(curves, rig, src[0], frames, src[1], args.tracks, gaze=args.gaze)
     info = export_rig(args.output, rig, frames, curves, fps=fps, head=head, livelink=args.livelink,
-                      overwrite=args.overwrite, inputs=inputs, eyes=eyes)
+                      eyes=eyes)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
     print(f"keyshape retarget: {len(frames)} frames x {len(columns)} key weights -> {used} of {rig.n_shapes} rig "
           f"shapes moving at {fps:g} fps -> {info['path']} ({info['kind']})")

@@ -3,6 +3,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+#: control vertices of ``keyshape register``'s fit (``register_mesh(n_controls=...)`` for another)
+CONTROLS = 200
+#: N_k, the random target key points of eqs. 7-9 in ``keyshape transfer`` (``transfer_sequence(n_samples=...)``)
+SAMPLES = 6000
+
 
 def register(subparsers) -> None:
     """Add this stage's subcommands to ``subparsers``."""
@@ -18,7 +23,6 @@ def register(subparsers) -> None:
     p.add_argument("--out-markers", help="where to write the markers placed on the target")
     p.add_argument("--masks", help="reference masks JSON {name: [vertex index, ...]}")
     p.add_argument("--out-masks", help="where to write the masks as target vertex groups")
-    p.add_argument("--controls", type=int, default=200, help="number of control vertices (default 200)")
     p.set_defaults(func=_register)
 
     p = subparsers.add_parser("keypoints", help="insert key points into a dense sequence (002 section 5)")
@@ -37,8 +41,6 @@ def register(subparsers) -> None:
     p.add_argument("--landmarks", help="PAIRS.json mapping source vertices (reference) to the target; "
                                        "default: same vertex indices (same topology)")
     p.add_argument("-o", "--output", required=True, help="OUT.npz (vertices, faces of the target)")
-    p.add_argument("--samples", type=int, default=6000,
-                   help="number N_k of random target key points of eqs. 7-9 (default 6000)")
     p.set_defaults(func=_transfer)
 
 
@@ -80,8 +82,6 @@ def _register(args) -> int:
         raise InputError("--markers and --out-markers go together")
     if bool(args.masks) != bool(args.out_masks):
         raise InputError("--masks and --out-masks go together")
-    if args.controls < 3:
-        raise InputError("--controls must be >= 3")
     inputs = [args.reference, args.target, args.landmarks, args.markers, args.masks]
     check_outputs([args.output, args.out_markers, args.out_masks], inputs=inputs)
     ref = read_obj(args.reference, require_faces=True)
@@ -94,7 +94,7 @@ def _register(args) -> int:
     _check_markers(markers, ref.n_vertices, args.markers)
     _check_masks(masks.vertex_lists() if masks is not None else None, ref.n_vertices, args.masks)
     res = register_mesh(ref.vertices, ref.triangles, tgt.vertices, tgt.triangles, pairs,
-                        n_controls=args.controls, source=args.landmarks)
+                        n_controls=CONTROLS, source=args.landmarks)
     # every output computed before any is written: a failure writes nothing
     placed = None if markers is None else place_markers(markers, ref.vertices, ref.triangles, res.vertices,
                                                         tgt.vertices, tgt.triangles, source=args.markers)
@@ -153,8 +153,6 @@ def _transfer(args) -> int:
     from keyshape.base.formats.obj import read_obj
     from keyshape.base.files import check_outputs
 
-    if args.samples < 1:
-        raise InputError(f"--samples {args.samples}: must be >= 1")
     check_outputs([args.output], inputs=[args.sequence, args.target, args.keypoints, args.landmarks])
     frames, _ = read_sequence(args.sequence)
     tgt = read_obj(args.target, require_faces=True)
@@ -173,7 +171,7 @@ def _transfer(args) -> int:
                              "give --landmarks PAIRS.json to say which points correspond", args.target)
         sk = read_keypoints(args.keypoints, frames.shape[1]) if args.keypoints else _initial("68", frames, 0)
         tk = sk
-    out = transfer_sequence(frames, sk, tgt.vertices, tk, n_samples=args.samples, rng=0)
+    out = transfer_sequence(frames, sk, tgt.vertices, tk, n_samples=SAMPLES, rng=0)
     write_sequence(args.output, out, tgt.triangles)
     print(f"transferred {len(out)} frames onto {Path(args.target).name}; wrote {args.output}")
     return 0

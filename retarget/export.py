@@ -13,12 +13,13 @@
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write
+from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.retargeter import Retargeter
 from keyshape.retarget.targets import name_key
@@ -168,10 +169,33 @@ def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
     return np.einsum("fij,fpj->fpi", rot, points - c) + c + t[:, None]
 
 
+#: frames transformed at a time (bounds the memory, not the output) and the drawn frames' size (PNG, video)
+CHUNK_FRAMES = 256
+FRAME_SIZE = (480, 480)
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """How :func:`export` writes an animation (what ``Animation.export`` takes as keywords).
+
+    Attributes
+    ----------
+    clamp : clamp weights to [0, 1] in .glb and .csv outputs (default keep: NNLS weights may exceed 1)
+    livelink : .csv in the Live Link Face layout instead of ``frame,<target names>``
+    bake_head : bake the head motion into OBJ/PNG/video frames (the .glb always carries it as node animation)
+    scheme : landmark scheme for drawing 2D targets (default: a built-in one with the same point count)
+    meters_per_unit : the meshes' length unit in metres (USD ``metersPerUnit``; default centimetres)
+    """
+
+    clamp: bool = False
+    livelink: bool = False
+    bake_head: bool = False
+    scheme: object = None
+    meters_per_unit: float = 0.01
+
+
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
-           head: HeadMotion | None = None, clamp: bool = False, livelink: bool = False,
-           bake_head: bool = False, scheme=None, chunk_frames: int = 256, size=(480, 480),
-           overwrite: bool = False, inputs=(), meters_per_unit: float = 0.01) -> dict:
+           head: HeadMotion | None = None, options: ExportOptions | None = None) -> dict:
     """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
 
     Parameters
@@ -179,16 +203,17 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     rt : fitted :class:`~retarget.retargeter.Retargeter`
     frames : (n_frames,) frame numbers; weights : (n_frames, n_keys)
     fps : frame rate of the animation (glTF sampler times ``i / fps``, Live Link timecode)
-    head : root motion (glTF node animation; baked into OBJ/PNG/video frames only with ``bake_head``)
-    clamp : clamp weights to [0, 1] in .glb and .csv outputs (default keep: NNLS weights may exceed 1)
-    livelink : .csv in the Live Link Face layout instead of ``frame,<target names>``
-    scheme : landmark scheme for drawing 2D targets (default: a built-in one with the same point count)
-    meters_per_unit : the meshes' length unit in metres (USD ``metersPerUnit``; default centimetres)
+    head : root motion (glTF node animation; baked into OBJ/PNG/video frames only with ``options.bake_head``)
+    options : :class:`ExportOptions` (default: its defaults)
 
     Returns
     -------
-    dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error.
+    dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error. A folder
+    output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.run_overwrite_inputs`).
     """
+    o = options if options is not None else ExportOptions()
+    clamp, livelink, bake_head, scheme, meters_per_unit = o.clamp, o.livelink, o.bake_head, o.scheme, o.meters_per_unit
+    chunk_frames, size = CHUNK_FRAMES, FRAME_SIZE
     rt._fitted()
     ts = rt.targets_
     kind = output_kind(path, ts.dim)
@@ -245,7 +270,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         from keyshape.base.formats.obj import write_obj
         if bake_head and head is not None:
             out = head.apply(out)
-        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
+        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
             for fr, v in zip(frames, out):
                 write_obj(tmp / f"frame_{int(fr):06d}.obj", ts.mesh, v)
         return info
@@ -258,7 +283,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
-        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
+        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
             for fr, img in zip(frames, images):
                 cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
     else:

@@ -8,6 +8,8 @@ from typing import Callable
 
 import numpy as np
 
+#: each panel's side on the check sheet, pixels (``check_sheet(size=...)`` for another)
+SHEET_PANEL = 420
 #: the panels of the check sheet: caption, {shape name key: weight}
 PANELS = (("neutral", {}), ("blink", {"eyeblinkleft": 1.0, "eyeblinkright": 1.0}), ("jaw open", {"jawopen": 1.0}),
           ("smile", {"mouthsmileleft": 1.0, "mouthsmileright": 1.0}))
@@ -28,7 +30,6 @@ def register(subparsers) -> None:
     p.add_argument("--landmarks", default=None,
                    help="rig landmarks: a keyshape-rig-landmarks JSON or the rig's iBUG-68 vertex list (a JSON "
                         "list or one index a line); default: shipped for ICT-FaceKit, else found automatically")
-    p.add_argument("--size", type=int, default=420, help="each panel's side, pixels")
     p.add_argument("-o", "--output", required=True, help="SHEET.png (or .jpg)")
     p.set_defaults(func=run)
 
@@ -86,7 +87,7 @@ def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: st
     return path
 
 
-def check_sheet(rig, W: np.ndarray, scheme, size: int = 420) -> np.ndarray:
+def check_sheet(rig, W: np.ndarray, scheme, size: int = SHEET_PANEL) -> np.ndarray:
     """The check sheet (BGR): the rig in each of :data:`PANELS` that it has the shapes for, its landmarks drawn."""
     from keyshape.base.draw import contact_sheet
     from keyshape.retarget.preview import RigRenderer
@@ -116,15 +117,13 @@ def run(args) -> int:
 
     if Path(args.output).suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise InputError("the sheet must be a .png or .jpg", args.output)
-    if args.size < 64:
-        raise InputError(f"--size {args.size}: a panel needs 64 pixels or more")
     inputs = [args.neutral, args.landmarks]
     check_output(args.output, "file", inputs)
     scheme = load_scheme("contours48")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
     landmarks = resolve_landmarks(rig, scheme.name, args.landmarks, args.output)
     W, _ = rig_landmarks(rig, scheme.name, landmarks)
-    img = check_sheet(rig, W, scheme, args.size)
+    img = check_sheet(rig, W, scheme, SHEET_PANEL)
     ok, buf = cv2.imencode(Path(args.output).suffix.lower(), img)
     with atomic_write(args.output, "wb") as f:
         f.write(buf.tobytes())

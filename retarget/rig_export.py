@@ -20,15 +20,17 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write
+from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.rig import Rig
+
+#: frames evaluated (OBJ frames) or rendered (video) at a time: bounds the memory, not the output
+CHUNK_FRAMES = 64
 
 
 def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarray, fps: float = 30.0,
                head: HeadMotion | None = None, livelink: bool = False,
-               size=(480, 480), chunk_frames: int = 64, overwrite: bool = False, inputs=(),
-               meters_per_unit: float = 0.01, eyes: np.ndarray | None = None) -> dict:
+               size=(480, 480), meters_per_unit: float = 0.01, eyes: np.ndarray | None = None) -> dict:
     """Write rig curves (n_frames, n_shapes) to ``path``; returns ``{"kind", "path"}``. Nothing is left on error.
 
     ``meters_per_unit``: the rig's length unit in metres (USD ``metersPerUnit``; ICT-FaceKit: cm, 0.01).
@@ -36,6 +38,8 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     (``headYaw, headPitch, headRoll`` in degrees, ``headX, headY, headZ``), the Live Link CSV its
     HeadYaw/HeadPitch/HeadRoll and the .glb the head node's rotation and translation; ``eyes``
     (n_frames, 4: left yaw, left pitch, right yaw, right pitch, radians) go to the Live Link eye columns.
+    A folder output follows the running command's ``--overwrite`` and inputs
+    (:func:`~keyshape.base.files.run_overwrite_inputs`).
     """
     from keyshape.retarget.export import HEAD_COLUMNS, head_columns, livelink_rows, output_kind
     path = Path(path)
@@ -87,9 +91,9 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj
-        with atomic_dir(path, overwrite, inputs, kind="retarget") as tmp:
-            for s in range(0, len(curves), chunk_frames):
-                for fr, v in zip(frames[s:s + chunk_frames], rig.evaluate(curves[s:s + chunk_frames])):
+        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
+            for s in range(0, len(curves), CHUNK_FRAMES):
+                for fr, v in zip(frames[s:s + CHUNK_FRAMES], rig.evaluate(curves[s:s + CHUNK_FRAMES])):
                     write_obj(tmp / f"frame_{int(fr):06d}.obj", rig.mesh, v)
         return info
     if kind == "video":
@@ -97,8 +101,8 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         from keyshape.retarget.preview import RigRenderer
         r = RigRenderer(rig, size=size).fit(curves)
         with video_writer(path, fps, size) as wr:
-            for s in range(0, len(curves), chunk_frames):
-                for img in r.render_many(curves[s:s + chunk_frames]):
+            for s in range(0, len(curves), CHUNK_FRAMES):
+                for img in r.render_many(curves[s:s + CHUNK_FRAMES]):
                     wr.write(img)
         return info
     raise InputError(f"rig output {kind} not supported", path)

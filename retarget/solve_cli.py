@@ -85,7 +85,7 @@ def run(args) -> int:
     if args.poses:
         curves = _override(args, curves, tracks.frame, rig, regions)
     info = export_rig(args.output, rig, tracks.frame, curves, fps=fps, head=head, livelink=args.livelink,
-                      overwrite=args.overwrite, inputs=inputs, eyes=eyes)
+                      eyes=eyes)
     used = int((np.abs(curves).max(axis=0) > 0).sum())
     print(f"keyshape solve: {len(curves)} frames -> {used} of {rig.n_shapes} rig shapes moving at {fps:g} fps "
           f"-> {info['path']} ({info['kind']})")

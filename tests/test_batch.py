@@ -284,7 +284,8 @@ def test_rerun_skips_and_recomputes_only_a_changed_take(library, first_run, tmp_
                                                                        ).read_bytes()
 
 
-def test_failing_takes_are_reported_and_the_others_finish(library, first_run, tmp_path, capsys):
+def test_failing_takes_are_reported_and_the_others_finish(library, first_run, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("keyshape.batch.PROCESSES", False)
     out0, _ = first_run
     lib = library.parent
     (tmp_path / "corrupt.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 40)
@@ -325,7 +326,7 @@ actor = "bob"
 video = "{lib / 'actor1' / 'take00.mp4'}"
 """)
     out = tmp_path / "out"
-    assert main(["batch", str(manifest), "-o", str(out), "--workers", "1", "--threads", "--quiet"]) == 1
+    assert main(["batch", str(manifest), "-o", str(out), "--workers", "1", "--quiet"]) == 1
     err = capsys.readouterr().err
     rep = json.loads((out / "report.json").read_text())
     rows = {(r["actor"], r["take"]): r for r in rep["takes"]}

@@ -69,10 +69,11 @@ def _manifest(tmp_path: Path, take_name: str | None = None, labels: str = "anna/
     return m
 
 
-def test_a_take_named_like_an_input_folder_is_refused_before_work(tmp_path, capsys):
+def test_a_take_named_like_an_input_folder_is_refused_before_work(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("keyshape.batch.PROCESSES", False)
     m = _manifest(tmp_path, "labels")
     before = tree(tmp_path)
-    assert main(["batch", str(m), "-o", str(tmp_path), "--workers", "1", "--threads", "--quiet"]) == 2
+    assert main(["batch", str(m), "-o", str(tmp_path), "--workers", "1", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "take 'labels'" in err and "input" in err and "\n" not in err
     assert tree(tmp_path) == before

@@ -267,7 +267,9 @@ def test_sequence_roundtrip_and_errors(tmp_path):
         read_pairs(tmp_path / "p.json")
 
 
-def test_cli_register_and_keypoints(tmp_path, capsys):
+def test_cli_register_and_keypoints(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("keyshape.retarget.dense_cli.CONTROLS", 20)
+    monkeypatch.setattr("keyshape.retarget.dense_cli.SAMPLES", 225)
     from keyshape.base.formats.obj import Mesh, read_obj, write_obj
     v, t = grid(11)
     write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
@@ -276,7 +278,7 @@ def test_cli_register_and_keypoints(tmp_path, capsys):
     (tmp_path / "pairs.json").write_text(json.dumps(pairs))
     (tmp_path / "m.json").write_text(json.dumps({"tip": 60}))
     rc = main(["register", str(tmp_path / "ref.obj"), str(tmp_path / "tgt.obj"), "--landmarks",
-               str(tmp_path / "pairs.json"), "-o", str(tmp_path / "fit.obj"), "--controls", "20",
+               str(tmp_path / "pairs.json"), "-o", str(tmp_path / "fit.obj"),
                "--markers", str(tmp_path / "m.json"), "--out-markers", str(tmp_path / "tm.json")])
     assert rc == 0 and read_obj(tmp_path / "fit.obj").n_vertices == len(v)
     assert json.loads((tmp_path / "tm.json").read_text())["tip"]["vertex"] == 60
@@ -297,7 +299,7 @@ def test_cli_register_and_keypoints(tmp_path, capsys):
     assert rc == 2 and "ref.obj" in capsys.readouterr().err        # different point counts, no landmarks
     write_obj(tmp_path / "self.obj", Mesh(frames[0], list(tri)))
     rc = main(["transfer", str(tmp_path / "seq.npz"), "--target", str(tmp_path / "self.obj"), "--keypoints",
-               str(tmp_path / "k.json"), "--samples", "225", "-o", str(tmp_path / "o.npz")])
+               str(tmp_path / "k.json"), "-o", str(tmp_path / "o.npz")])
     out, _ = read_sequence(tmp_path / "o.npz")
     assert rc == 0 and out.shape == frames.shape
     assert np.linalg.norm(out - frames, axis=2).mean() < 0.1 * np.linalg.norm(frames - frames[0], axis=2).mean()
@@ -358,7 +360,8 @@ def test_dense_sequences_are_deterministic(shared_data):
         dense_sequence(shared_data / "ict-facekit", "sneeze")
 
 
-def test_register_outputs_feed_the_mocap_command(tmp_path):
+def test_register_outputs_feed_the_mocap_command(tmp_path, monkeypatch):
+    monkeypatch.setattr("keyshape.retarget.dense_cli.CONTROLS", 20)
     """``register --out-markers/--out-masks`` write what ``keyshape mocap --target-markers/--masks`` reads."""
     from keyshape.retarget.mocap.cli import read_target_markers
     from keyshape.base.formats.masks import read_masks
@@ -374,7 +377,7 @@ def test_register_outputs_feed_the_mocap_command(tmp_path):
     masks = {"regions": [{"name": "lower", "vertices": lower, "exclude_markers": ["far"]}], "note": "kept"}
     (tmp_path / "masks.json").write_text(json.dumps(masks))
     rc = main(["register", str(tmp_path / "ref.obj"), str(tmp_path / "tgt.obj"), "--landmarks",
-               str(tmp_path / "pairs.json"), "-o", str(tmp_path / "fit.obj"), "--controls", "20",
+               str(tmp_path / "pairs.json"), "-o", str(tmp_path / "fit.obj"),
                "--markers", str(tmp_path / "m.json"), "--out-markers", str(tmp_path / "tm.json"),
                "--masks", str(tmp_path / "masks.json"), "--out-masks", str(tmp_path / "tmasks.json")])
     assert rc == 0

@@ -49,7 +49,10 @@ def one_line_error(capsys) -> str:
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("own") / "d2"
-    assert main(["demo", str(d), "--frames", "10", "--labels", "4", "--keys", "2"]) == 0
+    with pytest.MonkeyPatch.context() as mp:                            # a small demo: 4 labels, 2 keys
+        mp.setattr("keyshape.demo.LABELS", 4)
+        mp.setattr("keyshape.demo.KEYS", 2)
+        assert main(["demo", str(d), "--frames", "10"]) == 0
     from keyshape.base.formats.keys import read_keys_source                # the demo's key set names its model
     assert read_keys_source(d / "keys.json")["model"].startswith("sha256:")
     return d
@@ -83,11 +86,13 @@ def test_retarget_into_the_demo_folder_keeps_the_demo(d2):
     assert tree(d2).keys() == before.keys()
 
 
-def test_demo_rerun_keeps_other_commands_files(d2):
+def test_demo_rerun_keeps_other_commands_files(d2, monkeypatch):
+    monkeypatch.setattr("keyshape.demo.LABELS", 4)
+    monkeypatch.setattr("keyshape.demo.KEYS", 2)
     assert main(["retarget", str(d2 / "weights.csv"), "--targets", str(d2 / "targets"), "-o", str(d2)]) == 0
     frames = {k: v for k, v in tree(d2).items() if k.startswith("frame_")}
     (d2 / "notes.txt").write_text("mine")
-    assert main(["demo", str(d2), "--frames", "10", "--labels", "4", "--keys", "2"]) == 0
+    assert main(["demo", str(d2), "--frames", "10"]) == 0
     after = tree(d2)
     assert all(after.get(k) == v for k, v in frames.items())
     assert (d2 / "notes.txt").read_text() == "mine"

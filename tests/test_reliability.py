@@ -155,7 +155,8 @@ def test_partial_tracks_accepted_when_asked(work, tmp_path):
                  "-o", str(tmp_path / "k.json")]) == 0
 
 
-def test_register_writes_nothing_when_markers_are_bad(tmp_path, capsys):
+def test_register_writes_nothing_when_markers_are_bad(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("keyshape.retarget.dense_cli.CONTROLS", 10)
     from tests.test_dense import grid   # noqa: PLC0415 - the test meshes of test_dense
     v, t = grid(6)
     write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
@@ -165,7 +166,7 @@ def test_register_writes_nothing_when_markers_are_bad(tmp_path, capsys):
     (tmp_path / "one.json").write_text(json.dumps([{"reference": i, "target": 0} for i in (0, 5, 30, 35)]))
     before = snapshot(tmp_path)
     rc = main(["register", str(tmp_path / "ref.obj"), str(tmp_path / "tgt.obj"), "--landmarks",
-               str(tmp_path / "pairs.json"), "-o", str(tmp_path / "fit.obj"), "--controls", "10",
+               str(tmp_path / "pairs.json"), "-o", str(tmp_path / "fit.obj"),
                "--markers", str(tmp_path / "m.json"), "--out-markers", str(tmp_path / "tm.json")])
     assert rc == 2 and "vertex 1000000 does not exist" in capsys.readouterr().err
     rc = main(["register", str(tmp_path / "ref.obj"), str(tmp_path / "tgt.obj"), "--landmarks",
@@ -363,7 +364,7 @@ def test_interrupted_demo_exits_130_and_leaves_the_folder_as_it_was(tmp_path):
     out = tmp_path / "demo"
     out.mkdir()
     (out / "old_result.txt").write_text("old")
-    proc = _keyshape("demo", out, "--frames", "60", "--labels", "6", "--overwrite")
+    proc = _keyshape("demo", out, "--frames", "60", "--overwrite")
     _wait_for(lambda: any(out.glob(".keyshape-*.partial/footage/video.mp4")), proc, timeout=300)
     proc.send_signal(signal.SIGINT)
     stdout, stderr = _finish(proc, 120)

@@ -58,7 +58,8 @@ def test_an_ibug68_list_gives_the_shipped_ict_points(shared_data, tmp_path):
         assert np.array_equal(rig_landmarks(rig, "ibug68", f)[0], shipped68)
 
 
-def test_an_ibug68_list_on_a_face_mask_puts_the_pupils_between_the_corners(rigs, loaded, tmp_path, capsys):
+def test_an_ibug68_list_on_a_face_mask_puts_the_pupils_between_the_corners(rigs, loaded, tmp_path, capsys,
+                                                                          monkeypatch):
     """On a rig without eyeballs the derived points are the true ones, the pupils midway between each
     eye's corners, and the command says in one line where the gaze then goes."""
     rig, r = loaded["plain"], rigs["plain"]
@@ -66,8 +67,8 @@ def test_an_ibug68_list_on_a_face_mask_puts_the_pupils_between_the_corners(rigs,
     _, truth = read_rig_landmarks(r["landmarks"])
     assert np.abs(W - truth).max() < 1e-6
     assert np.allclose(W[26], 0.5 * (W[10] + W[14])) and np.allclose(W[27], 0.5 * (W[18] + W[22]))
-    assert main(["rig-check", str(r["rig"]), "--landmarks", str(r["ibug68"]), "--size", "96",
-                 "-o", str(tmp_path / "s.png")]) == 0
+    monkeypatch.setattr("keyshape.retarget.landmarks_cli.SHEET_PANEL", 96)
+    assert main(["rig-check", str(r["rig"]), "--landmarks", str(r["ibug68"]), "-o", str(tmp_path / "s.png")]) == 0
     out = capsys.readouterr().out
     assert "no eyeballs" in out and "Live Link's eye angles" in out
 
@@ -277,10 +278,11 @@ def test_found_landmarks_on_ict_facekit_itself_are_the_shipped_ones(shared_data)
     assert np.array_equal(found.W[26:28], W[26:28])
 
 
-def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(rigs, tmp_path, capsys):
+def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(rigs, tmp_path, capsys, monkeypatch):
     import cv2
     r = rigs["m_zup"]
-    assert main(["rig-check", str(r["rig"]), "--size", "160", "-o", str(tmp_path / "sheet.png")]) == 0
+    monkeypatch.setattr("keyshape.retarget.landmarks_cli.SHEET_PANEL", 160)
+    assert main(["rig-check", str(r["rig"]), "-o", str(tmp_path / "sheet.png")]) == 0
     img = cv2.imread(str(tmp_path / "sheet.png"))
     assert img.shape[1] > 4 * 160                                      # neutral, blink, jaw open, smile
     assert (tmp_path / "sheet.landmarks.json").is_file()

@@ -14,12 +14,12 @@ PACKAGE = ("keyshape", "tracker", "decompose", "retarget", "data_synth")
 #: the most options (``-h`` and hidden ones not counted) a command may have, and all of them together: the aim is
 #: 150 in all; MOST_TOTAL holds what the commands have now and may only come down
 MOST = {"solve": 10, "retarget": 12, "live": 12}
-MOST_TOTAL = 158
+MOST_TOTAL = 150
 #: public functions over 10 parameters that are still to be grouped into an options object: this list may only
 #: shrink (a function here that fits, or one not here that does not, fails the test)
-STILL_OVER = {"retarget/preview_cli.py:write_preview", "retarget/export.py:export",
+STILL_OVER = {"retarget/preview_cli.py:write_preview",
               "keyshape/base/formats/gltf.py:write_glb", "keyshape/base/formats/usd.py:write_usd",
-              "retarget/rig_export.py:export_rig", "tracker/eigenpoints.py:fit_region", "tracker/commands.py:iter_track",
+              "tracker/eigenpoints.py:fit_region", "tracker/commands.py:iter_track",
               "tracker/chunked.py:iter_track_chunked"}
 
 

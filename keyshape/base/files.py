@@ -109,6 +109,12 @@ def current_run() -> Run | None:
     return _RUN
 
 
+def run_overwrite_inputs() -> tuple[bool, list[Path]]:
+    """The active run's ``--overwrite`` and declared inputs, for a folder output's :func:`atomic_dir`
+    (``(False, [])`` in library use, where no run is active)."""
+    return (_RUN.overwrite, list(_RUN.inputs)) if _RUN is not None else (False, [])
+
+
 def _in_temp_folder(path: Path) -> bool:
     """True inside a folder output's hidden temporary folder (checked and recorded when moved in)."""
     return any(_is_hidden_temp(part) for part in Path(os.path.abspath(path)).parts[:-1])
