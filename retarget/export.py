@@ -101,7 +101,7 @@ def write_usd_take(path: Path, mesh, base: np.ndarray, deltas: np.ndarray, names
     """The USD take of a mesh (OBJ topology, UVs) and its shapes as deltas from ``base`` (one writer for
     sculpted targets and rigs): vertex normals and each shape's normal offsets as in the .glb."""
     from keyshape.base.formats.usd import write_usd
-    from keyshape.retarget.rig import vertex_normals
+    from keyshape.base.geometry import vertex_normals
     keep = [i for i, p in enumerate(mesh.polygons) if len(p) >= 3]
     if not keep:
         raise InputError("the mesh has no faces: USD output needs faces")
@@ -228,7 +228,8 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         ids, uvs, tri = split_at_uv_seams(ts.mesh)
         if len(tri) == 0:
             raise InputError("the target meshes have no faces: .glb needs faces", ts.files[0])
-        from keyshape.retarget.rig import material_parts, vertex_normals
+        from keyshape.base.geometry import vertex_normals
+        from keyshape.retarget.rig import material_parts
         mt = ts.mesh.triangles
         n0 = vertex_normals(base, mt)
         nd = np.stack([vertex_normals(base + d, mt) - n0 for d in deltas]) if len(deltas) else None

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from keyshape.base.errors import InputError
+from keyshape.base.geometry import vertex_normals
 
 
 @dataclass
@@ -42,16 +43,6 @@ class OrthoCamera:
         """(n, 3) -> (n, 3): pixel column, pixel row, depth (larger z is nearer)."""
         v = np.asarray(vertices, dtype=np.float64)
         return np.stack([(v[:, 0] - self.x0) * self.scale, (self.y0 - v[:, 1]) * self.scale, v[:, 2]], axis=1)
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals."""
-    v = np.asarray(vertices, dtype=np.float64)
-    fn = np.cross(v[triangles[:, 1]] - v[triangles[:, 0]], v[triangles[:, 2]] - v[triangles[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, triangles[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 def render(vertices: np.ndarray, triangles: np.ndarray, camera: OrthoCamera,

@@ -513,16 +513,6 @@ def material_parts(mesh: Mesh) -> list[tuple[str, np.ndarray, tuple]]:
     return [p for p in parts if len(p[1])]
 
 
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (n_vertices, 3) (``np.bincount``, no loop over faces)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    a, b, c = (v[triangles[:, k]] for k in range(3))
-    fn = np.cross(b - a, c - a)
-    idx = np.concatenate([triangles[:, 0], triangles[:, 1], triangles[:, 2]])
-    n = np.stack([np.bincount(idx, np.tile(fn[:, d], 3), minlength=len(v)) for d in range(3)], axis=1)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-
-
 def support_regions(shapes: np.ndarray, neutral: np.ndarray, columns: Sequence[str],
                     min_fraction: float = 0.02) -> dict[str, np.ndarray]:
     """Region vertex groups from the targets' own support (no hand-made regions file).

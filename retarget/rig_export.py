@@ -69,7 +69,8 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)
     if kind == "glb":
         from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
-        from keyshape.retarget.rig import material_parts, vertex_normals
+        from keyshape.base.geometry import vertex_normals
+        from keyshape.retarget.rig import material_parts
         ids, uvs, tri = split_at_uv_seams(rig.mesh)
         mt = rig.mesh.triangles
         # only the shapes that move, each stored sparse (the vertices it moves): a shape at 0 throughout

@@ -319,7 +319,8 @@ def test_rig_without_landmarks_asks_for_them(tmp_path, capsys):
 def test_rig_glb_has_normals_materials_frame_range_and_passes_validator(tmp_path):
     import pygltflib
 
-    from keyshape.retarget.rig import Rig, vertex_normals
+    from keyshape.base.geometry import vertex_normals
+    from keyshape.retarget.rig import Rig
     from keyshape.retarget.rig_export import export_rig
     verts, deltas = toy_rig_arrays()
     polys = [np.array([i, i + 1, 48]) for i in range(0, 47)] + [np.array([0, 49, 47, 10])]

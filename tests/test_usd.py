@@ -84,7 +84,7 @@ def test_sculpted_targets_evaluated_by_usdskel_equal_keyshape(scene, form, regio
     tmp, d, m, cols, w, frames = scene
     from keyshape.retarget.export import export
     from keyshape.retarget.retargeter import Retargeter
-    from keyshape.retarget.rig import vertex_normals
+    from keyshape.base.geometry import vertex_normals
     from keyshape.retarget.targets import load_targets
     ts = load_targets(list(cols), d)
     reg = {"mouth": np.arange(0, 18), "eyes": np.arange(17, 35)} if regions else None

@@ -214,3 +214,13 @@ def robust_rigid_fit(ref: np.ndarray, frames: np.ndarray, threshold: float, weig
     if redo.any():
         rot[redo], trans[redo], _ = rigid_fit(r[redo], x[redo], np.where(rejected[redo], 0.0, w[redo]))
     return rot, trans, rejected
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (n_vertices, 3) (``np.bincount``, no loop over faces)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b, c = (v[triangles[:, k]] for k in range(3))
+    fn = np.cross(b - a, c - a)
+    idx = np.concatenate([triangles[:, 0], triangles[:, 1], triangles[:, 2]])
+    n = np.stack([np.bincount(idx, np.tile(fn[:, d], 3), minlength=len(v)) for d in range(3)], axis=1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
