@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 
-from keyshape.base import options
 
 
 def register(subparsers) -> None:

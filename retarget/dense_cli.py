@@ -124,7 +124,6 @@ def _initial(spec: str, frames, seed: int):
 
 
 def _keypoints(args) -> int:
-    from keyshape.base.errors import InputError
     from keyshape.base.files import check_outputs
     from keyshape.base.formats.keypoints import write_keypoints
     from keyshape.base.formats.sequence import read_sequence

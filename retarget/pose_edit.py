@@ -24,7 +24,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.base.errors import InputError
 from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, listen, page_files, serve_until_stopped
 
 PAGE_FILES = page_files(Path(__file__).parent / "pose_page")

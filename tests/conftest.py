@@ -1,6 +1,7 @@
 """Shared fixtures: paths to ../shared/data (skip with a reason where absent)."""
 from __future__ import annotations
 
+import hashlib
 import os
 import signal
 from pathlib import Path
@@ -55,3 +56,18 @@ def pytest_runtest_makereport(item, call):
     if rep.skipped and isinstance(rep.longrepr, tuple) and optional_skip_is_failure(str(rep.longrepr[2])):
         rep.outcome = "failed"
         rep.longrepr = f"KEYSHAPE_REQUIRE_OPTIONAL=1 but an optional tool is missing: {rep.longrepr[2]}"
+
+
+def tree(root: Path, folders: bool = False) -> dict[str, str]:
+    """Every file and link under ``root`` (hidden ones included): SHA-256 of its bytes, or the link's target
+    (and with ``folders`` each folder, as ``"dir"``): what a run must leave as it was."""
+    out = {}
+    for p in sorted(root.rglob("*")):
+        rel = p.relative_to(root).as_posix()
+        if p.is_symlink():
+            out[rel] = "link:" + os.readlink(p)
+        elif p.is_file():
+            out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+        elif folders:
+            out[rel] = "dir"
+    return out

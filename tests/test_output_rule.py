@@ -22,6 +22,12 @@ from keyshape.base.files import MANIFEST
 from keyshape.cli import _subparsers, build_parser, main
 from keyshape.declare import ROLES, SIDECARS
 
+from conftest import tree as _tree
+
+
+def tree(root: Path) -> dict[str, str]:
+    return _tree(root, folders=True)
+
 #: phrases of the output layer's refusals (keyshape.base.files.guard_file, keyshape.declare.check_declared)
 REFUSED = ("one of the inputs", "input folder", "symbolic link", "was not written by keyshape",
            "changed since keyshape wrote it")
@@ -55,19 +61,6 @@ def test_every_command_and_every_string_argument_is_declared():
         stale = set(ROLES[name]) - {a.dest for a in sp._actions}
         assert not stale, f"keyshape {name}: ROLES names {sorted(stale)}, which the parser does not have"
     assert set(SIDECARS) <= set(ROLES)
-
-
-def tree(root: Path) -> dict[str, str]:
-    out = {}
-    for p in sorted(root.rglob("*")):
-        rel = p.relative_to(root).as_posix()
-        if p.is_symlink():
-            out[rel] = "link:" + os.readlink(p)
-        elif p.is_file():
-            out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
-        else:
-            out[rel] = "dir"
-    return out
 
 
 def _argv(name: str, sp: argparse.ArgumentParser, root: Path, output_dest: str, output: str) -> tuple[list, list]:

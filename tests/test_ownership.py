@@ -7,7 +7,6 @@ and asserts that nothing but the command's own earlier outputs changed or went a
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -19,17 +18,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import MANIFEST, atomic_dir, check_output_dir
 from keyshape.cli import main
 
-
-def tree(root: Path) -> dict[str, str]:
-    """Every file and link under ``root`` (hidden ones included): SHA-256 of its bytes, or the link's target."""
-    out = {}
-    for p in sorted(root.rglob("*")):
-        rel = p.relative_to(root).as_posix()
-        if p.is_symlink():
-            out[rel] = "link:" + os.readlink(p)
-        elif p.is_file():
-            out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
-    return out
+from conftest import tree
 
 
 def assert_kept(before: dict, after: dict, may_change: set[str] = frozenset()) -> None:

@@ -357,7 +357,6 @@ def refine_regions(img, f, pose, patch, tables, work):
                 if not grad_on:
                     continue
                 k = 1.0 / (8.0 * sd)
-                p = 4 if stretch else 2
                 _gradients(flat, h, w, gxy[0], gxy[1])
                 _box_normal_equations(gxy, idx, k, xc[r], stretch, qt[r], q, e, qe[r], jac, qj, 2 * mi, 2 * nm,
                                       hess, grad)
