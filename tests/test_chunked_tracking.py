@@ -94,8 +94,9 @@ def test_two_jobs_match_one_within_the_trackers_convergence(clip):
     assert [r.index for _, r, _ in rows] == list(range(150))
     (seam,) = seams
     assert seam.frame == 75 and seam.frames_equal and seam.repaired == 0 and seam.max_px <= 0.05
-    # before the seam the first chunk is the sequential run itself
-    np.testing.assert_array_equal(pts[:75], one.points[:75])
+    # before the seam the first chunk is the sequential run itself, to the rounding by which a kernel compiled
+    # in this process may differ from the one a worker loads from numba's cache (tracker/kernels.py)
+    np.testing.assert_allclose(pts[:75], one.points[:75], rtol=0, atol=1e-9)
     np.testing.assert_array_equal(two.success, one.success)
     # after it, a tracker started 30 frames earlier. Both stop aligning once a step moves the patch by
     # less than 0.01-0.03 px, so they end up about that far apart, not equal, and a point read through
@@ -116,7 +117,7 @@ def test_a_seam_that_does_not_converge_is_tracked_through_here(clip):
     one = track_frames(video, model, smooth="savgol")
     seams: list = []
     rows = list(iter_track_chunked(video, model, smooth="savgol", jobs=2, seam_tol=-1.0, seams=seams))
-    np.testing.assert_array_equal(np.stack([p for p, _, _ in rows]), one.points)
+    np.testing.assert_allclose(np.stack([p for p, _, _ in rows]), one.points, rtol=0, atol=1e-9)  # kernels' rounding
     assert seams[0].repaired == 75 and len(seams[0].checks) == 75
 
 
