@@ -71,3 +71,13 @@ def tree(root: Path, folders: bool = False) -> dict[str, str]:
         elif folders:
             out[rel] = "dir"
     return out
+
+
+def gaussian_bumps(rng, t, k: int, width: float, start: float = 0.0):
+    """A smooth random curve over frames ``t``: the upper envelope of ``k`` Gaussian bumps ``width`` frames wide,
+    centred in ``[start, len(t))`` with heights in [0.3, 1] (a shape's curve in a synthetic performance)."""
+    import numpy as np
+    x = np.zeros(len(t))
+    for c, a in zip(rng.uniform(start, len(t), k), rng.uniform(0.3, 1.0, k)):
+        x = np.maximum(x, a * np.exp(-0.5 * ((t - c) / width) ** 2))
+    return x

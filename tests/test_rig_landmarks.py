@@ -16,6 +16,8 @@ from keyshape.cli import main
 from keyshape.data_synth.remesh import remeshed_ict_rig
 from keyshape.retarget.rig import load_rig, project, rig_landmarks
 
+from conftest import gaussian_bumps
+
 SCHEME = load_scheme("contours48")
 #: the curves the issue holds the found landmarks to
 CHECKED = ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R")
@@ -166,10 +168,7 @@ def _performance(names, n=240, seed=0):
     C = np.zeros((n, len(names)))
 
     def bumps(k, width):
-        x = np.zeros(n)
-        for c, a in zip(rng.uniform(20, n, k), rng.uniform(0.3, 1.0, k)):
-            x = np.maximum(x, a * np.exp(-0.5 * ((t - c) / width) ** 2))
-        return x
+        return gaussian_bumps(rng, t, k, width, start=20)
     at = lambda n: names.index(n) if n in names else names.index(ARKIT[n])  # noqa: E731
     C[:, at("jawOpen")] = bumps(5, 10)
     C[:, at("mouthSmile_L")] = C[:, at("mouthSmile_R")] = bumps(4, 12)

@@ -16,6 +16,8 @@ from keyshape.retarget.solve import (HeadParallax, RigLandmarks, RigSolver, _box
                                      mirror_pairs, mirror_partners, pitch_parallax, pose_override,
                                      symmetric_offsets, yaw_slide, yaw_stretch)
 
+from conftest import gaussian_bumps
+
 SCHEME = load_scheme("contours48")
 
 
@@ -158,10 +160,7 @@ def _performance(names, n=400, seed=0):
     C = np.zeros((n, len(names)))
 
     def bumps(k, width):
-        x = np.zeros(n)
-        for c, a in zip(rng.uniform(0, n, k), rng.uniform(0.3, 1.0, k)):
-            x = np.maximum(x, a * np.exp(-0.5 * ((t - c) / width) ** 2))
-        return x
+        return gaussian_bumps(rng, t, k, width)
 
     C[:, names.index("jawOpen")] = bumps(6, 12)
     smile = bumps(5, 15)
