@@ -580,9 +580,9 @@ def _add_wedges(out, y_sum, y_prev, g, ptr, rows, sq, cross, num_sum, num_prev):
                 gk = gk * 0                     # (in the arrays' precision)
             # the factors first, a loop without scatter (vectorised square roots and divisions)
             for i in range(n):
-                d = np.sqrt(sq_k[i] + cross_k[i] * gk)
-                ks[i] = ns_k[i] / d
-                kp[i] = np_k[i] / d
+                r = 1 / np.sqrt(sq_k[i] + cross_k[i] * gk)
+                ks[i] = ns_k[i] * r
+                kp[i] = np_k[i] * r
             u0, u1, u2 = y_sum[f, k, 0], y_sum[f, k, 1], y_sum[f, k, 2]
             w0, w1, w2 = y_prev[f, k, 0], y_prev[f, k, 1], y_prev[f, k, 2]
             o = out[f]
