@@ -1,21 +1,7 @@
 """Reconstruction error against the number of key shapes, per selector and region (Figure 6),
 and the target-domain distortion of Figures 4 and 5.
 
-Errors are measured in image pixels: the reconstruction (model frame) is mapped
-back with each frame's pose and compared with the tracked points.
-
-- ``error``: eq. (5) of 004_119ba07521a9af0b.txt, ``E = sum_t ||Q_t - F(w_t, S)||^2``, summed over
-  the successful frames and the region's points (pixels squared);
-- ``rms_px``: ``sqrt(E / (n_frames * n_points))``, the RMS point error in pixels.
-
-Target-domain check: the artist's key shapes are stood in for by the source key
-shapes displaced by a smooth random field ``f(p) = p + a * phi(p)`` (``phi`` a random
-sum of low-frequency sinusoids of the model-frame position with unit RMS over the
-face, ``a`` the amplitude in pixels), applied to the neutral and to every key. The
-weights of each frame are applied to those displaced keys, and the result is
-compared with the same field applied to the true frame, ``f(Q_t)``. Were the frame
-truly a morph of the keys, and the field affine, the two would agree; large
-weights of both signs (least squares) amplify the field's non-affine part.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/compare.py``.
 """
 from __future__ import annotations
 

@@ -1,42 +1,18 @@
 """Gaze: each eye's yaw and pitch from its pupil relative to its corners, in the head's frame.
 
-In the head-frame shapes (:class:`~keyshape.decompose.head3d.HeadPose3D`: the head's rotation
-removed, the face brought to the front) a pupil that moves by ``d`` (in units of the eye's width
-``w``, corner to corner) sideways from where it sits when the eye looks straight ahead has turned
-the eyeball by
+A pupil moved by ``d`` (in eye widths, along the eye's corner-to-corner axis and across it) from where it sits looking
+straight ahead (its median over the take) has turned the eyeball by
 
     ``yaw = asin(d_x w_cm / r)``,  ``pitch = asin(d_y w_cm / r)``                          (1)
 
-with ``r`` = 1.2 cm the eyeball's radius and ``w_cm`` = 2.6 cm an adult eye's width (a person's eye;
-ICT-FaceKit's generic face is 2.69 cm wide, but its eyeball is 3.2 cm across with the pupil 1.67 cm from
-the centre, so on the synthetic 3D take, whose eyes are ICT-FaceKit's, Eq. 1 reads the angles 1.15-1.44
-times their size from the exact landmarks); ``d`` is measured along the eye's corner-to-corner axis and
-across it. Straight ahead is each eye's median pupil position over the take (a take looks mostly at
-the camera or the scene ahead). While an eye is closed (its lid gap under half its median) its pupil
-is not seen: the last open frame's gaze is held.
-
-The lids' pull (:class:`LidDrag`): as the upper lid comes down it covers the iris from the top, and a
-tracker that places the pupil from the eye's appearance moves it down with the lid. On franck.mp4 the
-person-specific tracker's pupil height follows the lids' closure at r 0.87-0.91 (head frame), a blink
-lowering it by 0.07-0.09 eye widths on average (a 10-degree look down) before the lids are half shut
-(the hold above). The measured offset is modelled as the gaze plus the lids' pull during blinks,
+with ``r`` = 1.2 cm the eyeball's radius and ``w_cm`` = 2.6 cm an adult eye's width. The lids' pull
+(:class:`LidDrag`) on a tracked pupil is modelled as
 
     ``d_t = g_t + k b_t``,   ``b_t = c_t - open_{s_b}(c)_t``,   ``c_t = 1 - gap_t / median(gap)``   (2)
 
-``b`` the brief part of the lids' closure ``c``: ``c`` less its grey opening (a running minimum then
-maximum) over a blink's longest, ``s_b`` = 0.4 s, which takes away the peaks shorter than that (the
-blinks) and keeps held closures and their steps (a look down lowers the lids too). ``k`` is a 2-vector
-per eye (eye widths per unit of closure). Over a blink the gaze stays put, so ``k`` is the least-squares
-slope of ``d``'s brief part (``d`` less its running median over twice a blink) on ``b`` over the frames the
-eye is open, and ``k b_t`` is taken from the pupil, which then no longer rises during the blinks
-(figures: docs/benchmarks.md). The slow part of the
-closure is left alone: a held look down lowers the lids too (the lid follows its eye), and over a take the
-two are not told apart. On the 3D synthetic take's tracks (``synth face3d``, seeds 0 and 1) ``k`` is 0.02-0.18
-down and the gaze's RMS error against the truth moves by 0.15 degrees at most.
-
-Signs follow the head's (:func:`keyshape.decompose.head3d.euler_angles`): yaw > 0 when the eye turns
-to the actor's left, pitch > 0 when it looks down. The actor's left eye is the image-right eye
-(contours48's ``eye_right`` and ``pupil_right``).
+``b`` the brief part of the lids' closure ``c`` (``c`` less its grey opening over ``s_b`` = 0.4 s), ``k`` a 2-vector per
+eye. Signs follow the head's: yaw > 0 when the eye turns to the actor's left, pitch > 0 when it looks down.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/gaze.py``.
 """
 from __future__ import annotations
 

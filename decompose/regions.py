@@ -1,27 +1,6 @@
 """Face regions, head-pose removal and per-region key shapes and weights.
 
-The paper models the eye and mouth regions separately (section 5), and
-animates the pupils as their own region. Regions here are built from the
-landmark scheme's regions:
-
-=========  ===================  ==========================
-region     scheme regions       contours48 points
-=========  ===================  ==========================
-mouth      ``mouth``            28-47 (outer and inner lip)
-eyes       ``eyes+brows``       0-25 (brows and eyelids)
-pupils     ``pupils``           26-27
-=========  ===================  ==========================
-
-Key shapes must be expressions, not head motion: :func:`model_shapes` maps every
-tracked frame into the model frame with the inverse of its head pose before anything
-is selected or decomposed. The head pose is the nearest similarity of the tracker's
-``image_from_model`` affine (:func:`head_pose`; the paper's "scaled 2D translation and
-rotation"): the affine's shear and anisotropic scale are not head motion for a frontal
-2D tracker but expression that image alignment absorbed (an opening jaw stretches the
-face vertically), and removing them took it from the shapes. By default the head is then
-stabilised on the scheme's rigid points (:func:`head_shapes`,
-:class:`~keyshape.decompose.stabilize.RigidStabilizer`), since the tracker's pose also
-moves with the expression; :func:`stable_pose` is the head pose that goes with those shapes.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/regions.py``.
 """
 from __future__ import annotations
 

@@ -1,14 +1,6 @@
 """Key-shape selectors (section 4.2 of 004_119ba07521a9af0b.txt) with one estimator interface.
 
-Every selector takes ``shapes`` (n_frames, n_points, dim) in the model frame (head
-pose removed) and, after ``fit``, has
-
-- ``indices_`` (n_keys,) : the chosen frames (row indices into ``shapes``);
-- ``keys_`` (n_keys, n_points, dim) : the key shapes (``shapes[indices_]`` except for
-  k-means with ``centre="mean"``, whose keys are cluster centres of mass);
-- ``neutral_`` (n_points, dim) : the mean shape the PCA and the weights are centred on.
-
-Swap one for another in one line: ``SpreadSelector(12).fit(shapes).indices_``.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/selectors.py``.
 """
 from __future__ import annotations
 

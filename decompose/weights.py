@@ -1,16 +1,6 @@
 """Blend weights of key shapes for every frame: least squares, NNLS (eq. 4) and smoothed NNLS.
 
-Section 4.1 of 004_119ba07521a9af0b.txt. Each frame ``Q_t`` is written as a
-linear morph of the key shapes (eq. 3). Shapes are taken relative to a
-``neutral`` shape (the mean of the sequence, as the paper's PCA centres them),
-so a frame is ``Q_t = neutral + sum_i w_ti (S_i - neutral)``; pass
-``neutral=None`` for the paper's literal absolute form ``Q_t = sum_i w_ti S_i``.
-
-All solvers are vectorised over frames. The key basis ``B`` (n_keys, d) is
-reduced once to its Gram matrix ``G = B B^T = R^T R`` (``R`` from the QR factor
-of ``B^T``) and every frame is projected with one matrix product ``h = X B^T``;
-the per-frame problem ``min_w ||B^T w - x||^2`` is then the k-sized
-``min_w w^T G w - 2 h^T w`` (the same minimiser, the constant ``||x||^2`` dropped).
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/weights.py``.
 """
 from __future__ import annotations
 

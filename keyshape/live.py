@@ -1,21 +1,6 @@
 """``keyshape live``: a camera (or a video played at its own rate) to a rig's curves, streamed as it happens.
 
-Every frame goes through the offline chain one frame at a time, with the same code:
-the tracker (:func:`keyshape.tracker.commands.iter_track`), the rig's per-frame solve of ``keyshape solve``
-(:func:`keyshape.retarget.api.fit_solve`, fitted once on a calibration take: its statistics, such as each eye's
-deepest closure, the rest's offset and the mouth's slide under yaw, then :meth:`~keyshape.retarget.api.TakeSolve.curves`
-per frame), with ``--poses`` the artist's pose library over it as ``solve --poses`` (the frame's key weights,
-:func:`keyshape.decompose.api.decompose_keys`, per-frame NNLS), the 3D head's yaw, pitch and roll and the eyes'
-angles (:class:`LiveHead`: fitted once on the calibration tracks, then
-:func:`keyshape.retarget.api.head_from_tracks` and :func:`keyshape.decompose.gaze.gaze_angles` per frame)
-and the Live Link Face values (:func:`keyshape.retarget.output.export.livelink_values`), then one Live Link Face
-UDP packet per frame
-(:mod:`keyshape.base.formats.livelink`; Unreal's Live Link Face source, port 11111) and, with
-``--osc``, one OSC message per rig curve.
-
-It needs every stage, so it lives at the roof (docs/architecture.md). Frames whose face is lost are
-sent as the neutral (all curves 0, head and eyes at rest) and the status line says so; the face found again
-resumes the curves. Ctrl-C stops cleanly (exit 130).
+Design notes and figures: docs/live.md, "Notes on the code", ``keyshape/live.py``.
 """
 from __future__ import annotations
 

@@ -1,36 +1,6 @@
-"""Batched eigen-points tracking with torch and kornia: many frames per call (the GPU path).
+"""Batched eigen-points tracking with torch and kornia (section 3 of 004_119ba07521a9af0b.txt): many frames per call.
 
-The CPU tracker (:class:`keyshape.tracker.fitting.Tracker`) handles one frame
-at a time. This module does the same arithmetic for a batch of ``B`` frames
-at once, as tensor operations that run on a GPU (``device="cuda"``) or on
-CPU torch:
-
-* the gray conversion and the Gaussian pyramid (``cv2.cvtColor`` and
-  ``cv2.pyrDown`` reproduced bit for bit with integer-valued convolutions);
-* the model-frame warp of every frame in one
-  :func:`kornia.geometry.transform.warp_affine` call per pyramid level
-  (bilinear, replicated border, OpenCV's pixel-centre convention);
-* the lighting normalisation, the projection on the eigenbasis and the
-  eigen-points reading (section 3 of 004_119ba07521a9af0b.txt) as one batched
-  matrix product (:func:`read_batch`);
-* the per-frame pose refinement of :meth:`Tracker.align` (coarse
-  inverse-compositional steps, then the forward-compositional polish on the
-  eigen residual) iterated for all frames in parallel (:func:`refine_batch`);
-* an offline tracker over a whole video, batch by batch (:func:`track_batch`).
-
-The warp differs from ``cv2.warpAffine`` in one detail: OpenCV quantises the
-sampling positions to 1/32 pixel and its bilinear weights to 15 bits, kornia
-samples at the exact positions. The patches then differ by at most one grey
-level at a few pixels, and the points read from them by ~1e-3 px (measured in
-``tests/test_torch_batch.py`` and docs/tracker.md).
-
-The torch path reads the whole-face model only: the per-region refinement of
-the CPU tracker (eyes, brows and lips read by their own eigen-point models, see
-:mod:`keyshape.tracker.fitting`) is not batched yet, so its points equal
-``Tracker(model, region_iter=-1)``'s and not the default CPU tracker's.
-
-torch and kornia are optional (``pip install keyshape[torch]``); they are
-imported only when a function here is called.
+Design notes and figures: docs/scale.md, "Notes on the code", ``tracker/torch_batch.py``.
 """
 from __future__ import annotations
 

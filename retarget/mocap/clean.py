@@ -1,13 +1,6 @@
 """Marker cleaning: rigid head-motion removal and missing-marker rebuilding (001_7296bf6ea73cabea.txt, 5.1 end, 5.2).
 
-All functions take and return arrays ``(n_frames, n_markers, 3)`` with NaN gaps and
-never modify their input.
-
-Rigid motions are ``x_frame = x_ref @ R.T + t`` (``frame_from_ref``), fitted by
-:func:`keyshape.base.geometry.rigid_fit` for every frame at once; a marker hidden in a
-frame simply has weight 0 there. A rigid marker that does not follow the others in a frame
-(mislabelled, swapped, knocked) is rejected there by RANSAC
-(:func:`keyshape.base.geometry.robust_rigid_fit`, scikit-image) instead of tilting the head.
+Design notes and figures: docs/mocap.md, "Notes on the code", ``retarget/mocap/clean.py``.
 """
 from __future__ import annotations
 

@@ -1,22 +1,6 @@
 """Preview a take on a rig: the footage with its tracked contours beside the shaded character.
 
-:class:`RigRenderer` draws a blendshape rig fast enough to play a take (the 26,719-vertex
-ICT-FaceKit head in about 15-40 ms of CPU per 480-px frame) with a depth-sorted painter's algorithm
-on OpenCV's ``fillPoly``: back faces are culled, triangles are sorted by layer (inner parts of the
-head first, see :data:`LAYERS`) and far to near, shaded per triangle (Lambert with the mean of its
-vertex normals, from a light near the viewer) in the base colour of its material, and drawn in depth
-bands of ``band`` triangles, one ``fillPoly`` call per (material, shade level) within a band. Within a
-band the order is not kept; a band is a thin slice of depth of one layer, so the faces that overlap
-inside one are rare and small. Transparent materials (alpha 0: ICT-FaceKit's eye occlusion, eye blend
-and lacrimal shells) and eyelashes (cards that, drawn opaque, hide the eyes) are not drawn.
-
-What does not change from frame to frame is done once, in :meth:`RigRenderer.fit`: the triangles
-that face away in every shape or lie out of view are dropped; with ``cull_hidden`` (a take's preview,
-whose curves are known), so are those that no sampled frame shows through a z-buffer
-(:meth:`RigRenderer.visible_triangles`: on ICT-FaceKit about half of the rest, the eyeballs' backs,
-teeth and gums behind the lips, the inside of the mouth and nostrils); the vertices these triangles
-use and the deltas of the shapes that move are gathered into one float32 matrix, so a frame's
-deformation is one matrix-vector product (:meth:`RigRenderer.render_curves`).
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/output/preview.py``.
 """
 from __future__ import annotations
 

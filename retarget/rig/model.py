@@ -1,18 +1,6 @@
 """An artist's blendshape rig: a neutral mesh plus named shapes of one topology (ARKit, FACS, ICT-FaceKit).
 
-Unlike the paper's route (section 5 of 004_119ba07521a9af0b.txt: one sculpted
-target per key shape), a rig's shapes are not tied to key shapes; a pose library
-(:mod:`keyshape.retarget.rig.poses`) says which mix of rig shapes each key is, and the
-rig is then driven by its own curves.
-
-A rig is given as a folder of OBJ files (``--rig DIR``) or a list of OBJ files.
-The neutral is ``--neutral FILE``, else the folder's ``neutral.*`` or
-``generic_neutral_mesh.obj`` (ICT-FaceKit's name). Every other OBJ is a shape named
-by its file stem, except in a folder with ICT-FaceKit's ``vertex_indices.json``,
-whose ``expressions`` list names the shapes (so ``identity*.obj`` are not shapes).
-The scheme points' rig vertices come from ``--landmarks FILE`` (see
-:mod:`keyshape.base.formats.poses`) or, for a rig of ICT-FaceKit's 26,719 vertices,
-from the correspondence shipped in ``retarget/data/``.
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/rig/model.py``.
 """
 from __future__ import annotations
 

@@ -1,21 +1,8 @@
 """A pose library: each key shape as a mix of an artist's rig shapes, and rig curves from key weights.
 
-The paper (section 5 of 004_119ba07521a9af0b.txt) replaces each source key shape
-``S_i`` by an artist's target ``T_i`` and keeps the weights (Eq. 2). With an
-existing rig, the target of key ``i`` is itself a rig pose ``T_i = N + D p_i``
-(``D`` the rig's shape deltas, ``p_i`` its weights), so the retargeted frame
-
-    ``N + sum_i w_i (T_i - T_n) + (T_n - N) = N + D (p_n + sum_i w_i (p_i - p_n))``
-
-is the rig driven by the curves ``c = p_n + W (P - p_n)`` (:func:`rig_curves`), where
-``p_n`` is the pose of the shape the key weights are relative to (the take's mean,
-or nothing when keys were chosen relative to the actor's neutral frame).
-
-:func:`fit_pose` suggests ``p_i``: non-negative rig weights within the shapes'
-range, sparse, whose projected landmark motion matches the key's 2D motion from
-the actor's neutral (bounded least squares with an L1 term), after mapping the
-2D motion into the rig's frame with a similarity fitted between the actor's
-neutral and the rig's neutral landmarks (:func:`fit_similarity`).
+Section 5 of 004_119ba07521a9af0b.txt (Eq. 2) with each target a rig pose ``T_i = N + D p_i``: the rig is driven by
+the curves ``c = p_n + W (P - p_n)`` (:func:`rig_curves`); :func:`fit_pose` suggests each ``p_i``.
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/rig/poses.py``.
 """
 from __future__ import annotations
 
