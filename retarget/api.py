@@ -274,12 +274,9 @@ def apply_gaze(curves: np.ndarray, rig, tracks: Tracks, frames: np.ndarray, head
                say=print, gaze: str = GAZE) -> tuple[np.ndarray, np.ndarray | None]:
     """The eye angles from the pupils (n_frames, 4; :func:`gaze_from_tracks`; None where the scheme has no
     pupils or ``gaze`` is ``"none"``) and the rig's curves, with ``gaze="shapes"`` its ``eyeLook*`` shapes
-    set from them (:func:`~keyshape.retarget.rig.model.gaze_curves`). What the rig cannot show is said in one line
-    through ``say``.
-
-    ``"angles"`` (the default) leaves the curves alone: ICT-FaceKit's ``eyeLook*`` shapes move the lids
-    too, and the 2D pupils' vertical position goes with the lids', so driving them costs the lid closure
-    (docs/benchmarks.md)."""
+    set from them (:func:`~keyshape.retarget.rig.model.gaze_curves`); ``"angles"`` leaves the curves alone. What
+    the rig cannot show is said in one line through ``say``.
+    """
     from keyshape.retarget.rig.model import gaze_curves
     if gaze not in GAZES:
         raise InputError(f"gaze {gaze!r}: use one of {', '.join(GAZES)}")

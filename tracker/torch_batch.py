@@ -390,23 +390,11 @@ def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int 
                 start_pose=None, crop_margin: float = 0.5):
     """Track a whole video offline, ``batch`` frames per tensor call (the GPU path).
 
-    The first frame is found by the CPU tracker (its whole-frame search) unless
-    ``start_pose`` is given. Each batch of decoded frames is then refined in
-    parallel: pass 1 starts every frame of the batch from the last pose of the
-    previous batch and runs the coarse-to-fine alignment and the polish; each
-    further pass starts frame ``i`` from the refined pose of frame ``i - 1``
-    (the previous frame's pose, as the CPU tracker does sequentially) and runs
-    the full-resolution polish only (the tracker's fast path; a step is kept
-    only if it lowers the residual). Information thus travels one frame per
-    pass from the previous batch: more passes or smaller batches bring the NME
-    closer to the CPU tracker's (docs/tracker.md). Passing the coarse level in the
-    later passes as well was measured worse (a frame whose pass-1 pose diverged
-    hands its error on).
-
-    Unlike :class:`Tracker`, there is no lost-track detection or recovery
-    here: a frame whose residual is above the tracker's lost threshold is
-    reported with ``success`` False but the batch keeps its pose. Use it on
-    footage the CPU tracker follows without losses, where its speed matters.
+    The first frame is found by the CPU tracker unless ``start_pose`` is given. Pass 1 starts every frame of a
+    batch from the previous batch's last pose (coarse-to-fine alignment and polish); each further pass starts
+    frame ``i`` from frame ``i - 1``'s refined pose (the full-resolution polish only), so more passes or smaller
+    batches come closer to the CPU tracker. No lost-track recovery: a frame above the lost threshold is
+    reported with ``success`` False and keeps its pose.
 
     Parameters
     ----------

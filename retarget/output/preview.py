@@ -129,17 +129,11 @@ class RigRenderer:
                           n_spread: int = 8, resolution: float | None = None) -> np.ndarray:
         """Which of the triangles ``candidates`` (indices into ``tri_``) some sampled frame shows, grown by one ring.
 
-        The frames sampled: ``n_spread`` spread over ``curves`` (n_frames, n_shapes), and those where a
-        shape's curve is at its largest (and, with ``rotations``: row i's (3, 3) turn, a head angle at
-        its largest or smallest); each goes through a z-buffer (:func:`keyshape.base.raster.rasterize`) in the painter's
-        order of :meth:`render` (a higher layer hides a lower one wherever it covers it, then nearer
-        hides farther) at ``resolution`` times the output size (default: half of it, but no less than 240
-        pixels nor more than the output). A triangle that covers no pixel centre in any
-        of them but shares a vertex with one that does is kept too (slivers, and the frames between the
-        samples): on the ICT-FaceKit head and franck's take (240 frames at 480 px) the half-size test keeps
-        16,075 of the 32,646 candidates (16,161 at full size), and the frames drawn with them differ from
-        those drawn with all candidates in 0.12% of their pixels (by more than 30 levels; ``tests/
-        test_preview_render.py`` holds that below 0.3%, on frames not sampled too).
+        The frames sampled: ``n_spread`` spread over ``curves`` (n_frames, n_shapes), those where a shape's curve is
+        at its largest and, with ``rotations`` (row i's (3, 3) turn), where a head angle is at an extreme; each goes
+        through a z-buffer (:func:`keyshape.base.raster.rasterize`) in :meth:`render`'s painter's order at
+        ``resolution`` times the output size (default half, at least 240 pixels, at most the output). A triangle
+        sharing a vertex with a shown one is kept too.
 
         Returns a boolean mask over ``candidates``.
         """

@@ -251,16 +251,9 @@ def nuisance_motions(points: np.ndarray, kind: str = "translation") -> np.ndarra
 
 
 def auto_nuisance(region: str, stabilized: bool) -> str:
-    """The ``auto`` nuisance of a region: ``translation`` for the mouth; for the other regions
-    ``none`` when the keys' head was stabilised on rigid points, else ``similarity``.
-
-    The mouth moves against the eye corners with head pitch and yaw (the upper lip's height
-    above the eye-corner line varies by 0.03 inter-ocular distances (SD) on franck and cap12_edit
-    in all three of keyshape's, dlib's and MediaPipe's points, as much as half the lip gap's
-    variation), which no rigid stabilisation in 2D removes; without the free translation the
-    rig's jawOpen curve follows MediaPipe's lip gap with r 0.32 on cap12_edit instead of 0.99
-    (``bench/real_rig_accuracy.py``). The eyes-and-brows region holds the rigid points
-    themselves, so once they are stabilised its rotation and scale are no longer free.
+    """The ``auto`` nuisance of a region: ``translation`` for the mouth (it moves against the eye corners with head
+    pitch and yaw, which no 2D stabilisation removes); for the other regions ``none`` when the keys' head was
+    stabilised on rigid points, else ``similarity``.
     """
     if region == "mouth":
         return "translation"
