@@ -105,17 +105,11 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
             amplitude: float = 3.0, rng=None, progress=None, workers: int | None = None) -> list[dict]:
     """Rows of :data:`COLUMNS` for every method, region and k in kmin..kmax.
 
-    Weights are NNLS (eq. 4), as in Figure 6. ``hull2`` gives one row at its own k.
-    ``random`` uses a fresh draw per k. Failed frames are left out.
-
-    Speed: the nested selectors (``spread``, ``greedy``) are fitted once at ``kmax`` and every k
-    reuses one factorisation of the key basis (:class:`_Basis`); the target-domain fields and
-    ``f(frames)`` are drawn once per region, and the per-key fields once per key set for both
-    solvers. Each (region, method) is a job with its own random stream (drawn from ``rng`` in a
-    fixed order), run on ``workers`` processes (default: one per core, at most 4; 1 runs them
-    here), so the rows are the same whatever the number of workers. ``progress`` (a
-    :class:`keyshape.base.progress.Progress`, or None) counts rows, its total set here, so it
-    shows an ETA.
+    Weights are NNLS (eq. 4), as in Figure 6. ``hull2`` gives one row at its own k. ``random`` uses a fresh draw
+    per k. Failed frames are left out. The nested selectors are fitted once at ``kmax``; each (region, method)
+    is a job with its own random stream drawn from ``rng`` in a fixed order, run on ``workers`` processes
+    (default one per core, at most 4; 1: here), so the rows do not depend on the number of workers.
+    ``progress`` (a :class:`keyshape.base.progress.Progress`, or None) counts rows.
     """
     from threadpoolctl import threadpool_limits
 
