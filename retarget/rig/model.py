@@ -118,8 +118,7 @@ def cache_dir() -> Path:
 def _file_hashes(paths: Sequence[Path]) -> list[str]:
     """sha256 of each file's content; a file whose path, device, inode, size, modification time and
     status-change time (ctime) are those recorded in the cache folder's ``hashes.json`` (when its hash
-    was last computed) is not read again (hashing ICT-FaceKit's 152 MB on every command costs a
-    quarter of a second). The ctime is set by the kernel on every write and cannot be set back (``cp
+    was last computed) is not read again. The ctime is set by the kernel on every write and cannot be set back (``cp
     -p``, ``rsync -a`` and tar restore the modification time, not the ctime), so a file edited in
     place keeping its size and modification time is hashed again."""
     import os

