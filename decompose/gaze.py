@@ -272,16 +272,11 @@ def denoise_gaze(angles: np.ndarray, fps: float, head: np.ndarray | None = None,
     """A whole take's eye angles denoised where eye physiology says they hold still (offline only: it sees
     every frame).
 
-    Gaze is held on a target in the world (fixations, the eye counter-rotating in the head as the head turns:
-    the vestibulo-ocular reflex), joined by fast saccades. Each angle is taken to the world frame by adding
-    the head's (``head``: (n_frames, 2) yaw and pitch, same units; None: the head frame), denoised there by
-    1D total variation (:func:`_tv1d`; flat fixations, the saccades' steps kept sharp), and taken back.
-
-    The strength comes from the take's own noise: ``lam = sigma sqrt(L)``, ``sigma`` the frame-to-frame noise
-    (:func:`frame_noise`) and ``L`` the frames of the shortest fixation (``fixation_s``). Total variation
-    holds a stretch flat while the running sum of its noise stays within ``lam`` (a Brownian bridge of
-    ``L`` steps reaches about ``sigma sqrt(L)``), so fixations of ``L`` frames and more come out flat, and a
-    saccade of amplitude ``A`` between fixations of ``L`` frames keeps all but about ``2 lam / L`` of it.
+    Each angle is taken to the world frame by adding the head's (``head``; None: the head frame), denoised there by
+    1D total variation (:func:`_tv1d`: fixations flat, saccades' steps sharp) and taken back, with
+    ``lam = sigma sqrt(L)``, ``sigma`` the frame-to-frame noise (:func:`frame_noise`) and ``L`` the frames of the
+    shortest fixation (``fixation_s``): fixations of ``L`` frames and more come out flat, and a saccade of amplitude
+    ``A`` between them keeps all but about ``2 lam / L`` of it.
 
     Parameters
     ----------

@@ -228,12 +228,10 @@ def frontalise(X: np.ndarray, p: np.ndarray, R: np.ndarray, t: np.ndarray, focal
     """Observed pixels ``p`` (T, n, 2) in the head's frame (Eq. 2): (T, n, 3) camera axes at the
     head's rest orientation; the face points ``X`` (n, 3) give each point's frontal plane.
 
-    The points ``eyeballs`` (pupils) are taken back along their rays to their eyeball instead (Eq. 3):
-    a sphere of radius ``eye_radius`` (cm) centred ``eye_radius`` behind the point's rest place ``X_i``
-    (a pupil looking straight ahead), the ray's first crossing (its nearest approach where the ray misses
-    it). A pupil turns about its eyeball's centre, so a turned eye's pupil lies behind its rest plane
-    (by ``r (1 - cos angle)``) and Eq. 2's plane, seen obliquely, would shift it by that depth times the
-    tangent of the head's turn."""
+    The points ``eyeballs`` (pupils) are taken back along their rays to their eyeball instead (Eq. 3): a sphere of
+    radius ``eye_radius`` (cm) centred ``eye_radius`` behind the point's rest place ``X_i``, the ray's first
+    crossing (its nearest approach where the ray misses it).
+    """
     q = np.concatenate([(p - centre) / focal, np.ones(p.shape[:2] + (1,))], -1)   # rays
     n = R[:, :, 2]                                                                  # R e_z
     P = np.einsum("tij,nj->tni", R, X) + t[:, None]

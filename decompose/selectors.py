@@ -243,19 +243,12 @@ class RandomSelector(_Selector):
 class GreedySelector(_Selector):
     """Greedy forward selection on the NNLS reconstruction error itself (this toolkit's own).
 
-    Starting from no keys, each step adds the frame whose addition most reduces
-    eq. (5), ``E = sum_t min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2``.
-    Each step evaluates a shortlist of candidates exactly and in one batch:
-    the ``n_candidates`` frames that most reduce the *least-squares* residual
-    (one matrix product over all frames: the gain of candidate c is
-    ``||R c_perp||^2 / ||c_perp||^2`` with R the residuals and ``c_perp`` the part of c
-    outside the current keys' span) together with the ``n_candidates`` frames worst
-    reconstructed now (a frame that is poorly reached is a good key). For every
-    candidate the NNLS problems of all evaluation frames are solved together
-    (:func:`~decompose.weights.nnls_gram`, stacked over candidates). On long
-    sequences the error is evaluated on ``max_eval`` frames drawn with ``rng``.
-
-    ``order_`` is nested: the first j keys of a fit with k are the fit with j.
+    Each step adds the frame whose addition most reduces eq. (5),
+    ``E = sum_t min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2``, evaluated exactly on a shortlist:
+    the ``n_candidates`` frames that most reduce the least-squares residual (gain ``||R c_perp||^2 / ||c_perp||^2``)
+    and the ``n_candidates`` frames worst reconstructed now, all candidates' NNLS problems solved together
+    (:func:`~decompose.weights.nnls_gram`); on long takes on ``max_eval`` frames drawn with ``rng``. ``order_`` is
+    nested: the first j keys of a fit with k are the fit with j.
     """
 
     def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None,

@@ -72,17 +72,11 @@ def remove_rigid_motion(positions, rigid=None, reference: int | np.ndarray = 0, 
                         labels=None, outlier_threshold: float | None = None) -> RigidRemoval:
     """Remove rigid head motion (001 section 5.1, last paragraph).
 
-    With ``rigid`` (marker indices of a head jig or any rigid set) a least-squares rigid
-    fit per frame; without, the most rigid markers (:func:`choose_rigid_set`) with
-    ``robust_iters`` rounds of Huber-style reweighting (a marker whose residual exceeds
-    twice the median residual of its frame is down-weighted), so one sliding marker
-    does not tilt the head.
-
-    Then, for a named rigid set (or any set given an ``outlier_threshold``), a frame where a
-    rigid marker lies further than the outlier threshold from its fitted place is refitted by RANSAC
-    (:func:`keyshape.base.geometry.robust_rigid_fit`): the markers that do not follow the
-    consensus are left out there and listed in ``rejected``. Other frames keep the
-    least-squares fit unchanged.
+    With ``rigid`` (a head jig's markers) a least-squares rigid fit per frame; without, the most rigid markers
+    (:func:`choose_rigid_set`) with ``robust_iters`` rounds of reweighting (a marker beyond twice its frame's median
+    residual down-weighted). For a named rigid set (or with ``outlier_threshold``), a frame where a rigid marker lies
+    beyond the threshold is refitted by RANSAC (:func:`keyshape.base.geometry.robust_rigid_fit`), the markers left
+    out listed in ``rejected``.
 
     Parameters
     ----------

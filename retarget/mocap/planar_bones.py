@@ -451,12 +451,9 @@ class PlanarBones:
     def deform_many(self, control_points, chunk: int = 32) -> np.ndarray:
         """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``.
 
-        The bone frames of all frames are one batched call; the fixed part of the map is one
-        sparse product for ``chunk`` frames at a time (the frames side by side as the columns of
-        the right-hand side); the wedge pairs (their factor differs per frame and pair) are one
-        compiled pass over the pairs for a few frames at a time. With a second core (and
-        ``self.threads``, default True) a helper thread does the second half of the take (scipy's
-        sparse kernels and the compiled loop release the GIL).
+        The bone frames of all frames are one batched call, the fixed part of the map one sparse product for
+        ``chunk`` frames at a time, the wedge pairs one compiled pass; with ``self.threads`` a helper thread does the
+        second half of the take.
         """
         c = self._check_controls(control_points)
         if c.ndim != 3:

@@ -187,11 +187,9 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
              with_mesh: bool = True, cache: bool = True) -> Rig:
     """Load a rig from a folder or a list of OBJ files (see the module docstring).
 
-    Parsed once: the arrays are cached (:mod:`keyshape.base.formats.rigcache`) under
-    :func:`cache_dir`, named by :func:`rig_digest` (the files' content), so an edited file is parsed
-    again and ICT-FaceKit loads in a fraction of a second after the first time. A damaged cache file
-    is parsed again and rewritten; an unwritable cache folder only costs the parsing. ``cache=False``
-    parses and writes nothing.
+    Parsed once: the arrays are cached (:mod:`keyshape.base.formats.rigcache`) under :func:`cache_dir`, named by
+    :func:`rig_digest` (the files' content); a damaged cache file is parsed again, an unwritable cache folder only
+    costs the parsing, ``cache=False`` parses and writes nothing.
 
     Raises
     ------
@@ -390,15 +388,10 @@ def gaze_pupil_deltas(landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
                       scheme) -> np.ndarray:
     """The rig's landmark motion per shape with the pupils turned by its gaze shapes.
 
-    A rig's ``eyeLook*`` shapes move the lids (ICT-FaceKit's: ``eyeLookDown`` lowers the upper lid by
-    0.8 of ``eyeBlink``'s travel, and the lower lid with it); the eyeball itself turns with a bone, so the
-    shapes leave the pupil landmarks still. Here each gaze shape also moves its eye's pupil as the eye
-    turned by the shape's full angle (:data:`GAZE_RANGE`) does in the front view (``project``):
-    ``r sin(angle)`` sideways (``eyeLookIn/Out``) or down (``eyeLookDown``; up for ``eyeLookUp``), ``r``
-    the eyeball's radius on the rig's eye (:data:`keyshape.decompose.gaze.EYE_RADIUS_CM` per
-    :data:`~keyshape.decompose.gaze.EYE_WIDTH_CM` of the eye's corner-to-corner width, Eq. 1 of
-    :mod:`keyshape.decompose.gaze`). A solve that sees the pupils then tells a lid lowered by a downward
-    look (pupil down with it) from a blink (pupil still).
+    A rig's ``eyeLook*`` shapes move the lids but leave the pupil landmarks still (the eyeball turns with a bone);
+    here each gaze shape also moves its eye's pupil by ``r sin(angle)`` of its full angle (:data:`GAZE_RANGE`),
+    sideways (``eyeLookIn/Out``) or down (``eyeLookDown``; up for ``eyeLookUp``), ``r`` the eyeball's radius on the
+    rig's eye (Eq. 1 of :mod:`keyshape.decompose.gaze`).
 
     Parameters
     ----------

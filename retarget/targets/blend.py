@@ -102,13 +102,9 @@ class BlendBasis:
 
     def transform(self, weights: np.ndarray, out: np.ndarray | None = None,
                   chunk_frames: int | None = None) -> np.ndarray:
-        """Evaluate all frames: ``(n_frames, n_vertices, dim)``.
-
-        One matrix product ``weights @ basis_`` (BLAS GEMM; in delta form the
-        weights get a last column of ones for the neutral row), written into ``out``
-        when given; ``chunk_frames`` splits the frames into blocks of that many
-        rows to bound the temporary memory (no temporary at all with ``out`` of
-        the basis dtype).
+        """Evaluate all frames: ``(n_frames, n_vertices, dim)``, one matrix product ``weights @ basis_`` (in delta form
+        the weights get a last column of ones), written into ``out`` when given; ``chunk_frames`` bounds the temporary
+        memory.
         """
         if not hasattr(self, "basis_"):
             raise NotFittedError("BlendBasis is not fitted: call fit(targets, ...) first")

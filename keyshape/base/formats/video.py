@@ -177,15 +177,10 @@ class VideoReader:
     def frames(self, start: int = 0, stop: int | None = None, seek: bool = True) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(index, frame)`` for frames ``start`` to ``stop`` (exclusive; None: the end).
 
-        With ``seek`` (default) the decoder is positioned with OpenCV's frame seek (FFmpeg seeks to
-        the key frame before ``start`` and decodes forward to it): frame-exact on the constant-rate
-        mp4 and avi files tested (``tests/test_chunked_tracking.py`` compares the frames with a
-        sequential decode, byte for byte), and where OpenCV reports another position than ``start``
-        the frames before it are decoded and discarded instead. Without ``seek`` they always are
-        (exact on any file; slower). A caller that must be sure compares frames it also has from a
-        sequential decode (:mod:`keyshape.tracker.chunked` compares checksums at its seams).
-        Afterwards ``n_read`` is the index after the last frame decoded (0 if none was), and
-        ``truncated`` says whether a read to the end stopped before the announced frame count.
+        With ``seek`` (default) the decoder is positioned by OpenCV's frame seek (frame-exact on the constant-rate mp4
+        and avi files tested), and where OpenCV reports another position than ``start`` the frames before it are
+        decoded and discarded, as they always are without ``seek``. Afterwards ``n_read`` is the index after the last
+        frame decoded and ``truncated`` says whether a read to the end stopped before the announced frame count.
         """
         start = max(0, int(start))
         cap = self._capture()
