@@ -58,21 +58,14 @@ def prepare(clip: str, work: Path) -> Path:
     return tracks
 
 
-def run_chain(tracks: Path, work: Path, chain: str = "solve", gaze_lids: bool = False) -> tuple[Path, Path]:
-    """README's rig chain from the tracks: curves CSV and Live Link CSV (``gaze_lids``: the experiment, a
-    :class:`~keyshape.retarget.defaults.SolveOptions` field, through the Python API)."""
+def run_chain(tracks: Path, work: Path, chain: str = "solve") -> tuple[Path, Path]:
+    """README's rig chain from the tracks: curves CSV and Live Link CSV."""
     keys, weights, poses = work / "keys.json", work / "weights.csv", work / "poses.json"
     curves, ll = work / "curves.csv", work / "livelink.csv"
     for p in (curves, ll):
         p.unlink(missing_ok=True)
     keyshape("select", tracks, "-k", 8, "--region", "mouth", "--region", "eyes", "-o", keys)
-    if chain == "solve" and gaze_lids:
-        sys.path.insert(0, str(ROOT))
-        from keyshape import api
-        anim = api.solve(api.read_tracks(tracks), api.Keys.load(keys), RIG, api.SolveOptions(gaze_lids=True))
-        anim.export(curves)
-        anim.export(ll, livelink=True)
-    elif chain == "solve":
+    if chain == "solve":
         keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "-o", curves)
         keyshape("solve", tracks, "--keys", keys, "--rig", RIG, "--livelink", "-o", ll)
     else:
@@ -217,7 +210,6 @@ def main() -> None:
     ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
                     help="solve: README's default (per-frame rig solve); poses: decompose + pose + retarget")
     ap.add_argument("--no-sheet", action="store_true")
-    ap.add_argument("--gaze-lids", action="store_true", help="solve with SolveOptions(gaze_lids=True) (the lids with the pupils and eyeLook*)")
     ap.add_argument("--no-ceilings", action="store_true", help="leave out the table of what dlib's points allow")
     a = ap.parse_args()
     failed = []
@@ -226,7 +218,7 @@ def main() -> None:
         tracks = prepare(clip, work)
         out = work / a.chain
         out.mkdir(parents=True, exist_ok=True)
-        curves, ll = run_chain(tracks, out, a.chain, a.gaze_lids)
+        curves, ll = run_chain(tracks, out, a.chain)
         print(f"== {clip} ({a.chain} chain)", flush=True)
         if judge(clip, curves, ll, out / "fidelity.json"):
             failed.append(clip)

@@ -28,8 +28,8 @@ REPO = Path(__file__).resolve().parents[1]
 SCORED = ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R")
 
 
-def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve", gaze_lids: bool = False,
-              from_truth: bool = False, pitch_parallax: bool = False) -> dict:
+def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve",
+              from_truth: bool = False) -> dict:
     """Run the chain in ``work`` (re-using finished steps); returns the paths.
 
     ``from_truth``: select and solve from the take's true landmarks (``take/truth.csv``, a tracks file) instead
@@ -52,11 +52,7 @@ def run_chain(work: Path, seed: int, frames: int, rig: Path, chain: str = "solve
                      "--quiet"]) == 0
     assert main(["select", str(p["tracks.csv"]), "-k", "8", "--region", "mouth", "--region", "eyes",
                  "-o", str(p["keys.json"])]) == 0
-    if chain == "solve" and (gaze_lids or pitch_parallax):   # the experiments: SolveOptions fields, not flags
-        from keyshape import api
-        opts = api.SolveOptions(gaze_lids=gaze_lids, pitch_parallax=pitch_parallax)
-        api.solve(api.read_tracks(p["tracks.csv"]), api.Keys.load(p["keys.json"]), rig, opts).export(p["curves.csv"])
-    elif chain == "solve":                                 # README's rig chain
+    if chain == "solve":                                 # README's rig chain
         assert main(["solve", str(p["tracks.csv"]), "--keys", str(p["keys.json"]), "--rig", str(rig),
                      "-o", str(p["curves.csv"])]) == 0
     else:                                                  # the paper's route: key weights through poses
@@ -189,18 +185,14 @@ def main() -> None:
     ap.add_argument("--rig", default=str(REPO.parent / "shared" / "data" / "ict-facekit"))
     ap.add_argument("--chain", choices=("solve", "poses"), default="solve",
                     help="solve (README's rig chain) or poses (decompose, pose, retarget --poses)")
-    ap.add_argument("--gaze-lids", action="store_true", help="solve with SolveOptions(gaze_lids=True) (the lids with the pupils and eyeLook*)")
     ap.add_argument("--from-truth", action="store_true",
                     help="select and solve from the take's true landmarks (the solve chain's own loss, no tracker)")
-    ap.add_argument("--pitch-parallax", action="store_true", help="solve with SolveOptions(pitch_parallax=True)")
     a = ap.parse_args()
     if a.work:
-        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids, a.from_truth,
-                                     a.pitch_parallax))))
+        print(report(score(run_chain(Path(a.work), a.seed, a.frames, Path(a.rig), a.chain, a.from_truth))))
     else:
         with tempfile.TemporaryDirectory() as tmp:
-            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig), a.chain, a.gaze_lids,
-                                         a.from_truth, a.pitch_parallax))))
+            print(report(score(run_chain(Path(tmp), a.seed, a.frames, Path(a.rig), a.chain, a.from_truth))))
 
 
 if __name__ == "__main__":

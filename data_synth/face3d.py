@@ -1,31 +1,6 @@
 """Synthetic footage of a shaded 3D head (ICT-FaceKit) with exact truth for the rig, the head and the gaze.
 
->>> from data_synth.face3d import synthesize                                   # doctest: +SKIP
->>> out = synthesize("take3d", "../shared/data/ict-facekit", frames=300)      # doctest: +SKIP
->>> sorted(out)                                                                # doctest: +SKIP
-['curves', 'head', 'labels', 'truth', 'truth_json', 'video']
-
-An ICT-FaceKit head (the generic neutral, or a mix of its identities rescaled)
-performs known ARKit curves (speech, smiles, blinks that close, brows, frowns, a
-sideways mouth, gaze with the ``eyeLook*`` lid shapes) while it turns (yaw up to
-30 degrees, pitch 15, roll 10) and moves, and its eyeballs turn with the gaze. A
-perspective camera films it; a numpy z-buffer rasteriser (:mod:`.raster`) shades it
-(Lambert plus ambient, skin, darker lips and brows, eyelashes, teeth, gums, the
-eyes' sclera, iris and pupil drawn procedurally on the eyeball), 2x supersampled.
-
-Geometry (one frame, ``docs/synth.md``): rig coordinates are ICT-FaceKit's
-(centimetres; x = the subject's left, y up, z out of the face). The posed head is::
-
-    V = scale * (identity_neutral + curves @ deltas)                (eyeballs then turned by the gaze)
-    world = R @ (V - pivot) + pivot + translation,   R = Ry(yaw) @ Rx(pitch) @ Rz(roll)
-
-all rotations right-handed about the rig's axes: yaw > 0 turns the face to the
-subject's left (the nose moves image-right), pitch > 0 tips it down (nose down),
-roll > 0 turns it counter-clockwise on the screen (about +z, towards the camera, as
-keyshape's ``HeadRoll``). The camera sits at ``camera_position`` looking along -z:
-``x_img = cx + f * X / d``, ``y_img = cy - f * (Y - cam_y) / d`` with ``d = cam_z - Z``.
-Each eye turns about its eyeball centre by ``Ry(eye_yaw) @ Rx(eye_pitch)`` (relative to
-the head; same signs: yaw > 0 looks to the subject's left, pitch > 0 down).
+Design notes and figures: docs/synth.md, "Notes on the code", ``data_synth/face3d.py``.
 """
 from __future__ import annotations
 

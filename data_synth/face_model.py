@@ -1,24 +1,6 @@
 """The 2D feature geometry of the synthetic face as a function of hidden expression weights.
 
-Everything here lives in the **model frame**: x to the image-right, y down,
-units of about one pixel of a 640x480 frame, origin between the eyes and the
-mouth. The head pose (``image_from_model``, an affine 2x3) maps it to pixels.
-
-Each feature is a smooth *dense curve* (``N_SAMPLES`` points per half) whose
-points are linear in the expression weights: an eye or lip contour is an upper
-and a lower curve, both running from its image-left corner to its image-right
-corner; a brow is one spine curve from image-left to image-right. The renderer
-draws exactly these polylines, and the ``contours48`` landmarks are resampled
-from them by arc length (:func:`resample_by_arc_length`), so every ground-truth
-point lies on a drawn edge.
-
-Side convention
----------------
-Component names are ARKit/ICT-FaceKit names and ``_L``/``_R`` mean the
-**subject's** left/right. A camera faces the subject, so the subject's left is
-the **image-right**: ``eyeBlink_L`` closes the image-right eye (``contours48``
-points 18-25), ``mouthSmile_L`` lifts the image-right lip corner (point 34),
-``browOuterUp_L`` raises the image-right brow's outer end (point 9).
+Design notes and figures: docs/synth.md, "Notes on the code", ``data_synth/face_model.py``.
 """
 from __future__ import annotations
 

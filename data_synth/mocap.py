@@ -1,14 +1,6 @@
 """A synthetic facial-mocap take on the real ICT-FaceKit geometry, with exact dense ground truth.
 
-The neutral head (``generic_neutral_mesh.obj``, centimetres, y up, z forward) is driven by
-time-varying expression weights (talking: jaw, funnel, pucker, close; blinks; smiles;
-brows); about 60 face-skin vertices in the layout of a facial mocap session (brows,
-eyelids, cheeks, nose, outer and inner lips, chin, forehead) are the markers, plus a
-rigid head jig; the whole head moves rigidly; markers get noise and gaps. The ground
-truth is the dense deformed mesh of every frame in the head frame.
-
-Everything is one matrix product: ``vertices_t = neutral + weights_t @ deltas`` with the
-expression deltas stacked once as ``(n_expressions, n_vertices * 3)``.
+Design notes and figures: docs/mocap.md, "Notes on the code", ``data_synth/mocap.py``.
 """
 from __future__ import annotations
 

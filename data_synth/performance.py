@@ -1,13 +1,6 @@
 """A talking performance for a seed: expression weights, gaze, blinks, head pose, light and exposure per frame.
 
-The mouth cycles at syllable rate (about 4-5 Hz, in phrases separated by
-pauses), each syllable an open vowel (``jawOpen``), a rounded one
-(``mouthFunnel``), a pucker (``mouthPucker``) or a closure; smiles and brow
-raises come in slow episodes; blinks every few seconds (now and then one eye
-only); gaze holds fixations joined by fast saccades; the head drifts and
-sometimes moves fast (which the renderer turns into motion blur).
-
-Loops run over events (syllables, blinks), never over frames.
+Design notes and figures: docs/synth.md, "Notes on the code", ``data_synth/performance.py``.
 """
 from __future__ import annotations
 

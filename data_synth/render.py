@@ -1,22 +1,6 @@
 """Render one frame of the synthetic face: model-frame canvas, head pose warp, camcorder degradations.
 
-The face is drawn on a **canvas** in the model frame (``canvas_from_model``:
-a fixed scale and offset), then warped into the image with the frame's head
-pose (``image_from_model``) by one ``cv2.warpAffine``. Everything that does not
-change per frame is precomputed once in :class:`FaceRenderer`: the skin albedo
-with its noise texture (fixed per seed, moving with the face), the surface
-normals for the drifting light, the hair, ears and neck, the alpha matte, the
-background room, the torso layer and the vignette. Per frame only the moving
-features are drawn, each inside its own small region of interest: brows
-(polygons around the brow spine), eyes (lash line, lid crease, then sclera,
-iris and pupil computed analytically on the eye's pixel grid and clipped by
-the lid polygon), lips (outer lip polygon, dark mouth interior with teeth and
-tongue inside the inner lip polygon).
-
-Pixel convention: OpenCV's, pixel centres at integer coordinates, for the
-polygons (filled at 4x resolution and area-averaged), the
-analytic iris and pupil discs and the warp, so the ``contours48`` points
-computed from the same curves lie on the drawn edges to sub-pixel accuracy.
+Design notes and figures: docs/synth.md, "Notes on the code", ``data_synth/render.py``.
 """
 from __future__ import annotations
 

@@ -60,15 +60,9 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
                     rig_neutral: np.ndarray, rig_deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How strongly the rig's own shape must be driven to make each hidden component's 2D motion.
 
-    Each component's landmark motion at weight 1 (``basis[k]``, model frame) is mapped into the
-    rig's frame by the similarity between the face's neutral and the rig's neutral landmarks
-    (:func:`~keyshape.retarget.rig.poses.fit_similarity`, as ``keyshape pose`` maps key motion) and
-    compared with the projected landmark motion ``r_k`` of the component's rig shape(s) (both sides
-    of an unsided name): ``gain_k = <m_k, r_k> / <r_k, r_k>`` is the weight of that shape whose motion
-    best matches it (least squares), ``cos_k`` the cosine between the two motions. A 2D pose fit
-    that picked exactly the right shape would drive it at ``gain_k`` per unit of hidden weight, so
-    ``gain_k != 1`` is a difference of amplitude between the synthetic face and the rig that no
-    2D fit can see, and ``cos_k < 1`` a difference of shape.
+    Each component's landmark motion at weight 1, mapped into the rig's frame by the neutral-to-neutral similarity
+    (:func:`~keyshape.retarget.rig.poses.fit_similarity`), against the projected motion ``r_k`` of its rig shape(s):
+    ``gain_k = <m_k, r_k> / <r_k, r_k>`` (least squares) and ``cos_k`` the cosine between the two motions.
 
     Parameters
     ----------

@@ -1,16 +1,6 @@
 """Synthetic camcorder footage of a talking face with exact ground truth: the public API.
 
->>> from data_synth.video import synthesize          # doctest: +SKIP
->>> out = synthesize("footage", frames=300, seed=0)  # doctest: +SKIP
->>> sorted(out)                                      # doctest: +SKIP
-['labels', 'truth', 'truth_json', 'video']
-
-Outputs (in ``out_dir``): ``video.mp4`` (mp4v), ``truth.csv`` (tracks format,
-``contours48`` landmarks in image pixels and the head pose ``image_from_model``
-per frame, confidence 1, success 1), ``labels/`` (``K`` suggested training
-frames as ``NNNNNN.pts``, chosen to span the performance) and ``truth.json``
-(hidden expression weights per frame with their names, the hidden basis, the
-neutral shape, gaze, seed, size, fps). See ``docs/synth.md``.
+Design notes and figures: docs/synth.md, "Notes on the code", ``data_synth/video.py``.
 """
 from __future__ import annotations
 

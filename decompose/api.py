@@ -129,13 +129,10 @@ def decompose_keys(tracks: Tracks, regions: Sequence[RegionKeys], solver: str = 
                    head_pose: dict | None = None) -> tuple[list[str], np.ndarray]:
     """Per-frame weights of every region's key shapes: (column names ``REGION_K``, weights (n_frames, n_keys)).
 
-    The product's defaults live here: ``solver="smooth"`` (NNLS with a temporal smoothness term,
-    ``smooth_lambda`` 0.1) and ``ridge=0.03`` (Tikhonov shrinkage against tracking noise): on the
-    demo's take the target face's vertex error is 0.68 mm against 1.08 mm for the paper's plain
-    NNLS (``solver="nnls", ridge=0``).
-
-    ``head_pose``: the keys' KEYS.json ``head_pose`` entry; every frame's head is taken out the same
-    way the keys' was (default: the tracker's pose alone, what a key set without the entry means).
+    The product's defaults live here: ``solver="smooth"`` (NNLS with a temporal smoothness term, ``smooth_lambda``
+    0.1) and ``ridge=0.03`` (Tikhonov shrinkage against tracking noise; docs/benchmarks.md). ``head_pose``: the
+    keys' KEYS.json ``head_pose`` entry; every frame's head is taken out the same way the keys' was (default:
+    the tracker's pose alone).
     """
     if solver not in SOLVERS:
         raise InputError(f"unknown solver {solver!r}: use one of {', '.join(SOLVERS)}")

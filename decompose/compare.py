@@ -1,21 +1,7 @@
 """Reconstruction error against the number of key shapes, per selector and region (Figure 6),
 and the target-domain distortion of Figures 4 and 5.
 
-Errors are measured in image pixels: the reconstruction (model frame) is mapped
-back with each frame's pose and compared with the tracked points.
-
-- ``error``: eq. (5) of 004_119ba07521a9af0b.txt, ``E = sum_t ||Q_t - F(w_t, S)||^2``, summed over
-  the successful frames and the region's points (pixels squared);
-- ``rms_px``: ``sqrt(E / (n_frames * n_points))``, the RMS point error in pixels.
-
-Target-domain check: the artist's key shapes are stood in for by the source key
-shapes displaced by a smooth random field ``f(p) = p + a * phi(p)`` (``phi`` a random
-sum of low-frequency sinusoids of the model-frame position with unit RMS over the
-face, ``a`` the amplitude in pixels), applied to the neutral and to every key. The
-weights of each frame are applied to those displaced keys, and the result is
-compared with the same field applied to the true frame, ``f(Q_t)``. Were the frame
-truly a morph of the keys, and the field affine, the two would agree; large
-weights of both signs (least squares) amplify the field's non-affine part.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/compare.py``.
 """
 from __future__ import annotations
 
@@ -119,17 +105,11 @@ def compare(tracks: Tracks, scheme: Scheme, methods=METHODS, regions=None, kmin:
             amplitude: float = 3.0, rng=None, progress=None, workers: int | None = None) -> list[dict]:
     """Rows of :data:`COLUMNS` for every method, region and k in kmin..kmax.
 
-    Weights are NNLS (eq. 4), as in Figure 6. ``hull2`` gives one row at its own k.
-    ``random`` uses a fresh draw per k. Failed frames are left out.
-
-    Speed: the nested selectors (``spread``, ``greedy``) are fitted once at ``kmax`` and every k
-    reuses one factorisation of the key basis (:class:`_Basis`); the target-domain fields and
-    ``f(frames)`` are drawn once per region, and the per-key fields once per key set for both
-    solvers. Each (region, method) is a job with its own random stream (drawn from ``rng`` in a
-    fixed order), run on ``workers`` processes (default: one per core, at most 4; 1 runs them
-    here), so the rows are the same whatever the number of workers. ``progress`` (a
-    :class:`keyshape.base.progress.Progress`, or None) counts rows, its total set here, so it
-    shows an ETA.
+    Weights are NNLS (eq. 4), as in Figure 6. ``hull2`` gives one row at its own k. ``random`` uses a fresh draw
+    per k. Failed frames are left out. The nested selectors are fitted once at ``kmax``; each (region, method)
+    is a job with its own random stream drawn from ``rng`` in a fixed order, run on ``workers`` processes
+    (default one per core, at most 4; 1: here), so the rows do not depend on the number of workers.
+    ``progress`` (a :class:`keyshape.base.progress.Progress`, or None) counts rows.
     """
     from threadpoolctl import threadpool_limits
 

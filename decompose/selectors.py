@@ -1,14 +1,6 @@
 """Key-shape selectors (section 4.2 of 004_119ba07521a9af0b.txt) with one estimator interface.
 
-Every selector takes ``shapes`` (n_frames, n_points, dim) in the model frame (head
-pose removed) and, after ``fit``, has
-
-- ``indices_`` (n_keys,) : the chosen frames (row indices into ``shapes``);
-- ``keys_`` (n_keys, n_points, dim) : the key shapes (``shapes[indices_]`` except for
-  k-means with ``centre="mean"``, whose keys are cluster centres of mass);
-- ``neutral_`` (n_points, dim) : the mean shape the PCA and the weights are centred on.
-
-Swap one for another in one line: ``SpreadSelector(12).fit(shapes).indices_``.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/selectors.py``.
 """
 from __future__ import annotations
 
@@ -251,19 +243,12 @@ class RandomSelector(_Selector):
 class GreedySelector(_Selector):
     """Greedy forward selection on the NNLS reconstruction error itself (this toolkit's own).
 
-    Starting from no keys, each step adds the frame whose addition most reduces
-    eq. (5), ``E = sum_t min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2``.
-    Each step evaluates a shortlist of candidates exactly and in one batch:
-    the ``n_candidates`` frames that most reduce the *least-squares* residual
-    (one matrix product over all frames: the gain of candidate c is
-    ``||R c_perp||^2 / ||c_perp||^2`` with R the residuals and ``c_perp`` the part of c
-    outside the current keys' span) together with the ``n_candidates`` frames worst
-    reconstructed now (a frame that is poorly reached is a good key). For every
-    candidate the NNLS problems of all evaluation frames are solved together
-    (:func:`~decompose.weights.nnls_gram`, stacked over candidates). On long
-    sequences the error is evaluated on ``max_eval`` frames drawn with ``rng``.
-
-    ``order_`` is nested: the first j keys of a fit with k are the fit with j.
+    Each step adds the frame whose addition most reduces eq. (5),
+    ``E = sum_t min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2``, evaluated exactly on a shortlist:
+    the ``n_candidates`` frames that most reduce the least-squares residual (gain ``||R c_perp||^2 / ||c_perp||^2``)
+    and the ``n_candidates`` frames worst reconstructed now, all candidates' NNLS problems solved together
+    (:func:`~decompose.weights.nnls_gram`); on long takes on ``max_eval`` frames drawn with ``rng``. ``order_`` is
+    nested: the first j keys of a fit with k are the fit with j.
     """
 
     def __init__(self, n_keys: int = 8, n_candidates: int = 10, max_eval: int = 1500, rng=None,

@@ -1,18 +1,6 @@
 """Head stabilisation: the head's 2D pose from the points that stay rigid with the skull.
 
-The paper removes "scaled 2D translation and rotation" of the head before it looks
-for key shapes (section 4.1 of 004_119ba07521a9af0b.txt). The tracker's pose is the
-alignment of a whole-face appearance model, so an expression moves it: a brow raise or
-an open jaw pulls the fitted face, and what the pose takes up is missing from (or added
-to) the shapes. Facial capture stabilises on points that do not move with expression
-instead (mocap's head jig, the eye corners and nose bridge of video solvers);
-:class:`RigidStabilizer` does that for 2D tracks: after the tracker's pose is removed,
-each frame is mapped by the similarity (rotation, uniform scale, translation; Umeyama)
-that brings its rigid points (the scheme's ``rigid``: the four eye corners of
-``contours48``) onto their reference position, the take's per-point median.
-
-The head-frame error of the tracked points against the truth, with and without it, is measured
-by ``bench/rig_accuracy.py`` (docs/benchmarks.md, docs/decompose.md).
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/stabilize.py``.
 """
 from __future__ import annotations
 

@@ -1,12 +1,6 @@
 """The take, fitted once: what every stage after tracking reads of a tracked performance.
 
-A :class:`Take` is built once from the tracks (``keyshape track``'s :class:`~keyshape.base.formats.tracks.Tracks`)
-and holds what is known of the video and fitted to it: the frames and their times, the video's frame rate (the
-tracker records it with the tracks: :attr:`~keyshape.base.formats.tracks.Tracks.fps`), the landmark scheme and
-the 3D head (:class:`~keyshape.decompose.head3d.HeadPose3D`, fitted to the take's image points). The solve
-(``keyshape solve``, :func:`keyshape.retarget.api.fit_solve`), ``keyshape retarget --tracks``, ``keyshape live``'s
-calibration and :func:`keyshape.api.solve` build one and hand it on, so the head is fitted once per take and
-the frame rate has one rule (:func:`take_fps`).
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/take.py``.
 """
 from __future__ import annotations
 

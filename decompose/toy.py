@@ -1,12 +1,6 @@
 """A small synthetic performance for tests and benchmarks: low-rank non-negative expression model.
 
-Not a face renderer (``data_synth`` makes videos): this draws tracks directly.
-A ``contours48`` mean face (model frame, units of pixels at scale 1) is moved by
-``n_modes`` smooth random expression deltas per region (none moves the scheme's rigid
-points, the eye corners), mixed with non-negative,
-temporally smooth activations that hold still on stretches (for jitter tests);
-a random similarity head pose maps it into the image, and Gaussian tracking
-noise is added there.
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/toy.py``.
 """
 from __future__ import annotations
 

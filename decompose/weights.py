@@ -1,16 +1,6 @@
 """Blend weights of key shapes for every frame: least squares, NNLS (eq. 4) and smoothed NNLS.
 
-Section 4.1 of 004_119ba07521a9af0b.txt. Each frame ``Q_t`` is written as a
-linear morph of the key shapes (eq. 3). Shapes are taken relative to a
-``neutral`` shape (the mean of the sequence, as the paper's PCA centres them),
-so a frame is ``Q_t = neutral + sum_i w_ti (S_i - neutral)``; pass
-``neutral=None`` for the paper's literal absolute form ``Q_t = sum_i w_ti S_i``.
-
-All solvers are vectorised over frames. The key basis ``B`` (n_keys, d) is
-reduced once to its Gram matrix ``G = B B^T = R^T R`` (``R`` from the QR factor
-of ``B^T``) and every frame is projected with one matrix product ``h = X B^T``;
-the per-frame problem ``min_w ||B^T w - x||^2`` is then the k-sized
-``min_w w^T G w - 2 h^T w`` (the same minimiser, the constant ``||x||^2`` dropped).
+Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/weights.py``.
 """
 from __future__ import annotations
 
@@ -208,31 +198,13 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: fl
               passive: np.ndarray | None = None, coarse: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """Exact NNLS ``min_{w >= 0} w^T G w - 2 h^T w`` for many right-hand sides at once.
 
-    Block principal pivoting (Kim and Park 2011), an active-set method like
-    Lawson-Hanson's that exchanges every infeasible variable at once and falls
-    back to exchanging one (the largest index) when that stops reducing their
-    number; it ends at the point satisfying the KKT conditions ``w >= 0``,
-    ``y = G w - h >= 0``, ``w * y = 0``: the unique NNLS solution for
-    positive-definite ``G``, the one Lawson-Hanson (eq. 4, [Law74]) finds.
-
-    Accuracy: the Gram matrix squares the condition number of the key basis, so where nearly
-    dependent keys give huge weights the result is accurate to about ``eps * cond(B_P)^2``
-    relative to the weights (a Hypothesis case: 6 keys in 4 dimensions, weights ~2,300, residual
-    5.6e-7 where scipy's QR-based Lawson-Hanson fits exactly); on well-conditioned bases (tests:
-    condition numbers up to 1e6) the weights equal scipy's to 1e-9.
-
-    Every pivoting step solves the rows' passive systems ``G_PP w_P = h_P`` together:
-    rows are grouped by ``|P|`` and the compact systems are Cholesky-solved as one
-    vectorised stack (:func:`_passive_solve`), so there is no per-row LAPACK call, and
-    for a shared ``G`` nothing of size ``(m, k, k)`` is formed.
-
-    Warm start (shared ``G``, no ``passive`` given): rows are taken to be frames in time
-    order, whose neighbours have nearly the same passive sets. Every ``coarse``-th row is
-    solved first (from the unconstrained solution's signs), then the rows halfway between
-    solved ones, each starting from its solved predecessor's passive set, halving the
-    stride down to 1. On 100,000 frames x 24 keys this cuts the pivoting work from about 7
-    passive solves per row to about 3.6. The result does not depend on the order (every
-    row ends at its own KKT point); only the speed does. ``coarse=1`` turns it off.
+    Block principal pivoting (Kim and Park 2011): every infeasible variable exchanged at once, one (the largest
+    index) when that stops reducing their number; it ends at the KKT point ``w >= 0``, ``y = G w - h >= 0``,
+    ``w * y = 0``, the NNLS solution Lawson-Hanson finds (eq. 4, [Law74]), accurate to about ``eps * cond(B_P)^2``
+    relative to the weights. Each step's passive systems ``G_PP w_P = h_P`` are Cholesky-solved as one stack
+    grouped by ``|P|`` (:func:`_passive_solve`). Warm start (shared ``G``, no ``passive``): rows are frames in time
+    order; every ``coarse``-th row is solved first, then the rows halfway between, each from its solved
+    predecessor's passive set, halving the stride to 1 (the result does not depend on the order).
 
     Parameters
     ----------
@@ -349,12 +321,8 @@ def nnls_result(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None
     keys : (n_keys, n_points, dim)
     neutral : (n_points, dim) or None
     ridge : float
-        Optional Tikhonov term ``ridge * (trace(G) / n_keys) * ||w_t||^2`` added to eq. (4)
-        (0, the default, is the paper's NNLS). Tracked shapes carry noise, and NNLS explains
-        it with extra weight on keys whose 2D deltas are small; a 3D target face shows those
-        weights as exaggerated expressions (depth motion the 2D contours hardly see); the
-        demo's figures with and without it are in docs/benchmarks.md. Where targets are exactly the 2D key shapes (the toy
-        tracks of ``decompose.toy``) it only adds bias: leave it at 0 there.
+        Optional Tikhonov term ``ridge * (trace(G) / n_keys) * ||w_t||^2`` added to eq. (4) (0, the default,
+        is the paper's NNLS): it keeps tracking noise off keys whose 2D deltas are small.
 
     Returns
     -------
@@ -384,38 +352,14 @@ def smooth_result(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | No
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
-    ``mu = smooth_lambda * trace(G) / n_keys`` (so ``smooth_lambda`` is dimensionless: 1 means
-    a unit weight step costs as much as the mean key shape's squared size), ``m_t`` = 1 for
-    observed frames and 0 for failed ones (whose weights the penalty then interpolates).
-
-    Method (``method="pdas"``, the default since issue 16): the QP's Hessian
-    ``diag(m) (x) G + mu L (x) I`` (``L`` the path-graph Laplacian) is, frame-major, a band matrix
-    of half-bandwidth ``n_keys``, and the primal-dual active-set method of Hintermueller, Ito and
-    Kunisch (2002) solves the QP exactly with one banded Cholesky factorisation per iteration
-    (:func:`_smooth_pdas`), started from the per-frame NNLS fit of the unconstrained smoothed
-    weights. It ends at the KKT point (no infeasible weight, free weights' gradients below
-    ``tol * max(1, max|h|)``, sign tests at 1e-10): the exact QP solution up to rounding whatever
-    ``tol``, which only bounds the stationarity left by windowed re-solves. 100,000 frames x 24 keys
-    (``bench/bench_decompose.py --admm``): 14 iterations, 5.2x lstsq in CPU time against 21.9x for
-    ADMM in the same run. ``max_iter`` caps the iterations (at most 200 for this method).
-
-    ``method="admm"`` (the former default, also the fallback should a factorisation fail or the
-    active set stop shrinking): ADMM on ``W = Z, Z >= 0``, started from per-frame NNLS with a consistent dual. The
-    W-step's matrix ``diag(m) (x) G + mu L (x) I + rho I`` becomes, in the eigenbasis ``V`` of ``G``, ``n_keys`` independent tridiagonal
-    systems. When every frame is observed they share ``L``, which the DCT-II diagonalises
-    (eigenvalues ``2 - 2 cos(pi q / n)``), so all columns are solved at once by one
-    :func:`scipy.fft.dct` / ``idct`` pair and an elementwise division; with unobserved frames the
-    ``n_keys`` systems are stacked into one banded system of length ``n_keys * n``, Cholesky-factored
-    once per value of rho (:func:`scipy.linalg.cholesky_banded`) and solved with one LAPACK call per
-    iteration. The Z-step is clipping at zero (rho rebalanced from the residuals every 10 iterations
-    when they differ tenfold). The ADMM map on the state ``S = Z + U`` is extrapolated by type-II
-    Anderson acceleration with memory ``anderson`` (default 10; 0 = plain ADMM, over-relaxed with
-    1.6), restarted when rho changes or the residual grows a hundredfold. Stops when the primal
-    residual ``max|W - Z|`` and the dual residual ``rho max|Z - Z_prev|`` both fall below
-    ``tol * max(1, max Z)``; ``tol`` bounds these residuals, not the distance to the exact solution
-    (``tol=1e-10`` matches the exact QP to 1e-6). 100,000 frames: 114 iterations.
-    With ``smooth_lambda = 0`` and every frame observed it returns per-frame NNLS (eq. 4) directly. ``ridge`` adds the Tikhonov term of
-    :func:`nnls_weights` on observed frames (``G`` becomes ``G + ridge * trace(G) / k * I``).
+    ``mu = smooth_lambda * trace(G) / n_keys`` (``smooth_lambda`` dimensionless), ``m_t`` = 1 for observed frames
+    and 0 for failed ones (whose weights the penalty interpolates). ``method="pdas"``: the primal-dual active-set
+    method (Hintermueller, Ito and Kunisch 2002) with one banded Cholesky factorisation of
+    ``diag(m) (x) G + mu L (x) I`` per iteration (:func:`_smooth_pdas`), exact at its KKT point; ``max_iter`` at
+    most 200. ``method="admm"`` (also the fallback should PDAS fail): ADMM on ``W = Z, Z >= 0`` with type-II
+    Anderson acceleration of memory ``anderson`` (:func:`_smooth_admm`), stopped when its residuals fall below
+    ``tol * max(1, max Z)``. With ``smooth_lambda = 0`` and every frame observed it returns per-frame NNLS
+    (eq. 4); ``ridge`` adds :func:`nnls_weights`' Tikhonov term on observed frames.
 
     Returns
     -------
@@ -474,24 +418,12 @@ def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.
     """Exact active-set solution of the smoothed-NNLS QP (primal-dual active set, Hintermueller,
     Ito and Kunisch 2002), started from ``W`` (per-frame NNLS); see :func:`smooth_weights`.
 
-    The QP is ``min_{W >= 0} 1/2 vec(W)^T Q vec(W) - vec(H)^T vec(W)`` with the block-tridiagonal
-    ``Q = diag(m) (x) Gs + mu L (x) I`` (frame-major: a band matrix of half-bandwidth ``k``). Each
-    iteration fixes the active weights at zero (a penalty ``1e12`` on their diagonal entries, which
-    leaves the free weights' system exact to ~1e-12), solves the free weights with one banded
-    Cholesky factorisation (LAPACK ``dpbtrf``/``dpbtrs``, single-threaded: OpenBLAS's threads make
-    its many tiny level-2 calls ~30x slower) and exchanges every infeasible weight: a free one gone
-    negative becomes active, an active one with a negative gradient becomes free. When the
-    infeasible weights lie in frames covering under half the take (:data:`_COVER`), only the frames
-    within ``window`` of them are re-solved, the rest held fixed as boundary values; free weights
-    left off their equations next to those windows (gradient above ``tol``) are re-solved the same
-    way (after three such sweeps, all frames). It ends when no weight is infeasible and no free
-    weight's gradient exceeds ``tol``: the KKT point of the QP (exact up to rounding). Returns
-    ``(W, iterations, converged)``. PDAS can cycle when ``Q`` is not an M-matrix (seen on toy
-    tracks with failed frames: one frame's weights exchanged back and forth); as in block principal
-    pivoting, after three exchanges that do not lower the count of infeasible weights only the last
-    infeasible weight is exchanged (Murty's rule, which terminates), over all frames, until the
-    count falls below its best. ``converged`` is False on a failed factorisation or after
-    ``max_iter`` iterations (the caller then falls back to ADMM).
+    The QP is ``min_{W >= 0} 1/2 vec(W)^T Q vec(W) - vec(H)^T vec(W)``, ``Q = diag(m) (x) Gs + mu L (x) I`` (a band
+    matrix of half-bandwidth ``k``). Each iteration holds the active weights at zero, solves the free ones by one
+    banded Cholesky factorisation and exchanges every infeasible weight; where the infeasible weights cover under
+    :data:`_COVER` of the take only frames within ``window`` of them are re-solved. Against cycling, after three
+    exchanges that do not lower the count of infeasible weights only the last is exchanged (Murty's rule). Returns
+    ``(W, iterations, converged)``; ``converged`` is False on a failed factorisation or after ``max_iter``.
     """
     from scipy.linalg.lapack import dpbtrf, dpbtrs
     from threadpoolctl import threadpool_limits

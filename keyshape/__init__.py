@@ -1,15 +1,6 @@
 """keyshape: a filmed facial performance to animation of an artist's own blendshapes.
 
-One import namespace, built in floors (see ``docs/architecture.md``):
-
-- :mod:`keyshape.base`: what every stage shares and that imports no stage: errors,
-  atomic output files, progress, landmark schemes, geometry and drawing, and one
-  module per file format (:mod:`keyshape.base.formats`).
-- the stages, each importing only the base and earlier stages:
-  :mod:`keyshape.tracker` (``tracker/``), :mod:`keyshape.decompose` (``decompose/``),
-  :mod:`keyshape.retarget` (``retarget/``), :mod:`keyshape.data_synth` (``data_synth/``).
-- the roof: :mod:`keyshape.cli` (the ``keyshape`` command) and :mod:`keyshape.demo`,
-  the only modules that know every stage.
+Design notes and figures: docs/python.md, "Notes on the code", ``keyshape/__init__.py``.
 """
 __version__ = "0.1.0"
 

@@ -1,24 +1,6 @@
 """``keyshape animate``: footage to a rig in one command.
 
-``keyshape animate take.mp4 --rig rig/ -o take.glb`` runs the video path's steps with their defaults, each
-through :mod:`keyshape.api` as the step-by-step commands do, and hands each step's file to the next as
-they do (so its curves are the chain's)::
-
-    keyshape label take.mp4 --count 12 -o WORK/labels      (dlib's pre-fill, uncorrected; or --labels DIR)
-    keyshape train take.mp4 --labels LABELS -o WORK/model.npz
-    keyshape track take.mp4 --model WORK/model.npz -o WORK/tracks.csv
-    keyshape select WORK/tracks.csv -k 8 --region mouth --region eyes -o WORK/keys.json
-    keyshape solve WORK/tracks.csv --keys WORK/keys.json --rig rig/ -o take.glb     (each output)
-    keyshape preview take.mp4 --tracks WORK/tracks.csv --curves ... --rig rig/ -o take_preview.mp4
-
-The work folder (``--work``, default ``VIDEO-STEM_work`` beside the first output) keeps the labels, the
-model, the tracks and the key set, and ``animate.json``, the record of what each was computed from
-(content hashes, as ``keyshape batch`` keeps them with :func:`keyshape.batch.digest`): a rerun redoes a
-step only where its inputs changed (corrected labels retrain; the same take and labels skip to the
-outputs, and outputs whose inputs are unchanged are kept).
-
-``keyshape animate --example OUT_DIR`` runs it on the short real clip shipped with the package
-(:mod:`keyshape.data`, with its labels) onto a rig made from the shipped ICT-FaceKit face subset.
+Design notes and figures: docs/tutorial.md, "Notes on the code", ``keyshape/animate.py``.
 """
 from __future__ import annotations
 

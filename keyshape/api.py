@@ -1,34 +1,6 @@
 """The Python API of the video path: footage in, animation out, objects and arrays in memory.
 
-Files appear only at the edges (the video, a labels folder, the artist's targets, and what
-:meth:`Animation.export` writes); everything between is an object::
-
-    from keyshape.api import train, track, select, decompose, retarget, pose, preview
-
-    model = train("footage/video.mp4", "footage/labels")      # labelled frames -> tracker model
-    tracks = track("footage/video.mp4", model)                  # Tracks: points, pose, success
-    keys = select(tracks, k=8, regions=["mouth", "eyes"])      # greedy, relative to the actor's neutral
-    weights = decompose(tracks, keys)                           # smooth solver, ridge 0.03
-    anim = retarget(weights, "targets", regions="targets_regions.json", tracks=tracks)
-    anim.export("animation.glb")
-    # or onto an existing rig, through a pose library (one pose of the rig's shapes per key)
-    lib = pose(keys, "rig/")
-    rig_anim = retarget(weights, poses=lib, rig="rig/", tracks=tracks)
-    rig_anim.export("curves.csv"); rig_anim.export("livelink.csv", livelink=True); rig_anim.export("rig.glb")
-    preview("footage/video.mp4", tracks, rig_anim, "preview.mp4")
-
-The command line (``keyshape train/track/select/decompose/pose/retarget/preview``), ``keyshape
-demo`` and ``keyshape batch`` run these same steps with the same defaults: each function here
-calls the stage's in-memory function (:mod:`keyshape.tracker.commands`,
-:mod:`keyshape.decompose.api`, :mod:`keyshape.retarget.api`) that the stage's command calls too,
-and every default comes from the stage's defaults module (:mod:`keyshape.decompose.defaults`,
-:mod:`keyshape.retarget.defaults`), so the stages keep their floors (a stage never imports this
-roof module) and a default changes in one place.
-
-``train``, ``track``, ``select`` and the result classes are also reachable as ``keyshape.train``
-and so on (loaded on first use); ``decompose`` and ``retarget`` are not, because
-``keyshape.decompose`` and ``keyshape.retarget`` are the stage packages: use
-``keyshape.api.decompose`` / ``keyshape.api.retarget``.
+Design notes and figures: docs/python.md, "Notes on the code", ``keyshape/api.py``.
 """
 from __future__ import annotations
 

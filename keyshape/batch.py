@@ -1,34 +1,6 @@
 """``keyshape batch MANIFEST -o OUT_DIR``: a footage library through the video path on Dask distributed.
 
-The graph (one Dask task per box; the arrows are futures)::
-
-    model(actor)  ->  track(take) ... track(take)  ->  keys(actor)  ->  finish(take) ... finish(take)  ->  report
-
-- ``model``: train the actor's tracker once from its labelled footage (or take the model file given).
-- ``track``: every take in parallel -> ``OUT_DIR/<actor>/<take>/tracks.csv``.
-- ``keys``: one key selection per actor over all of its takes' tracks -> ``OUT_DIR/<actor>/keys.json``.
-- ``poses`` (an actor with a ``rig``): its pose library, the manifest's ``poses`` or fitted once from
-  the key set (``keyshape pose``) -> ``OUT_DIR/<actor>/poses.json``.
-- ``finish``: decompose and retarget every take in parallel (onto the actor's targets, or its rig
-  through the pose library) -> ``weights.csv``, ``animation.glb``, ``curves.csv``, ``livelink.csv``,
-  ``preview.mp4``.
-- the report ``OUT_DIR/report.json`` (per take: frames, lost frames, confidence, seconds, outputs).
-
-Tasks hand each other files, not objects: a track task loads ``model.npz``, the keys task reads
-the ``tracks.csv`` files, a finish task reads ``tracks.csv`` and ``keys.json`` and retargets the
-``weights.csv`` it wrote. A resumed run therefore computes from exactly what a fresh run does, and
-each take's results are what the commands give run one after another with no options beyond
-the manifest's (``keyshape train``, ``track``, ``select`` over the actor's takes, ``pose``,
-``decompose``, ``retarget``, ``preview``): every step takes its defaults from the stage's in-memory
-layer, as the commands and :mod:`keyshape.api` do. The files must be reachable from every worker (one machine, or a shared file
-system; see docs/scale.md).
-
-Resuming: each take folder holds ``batch.json``, the record of what its outputs were computed
-from (content hashes of the video, the model, the tracks, the key set, the targets, and the
-settings), written after the outputs. A rerun recomputes a stage only where that record no
-longer matches; a video's hash is reused while its size and modification time are unchanged.
-A failing take is reported and the others go on; Ctrl-C leaves only complete outputs (every file
-is written atomically, and stale temporary files of an interrupted run are removed).
+Design notes and figures: docs/batch.md, "Notes on the code", ``keyshape/batch.py``.
 """
 from __future__ import annotations
 

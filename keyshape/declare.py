@@ -1,25 +1,6 @@
 """What every command reads and writes: the declaration the output rule checks before any work.
 
-Each subcommand's path arguments are listed here by role, so that ``keyshape.cli.main`` can check
-every output against every input (and against links, foreign files and keyshape's own record,
-:func:`keyshape.base.files.guard_file`) before the command does anything, and then run the
-command under :func:`keyshape.base.files.run_rules`, which applies the same rule to every file
-it writes. ``tests/test_output_rule.py`` walks the command-line parser: a subcommand or a string
-argument missing here fails it, so a new command cannot skip the rule.
-
-Roles:
-
-``in``
-    an input file or folder (never written, never replaced; an output that is the same file,
-    by any spelling, a link or a hard link, is refused).
-``file``
-    an output file.
-``folder``
-    an output folder (its files are checked again when they move in: :func:`~keyshape.base.files.atomic_dir`).
-``file|folder``
-    an output that is a folder when it has no suffix or is an existing folder, else a file.
-``text``
-    a string that is not a path (a name, a frame range, an address).
+Design notes and figures: docs/reliability.md, "Notes on the code", ``keyshape/declare.py``.
 """
 from __future__ import annotations
 

@@ -1,24 +1,6 @@
 """``keyshape demo``: the whole video path on built-in synthetic footage, end to end.
 
-It calls the Python API (:mod:`keyshape.api`), the same functions the commands run:
-
-1. synthetic camcorder-like footage of a talking face with exact ground truth
-   (``keyshape synth video``: landmarks, head pose, the hidden expression weights).
-2. :func:`~keyshape.api.train` on the 20 suggested labelled frames, then
-   :func:`~keyshape.api.track`.
-3. :func:`~keyshape.api.select` (key shapes per region) and :func:`~keyshape.api.decompose`
-   (NNLS weights with a small ridge against tracking noise).
-4. The artist's targets: for each key frame, the ICT-FaceKit expressions combined as
-   the key frame shows them (known here from the hidden weights, as an artist
-   would model a smiling target for a smiling key frame); then :func:`~keyshape.api.retarget`
-   and the ``.glb`` export, and a side-by-side preview video.
-
-Each step's result is also written where the commands would write it (model.npz, tracks.csv,
-keys.json, weights.csv, ...), so the demo's folder can be inspected or resumed by hand.
-
-Because the synthetic performance is made of ICT-FaceKit-named components, the
-ground-truth animation of the target face is known too: the demo reports the
-tracking error (NME) and the retargeted face's vertex error against it.
+Design notes and figures: docs/tutorial.md, "Notes on the code", ``keyshape/demo.py``.
 """
 from __future__ import annotations
 

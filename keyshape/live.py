@@ -1,21 +1,6 @@
 """``keyshape live``: a camera (or a video played at its own rate) to a rig's curves, streamed as it happens.
 
-Every frame goes through the offline chain one frame at a time, with the same code:
-the tracker (:func:`keyshape.tracker.commands.iter_track`), the rig's per-frame solve of ``keyshape solve``
-(:func:`keyshape.retarget.api.fit_solve`, fitted once on a calibration take: its statistics, such as each eye's
-deepest closure, the rest's offset and the mouth's slide under yaw, then :meth:`~keyshape.retarget.api.TakeSolve.curves`
-per frame), with ``--poses`` the artist's pose library over it as ``solve --poses`` (the frame's key weights,
-:func:`keyshape.decompose.api.decompose_keys`, per-frame NNLS), the 3D head's yaw, pitch and roll and the eyes'
-angles (:class:`LiveHead`: fitted once on the calibration tracks, then
-:func:`keyshape.retarget.api.head_from_tracks` and :func:`keyshape.decompose.gaze.gaze_angles` per frame)
-and the Live Link Face values (:func:`keyshape.retarget.output.export.livelink_values`), then one Live Link Face
-UDP packet per frame
-(:mod:`keyshape.base.formats.livelink`; Unreal's Live Link Face source, port 11111) and, with
-``--osc``, one OSC message per rig curve.
-
-It needs every stage, so it lives at the roof (docs/architecture.md). Frames whose face is lost are
-sent as the neutral (all curves 0, head and eyes at rest) and the status line says so; the face found again
-resumes the curves. Ctrl-C stops cleanly (exit 130).
+Design notes and figures: docs/live.md, "Notes on the code", ``keyshape/live.py``.
 """
 from __future__ import annotations
 
@@ -47,12 +32,10 @@ CAMERA_MAX = 9999
 class FrameSource:
     """Frames of a camera (OpenCV device index) or of a video file, with their capture times.
 
-    Iterating yields ``(index, frame)`` like :class:`keyshape.base.formats.video.VideoReader` (what
-    :func:`~keyshape.tracker.commands.iter_track` reads). A file is played at its own frame rate
-    (``pace``): a frame is handed over at its time, and a frame whose time has passed by more than one
-    frame period when it is decoded is dropped and counted as lost, as a camera drops frames that are
-    not read in time; ``pace=False`` hands over every frame as fast as it decodes (tests). A camera's
-    lost frames are the gaps between capture times longer than 1.5 frame periods.
+    Iterating yields ``(index, frame)`` like :class:`keyshape.base.formats.video.VideoReader`. A file is played at
+    its own frame rate (``pace``): a frame more than one frame period late when decoded is dropped and counted as
+    lost, as a camera drops frames; ``pace=False`` hands over every frame (tests). A camera's lost frames are the
+    gaps between capture times longer than 1.5 frame periods.
 
     Attributes
     ----------
@@ -228,22 +211,12 @@ class OscSender:
 class LiveHead:
     """The 3D head's angles and the eyes' angles of one frame, from a calibration fitted offline, once.
 
-    What offline (``retarget --tracks``, ``solve``) fits over the whole take is fitted here once on a
-    calibration take's tracks with the same function (:meth:`keyshape.decompose.take.Take.fit`):
-    the actor-adapted 3D face, the camera's focal length and principal point (guessed from the face's
-    size and place in that take) and the front-facing zero. Each live frame is then posed alone by that
-    :class:`~keyshape.decompose.head3d.HeadPose3D` with its temporal smoothing off (offline's is a
-    Gaussian over past and future frames; live has no future): :func:`~keyshape.retarget.api.head_from_tracks`
-    on the one frame, as offline.
-
-    The gaze (``gaze`` ``angles`` or ``shapes``) is :func:`keyshape.decompose.gaze.gaze_angles` of the
-    frame's head-frame shape with the calibration's head-frame shapes before it (twice, so that their
-    median, the straight-ahead pupil and the open-lid gap, is the calibration's: exactly when the
-    calibration has an odd number of open frames, else within half the step between its two middle
-    values; a calibration longer than :data:`GAZE_FRAMES` frames gives that many, evenly spaced, since
-    each frame's cost grows with them). An eye that ``gaze_angles`` finds closed holds the live run's last
-    open gaze (offline holds the take's last open frame's gaze; before the run's first open frame: the
-    calibration's straight-ahead frame's).
+    The take's 3D head (:meth:`keyshape.decompose.take.Take.fit`: the actor's 3D face, the camera, the front-facing
+    zero) is fitted on a calibration take; each live frame is posed alone by it with its temporal smoothing off
+    (:func:`~keyshape.retarget.api.head_from_tracks` on the one frame). The gaze is
+    :func:`keyshape.decompose.gaze.gaze_angles` of the frame with the calibration's head-frame shapes before it
+    (twice, so their median is the calibration's; at most :data:`GAZE_FRAMES` of them); a closed eye holds the live
+    run's last open gaze (before the first: the calibration's straight-ahead gaze).
 
     Parameters
     ----------

@@ -1,43 +1,6 @@
 """The project manifest of ``keyshape batch`` (TOML, read with :mod:`tomllib`), checked against its schema.
 
-A studio's footage library: actors (each with the footage its labels belong to, or a trained
-model) and takes (videos of one actor). Everything but the two ``actors`` keys and the two
-``takes`` keys shown here is optional::
-
-    [settings]                      # all optional; the defaults are shown
-    outputs = ["tracks", "weights", "glb"]   # + "curves", "livelink" (a rig's), "preview", "usd"
-    smooth = "none"                 # tracker smoothing: none, savgol, oneeuro
-    solver = "smooth"               # nnls, lstsq, smooth
-    ridge = 0.03
-    smooth_lambda = 0.1
-
-    [actors.anna]
-    video = "anna/rom.mp4"          # the footage the labels belong to
-    labels = "anna/labels"          # .pts folder (or: model = "anna/model.npz")
-    keys = 8                        # key shapes per region, one key set over all her takes
-    selector = "greedy"             # spread, kmeans2, kmeans3, hull2, random, greedy
-    regions = ["mouth", "eyes"]     # key regions (default: all the scheme has)
-    targets = "anna/targets"        # the artist's target key shapes (mouth_0.obj, ..., neutral.obj)
-    target_regions = "anna/regions.json"
-
-    [actors.ben]                    # an existing blendshape rig instead of targets
-    model = "ben/model.npz"
-    rig = "rigs/ict-facekit"        # folder of shape OBJs (neutral: neutral.obj / generic_neutral_mesh.obj,
-                                    # or neutral = "...")
-    poses = "ben/poses.json"        # optional: a corrected pose library (default: keyshape pose's, fitted
-                                    # once per actor -> OUT_DIR/ben/poses.json)
-    landmarks = "rigs/lm.json"      # optional: the rig's landmark JSON (default: ICT-FaceKit's)
-
-    [[takes]]
-    actor = "anna"
-    video = "anna/take01.mp4"
-    frames = [0, 600]               # optional frame range [start, stop)
-    name = "take01"                 # optional; default the video's file stem
-
-Paths are relative to the manifest's folder. A mistake (unknown key, wrong type, unknown
-actor, duplicate take) raises :class:`~keyshape.base.errors.InputError` naming the manifest
-and the line. Missing or broken footage is not a manifest mistake: it fails that take (or
-that actor's takes) in the batch and the others go on.
+Design notes and figures: docs/batch.md, "Notes on the code", ``keyshape/manifest.py``.
 """
 from __future__ import annotations
 

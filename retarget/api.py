@@ -1,16 +1,6 @@
 """The retarget stage's in-memory layer, with the product's defaults.
 
-``keyshape retarget``, ``keyshape pose`` and ``keyshape preview`` (``retarget/cli.py``,
-``retarget/rig/pose_cli.py``, ``retarget/output/preview_cli.py``: argument parsing and files),
-:mod:`keyshape.api`, ``keyshape batch`` and ``keyshape demo`` all call these functions and take
-their defaults from here:
-
-- sculpted targets: :func:`fit_retargeter` fits a :class:`~keyshape.retarget.targets.retargeter.Retargeter`
-  to one target per key (files or a :class:`~keyshape.retarget.targets.target_set.TargetSet`);
-- a rig: :func:`fit_poses` suggests every key's pose on the rig (a pose library, POSES.json's
-  layout) and :func:`rig_curves` turns key weights into the rig's own curves;
-- :func:`head_from_tracks` turns tracks into head motion (in the rig's units with
-  :func:`rig_head_units`); :func:`solve_rig` solves the rig's curves of every frame (``keyshape solve``).
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/api.py``.
 """
 from __future__ import annotations
 
@@ -284,12 +274,9 @@ def apply_gaze(curves: np.ndarray, rig, tracks: Tracks, frames: np.ndarray, head
                say=print, gaze: str = GAZE) -> tuple[np.ndarray, np.ndarray | None]:
     """The eye angles from the pupils (n_frames, 4; :func:`gaze_from_tracks`; None where the scheme has no
     pupils or ``gaze`` is ``"none"``) and the rig's curves, with ``gaze="shapes"`` its ``eyeLook*`` shapes
-    set from them (:func:`~keyshape.retarget.rig.model.gaze_curves`). What the rig cannot show is said in one line
-    through ``say``.
-
-    ``"angles"`` (the default) leaves the curves alone: ICT-FaceKit's ``eyeLook*`` shapes move the lids
-    too, and the 2D pupils' vertical position goes with the lids', so driving them costs the lid closure
-    (docs/benchmarks.md)."""
+    set from them (:func:`~keyshape.retarget.rig.model.gaze_curves`); ``"angles"`` leaves the curves alone. What
+    the rig cannot show is said in one line through ``say``.
+    """
     from keyshape.retarget.rig.model import gaze_curves
     if gaze not in GAZES:
         raise InputError(f"gaze {gaze!r}: use one of {', '.join(GAZES)}")
@@ -332,12 +319,10 @@ def solve_rig(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
         scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
     rig : a :class:`~keyshape.retarget.rig.model.Rig`
     options : :class:`~keyshape.retarget.defaults.SolveOptions`: the solve's priors and calibrations
-        (:class:`~keyshape.retarget.rig.solve.RigSolver`), the gaze (:func:`apply_gaze`; with ``gaze_lids`` the lids'
-        region solved with the pupils and the rig's gaze shapes, :func:`~keyshape.retarget.rig.solve.gaze_in_eye_region`),
-        the head motion written beside the curves (:func:`head_from_tracks`) and, where the keys' head is 2D and the
-        scheme has a 3D face, the mouth's parallax under the 3D head's yaw (and pitch) taken out
-        (:func:`~keyshape.retarget.rig.solve.yaw_slide`, :func:`~keyshape.retarget.rig.solve.yaw_stretch`,
-        :func:`~keyshape.retarget.rig.solve.pitch_parallax`), zero at the mouth's rest frame
+        (:class:`~keyshape.retarget.rig.solve.RigSolver`), the gaze (:func:`apply_gaze`), the head motion written
+        beside the curves (:func:`head_from_tracks`) and, where the keys' head is 2D and the scheme has a 3D face,
+        the mouth's parallax under the 3D head's yaw taken out (:func:`~keyshape.retarget.rig.solve.yaw_slide`,
+        :func:`~keyshape.retarget.rig.solve.yaw_stretch`), zero at the mouth's rest frame
     report : a dict that receives what the eye and brow calibrations did
         (:class:`~keyshape.retarget.rig.solve.RigSolver`)
 
@@ -381,10 +366,10 @@ class TakeSolve:
         from keyshape.retarget.rig.model import gaze_curves
 
         shapes, _ = head_shapes(tracks, self.scheme, self.head_pose)
-        yaw = pitch = None
+        yaw = None
         if self.estimator is not None:
             ang = self.estimator.head_pose(fitted_head_points(self.estimator, tracks))["angles"]
-            yaw, pitch = ang[:, 0], ang[:, 1]
+            yaw = ang[:, 0]
             shapes = np.where(np.isfinite(ang[:, :2]).all(axis=1)[:, None, None], shapes, np.nan)
         fixed = None
         if eyes is not None and self.gaze == "shapes":
@@ -392,18 +377,17 @@ class TakeSolve:
             keep = np.zeros(len(self.rig_names), bool)
             keep[cols] = True
             fixed = np.where(keep[None], fixed, 0.0)
-        return self.solver.transform(shapes, yaw, pitch, fixed)
+        return self.solver.transform(shapes, yaw, fixed)
 
 
 def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig,
               options: SolveOptions = SolveOptions(), *, report: dict | None = None):
     """:func:`solve_rig`, keeping the fitted solve: ``(TakeSolve, head motion, fps, eye angles or None)``."""
     from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
     from keyshape.decompose.stabilize import RigidStabilizer
-    from keyshape.retarget.rig.model import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
-    from keyshape.retarget.rig.solve import HeadParallax, RigLandmarks, RigSolver, gaze_ceiling, gaze_in_eye_region
+    from keyshape.retarget.rig.model import gaze_pupil_deltas, project, rig_landmarks, shape_regions
+    from keyshape.retarget.rig.solve import HeadParallax, RigLandmarks, RigSolver
 
     o = options
     check_solve_options(o.sparsity, o.symmetry, o.smooth)
@@ -414,8 +398,6 @@ def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
                          f"{scheme.n_points}", source)
     shapes, stab = head_shapes(tracks, scheme, head_pose, source)
     rigid = stab.points if isinstance(stab, RigidStabilizer) else ()   # the frame the rig's motion is read in
-    if o.gaze_lids and has_gaze(scheme):                # the pupils the lids' region sees: no pull of the lids
-        shapes = LidDrag(fps=rate).fit_transform(shapes, scheme)
     W, _ = rig_landmarks(rig, scheme_name, o.landmarks)
     lm_neutral = project(W @ rig.neutral)
     lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
@@ -429,40 +411,22 @@ def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
     gazed, eyes = apply_gaze(np.zeros((len(tracks.frame), rig.n_shapes)), rig, tracks, tracks.frame, kind, source,
                              gaze=o.gaze)
     fixed = gazed if eyes is not None and o.gaze == "shapes" else None      # the eyeLook* curves, the rest 0
-    ceiling = None
-    if o.gaze_lids and eyes is not None:
-        # the lids' region sees the pupils and the gaze shapes (a look down is not a blink); the gaze shapes'
-        # curves are written only with gaze="shapes" (from the eye angles), else the eye angles carry the gaze
-        regs, reg_shapes = gaze_in_eye_region(shapes, regs, reg_shapes, scheme, rig.names)
-        ceiling = gaze_ceiling(eyes, rig.names, rate)
-    if o.yaw_slide or o.yaw_stretch or o.pitch_parallax:
-        yaw, rest_yaw, pitch, rest_pitch, est = _solve_yaw(take, regions, head_pose, est)
-    else:
-        yaw, rest_yaw, pitch, rest_pitch, est = None, 0.0, None, 0.0, None
-    yaw = yaw if o.yaw_slide or o.yaw_stretch else None
-    rel = None
-    if o.pitch_parallax and scheme.rigid:               # the rig's points less its eye corners' mean
-        rel = W @ rig.neutral
-        rel = rel - rel[list(scheme.rigid)].mean(axis=0)
+    yaw, rest_yaw, est = (_solve_yaw(take, regions, head_pose, est) if o.yaw_slide or o.yaw_stretch
+                          else (None, 0.0, None))
     lm = RigLandmarks(lm_neutral, gaze_pupil_deltas(lm_neutral, lm_deltas, rig.names, scheme), reg_shapes, rig.names,
                       rig.value_range)
-    parallax = HeadParallax(yaw, rest_yaw, pitch, rest_pitch, rel, rigid)
-    solver = RigSolver(scheme, lm, o).fit(shapes, regs, parallax, fixed, ceiling, report)
-    curves = solver.curves_
-    if fixed is None and ceiling is not None:
-        curves[:, [j for j, _, _ in gaze_columns(rig.names)]] = rig.value_range[0]
-    return (TakeSolve(solver, scheme, head_pose, est if yaw is not None or rel is not None else None, o.gaze,
-                      list(rig.names), curves), motion, rate, eyes)
+    solver = RigSolver(scheme, lm, o).fit(shapes, regs, HeadParallax(yaw, rest_yaw, rigid), fixed, report)
+    return (TakeSolve(solver, scheme, head_pose, est if yaw is not None else None, o.gaze,
+                      list(rig.names), solver.curves_), motion, rate, eyes)
 
 
 def _solve_yaw(take: Take, regions, head_pose: dict | None, est):
     """The 3D head's yaw of every frame and of the mouth's rest frame (its median where the rest frame is not
-    one of these tracks'), for :func:`~keyshape.retarget.rig.solve.yaw_slide`, then its pitch alike, for
-    :func:`~keyshape.retarget.rig.solve.pitch_parallax`, and the fitted head; ``(None, 0.0, None, 0.0, None)`` where the
-    keys' shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: the take's
-    fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (None: ``take.head3d``)."""
+    one of these tracks'), for :func:`~keyshape.retarget.rig.solve.yaw_slide`, and the fitted head;
+    ``(None, 0.0, None)`` where the keys' shapes are frontalised already (``head_pose`` 3d) or the scheme has no
+    3D face. ``est``: the take's fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (None: ``take.head3d``)."""
     from keyshape.decompose.regions import fitted_head_points
-    none = (None, 0.0, None, 0.0, None)
+    none = (None, 0.0, None)
     if (head_pose or {}).get("method") == "3d":
         return none
     tracks, source = take.tracks, take.source
@@ -479,7 +443,7 @@ def _solve_yaw(take: Take, regions, head_pose: dict | None, est):
     rest = [rk.rest_frame for rk in regions if rk.region == "mouth" and rk.rest_frame is not None and rk.takes is None]
     row = pos.get(int(rest[0])) if rest else None
     at = ang[row] if row is not None else np.median(ang, axis=0)
-    return ang[:, 0], float(at[0]), ang[:, 1], float(at[1]), est
+    return ang[:, 0], float(at[0]), est
 
 
 def override_poses(curves: np.ndarray, frames: np.ndarray, regions, weights: np.ndarray, columns: Sequence[str],

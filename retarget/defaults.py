@@ -49,9 +49,6 @@ class SolveOptions:
         the curves; the mouth's sideways parallax and vertical stretch under head yaw taken out,
         :func:`~keyshape.retarget.rig.solve.yaw_slide`, :func:`~keyshape.retarget.rig.solve.yaw_stretch`); off only
         in tests that measure them
-    pitch_parallax, gaze_lids : experiments, off (``bench/synth3d_accuracy.py``, ``bench/real_rig_fidelity.py``):
-        the mouth's vertical parallax under pitch taken out (:func:`~keyshape.retarget.rig.solve.pitch_parallax`);
-        the lids solved with the pupils and the rig's ``eyeLook*`` (:func:`~keyshape.retarget.rig.solve.gaze_in_eye_region`)
     """
 
     sparsity: float = 0.01
@@ -66,8 +63,6 @@ class SolveOptions:
     rest_offset: bool = True
     yaw_slide: bool = True
     yaw_stretch: bool = True
-    pitch_parallax: bool = False
-    gaze_lids: bool = False
 
 
 @dataclass(frozen=True)

@@ -1,22 +1,6 @@
 """Head motion from the tracked 2D affine pose (section 5 of 004_119ba07521a9af0b.txt).
 
-The paper did not estimate 3D head motion: "only scaled 2D translation and
-rotation are applied to the output motion". keyshape now does (:func:`head_motion_3d`, from
-:class:`keyshape.decompose.head3d.HeadPose3D`); the 2D motion below remains for ``--head-pose
-rigid|tracker`` key sets and schemes without a 3D face. The tracker's pose is the affine
-``image_from_model`` ``[x_img, y_img] = A [x, y] + t``; its 2x2 part is reduced
-to the nearest similarity ``s R(theta)`` (Frobenius norm): for
-``A = [[a, b], [c, d]]``, ``s cos(theta) = (a + d) / 2`` and
-``s sin(theta) = (c - b) / 2``; any shear or anisotropy is dropped.
-
-The root transform is relative to a reference frame ``r``: rendering the
-model with frame ``r``'s camera after the root transform gives frame ``t``'s
-image, ``S_r root(m) + t_r = S_t m + t_t``, so
-``root(m) = (s_t / s_r) R(theta_t - theta_r) m + S_r^{-1} (t_t - t_r)``:
-scale ``s_t / s_r``, rotation ``theta_t - theta_r`` about the model origin and a
-translation in model units. Image y points down and mesh y up, so the output
-rotates about +z by ``-(theta_t - theta_r)`` and moves by ``(dx, -dy, 0)`` times
-``units_per_model`` (mesh units per model unit).
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/headpose.py``.
 """
 from __future__ import annotations
 

@@ -1,62 +1,11 @@
 """The one radial-basis-function class of keyshape: marker retargeting (001 section 5.1) and
 the Gaussian face-space deformation of the dense tools (002 section 4).
 
-``RBF(kernel).fit(source, target)`` solves once; the fitted object maps any points
-(``__call__``). ``target`` may hold many frames at once (``(n_frames, n_markers, 3)``):
-the system is factored once and solved for all right-hand sides, and evaluation is one
-matrix product per frame. ``RBF(kernel).fit(source)`` only factors the system; then
-:meth:`RBF.deform` maps points for any key positions and :meth:`RBF.interpolation_matrix`
-gives the linear map from centre displacements to point displacements (mesh registration).
-
-Kernels
--------
-``imq``      inverse multiquadric, eq. (15): ``phi_i(d) = 1 / sqrt(d**2 + r_i**2)`` with a
-             per-centre radius, eq. (16): ``r_i = min_{j != i} |x_i - x_j|`` (times ``radius_scale``).
-``tps``      thin-plate spline ``phi(d) = d**2 log d`` (``0`` at ``d = 0``).
-``gaussian`` eq. (5) of 002: ``phi(d) = exp(-d**2 / (2 sigma**2))`` with one fixed ``sigma`` for
-             every centre (002 fixes it so the matrix stays invertible); the constant
-             ``1/(sqrt(2 pi) sigma)`` of the extracted text cancels in the solve and is dropped.
-             The extracted text reads ``e^{-x/sigma}``; the square is restored as for any
-             Gaussian.
-
-Affine term
------------
-Eq. (14) of 001 appends the source points ``U`` as extra columns and rows; for an
-*affine* ``p_m`` the columns must be ``[U, 1]`` (the flattened equation drops the
-ones), giving the bordered system::
-
-    [ Phi    [U 1] ] [alpha]   [V]
-    [ [U 1]^T   0  ] [  P  ] = [0]        Phi[k, i] = phi_i(|u_k - u_i|)
-
-The last block row ``[U 1]^T alpha = 0`` makes ``alpha = 0, P = affine`` the unique
-solution whenever ``V`` is an affine image of ``U``: an affine (in particular rigid)
-motion of all markers is reproduced *exactly* everywhere, not only at the centres.
-Without the affine term (``affine=False``, the 002 formulation) we interpolate the
-*displacement* ``V - U`` and return ``x + sum_i alpha_i phi_i``: 002's eq. (3) read
-literally interpolates positions, which would send every point far from the key
-points to the origin, and its figure 2 draws control *vectors*; interpolating the
-displacement is the reading under which zero motion leaves every point still (and
-the key points still go exactly to ``V``, eq. 1 of 002).
-
-Smoothing
----------
-Key points that nearly coincide at rest but part later (upper and lower inner lip)
-make ``Phi`` ill-conditioned (condition 1e4-1e9 for 68 facial landmarks) and the
-interpolant oscillates; a ridge ``Phi + lambda I`` (``smoothing``; the Gaussian's
-diagonal is 1) turns interpolation into smoothing: key points are then reproduced
-only approximately. On ICT-FaceKit talking sequences with the 68 landmarks as keys
-the ridge 1e-2 cuts the mean skin error from 6.6 to 1.8 mm (sigma 1.2 cm). The
-Gaussian without the affine term is symmetric positive definite and is solved by
-Cholesky (with a 1e-12 jitter), the other systems by LU.
-
-Examples
---------
->>> import numpy as np
->>> rng = np.random.default_rng(0)
->>> src = rng.normal(size=(20, 3)); tgt = 1.1 * src + 0.05 * rng.normal(size=(20, 3))
->>> f = RBF("imq").fit(src, tgt)
->>> bool(np.allclose(f(src), tgt))
-True
+Kernels: ``imq`` (inverse multiquadric with a per-centre radius, eqs. (15)-(16) of 001), ``tps`` (``d**2 log d``),
+``gaussian`` (eq. (5) of 002, one fixed ``sigma``). With the affine term the system is eq. (14) of 001 bordered by
+``[U 1]``, so an affine motion of all markers is reproduced exactly; without it (002) the displacement ``V - U`` is
+interpolated. ``smoothing`` adds a ridge ``Phi + lambda I``. The derivations and figures: docs/retarget.md,
+"Notes on the code", ``retarget/rbf.py``.
 """
 from __future__ import annotations
 

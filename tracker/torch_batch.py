@@ -1,36 +1,6 @@
-"""Batched eigen-points tracking with torch and kornia: many frames per call (the GPU path).
+"""Batched eigen-points tracking with torch and kornia (section 3 of 004_119ba07521a9af0b.txt): many frames per call.
 
-The CPU tracker (:class:`keyshape.tracker.fitting.Tracker`) handles one frame
-at a time. This module does the same arithmetic for a batch of ``B`` frames
-at once, as tensor operations that run on a GPU (``device="cuda"``) or on
-CPU torch:
-
-* the gray conversion and the Gaussian pyramid (``cv2.cvtColor`` and
-  ``cv2.pyrDown`` reproduced bit for bit with integer-valued convolutions);
-* the model-frame warp of every frame in one
-  :func:`kornia.geometry.transform.warp_affine` call per pyramid level
-  (bilinear, replicated border, OpenCV's pixel-centre convention);
-* the lighting normalisation, the projection on the eigenbasis and the
-  eigen-points reading (section 3 of 004_119ba07521a9af0b.txt) as one batched
-  matrix product (:func:`read_batch`);
-* the per-frame pose refinement of :meth:`Tracker.align` (coarse
-  inverse-compositional steps, then the forward-compositional polish on the
-  eigen residual) iterated for all frames in parallel (:func:`refine_batch`);
-* an offline tracker over a whole video, batch by batch (:func:`track_batch`).
-
-The warp differs from ``cv2.warpAffine`` in one detail: OpenCV quantises the
-sampling positions to 1/32 pixel and its bilinear weights to 15 bits, kornia
-samples at the exact positions. The patches then differ by at most one grey
-level at a few pixels, and the points read from them by ~1e-3 px (measured in
-``tests/test_torch_batch.py`` and docs/tracker.md).
-
-The torch path reads the whole-face model only: the per-region refinement of
-the CPU tracker (eyes, brows and lips read by their own eigen-point models, see
-:mod:`keyshape.tracker.fitting`) is not batched yet, so its points equal
-``Tracker(model, region_iter=-1)``'s and not the default CPU tracker's.
-
-torch and kornia are optional (``pip install keyshape[torch]``); they are
-imported only when a function here is called.
+Design notes and figures: docs/scale.md, "Notes on the code", ``tracker/torch_batch.py``.
 """
 from __future__ import annotations
 
@@ -420,23 +390,11 @@ def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int 
                 start_pose=None, crop_margin: float = 0.5):
     """Track a whole video offline, ``batch`` frames per tensor call (the GPU path).
 
-    The first frame is found by the CPU tracker (its whole-frame search) unless
-    ``start_pose`` is given. Each batch of decoded frames is then refined in
-    parallel: pass 1 starts every frame of the batch from the last pose of the
-    previous batch and runs the coarse-to-fine alignment and the polish; each
-    further pass starts frame ``i`` from the refined pose of frame ``i - 1``
-    (the previous frame's pose, as the CPU tracker does sequentially) and runs
-    the full-resolution polish only (the tracker's fast path; a step is kept
-    only if it lowers the residual). Information thus travels one frame per
-    pass from the previous batch: more passes or smaller batches bring the NME
-    closer to the CPU tracker's (docs/tracker.md). Passing the coarse level in the
-    later passes as well was measured worse (a frame whose pass-1 pose diverged
-    hands its error on).
-
-    Unlike :class:`Tracker`, there is no lost-track detection or recovery
-    here: a frame whose residual is above the tracker's lost threshold is
-    reported with ``success`` False but the batch keeps its pose. Use it on
-    footage the CPU tracker follows without losses, where its speed matters.
+    The first frame is found by the CPU tracker unless ``start_pose`` is given. Pass 1 starts every frame of a
+    batch from the previous batch's last pose (coarse-to-fine alignment and polish); each further pass starts
+    frame ``i`` from frame ``i - 1``'s refined pose (the full-resolution polish only), so more passes or smaller
+    batches come closer to the CPU tracker. No lost-track recovery: a frame above the lost threshold is
+    reported with ``success`` False and keeps its pose.
 
     Parameters
     ----------

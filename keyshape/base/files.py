@@ -1,25 +1,6 @@
 """Safe outputs, and the one output rule every command follows (``docs/reliability.md``).
 
-* Every file keyshape writes goes to a temporary sibling first and is renamed
-  over the destination only once complete (``os.replace`` is atomic on POSIX
-  and Windows within one file system); on any error or interruption the
-  temporary file is removed and the destination is untouched.
-* The output rule (:func:`guard_file`, applied to every write while a command runs
-  under :func:`run_rules`; ``keyshape.cli.main`` checks each command's declared
-  outputs, :mod:`keyshape.declare`, before any work): never an input (same device
-  and inode, or same resolved path), never a symbolic link, and an existing file
-  only where keyshape's record (:data:`MANIFEST`, with each file's SHA-256) shows
-  keyshape wrote exactly that content, or with ``--overwrite``. Every file written
-  is recorded with its hash. A record is a claim, verified against the content
-  before anything is replaced or deleted.
-* A folder output (:func:`atomic_dir`) is filled in a hidden temporary folder
-  inside it and its files are moved in only when all are complete. It replaces
-  and prunes only its own kind's earlier files whose content is the recorded one.
-  A non-empty folder without a record of a folder output is refused unless
-  ``overwrite`` is given (then still only keyshape's own file names are written).
-* :func:`check_outputs` checks every output path before any computation
-  starts: parent a writable folder, output not a folder (or a file, for a
-  folder output) and not one of the inputs.
+Design notes and figures: docs/reliability.md, "Notes on the code", ``keyshape/base/files.py``.
 """
 from __future__ import annotations
 

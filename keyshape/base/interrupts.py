@@ -1,19 +1,6 @@
 """Threads that Ctrl-C and SIGTERM cannot wedge: a bounded hand-over, and a thread start.
 
-Ctrl-C (and SIGTERM, :func:`keyshape.cli.sigterm_as_interrupt`) raise ``KeyboardInterrupt`` in the
-main thread between any two bytecodes, including those inside ``queue.Queue`` and
-``threading.Condition``, which are written in Python: raised in ``Condition.wait`` between its
-release and re-acquire of the queue's lock, it leaves the lock released twice ("release unlocked
-lock") or held for ever, and the other thread, blocked on that lock, never returns, so the
-``join`` that ends the run hangs (seen once in CI: ``keyshape track`` never exited after SIGTERM).
-
-:class:`Handoff` keeps the main thread's side of the hand-over in ``queue.SimpleQueue``'s C code,
-whose blocking ``get`` either takes an item or returns by raising the signal handler's exception
-with nothing taken, and whose ``put`` never blocks. The bound is a second ``SimpleQueue`` of free
-slots. An interrupt can at worst lose one item or one slot on its way out, which the run, being
-stopped, no longer needs; :meth:`Handoff.close` (a plain attribute) releases a waiting producer.
-``threading.Thread.start`` waits on such a condition too; :func:`start_thread` holds an interrupt
-that arrives meanwhile (:func:`deferred_interrupts`) and raises it once the thread has started.
+Design notes and figures: docs/reliability.md, "Notes on the code", ``keyshape/base/interrupts.py``.
 """
 from __future__ import annotations
 

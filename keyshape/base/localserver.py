@@ -1,17 +1,6 @@
 """The safety rules and plumbing shared by keyshape's small local web pages.
 
-``keyshape label`` (correct landmark labels, :mod:`keyshape.tracker.labelling.server`) and
-``keyshape pose-edit`` (correct a pose library, :mod:`keyshape.retarget.rig.pose_edit`) each serve
-one static page and accept one kind of JSON write. Both rest on the rules here:
-
-* the server binds to ``127.0.0.1`` only, and the handler also refuses (403) any peer that is
-  not a loopback address and any ``Host`` header that is not a loopback name, which blocks
-  DNS-rebinding pages from reaching it;
-* a write needs ``Content-Type: application/json`` (a cross-site form cannot send it without a
-  CORS preflight, which is never granted), a ``Content-Length`` and a body under
-  :data:`MAX_BODY`; a body shorter than announced, or a client that goes silent for
-  :attr:`LocalHandler.timeout` seconds, closes the connection instead of holding a thread;
-* every other method is refused (405).
+Design notes and figures: docs/reliability.md, "Notes on the code", ``keyshape/base/localserver.py``.
 """
 from __future__ import annotations
 

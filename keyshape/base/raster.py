@@ -1,16 +1,7 @@
 """A small vectorised z-buffer rasteriser (numpy only): the synthetic 3D head (:mod:`keyshape.data_synth.face3d`)
 and the triangles a rig preview can ever show (:class:`keyshape.retarget.output.preview.RigRenderer`).
 
-Per triangle the covered pixel rows, per row the covered span of pixel centres (where all three
-barycentric weights, affine in the pixel, are >= 0), then every pixel of every span at once
-(``np.repeat`` over the counts); the depth, affine in the pixel too, goes through a z-buffer
-(``np.minimum.at``) and the nearest sample of each pixel is kept. There is no loop over triangles
-or pixels. The caller gets, for every covered pixel, the winning triangle and its barycentric
-coordinates, and shades it itself (interpolated vertex attributes, procedural colours).
-
-Conventions: pixel centres at integer coordinates (OpenCV's, as the ``.pts`` labels and the tracks
-CSV), x to the right, y down; smaller depth is nearer. Depth is interpolated linearly in screen
-space (exact enough for the z-test on triangles a few pixels wide).
+Design notes and figures: docs/synth.md, "Notes on the code", ``keyshape/base/raster.py``.
 """
 from __future__ import annotations
 

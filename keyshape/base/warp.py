@@ -1,14 +1,6 @@
 """Image warping: Delaunay triangulation, piecewise-affine warps and morphing.
 
-Coordinates are ``(x, y)`` float arrays of shape ``(n_points, 2)``, image pixels with
-OpenCV's pixel-centre convention; affine maps and shape fits are :mod:`keyshape.base.geometry`.
-
-scikit-image (a dependency, used for RANSAC rigid fits in :mod:`keyshape.base.geometry`)
-has a ``PiecewiseAffineTransform``, not used here: it triangulates the points itself
-(here the triangulation is given, the same for every shape of a model), leaves pixels
-outside the mesh unmapped (here the nearest triangle extrapolates) and locates every
-pixel's triangle on each call, where :class:`PiecewiseAffine` does that once per
-destination shape and each warp is one ``cv2.remap``.
+Design notes and figures: docs/synth.md, "Notes on the code", ``keyshape/base/warp.py``.
 """
 from __future__ import annotations
 

@@ -1,23 +1,6 @@
 """Automatic key-point insertion for dense sequences (section 5 of 002_dce09d5f5656b088.txt).
 
-A dense sequence ``F^t`` (n_frames, n_points, 3) is approximated by deforming
-the rest face ``F^0`` with the Gaussian-RBF face-space deformation of
-:func:`face_rbf` (:class:`keyshape.retarget.rbf.RBF`, Gaussian) driven by a few key points. Key points are
-added where that approximation is worst, and the loop repeats until the
-error falls by less than 1 % in a round (section 5.5).
-
-Notes
------
-* Error (section 4.1.1/5.2): the paper measures ``e^t_i``, the distance from
-  ``p^0_i`` to the nearest point of ``D(F^t -> F^0)``. We measure the same
-  quantity in the forward direction, the distance from the deformed point
-  ``D(F^0 -> F^t)(p^0_i)`` to the nearest point of ``F^t``: it needs no
-  correspondence between frames either, it is defined per rest point (as
-  the candidate tests need), and it is what Table 1 reports.
-* The points of ``F^t`` need not correspond to ``F^0``'s: only nearest
-  points are used, and new key points are placed in every frame by a local
-  non-rigid registration (section 5.4), not read from ``F^t[index]``.
-* A key point is a rest vertex index plus its position in every frame.
+Design notes and figures: docs/keypoints.md, "Notes on the code", ``retarget/dense/keypoints.py``.
 """
 from __future__ import annotations
 

@@ -1,45 +1,6 @@
 """Mesh registration: fit a reference face mesh onto a target (section 6 of 001_7296bf6ea73cabea.txt).
 
-The user gives 10-12 landmark pairs. A thin-plate RBF warp of the reference
-by those pairs (the paper's RBF of section 5.1) followed by projection of
-the control points onto the target surface gives the start; then
-
-    E = alpha E_dist + beta E_strain + gamma E_bend                    (17)
-
-is minimised over the displacements of a small set of control vertices.
-
-Control parametrisation
------------------------
-The paper moves the vertices of its planar-bone control surface. Here (the
-planar-bone module being written on another branch) the control vertices
-are ``n_controls`` reference vertices spread by farthest-point sampling, and
-a Gaussian RBF (:class:`keyshape.retarget.rbf.RBF`) carries their displacements
-``D`` (n_controls, 3) to every vertex: ``V(D) = V_w + B D`` with the fixed
-(n_vertices, n_controls) matrix ``B = phi(V_w, C) (Phi + lambda I)^-1``,
-built once; each energy evaluation is one matmul. As in the paper, the
-problem is small (3 n_controls unknowns) whatever the mesh size.
-
-Energy terms (derivation of the flattened eq. 18)
--------------------------------------------------
-* ``E_dist = 1/n sum_i d(v_i, T)^2``: squared distance of each fitted
-  reference vertex to the target's faces (closest point on triangles).
-  Squaring makes E smooth; its gradient is ``2 (v_i - c_i) / n`` with
-  ``c_i`` the closest point (exact almost everywhere).
-* ``E_strain = 1/N sum_e (||e|| - ||e||_0)^2``: eq. (18) prints
-  ``||e_i|| - ||(e_i)_0||`` (the trailing N is an extraction artefact of the
-  1/N); a signed sum would reward shrinking, so we square the change.
-* ``E_bend = 1/N sum_e (bend(e) - bend(e)_0)^2`` over interior edges, with
-  ``bend(e) = n_1 . n_2`` of the incident faces' unit normals (the paper
-  takes the absolute change; squared for the same smoothness).
-* Subscript 0 is "the initial configuration of the mesh" (the paper's
-  words): the warped reference at the start, so a uniform scale picked up
-  by the landmark warp is not penalised.
-* A landmark term ``delta/L sum_l ||v_l - t_l||^2`` keeps the user's
-  landmarks on their targets (the paper's markers stay put implicitly).
-
-Solvers: ``"lbfgs"`` (default) uses the analytic gradient above with
-scipy's L-BFGS-B; ``"simplex"`` is the paper's downhill simplex
-(Nelder-Mead, derivative-free, capped at ``max_evals``) as a baseline.
+Design notes and figures: docs/keypoints.md, "Notes on the code", ``retarget/dense/registration.py``.
 """
 from __future__ import annotations
 

@@ -1,57 +1,6 @@
 """Facial transfer by face-space deformation (section 6 of 002_dce09d5f5656b088.txt, eqs. 6-9).
 
-The four steps of section 6, as implemented:
-
-(6)   ``FT^t = D(F^t -> T^0)``: one Gaussian-RBF space deformation (section 4)
-      that sends the source's *rest* key points ``K^0`` onto the target's key
-      points ``K^T``, applied to every source frame ``F^t``.
-(6.2) ``N_k`` target key points ``Kt_i`` are sampled at random on ``T^0``;
-      each is paired, **once, on the neutral faces**, with its nearest point
-      of the morphed source neutral ``FT^0``; ``Kf^t_i`` is that same source
-      point in the morphed frame ``FT^t``.
-(7)   ``V^t_i = (Kf^t_i - Kf^0_i) / ||Kf^t_i - Kf^0_i||``.
-(8)   ``W^t_i = (alpha / N_k) ||Kf^0_i - Kf^t_i||`` (``gain = alpha / N_k``).
-(9)   ``T-hat^t = D^t_trns(Kt_i -> Kt_i + W^t_i V^t_i)(T^0)``: the Gaussian-RBF
-      deformation of section 4 with the ``Kt_i`` as rest key points.
-
-Readings where the extracted text is ambiguous
-----------------------------------------------
-* Eq. (6). If ``D^t`` sent each frame's *tracked* key points ``K^t`` to the
-  target's, ``FT^t`` would equal ``T^0`` at every key point and the motion
-  there would be erased; the paper says the remaining difference between
-  ``FT^t`` and ``T^0`` *is* the motion, so ``D`` is the one deformation
-  ``K^0 -> K^T`` applied to each frame.
-* Section 6.2, "the nearest points in ``FT^t`` from each point of ``Kt_i``".
-  Re-finding the nearest point in every frame (the previous implementation)
-  measures only the motion *normal* to the surface: when the skin slides
-  (jaw opening, lips stretching) the nearest point of the moved surface to a
-  fixed ``Kt_i`` barely moves. Transferring a sequence onto its own neutral
-  then reproduced almost none of it (mean skin error 3.30 mm against 3.41 mm
-  of motion on ICT "talk"). Eq. (8) itself names ``Kf^0_i``, "the initial
-  position of the key point ``Kf^t_i``": ``Kf^t_i`` is one material point
-  followed over time, so the pairing is made once, on the neutral faces
-  ``T^0`` and ``FT^0``, and each frame's position of that point is read
-  from the morphed frame (the points of a dense sequence correspond over
-  frames: a tracked mesh, or section 5's ``D(F^0 -> F^t)``).
-* Eq. (7) prints ``Kf^t_i - Kt_i``. With the pairing on the neutrals
-  ``Kf^t_i - Kt_i = (Kf^t_i - Kf^0_i) + (Kf^0_i - Kt_i)``; the second term is
-  the static shape mismatch left by the morph of eq. (6) (zero when the
-  surfaces touch at ``Kt_i``, as for a transfer onto the source's own
-  neutral). Taken literally it turns a 1 mm mismatch under a 0.1 mm motion
-  into a 0.1 mm push along the mismatch. We use the displacement
-  ``Kf^t_i - Kf^0_i``, which equals the printed vector whenever
-  ``Kf^0_i = Kt_i``; then ``W^t_i V^t_i = gain (Kf^t_i - Kf^0_i)`` exactly
-  (eqs. 7-8: unit direction times the displacement's length), and where
-  the point does not move the direction is undefined and the displacement
-  zero.
-* ``alpha / N_k`` (eq. 8) is exposed as ``gain``; ``gain = 1`` carries the
-  motion at its size in the target's space (the morph of eq. 6 already
-  scales it with the face), ``gain = 0`` leaves the target still.
-
-Properties (tested): a sequence transferred onto its own neutral reproduces
-the sequence up to the interpolation error of eq. (9)'s RBF from ``N_k``
-samples; onto a face of the same topology it carries the motion of the
-corresponding points.
+Design notes and figures: docs/keypoints.md, "Notes on the code", ``retarget/dense/transfer.py``.
 """
 from __future__ import annotations
 

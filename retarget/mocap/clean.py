@@ -1,13 +1,6 @@
 """Marker cleaning: rigid head-motion removal and missing-marker rebuilding (001_7296bf6ea73cabea.txt, 5.1 end, 5.2).
 
-All functions take and return arrays ``(n_frames, n_markers, 3)`` with NaN gaps and
-never modify their input.
-
-Rigid motions are ``x_frame = x_ref @ R.T + t`` (``frame_from_ref``), fitted by
-:func:`keyshape.base.geometry.rigid_fit` for every frame at once; a marker hidden in a
-frame simply has weight 0 there. A rigid marker that does not follow the others in a frame
-(mislabelled, swapped, knocked) is rejected there by RANSAC
-(:func:`keyshape.base.geometry.robust_rigid_fit`, scikit-image) instead of tilting the head.
+Design notes and figures: docs/mocap.md, "Notes on the code", ``retarget/mocap/clean.py``.
 """
 from __future__ import annotations
 
@@ -79,17 +72,11 @@ def remove_rigid_motion(positions, rigid=None, reference: int | np.ndarray = 0, 
                         labels=None, outlier_threshold: float | None = None) -> RigidRemoval:
     """Remove rigid head motion (001 section 5.1, last paragraph).
 
-    With ``rigid`` (marker indices of a head jig or any rigid set) a least-squares rigid
-    fit per frame; without, the most rigid markers (:func:`choose_rigid_set`) with
-    ``robust_iters`` rounds of Huber-style reweighting (a marker whose residual exceeds
-    twice the median residual of its frame is down-weighted), so one sliding marker
-    does not tilt the head.
-
-    Then, for a named rigid set (or any set given an ``outlier_threshold``), a frame where a
-    rigid marker lies further than the outlier threshold from its fitted place is refitted by RANSAC
-    (:func:`keyshape.base.geometry.robust_rigid_fit`): the markers that do not follow the
-    consensus are left out there and listed in ``rejected``. Other frames keep the
-    least-squares fit unchanged.
+    With ``rigid`` (a head jig's markers) a least-squares rigid fit per frame; without, the most rigid markers
+    (:func:`choose_rigid_set`) with ``robust_iters`` rounds of reweighting (a marker beyond twice its frame's median
+    residual down-weighted). For a named rigid set (or with ``outlier_threshold``), a frame where a rigid marker lies
+    beyond the threshold is refitted by RANSAC (:func:`keyshape.base.geometry.robust_rigid_fit`), the markers left
+    out listed in ``rejected``.
 
     Parameters
     ----------

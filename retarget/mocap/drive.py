@@ -1,18 +1,6 @@
 """The marker path end to end: a cleaned take drives a dense target mesh (001 sections 4-5).
 
-1. rigid head motion out (:func:`~retarget.mocap.clean.remove_rigid_motion`, a named rigid set,
-   whose markers that break rank in a frame are rejected there by RANSAC, or the most rigid
-   markers), in the first frame's head pose;
-2. gaps filled from neighbours' rigid motion, long gaps reported;
-3. markers never seen (e.g. inner lips) placed from the target by the inverse map and
-   rebuilt per frame from their outer sibling's local frame (section 5.2);
-4. RBF retargeting (IMQ + affine, eqs. 14-16) from the first (relaxed) frame to the
-   target's labelled markers, applied to every frame (section 5.1);
-5. the dense mesh from the retargeted markers: planar bones over a Delaunay control
-   surface with discontinuity masks (section 4), or an RBF deformer (``imq``, ``tps``,
-   ``gaussian`` of 002 section 4) from the neutral to each frame's retargeted markers.
-
-Output vertices are in the target's own rest pose (head motion removed).
+Design notes and figures: docs/mocap.md, "Notes on the code", ``retarget/mocap/drive.py``.
 """
 from __future__ import annotations
 

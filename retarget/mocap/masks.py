@@ -1,28 +1,6 @@
 """Discontinuity masks: which bones may move which vertices (001 sections 4.3 and 6.1).
 
-A mask is a list of *regions*; each region names a set of mesh vertices and the
-markers its bones may use. A vertex inside a region may be moved only by bones whose
-three corners are all among the region's markers (so lower-lip bones, which have a
-lower-lip corner, cannot drag upper-lip vertices); a vertex in several regions obeys
-all of them; a vertex in none is unrestricted. :func:`allowed_matrix` turns that into
-the ``(n_vertices, n_bones)`` boolean array :meth:`PlanarBones.fit` takes.
-
-Regions come from a masks JSON (the file and its layout: :mod:`keyshape.base.formats.masks`);
-:func:`regions_from_masks` gives its :class:`Region` objects: a region's vertices are listed,
-named by an OBJ vertex group, or painted in a label image; its markers are listed
-(``markers``) or all but some (``exclude_markers``).
-
-A mask image (section 4.3: "a texture in the cylindrical coordinate space") is read in
-the cylindrical projection normalised to the *markers'* extent: pixel column 0..W-1
-spans the markers' arc range, row 0..H-1 their height range top to bottom (a margin of
-``IMAGE_MARGIN`` of the range on every side). Because the frame is set by the markers,
-the same image carries to any other mesh labelled with the same markers (section 6.1):
-each vertex of the new mesh is projected the same way and takes the pixel under it. With
-``image_markers`` (the markers of the face the image was painted on) the new face's
-projection is first warped onto the painted face's by a 2D thin-plate spline through the
-markers. Measured lip-region recall on other ICT identities: 0.89-0.92 (extent alone) vs
-0.91-1.0 (warp) on a mild identity, 0.89 / 0.70 vs 0.92 / 0.69 (upper / lower lip) on a
-strong one: the folded inner-lip surfaces that share pixels limit both.
+Design notes and figures: docs/mocap.md, "Notes on the code", ``retarget/mocap/masks.py``.
 """
 from __future__ import annotations
 

@@ -1,86 +1,8 @@
 """Planar-bone deformation of a dense mesh by a triangulated control surface (section 4 of 001_7296bf6ea73cabea.txt).
 
-``bones = PlanarBones().fit(mesh_vertices, control_points, triangles, masks=None)``
-runs once; ``bones.deform(control_points_frame)`` then costs only the per-bone
-frames and one sparse product, and ``bones.deform_many(frames)`` does the same for
-a whole take.
-
-Derivation (the extracted equations are flattened)
---------------------------------------------------
-Row-vector convention as in eq. (1). A bone is a control triangle with corners
-``V_0, V_1, V_2`` (O, P, Q), edges ``e_i = V_{i+1} - V_i`` (eq. 6, indices mod 3),
-unit normal ``n = e_0 x (V_2 - V_0) / |.|`` (eq. 2) and outward edge normals
-``m_i = (e_i x n) / |e_i x n|`` (the second row of eq. 7).
-
-*Regions, eqs. (3)-(5).* The projection ``Pi(S)`` of a vertex onto the bone's plane
-falls in one of seven regions: the triangle (``R_A``), the slab beyond edge ``i``
-(``R_B,i``: outside edge ``i`` and ``0 <= c_i(S) <= |e_i|``, eq. 6) or the wedge beyond
-corner ``i`` (``R_C,i``). Eq. (3) proposes a candidate from the barycentric signs and
-eqs. (4)-(5) move it to the neighbouring slab or wedge with ``c_i``; the result is
-exactly the partition by the *nearest feature* (interior, edge ``i``, corner ``i``) of
-the triangle to ``S``, which is how it is computed here (the closest point on the
-triangle, vectorised); ``test_planar_bones`` checks it against the ``c_i`` tests.
-The distance ``d_ij`` of eq. (12) is ``|S - closest point|``.
-
-*Frames, eqs. (1), (7)-(10).* Each region has an origin corner and a frame whose
-rows are: ``R_A``: ``(e_0, V_2 - V_0, n)`` at ``V_0`` (eq. 2); ``R_B,i``:
-``(e_i, m_i, n)`` at ``V_i`` (eq. 7); ``R_C,i``: ``(m_i, m_{i-1}, n)`` at ``V_i`` (eq. 8).
-A vertex's local coordinates ``c = (S - origin) F^{-1}`` are fixed at fit (bind) time and
-the deformed vertex is ``origin' + c F'``: eqs. (1) and (9). In ``R_B,i`` only the
-edge row is unnormalised, so the bone may stretch along the edge but not across
-it. In ``R_C,i`` eq. (10) rescales the in-plane part so its length is kept:
-``s = V_i' + (D/d) (c_1 m_i' + c_2 m_{i-1}') + c_3 n'`` with
-``D = |c_1 m_i + c_2 m_{i-1}| = |Pi(S) - V_i|`` and ``d = |c_1 m_i' + c_2 m_{i-1}'|``
-(the 4-vector in the extracted ``Diag`` is a duplication; the frame is 3 x 3 and the
-factor multiplies the two in-plane rows). The regions meet continuously: on the
-edge line ``R_A`` and ``R_B,i`` agree, and on the rays ``V_i + t m_i`` and
-``V_i + t m_{i-1}`` the wedge map equals the slab maps (``D = d`` there).
-
-*Rigid motions.* Under ``X -> X R + t`` (``R`` a rotation) every row of every frame
-maps to ``row R``, ``d = D`` and the origins map rigidly, so each bone moves each of its
-vertices by exactly that motion; normalised weights (below) keep it for the blend.
-
-*Blend, eqs. (11)-(12).* ``w_ij = (1 + cos(pi d_ij / R_j)) / 2`` for ``d_ij < R_j``, else 0,
-with ``R_j = radius_scale * (shortest control edge touching a corner of bone j)``
-("a fraction of the closest distance to a connected vertex"). The weights of each
-vertex are divided by their sum so they sum to one (eq. 11 leaves this implicit;
-without it a rigid motion would not be reproduced). A vertex no allowed bone reaches
-is *unbound*: it stays at its rest position (``unbound="still"``, the right thing
-after rigid head motion was removed) or follows its nearest allowed bone with
-weight one (``unbound="nearest"``). Hard normalisation makes a step between the last
-bound and the first unbound vertex; ``unbound="fade"`` instead treats the rest position
-as one more bone of weight ``max(0, 1 - sum_j w_ij)`` and divides by the sum only where it
-exceeds one: continuous everywhere, exact rigid reproduction wherever the summed raw
-weight reaches one (``rest_weight_`` is then 0).
-
-*Masks, section 4.3.* ``masks[v, j] = False`` forbids bone ``j`` to move vertex ``v``
-(e.g. lower-lip bones and upper-lip vertices); see :mod:`keyshape.retarget.mocap.masks`.
-
-Evaluation
-----------
-Every (vertex, bone) pair contributes ``w (origin + c_1 r_1 + c_2 r_2 + c_3 r_3)``, and
-every origin and frame row is a control point, a difference of two, or one of the unit
-vectors ``n, m_0, m_1, m_2`` of its bone. So for frame ``t``, with
-``Y = [control points; n of every bone; m_i of every bone corner; m_i + m_{i-1}; m_{i-1}]``
-(``n_controls + 10 n_bones`` rows), everything outside the wedges is ``T @ Y + still`` where the sparse
-``T`` (n_vertices x ``n_controls + 4 n_bones``, CSC) is built once at fit (bind) time (a vertex's entries
-on a shared control point merged). This is the "fixed matrix of weighted local coordinates times each
-frame's bone frames" of linear skinning, except for one genuinely nonlinear part: in a wedge ``R_C,i`` the
-factor ``D/d`` of eq. (10) depends on the pair's own ``(c_1, c_2)`` and on the deformed corner
-angle, ``d = sqrt((c_1 - c_2)^2 + 2 c_1 c_2 (1 + m_i' . m_{i-1}'))``, with no finite set of
-per-frame columns that reproduces it exactly (it is not separable in the pair and the frame).
-The wedge pairs, sorted by bone corner, are one compiled pass (numba, cached on disk) that reads each
-pair's constants once for several frames and adds ``(w c_1 D/d) (m_i' + m_{i-1}') + (w (c_2 - c_1) D/d)
-m_{i-1}'`` to its vertex: one square root and two divisions per pair and frame. ``deform_many`` does the
-fixed columns of ``T`` for 32 frames at once (the frames side by side as columns of the right-hand side,
-where scipy's sparse product costs about a third as much per frame as with 3 columns) and the wedge
-pairs 8 frames at a time, the two halves of the take in two threads.
-
-*Displacement form and precision.* The fixed columns act on ``Y - Y_rest`` and the start value
-is ``still + T_fixed Y_rest`` (the same sum regrouped, formed in float64 at bind time), so the
-product never cancels large absolute coordinates; the wedge length uses the form above, which
-has no cancellation where a deformed corner closes. ``dtype="float32"`` (what the command uses;
-it stores float32) then agrees with the float64 map to within about 5e-7 of the mesh's extent.
+Each vertex is bound to the bones' regions (eqs. (3)-(6)) and frames (eqs. (1), (2), (7)-(8)) once, deformed per
+frame by eqs. (9)-(10) and blended with eqs. (11)-(12); masks (section 4.3) forbid bones to move vertices.
+Design notes and figures: docs/mocap.md, "Notes on the code", ``retarget/mocap/planar_bones.py``.
 """
 from __future__ import annotations
 
@@ -247,8 +169,8 @@ class PlanarBones:
         dtype : {"float64", "float32"}
             Precision of the bound matrices and of the output. ``float64`` (default) agrees with a
             pair-by-pair evaluation of eqs. (1), (9)-(11) to rounding (1e-12); ``float32`` agrees to
-            within about 5e-7 of the mesh's extent, halves the memory and makes :meth:`deform_many` about
-            1.5x faster (the command stores float32 vertices anyway, so it binds in float32).
+            within about 5e-7 of the mesh's extent and halves the memory (the command stores float32
+            vertices anyway, so it binds in float32).
 
         Raises
         ------
@@ -529,12 +451,9 @@ class PlanarBones:
     def deform_many(self, control_points, chunk: int = 32) -> np.ndarray:
         """Deformed meshes ``(n_frames, n_vertices, 3)`` for ``(n_frames, n_controls, 3)``.
 
-        The bone frames of all frames are one batched call; the fixed part of the map is one
-        sparse product for ``chunk`` frames at a time (the frames side by side as the columns of
-        the right-hand side); the wedge pairs (their factor differs per frame and pair) are one
-        compiled pass over the pairs for a few frames at a time. With a second core (and
-        ``self.threads``, default True) a helper thread does the second half of the take (scipy's
-        sparse kernels and the compiled loop release the GIL).
+        The bone frames of all frames are one batched call, the fixed part of the map one sparse product for
+        ``chunk`` frames at a time, the wedge pairs one compiled pass; with ``self.threads`` a helper thread does the
+        second half of the take.
         """
         c = self._check_controls(control_points)
         if c.ndim != 3:

@@ -1,16 +1,6 @@
 """The planar-bone control surface: a triangulation of the markers over the face (001 section 4).
 
-Markers on a face are a curved sheet: a 2D Delaunay triangulation in a *cylindrical
-projection* around the head's vertical axis (angle around the axis, height along it)
-triangulates it without folding. Triangles Delaunay makes along the hull that are
-slivers (smallest 3D angle under ``min_angle_deg``), that bridge far markers (an edge
-over ``max_edge_ratio`` times the median edge) or that join two groups the caller says
-must not be joined (``forbid``, e.g. the upper and lower inner lips across the mouth) are
-dropped and reported; planar bones refuse degenerate triangles outright.
-
-Coordinates: ``up`` is the head's vertical axis and ``forward`` the direction the face
-looks (ICT-FaceKit: y up, z forward). :func:`cylindrical_projection` returns
-``(n, 2)`` arrays ``(arc, height)``: ``arc = mean_radius * angle`` so both are lengths.
+Design notes and figures: docs/mocap.md, "Notes on the code", ``retarget/mocap/triangulate.py``.
 """
 from __future__ import annotations
 

@@ -1,22 +1,6 @@
 """Preview a take on a rig: the footage with its tracked contours beside the shaded character.
 
-:class:`RigRenderer` draws a blendshape rig fast enough to play a take (the 26,719-vertex
-ICT-FaceKit head in about 15-40 ms of CPU per 480-px frame) with a depth-sorted painter's algorithm
-on OpenCV's ``fillPoly``: back faces are culled, triangles are sorted by layer (inner parts of the
-head first, see :data:`LAYERS`) and far to near, shaded per triangle (Lambert with the mean of its
-vertex normals, from a light near the viewer) in the base colour of its material, and drawn in depth
-bands of ``band`` triangles, one ``fillPoly`` call per (material, shade level) within a band. Within a
-band the order is not kept; a band is a thin slice of depth of one layer, so the faces that overlap
-inside one are rare and small. Transparent materials (alpha 0: ICT-FaceKit's eye occlusion, eye blend
-and lacrimal shells) and eyelashes (cards that, drawn opaque, hide the eyes) are not drawn.
-
-What does not change from frame to frame is done once, in :meth:`RigRenderer.fit`: the triangles
-that face away in every shape or lie out of view are dropped; with ``cull_hidden`` (a take's preview,
-whose curves are known), so are those that no sampled frame shows through a z-buffer
-(:meth:`RigRenderer.visible_triangles`: on ICT-FaceKit about half of the rest, the eyeballs' backs,
-teeth and gums behind the lips, the inside of the mouth and nostrils); the vertices these triangles
-use and the deltas of the shapes that move are gathered into one float32 matrix, so a frame's
-deformation is one matrix-vector product (:meth:`RigRenderer.render_curves`).
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/output/preview.py``.
 """
 from __future__ import annotations
 
@@ -145,17 +129,11 @@ class RigRenderer:
                           n_spread: int = 8, resolution: float | None = None) -> np.ndarray:
         """Which of the triangles ``candidates`` (indices into ``tri_``) some sampled frame shows, grown by one ring.
 
-        The frames sampled: ``n_spread`` spread over ``curves`` (n_frames, n_shapes), and those where a
-        shape's curve is at its largest (and, with ``rotations``: row i's (3, 3) turn, a head angle at
-        its largest or smallest); each goes through a z-buffer (:func:`keyshape.base.raster.rasterize`) in the painter's
-        order of :meth:`render` (a higher layer hides a lower one wherever it covers it, then nearer
-        hides farther) at ``resolution`` times the output size (default: half of it, but no less than 240
-        pixels nor more than the output). A triangle that covers no pixel centre in any
-        of them but shares a vertex with one that does is kept too (slivers, and the frames between the
-        samples): on the ICT-FaceKit head and franck's take (240 frames at 480 px) the half-size test keeps
-        16,075 of the 32,646 candidates (16,161 at full size), and the frames drawn with them differ from
-        those drawn with all candidates in 0.12% of their pixels (by more than 30 levels; ``tests/
-        test_preview_render.py`` holds that below 0.3%, on frames not sampled too).
+        The frames sampled: ``n_spread`` spread over ``curves`` (n_frames, n_shapes), those where a shape's curve is
+        at its largest and, with ``rotations`` (row i's (3, 3) turn), where a head angle is at an extreme; each goes
+        through a z-buffer (:func:`keyshape.base.raster.rasterize`) in :meth:`render`'s painter's order at
+        ``resolution`` times the output size (default half, at least 240 pixels, at most the output). A triangle
+        sharing a vertex with a shown one is kept too.
 
         Returns a boolean mask over ``candidates``.
         """

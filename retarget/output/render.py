@@ -1,13 +1,6 @@
 """Orthographic software render of a mesh with Lambert shading (for previews).
 
-No OpenGL: every triangle's bounding-box pixels are enumerated at once
-(``np.repeat`` over per-triangle pixel counts), barycentric coordinates decide
-coverage, and a z-buffer keeps the nearest sample per pixel (stable sort by
-depth, first occurrence per pixel). Shading is Lambert with per-vertex normals
-interpolated across triangles, from a light near the viewer.
-
-Conventions: the mesh is viewed along -z (camera on +z looking at the origin),
-x right and y up in the mesh become x right and y down in the image.
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/output/render.py``.
 """
 from __future__ import annotations
 

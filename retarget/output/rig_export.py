@@ -1,16 +1,6 @@
 """Write a rig's own curves (from a pose library) by the output's extension.
 
-=================  ==========================================================
-``OUT.csv``        ``frame,time,<rig shape names>`` (what DCC import scripts read), or the
-                   Live Link Face layout with ``livelink=True``
-``OUT.glb``        the rig's neutral with every rig shape that moves in the take (a curve
-                   not 0 throughout) as a morph target, their curves as the weight
-                   animation (and the head motion)
-``OUT.usda/.usdc``  USD (also ``.usd``): the rig's neutral with the shapes that move as UsdSkel
-                   blend shapes (the rig's names), the curves per time code, the head joint
-``OUT.mp4/.avi``   the shaded rig
-``OUT`` (folder)   one OBJ per frame
-=================  ==========================================================
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/output/rig_export.py``.
 """
 from __future__ import annotations
 

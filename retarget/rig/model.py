@@ -1,18 +1,6 @@
 """An artist's blendshape rig: a neutral mesh plus named shapes of one topology (ARKit, FACS, ICT-FaceKit).
 
-Unlike the paper's route (section 5 of 004_119ba07521a9af0b.txt: one sculpted
-target per key shape), a rig's shapes are not tied to key shapes; a pose library
-(:mod:`keyshape.retarget.rig.poses`) says which mix of rig shapes each key is, and the
-rig is then driven by its own curves.
-
-A rig is given as a folder of OBJ files (``--rig DIR``) or a list of OBJ files.
-The neutral is ``--neutral FILE``, else the folder's ``neutral.*`` or
-``generic_neutral_mesh.obj`` (ICT-FaceKit's name). Every other OBJ is a shape named
-by its file stem, except in a folder with ICT-FaceKit's ``vertex_indices.json``,
-whose ``expressions`` list names the shapes (so ``identity*.obj`` are not shapes).
-The scheme points' rig vertices come from ``--landmarks FILE`` (see
-:mod:`keyshape.base.formats.poses`) or, for a rig of ICT-FaceKit's 26,719 vertices,
-from the correspondence shipped in ``retarget/data/``.
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/rig/model.py``.
 """
 from __future__ import annotations
 
@@ -130,8 +118,7 @@ def cache_dir() -> Path:
 def _file_hashes(paths: Sequence[Path]) -> list[str]:
     """sha256 of each file's content; a file whose path, device, inode, size, modification time and
     status-change time (ctime) are those recorded in the cache folder's ``hashes.json`` (when its hash
-    was last computed) is not read again (hashing ICT-FaceKit's 152 MB on every command costs a
-    quarter of a second). The ctime is set by the kernel on every write and cannot be set back (``cp
+    was last computed) is not read again. The ctime is set by the kernel on every write and cannot be set back (``cp
     -p``, ``rsync -a`` and tar restore the modification time, not the ctime), so a file edited in
     place keeping its size and modification time is hashed again."""
     import os
@@ -200,11 +187,9 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
              with_mesh: bool = True, cache: bool = True) -> Rig:
     """Load a rig from a folder or a list of OBJ files (see the module docstring).
 
-    Parsed once: the arrays are cached (:mod:`keyshape.base.formats.rigcache`) under
-    :func:`cache_dir`, named by :func:`rig_digest` (the files' content), so an edited file is parsed
-    again and ICT-FaceKit loads in a fraction of a second after the first time. A damaged cache file
-    is parsed again and rewritten; an unwritable cache folder only costs the parsing. ``cache=False``
-    parses and writes nothing.
+    Parsed once: the arrays are cached (:mod:`keyshape.base.formats.rigcache`) under :func:`cache_dir`, named by
+    :func:`rig_digest` (the files' content); a damaged cache file is parsed again, an unwritable cache folder only
+    costs the parsing, ``cache=False`` parses and writes nothing.
 
     Raises
     ------
@@ -403,15 +388,10 @@ def gaze_pupil_deltas(landmark_neutral: np.ndarray, landmark_deltas: np.ndarray,
                       scheme) -> np.ndarray:
     """The rig's landmark motion per shape with the pupils turned by its gaze shapes.
 
-    A rig's ``eyeLook*`` shapes move the lids (ICT-FaceKit's: ``eyeLookDown`` lowers the upper lid by
-    0.8 of ``eyeBlink``'s travel, and the lower lid with it); the eyeball itself turns with a bone, so the
-    shapes leave the pupil landmarks still. Here each gaze shape also moves its eye's pupil as the eye
-    turned by the shape's full angle (:data:`GAZE_RANGE`) does in the front view (``project``):
-    ``r sin(angle)`` sideways (``eyeLookIn/Out``) or down (``eyeLookDown``; up for ``eyeLookUp``), ``r``
-    the eyeball's radius on the rig's eye (:data:`keyshape.decompose.gaze.EYE_RADIUS_CM` per
-    :data:`~keyshape.decompose.gaze.EYE_WIDTH_CM` of the eye's corner-to-corner width, Eq. 1 of
-    :mod:`keyshape.decompose.gaze`). A solve that sees the pupils then tells a lid lowered by a downward
-    look (pupil down with it) from a blink (pupil still).
+    A rig's ``eyeLook*`` shapes move the lids but leave the pupil landmarks still (the eyeball turns with a bone);
+    here each gaze shape also moves its eye's pupil by ``r sin(angle)`` of its full angle (:data:`GAZE_RANGE`),
+    sideways (``eyeLookIn/Out``) or down (``eyeLookDown``; up for ``eyeLookUp``), ``r`` the eyeball's radius on the
+    rig's eye (Eq. 1 of :mod:`keyshape.decompose.gaze`).
 
     Parameters
     ----------

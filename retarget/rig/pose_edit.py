@@ -1,19 +1,6 @@
 """A tiny local web page for correcting a pose library (POSES.json) by hand.
 
-``keyshape pose ... --edit`` (after fitting) or ``keyshape pose-edit POSES.json --rig RIG``
-serves, on 127.0.0.1 only, a page listing every key of every region: the actor's key
-contour over the actor's neutral (from KEYS.json, when it can be found), the rig rendered
-in the key's pose (:class:`~keyshape.retarget.output.preview.RigRenderer`), and one slider per
-rig shape of the key's region. A slider change is sent as ``PUT /api/poses/<key>`` with
-``{"pose": {shape: weight}}``; the server checks it (the key exists, every shape is one
-of its region's shapes, every weight a finite number within the rig's range) and rewrites
-POSES.json atomically. Nothing else is ever written.
-
-It follows the label-correction server (:mod:`keyshape.tracker.labelling.server`) and
-shares its safety rules (:mod:`keyshape.base.localserver`): loopback peers and ``Host`` names only (no DNS rebinding), JSON
-bodies under 1 MB with ``Content-Type: application/json`` (no cross-site form can send
-one without a CORS preflight, which is never granted), names checked against the
-library (no path is ever built from a request).
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/rig/pose_edit.py``.
 """
 from __future__ import annotations
 

@@ -1,21 +1,8 @@
 """A pose library: each key shape as a mix of an artist's rig shapes, and rig curves from key weights.
 
-The paper (section 5 of 004_119ba07521a9af0b.txt) replaces each source key shape
-``S_i`` by an artist's target ``T_i`` and keeps the weights (Eq. 2). With an
-existing rig, the target of key ``i`` is itself a rig pose ``T_i = N + D p_i``
-(``D`` the rig's shape deltas, ``p_i`` its weights), so the retargeted frame
-
-    ``N + sum_i w_i (T_i - T_n) + (T_n - N) = N + D (p_n + sum_i w_i (p_i - p_n))``
-
-is the rig driven by the curves ``c = p_n + W (P - p_n)`` (:func:`rig_curves`), where
-``p_n`` is the pose of the shape the key weights are relative to (the take's mean,
-or nothing when keys were chosen relative to the actor's neutral frame).
-
-:func:`fit_pose` suggests ``p_i``: non-negative rig weights within the shapes'
-range, sparse, whose projected landmark motion matches the key's 2D motion from
-the actor's neutral (bounded least squares with an L1 term), after mapping the
-2D motion into the rig's frame with a similarity fitted between the actor's
-neutral and the rig's neutral landmarks (:func:`fit_similarity`).
+Section 5 of 004_119ba07521a9af0b.txt (Eq. 2) with each target a rig pose ``T_i = N + D p_i``: the rig is driven by
+the curves ``c = p_n + W (P - p_n)`` (:func:`rig_curves`); :func:`fit_pose` suggests each ``p_i``.
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/rig/poses.py``.
 """
 from __future__ import annotations
 
@@ -65,8 +52,8 @@ def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float =
     mirrored : mirror-image pairs (:func:`~keyshape.retarget.rig.model.mirror_pairs`) that are opposed when their
         motions *before* the nuisances are projected out have a cosine below ``cosine``: a sideways
         pair (mouthLeft and mouthRight) opposes by its translation, which a free translation hides;
-        both at once is then a narrowing of the lips no artist sculpts (on the synthetic take of
-        ``bench/rig_accuracy.py``, seed 11, it stood in for mouthPucker and mouthFunnel: 0.31 of each)
+        both at once is then a narrowing of the lips no artist sculpts (it stood in for mouthPucker and
+        mouthFunnel, docs/benchmarks.md)
 
     Returns
     -------
@@ -264,16 +251,9 @@ def nuisance_motions(points: np.ndarray, kind: str = "translation") -> np.ndarra
 
 
 def auto_nuisance(region: str, stabilized: bool) -> str:
-    """The ``auto`` nuisance of a region: ``translation`` for the mouth; for the other regions
-    ``none`` when the keys' head was stabilised on rigid points, else ``similarity``.
-
-    The mouth moves against the eye corners with head pitch and yaw (the upper lip's height
-    above the eye-corner line varies by 0.03 inter-ocular distances (SD) on franck and cap12_edit
-    in all three of keyshape's, dlib's and MediaPipe's points, as much as half the lip gap's
-    variation), which no rigid stabilisation in 2D removes; without the free translation the
-    rig's jawOpen curve follows MediaPipe's lip gap with r 0.32 on cap12_edit instead of 0.99
-    (``bench/real_rig_accuracy.py``). The eyes-and-brows region holds the rigid points
-    themselves, so once they are stabilised its rotation and scale are no longer free.
+    """The ``auto`` nuisance of a region: ``translation`` for the mouth (it moves against the eye corners with head
+    pitch and yaw, which no 2D stabilisation removes); for the other regions ``none`` when the keys' head was
+    stabilised on rigid points, else ``similarity``.
     """
     if region == "mouth":
         return "translation"

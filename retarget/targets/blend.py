@@ -1,27 +1,6 @@
 """Blend target key shapes with per-frame weights, as one matrix product (section 5 of 004_119ba07521a9af0b.txt).
 
-Two forms of the combination:
-
-* **absolute** (the paper's Eq. (2) with linear F, as in Eq. (3)): ``B_t = sum_i w_ti B_i``.
-* **delta**: ``B_t = N + sum_i w_ti (B_i - N)`` with a neutral ``N``.
-
-They differ by ``(1 - sum_i w_ti) N``: they agree exactly when the weights of a
-frame sum to one and differ otherwise. NNLS weights (section 4.1) are *not*
-constrained to sum to one, so the form must be the one the weights were fitted
-in; then targets equal to the source key shapes give back the decomposed frames
-exactly. ``keyshape decompose`` fits ``Q_t = N + sum_i w_ti (S_i - N)`` with ``N``
-the sequence's mean shape (its KEYS.json ``neutral``): replay its weights in the
-**delta** form with the target of that face as the neutral (the artist's rest
-face is the usual stand-in). The paper's literal fit ``S_t ~ sum_i w_ti S_i`` (no
-neutral) is replayed by the **absolute** form. Delta-form weights replayed in the
-absolute form would lose ``(1 - sum_i w_ti) N``: a head shrunk or grown about the
-origin by the unspent weight. Weights fitted to deltas from a rest face (ARKit,
-Live Link, ICT-FaceKit) are delta form too.
-
-Regions (the paper's eye and mouth regions) are folded into the basis: key shape
-``i`` of region ``r`` is scaled per vertex by the region weight ``a_r(v)``
-(see :func:`region_weights`), so the blend of all regions is still one product
-``W @ basis`` over all frames.
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/targets/blend.py``.
 """
 from __future__ import annotations
 
@@ -123,13 +102,9 @@ class BlendBasis:
 
     def transform(self, weights: np.ndarray, out: np.ndarray | None = None,
                   chunk_frames: int | None = None) -> np.ndarray:
-        """Evaluate all frames: ``(n_frames, n_vertices, dim)``.
-
-        One matrix product ``weights @ basis_`` (BLAS GEMM; in delta form the
-        weights get a last column of ones for the neutral row), written into ``out``
-        when given; ``chunk_frames`` splits the frames into blocks of that many
-        rows to bound the temporary memory (no temporary at all with ``out`` of
-        the basis dtype).
+        """Evaluate all frames: ``(n_frames, n_vertices, dim)``, one matrix product ``weights @ basis_`` (in delta form
+        the weights get a last column of ones), written into ``out`` when given; ``chunk_frames`` bounds the temporary
+        memory.
         """
         if not hasattr(self, "basis_"):
             raise NotFittedError("BlendBasis is not fitted: call fit(targets, ...) first")

@@ -1,11 +1,6 @@
 """Target key shapes: the artist's models, one per source key shape (section 5 of 004_119ba07521a9af0b.txt).
 
-Targets are OBJ meshes sharing one topology (vertices are the features; faces,
-UVs and groups are kept from the first mesh for output) or 2D drawings as
-``.pts`` / JSON point sets. Each weight column ``REGION_K`` is tied to one
-target file by a mapping JSON (``{"mouth_0": "smile.obj", ...}``, paths relative
-to the mapping file) or, without one, by file stem matched case-insensitively
-(``_L``/``_R`` and ``Left``/``Right`` suffixes are treated alike).
+Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/targets/target_set.py``.
 """
 from __future__ import annotations
 

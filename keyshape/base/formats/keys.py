@@ -1,33 +1,6 @@
 """KEYS.json: key shapes per region (:class:`RegionKeys`); reader and writer.
 
-KEYS.json::
-
-    {"format": "keyshape-keys", "version": 1, "scheme": "contours48", "n_points": 48,
-     "coordinates": "model frame (head pose removed)",
-     "regions": {"mouth": {"method": "spread", "points": [28, ..., 47],
-                           "neutral": [[x, y], ...],
-                           "keys": [{"name": "mouth_0", "frame": 123, "from_frame": true,
-                                     "shape": [[x, y], ...]}, ...]},
-                 "eyes": {...}}}
-
-``frame`` is the video frame number (the tracks file's ``frame`` column) the key
-was taken from (for k-means centres of mass, ``from_frame`` is false and
-``frame`` is the nearest frame). ``neutral`` is the shape the weights are
-relative to (the take's mean, or the actor's neutral with ``select --neutral-frame``):
-a frame is ``neutral + sum_i w_i (key_i - neutral)``. Optional ``rest`` /
-``rest_frame``: the actor's neutral (most relaxed) shape of the region and its frame,
-which ``keyshape pose`` measures key motion from. Optional top-level ``source``:
-``{"model": "sha256:...", "scheme": ..., "tracks": [files]}``, the tracker model the keys'
-tracks came from (``keyshape decompose`` refuses keys of another model); with several
-tracks files each key has ``"take"``, the index of its file. Optional top-level
-``head_pose``: how the head was taken out of the shapes, ``{"method": "3d", ...}`` (the head's 3D
-pose removed and the shapes brought to the front: the fitted
-:class:`keyshape.decompose.head3d.HeadPose3D`, its ``to_dict``), ``{"method": "rigid", "points":
-[10, 14, 18, 22], "reference": [[x, y], ...]}`` (stabilised on those rigid points, put at
-``reference``: :mod:`keyshape.decompose.stabilize`) or ``{"method": "tracker"}`` (the
-tracker's pose alone; also what a file without the entry means). ``keyshape decompose``
-takes the head out of every frame the same way. The weights of
-the key shapes per frame are WEIGHTS.csv (:mod:`keyshape.base.formats.weights`).
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/keys.py``.
 """
 from __future__ import annotations
 

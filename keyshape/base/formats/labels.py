@@ -1,17 +1,6 @@
 """iBUG ``.pts`` landmark labels: one file per labelled frame, and folders of them.
 
-Coordinates are image pixels in the iBUG convention: origin top-left, x to the
-right, y down, ``(x, y)`` order (OpenCV's pixel-centre convention).
-
-``.pts`` (one file per labelled frame, named by zero-based frame index,
-``000123.pts`` = frame 123)::
-
-    version: 1
-    n_points: 48
-    {
-    x y
-    ...
-    }
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/labels.py``.
 """
 from __future__ import annotations
 

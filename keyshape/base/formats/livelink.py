@@ -1,26 +1,6 @@
 """Live Link Face: the CSV the iPhone app records and the UDP packets it streams to Unreal.
 
-**CSV** (``retarget --livelink``): ``Timecode,BlendShapeCount,`` the 52 ARKit names in PascalCase
-(:data:`ARKIT52`, the app's CSV order), ``HeadYaw,HeadPitch,HeadRoll``, the eyes' yaw, pitch and roll
-(:data:`LIVELINK_TAIL`); ``BlendShapeCount`` 61; timecode ``HH:MM:SS:FF.sss``.
-
-**UDP packet** (``keyshape live``; what Unreal's Live Link Face source reads on port 11111; packet
-version 6, as Unreal's ``AppleARKitLiveLinkSource`` serialises it)::
-
-    uint8    version (6)
-    int32    length of the device id, then its bytes (UTF-8)
-    int32    length of the subject name, then its bytes (UTF-8)
-    int32    frame number        \\
-    float32  sub-frame           |  FQualifiedFrameTime: the frame time
-    int32    rate numerator      |  and its frame rate (numerator / denominator)
-    int32    rate denominator    /
-    uint8    blend shape count (61)
-    float32  x 61 values in Unreal's ``EARFaceBlendShape`` order (:data:`PACKET_NAMES`: the 52 ARKit
-             shapes, then head yaw/pitch/roll and the eyes' yaw/pitch/roll, radians)
-
-every multi-byte field big-endian (network order). The packet order differs from the CSV's in two
-places (``JawLeft`` before ``JawRight``, ``MouthLeft`` before ``MouthRight``); values are moved by
-name between the two (:func:`csv_to_packet`).
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/livelink.py``.
 """
 from __future__ import annotations
 

@@ -1,30 +1,6 @@
 """Marker files: C3D (ezc3d), TRC (OpenSim layout) and CSV; one result type, :class:`Markers`.
 
-Conventions
------------
-* ``positions`` is ``(n_frames, n_markers, 3)`` float64 in the file's own axes and
-  units (``units``: ``"mm"``, ``"cm"``, ``"m"``); nothing is rotated or rescaled.
-* A gap (occluded marker) is NaN, never zeros: C3D points with a negative residual
-  and points written as exactly ``(0, 0, 0)`` (the way several systems mark gaps) become
-  NaN; empty TRC/CSV fields become NaN.
-* C3D labels come from ``POINT:LABELS`` then ``LABELS2``, ``LABELS3``... (systems spill
-  past 255 labels there); a point with no label, or an empty label, is named
-  ``M001``, ``M002``... by its one-based index. Duplicate labels are an error naming
-  them, unless ``duplicates="rename"`` (then the second ``X`` becomes ``X#2``).
-* Frame counts come from the data, not ``POINT:FRAMES`` (an INT16 that overflows in
-  long takes).
-
-CSV layout (read and written): a header ``frame,time,<label>_x,<label>_y,<label>_z,...`` on the
-first line (``csv.DictReader`` and pandas read it with their defaults). The rate and the units go
-to a sidecar ``NAME.meta.json`` beside ``NAME.csv`` (``{"keyshape_markers": 1, "csv_sha256": ...,
-"rate": 120, "units": "mm"}``, tied to one version of the CSV by its hash, as the tracks' sidecar);
-without it the rate comes from the time column and the units are mm. Older files' first comment
-lines ``# rate=120`` and ``# units=mm`` are read too.
-
-Markers on a mesh (JSON, :func:`read_mesh_markers` / :func:`write_mesh_markers`): where each
-marker sits on a face mesh, ``{"name": vertex index or [x, y, z], ...}`` (a bare list is
-named ``"0"``, ``"1"``...); ``keyshape register --out-markers`` writes placed markers as
-``{"name": {"position": [x, y, z], "vertex": nearest target vertex}}``, read back by position.
+Design notes and figures: docs/mocap.md, "Notes on the code", ``keyshape/base/formats/markers.py``.
 """
 from __future__ import annotations
 

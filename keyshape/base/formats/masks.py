@@ -1,19 +1,6 @@
 """Masks JSON: discontinuity masks, which vertices the bones of which markers may move; reader and writer.
 
-The masks file of ``keyshape mocap`` (001 sections 4.3 and 6.1; docs/mocap.md)::
-
-    {"regions": [
-      {"name": "upper_lip", "vertices": [12, 13, ...],          # or "vertex_group": "lips_up"
-       "exclude_markers": ["lipOuterLo_C", ...]},                # or "markers": [...] (allowed)
-      {"name": "lower_lip", "image_value": 2, ...}],              # vertices from the mask image
-     "image": "mask.png",                                         # optional, beside the JSON
-     "image_markers": {"lipOuterUp_C": [x, y, z], ...}}           # optional: markers of the painted face
-
-A plain ``{"name": [vertex index, ...], ...}`` (vertex groups only) is read too, as regions
-that list ``vertices``. What the regions mean (marker sets, the image's cylindrical frame)
-is :mod:`keyshape.retarget.mocap.masks`; this module only reads and writes the file, and
-reads the label image it names. Other keys of the file are kept when it is written back
-(``keyshape register --masks/--out-masks`` carries the ``vertices`` lists to a new face).
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/masks.py``.
 """
 from __future__ import annotations
 

@@ -1,16 +1,6 @@
 """Tracker model files (``.npz``): named arrays, parameters and the landmark scheme; reader and writer.
 
-Layout: an ``.npz`` with a ``meta`` string (JSON) and one array per learnt array of the
-model (:class:`keyshape.tracker.eigenpoints.AppearanceModel` decides which). ``meta``::
-
-    {"format": "keyshape-eigenpoints", "format_version": 1,
-     "scheme": {...the scheme JSON...}, "params": {...constructor parameters...},
-     <scalar learnt state, e.g. "landmark_scale": 0.8, "patch_size": 79, "n_samples": 140>}
-
-The scheme travels inside the file, so a user scheme file need not travel with it;
-``format``/``format_version`` make other ``.npz`` files and future layouts fail with
-a clear message. This module knows nothing of the model's algorithm: it reads and
-writes plain arrays and metadata.
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/model.py``.
 """
 from __future__ import annotations
 

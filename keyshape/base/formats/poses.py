@@ -1,33 +1,6 @@
 """POSES.json (a pose library: rig weights per key shape) and rig landmark JSON: readers and writers.
 
-POSES.json, written by ``keyshape pose`` and corrected by hand::
-
-    {"format": "keyshape-poses", "version": 1,
-     "keys": {"file": "keys.json", "scheme": "contours48", "model": "sha256:..."},
-     "rig": {"n_vertices": 26719, "shapes": ["browDown_L", ...]},
-     "range": [0.0, 1.0],
-     "regions": {"mouth": {"shapes": ["jawOpen", "mouthSmile_L", ...],
-                           "neutral": {"jawOpen": 0.12},
-                           "keys": {"mouth_0": {"jawOpen": 0.41, "mouthSmile_L": 0.3}, ...}},
-                 "eyes": {...}}}
-
-Each key's pose is a sparse ``{rig shape: weight}`` object (absent shapes are 0);
-``neutral`` is the pose of the shape the key weights are relative to (the take's
-mean by default; empty when the keys were selected relative to the actor's neutral
-frame). A region's keys drive only the region's ``shapes``. Every weight lies in
-``range`` (the rig shapes' range, [0, 1] for blendshapes).
-
-Rig landmark JSON (which rig vertices the scheme's points are)::
-
-    {"format": "keyshape-rig-landmarks", "version": 1, "scheme": "contours48", "n_vertices": 26719,
-     "points": [1225, [[1888, 0.5], [1052, 0.5]], ...]}
-
-one entry per scheme point: a vertex index, or ``[[vertex, weight], ...]`` (a point
-between vertices; weights sum to 1).
-
-A rig's published landmark list (:func:`read_landmark_list`): the 68 iBUG (Multi-PIE) vertex indices
-as rigs publish them, a JSON list (``[1225, 1888, ...]``, or ICT-FaceKit's ``vertex_indices.json`` with its
-``idx_to_landmark_verts``) or a text file of one index a line (blank lines and ``#`` comments ignored).
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/poses.py``.
 """
 from __future__ import annotations
 

@@ -1,23 +1,6 @@
 """The parsed-rig cache file (``.npz``): a blendshape rig's arrays as parsing its OBJ files gives them.
 
-Parsing ICT-FaceKit's 54 OBJ files (26,719 vertices each) takes seconds; reading this file takes
-a few hundredths. One file per rig, named by a sha256 over the content of the rig's files (see
-:func:`keyshape.retarget.rig.model.load_rig`), so an edited shape is a different file and a stale
-cache is never read. Layout (``np.savez``, no pickles)::
-
-    format      "keyshape-rig-cache", version 1
-    names       (n_shapes,) str                 shape names in order
-    neutral     (n_vertices, 3) float64
-    deltas      (n_shapes, n_vertices, 3) float64   shape - neutral
-    poly_index  (n_polygons + 1,) int64         offsets of each polygon into poly_flat
-    poly_flat   (n,) int64                      vertex indices of every polygon
-    uvs         (n_uvs, 2) float64
-    puv_index   (n_polygons + 1,) int64, puv_flat (m,) int64, puv_none (n_polygons,) bool
-    groups, materials, material_colours   JSON strings
-
-The reader trusts nothing: a file of another layout, with arrays of the wrong shape, indices out of
-range or values that are not finite raises :class:`~keyshape.base.errors.InputError` (the caller then
-parses the OBJ files again and rewrites the cache).
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/rigcache.py``.
 """
 from __future__ import annotations
 

