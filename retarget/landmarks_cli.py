@@ -103,8 +103,15 @@ def run(args) -> int:
     check_output(args.output, "file", inputs)
     scheme = load_scheme("contours48")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
-    landmarks = resolve_landmarks(rig, scheme.name, args.landmarks, None if edit else args.output)
-    W, _ = rig_landmarks(rig, scheme.name, landmarks)
+    if edit and args.landmarks is not None:             # a file the geometry refutes is what the page corrects
+        from keyshape.retarget.landmarks import landmark_problem
+        W, _ = rig_landmarks(rig, scheme.name, args.landmarks, check=False)
+        problem = landmark_problem(W @ rig.neutral, scheme, rig.neutral.mean(axis=0))
+        if problem:
+            print(f"keyshape: {args.landmarks}: these landmarks do not fit the rig ({problem}): correct them in the page")
+    else:
+        landmarks = resolve_landmarks(rig, scheme.name, args.landmarks, None if edit else args.output)
+        W, _ = rig_landmarks(rig, scheme.name, landmarks)
     if edit:
         from keyshape.base.formats.poses import write_rig_landmarks
         from keyshape.retarget.landmark_edit import serve

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from keyshape.base.formats.poses import read_rig_landmarks
+from keyshape.base.formats.poses import read_rig_landmarks, write_rig_landmarks
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.data_synth.remesh import remeshed_ict_rig
@@ -61,7 +61,11 @@ def test_a_point_moved_by_vertex_or_by_click_lands_in_the_saved_file(running):
     assert status == 200, body
     saved = _saved(tmp / "lm.json")
     assert saved[30, v_upper] == 1.0 and np.array_equal(np.delete(saved, 30, 0), np.delete(truth, 30, 0))
-    assert json.loads(body)["problem"] is None or "lip" in json.loads(body)["problem"]
+    assert json.loads(body)["problem"] is None
+    # a move the geometry refutes (an eye's point on the mouth) is saved, and the answer says what is wrong
+    status, body = request(server, "PUT", "/api/points/12", {"vertex": v_upper})
+    assert status == 200 and "not one contour" in json.loads(body)["problem"]
+    assert _saved(tmp / "lm.json")[12, v_upper] == 1.0
     # a click on the jaw-open panel, at the place of the truth's vertex of point 46 (inner lower lip): that vertex
     P = np.array(json.loads(request(server, "GET", "/api/landmarks")[1])["points"])
     v_lower = int(np.argmax(truth[46]))
@@ -130,6 +134,15 @@ def test_rig_check_with_a_json_output_serves_the_page_on_the_landmarks_it_writes
     _, truth = read_rig_landmarks(r["landmarks"])
     assert str(served["path"]) == str(tmp_path / "fixed.json") and np.abs(served["W"] - truth).max() < 1e-6
     assert np.abs(_saved(tmp_path / "fixed.json") - truth).max() < 1e-6
+    # a file the rig's geometry refutes (the lips upside down) is served to be corrected, said in one line
+    entries = json.loads(r["landmarks"].read_text())["points"]
+    write_rig_landmarks(tmp_path / "lips.json", "contours48", len(truth[0]),
+                        entries[:28] + entries[34:40] + entries[28:34] + entries[40:])
+    capsys.readouterr()
+    assert main(["rig-check", str(r["rig"]), "--landmarks", str(tmp_path / "lips.json"), "-o",
+                 str(tmp_path / "fixed2.json")]) == 0
+    assert "upper points are below its lower ones" in capsys.readouterr().out
+    assert np.array_equal(served["W"], read_rig_landmarks(tmp_path / "lips.json")[1])
     assert main(["rig-check", str(r["rig"]), "-o", str(tmp_path / "fixed.txt")]) == 2
     assert "landmarks file (.json)" in capsys.readouterr().err
     assert main(["rig-check", str(r["rig"]), "--landmarks", str(r["landmarks"]), "-o", str(r["landmarks"]),
