@@ -108,7 +108,7 @@ class LandmarkHandler(LocalHandler):
                 self.send_json(HTTPStatus.OK, srv.page_data())
         elif path.startswith("/api/render/") and path.endswith(".png"):
             k = path[len("/api/render/"):-len(".png")]
-            if not (k.isdigit() and int(k) < len(srv.captions)):
+            if not (k.isascii() and k.isdigit() and len(k) < 6 and int(k) < len(srv.captions)):
                 self.send_error_json(HTTPStatus.NOT_FOUND, f"no panel {k!r}")
             else:
                 self.send_body(HTTPStatus.OK, srv.render_png(int(k)), "image/png")
@@ -121,7 +121,7 @@ class LandmarkHandler(LocalHandler):
     put_refused = "only landmark points can be written"
 
     def put_target(self, name: str):
-        if not (name.isdigit() and int(name) < self.server.W.shape[0]):
+        if not (name.isascii() and name.isdigit() and len(name) < 6 and int(name) < self.server.W.shape[0]):
             self.send_error_json(HTTPStatus.NOT_FOUND, f"no point {name[:40]!r} in the scheme")
             return NO_BODY
         return int(name)

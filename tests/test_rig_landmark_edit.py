@@ -97,6 +97,8 @@ def test_a_click_where_the_lips_touch_picks_the_points_own_lip(running, remeshed
     ("/api/points/48", {"vertex": 1}, None, 404),                                  # no such point
     ("/api/points/abc", {"vertex": 1}, None, 404),
     ("/api/points/../lm.json", {"vertex": 1}, None, 404),
+    ("/api/points/%C2%B2", {"vertex": 1}, None, 404),                             # a digit int() does not read
+    ("/api/points/" + "9" * 5000, {"vertex": 1}, None, 404),
     ("/api/points/3", {"vertex": -1}, None, 400),                                  # outside the rig
     ("/api/points/3", {"vertex": 10 ** 9}, None, 400),
     ("/api/points/3", {"vertex": True}, None, 400),
