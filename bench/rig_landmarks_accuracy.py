@@ -11,7 +11,7 @@ solved with the found landmarks against the curves solved with the true ones (``
 
 Usage::
 
-    python bench/rig_landmarks_accuracy.py [--work /tmp/rig_lm_bench] [--points] [--tracks T.csv --keys K.json]
+    python bench/rig_landmarks_accuracy.py [--work /tmp/rig_lm_bench] [--points] [--more] [--tracks T.csv --keys K.json]
 """
 from __future__ import annotations
 
@@ -29,6 +29,10 @@ RIGS = {"plain": dict(seed=3), "m_zup": dict(seed=3, units="m", up="z"), "face0.
         "face1.0": dict(seed=5, reshape=1.0), "face1.0b": dict(seed=7, reshape=1.0),
         "mask0.6": dict(seed=8, reshape=0.6, mask=True),
         "arkit": dict(seed=8, reshape=0.6, mask=True, arkit=True, units="m", up="z")}
+#: more faces (``--more``): others of 1.0 and 0.8 cm, an ARKit-named mask of 1.0 cm, an ARKit-style mask in metres, Z-up
+MORE = {"face1.0c": dict(seed=11, reshape=1.0), "face1.0d": dict(seed=12, reshape=1.0), "face0.8": dict(seed=13, reshape=0.8),
+        "mask1.0": dict(seed=14, reshape=1.0, mask=True, arkit=True),
+        "arkit0.6": dict(seed=15, reshape=0.6, mask=True, arkit=True, units="m", up="z")}
 
 
 def main() -> None:
@@ -37,6 +41,7 @@ def main() -> None:
     ap.add_argument("--tracks", default=None)
     ap.add_argument("--keys", default=None)
     ap.add_argument("--points", action="store_true", help="each point's largest error and the shape it is in")
+    ap.add_argument("--more", action="store_true", help="five more faces (MORE)")
     a = ap.parse_args()
     from keyshape.base.formats.poses import read_rig_landmarks
     from keyshape.base.formats.weights import read_weights
@@ -45,7 +50,7 @@ def main() -> None:
     from keyshape.retarget.rig import found_landmarks, load_rig
 
     work = Path(a.work)
-    for name, kw in RIGS.items():
+    for name, kw in ({**RIGS, **MORE} if a.more else RIGS).items():
         r = remeshed_ict_rig(work / name, **kw) if not (work / f"{name}_landmarks.json").is_file() else \
             {"rig": work / name, "landmarks": work / f"{name}_landmarks.json", "scale": 0.01 if "units" in kw else 1.0}
         rig = load_rig(r["rig"], cache=False)

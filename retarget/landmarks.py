@@ -367,7 +367,7 @@ class FitOptions:
     symmetric: bool = True
     skin_only: bool = True
     side_tolerance: float = 0.25
-    corner_radius: float = 0.3
+    corner_radius: float = 0.03
 
 
 def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], triangles: np.ndarray,
@@ -392,8 +392,8 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     3. Each fitted landmark goes to the nearest point of the rig's surface that moves as it does under the
        :data:`TELLING` shapes (jawOpen, the blinks), the motion choosing the surface only (an upper-lip point
        lands on the upper lip that jawOpen leaves, not on the lower lip it touches in a closed-mouth
-       neutral); the inner mouth corners by position and jawOpen's motion, matched in amount
-       (:func:`place_landmarks`).
+       neutral); the inner mouth corners, where the lips meet, by position and by where jawOpen's motion lies
+       between the lips' around them (:func:`place_landmarks`).
 
     Measured on remeshed ICT-FaceKit rigs (``bench/rig_landmarks_accuracy.py``, docs/benchmarks.md).
 
@@ -441,7 +441,9 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     Y, match_ref = Y[face], match_ref[face]
     for w in widths:
         Y = Y + _smooth_step(Y, match_ref, V[used], match_rig[used], eyes, width=w, ridge=ridge, symmetric=symmetric)
-    return place_landmarks(Y[at], desc_ref[lm], V, tri, desc_rig, eyes * np.array([1.0, motion_weight]), options)
+    eyes_ref = float(np.linalg.norm(src[common.index("blink_left")] - src[common.index("blink_right")]))
+    corners = corner_fractions(reference.neutral, fr["jaw"], lm, eyes_ref, options.corner_radius)
+    return place_landmarks(Y[at], desc_ref[lm], V, tri, desc_rig, eyes, corners, options)
 
 #: iBUG-68's inner mouth corners: where jawOpen's separation of the lips begins
 INNER_CORNERS = (60, 64)
@@ -463,14 +465,39 @@ def _candidates(target: np.ndarray, V: np.ndarray, tri: np.ndarray, desc: np.nda
     return out
 
 
+def separation(vertices: np.ndarray, jaw: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, float, float]:
+    """How jawOpen separates the lips around ``centre``: its motion ``jaw`` (n, 3) at the ``vertices`` (n, 3)
+    within ``radius`` of it, along their mean direction: (that direction, the least and the largest motion)."""
+    near = np.linalg.norm(vertices - centre, axis=1) < radius
+    u = jaw[near].mean(axis=0)
+    u = u / max(float(np.linalg.norm(u)), 1e-300)
+    m = jaw[near] @ u
+    return u, float(m.min()), float(m.max())
+
+
+def corner_fractions(neutral: np.ndarray, jaw: np.ndarray, landmarks: np.ndarray, eyes: float,
+                     radius: float) -> dict[int, float]:
+    """{iBUG point: where its jawOpen motion lies between the least and the largest of the vertices within
+    ``radius`` eye distances (``eyes``) of it (0: with the upper lip, 1: with the lower)} for the inner mouth
+    corners (:data:`INNER_CORNERS`) of a reference face: ``neutral`` (n, 3), its jawOpen deltas ``jaw``
+    (n, 3), its iBUG-68 vertices ``landmarks``."""
+    out = {}
+    for i in INNER_CORNERS:
+        c = int(landmarks[i])
+        u, lo, hi = separation(neutral, jaw, neutral[c], radius * eyes)
+        out[i] = float(np.clip((jaw[c] @ u - lo) / max(hi - lo, 1e-300), 0.0, 1.0))
+    return out
+
+
 def place_landmarks(target: np.ndarray, desc_ref: np.ndarray, V: np.ndarray, tri: np.ndarray, desc_rig: np.ndarray,
-                    scales: np.ndarray, options: FitOptions = FitOptions()) -> np.ndarray:
+                    eyes: float, corners: dict[int, float], options: FitOptions = FitOptions()) -> np.ndarray:
     """Step 3 of :func:`find_ibug68`: the fitted iBUG points ``target`` (68, 3) put on the rig's surface, as
     (68, n_vertices) weight rows.
 
     ``desc_ref`` (68, 3 t) and ``desc_rig`` (n_vertices, 3 t): how the :data:`TELLING` shapes (jawOpen first)
     move each landmark and each rig vertex, relative to each shape's largest motion on its own face, times
-    ``scales[1]``; ``scales[0]``: the distance between the eyes.
+    ``options.motion_weight`` eye distances; ``eyes``: the distance between the eyes; ``corners``: the
+    reference's inner mouth corners' :func:`corner_fractions`.
 
     1. The surface a landmark lies on: of the closest points to it on the triangles around its 64 nearest
        vertices, those whose motion is within ``options.side_tolerance`` (of the largest motion) of the
@@ -478,13 +505,14 @@ def place_landmarks(target: np.ndarray, desc_ref: np.ndarray, V: np.ndarray, tri
        closed-mouth neutral; the upper lid, not the lower one. The landmark goes to the nearest of them in
        position: the motion only chooses the surface, since another artist's shapes move it by other
        amounts.
-    2. The inner mouth corners (:data:`INNER_CORNERS`), where the lips' separation under jawOpen begins and
-       the lips' motion changes within a fraction of a millimetre, go to the point nearest in position and
-       in jawOpen's motion, that motion's amount on the rig first matched to the reference's: by the
-       ratio, over the lip points of 1 within ``options.corner_radius`` eye distances, of the rig's jawOpen
-       motion to the reference's (least squares).
+    2. The inner mouth corners (:data:`INNER_CORNERS`), where the lips meet and the vertices of both lips and
+       of the corner lie within a fraction of a millimetre of each other, each moved by jawOpen as its own
+       lip: the point nearest in position and in jawOpen's motion to the motion that lies where the
+       reference's corner lies between its lips' (:func:`corner_fractions`), among the rig's vertices within
+       ``options.corner_radius`` eye distances of the fitted corner: a fraction, so neither the motion's
+       amount (another artist's) nor the fit's last fraction of a millimetre matters.
     """
-    eyes, L = (float(x) for x in scales)
+    L = options.motion_weight * eyes
     cand = _candidates(target, V, tri, desc_rig)
     W = np.zeros((len(target), len(V)))
     for i, (t, dist, bary, desc) in enumerate(cand):                     # 68 points
@@ -492,14 +520,11 @@ def place_landmarks(target: np.ndarray, desc_ref: np.ndarray, V: np.ndarray, tri
         ok = np.flatnonzero(c <= c.min() + options.side_tolerance * L)
         j = ok[np.argmin(dist[ok])]
         np.add.at(W[i], t[j], bary[j])
-    P, jaw = W @ V, (W @ desc_rig)[:, :3]
-    lips = np.arange(48, 68)
-    for i in INNER_CORNERS:
-        near = lips[np.linalg.norm(P[lips] - P[i], axis=1) < options.corner_radius * eyes]
-        den = float((desc_ref[near, :3] ** 2).sum())
-        f = float(np.clip((jaw[near] * desc_ref[near, :3]).sum() / den, 0.5, 2.0)) if den > 0 else 1.0
+    used = used_vertices(tri)
+    for i, frac in corners.items():
+        u, lo, hi = separation(V[used], desc_rig[used, :3], target[i], options.corner_radius * eyes)
         t, dist, bary, desc = cand[i]
-        j = int(np.argmin(dist ** 2 + ((desc[:, :3] / f - desc_ref[i, :3]) ** 2).sum(1)))
+        j = int(np.argmin(dist ** 2 + (desc[:, :3] @ u - (lo + frac * (hi - lo))) ** 2))
         W[i] = 0
         np.add.at(W[i], t[j], bary[j])
     return W
