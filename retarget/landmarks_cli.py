@@ -103,6 +103,8 @@ def run(args) -> int:
     check_output(args.output, "file", inputs)
     scheme = load_scheme("contours48")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    if edit and (rig.mesh is None or not rig.mesh.polygons):
+        raise InputError("the rig's neutral has no faces to show", rig.neutral_file)
     if edit and args.landmarks is not None:             # a file the geometry refutes is what the page corrects
         from keyshape.retarget.landmarks import landmark_problem
         W, _ = rig_landmarks(rig, scheme.name, args.landmarks, check=False)
@@ -115,8 +117,6 @@ def run(args) -> int:
     if edit:
         from keyshape.base.formats.poses import write_rig_landmarks
         from keyshape.retarget.landmark_edit import serve
-        if rig.mesh is None or not rig.mesh.polygons:
-            raise InputError("the rig's neutral has no faces to show", rig.neutral_file)
         write_rig_landmarks(args.output, scheme.name, rig.n_vertices, landmark_entries(W))
         serve(args.output, rig, W, scheme)
         return 0
