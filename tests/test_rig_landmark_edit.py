@@ -12,8 +12,8 @@ from keyshape.base.formats.poses import read_rig_landmarks, write_rig_landmarks
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.data_synth.remesh import remeshed_ict_rig
-from keyshape.retarget.landmark_edit import LandmarkServer, point_sides
-from keyshape.retarget.rig import load_rig
+from keyshape.retarget.rig.landmark_edit import LandmarkServer, point_sides
+from keyshape.retarget.rig.model import load_rig
 from server_helpers import request, serving
 
 SCHEME = load_scheme("contours48")
@@ -130,7 +130,7 @@ def test_rig_check_with_a_json_output_serves_the_page_on_the_landmarks_it_writes
     on them; another suffix is refused in one line; the output is never an input."""
     r, _ = remeshed
     served = {}
-    monkeypatch.setattr("keyshape.retarget.landmark_edit.serve",
+    monkeypatch.setattr("keyshape.retarget.rig.landmark_edit.serve",
                         lambda path, rig, W, scheme: served.update(path=path, W=W))
     assert main(["rig-check", str(r["rig"]), "--landmarks", str(r["ibug68"]), "-o", str(tmp_path / "fixed.json")]) == 0
     _, truth = read_rig_landmarks(r["landmarks"])

@@ -1,5 +1,5 @@
 """``keyshape rig-check``: a rig with its landmarks drawn (neutral, blink, jaw open, smile), or a local page to
-correct them (``-o LANDMARKS.json``, :mod:`keyshape.retarget.landmark_edit`), and the landmark file found on a
+correct them (``-o LANDMARKS.json``, :mod:`keyshape.retarget.rig.landmark_edit`), and the landmark file found on a
 rig with no correspondence, written beside a command's outputs for reuse and correction."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Callable
 
 import numpy as np
 
-from keyshape.retarget.landmarks import PANELS, landmark_entries, panel_curves  # noqa: F401 (the sheet's)
+from keyshape.retarget.rig.landmarks import PANELS, landmark_entries, panel_curves  # noqa: F401 (the sheet's)
 
 #: each panel's side on the check sheet, pixels (``check_sheet(size=...)`` for another)
 SHEET_PANEL = 420
@@ -47,18 +47,18 @@ def landmarks_beside(output: str | Path) -> Path:
 def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: str | Path | None,
                       say: Callable[[str], None] = print) -> str | Path | None:
     """The landmark file a command uses on ``rig``: ``landmarks`` as given, or the shipped one, or, for a rig
-    with neither, the landmarks found on it (:func:`keyshape.retarget.rig.found_landmarks`), written
+    with neither, the landmarks found on it (:func:`keyshape.retarget.rig.model.found_landmarks`), written
     beside ``output`` (:func:`landmarks_beside`) and said in one line. What the landmarks imply for the
     gaze (a rig without eyeballs) is said in one more line.
 
     Raises :class:`~keyshape.base.errors.InputError` (one line, naming the file) for a file that is wrong.
     """
     from keyshape.base.formats.poses import read_landmark_list, write_rig_landmarks
-    from keyshape.retarget.rig import default_landmarks, found_landmarks, rig_landmarks
+    from keyshape.retarget.rig.model import default_landmarks, found_landmarks, rig_landmarks
     if landmarks is not None:
         rig_landmarks(rig, scheme, landmarks)                       # refused here, before the work
         if read_landmark_list(landmarks) is not None and scheme == "contours48":
-            from keyshape.retarget.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
+            from keyshape.retarget.rig.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
             W68 = one_hot(read_landmark_list(landmarks), rig.n_vertices)
             for note in contours48_from_ibug68(W68, rig.neutral, still_vertices(
                     rig.deltas, rig.names, eye_width(W68, rig.neutral))).notes:
@@ -81,7 +81,7 @@ def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: st
 def check_sheet(rig, W: np.ndarray, scheme, size: int = SHEET_PANEL) -> np.ndarray:
     """The check sheet (BGR): the rig in each of :data:`PANELS` that it has the shapes for, its landmarks drawn."""
     from keyshape.base.draw import contact_sheet
-    from keyshape.retarget.preview import RigRenderer
+    from keyshape.retarget.output.preview import RigRenderer
     captions, C = panel_curves(rig)
     r = RigRenderer(rig, size=(size, size), landmarks=(W, scheme)).fit(C)
     return contact_sheet([r.render_curves(c) for c in C], captions, columns=len(C), tile_width=size)
@@ -93,7 +93,7 @@ def run(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_write, check_output
     from keyshape.base.schemes import load_scheme
-    from keyshape.retarget.rig import load_rig, rig_landmarks
+    from keyshape.retarget.rig.model import load_rig, rig_landmarks
 
     edit = Path(args.output).suffix.lower() == ".json"
     if not edit and Path(args.output).suffix.lower() not in (".png", ".jpg", ".jpeg"):
@@ -106,7 +106,7 @@ def run(args) -> int:
     if edit and (rig.mesh is None or not rig.mesh.polygons):
         raise InputError("the rig's neutral has no faces to show", rig.neutral_file)
     if edit and args.landmarks is not None:             # a file the geometry refutes is what the page corrects
-        from keyshape.retarget.landmarks import landmark_problem
+        from keyshape.retarget.rig.landmarks import landmark_problem
         W, _ = rig_landmarks(rig, scheme.name, args.landmarks, check=False)
         problem = landmark_problem(W @ rig.neutral, scheme, rig.neutral.mean(axis=0))
         if problem:
@@ -116,7 +116,7 @@ def run(args) -> int:
         W, _ = rig_landmarks(rig, scheme.name, landmarks)
     if edit:
         from keyshape.base.formats.poses import write_rig_landmarks
-        from keyshape.retarget.landmark_edit import serve
+        from keyshape.retarget.rig.landmark_edit import serve
         write_rig_landmarks(args.output, scheme.name, rig.n_vertices, landmark_entries(W))
         serve(args.output, rig, W, scheme)
         return 0

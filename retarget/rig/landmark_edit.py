@@ -2,7 +2,7 @@
 
 ``keyshape rig-check RIG [--landmarks FILE] -o LANDMARKS.json`` serves, on 127.0.0.1 only, the rig in
 its neutral and with its blinks, jawOpen and smiles at full weight (the check sheet's panels,
-:data:`keyshape.retarget.landmarks.PANELS`), the scheme's points and contours drawn over each.
+:data:`keyshape.retarget.rig.landmarks.PANELS`), the scheme's points and contours drawn over each.
 The user clicks a point, then the place where it should be, in any panel: the page sends
 ``PUT /api/points/<point>`` with ``{"panel": k, "at": [x, y]}`` (pixels of that panel) or
 ``{"vertex": v}``; the server picks the rig vertex under the click (:meth:`LandmarkServer.pick`: the
@@ -136,7 +136,7 @@ class LandmarkServer(LocalServer):
     Parameters
     ----------
     path : the landmarks file (keyshape-rig-landmarks) each move rewrites
-    rig : :class:`~keyshape.retarget.rig.Rig` with its mesh
+    rig : :class:`~keyshape.retarget.rig.model.Rig` with its mesh
     W : (n_points, n_vertices) the landmarks to start from (rows summing to 1)
     scheme : :class:`keyshape.base.schemes.Scheme`
     port : TCP port on 127.0.0.1 (0: any free port)
@@ -146,9 +146,9 @@ class LandmarkServer(LocalServer):
     def __init__(self, path: str | Path, rig, W: np.ndarray, scheme, port: int = 0, size: int = 420,
                  verbose: bool = False):
         from keyshape.base.raster import rasterize
-        from keyshape.retarget.landmarks import landmark_entries, panel_curves
-        from keyshape.retarget.preview import RigRenderer
-        from keyshape.retarget.targets import name_key
+        from keyshape.retarget.rig.landmarks import landmark_entries, panel_curves
+        from keyshape.retarget.output.preview import RigRenderer
+        from keyshape.retarget.targets.target_set import name_key
 
         self.path = Path(path)
         self.rig, self.scheme, self.verbose = rig, scheme, verbose
@@ -222,7 +222,7 @@ class LandmarkServer(LocalServer):
         several moves)."""
         from keyshape.base.files import user_save
         from keyshape.base.formats.poses import write_rig_landmarks
-        from keyshape.retarget.landmarks import landmark_problem
+        from keyshape.retarget.rig.landmarks import landmark_problem
         how = check_move(body, self.W.shape[0], point, len(self.captions), self.rig.n_vertices)
         v = how[1] if how[0] == "vertex" else self.pick(point, *how[1:])
         with self.lock:
