@@ -3,14 +3,15 @@
 For each test rig (``data_synth/remesh.py``: the shipped face decimated to ~40% of its vertices in a
 shuffled order; ``plain``, the same in metres and Z-up, and other faces: ``reshape`` 0.6 and 1.0 cm of
 other proportions with other artists' shapes; ``mask0.6``: such a face cut to its front, as ARKit's
-face mesh), prints the largest distance (cm, ICT's scale) of the
-found landmarks from the true ones per group, in the neutral and under every shape; with ``--tracks``
+face mesh; ``arkit``: that mask in metres, Z-up, with ARKit's shape names), prints the largest distance (cm, ICT's scale) of the
+found landmarks from the true ones per group, in the neutral and under every shape (with ``--points``, each
+point's, and the shape it is largest in); with ``--tracks``
 and ``--keys`` (a real take's, e.g. cap12_edit or franck), also the correlation r of each checked curve
 solved with the found landmarks against the curves solved with the true ones (``keyshape solve``).
 
 Usage::
 
-    python bench/rig_landmarks_accuracy.py [--work /tmp/rig_lm_bench] [--tracks T.csv --keys K.json]
+    python bench/rig_landmarks_accuracy.py [--work /tmp/rig_lm_bench] [--points] [--more] [--tracks T.csv --keys K.json]
 """
 from __future__ import annotations
 
@@ -26,7 +27,12 @@ GROUPS = {"brows": range(0, 10), "eyes": range(10, 26), "pupils": range(26, 28),
 CHECKED = ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R")
 RIGS = {"plain": dict(seed=3), "m_zup": dict(seed=3, units="m", up="z"), "face0.6": dict(seed=8, reshape=0.6),
         "face1.0": dict(seed=5, reshape=1.0), "face1.0b": dict(seed=7, reshape=1.0),
-        "mask0.6": dict(seed=8, reshape=0.6, mask=True)}
+        "mask0.6": dict(seed=8, reshape=0.6, mask=True),
+        "arkit": dict(seed=8, reshape=0.6, mask=True, arkit=True, units="m", up="z")}
+#: more faces (``--more``): others of 1.0 and 0.8 cm, an ARKit-named mask of 1.0 cm, an ARKit-style mask in metres, Z-up
+MORE = {"face1.0c": dict(seed=11, reshape=1.0), "face1.0d": dict(seed=12, reshape=1.0), "face0.8": dict(seed=13, reshape=0.8),
+        "mask1.0": dict(seed=14, reshape=1.0, mask=True, arkit=True),
+        "arkit0.6": dict(seed=15, reshape=0.6, mask=True, arkit=True, units="m", up="z")}
 
 
 def main() -> None:
@@ -34,6 +40,8 @@ def main() -> None:
     ap.add_argument("--work", default="/tmp/rig_lm_bench")
     ap.add_argument("--tracks", default=None)
     ap.add_argument("--keys", default=None)
+    ap.add_argument("--points", action="store_true", help="each point's largest error and the shape it is in")
+    ap.add_argument("--more", action="store_true", help="five more faces (MORE)")
     a = ap.parse_args()
     from keyshape.base.formats.poses import read_rig_landmarks
     from keyshape.base.formats.weights import read_weights
@@ -42,7 +50,7 @@ def main() -> None:
     from keyshape.retarget.rig.model import found_landmarks, load_rig
 
     work = Path(a.work)
-    for name, kw in RIGS.items():
+    for name, kw in ({**RIGS, **MORE} if a.more else RIGS).items():
         r = remeshed_ict_rig(work / name, **kw) if not (work / f"{name}_landmarks.json").is_file() else \
             {"rig": work / name, "landmarks": work / f"{name}_landmarks.json", "scale": 0.01 if "units" in kw else 1.0}
         rig = load_rig(r["rig"], cache=False)
@@ -52,6 +60,9 @@ def main() -> None:
         err = np.linalg.norm(np.einsum("pv,svc->spc", found - truth, posed), axis=-1) / r["scale"]
         cells = [f"{g} {err[:, list(ix)].max():.3f}" for g, ix in GROUPS.items()]
         line = f"{name:9s} {rig.n_vertices} vertices: max error (cm) {', '.join(cells)}"
+        if a.points:
+            shape = ["neutral", *rig.names]
+            line += "\n  " + " ".join(f"{p}:{err[:, p].max():.3f}({shape[err[:, p].argmax()]})" for p in range(err.shape[1]))
         if a.tracks and a.keys:
             out = {}
             for kind, lm in (("true", ["--landmarks", str(r["landmarks"])]), ("auto", [])):

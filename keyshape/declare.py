@@ -46,6 +46,8 @@ ROLES: dict[str, dict[str, str]] = {
     "batch": {"manifest": "in", "output": "folder", "scheduler": _TEXT},
     "animate": {"video": "in", "rig": "in", "output": "file", "livelink": "file", "preview": "file", "labels": "in",
                 "landmarks": "in", "work": "folder", "example": "folder"},
+    # -o LANDMARKS.json: written once under the rule, then rewritten by the correction page on the user's
+    # request (keyshape.base.files.user_save), as pose-edit's POSES.json
     "rig-check": {"rig": "in", "neutral": "in", "landmarks": "in", "output": "file"},
 }
 

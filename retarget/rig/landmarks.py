@@ -25,8 +25,8 @@ Pure functions over arrays: no file is opened here (:mod:`keyshape.base.formats.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -366,6 +366,8 @@ class FitOptions:
     face_margin: float = 0.35
     symmetric: bool = True
     skin_only: bool = True
+    side_tolerance: float = 0.25
+    corner_radius: float = 0.03
 
 
 def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], triangles: np.ndarray,
@@ -387,10 +389,11 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
        moves it, each relative to its largest, times ``motion_weight`` eye distances), pairs beyond three
        times the median distance dropped; the displacement is a ridge-regularised sum of Gaussians on 150
        reference points, ``widths`` eye distances wide, one width per iteration, from coarse to fine.
-    3. Each fitted landmark goes to the rig vertex nearest it in position and in the motion the
-       :data:`TELLING` shapes (jawOpen, the blinks) give it, then to the point of the triangles around
-       that vertex nearest it in position and that motion (three weights): an upper-lip point lands on
-       the upper lip that jawOpen leaves, not on the lower lip it touches in a closed-mouth neutral.
+    3. Each fitted landmark goes to the nearest point of the rig's surface that moves as it does under the
+       :data:`TELLING` shapes (jawOpen, the blinks), the motion choosing the surface only (an upper-lip point
+       lands on the upper lip that jawOpen leaves, not on the lower lip it touches in a closed-mouth
+       neutral); the inner mouth corners, where the lips meet, by position and by where jawOpen's motion lies
+       between the lips' around them (:func:`place_landmarks`).
 
     Measured on remeshed ICT-FaceKit rigs (``bench/rig_landmarks_accuracy.py``, docs/benchmarks.md).
 
@@ -438,23 +441,92 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     Y, match_ref = Y[face], match_ref[face]
     for w in widths:
         Y = Y + _smooth_step(Y, match_ref, V[used], match_rig[used], eyes, width=w, ridge=ridge, symmetric=symmetric)
-    target = Y[at]
-    desc_ref = desc_ref[lm]
-    tree = cKDTree(V[used])
-    _, near = tree.query(target, k=min(64, len(used)))
-    cand = used[near]                                                      # (68, k)
-    cost = ((V[cand] - target[:, None]) ** 2).sum(-1) + ((desc_rig[cand] - desc_ref[:, None]) ** 2).sum(-1)
-    best = cand[np.arange(len(lm)), np.argmin(cost, axis=1)]
-    # triangles around each chosen vertex: the surface point nearest the target
+    eyes_ref = float(np.linalg.norm(src[common.index("blink_left")] - src[common.index("blink_right")]))
+    corners = corner_fractions(reference.neutral, fr["jaw"], lm, eyes_ref, options.corner_radius)
+    return place_landmarks(Y[at], desc_ref[lm], V, tri, desc_rig, eyes, corners, options)
+
+#: iBUG-68's inner mouth corners: where jawOpen's separation of the lips begins
+INNER_CORNERS = (60, 64)
+
+
+def _candidates(target: np.ndarray, V: np.ndarray, tri: np.ndarray, desc: np.ndarray, k: int = 64):
+    """For each target point, the closest points on the triangles around its ``k`` nearest vertices:
+    [(triangles (m, 3), distances (m,), barycentric weights (m, 3), motion descriptors (m, d))]."""
+    from scipy.spatial import cKDTree
+    used = used_vertices(tri)
+    _, near = cKDTree(V[used]).query(target, k=min(k, len(used)))
     order = np.argsort(tri.ravel(), kind="stable")
     starts = np.searchsorted(tri.ravel()[order], np.arange(len(V) + 1))
-    W = np.zeros((len(lm), len(V)))
-    for k, v in enumerate(best):                                          # 68 points
-        t = tri[order[starts[v]:starts[v + 1]] // 3]
-        dist, bary = _closest_on_triangles(target[k], V[t[:, 0]], V[t[:, 1]], V[t[:, 2]])
-        desc = np.einsum("tk,tkd->td", bary, desc_rig[t])
-        i = int(np.argmin(dist ** 2 + ((desc - desc_ref[k]) ** 2).sum(-1)))
-        np.add.at(W[k], t[i], bary[i])
+    out = []
+    for p, vs in zip(target, used[near]):                                 # 68 points
+        t = tri[np.unique(np.concatenate([order[starts[v]:starts[v + 1]] // 3 for v in vs]))]
+        dist, bary = _closest_on_triangles(p, V[t[:, 0]], V[t[:, 1]], V[t[:, 2]])
+        out.append((t, dist, bary, np.einsum("tk,tkd->td", bary, desc[t])))
+    return out
+
+
+def separation(vertices: np.ndarray, jaw: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, float, float]:
+    """How jawOpen separates the lips around ``centre``: its motion ``jaw`` (n, 3) at the ``vertices`` (n, 3)
+    within ``radius`` of it, along their mean direction: (that direction, the least and the largest motion)."""
+    near = np.linalg.norm(vertices - centre, axis=1) < radius
+    u = jaw[near].mean(axis=0)
+    u = u / max(float(np.linalg.norm(u)), 1e-300)
+    m = jaw[near] @ u
+    return u, float(m.min()), float(m.max())
+
+
+def corner_fractions(neutral: np.ndarray, jaw: np.ndarray, landmarks: np.ndarray, eyes: float,
+                     radius: float) -> dict[int, float]:
+    """{iBUG point: where its jawOpen motion lies between the least and the largest of the vertices within
+    ``radius`` eye distances (``eyes``) of it (0: with the upper lip, 1: with the lower)} for the inner mouth
+    corners (:data:`INNER_CORNERS`) of a reference face: ``neutral`` (n, 3), its jawOpen deltas ``jaw``
+    (n, 3), its iBUG-68 vertices ``landmarks``."""
+    out = {}
+    for i in INNER_CORNERS:
+        c = int(landmarks[i])
+        u, lo, hi = separation(neutral, jaw, neutral[c], radius * eyes)
+        out[i] = float(np.clip((jaw[c] @ u - lo) / max(hi - lo, 1e-300), 0.0, 1.0))
+    return out
+
+
+def place_landmarks(target: np.ndarray, desc_ref: np.ndarray, V: np.ndarray, tri: np.ndarray, desc_rig: np.ndarray,
+                    eyes: float, corners: dict[int, float], options: FitOptions = FitOptions()) -> np.ndarray:
+    """Step 3 of :func:`find_ibug68`: the fitted iBUG points ``target`` (68, 3) put on the rig's surface, as
+    (68, n_vertices) weight rows.
+
+    ``desc_ref`` (68, 3 t) and ``desc_rig`` (n_vertices, 3 t): how the :data:`TELLING` shapes (jawOpen first)
+    move each landmark and each rig vertex, relative to each shape's largest motion on its own face, times
+    ``options.motion_weight`` eye distances; ``eyes``: the distance between the eyes; ``corners``: the
+    reference's inner mouth corners' :func:`corner_fractions`.
+
+    1. The surface a landmark lies on: of the closest points to it on the triangles around its 64 nearest
+       vertices, those whose motion is within ``options.side_tolerance`` (of the largest motion) of the
+       best match's: the upper lip that jawOpen leaves, not the lower lip an upper-lip point touches in a
+       closed-mouth neutral; the upper lid, not the lower one. The landmark goes to the nearest of them in
+       position: the motion only chooses the surface, since another artist's shapes move it by other
+       amounts.
+    2. The inner mouth corners (:data:`INNER_CORNERS`), where the lips meet and the vertices of both lips and
+       of the corner lie within a fraction of a millimetre of each other, each moved by jawOpen as its own
+       lip: the point nearest in position and in jawOpen's motion to the motion that lies where the
+       reference's corner lies between its lips' (:func:`corner_fractions`), among the rig's vertices within
+       ``options.corner_radius`` eye distances of the fitted corner: a fraction, so neither the motion's
+       amount (another artist's) nor the fit's last fraction of a millimetre matters.
+    """
+    L = options.motion_weight * eyes
+    cand = _candidates(target, V, tri, desc_rig)
+    W = np.zeros((len(target), len(V)))
+    for i, (t, dist, bary, desc) in enumerate(cand):                     # 68 points
+        c = np.linalg.norm(desc - desc_ref[i], axis=1)
+        ok = np.flatnonzero(c <= c.min() + options.side_tolerance * L)
+        j = ok[np.argmin(dist[ok])]
+        np.add.at(W[i], t[j], bary[j])
+    used = used_vertices(tri)
+    for i, frac in corners.items():
+        u, lo, hi = separation(V[used], desc_rig[used, :3], target[i], options.corner_radius * eyes)
+        t, dist, bary, desc = cand[i]
+        j = int(np.argmin(dist ** 2 + (desc[:, :3] @ u - (lo + frac * (hi - lo))) ** 2))
+        W[i] = 0
+        np.add.at(W[i], t[j], bary[j])
     return W
 
 
@@ -468,3 +540,37 @@ def find_landmarks(neutral, deltas, names, triangles, reference, scheme_name: st
         return Derived(W68, [])
     d = contours48_from_ibug68(W68, np.asarray(neutral, np.float64), still_vertices(deltas, names, width))
     return d
+
+
+def landmark_entries(W: np.ndarray) -> list:
+    """A weight matrix's rows as landmark-file entries: a vertex index, or ``[[vertex, weight], ...]``."""
+    out = []
+    for row in np.asarray(W, np.float64):
+        nz = np.flatnonzero(np.abs(row) > 1e-12)
+        if len(nz) == 1:
+            out.append(int(nz[0]))
+        else:
+            w = row[nz] / row[nz].sum()
+            out.append([[int(v), float(x)] for v, x in zip(nz, w)])
+    return out
+
+
+#: the panels of the check sheet: caption, {shape name key: weight}
+PANELS = (("neutral", {}), ("blink", {"eyeblinkleft": 1.0, "eyeblinkright": 1.0}), ("jaw open", {"jawopen": 1.0}),
+          ("smile", {"mouthsmileleft": 1.0, "mouthsmileright": 1.0}))
+
+
+def panel_curves(rig) -> tuple[list[str], np.ndarray]:
+    """The :data:`PANELS` the rig has the shapes for: their captions and (n_panels, n_shapes) curves."""
+    from keyshape.retarget.targets.target_set import name_key
+    keys = [name_key(n) for n in rig.names]
+    rows, captions = [], []
+    for caption, mix in PANELS:
+        c = np.zeros(rig.n_shapes)
+        for k, w in mix.items():
+            c[[j for j, x in enumerate(keys) if x == k]] = w
+        if mix and not c.any():
+            continue
+        rows.append(c)
+        captions.append(caption)
+    return captions, np.stack(rows)

@@ -1,5 +1,6 @@
-"""``keyshape rig-check``: a rig with its landmarks drawn (neutral, blink, jaw open, smile), and the landmark
-file found on a rig with no correspondence, written beside a command's outputs for reuse and correction."""
+"""``keyshape rig-check``: a rig with its landmarks drawn (neutral, blink, jaw open, smile), or a local page to
+correct them (``-o LANDMARKS.json``, :mod:`keyshape.retarget.rig.landmark_edit`), and the landmark file found on a
+rig with no correspondence, written beside a command's outputs for reuse and correction."""
 from __future__ import annotations
 
 import argparse
@@ -8,11 +9,10 @@ from typing import Callable
 
 import numpy as np
 
+from keyshape.retarget.rig.landmarks import PANELS, landmark_entries, panel_curves  # noqa: F401 (the sheet's)
+
 #: each panel's side on the check sheet, pixels (``check_sheet(size=...)`` for another)
 SHEET_PANEL = 420
-#: the panels of the check sheet: caption, {shape name key: weight}
-PANELS = (("neutral", {}), ("blink", {"eyeblinkleft": 1.0, "eyeblinkright": 1.0}), ("jaw open", {"jawopen": 1.0}),
-          ("smile", {"mouthsmileleft": 1.0, "mouthsmileright": 1.0}))
 
 
 def register(subparsers) -> None:
@@ -23,14 +23,18 @@ def register(subparsers) -> None:
                     "neutral and with its blinks, jawOpen and smiles at full weight, so a glance tells whether "
                     "they sit on the lids and the right lips. Without --landmarks, a rig that is not ICT-FaceKit "
                     "gets its landmarks found automatically, written beside the sheet (SHEET.landmarks.json) for "
-                    "correction and reuse with --landmarks.",
+                    "correction and reuse with --landmarks. With -o LANDMARKS.json, a page on 127.0.0.1 shows the "
+                    "same panels instead: click a point, then where it should be (the nearest vertex, on the "
+                    "point's own lip or lid); every change is saved to LANDMARKS.json.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("rig", nargs="+", metavar="DIR|FILE", help="rig: folder of shape OBJs (or a list of OBJ files)")
     p.add_argument("--neutral", default=None, help="the rig's neutral OBJ (default: the folder's neutral.*)")
     p.add_argument("--landmarks", default=None,
                    help="rig landmarks: a keyshape-rig-landmarks JSON or the rig's iBUG-68 vertex list (a JSON "
                         "list or one index a line); default: shipped for ICT-FaceKit, else found automatically")
-    p.add_argument("-o", "--output", required=True, help="SHEET.png (or .jpg)")
+    p.add_argument("-o", "--output", required=True,
+                   help="SHEET.png (or .jpg); or LANDMARKS.json: serve a local web page to correct the landmarks "
+                        "(click a point, then where it should be), every change saved to that file")
     p.set_defaults(func=run)
 
 
@@ -38,19 +42,6 @@ def landmarks_beside(output: str | Path) -> Path:
     """Where a command writing ``output`` writes the landmarks it found: ``OUTPUT_STEM.landmarks.json``."""
     out = Path(output)
     return out.with_name(f"{out.stem if out.suffix else out.name}.landmarks.json")
-
-
-def landmark_entries(W: np.ndarray) -> list:
-    """A weight matrix's rows as landmark-file entries: a vertex index, or ``[[vertex, weight], ...]``."""
-    out = []
-    for row in np.asarray(W, np.float64):
-        nz = np.flatnonzero(np.abs(row) > 1e-12)
-        if len(nz) == 1:
-            out.append(int(nz[0]))
-        else:
-            w = row[nz] / row[nz].sum()
-            out.append([[int(v), float(x)] for v, x in zip(nz, w)])
-    return out
 
 
 def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: str | Path | None,
@@ -91,18 +82,7 @@ def check_sheet(rig, W: np.ndarray, scheme, size: int = SHEET_PANEL) -> np.ndarr
     """The check sheet (BGR): the rig in each of :data:`PANELS` that it has the shapes for, its landmarks drawn."""
     from keyshape.base.draw import contact_sheet
     from keyshape.retarget.output.preview import RigRenderer
-    from keyshape.retarget.targets.target_set import name_key
-    keys = [name_key(n) for n in rig.names]
-    rows, captions = [], []
-    for caption, mix in PANELS:
-        c = np.zeros(rig.n_shapes)
-        for k, w in mix.items():
-            c[[j for j, x in enumerate(keys) if x == k]] = w
-        if mix and not c.any():
-            continue
-        rows.append(c)
-        captions.append(caption)
-    C = np.stack(rows)
+    captions, C = panel_curves(rig)
     r = RigRenderer(rig, size=(size, size), landmarks=(W, scheme)).fit(C)
     return contact_sheet([r.render_curves(c) for c in C], captions, columns=len(C), tile_width=size)
 
@@ -115,14 +95,31 @@ def run(args) -> int:
     from keyshape.base.schemes import load_scheme
     from keyshape.retarget.rig.model import load_rig, rig_landmarks
 
-    if Path(args.output).suffix.lower() not in (".png", ".jpg", ".jpeg"):
-        raise InputError("the sheet must be a .png or .jpg", args.output)
+    edit = Path(args.output).suffix.lower() == ".json"
+    if not edit and Path(args.output).suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise InputError("the output must be a sheet (.png or .jpg) or, to correct the landmarks in a local web "
+                         "page, a landmarks file (.json)", args.output)
     inputs = [args.neutral, args.landmarks]
     check_output(args.output, "file", inputs)
     scheme = load_scheme("contours48")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
-    landmarks = resolve_landmarks(rig, scheme.name, args.landmarks, args.output)
-    W, _ = rig_landmarks(rig, scheme.name, landmarks)
+    if edit and (rig.mesh is None or not rig.mesh.polygons):
+        raise InputError("the rig's neutral has no faces to show", rig.neutral_file)
+    if edit and args.landmarks is not None:             # a file the geometry refutes is what the page corrects
+        from keyshape.retarget.rig.landmarks import landmark_problem
+        W, _ = rig_landmarks(rig, scheme.name, args.landmarks, check=False)
+        problem = landmark_problem(W @ rig.neutral, scheme, rig.neutral.mean(axis=0))
+        if problem:
+            print(f"keyshape: {args.landmarks}: these landmarks do not fit the rig ({problem}): correct them in the page")
+    else:
+        landmarks = resolve_landmarks(rig, scheme.name, args.landmarks, None if edit else args.output)
+        W, _ = rig_landmarks(rig, scheme.name, landmarks)
+    if edit:
+        from keyshape.base.formats.poses import write_rig_landmarks
+        from keyshape.retarget.rig.landmark_edit import serve
+        write_rig_landmarks(args.output, scheme.name, rig.n_vertices, landmark_entries(W))
+        serve(args.output, rig, W, scheme)
+        return 0
     img = check_sheet(rig, W, scheme, SHEET_PANEL)
     ok, buf = cv2.imencode(Path(args.output).suffix.lower(), img)
     with atomic_write(args.output, "wb") as f:

@@ -252,7 +252,7 @@ def default_landmarks(n_vertices: int, scheme: str) -> Path | None:
     return None
 
 
-def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None) -> tuple[np.ndarray, Path]:
+def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None, check: bool = True) -> tuple[np.ndarray, Path]:
     """The (n_points, n_vertices) weight matrix taking rig vertices to the scheme's points.
 
     ``path`` is a rig landmark JSON, or the rig's published iBUG-68 vertex list (a JSON list or one
@@ -260,8 +260,8 @@ def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None) -> tupl
     default: the shipped one for ICT-FaceKit rigs, else the landmarks found on the rig
     (:func:`found_landmarks`; the path returned is then ``Path("automatic")``).
     Raises :class:`InputError` naming the file when it is for another scheme, has another number of points
-    than the scheme, or puts them in an order the rig's geometry refutes
-    (:func:`keyshape.retarget.rig.landmarks.landmark_problem`).
+    than the scheme, or (with ``check``) puts them in an order the rig's geometry refutes
+    (:func:`keyshape.retarget.rig.landmarks.landmark_problem`; without, for the page that corrects them).
     """
     from keyshape.base.formats.poses import read_landmark_list, read_rig_landmarks
     from keyshape.base.schemes import load_scheme
@@ -282,7 +282,7 @@ def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None) -> tupl
             hint = (" (iBUG-68's 68 vertex indices? give the list alone, a JSON list or one index a line, and the "
                     f"{scheme} points are derived from it)" if len(W) == 68 else "")
             raise InputError(f"{len(W)} points, scheme {scheme!r} has {sch.n_points}{hint}", path)
-    problem = landmark_problem(W @ rig.neutral, sch, rig.neutral.mean(axis=0))
+    problem = landmark_problem(W @ rig.neutral, sch, rig.neutral.mean(axis=0)) if check else None
     if problem:
         raise InputError(f"these landmarks do not fit the rig: {problem}", path)
     return W, Path(path)

@@ -1,1 +1,2 @@
-"""Static files of the pose-correction page (a package so that they install as package data)."""
+"""Static files of the pose-correction page and the landmark-correction page (landmarks.html, landmarks.js;
+the style is shared): a package so that they install as package data."""
