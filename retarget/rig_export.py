@@ -67,28 +67,15 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         return info
     if rig.mesh is None or not rig.mesh.polygons:
         raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)
-    if kind == "glb":
-        from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
-        from keyshape.base.geometry import vertex_normals
-        from keyshape.retarget.rig import material_parts
-        ids, uvs, tri = split_at_uv_seams(rig.mesh)
-        mt = rig.mesh.triangles
-        # only the shapes that move, each stored sparse (the vertices it moves): a shape at 0 throughout
-        # adds nothing but megabytes (26 of ICT-FaceKit's 53 shapes move on franck)
+    if kind in ("glb", "usd"):
+        from keyshape.base.formats import Morphs
+        from keyshape.retarget.export import write_mesh_take
+        # only the shapes that move, the .glb's each stored sparse (the vertices it moves): a shape at 0
+        # throughout adds nothing but megabytes (26 of ICT-FaceKit's 53 shapes move on franck)
         moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.zeros(0, np.intp)
-        n0 = vertex_normals(rig.neutral, mt)
-        nd = np.stack([vertex_normals(rig.neutral + rig.deltas[j], mt) - n0 for j in moving]) if len(moving) \
-            else np.zeros((0, rig.n_vertices, 3))
-        write_glb(path, rig.neutral[ids], tri, rig.deltas[moving][:, ids], [rig.names[j] for j in moving],
-                  curves[:, moving], fps, head, uvs=uvs,
-                  normals=n0[ids], normal_deltas=nd[:, ids], parts=material_parts(rig.mesh),
-                  first_frame=int(frames[0]) if len(frames) else 0, sparse_targets=True)
-        return info
-    if kind == "usd":
-        from keyshape.retarget.export import write_usd_take
-        moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.arange(0)
-        info.update(write_usd_take(path, rig.mesh, rig.neutral, rig.deltas[moving], [rig.names[j] for j in moving],
-                                   curves[:, moving], np.asarray(frames), fps, head, meters_per_unit))
+        info.update(write_mesh_take(path, rig.mesh, rig.neutral, Morphs(
+            rig.deltas[moving], [rig.names[j] for j in moving], curves[:, moving], fps, head, np.asarray(frames)),
+            meters_per_unit, sparse_targets=True))
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj

@@ -164,6 +164,7 @@ def _mocap(args) -> int:
                      rate=take.rate, triangles=mesh.triangles)
     elif out.suffix.lower() == ".glb":
         try:
+            from keyshape.base.formats import Morphs
             from keyshape.base.formats.gltf import write_glb
         except ImportError:
             raise InputError(".glb output needs keyshape.base.formats.gltf (not in this build): use .npz or an OBJ folder") from None
@@ -172,8 +173,8 @@ def _mocap(args) -> int:
         u, s, vt = np.linalg.svd(d, full_matrices=False)
         k = min(GLB_COMPONENTS, len(s))
         energy = float((s[:k] ** 2).sum() / max((s ** 2).sum(), 1e-300))
-        write_glb(out, base, mesh.triangles, vt[:k].reshape(k, -1, 3) * s[:k, None, None],
-                  [f"pc{i:02d}" for i in range(k)], weights=u[:, :k], fps=take.rate)
+        write_glb(out, base, mesh.triangles, Morphs(vt[:k].reshape(k, -1, 3) * s[:k, None, None],
+                                                    [f"pc{i:02d}" for i in range(k)], u[:, :k], take.rate))
         print(f"{k} principal morph targets keep {100 * energy:.3f}% of the motion energy")
     else:
         with atomic_dir(out, args.overwrite, inputs, kind="mocap") as tmp:

@@ -27,6 +27,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_path
+from keyshape.base.formats import Morphs
 
 FLOAT, UINT = 5126, 5125
 #: sparse morph targets: a vertex moving less than this fraction of the mesh's bounding-box diagonal
@@ -128,15 +129,37 @@ def split_at_uv_seams(mesh) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     return pairs[:, 0], uv, tri
 
 
-def _build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, names: Sequence[str],
-               weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-               default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
-               normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
-               parts: Sequence | None = None, first_frame: int = 0, sparse_targets: bool = False):
-    """Build a :class:`pygltflib.GLTF2` in memory (see :func:`write_glb`)."""
+def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, morphs: Morphs, *,
+              uvs: np.ndarray | None = None, parts: Sequence | None = None,
+              default_weights: np.ndarray | None = None, sparse_targets: bool = False) -> None:
+    """Write a .glb atomically.
+
+    Parameters
+    ----------
+    base : (n_vertices, 3) base shape (the neutral, or the first target)
+    triangles : (n_triangles, 3) vertex indices
+    morphs : the morph targets (``targets[i].POSITION``, their names in ``mesh.extras.targetNames``), their
+        ``NORMAL`` (``normals``, ``normal_deltas``) and their take: the weights (None: no animation), the
+        head motion and the frame rate of the samplers. The sampler times are ``frame / fps`` from the first of
+        ``morphs.frames`` on and the scene's ``extras`` hold ``fps``, ``frame_start`` and ``frame_end`` (Blender
+        keeps scene extras as custom properties; ``bench/blender_import_curves.py`` sets the scene's frame range
+        from them; Blender's own importer does not set the scene range)
+    uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
+    parts : [(material name, triangle indices, (r, g, b, a)), ...]: one primitive per material
+        sharing the vertex attributes and morph targets (default one ``skin`` primitive)
+    default_weights : (n_targets,) ``mesh.weights`` (default zeros)
+    sparse_targets : store each morph target sparse (glTF ``accessor.sparse``: only the vertices it
+        moves, beyond :data:`SPARSE_POSITION_TOL` of the mesh's size), as for a rig whose shapes each
+        move a part of the head
+
+    See :func:`retarget.export.morph_targets` for how target shapes, regions and the
+    absolute form become glTF deltas and weights exactly.
+    """
     import pygltflib as g
+    names, weights, fps, head, normals = morphs.names, morphs.weights, morphs.fps, morphs.head, morphs.normals
+    first_frame = int(morphs.frames[0]) if morphs.frames is not None and len(morphs.frames) else 0
     base = np.asarray(base, dtype=np.float64)
-    tg = np.asarray(deltas, dtype=np.float64)
+    tg = np.asarray(morphs.deltas, dtype=np.float64)
     tri = np.asarray(triangles)
     if base.ndim != 2 or base.shape[1] != 3:
         raise InputError(f"base: expected (n_vertices, 3), got {base.shape}")
@@ -161,8 +184,8 @@ def _build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, nam
     if normals is not None:
         if np.shape(normals) != base.shape:
             raise InputError(f"normals: expected {base.shape}, got {np.shape(normals)}")
-        if normal_deltas is not None:
-            nd = np.asarray(normal_deltas, np.float32)
+        if morphs.normal_deltas is not None:
+            nd = np.asarray(morphs.normal_deltas, np.float32)
             if nd.shape != tg.shape:
                 raise InputError(f"normal deltas: expected {tg.shape}, got {nd.shape}")
     tgt = []
@@ -215,54 +238,15 @@ def _build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, nam
         if head is not None:
             if head.n_frames != len(weights):
                 raise InputError(f"head motion has {head.n_frames} frames, weights {len(weights)}")
-            for path, arr, typ in (("translation", head.translation, "VEC3"), ("rotation", head.rotation, "VEC4"),
+            for what, arr, typ in (("translation", head.translation, "VEC3"), ("rotation", head.rotation, "VEC4"),
                                    ("scale", head.scale, "VEC3")):
                 samplers.append(g.AnimationSampler(input=t_acc, output=blob.add(arr.astype(np.float32), typ, FLOAT),
                                                    interpolation="LINEAR"))
                 channels.append(g.AnimationChannel(sampler=len(samplers) - 1,
-                                                   target=g.AnimationChannelTarget(node=0, path=path)))
+                                                   target=g.AnimationChannelTarget(node=0, path=what)))
         gltf.animations.append(g.Animation(name="performance", samplers=samplers, channels=channels))
     data = blob.bytes()
     gltf.buffers.append(g.Buffer(byteLength=len(data)))
     gltf.set_binary_blob(data)
-    return gltf
-
-
-def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray,
-              names: Sequence[str], weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-              default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
-              normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
-              parts: Sequence | None = None, first_frame: int = 0, sparse_targets: bool = False) -> None:
-    """Write a .glb atomically.
-
-    Parameters
-    ----------
-    base : (n_vertices, 3) base shape (the neutral, or the first target)
-    triangles : (n_triangles, 3) vertex indices
-    deltas : (n_targets, n_vertices, 3) morph targets as displacements from ``base``
-    names : n_targets names (``mesh.extras.targetNames``)
-    weights : (n_frames, n_targets) morph weights per frame, or None for no animation
-    fps : frame rate of the weight and head-motion samplers
-    head : :class:`retarget.headpose.HeadMotion` or None
-    default_weights : (n_targets,) ``mesh.weights`` (default zeros)
-    uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
-    normals : (n_vertices, 3) unit vertex normals (``NORMAL``; smooth shading), or None
-    normal_deltas : (n_targets, n_vertices, 3) ``NORMAL`` of each morph target (the change of the
-        normals), or None
-    parts : [(material name, triangle indices, (r, g, b, a)), ...]: one primitive per material
-        sharing the vertex attributes and morph targets (default one ``skin`` primitive)
-    first_frame : frame number of the first weight row; the sampler times are ``frame / fps`` and
-        the scene's ``extras`` hold ``fps``, ``frame_start`` and ``frame_end`` (Blender keeps
-        scene extras as custom properties; ``bench/blender_import_curves.py`` sets the scene's
-        frame range from them; Blender's own importer does not set the scene range)
-    sparse_targets : store each morph target sparse (glTF ``accessor.sparse``: only the vertices it
-        moves, beyond :data:`SPARSE_POSITION_TOL` of the mesh's size), as for a rig whose shapes each
-        move a part of the head
-
-    See :func:`retarget.export.morph_targets` for how target shapes, regions and the
-    absolute form become glTF deltas and weights exactly.
-    """
-    gltf = _build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs, normals,
-                      normal_deltas, parts, first_frame, sparse_targets)
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))
