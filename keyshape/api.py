@@ -218,11 +218,11 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
     Returns :class:`~keyshape.base.formats.tracks.Tracks` (lost frames have ``success`` False).
     """
     from keyshape.tracker.commands import track_frames
+    from keyshape.tracker.defaults import TrackOptions
 
     _expect(model, (AppearanceModel, str, Path), "model", "a fitted AppearanceModel or a model file")
     _expect(video, (str, Path), "video", "a video file path")
-    return track_frames(video, model, smooth=smooth, start=start, stop=stop, show_progress=progress,
-                        decode_thread=decode_thread, jobs=jobs)
+    return track_frames(video, model, TrackOptions(smooth, start, stop, jobs, decode_thread), show_progress=progress)
 
 
 def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.METHOD,

@@ -108,13 +108,14 @@ def _train(args) -> int:
 
 def _track(args) -> int:
     from keyshape.tracker.commands import track_video
+    from keyshape.tracker.defaults import TrackOptions
 
     from keyshape.base.errors import InputError
 
     if args.jobs is not None and args.jobs < 1:
         raise InputError(f"--jobs {args.jobs}: must be >= 1 (or leave it out: one per core)")
-    summary = track_video(args.video, args.model, args.output, overlay=args.overlay, smooth=args.smooth,
-                          show_progress=not args.quiet, jobs=args.jobs)
+    summary = track_video(args.video, args.model, args.output, overlay=args.overlay,
+                          options=TrackOptions(smooth=args.smooth, jobs=args.jobs), show_progress=not args.quiet)
     print(summary.message)
     if summary.interrupted:
         return 143 if summary.terminated else 130

@@ -283,8 +283,13 @@ class RegionModel:
         self.landmark_scale = float(landmark_scale)
 
     @classmethod
-    def fit_region(cls, name, points, ref, patches, shapes, src_of, n_labels, variance, landmark_weight, grow,
-                   n_components=None, centre=False):
+    def fit_region(cls, name, points, ref, patches, shapes, src_of, n_labels, model):
+        """Region ``name`` (its ``points``) fitted to the training samples; ``model``: the
+        :class:`AppearanceModel` being fitted, whose parameters give the region's variance kept, landmark
+        weight, border and centring."""
+        variance, landmark_weight, n_components = model._variance(name), model.landmark_weight, model.n_components
+        grow = max(2, int(round(model.face_width * model._grow(name))))
+        centre = model.centre_eyes and name.startswith("eye")
         size = patches.shape[-1]
         if centre:
             # each sample's crop follows the region's centroid and its points keep their place in the box:
@@ -598,10 +603,8 @@ class AppearanceModel:
                 # upper and lower lip move apart (jaw drop): each gets its own translation
                 groups["lip_upper"], groups["lip_lower"] = split_upper_lower(groups.pop("mouth"), ref)
             for name, pts in groups.items():
-                self.region_models_.append(RegionModel.fit_region(
-                    name, pts, ref, all_patches, all_shapes, src_of, n, landmark_weight=self.landmark_weight,
-                    grow=max(2, int(round(self.face_width * self._grow(name)))), n_components=self.n_components,
-                    variance=self._variance(name), centre=self.centre_eyes and name.startswith("eye")))
+                self.region_models_.append(RegionModel.fit_region(name, pts, ref, all_patches, all_shapes, src_of, n,
+                                                                  self))
         self._precompute()
         return self
 
