@@ -11,7 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.poses import fit_similarity
+from keyshape.base.geometry import fit_similarity
 from keyshape.retarget.rig import Rig
 from keyshape.retarget.targets import name_key
 
@@ -62,7 +62,7 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
 
     Each component's landmark motion at weight 1 (``basis[k]``, model frame) is mapped into the
     rig's frame by the similarity between the face's neutral and the rig's neutral landmarks
-    (:func:`~keyshape.retarget.poses.fit_similarity`, as ``keyshape pose`` maps key motion) and
+    (:func:`~keyshape.base.geometry.fit_similarity`, as ``keyshape pose`` maps key motion) and
     compared with the projected landmark motion ``r_k`` of the component's rig shape(s) (both sides
     of an unsided name): ``gain_k = <m_k, r_k> / <r_k, r_k>`` is the weight of that shape whose motion
     best matches it (least squares), ``cos_k`` the cosine between the two motions. A 2D pose fit
@@ -84,10 +84,10 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
     gains, cos : (n_components,) each
     """
     basis = np.asarray(basis, float)
-    s, R, _ = fit_similarity(np.asarray(neutral, float), np.asarray(rig_neutral, float))
+    sR = fit_similarity(neutral, rig_neutral)[:, :2]
     gains, cos = np.zeros(len(components)), np.zeros(len(components))
     for k, c in enumerate(components):
-        m = (basis[k] @ (s * R).T).ravel()
+        m = (basis[k] @ sR.T).ravel()
         r = np.asarray(rig_deltas, float)[component_columns(rig_names, c)].sum(axis=0).ravel()
         rr = float(r @ r)
         if rr < 1e-24 or float(m @ m) < 1e-24:
