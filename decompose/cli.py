@@ -222,13 +222,13 @@ def _compare(args) -> int:
 
     if not 1 <= args.kmin <= args.kmax:
         raise InputError(f"--kmin {args.kmin} --kmax {args.kmax}: need 1 <= kmin <= kmax")
-    check_output_dir(args.output, args.overwrite, inputs=[args.tracks])
+    check_output_dir(args.output)
     tracks, scheme = _load(args)
     with Progress(desc="keyshape compare", unit="rows") as bar:
         rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
                        amplitude=2.0, rng=0, progress=bar)
     out = Path(args.output)
-    with atomic_dir(out, args.overwrite, inputs=[args.tracks], kind="compare") as tmp:
+    with atomic_dir(out, kind="compare") as tmp:
         write_errors(tmp / "errors.csv", rows)
         plot_errors(tmp / "errors.png", rows)
     print(f"wrote {out / 'errors.csv'} and {out / 'errors.png'}")

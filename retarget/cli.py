@@ -79,7 +79,7 @@ def run(args) -> int:
         require_usd()
     out_is_dir = _P(args.output).suffix == "" or _P(args.output).is_dir()
     if out_is_dir:
-        check_output_dir(args.output, args.overwrite, inputs)
+        check_output_dir(args.output)
     else:
         check_output(args.output, "file", inputs)
     if args.poses or args.rig:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
+from keyshape.base.files import atomic_dir, atomic_write
 from keyshape.base.formats import Morphs
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.retargeter import Retargeter
@@ -221,7 +221,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     Returns
     -------
     dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error. A folder
-    output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.run_overwrite_inputs`).
+    output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.atomic_dir`).
     """
     o = options if options is not None else ExportOptions()
     clamp, livelink, bake_head, scheme, meters_per_unit = o.clamp, o.livelink, o.bake_head, o.scheme, o.meters_per_unit
@@ -271,7 +271,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         from keyshape.base.formats.obj import write_obj
         if bake_head and head is not None:
             out = head.apply(out)
-        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
+        with atomic_dir(path, kind="retarget") as tmp:
             for fr, v in zip(frames, out):
                 write_obj(tmp / f"frame_{int(fr):06d}.obj", ts.mesh, v)
         return info
@@ -284,7 +284,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
-        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
+        with atomic_dir(path, kind="retarget") as tmp:
             for fr, img in zip(frames, images):
                 cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
     else:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
+from keyshape.base.files import atomic_dir, atomic_write
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.rig import Rig
 
@@ -38,8 +38,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     (``headYaw, headPitch, headRoll`` in degrees, ``headX, headY, headZ``), the Live Link CSV its
     HeadYaw/HeadPitch/HeadRoll and the .glb the head node's rotation and translation; ``eyes``
     (n_frames, 4: left yaw, left pitch, right yaw, right pitch, radians) go to the Live Link eye columns.
-    A folder output follows the running command's ``--overwrite`` and inputs
-    (:func:`~keyshape.base.files.run_overwrite_inputs`).
+    A folder output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.atomic_dir`).
     """
     from keyshape.retarget.export import HEAD_COLUMNS, head_columns, livelink_rows, output_kind
     path = Path(path)
@@ -79,7 +78,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj
-        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
+        with atomic_dir(path, kind="retarget") as tmp:
             for s in range(0, len(curves), CHUNK_FRAMES):
                 for fr, v in zip(frames[s:s + CHUNK_FRAMES], rig.evaluate(curves[s:s + CHUNK_FRAMES])):
                     write_obj(tmp / f"frame_{int(fr):06d}.obj", rig.mesh, v)

@@ -128,7 +128,7 @@ def _mocap(args) -> int:
     if out.suffix.lower() in (".npz", ".glb"):
         check_output(out, "file", inputs)
     else:
-        check_output_dir(out, args.overwrite, inputs)
+        check_output_dir(out, inputs=inputs)
     take = read_markers(args.markers, duplicates=args.duplicate_labels)
     for w in take.warnings:
         print(f"keyshape mocap: warning: {w}", file=sys.stderr)
@@ -177,7 +177,7 @@ def _mocap(args) -> int:
                                                     [f"pc{i:02d}" for i in range(k)], u[:, :k], take.rate))
         print(f"{k} principal morph targets keep {100 * energy:.3f}% of the motion energy")
     else:
-        with atomic_dir(out, args.overwrite, inputs, kind="mocap") as tmp:
+        with atomic_dir(out, inputs=inputs, kind="mocap") as tmp:
             for f in range(len(verts)):
                 write_obj(tmp / f"frame_{f:06d}.obj", mesh, verts[f])
     print(f"wrote {out}")
