@@ -196,10 +196,8 @@ def iter_track(video, model: AppearanceModel, options: TrackOptions | None = Non
     """Track frames ``start`` to ``stop`` (exclusive; None: the end) of ``video``, one at a time
     (``options``: a :class:`~keyshape.tracker.defaults.TrackOptions`, default its defaults).
 
-    Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the
-    temporal smoothing ``smooth`` (which delays the output by its window). Frames before
-    ``start`` are decoded and skipped; the tracker starts afresh at ``start``. On Ctrl-C the
-    frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
+    Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the temporal
+    smoothing. On Ctrl-C the frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
     With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead (handed over
     four at a time, :func:`_prefetched`) and converts them to gray (OpenCV's decoder and conversion
     release the GIL, so both overlap tracking; same frames, same order, the same gray levels as the

@@ -6,6 +6,8 @@ from typing import Sequence
 
 import numpy as np
 
+from keyshape.base.errors import InputError
+
 
 @dataclass(frozen=True)
 class Morphs:
@@ -32,3 +34,29 @@ class Morphs:
     frames: np.ndarray | None = None
     normals: np.ndarray | None = None
     normal_deltas: np.ndarray | None = None
+
+    def checked(self, base: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """``(base, deltas, weights, normal_deltas)`` as float64 arrays, checked against each other and against
+        ``base`` (n_vertices, 3): a one-line :class:`InputError` for a wrong shape, a non-finite weight, a head
+        motion of another length or a frame rate not above 0."""
+        base, d = np.asarray(base, dtype=np.float64), np.asarray(self.deltas, dtype=np.float64)
+        w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
+        if base.ndim != 2 or base.shape[1] != 3:
+            raise InputError(f"base: expected (n_vertices, 3), got {base.shape}")
+        if d.ndim != 3 or d.shape[1:] != base.shape or len(self.names) != len(d):
+            raise InputError(f"deltas: expected ({len(self.names)}, {len(base)}, 3), got {d.shape}")
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise InputError(f"fps must be > 0, got {self.fps}")
+        if w is not None and (w.ndim != 2 or w.shape[1] != len(d) or not np.all(np.isfinite(w))):
+            raise InputError(f"weights: expected finite (n_frames, {len(d)}), got {w.shape}")
+        if self.head is not None and w is not None and self.head.n_frames != len(w):
+            raise InputError(f"head motion has {self.head.n_frames} frames, weights {len(w)}")
+        nd = None
+        if self.normals is not None:
+            if np.shape(self.normals) != base.shape:
+                raise InputError(f"normals: expected {base.shape}, got {np.shape(self.normals)}")
+            if self.normal_deltas is not None:
+                nd = np.asarray(self.normal_deltas, dtype=np.float64)
+                if nd.shape != d.shape:
+                    raise InputError(f"normal deltas: expected {d.shape}, got {nd.shape}")
+        return base, d, w, nd

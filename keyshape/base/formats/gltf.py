@@ -156,38 +156,18 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, morphs:
     absolute form become glTF deltas and weights exactly.
     """
     import pygltflib as g
-    names, weights, fps, head, normals = morphs.names, morphs.weights, morphs.fps, morphs.head, morphs.normals
+    base, tg, weights, nd = morphs.checked(base)
+    names, fps, head, normals = morphs.names, morphs.fps, morphs.head, morphs.normals
     first_frame = int(morphs.frames[0]) if morphs.frames is not None and len(morphs.frames) else 0
-    base = np.asarray(base, dtype=np.float64)
-    tg = np.asarray(morphs.deltas, dtype=np.float64)
     tri = np.asarray(triangles)
-    if base.ndim != 2 or base.shape[1] != 3:
-        raise InputError(f"base: expected (n_vertices, 3), got {base.shape}")
-    if tg.ndim != 3 or tg.shape[1:] != base.shape:
-        raise InputError(f"deltas: expected (n_targets, {base.shape[0]}, 3), got {tg.shape}")
-    if len(names) != len(tg):
-        raise InputError(f"{len(names)} target names for {len(tg)} targets")
     if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
         raise InputError(f"triangles: expected (n_triangles, 3) with at least one, got {tri.shape}")
-    if not fps > 0:
-        raise InputError(f"fps must be > 0, got {fps}")
-    if weights is not None:
-        weights = np.asarray(weights, dtype=np.float64)
-        if weights.ndim != 2 or weights.shape[1] != len(tg) or not np.all(np.isfinite(weights)):
-            raise InputError(f"weights: expected finite (n_frames, {len(tg)}), got {weights.shape}")
     gltf = g.GLTF2(asset=g.Asset(version="2.0", generator="keyshape"))
     blob = _Blob(gltf)
     pos = blob.add(base.astype(np.float32), "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)
     if parts is None:
         parts = [("skin", np.arange(len(tri)), (0.8, 0.72, 0.66, 1.0))]
-    nd = None
-    if normals is not None:
-        if np.shape(normals) != base.shape:
-            raise InputError(f"normals: expected {base.shape}, got {np.shape(normals)}")
-        if morphs.normal_deltas is not None:
-            nd = np.asarray(morphs.normal_deltas, np.float32)
-            if nd.shape != tg.shape:
-                raise InputError(f"normal deltas: expected {tg.shape}, got {nd.shape}")
+    nd = None if nd is None else nd.astype(np.float32)
     tgt = []
     scale = float(np.linalg.norm(np.ptp(base, axis=0))) if len(base) else 0.0
     for i, d in enumerate(tg.astype(np.float32)):
@@ -236,8 +216,6 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, morphs:
                                                                     "SCALAR", FLOAT), interpolation="LINEAR")]
         channels = [g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=1, path="weights"))]
         if head is not None:
-            if head.n_frames != len(weights):
-                raise InputError(f"head motion has {head.n_frames} frames, weights {len(weights)}")
             for what, arr, typ in (("translation", head.translation, "VEC3"), ("rotation", head.rotation, "VEC4"),
                                    ("scale", head.scale, "VEC3")):
                 samplers.append(g.AnimationSampler(input=t_acc, output=blob.add(arr.astype(np.float32), typ, FLOAT),

@@ -140,17 +140,9 @@ def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarra
     if path.suffix.lower() not in SUFFIXES:
         raise InputError(f"USD output must end in {', '.join(SUFFIXES)}", path)
     names, fps, head, frames, normals = morphs.names, morphs.fps, morphs.head, morphs.frames, morphs.normals
-    pts = np.asarray(points, dtype=np.float64)
-    d = np.asarray(morphs.deltas, dtype=np.float64)
-    w = np.asarray(morphs.weights, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"points: expected (n_vertices, 3), got {pts.shape}")
-    if d.ndim != 3 or d.shape[1:] != pts.shape or len(names) != len(d):
-        raise InputError(f"deltas: expected ({len(names)}, {len(pts)}, 3), got {d.shape}")
-    if w.ndim != 2 or w.shape[1] != len(d) or not np.all(np.isfinite(w)):
-        raise InputError(f"weights: expected finite (n_frames, {len(d)}), got {w.shape}")
-    if not (np.isfinite(fps) and fps > 0):
-        raise InputError(f"fps must be > 0, got {fps}")
+    pts, d, w, nd = morphs.checked(points)
+    if w is None:
+        raise InputError("weights: a USD take needs them (n_frames, n_shapes)")
     if not (np.isfinite(meters_per_unit) and meters_per_unit > 0):
         raise InputError(f"metres per unit must be > 0, got {meters_per_unit}")
     if not polygons:
@@ -159,16 +151,6 @@ def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarra
     fr = np.arange(n) if frames is None else np.asarray(frames, dtype=np.int64)
     if fr.shape != (n,) or (n > 1 and np.any(np.diff(fr) <= 0)):
         raise InputError(f"frames: expected {n} strictly increasing frame numbers")
-    if head is not None and head.n_frames != n:
-        raise InputError(f"head motion has {head.n_frames} frames, weights {n}")
-    nd = None
-    if normals is not None:
-        if np.shape(normals) != pts.shape:
-            raise InputError(f"normals: expected {pts.shape}, got {np.shape(normals)}")
-        if morphs.normal_deltas is not None:
-            nd = np.asarray(morphs.normal_deltas, dtype=np.float64)
-            if nd.shape != d.shape:
-                raise InputError(f"normal deltas: expected {d.shape}, got {nd.shape}")
     start, end = (int(fr[0]), int(fr[-1])) if n else (0, 0)
 
     with atomic_path(path) as tmp:
