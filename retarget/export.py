@@ -12,14 +12,13 @@
 """
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write
+from keyshape.base.files import atomic_dir
 from keyshape.base.formats import Morphs
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.retargeter import Retargeter
@@ -27,6 +26,7 @@ from keyshape.retarget.targets import name_key
 from keyshape.base.formats.weights import write_weights
 # the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
 from keyshape.base.formats.livelink import ARKIT52, LIVELINK_TAIL, csv_rows  # noqa: F401
+from keyshape.base.formats.livelink import write_csv as write_livelink
 
 VIDEO_SUFFIXES = (".mp4", ".avi")
 USD_SUFFIXES = (".usda", ".usdc", ".usd")
@@ -224,7 +224,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.atomic_dir`).
     """
     o = options if options is not None else ExportOptions()
-    clamp, livelink, bake_head, scheme, meters_per_unit = o.clamp, o.livelink, o.bake_head, o.scheme, o.meters_per_unit
+    clamp, livelink, bake_head, scheme = o.clamp, o.livelink, o.bake_head, o.scheme
     chunk_frames, size = CHUNK_FRAMES, FRAME_SIZE
     rt._fitted()
     ts = rt.targets_
@@ -257,11 +257,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
             w = c
         names = list(ts.names)
         if livelink:
-            header, rows = livelink_rows(names, w, fps, head)
-            with atomic_write(path, newline="") as f:
-                wr = csv.writer(f)
-                wr.writerow(header)
-                wr.writerows(rows)
+            write_livelink(path, livelink_values(names, w, head), fps)
         else:
             from keyshape.retarget.retargeter import _unique
             write_weights(path, frames, _unique(names, ts.columns), w, fps=fps)

@@ -14,13 +14,12 @@
 """
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write
+from keyshape.base.files import atomic_dir
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.rig import Rig
 
@@ -40,7 +39,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     (n_frames, 4: left yaw, left pitch, right yaw, right pitch, radians) go to the Live Link eye columns.
     A folder output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.atomic_dir`).
     """
-    from keyshape.retarget.export import HEAD_COLUMNS, head_columns, livelink_rows, output_kind
+    from keyshape.retarget.export import HEAD_COLUMNS, head_columns, livelink_values, output_kind, write_livelink
     path = Path(path)
     curves = np.asarray(curves, dtype=np.float64)
     if curves.shape != (len(frames), rig.n_shapes):
@@ -51,11 +50,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     info = {"kind": kind, "path": path}
     if kind == "csv":
         if livelink:
-            header, rows = livelink_rows(list(rig.names), curves, fps, head, eyes)
-            with atomic_write(path, newline="") as f:
-                wr = csv.writer(f)
-                wr.writerow(header)
-                wr.writerows(rows)
+            write_livelink(path, livelink_values(list(rig.names), curves, head, eyes), fps)
         else:
             from keyshape.base.formats.weights import write_weights
             if head is not None:

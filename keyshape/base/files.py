@@ -104,11 +104,6 @@ def run_rules(run: Run) -> Iterator[Run]:
         _RUN = old
 
 
-def current_run() -> Run | None:
-    """The active :class:`Run`, or None (library use: no rule applied, nothing recorded)."""
-    return _RUN
-
-
 def _run_default(overwrite: bool | None, inputs: Iterable[str | Path | None] | None) -> tuple[bool, list]:
     """``overwrite`` and ``inputs`` as given, else (None) the active run's ``--overwrite`` and declared inputs
     (False and none in library use, where no run is active)."""
