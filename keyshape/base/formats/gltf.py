@@ -138,12 +138,10 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, morphs:
     ----------
     base : (n_vertices, 3) base shape (the neutral, or the first target)
     triangles : (n_triangles, 3) vertex indices
-    morphs : the morph targets (``targets[i].POSITION``, their names in ``mesh.extras.targetNames``), their
-        ``NORMAL`` (``normals``, ``normal_deltas``) and their take: the weights (None: no animation), the
-        head motion and the frame rate of the samplers. The sampler times are ``frame / fps`` from the first of
-        ``morphs.frames`` on and the scene's ``extras`` hold ``fps``, ``frame_start`` and ``frame_end`` (Blender
-        keeps scene extras as custom properties; ``bench/blender_import_curves.py`` sets the scene's frame range
-        from them; Blender's own importer does not set the scene range)
+    morphs : the morph targets (names in ``mesh.extras.targetNames``) and the take (weights None: no animation);
+        the sampler times are ``frame / fps`` from the first frame on, the scene's ``extras`` hold ``fps``,
+        ``frame_start`` and ``frame_end`` (Blender keeps them as custom properties; ``bench/blender_import_curves.py``
+        sets the scene's frame range from them)
     uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
     parts : [(material name, triangle indices, (r, g, b, a)), ...]: one primitive per material
         sharing the vertex attributes and morph targets (default one ``skin`` primitive)

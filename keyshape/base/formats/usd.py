@@ -116,12 +116,9 @@ def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarra
     path : ``.usda`` (text), ``.usdc`` (binary crate) or ``.usd`` (crate)
     points : (n_vertices, 3) the base shape (the neutral)
     polygons : vertex indices of each face (as read from the OBJ)
-    morphs : the blend shapes (``deltas`` from ``points``; ``names``: the ``BlendShape`` prims' names and the
-        ``blendShapes`` tokens, made valid identifiers with ``Tf.MakeValidIdentifier`` and unique; a rig's
-        names already are), ``normals`` (None: no ``normals``, no ``normalOffsets``) and ``normal_deltas``;
-        the take: ``weights`` of every shape at every frame, ``fps`` (``timeCodesPerSecond`` and
-        ``framesPerSecond``), the ``head`` motion for the head joint (None: it stays at rest) and ``frames``,
-        strictly increasing frame numbers, the time codes (default ``0..n-1``)
+    morphs : the blend shapes from ``points`` and the take (weights required; ``frames``: the time codes,
+        strictly increasing; ``fps``: ``timeCodesPerSecond``; ``head``: the head joint's motion, None: at rest);
+        the names made valid identifiers (``Tf.MakeValidIdentifier``) and unique; a rig's already are
     uvs, polygon_uvs : OBJ texture coordinates and, per face, the UV index of each corner
         (``primvars:st``, face-varying, indexed); None when some face has no UVs
     meters_per_unit : length of one mesh unit in metres (``metersPerUnit``)
