@@ -111,14 +111,12 @@ def run(args) -> int:
     import cv2
 
     from keyshape.base.errors import InputError
-    from keyshape.base.files import atomic_write, check_output
+    from keyshape.base.files import atomic_write
     from keyshape.base.schemes import load_scheme
     from keyshape.retarget.rig import load_rig, rig_landmarks
 
     if Path(args.output).suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise InputError("the sheet must be a .png or .jpg", args.output)
-    inputs = [args.neutral, args.landmarks]
-    check_output(args.output, "file", inputs)
     scheme = load_scheme("contours48")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
     landmarks = resolve_landmarks(rig, scheme.name, args.landmarks, args.output)

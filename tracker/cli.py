@@ -87,12 +87,10 @@ def _check_footage(args) -> None:
 
 def _train(args) -> int:
     from keyshape.base.errors import InputError
-    from keyshape.base.files import check_outputs
     from keyshape.tracker.commands import train_model
 
     if args.morphs < 0:
         raise InputError(f"--morphs {args.morphs}: must be >= 0")
-    check_outputs([args.output], inputs=[args.video])
     _check_footage(args)
     model, seconds = train_model(args.video, args.labels, args.scheme, n_morphs=args.morphs)
     model.save(args.output)
