@@ -73,8 +73,8 @@ def run(args) -> int:
         idx = np.array([row2[int(f)] for f in frames])
         compare = (c2[idx], h2[idx] if h2 is not None else head)
     tracks = read_tracks(args.tracks)
-    info = video_info(args.video)
-    check_frame_size(tracks.meta, info.width, info.height, args.video, args.tracks)    # naming the tracks file
+    vi = video_info(args.video)
+    check_frame_size(tracks.meta, vi.width, vi.height, args.video, args.tracks)    # naming the tracks file
     info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, head=head,
                          compare=compare, options=PreviewOptions(frames=args.frames, size=args.size,
                                                                  contours=args.contours, landmarks=args.landmarks))
