@@ -12,8 +12,8 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import fit_similarity
-from keyshape.retarget.rig import Rig
-from keyshape.retarget.targets import name_key
+from keyshape.retarget.rig.model import Rig
+from keyshape.retarget.targets.target_set import name_key
 
 
 def component_columns(rig_names: Sequence[str], component: str) -> list[int]:
@@ -76,7 +76,7 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
     basis : (n_components, n_points, 2) each component's landmark motion at weight 1 (truth.json ``basis``)
     components : the components' names
     rig_names : the rig's shape names
-    rig_neutral : (n_points, 2) the rig's projected neutral landmarks (:func:`~keyshape.retarget.rig.project`)
+    rig_neutral : (n_points, 2) the rig's projected neutral landmarks (:func:`~keyshape.retarget.rig.model.project`)
     rig_deltas : (n_shapes, n_points, 2) projected landmark motion per rig shape
 
     Returns

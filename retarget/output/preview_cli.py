@@ -37,7 +37,7 @@ def _curves_on_rig(path, rig):
 
     from keyshape.base.errors import InputError
     from keyshape.base.formats.weights import read_weights
-    from keyshape.retarget.preview import head_rotations
+    from keyshape.retarget.output.preview import head_rotations
 
     frames, names, c, _ = read_weights(path)
     curves = np.zeros((len(frames), rig.n_shapes))
@@ -58,7 +58,7 @@ def run(args) -> int:
     from keyshape.base.formats.tracks import check_frame_size, read_tracks
     from keyshape.base.formats.video import video_info
     from keyshape.retarget.defaults import PreviewOptions
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
 
     _check_outputs(args.output, args.sheet, size=args.size)
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
@@ -112,7 +112,7 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     Parameters
     ----------
     frame_numbers : the curves' frame numbers
-    head : (n_frames, 3, 3) head rotations the rig is turned by (:func:`~keyshape.retarget.preview.head_rotations`)
+    head : (n_frames, 3, 3) head rotations the rig is turned by (:func:`~keyshape.retarget.output.preview.head_rotations`)
     compare : ``(curves, head rotations or None)`` of a second set of curves for a third panel
     options : :class:`~keyshape.retarget.defaults.PreviewOptions` (the range, size, crop, contours, captions;
         default: its defaults)
@@ -131,10 +131,10 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     from keyshape.base.formats.video import VideoReader
     from keyshape.base.progress import Progress
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.retarget.preview import (RigRenderer, actor_panel, caption, face_crop, ordered_map, panel_row,
+    from keyshape.retarget.output.preview import (RigRenderer, actor_panel, caption, face_crop, ordered_map, panel_row,
                                            parse_frames)
     from keyshape.retarget.defaults import PreviewOptions
-    from keyshape.retarget.rig import default_landmarks, rig_landmarks
+    from keyshape.retarget.rig.model import default_landmarks, rig_landmarks
 
     o = options if options is not None else PreviewOptions()
     size, sheet_frames, threads, crop, contours, landmarks = o.size, o.sheet_frames, o.threads, o.crop, o.contours, \

@@ -21,8 +21,8 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir
 from keyshape.base.formats import Morphs
 from keyshape.retarget.headpose import HeadMotion
-from keyshape.retarget.retargeter import Retargeter
-from keyshape.retarget.targets import name_key
+from keyshape.retarget.targets.retargeter import Retargeter
+from keyshape.retarget.targets.target_set import name_key
 from keyshape.base.formats.weights import write_weights
 # the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
 from keyshape.base.formats.livelink import ARKIT52, LIVELINK_TAIL, csv_rows  # noqa: F401
@@ -111,7 +111,7 @@ def write_mesh_take(path: Path, mesh, base: np.ndarray, morphs: Morphs, meters_p
         else None
     if output_kind(path, 3) == "glb":
         from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
-        from keyshape.retarget.rig import material_parts
+        from keyshape.retarget.rig.model import material_parts
         ids, uvs, tri = split_at_uv_seams(mesh)
         write_glb(path, base[ids], tri, replace(morphs, deltas=morphs.deltas[:, ids], normals=n0[ids],
                                                 normal_deltas=None if nd is None else nd[:, ids]),
@@ -212,7 +212,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
 
     Parameters
     ----------
-    rt : fitted :class:`~retarget.retargeter.Retargeter`
+    rt : fitted :class:`~retarget.targets.retargeter.Retargeter`
     frames : (n_frames,) frame numbers; weights : (n_frames, n_keys)
     fps : frame rate of the animation (glTF sampler times ``i / fps``, Live Link timecode)
     head : root motion (glTF node animation; baked into OBJ/PNG/video frames only with ``options.bake_head``)
@@ -259,7 +259,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         if livelink:
             write_livelink(path, livelink_values(names, w, head), fps)
         else:
-            from keyshape.retarget.retargeter import _unique
+            from keyshape.retarget.targets.retargeter import _unique
             write_weights(path, frames, _unique(names, ts.columns), w, fps=fps)
         return info
     out = rt.transform(weights, chunk_frames=chunk_frames)
@@ -276,7 +276,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         pts = _head_2d(out, head) if (head is not None and bake_head) else out
         images = _draw_2d(pts, size, _scheme_for(ts.n_vertices, scheme))
     else:
-        from keyshape.retarget.render import render_frames
+        from keyshape.retarget.output.render import render_frames
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":

@@ -21,7 +21,7 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir
 from keyshape.retarget.headpose import HeadMotion
-from keyshape.retarget.rig import Rig
+from keyshape.retarget.rig.model import Rig
 
 #: frames evaluated (OBJ frames) or rendered (video) at a time: bounds the memory, not the output
 CHUNK_FRAMES = 64
@@ -33,13 +33,13 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     """Write rig curves (n_frames, n_shapes) to ``path``; returns ``{"kind", "path"}``. Nothing is left on error.
 
     ``meters_per_unit``: the rig's length unit in metres (USD ``metersPerUnit``; ICT-FaceKit: cm, 0.01).
-    With ``head`` the curves CSV gets the columns of :func:`~keyshape.retarget.export.head_columns`
+    With ``head`` the curves CSV gets the columns of :func:`~keyshape.retarget.output.export.head_columns`
     (``headYaw, headPitch, headRoll`` in degrees, ``headX, headY, headZ``), the Live Link CSV its
     HeadYaw/HeadPitch/HeadRoll and the .glb the head node's rotation and translation; ``eyes``
     (n_frames, 4: left yaw, left pitch, right yaw, right pitch, radians) go to the Live Link eye columns.
     A folder output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.atomic_dir`).
     """
-    from keyshape.retarget.export import HEAD_COLUMNS, head_columns, livelink_values, output_kind, write_livelink
+    from keyshape.retarget.output.export import HEAD_COLUMNS, head_columns, livelink_values, output_kind, write_livelink
     path = Path(path)
     curves = np.asarray(curves, dtype=np.float64)
     if curves.shape != (len(frames), rig.n_shapes):
@@ -63,7 +63,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)
     if kind in ("glb", "usd"):
         from keyshape.base.formats import Morphs
-        from keyshape.retarget.export import write_mesh_take
+        from keyshape.retarget.output.export import write_mesh_take
         # only the shapes that move, the .glb's each stored sparse (the vertices it moves): a shape at 0
         # throughout adds nothing but megabytes (26 of ICT-FaceKit's 53 shapes move on franck)
         moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.zeros(0, np.intp)
@@ -80,7 +80,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         return info
     if kind == "video":
         from keyshape.base.formats.video import video_writer
-        from keyshape.retarget.preview import RigRenderer
+        from keyshape.retarget.output.preview import RigRenderer
         r = RigRenderer(rig, size=size).fit(curves)
         with video_writer(path, fps, size) as wr:
             for s in range(0, len(curves), CHUNK_FRAMES):
