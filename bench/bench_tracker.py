@@ -108,6 +108,7 @@ def main() -> None:
     add_footage_args(ap, frames=600)
     args = ap.parse_args()
     from keyshape.tracker.commands import track_video, train_model
+    from keyshape.tracker.defaults import TrackOptions
     from keyshape.base.formats.video import VideoReader
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -123,7 +124,8 @@ def main() -> None:
         summ = track_video(video, model, Path(tmp) / "tracks.csv", show_progress=False)
         cpu_thread = (time.process_time() - c0) / summ.n_frames
         c0 = time.process_time()
-        summ0 = track_video(video, model, Path(tmp) / "tracks0.csv", show_progress=False, decode_thread=False)
+        summ0 = track_video(video, model, Path(tmp) / "tracks0.csv", options=TrackOptions(decode_thread=False),
+                            show_progress=False)
         cpu_plain = (time.process_time() - c0) / summ0.n_frames
         modes = _region_modes(video, model)
         # the command as a user runs it: a fresh process, imports and the model file included

@@ -34,11 +34,11 @@ def _synth_mocap(args) -> int:
     if args.frames < 2:
         raise InputError(f"--frames {args.frames}: must be >= 2")
     out_dir = Path(args.out_dir)
-    check_output_dir(out_dir, args.overwrite)
+    check_output_dir(out_dir)
     kit = load_facekit(args.facekit)
     perf = synthesize(kit, args.frames, rng=args.seed)
     face = perf.labels[:len(perf.marker_vertices)]
-    with atomic_dir(out_dir, args.overwrite, kind="synth mocap") as tmp:
+    with atomic_dir(out_dir, kind="synth mocap") as tmp:
         paths = write_take(tmp, kit, perf)
         write_masks(tmp / "masks.json", masks_from_regions(discontinuity_regions(kit, face)))
     paths = {k: out_dir / Path(v).relative_to(tmp) for k, v in paths.items()}

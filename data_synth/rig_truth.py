@@ -11,7 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.rig.poses import fit_similarity
+from keyshape.base.geometry import fit_similarity
 from keyshape.retarget.rig.model import Rig
 from keyshape.retarget.targets.target_set import name_key
 
@@ -61,7 +61,7 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
     """How strongly the rig's own shape must be driven to make each hidden component's 2D motion.
 
     Each component's landmark motion at weight 1, mapped into the rig's frame by the neutral-to-neutral similarity
-    (:func:`~keyshape.retarget.rig.poses.fit_similarity`), against the projected motion ``r_k`` of its rig shape(s):
+    (:func:`~keyshape.base.geometry.fit_similarity`), against the projected motion ``r_k`` of its rig shape(s):
     ``gain_k = <m_k, r_k> / <r_k, r_k>`` (least squares) and ``cos_k`` the cosine between the two motions.
 
     Parameters
@@ -78,10 +78,10 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
     gains, cos : (n_components,) each
     """
     basis = np.asarray(basis, float)
-    s, R, _ = fit_similarity(np.asarray(neutral, float), np.asarray(rig_neutral, float))
+    sR = fit_similarity(neutral, rig_neutral)[:, :2]
     gains, cos = np.zeros(len(components)), np.zeros(len(components))
     for k, c in enumerate(components):
-        m = (basis[k] @ (s * R).T).ravel()
+        m = (basis[k] @ sR.T).ravel()
         r = np.asarray(rig_deltas, float)[component_columns(rig_names, c)].sum(axis=0).ravel()
         rr = float(r @ r)
         if rr < 1e-24 or float(m @ m) < 1e-24:

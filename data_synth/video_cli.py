@@ -53,14 +53,14 @@ def run_footage(args, kind: str, make, check=None) -> int:
     if check is not None:
         check()
     out_dir = Path(args.out_dir)
-    check_output_dir(out_dir, args.overwrite)
+    check_output_dir(out_dir)
     if args.preview:
         if Path(args.preview).suffix.lower() != ".png":
             from keyshape.base.errors import InputError
             raise InputError("--preview: the contact sheet must be a .png file", args.preview)
         check_output(args.preview)
     t0 = time.perf_counter()
-    with atomic_dir(out_dir, args.overwrite, kind=f"synth {kind}") as tmp:
+    with atomic_dir(out_dir, kind=f"synth {kind}") as tmp:
         preview = args.preview
         if preview and Path(preview).resolve().parent == out_dir.resolve():
             preview = tmp / Path(args.preview).name

@@ -105,7 +105,6 @@ def _load_many(args):
 def _select(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import write_keys
-    from keyshape.base.files import check_outputs
     from keyshape.decompose.regions import stable_pose
 
     # everything that can be checked before any work or any output
@@ -124,7 +123,6 @@ def _select(args) -> int:
     nf = A.parse_neutral_frame(args.neutral_frame)
     if nf not in (None, "auto") and len(args.tracks) > 1:
         raise InputError("--neutral-frame F is ambiguous with several tracks files: use auto")
-    check_outputs([args.output, args.sheet], inputs=[*args.tracks, args.video])
     loaded, source = _load_many(args)
     tracks = loaded[0]
     if args.video:
@@ -189,12 +187,10 @@ def _decompose(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.formats.keys import read_keys
     from keyshape.base.formats.weights import write_weights
-    from keyshape.base.files import check_outputs
     from keyshape.decompose.api import decompose_keys
 
     if not (np.isfinite(args.ridge) and 0 <= args.ridge <= 1e6):      # before any work (decompose_keys checks it too)
         raise InputError(f"--ridge {args.ridge}: must be a finite number from 0 to 1e6")
-    check_outputs([args.output], inputs=[args.tracks, args.keys])
     tracks, scheme = _load(args)
     scheme_name, n_points, regions = read_keys(args.keys)
     from keyshape.base.formats.keys import check_keys_model, read_keys_head_pose
@@ -222,13 +218,13 @@ def _compare(args) -> int:
 
     if not 1 <= args.kmin <= args.kmax:
         raise InputError(f"--kmin {args.kmin} --kmax {args.kmax}: need 1 <= kmin <= kmax")
-    check_output_dir(args.output, args.overwrite, inputs=[args.tracks])
+    check_output_dir(args.output)
     tracks, scheme = _load(args)
     with Progress(desc="keyshape compare", unit="rows") as bar:
         rows = compare(tracks, scheme, methods=args.methods, regions=args.region, kmin=args.kmin, kmax=args.kmax,
                        amplitude=2.0, rng=0, progress=bar)
     out = Path(args.output)
-    with atomic_dir(out, args.overwrite, inputs=[args.tracks], kind="compare") as tmp:
+    with atomic_dir(out, kind="compare") as tmp:
         write_errors(tmp / "errors.csv", rows)
         plot_errors(tmp / "errors.png", rows)
     print(f"wrote {out / 'errors.csv'} and {out / 'errors.png'}")

@@ -14,11 +14,11 @@ from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks, read_tracks, write_tracks
 from keyshape.decompose import api as D
 from keyshape.retarget import api as RA
-from keyshape.retarget.defaults import RetargetOptions, SolveOptions
+from keyshape.retarget.defaults import PreviewOptions, RetargetOptions, SolveOptions
 from keyshape.decompose.regions import RegionKeys
 from keyshape.tracker.eigenpoints import AppearanceModel
 
-__all__ = ["train", "track", "select", "decompose", "retarget", "solve", "SolveOptions", "RetargetOptions", "pose", "preview", "load_rig",
+__all__ = ["train", "track", "select", "decompose", "retarget", "solve", "SolveOptions", "RetargetOptions", "PreviewOptions", "pose", "preview", "load_rig",
            "head", "Head", "Keys", "Weights", "Animation", "RigAnimation", "PoseLibrary", "Tracks", "AppearanceModel", "read_tracks",
            "write_tracks"]
 
@@ -190,11 +190,11 @@ def track(video: str | Path, model, *, smooth: str = "none", start: int = 0, sto
     Returns :class:`~keyshape.base.formats.tracks.Tracks` (lost frames have ``success`` False).
     """
     from keyshape.tracker.commands import track_frames
+    from keyshape.tracker.defaults import TrackOptions
 
     _expect(model, (AppearanceModel, str, Path), "model", "a fitted AppearanceModel or a model file")
     _expect(video, (str, Path), "video", "a video file path")
-    return track_frames(video, model, smooth=smooth, start=start, stop=stop, show_progress=progress,
-                        decode_thread=decode_thread, jobs=jobs)
+    return track_frames(video, model, TrackOptions(smooth, start, stop, jobs, decode_thread), show_progress=progress)
 
 
 def select(tracks: Tracks | Sequence[Tracks], k: int | None, method: str = D.METHOD,
@@ -432,10 +432,10 @@ def _head(weights: Weights, tracks, o: RetargetOptions, rig=None):
 
 
 def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: str | Path | None = None, *,
-            sheet: str | Path | None = None, frames: str | None = None, size: int | None = None,
-            sheet_frames: int = 12, threads: int | None = None) -> dict:
+            sheet: str | Path | None = None, options: PreviewOptions | None = None) -> dict:
     """The take's footage with its contours beside the shaded rig (``keyshape preview``): write ``path``
-    (.mp4/.avi) and/or ``sheet`` (.jpg/.png); ``frames`` ``"A:B"`` limits the range."""
+    (.mp4/.avi) and/or ``sheet`` (.jpg/.png); ``options`` (:class:`~keyshape.retarget.defaults.PreviewOptions`):
+    the range ``frames`` ``"A:B"``, the ``size``, the sheet's frames, the drawing threads."""
     from keyshape.retarget.output.preview_cli import write_preview
 
     r = animation.rig
@@ -443,8 +443,8 @@ def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: st
         r = animation.rig = load_rig(r.files, r.neutral_file)
     from keyshape.retarget.headpose import head_rotations_of
 
-    return write_preview(video, tracks, r, animation.frames, animation.curves, path, sheet=sheet, frames=frames,
-                         size=size, sheet_frames=sheet_frames, threads=threads, head=head_rotations_of(animation.head))
+    return write_preview(video, tracks, r, animation.frames, animation.curves, path, sheet=sheet,
+                         head=head_rotations_of(animation.head), options=options)
 
 
 

@@ -522,6 +522,7 @@ def stream(source: FrameSource, model, chain: LiveChain, sender: LiveLinkSender,
         status = sys.stderr
     from keyshape.base.formats.livelink import csv_to_packet, encode_packet
     from keyshape.tracker.commands import iter_track
+    from keyshape.tracker.defaults import TrackOptions
 
     fps = source.info.fps
     stats = LiveStats()
@@ -544,7 +545,7 @@ def stream(source: FrameSource, model, chain: LiveChain, sender: LiveLinkSender,
         status.flush()
 
     try:
-        for pts, res, _ in iter_track(None, model, smooth, reader=source, decode_thread=False):
+        for pts, res, _ in iter_track(None, model, TrackOptions(smooth, decode_thread=False), reader=source):
             if res.success and np.isfinite(pts).all():
                 curves, values = chain.frame(res.index, fps, pts, res)
                 if not face_ok and status is not None:

@@ -50,22 +50,9 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _input_files(args) -> list:
-    """Every file this run reads (an output may be none of them)."""
-    from pathlib import Path
-
-    files = [args.weights, args.neutral, args.regions, args.tracks, args.poses, args.landmarks]
-    for t in (args.targets or []) + (args.rig or []):
-        p = Path(t)
-        files += [q for q in p.iterdir() if not q.is_dir()] if p.is_dir() else [p]   # a subfolder is not read
-        if p.is_dir():
-            files.append(p)
-    return [f for f in files if f is not None and f != "auto"]
-
-
 def run(args) -> int:
     from keyshape.base.errors import InputError
-    from keyshape.base.files import check_output, check_output_dir
+    from keyshape.base.files import check_output_dir
     from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.api import fit_retargeter
     from keyshape.retarget.output.export import ExportOptions, export
@@ -73,17 +60,13 @@ def run(args) -> int:
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
     from pathlib import Path as _P
-    inputs = _input_files(args)
     if _P(args.output).suffix.lower() in (".usda", ".usdc", ".usd"):
         from keyshape.base.formats.usd import require_usd
         require_usd()
-    out_is_dir = _P(args.output).suffix == "" or _P(args.output).is_dir()
-    if out_is_dir:
-        check_output_dir(args.output, args.overwrite, inputs)
-    else:
-        check_output(args.output, "file", inputs)
+    if _P(args.output).suffix == "" or _P(args.output).is_dir():    # a file output: checked by keyshape.declare
+        check_output_dir(args.output)
     if args.poses or args.rig:
-        return run_rig(args, inputs)
+        return run_rig(args)
     weights = read_weights(args.weights)
     frames, columns = weights.frames, weights.names
     targets = args.targets[0] if len(args.targets) == 1 else args.targets
@@ -101,7 +84,7 @@ def run(args) -> int:
     return 0
 
 
-def run_rig(args, inputs: list) -> int:
+def run_rig(args) -> int:
     """``retarget --poses POSES.json --rig RIG``: the rig's own curves from key weights."""
     import numpy as np
 

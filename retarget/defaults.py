@@ -88,3 +88,31 @@ class RetargetOptions:
     reference_frame: int | None = None
     head_units: float | None = None
     landmarks: str | None = None
+
+
+@dataclass(frozen=True)
+class PreviewOptions:
+    """The side-by-side preview's options (``keyshape preview``, :func:`keyshape.api.preview`, ``keyshape batch``;
+    :func:`keyshape.retarget.output.preview_cli.write_preview`).
+
+    Attributes
+    ----------
+    frames : the range to render, ``"A:B"`` (B exclusive; None: all)
+    size : the output's height in pixels (None: the video's)
+    sheet_frames : frames on the contact sheet
+    threads : threads drawing the frames (None: one per core, at most 4: :func:`~keyshape.retarget.output.preview.default_workers`)
+    crop : ``"face"``: the footage cut to a steady square around the tracked face and the rig framed on the same
+        face box (:func:`~keyshape.retarget.output.preview.face_crop`); ``"full"``: the whole frame
+    contours : draw the rig's own scheme contours over it (None: where its landmarks are known)
+    landmarks : the rig landmark JSON for the contours (None: the shipped one for ICT-FaceKit rigs)
+    captions : one per panel ('' or missing: none)
+    """
+
+    frames: str | None = None
+    size: int | None = None
+    sheet_frames: int = 12
+    threads: int | None = None
+    crop: str = "face"
+    contours: bool | None = None
+    landmarks: str | None = None
+    captions: tuple = ("actor", "keyshape", "compare")

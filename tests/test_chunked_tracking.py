@@ -13,6 +13,7 @@ from keyshape.base.formats.tracks import read_tracks
 from keyshape.base.formats.video import VideoReader, video_writer
 from keyshape.cli import main
 from keyshape.tracker.chunked import SEAM_FRAMES, _crc, _resume, iter_track_chunked, plan_chunks
+from keyshape.tracker.defaults import TrackOptions
 from keyshape.tracker.commands import track_frames, train_model
 
 
@@ -87,8 +88,8 @@ def test_two_jobs_match_one_within_the_trackers_convergence(clip):
     video, model, truth = clip
     one = track_frames(video, model)
     seams: list = []
-    rows = list(iter_track_chunked(video, model, jobs=2, seams=seams))
-    two = track_frames(video, model, jobs=2)
+    rows = list(iter_track_chunked(video, model, TrackOptions(jobs=2), seams=seams))
+    two = track_frames(video, model, TrackOptions(jobs=2))
     pts = np.stack([p for p, _, _ in rows])
     np.testing.assert_array_equal(two.points, pts)               # the API stitches the same rows
     assert [r.index for _, r, _ in rows] == list(range(150))
@@ -114,9 +115,9 @@ def test_a_seam_that_does_not_converge_is_tracked_through_here(clip):
     """With no tolerance no warm-up agrees: this process tracks on from the first chunk's final state
     to the end, which is exactly the sequential run (the same tracker state, the same frames)."""
     video, model, _ = clip
-    one = track_frames(video, model, smooth="savgol")
+    one = track_frames(video, model, TrackOptions(smooth="savgol"))
     seams: list = []
-    rows = list(iter_track_chunked(video, model, smooth="savgol", jobs=2, seam_tol=-1.0, seams=seams))
+    rows = list(iter_track_chunked(video, model, TrackOptions(smooth="savgol", jobs=2), seam_tol=-1.0, seams=seams))
     np.testing.assert_allclose(np.stack([p for p, _, _ in rows]), one.points, rtol=0, atol=1e-9)  # kernels' rounding
     assert seams[0].repaired == 75 and len(seams[0].checks) == 75
 
@@ -182,4 +183,4 @@ def test_bad_jobs_and_overlay_with_jobs(clip, tmp_path, capsys):
     assert main(base + ["--jobs", "2", "--overlay", str(tmp_path / "o.mp4")]) != 0
     assert "needs --jobs 1" in capsys.readouterr().err
     with pytest.raises(InputError, match=f"at least {SEAM_FRAMES} frames"):
-        list(iter_track_chunked(video, model, jobs=2, warmup=2))
+        list(iter_track_chunked(video, model, TrackOptions(jobs=2), warmup=2))

@@ -38,3 +38,28 @@ def test_failed_writes_leave_nothing(tmp_path):
             raise RuntimeError
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"]
     assert (tmp_path / "keep" / "old").read_text() == "old"
+
+
+def test_a_folder_output_follows_the_running_commands_overwrite_and_inputs(tmp_path):
+    """atomic_dir and check_output_dir given no overwrite or inputs take the running command's (its --overwrite
+    and declared inputs), so a command does not thread them; given, they are used as they are."""
+    from keyshape.base.errors import InputError
+    from keyshape.base.files import Run, check_output_dir, run_rules
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "user.txt").write_text("the user's")
+    with run_rules(Run(overwrite=False)):
+        with pytest.raises(InputError, match="not empty"):
+            check_output_dir(out)
+        with atomic_dir(out, True, kind="x") as d:                      # given: used as given
+            (d / "a").write_text("a")
+    with run_rules(Run(inputs=[out / "a"], overwrite=True)):
+        check_output_dir(out)
+        with pytest.raises(InputError, match="overwrite its input"):
+            with atomic_dir(out, kind="x") as d:
+                (d / "a").write_text("b")
+        with atomic_dir(out, kind="x") as d:
+            (d / "b").write_text("b")
+    assert (out / "a").read_text() == "a" and (out / "b").read_text() == "b"
+    assert (out / "user.txt").read_text() == "the user's"

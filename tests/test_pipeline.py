@@ -98,7 +98,7 @@ def test_every_stage_api_and_command_with_no_options_give_the_same_files(take, t
         assert same(c / name, p / name), name
     assert main(["preview", str(video), "--tracks", str(c / "tracks.csv"), "--curves", str(c / "curves.csv"),
                  "--rig", str(rig), "--frames", "0:6", "--size", "96", "--sheet", str(c / "sheet.png")]) == 0
-    api.preview(video, tracks, ranim, sheet=p / "sheet.png", frames="0:6", size=96)
+    api.preview(video, tracks, ranim, sheet=p / "sheet.png", options=api.PreviewOptions(frames="0:6", size=96))
     assert same(c / "sheet.png", p / "sheet.png")
 
 

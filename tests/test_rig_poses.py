@@ -15,7 +15,8 @@ from keyshape.base.formats.poses import read_poses, write_rig_landmarks
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.decompose.regions import RegionKeys, region_points
-from keyshape.retarget.rig.poses import (curves_from_library, fit_pose, fit_similarity, pose_library, rig_curves)
+from keyshape.base.geometry import fit_similarity
+from keyshape.retarget.rig.poses import (curves_from_library, fit_pose, pose_library, rig_curves)
 from keyshape.retarget.api import fit_poses
 from keyshape.retarget.rig.model import load_rig, project, shape_regions
 
@@ -28,13 +29,26 @@ SCHEME = load_scheme("contours48")
 @given(st.floats(0.05, 20), st.floats(-np.pi, np.pi), st.floats(-50, 50), st.floats(-50, 50),
        st.integers(0, 10_000))
 def test_fit_similarity_recovers_a_similarity(s, ang, tx, ty, seed):
-    src = np.random.default_rng(seed).normal(size=(12, 2)) * 30
+    """The one similarity fit (keyshape.base.geometry's ``[s R | t]``) gives what the pose library's own (s, R, t)
+    fit gave (the Umeyama formula below, as it was in retarget/rig/poses.py), on exact and on noisy points."""
+    rng = np.random.default_rng(seed)
+    src = rng.normal(size=(12, 2)) * 30
     R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
-    dst = s * src @ R.T + [tx, ty]
-    s2, R2, t2 = fit_similarity(src, dst)
-    assert s2 == pytest.approx(s, rel=1e-8)
-    np.testing.assert_allclose(R2, R, atol=1e-8)
-    np.testing.assert_allclose(t2, [tx, ty], atol=1e-6 * max(1, s * 100))
+    exact = s * src @ R.T + [tx, ty]
+    np.testing.assert_allclose(fit_similarity(src, exact), np.column_stack([s * R, [tx, ty]]),
+                               atol=1e-6 * max(1, s * 100))
+    for dst in (exact, exact + rng.normal(size=(12, 2)) * 5 * s):
+        A = fit_similarity(src, dst)
+        ms, md = src.mean(0), dst.mean(0)
+        U, S, Vt = np.linalg.svd((dst - md).T @ (src - ms))
+        d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+        R0 = U @ np.diag([1.0, d]) @ Vt
+        s0 = float((S * [1.0, d]).sum() / ((src - ms) ** 2).sum())
+        np.testing.assert_allclose(A[:, :2], s0 * R0, rtol=1e-12, atol=1e-12 * s0)
+        np.testing.assert_allclose(A[:, 2], md - s0 * R0 @ ms, rtol=1e-12, atol=1e-9 * max(1, s * 100))
+        assert np.linalg.norm(A[:, 0]) == pytest.approx(s0, rel=1e-12)
+    with pytest.raises(InputError, match="all equal"):
+        fit_similarity(np.ones((4, 2)), src[:4])
 
 
 @settings(max_examples=30, deadline=None)

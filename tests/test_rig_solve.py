@@ -416,7 +416,7 @@ def _face_turned(R: np.ndarray, seed: int, rest: int = 7) -> tuple[np.ndarray, n
     """Face-like 3D points (four eye corners at about one depth, twelve mouth points in front of and below them)
     turned by the rotations ``R`` (T, 3, 3), seen from the front (orthographic, image axes) and stabilised as the
     chain does (each frame's similarity on the eye corners onto frame ``rest``'s): ``(points X, stabilised)``."""
-    from keyshape.retarget.rig.poses import fit_similarity
+    from keyshape.base.geometry import apply_affine, fit_similarity
     rng = np.random.default_rng(seed)
     corners = np.array([[-4.5, 0.0, 0.0], [-1.8, 0.0, 0.4], [1.8, 0.0, 0.4], [4.5, 0.0, 0.0]])
     mouth = np.column_stack([rng.uniform(-2.5, 2.5, 12), rng.uniform(-7.0, -5.0, 12), rng.uniform(1.0, 3.0, 12)])
@@ -424,8 +424,7 @@ def _face_turned(R: np.ndarray, seed: int, rest: int = 7) -> tuple[np.ndarray, n
     img = project(np.einsum("tij,pj->tpi", R, X))                 # front view, image axes (y down)
     stab = np.empty_like(img)
     for t in range(len(img)):                                     # frames in a test, not a hot path
-        k, Rs, tr = fit_similarity(img[t, :4], img[rest, :4])
-        stab[t] = k * img[t] @ Rs.T + tr
+        stab[t] = apply_affine(fit_similarity(img[t, :4], img[rest, :4]), img[t])
     return X, stab
 
 

@@ -410,7 +410,7 @@ def test_an_interruption_stops_the_decode_thread_before_the_caller_sees_it(files
     interrupt_at(monkeypatch, 4)
     held = None
     try:
-        for _ in iter_track(video, Model.load(model), decode_thread=True):
+        for _ in iter_track(video, Model.load(model)):
             pass
     except KeyboardInterrupt as exc:
         held = exc                                  # the caller keeps it, as `keyshape track` does
@@ -539,6 +539,7 @@ def test_decode_thread_converts_to_gray_as_the_tracker_does(files, tmp_path):
     """Issue 26: with the decode thread the frames reach the tracker already gray (converted in that
     thread): the same points, poses and kept (colour) frames as the tracker converting them itself."""
     from keyshape.tracker.commands import iter_track
+    from keyshape.tracker.defaults import TrackOptions
 
     d, video, model, labels = files
     tinted = tmp_path / "tinted.avi"
@@ -548,7 +549,7 @@ def test_decode_thread_converts_to_gray_as_the_tracker_does(files, tmp_path):
             g = f[:, :, 0].astype(np.float64)
             w.write(np.stack([g, 0.8 * g + 20, np.minimum(1.2 * g, 255)], -1).astype(np.uint8))
     model = AppearanceModel.load(model)
-    runs = [list(iter_track(tinted, model, keep_frames=True, decode_thread=t)) for t in (True, False)]
+    runs = [list(iter_track(tinted, model, TrackOptions(decode_thread=t), keep_frames=True)) for t in (True, False)]
     assert len(runs[0]) == len(runs[1]) == len(frames)
     for (pa, ra, fa), (pb, rb, fb) in zip(*runs):
         assert fa.ndim == 3 and np.array_equal(fa, fb)

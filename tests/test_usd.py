@@ -214,8 +214,10 @@ def test_usd_of_2d_targets_and_without_usd_core_are_one_line_errors(scene, tmp_p
     err = capsys.readouterr().err
     assert "keyshape[usd]" in err and not (tmp / "x.usda").exists()
     with pytest.raises(InputError, match="usd-core"):
+        from keyshape.base.formats import Morphs
         from keyshape.base.formats.usd import write_usd
-        write_usd(tmp / "y.usda", m.vertices, m.polygons, np.zeros((0, len(m.vertices), 3)), [], np.zeros((2, 0)))
+        write_usd(tmp / "y.usda", m.vertices, m.polygons,
+                  Morphs(np.zeros((0, len(m.vertices), 3)), [], np.zeros((2, 0))))
 
 
 def test_batch_manifest_accepts_usd_output():
@@ -233,13 +235,14 @@ import numpy as np
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
 from keyshape.base.files import describe_os_error
+from keyshape.base.formats import Morphs
 from keyshape.base.formats.usd import write_usd
 rng = np.random.default_rng(0)
 v = rng.normal(size=(3000, 3))
 polys = [np.array([i, i + 1, i + 2]) for i in range(0, 2997)]
 try:
-    write_usd({str(tmp_path / 'out.usdc')!r}, v, polys, rng.normal(size=(4, 3000, 3)), list('abcd'),
-              rng.uniform(size=(50, 4)))
+    write_usd({str(tmp_path / 'out.usdc')!r}, v, polys, Morphs(rng.normal(size=(4, 3000, 3)), list('abcd'),
+                                                             rng.uniform(size=(50, 4))))
 except OSError as exc:
     print(describe_os_error(exc))
     sys.exit(2)

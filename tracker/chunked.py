@@ -38,6 +38,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError, KeyshapeError
 from keyshape.base.formats.video import VideoReader
+from keyshape.tracker.defaults import TrackOptions
 
 #: frames before a seam on which the chunk after it must agree with the frames emitted
 SEAM_FRAMES = 5
@@ -164,10 +165,8 @@ def _resume(reader: VideoReader, i: int, stop: int | None, known: dict):
     return reader.frames(i, stop, seek=False)
 
 
-def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop: int | None = None,
-                       tracker_options: dict | None = None, jobs: int = 2, warmup: int = 30,
-                       seam_tol: float = 0.05, reader: VideoReader | None = None, progress=None,
-                       seams: list | None = None):
+def iter_track_chunked(video, model, options: TrackOptions | None = None, *, warmup: int = 30, seam_tol: float = 0.05,
+                       reader: VideoReader | None = None, progress=None, seams: list | None = None):
     """:func:`~keyshape.tracker.commands.iter_track` on ``jobs`` worker processes (frames not kept).
 
     Yields ``(points, FrameResult, None)`` in frame order, smoothed by ``smooth`` here; see the
@@ -179,7 +178,8 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
 
     Parameters
     ----------
-    jobs : worker processes (chunks)
+    options : :class:`~keyshape.tracker.defaults.TrackOptions` (the range, the smoothing, ``jobs``: worker
+        processes (chunks); default: its defaults with 2 jobs)
     warmup : frames each chunk after the first tracks before its own first frame (>= ``SEAM_FRAMES``)
     seam_tol : largest point difference (px) at which a chunk's warm-up counts as converged onto
         the frames emitted before it
@@ -190,6 +190,8 @@ def iter_track_chunked(video, model, smooth: str = "none", start: int = 0, stop:
     from keyshape.tracker.fitting import FrameResult, Tracker, single_threaded
     from keyshape.tracker.smoothing import StreamSmoother
 
+    o = options if options is not None else TrackOptions(jobs=2)
+    smooth, start, stop, jobs, tracker_options = o.smooth, o.start, o.stop, o.jobs, o.tracker
     if warmup < SEAM_FRAMES:
         raise InputError(f"warmup {warmup}: need at least {SEAM_FRAMES} frames to check the seams")
     reader = reader or VideoReader(video, gray=True, luma=True)

@@ -87,12 +87,10 @@ def _check_footage(args) -> None:
 
 def _train(args) -> int:
     from keyshape.base.errors import InputError
-    from keyshape.base.files import check_outputs
     from keyshape.tracker.commands import train_model
 
     if args.morphs < 0:
         raise InputError(f"--morphs {args.morphs}: must be >= 0")
-    check_outputs([args.output], inputs=[args.video])
     _check_footage(args)
     model, seconds = train_model(args.video, args.labels, args.scheme, n_morphs=args.morphs)
     model.save(args.output)
@@ -108,13 +106,14 @@ def _train(args) -> int:
 
 def _track(args) -> int:
     from keyshape.tracker.commands import track_video
+    from keyshape.tracker.defaults import TrackOptions
 
     from keyshape.base.errors import InputError
 
     if args.jobs is not None and args.jobs < 1:
         raise InputError(f"--jobs {args.jobs}: must be >= 1 (or leave it out: one per core)")
-    summary = track_video(args.video, args.model, args.output, overlay=args.overlay, smooth=args.smooth,
-                          show_progress=not args.quiet, jobs=args.jobs)
+    summary = track_video(args.video, args.model, args.output, overlay=args.overlay,
+                          options=TrackOptions(smooth=args.smooth, jobs=args.jobs), show_progress=not args.quiet)
     print(summary.message)
     if summary.interrupted:
         return 143 if summary.terminated else 130

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +17,7 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_write
 from keyshape.base.progress import Progress
+from keyshape.tracker.defaults import TrackOptions
 from keyshape.tracker.eigenpoints import AppearanceModel, to_gray
 from keyshape.base.formats.tracks import PARTIAL_MARK, Tracks, TracksWriter, meta_line, meta_path, write_meta
 from keyshape.base.formats.labels import labels_scheme, read_labels
@@ -190,15 +191,13 @@ def check_frame_size(model: AppearanceModel, width: int, height: int, video=None
                          "(or label and train on this size)", video)
 
 
-def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int = 0, stop: int | None = None,
-               tracker_options: dict | None = None, keep_frames: bool = False, reader: VideoReader | None = None,
-               decode_thread: bool = True, jobs: int = 1, progress: Progress | None = None, seams: list | None = None):
-    """Track frames ``start`` to ``stop`` (exclusive; None: the end) of ``video``, one at a time.
+def iter_track(video, model: AppearanceModel, options: TrackOptions | None = None, *, keep_frames: bool = False,
+               reader: VideoReader | None = None, progress: Progress | None = None, seams: list | None = None):
+    """Track frames ``start`` to ``stop`` (exclusive; None: the end) of ``video``, one at a time
+    (``options``: a :class:`~keyshape.tracker.defaults.TrackOptions`, default its defaults).
 
-    Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the
-    temporal smoothing ``smooth`` (which delays the output by its window). Frames before
-    ``start`` are decoded and skipped; the tracker starts afresh at ``start``. On Ctrl-C the
-    frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
+    Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the temporal
+    smoothing. On Ctrl-C the frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
     With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead (handed over
     four at a time, :func:`_prefetched`) and converts them to gray (OpenCV's decoder and conversion
     release the GIL, so both overlap tracking; same frames, same order, the same gray levels as the
@@ -214,6 +213,8 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
     from keyshape.tracker.fitting import Tracker, single_threaded
     from keyshape.tracker.smoothing import StreamSmoother
 
+    o = options if options is not None else TrackOptions()
+    smooth, start, stop, jobs, decode_thread = o.smooth, o.start, o.stop, o.jobs, o.decode_thread
     reader = reader or VideoReader(video, gray=not keep_frames, luma=True)
     check_frame_size(model, reader.info.width, reader.info.height, video)
     if jobs > 1:
@@ -222,8 +223,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
                              "needs one job)")
         from keyshape.tracker.chunked import iter_track_chunked
 
-        yield from iter_track_chunked(video, model, smooth, start, stop, tracker_options, jobs=jobs, reader=reader,
-                                      progress=progress, seams=seams)
+        yield from iter_track_chunked(video, model, o, reader=reader, progress=progress, seams=seams)
         return
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
@@ -233,7 +233,7 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
         # there too: its QR factorisations of a few thousand by a dozen are far slower with OpenBLAS's
         # threads on a loaded machine than on one (docs/benchmarks.md; the same factors, bit for bit)
         with single_threaded():
-            tracker = Tracker(model, **(tracker_options or {}))
+            tracker = Tracker(model, **(o.tracker or {}))
             frames = _prefetched(_with_gray(reader, start)) if decode_thread else ((i, f, f) for i, f in reader)
             try:
                 for i, frame, gray in frames:
@@ -257,26 +257,25 @@ def iter_track(video, model: AppearanceModel, smooth: str = "none", start: int =
         raise interrupted
 
 
-def track_frames(video, model, smooth: str = "none", start: int = 0, stop: int | None = None,
-                 tracker_options: dict | None = None, scheme=None, show_progress: bool = False,
-                 decode_thread: bool = True, jobs: int | None = 1) -> Tracks:
+def track_frames(video, model, options: TrackOptions | None = None, scheme=None, show_progress: bool = False) -> Tracks:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into :class:`Tracks` in memory.
 
     The same per-frame results as :func:`track_video` (which streams them to a file instead), with or
-    without the decode-ahead thread (``decode_thread``, :func:`iter_track`). ``jobs``: worker processes
-    tracking contiguous chunks of the range (:func:`iter_track`; None: :func:`auto_jobs`); 1 (default)
+    without the decode-ahead thread (``options.decode_thread``, :func:`iter_track`). ``options.jobs``: worker
+    processes tracking contiguous chunks of the range (:func:`iter_track`; None: :func:`auto_jobs`); 1 (default)
     tracks in this process, as a batch worker must (it is one core already).
     """
+    o = options if options is not None else TrackOptions()
+    start, stop = o.start, o.stop
     if not isinstance(model, AppearanceModel):
         model = AppearanceModel.load(model, scheme)
     reader = VideoReader(video, gray=True, luma=True)
     fps = reader.info.fps
     rows = []
     n_total = (stop if stop is not None else reader.info.n_frames) - start
-    jobs = auto_jobs(n_total) if jobs is None else int(jobs)
+    jobs = auto_jobs(n_total) if o.jobs is None else int(o.jobs)
     with Progress(n_total if n_total > 0 else None, desc="keyshape track", enabled=show_progress) as prog:
-        for pts, res, _ in iter_track(video, model, smooth, start, stop, tracker_options, reader=reader,
-                                       decode_thread=decode_thread, jobs=jobs, progress=prog):
+        for pts, res, _ in iter_track(video, model, replace(o, jobs=jobs), reader=reader, progress=prog):
             rows.append((res.index, res.confidence, res.success, pts, res.pose))
             if jobs <= 1:
                 prog.update()
@@ -336,17 +335,17 @@ class TrackSummary:
     seams: list = field(default_factory=list)   # jobs > 1: how each seam was crossed (chunked.Seam)
 
 
-def track_video(video, model, output, overlay=None, smooth: str = "none", show_progress: bool = True,
-                tracker_options: dict | None = None, scheme=None, decode_thread: bool = True,
-                jobs: int | None = 1) -> TrackSummary:
+def track_video(video, model, output, overlay=None, options: TrackOptions | None = None, show_progress: bool = True,
+                scheme=None) -> TrackSummary:
     """Track ``video`` with ``model`` (an AppearanceModel or a model file) into a tracks CSV at ``output``.
 
     Frames are decoded, tracked, written and (with ``overlay``) drawn one at a
     time. A truncated video yields the frames that decoded; Ctrl-C stops the
-    loop and keeps the rows written so far (the summary says which). ``jobs``: worker processes
-    tracking contiguous chunks of the video (:func:`iter_track`; None: :func:`auto_jobs`, one with
-    ``overlay``); rows are written in frame order as the chunks are stitched, so an interrupted run
-    keeps the frames stitched so far (the first chunk's tracked frames at least).
+    loop and keeps the rows written so far (the summary says which). ``options``: a
+    :class:`~keyshape.tracker.defaults.TrackOptions` (its range is not used: the whole video is tracked);
+    ``options.jobs``: worker processes tracking contiguous chunks of the video (:func:`iter_track`; None:
+    :func:`auto_jobs`, one with ``overlay``); rows are written in frame order as the chunks are stitched, so an
+    interrupted run keeps the frames stitched so far (the first chunk's tracked frames at least).
     """
     import cv2
 
@@ -364,7 +363,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
         model = AppearanceModel.load(model, scheme)
     reader = VideoReader(video, gray=not overlay, luma=True)      # the overlay draws on the colour frames
     info = reader.info
-    jobs = (1 if overlay else auto_jobs(info.n_frames)) if jobs is None else int(jobs)
+    o = options if options is not None else TrackOptions()
+    jobs = (1 if overlay else auto_jobs(info.n_frames)) if o.jobs is None else int(o.jobs)
     if overlay and jobs > 1:
         raise InputError(f"--overlay draws on the frames as they are tracked: it needs --jobs 1, not {jobs}")
     n_lost = 0
@@ -384,9 +384,8 @@ def track_video(video, model, output, overlay=None, smooth: str = "none", show_p
             writer = TracksWriter(f, sch.core, {g: len(src) for g, src in sch.auxiliary.items()} if sch.n_core else None)
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:
-                for pts, res, frame in iter_track(video, model, smooth, tracker_options=tracker_options,
-                                                  keep_frames=vw is not None, reader=reader,
-                                                  decode_thread=decode_thread, jobs=jobs, progress=prog,
+                for pts, res, frame in iter_track(video, model, replace(o, start=0, stop=None, jobs=jobs),
+                                                  keep_frames=vw is not None, reader=reader, progress=prog,
                                                   seams=seams):
                     n_lost += not res.success
                     writer.write(res.index, res.index / info.fps, res.confidence, res.success, pts, res.pose)

@@ -209,6 +209,22 @@ def _pca_rows(xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return axes, lam
 
 
+def _held_out_residuals(intens: np.ndarray, src_of: np.ndarray, n_labels: int, k: int) -> list[float]:
+    """Leave-one-label-out residual of each labelled frame (the scale of "normal" appearance error when
+    tracking): the mean square of its intensities ``intens[i]`` off the ``k`` principal axes of the samples not
+    made from it (``src_of``: the two labels each sample was morphed from)."""
+    res = []
+    for i in range(n_labels):                     # a dozen or so labels, each its own small PCA
+        keep = (src_of[:, 0] != i) & (src_of[:, 1] != i)
+        xi = intens[keep]
+        mu = xi.mean(0)
+        vt = _pca_rows(xi - mu)[0][:k]
+        e = intens[i] - mu
+        e = e - vt.T @ (vt @ e)
+        res.append(float(e @ e / len(e)))
+    return res
+
+
 # --------------------------------------------------------------------------- the model
 
 def region_groups(scheme: Scheme) -> dict[str, np.ndarray]:
@@ -283,8 +299,13 @@ class RegionModel:
         self.landmark_scale = float(landmark_scale)
 
     @classmethod
-    def fit_region(cls, name, points, ref, patches, shapes, src_of, n_labels, variance, landmark_weight, grow,
-                   n_components=None, centre=False):
+    def fit_region(cls, name, points, ref, patches, shapes, src_of, n_labels, model):
+        """Region ``name`` (its ``points``) fitted to the training samples; ``model``: the
+        :class:`AppearanceModel` being fitted, whose parameters give the region's variance kept, landmark
+        weight, border and centring."""
+        variance, landmark_weight, n_components = model._variance(name), model.landmark_weight, model.n_components
+        grow = max(2, int(round(model.face_width * model._grow(name))))
+        centre = model.centre_eyes and name.startswith("eye")
         size = patches.shape[-1]
         if centre:
             # each sample's crop follows the region's centroid and its points keep their place in the box:
@@ -311,16 +332,7 @@ class RegionModel:
         ratio = var / max(var.sum(), 1e-300)
         k = int(np.searchsorted(np.cumsum(ratio), variance) + 1) if n_components is None else int(n_components)
         k = min(k, max(1, len(x) - 1), len(vt))
-        res = []
-        for i in range(n_labels):
-            keep = (src_of[:, 0] != i) & (src_of[:, 1] != i)
-            xi = intens[keep]
-            mu = xi.mean(0)
-            vti, _ = _pca_rows(xi - mu)
-            vti = vti[:k]
-            e = intens[i] - mu
-            e = e - vti.T @ (vti @ e)
-            res.append(float(e @ e / len(e)))
+        res = _held_out_residuals(intens, src_of, n_labels, k)
         return cls(name, points, (x0, y0, w, h), index, mean, vt[:k], var[:k] / len(x), res, scale, centre)
 
     def precompute(self, ridge: float) -> None:
@@ -577,19 +589,8 @@ class AppearanceModel:
         x = np.hstack([intens, land * self.landmark_scale_])
         self._pca(x)
 
-        # leave-one-label-out residuals: the scale of "normal" appearance error when tracking
         src_of = np.array(src_of)
-        res = []
-        for i in range(n):
-            keep = (src_of[:, 0] != i) & (src_of[:, 1] != i)
-            xi = intens[keep]
-            mu = xi.mean(0)
-            vt, _ = _pca_rows(xi - mu)
-            vt = vt[:self.k_]
-            e = intens[i] - mu
-            e = e - vt.T @ (vt @ e)
-            res.append(float(e @ e / len(e)))
-        self.train_residuals_ = np.array(res)
+        self.train_residuals_ = np.array(_held_out_residuals(intens, src_of, n, self.k_))
         self.scheme_ = scheme
         self.region_models_ = []
         if self.regions:
@@ -598,10 +599,8 @@ class AppearanceModel:
                 # upper and lower lip move apart (jaw drop): each gets its own translation
                 groups["lip_upper"], groups["lip_lower"] = split_upper_lower(groups.pop("mouth"), ref)
             for name, pts in groups.items():
-                self.region_models_.append(RegionModel.fit_region(
-                    name, pts, ref, all_patches, all_shapes, src_of, n, landmark_weight=self.landmark_weight,
-                    grow=max(2, int(round(self.face_width * self._grow(name)))), n_components=self.n_components,
-                    variance=self._variance(name), centre=self.centre_eyes and name.startswith("eye")))
+                self.region_models_.append(RegionModel.fit_region(name, pts, ref, all_patches, all_shapes, src_of, n,
+                                                                  self))
         self._precompute()
         return self
 

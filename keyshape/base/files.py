@@ -85,15 +85,14 @@ def run_rules(run: Run) -> Iterator[Run]:
         _RUN = old
 
 
-def current_run() -> Run | None:
-    """The active :class:`Run`, or None (library use: no rule applied, nothing recorded)."""
-    return _RUN
-
-
-def run_overwrite_inputs() -> tuple[bool, list[Path]]:
-    """The active run's ``--overwrite`` and declared inputs, for a folder output's :func:`atomic_dir`
-    (``(False, [])`` in library use, where no run is active)."""
-    return (_RUN.overwrite, list(_RUN.inputs)) if _RUN is not None else (False, [])
+def _run_default(overwrite: bool | None, inputs: Iterable[str | Path | None] | None) -> tuple[bool, list]:
+    """``overwrite`` and ``inputs`` as given, else (None) the active run's ``--overwrite`` and declared inputs
+    (False and none in library use, where no run is active)."""
+    if overwrite is None:
+        overwrite = _RUN is not None and _RUN.overwrite
+    if inputs is None:
+        inputs = _RUN.inputs if _RUN is not None else ()
+    return bool(overwrite), [i for i in inputs if i is not None]
 
 
 def _in_temp_folder(path: Path) -> bool:
@@ -528,11 +527,13 @@ def _link_on_the_way(root: Path, rel: str) -> Path | None:
     return None
 
 
-def check_output_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = ()) -> Path:
+def check_output_dir(path: str | Path, overwrite: bool | None = None,
+                     inputs: Iterable[str | Path | None] | None = None) -> Path:
     """Check a folder output before any computation: :func:`check_output` (not an input folder);
     its ownership record (:data:`MANIFEST`), if any, is valid; and a
-    non-empty folder that keyshape did not make (no record) is refused unless ``overwrite``."""
-    inputs = [i for i in inputs if i is not None]
+    non-empty folder that keyshape did not make (no record) is refused unless ``overwrite``
+    (``overwrite``, ``inputs``: None, the running command's ``--overwrite`` and declared inputs)."""
+    overwrite, inputs = _run_default(overwrite, inputs)
     path = check_output(path, "folder", inputs)
     record = _read_manifest(path) if path.is_dir() else None
     if path.is_dir() and not overwrite and not (record and set(record) - {FILES_KIND}):
@@ -551,7 +552,7 @@ def _rel_files(root: Path) -> list[str]:
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str | Path | None] = (),
+def atomic_dir(path: str | Path, overwrite: bool | None = None, inputs: Iterable[str | Path | None] | None = None,
                kind: str = "output") -> Iterator[Path]:
     """Yield a hidden temporary folder whose files are moved into the folder ``path`` on success.
 
@@ -571,13 +572,14 @@ def atomic_dir(path: str | Path, overwrite: bool = False, inputs: Iterable[str |
       over leave other kinds' entries.
 
     Every check is made before the first file moves. A non-empty folder without a record is
-    refused unless ``overwrite``; a malformed record is an :class:`InputError`. On error or
+    refused unless ``overwrite``; a malformed record is an :class:`InputError`. ``overwrite`` and
+    ``inputs`` left None are the running command's ``--overwrite`` and declared inputs (:class:`Run`). On error or
     interruption the temporary folder is removed and ``path`` is as it was (a folder created
     for the run is removed again).
     """
     if not kind:
         raise ValueError("atomic_dir needs a command kind")
-    inputs = [i for i in inputs if i is not None]
+    overwrite, inputs = _run_default(overwrite, inputs)
     path = check_output_dir(path, overwrite, inputs)
     guard = InputSet(inputs, output=path)
     created = not path.exists()

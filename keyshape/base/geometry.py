@@ -17,6 +17,8 @@ import warnings
 
 import numpy as np
 
+from keyshape.base.errors import InputError
+
 
 def _ransac_euclidean3d():
     """scikit-image's ``ransac`` and a 3D ``EuclideanTransform`` class for it, imported when first needed
@@ -70,10 +72,14 @@ def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = No
 
 
 def fit_similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Least-squares similarity ``dst_from_src`` (2, 3): rotation, uniform scale, translation
-    (Umeyama 1991; :func:`rigid_fit` with ``scale=True`` for one 2D frame)."""
+    """Least-squares similarity ``dst_from_src`` (2, 3) = ``[s R | t]``: rotation (no reflection), uniform
+    scale, translation (Umeyama 1991; :func:`rigid_fit` with ``scale=True`` for one 2D frame). The map of
+    the points alone is ``[:, :2]``; ``s`` is the norm of a column of it. Raises :class:`InputError` when
+    the ``src`` points are all equal."""
     src = np.asarray(src, np.float64).reshape(-1, 2)
     dst = np.asarray(dst, np.float64).reshape(-1, 2)
+    if ((src - src.mean(0)) ** 2).sum() < 1e-12:
+        raise InputError("cannot fit a similarity: the source points are all equal")
     rot, trans, sc = rigid_fit(src, dst[None], scale=True)
     return np.hstack([sc[0] * rot[0], trans[0][:, None]])
 

@@ -71,7 +71,6 @@ def _check_masks(masks, n_vertices: int, path) -> None:
 
 def _register(args) -> int:
     from keyshape.base.errors import InputError
-    from keyshape.base.files import check_outputs
     from keyshape.base.formats.markers import read_mesh_markers, write_mesh_markers
     from keyshape.base.formats.masks import read_masks, write_masks
     from keyshape.base.formats.pairs import read_pairs
@@ -82,8 +81,6 @@ def _register(args) -> int:
         raise InputError("--markers and --out-markers go together")
     if bool(args.masks) != bool(args.out_masks):
         raise InputError("--masks and --out-masks go together")
-    inputs = [args.reference, args.target, args.landmarks, args.markers, args.masks]
-    check_outputs([args.output, args.out_markers, args.out_masks], inputs=inputs)
     ref = read_obj(args.reference, require_faces=True)
     tgt = read_obj(args.target, require_faces=True)
     pairs = read_pairs(args.landmarks)
@@ -124,12 +121,10 @@ def _initial(spec: str, frames, seed: int):
 
 
 def _keypoints(args) -> int:
-    from keyshape.base.files import check_outputs
     from keyshape.base.formats.keypoints import write_keypoints
     from keyshape.base.formats.sequence import read_sequence
     from keyshape.retarget.dense.keypoints import KeyPointInserter
 
-    check_outputs([args.output], inputs=[args.sequence, None if args.initial.isdigit() else args.initial])
     frames, _ = read_sequence(args.sequence)
     init = _initial(args.initial, frames, 0)
     ins = KeyPointInserter(correspondence=not args.no_correspondence, rng=0).fit(frames, init)
@@ -150,9 +145,7 @@ def _transfer(args) -> int:
     from keyshape.retarget.dense.registration import resolve_landmarks
     from keyshape.retarget.dense.transfer import transfer_sequence
     from keyshape.base.formats.obj import read_obj
-    from keyshape.base.files import check_outputs
 
-    check_outputs([args.output], inputs=[args.sequence, args.target, args.keypoints, args.landmarks])
     frames, _ = read_sequence(args.sequence)
     tgt = read_obj(args.target, require_faces=True)
     if args.landmarks:

@@ -128,7 +128,7 @@ def _mocap(args) -> int:
     if out.suffix.lower() in (".npz", ".glb"):
         check_output(out, "file", inputs)
     else:
-        check_output_dir(out, args.overwrite, inputs)
+        check_output_dir(out, inputs=inputs)
     take = read_markers(args.markers, duplicates=args.duplicate_labels)
     for w in take.warnings:
         print(f"keyshape mocap: warning: {w}", file=sys.stderr)
@@ -163,20 +163,18 @@ def _mocap(args) -> int:
             np.savez(tmp, vertices=verts.astype(np.float32), markers=res.markers, labels=np.array(res.labels),
                      rate=take.rate, triangles=mesh.triangles)
     elif out.suffix.lower() == ".glb":
-        try:
-            from keyshape.base.formats.gltf import write_glb
-        except ImportError:
-            raise InputError(".glb output needs keyshape.base.formats.gltf (not in this build): use .npz or an OBJ folder") from None
+        from keyshape.base.formats import Morphs
+        from keyshape.base.formats.gltf import write_glb
         base = verts[0]
         d = (verts - base).reshape(len(verts), -1)
         u, s, vt = np.linalg.svd(d, full_matrices=False)
         k = min(GLB_COMPONENTS, len(s))
         energy = float((s[:k] ** 2).sum() / max((s ** 2).sum(), 1e-300))
-        write_glb(out, base, mesh.triangles, vt[:k].reshape(k, -1, 3) * s[:k, None, None],
-                  [f"pc{i:02d}" for i in range(k)], weights=u[:, :k], fps=take.rate)
+        write_glb(out, base, mesh.triangles, Morphs(vt[:k].reshape(k, -1, 3) * s[:k, None, None],
+                                                    [f"pc{i:02d}" for i in range(k)], u[:, :k], take.rate))
         print(f"{k} principal morph targets keep {100 * energy:.3f}% of the motion energy")
     else:
-        with atomic_dir(out, args.overwrite, inputs, kind="mocap") as tmp:
+        with atomic_dir(out, inputs=inputs, kind="mocap") as tmp:
             for f in range(len(verts)):
                 write_obj(tmp / f"frame_{f:06d}.obj", mesh, verts[f])
     print(f"wrote {out}")

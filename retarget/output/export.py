@@ -12,20 +12,21 @@
 """
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
+from keyshape.base.files import atomic_dir
+from keyshape.base.formats import Morphs
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.targets.retargeter import Retargeter
 from keyshape.retarget.targets.target_set import name_key
 from keyshape.base.formats.weights import write_weights
 # the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
 from keyshape.base.formats.livelink import ARKIT52, LIVELINK_TAIL, csv_rows  # noqa: F401
+from keyshape.base.formats.livelink import write_csv as write_livelink
 
 VIDEO_SUFFIXES = (".mp4", ".avi")
 USD_SUFFIXES = (".usda", ".usdc", ".usd")
@@ -96,24 +97,35 @@ def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | Non
     return csv_rows(livelink_values(names, weights, head, eyes), fps)
 
 
-def write_usd_take(path: Path, mesh, base: np.ndarray, deltas: np.ndarray, names, weights: np.ndarray,
-                   frames: np.ndarray, fps: float, head: HeadMotion | None, meters_per_unit: float) -> dict:
-    """The USD take of a mesh (OBJ topology, UVs) and its shapes as deltas from ``base`` (one writer for
-    sculpted targets and rigs): vertex normals and each shape's normal offsets as in the .glb."""
-    from keyshape.base.formats.usd import write_usd
+def write_mesh_take(path: Path, mesh, base: np.ndarray, morphs: Morphs, meters_per_unit: float = 0.01,
+                    sparse_targets: bool = False) -> dict:
+    """The .glb or USD take (by ``path``'s extension) of a mesh (OBJ topology, UVs, materials) and its shapes
+    (``morphs.deltas`` from ``base``): one writer for sculpted targets and rigs, with the vertex normals and
+    each shape's normal offsets. ``meters_per_unit``: USD's ``metersPerUnit`` (:class:`ExportOptions`);
+    ``sparse_targets``: the .glb's morph targets stored sparse. Returns what the USD writer reports ({} for .glb)."""
+    from dataclasses import replace
+
     from keyshape.base.geometry import vertex_normals
+    n0 = vertex_normals(base, mesh.triangles)
+    nd = np.stack([vertex_normals(base + d, mesh.triangles) - n0 for d in morphs.deltas]) if len(morphs.deltas) \
+        else None
+    if output_kind(path, 3) == "glb":
+        from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
+        from keyshape.retarget.rig.model import material_parts
+        ids, uvs, tri = split_at_uv_seams(mesh)
+        write_glb(path, base[ids], tri, replace(morphs, deltas=morphs.deltas[:, ids], normals=n0[ids],
+                                                normal_deltas=None if nd is None else nd[:, ids]),
+                  uvs=uvs, parts=material_parts(mesh), sparse_targets=sparse_targets)
+        return {}
+    from keyshape.base.formats.usd import write_usd
     keep = [i for i, p in enumerate(mesh.polygons) if len(p) >= 3]
     if not keep:
         raise InputError("the mesh has no faces: USD output needs faces")
     polys = [mesh.polygons[i] for i in keep]
     puv = [mesh.polygon_uvs[i] for i in keep] if len(mesh.uvs) and len(mesh.polygon_uvs) == len(mesh.polygons) \
         else None
-    tri = mesh.triangles
-    n0 = vertex_normals(base, tri)
-    nd = np.stack([vertex_normals(base + d, tri) - n0 for d in deltas]) if len(deltas) else None
-    return write_usd(path, base, polys, deltas, names, weights, fps, head, frames=frames,
-                     uvs=mesh.uvs if puv is not None else None, polygon_uvs=puv, normals=n0, normal_deltas=nd,
-                     meters_per_unit=meters_per_unit)
+    return write_usd(path, base, polys, replace(morphs, normals=n0, normal_deltas=nd),
+                     uvs=mesh.uvs if puv is not None else None, polygon_uvs=puv, meters_per_unit=meters_per_unit)
 
 
 #: the curves CSV's head columns (:func:`head_columns`)
@@ -209,10 +221,10 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     Returns
     -------
     dict with ``kind``, ``path`` and ``n_clamped``. Nothing is left at ``path`` on error. A folder
-    output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.run_overwrite_inputs`).
+    output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.atomic_dir`).
     """
     o = options if options is not None else ExportOptions()
-    clamp, livelink, bake_head, scheme, meters_per_unit = o.clamp, o.livelink, o.bake_head, o.scheme, o.meters_per_unit
+    clamp, livelink, bake_head, scheme = o.clamp, o.livelink, o.bake_head, o.scheme
     chunk_frames, size = CHUNK_FRAMES, FRAME_SIZE
     rt._fitted()
     ts = rt.targets_
@@ -222,32 +234,20 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
     if head is not None and head.n_frames != len(weights):
         raise InputError(f"head motion has {head.n_frames} frames but the weights have {len(weights)}")
     info = {"kind": kind, "path": path, "n_clamped": 0}
-    if kind == "glb":
-        from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
+    if kind in ("glb", "usd"):
+        if kind == "usd":
+            from keyshape.base.formats.usd import require_usd
+            require_usd()
+            if ts.dim != 3:
+                raise InputError("USD output needs 3D (OBJ) targets; these are 2D drawings")
         base, deltas, names, mw, info["n_clamped"] = rt.morph_targets(weights, clamp=clamp)
-        ids, uvs, tri = split_at_uv_seams(ts.mesh)
-        if len(tri) == 0:
-            raise InputError("the target meshes have no faces: .glb needs faces", ts.files[0])
-        from keyshape.base.geometry import vertex_normals
-        from keyshape.retarget.rig.model import material_parts
-        mt = ts.mesh.triangles
-        n0 = vertex_normals(base, mt)
-        nd = np.stack([vertex_normals(base + d, mt) - n0 for d in deltas]) if len(deltas) else None
-        write_glb(path, base[ids], tri, deltas[:, ids], names, mw, fps, head, uvs=uvs, normals=n0[ids],
-                  normal_deltas=None if nd is None else nd[:, ids], parts=material_parts(ts.mesh),
-                  first_frame=int(frames[0]) if len(frames) else 0)
-        info["n_morph_targets"] = len(names)
-        return info
-    if kind == "usd":
-        from keyshape.base.formats.usd import require_usd
-        require_usd()
-        if ts.dim != 3:
-            raise InputError("USD output needs 3D (OBJ) targets; these are 2D drawings")
-        base, deltas, names, mw, info["n_clamped"] = rt.morph_targets(weights, clamp=clamp)
-        if ts.mesh is None:
-            raise InputError("the target meshes have no faces: USD output needs faces", ts.files[0])
-        info.update(write_usd_take(path, ts.mesh, base, deltas, names, mw, np.asarray(frames), fps, head,
-                                   meters_per_unit))
+        if ts.mesh is None or not len(ts.mesh.triangles):
+            raise InputError(f"the target meshes have no faces: {'.glb' if kind == 'glb' else 'USD output'} needs "
+                             "faces", ts.files[0])
+        info.update(write_mesh_take(path, ts.mesh, base, Morphs(deltas, names, mw, fps, head, np.asarray(frames)),
+                                    o.meters_per_unit))
+        if kind == "glb":
+            info["n_morph_targets"] = len(names)
         return info
     if kind == "csv":
         w = weights
@@ -257,11 +257,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
             w = c
         names = list(ts.names)
         if livelink:
-            header, rows = livelink_rows(names, w, fps, head)
-            with atomic_write(path, newline="") as f:
-                wr = csv.writer(f)
-                wr.writerow(header)
-                wr.writerows(rows)
+            write_livelink(path, livelink_values(names, w, head), fps)
         else:
             from keyshape.retarget.targets.retargeter import _unique
             write_weights(path, frames, _unique(names, ts.columns), w, fps=fps)
@@ -271,7 +267,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         from keyshape.base.formats.obj import write_obj
         if bake_head and head is not None:
             out = head.apply(out)
-        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
+        with atomic_dir(path, kind="retarget") as tmp:
             for fr, v in zip(frames, out):
                 write_obj(tmp / f"frame_{int(fr):06d}.obj", ts.mesh, v)
         return info
@@ -284,7 +280,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":
-        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
+        with atomic_dir(path, kind="retarget") as tmp:
             for fr, img in zip(frames, images):
                 cv2.imwrite(str(tmp / f"frame_{int(fr):06d}.png"), img)
     else:

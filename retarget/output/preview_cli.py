@@ -55,7 +55,9 @@ def run(args) -> int:
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.formats.tracks import check_frame_size, read_tracks
+    from keyshape.base.formats.video import video_info
+    from keyshape.retarget.defaults import PreviewOptions
     from keyshape.retarget.rig.model import load_rig
 
     _check_outputs(args.output, args.sheet, size=args.size)
@@ -71,9 +73,11 @@ def run(args) -> int:
         idx = np.array([row2[int(f)] for f in frames])
         compare = (c2[idx], h2[idx] if h2 is not None else head)
     tracks = read_tracks(args.tracks)
-    info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, frames=args.frames,
-                         size=args.size, tracks_source=args.tracks, head=head, compare=compare,
-                         contours=args.contours, landmarks=args.landmarks)
+    vi = video_info(args.video)
+    check_frame_size(tracks.meta, vi.width, vi.height, args.video, args.tracks)    # naming the tracks file
+    info = write_preview(args.video, tracks, rig, frames, curves, args.output, sheet=args.sheet, head=head,
+                         compare=compare, options=PreviewOptions(frames=args.frames, size=args.size,
+                                                                 contours=args.contours, landmarks=args.landmarks))
     n, dt = info["frames"], info["seconds"]
     print(f"keyshape preview: {n} frames in {dt:.1f} s ({n / dt:.1f} frames/s; the rig render alone "
           f"{info['rig_frames'] / max(info['render_cpu_seconds'], 1e-9):.1f} rig frames per CPU second, "
@@ -99,25 +103,19 @@ def _check_outputs(output, sheet, sheet_frames: int = 12, size: int | None = Non
         raise InputError(f"--size {size}: must be from 16 to 8192 pixels")
 
 
-def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, sheet=None, frames: str | None = None,
-                  size: int | None = None, sheet_frames: int = 12, threads: int | None = None,
-                  tracks_source=None, head=None, compare=None, crop: str = "face", contours: bool | None = None,
-                  landmarks=None, captions=("actor", "keyshape", "compare")) -> dict:
+def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, sheet=None, head=None, compare=None,
+                  options=None) -> dict:
     """Write the side-by-side preview (the footage with its contours | the shaded rig driven by
     ``curves`` [| the rig driven by a second set of curves]) to ``output`` (.mp4/.avi) and/or a contact
     ``sheet`` (.jpg/.png): what ``keyshape preview``, :func:`keyshape.api.preview` and ``keyshape batch`` run.
 
     Parameters
     ----------
-    frame_numbers : the curves' frame numbers; ``frames``: the range to render, ``"A:B"`` (B exclusive;
-        default all)
+    frame_numbers : the curves' frame numbers
     head : (n_frames, 3, 3) head rotations the rig is turned by (:func:`~keyshape.retarget.output.preview.head_rotations`)
     compare : ``(curves, head rotations or None)`` of a second set of curves for a third panel
-    crop : ``"face"``: the footage cut to a steady square around the tracked face and the rig framed
-        on the same face box (:func:`~keyshape.retarget.output.preview.face_crop`); ``"full"``: the whole frame
-    contours : draw the rig's own scheme contours over it (None: where its landmarks are known);
-        ``landmarks``: the rig landmark JSON (default: the shipped one for ICT-FaceKit rigs)
-    captions : one per panel ('' or missing: none)
+    options : :class:`~keyshape.retarget.defaults.PreviewOptions` (the range, size, crop, contours, captions;
+        default: its defaults)
 
     Returns ``{"frames", "rig_frames", "seconds", "render_cpu_seconds"}``.
     """
@@ -135,18 +133,22 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     from keyshape.base.schemes import scheme_for_n_points
     from keyshape.retarget.output.preview import (RigRenderer, actor_panel, caption, face_crop, ordered_map, panel_row,
                                            parse_frames)
+    from keyshape.retarget.defaults import PreviewOptions
     from keyshape.retarget.rig.model import default_landmarks, rig_landmarks
 
+    o = options if options is not None else PreviewOptions()
+    size, sheet_frames, threads, crop, contours, landmarks = o.size, o.sheet_frames, o.threads, o.crop, o.contours, \
+        o.landmarks
     _check_outputs(output, sheet, sheet_frames, size)
     if crop not in ("face", "full"):
         raise InputError(f"crop {crop!r}: use face or full")
-    spec, frames = frames, np.asarray(frame_numbers)
+    spec, frames = o.frames, np.asarray(frame_numbers)
     curves = np.asarray(curves, dtype=np.float64)
     scheme = scheme_for_n_points(tracks.n_points)
     pos = {int(f): i for i, f in enumerate(tracks.frame)}
     rows = parse_frames(spec, frames)
     reader = VideoReader(video)
-    check_frame_size(tracks.meta, reader.info.width, reader.info.height, video, tracks_source)
+    check_frame_size(tracks.meta, reader.info.width, reader.info.height, video)
     h = size or reader.info.height
     box = None
     if crop == "face":
@@ -166,7 +168,7 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
                                     for x in (head, other_head)[:len(fit_curves)]])
     renderer = RigRenderer(rig, size=(h, h), landmarks=lm, cull_hidden=True).fit(np.concatenate(fit_curves),
                                                                                  fit_turns)
-    names = list(captions or [])
+    names = list(o.captions or [])
     fps = reader.info.fps or 30.0
     sheet_rows = set(rows[np.linspace(0, len(rows) - 1, min(sheet_frames, len(rows))).round().astype(int)]
                      .tolist()) if sheet else set()

@@ -4,13 +4,12 @@ Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/outp
 """
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
+from keyshape.base.files import atomic_dir
 from keyshape.retarget.headpose import HeadMotion
 from keyshape.retarget.rig.model import Rig
 
@@ -28,10 +27,9 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     (``headYaw, headPitch, headRoll`` in degrees, ``headX, headY, headZ``), the Live Link CSV its
     HeadYaw/HeadPitch/HeadRoll and the .glb the head node's rotation and translation; ``eyes``
     (n_frames, 4: left yaw, left pitch, right yaw, right pitch, radians) go to the Live Link eye columns.
-    A folder output follows the running command's ``--overwrite`` and inputs
-    (:func:`~keyshape.base.files.run_overwrite_inputs`).
+    A folder output follows the running command's ``--overwrite`` and inputs (:func:`~keyshape.base.files.atomic_dir`).
     """
-    from keyshape.retarget.output.export import HEAD_COLUMNS, head_columns, livelink_rows, output_kind
+    from keyshape.retarget.output.export import HEAD_COLUMNS, head_columns, livelink_values, output_kind, write_livelink
     path = Path(path)
     curves = np.asarray(curves, dtype=np.float64)
     if curves.shape != (len(frames), rig.n_shapes):
@@ -42,11 +40,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     info = {"kind": kind, "path": path}
     if kind == "csv":
         if livelink:
-            header, rows = livelink_rows(list(rig.names), curves, fps, head, eyes)
-            with atomic_write(path, newline="") as f:
-                wr = csv.writer(f)
-                wr.writerow(header)
-                wr.writerows(rows)
+            write_livelink(path, livelink_values(list(rig.names), curves, head, eyes), fps)
         else:
             from keyshape.base.formats.weights import write_weights
             if head is not None:
@@ -57,32 +51,19 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         return info
     if rig.mesh is None or not rig.mesh.polygons:
         raise InputError("the rig's neutral has no faces: .glb, video and OBJ output need faces", rig.neutral_file)
-    if kind == "glb":
-        from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
-        from keyshape.base.geometry import vertex_normals
-        from keyshape.retarget.rig.model import material_parts
-        ids, uvs, tri = split_at_uv_seams(rig.mesh)
-        mt = rig.mesh.triangles
-        # only the shapes that move, each stored sparse (the vertices it moves): a shape at 0 throughout
-        # adds nothing but megabytes (26 of ICT-FaceKit's 53 shapes move on franck)
+    if kind in ("glb", "usd"):
+        from keyshape.base.formats import Morphs
+        from keyshape.retarget.output.export import write_mesh_take
+        # only the shapes that move, the .glb's each stored sparse (the vertices it moves): a shape at 0
+        # throughout adds nothing but megabytes (26 of ICT-FaceKit's 53 shapes move on franck)
         moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.zeros(0, np.intp)
-        n0 = vertex_normals(rig.neutral, mt)
-        nd = np.stack([vertex_normals(rig.neutral + rig.deltas[j], mt) - n0 for j in moving]) if len(moving) \
-            else np.zeros((0, rig.n_vertices, 3))
-        write_glb(path, rig.neutral[ids], tri, rig.deltas[moving][:, ids], [rig.names[j] for j in moving],
-                  curves[:, moving], fps, head, uvs=uvs,
-                  normals=n0[ids], normal_deltas=nd[:, ids], parts=material_parts(rig.mesh),
-                  first_frame=int(frames[0]) if len(frames) else 0, sparse_targets=True)
-        return info
-    if kind == "usd":
-        from keyshape.retarget.output.export import write_usd_take
-        moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.arange(0)
-        info.update(write_usd_take(path, rig.mesh, rig.neutral, rig.deltas[moving], [rig.names[j] for j in moving],
-                                   curves[:, moving], np.asarray(frames), fps, head, meters_per_unit))
+        info.update(write_mesh_take(path, rig.mesh, rig.neutral, Morphs(
+            rig.deltas[moving], [rig.names[j] for j in moving], curves[:, moving], fps, head, np.asarray(frames)),
+            meters_per_unit, sparse_targets=True))
         return info
     if kind == "obj_frames":
         from keyshape.base.formats.obj import write_obj
-        with atomic_dir(path, *run_overwrite_inputs(), kind="retarget") as tmp:
+        with atomic_dir(path, kind="retarget") as tmp:
             for s in range(0, len(curves), CHUNK_FRAMES):
                 for fr, v in zip(frames[s:s + CHUNK_FRAMES], rig.evaluate(curves[s:s + CHUNK_FRAMES])):
                     write_obj(tmp / f"frame_{int(fr):06d}.obj", rig.mesh, v)

@@ -91,7 +91,7 @@ def run(args) -> int:
     import cv2
 
     from keyshape.base.errors import InputError
-    from keyshape.base.files import atomic_write, check_output
+    from keyshape.base.files import atomic_write
     from keyshape.base.schemes import load_scheme
     from keyshape.retarget.rig.model import load_rig, rig_landmarks
 
@@ -99,8 +99,6 @@ def run(args) -> int:
     if not edit and Path(args.output).suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise InputError("the output must be a sheet (.png or .jpg) or, to correct the landmarks in a local web "
                          "page, a landmarks file (.json)", args.output)
-    inputs = [args.neutral, args.landmarks]
-    check_output(args.output, "file", inputs)
     scheme = load_scheme("contours48")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
     if edit and (rig.mesh is None or not rig.mesh.polygons):

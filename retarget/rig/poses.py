@@ -12,31 +12,8 @@ import numpy as np
 from scipy.optimize import minimize
 
 from keyshape.base.errors import InputError
+from keyshape.base.geometry import fit_similarity
 from keyshape.retarget.rig.model import mirror_pairs
-
-
-def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama, no reflection).
-
-    Parameters
-    ----------
-    src, dst : (n, 2) corresponding points (n >= 2, not all equal)
-
-    Returns
-    -------
-    s : float, R : (2, 2) rotation, t : (2,)
-    """
-    src, dst = np.asarray(src, float), np.asarray(dst, float)
-    ms, md = src.mean(0), dst.mean(0)
-    a, b = src - ms, dst - md
-    var = (a ** 2).sum()
-    if var < 1e-12:
-        raise InputError("cannot fit a similarity: the neutral points are all equal")
-    U, S, Vt = np.linalg.svd(b.T @ a)
-    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    R = U @ np.diag([1.0, d]) @ Vt
-    s = float((S * [1.0, d]).sum() / var)
-    return s, R, md - s * R @ ms
 
 
 def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float = -0.5,
@@ -298,14 +275,13 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
     -----
     The actor's 2D motion is mapped into the rig's frame by the similarity that best
     maps the actor's neutral points (all regions together) onto the rig's neutral
-    points (:func:`fit_similarity`); each key's pose then solves :func:`fit_pose` on its
+    points (:func:`~keyshape.base.geometry.fit_similarity`); each key's pose then solves :func:`fit_pose` on its
     region's points.
     """
     rest = {rk.region: (rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
     pts = np.concatenate([rk.points for rk in regions])
     src = np.concatenate([rest[rk.region] for rk in regions])
-    s, R, _ = fit_similarity(src, landmark_neutral[pts])
-    M = s * R
+    M = fit_similarity(src, landmark_neutral[pts])[:, :2]      # s R: the actor's motion in the rig's frame
     out: dict = {}
     fit: dict = {}
     for rk in regions:

@@ -657,7 +657,8 @@ class RigSolver:
         report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
             ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
         """
-        from keyshape.retarget.rig.poses import auto_nuisance, fit_similarity, nuisance_motions
+        from keyshape.base.geometry import fit_similarity
+        from keyshape.retarget.rig.poses import auto_nuisance, nuisance_motions
         scheme, rig, o = self.scheme, self.rig, self.options
         landmark_neutral, region_shapes, shape_names, bounds = rig.neutral, rig.region_shapes, rig.names, rig.bounds
         yaw, rest_yaw, rigid, yaw_regions = head.yaw, head.rest_yaw, head.rigid, head.regions
@@ -667,8 +668,7 @@ class RigSolver:
             raise InputError("no successful frame to solve the rig's curves from")
         pts = np.concatenate([p for p, _ in regions.values()])
         src = np.concatenate([r for _, r in regions.values()])
-        sc, R, _ = fit_similarity(src, landmark_neutral[pts])
-        self.similarity_ = Msim = sc * R
+        self.similarity_ = Msim = fit_similarity(src, landmark_neutral[pts])[:, :2]      # s R
         from keyshape.decompose.gaze import pupil_points
         self.deltas_ = landmark_deltas = rigid_frame_deltas(landmark_neutral, rig.deltas, rigid,
                                                             keep=pupil_points(scheme))

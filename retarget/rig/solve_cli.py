@@ -51,7 +51,6 @@ def run(args) -> int:
     import numpy as np
 
     from keyshape.base.errors import InputError
-    from keyshape.base.files import check_output
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.decompose.take import Take
@@ -62,8 +61,6 @@ def run(args) -> int:
 
     if bool(args.poses) != bool(args.weights):
         raise InputError("--poses and --weights go together (the artist's pose library and the key weights)")
-    inputs = [f for f in (args.tracks, args.keys, args.neutral, args.landmarks, args.poses, args.weights) if f]
-    check_output(args.output, "file", inputs)
     scheme_name, n_points, regions = read_keys(args.keys)
     tracks = read_tracks(args.tracks, accept_partial=args.accept_partial)
     from keyshape.base.formats.keys import check_keys_model

@@ -27,6 +27,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_path
+from keyshape.base.formats import Morphs
 
 FLOAT, UINT = 5126, 5125
 #: sparse morph targets: a vertex moving less than this fraction of the mesh's bounding-box diagonal
@@ -128,43 +129,43 @@ def split_at_uv_seams(mesh) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     return pairs[:, 0], uv, tri
 
 
-def _build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, names: Sequence[str],
-               weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-               default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
-               normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
-               parts: Sequence | None = None, first_frame: int = 0, sparse_targets: bool = False):
-    """Build a :class:`pygltflib.GLTF2` in memory (see :func:`write_glb`)."""
+def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, morphs: Morphs, *,
+              uvs: np.ndarray | None = None, parts: Sequence | None = None,
+              default_weights: np.ndarray | None = None, sparse_targets: bool = False) -> None:
+    """Write a .glb atomically.
+
+    Parameters
+    ----------
+    base : (n_vertices, 3) base shape (the neutral, or the first target)
+    triangles : (n_triangles, 3) vertex indices
+    morphs : the morph targets (names in ``mesh.extras.targetNames``) and the take (weights None: no animation);
+        the sampler times are ``frame / fps`` from the first frame on, the scene's ``extras`` hold ``fps``,
+        ``frame_start`` and ``frame_end`` (Blender keeps them as custom properties; ``bench/blender_import_curves.py``
+        sets the scene's frame range from them)
+    uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
+    parts : [(material name, triangle indices, (r, g, b, a)), ...]: one primitive per material
+        sharing the vertex attributes and morph targets (default one ``skin`` primitive)
+    default_weights : (n_targets,) ``mesh.weights`` (default zeros)
+    sparse_targets : store each morph target sparse (glTF ``accessor.sparse``: only the vertices it
+        moves, beyond :data:`SPARSE_POSITION_TOL` of the mesh's size), as for a rig whose shapes each
+        move a part of the head
+
+    See :func:`retarget.output.export.morph_targets` for how target shapes, regions and the
+    absolute form become glTF deltas and weights exactly.
+    """
     import pygltflib as g
-    base = np.asarray(base, dtype=np.float64)
-    tg = np.asarray(deltas, dtype=np.float64)
+    base, tg, weights, nd = morphs.checked(base)
+    names, fps, head, normals = morphs.names, morphs.fps, morphs.head, morphs.normals
+    first_frame = int(morphs.frames[0]) if morphs.frames is not None and len(morphs.frames) else 0
     tri = np.asarray(triangles)
-    if base.ndim != 2 or base.shape[1] != 3:
-        raise InputError(f"base: expected (n_vertices, 3), got {base.shape}")
-    if tg.ndim != 3 or tg.shape[1:] != base.shape:
-        raise InputError(f"deltas: expected (n_targets, {base.shape[0]}, 3), got {tg.shape}")
-    if len(names) != len(tg):
-        raise InputError(f"{len(names)} target names for {len(tg)} targets")
     if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
         raise InputError(f"triangles: expected (n_triangles, 3) with at least one, got {tri.shape}")
-    if not fps > 0:
-        raise InputError(f"fps must be > 0, got {fps}")
-    if weights is not None:
-        weights = np.asarray(weights, dtype=np.float64)
-        if weights.ndim != 2 or weights.shape[1] != len(tg) or not np.all(np.isfinite(weights)):
-            raise InputError(f"weights: expected finite (n_frames, {len(tg)}), got {weights.shape}")
     gltf = g.GLTF2(asset=g.Asset(version="2.0", generator="keyshape"))
     blob = _Blob(gltf)
     pos = blob.add(base.astype(np.float32), "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=True)
     if parts is None:
         parts = [("skin", np.arange(len(tri)), (0.8, 0.72, 0.66, 1.0))]
-    nd = None
-    if normals is not None:
-        if np.shape(normals) != base.shape:
-            raise InputError(f"normals: expected {base.shape}, got {np.shape(normals)}")
-        if normal_deltas is not None:
-            nd = np.asarray(normal_deltas, np.float32)
-            if nd.shape != tg.shape:
-                raise InputError(f"normal deltas: expected {tg.shape}, got {nd.shape}")
+    nd = None if nd is None else nd.astype(np.float32)
     tgt = []
     scale = float(np.linalg.norm(np.ptp(base, axis=0))) if len(base) else 0.0
     for i, d in enumerate(tg.astype(np.float32)):
@@ -213,56 +214,15 @@ def _build_gltf(base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, nam
                                                                     "SCALAR", FLOAT), interpolation="LINEAR")]
         channels = [g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=1, path="weights"))]
         if head is not None:
-            if head.n_frames != len(weights):
-                raise InputError(f"head motion has {head.n_frames} frames, weights {len(weights)}")
-            for path, arr, typ in (("translation", head.translation, "VEC3"), ("rotation", head.rotation, "VEC4"),
+            for what, arr, typ in (("translation", head.translation, "VEC3"), ("rotation", head.rotation, "VEC4"),
                                    ("scale", head.scale, "VEC3")):
                 samplers.append(g.AnimationSampler(input=t_acc, output=blob.add(arr.astype(np.float32), typ, FLOAT),
                                                    interpolation="LINEAR"))
                 channels.append(g.AnimationChannel(sampler=len(samplers) - 1,
-                                                   target=g.AnimationChannelTarget(node=0, path=path)))
+                                                   target=g.AnimationChannelTarget(node=0, path=what)))
         gltf.animations.append(g.Animation(name="performance", samplers=samplers, channels=channels))
     data = blob.bytes()
     gltf.buffers.append(g.Buffer(byteLength=len(data)))
     gltf.set_binary_blob(data)
-    return gltf
-
-
-def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas: np.ndarray,
-              names: Sequence[str], weights: np.ndarray | None = None, fps: float = 30.0, head=None,
-              default_weights: np.ndarray | None = None, uvs: np.ndarray | None = None,
-              normals: np.ndarray | None = None, normal_deltas: np.ndarray | None = None,
-              parts: Sequence | None = None, first_frame: int = 0, sparse_targets: bool = False) -> None:
-    """Write a .glb atomically.
-
-    Parameters
-    ----------
-    base : (n_vertices, 3) base shape (the neutral, or the first target)
-    triangles : (n_triangles, 3) vertex indices
-    deltas : (n_targets, n_vertices, 3) morph targets as displacements from ``base``
-    names : n_targets names (``mesh.extras.targetNames``)
-    weights : (n_frames, n_targets) morph weights per frame, or None for no animation
-    fps : frame rate of the weight and head-motion samplers
-    head : :class:`retarget.headpose.HeadMotion` or None
-    default_weights : (n_targets,) ``mesh.weights`` (default zeros)
-    uvs : (n_vertices, 2) ``TEXCOORD_0`` (see :func:`split_at_uv_seams`), or None
-    normals : (n_vertices, 3) unit vertex normals (``NORMAL``; smooth shading), or None
-    normal_deltas : (n_targets, n_vertices, 3) ``NORMAL`` of each morph target (the change of the
-        normals), or None
-    parts : [(material name, triangle indices, (r, g, b, a)), ...]: one primitive per material
-        sharing the vertex attributes and morph targets (default one ``skin`` primitive)
-    first_frame : frame number of the first weight row; the sampler times are ``frame / fps`` and
-        the scene's ``extras`` hold ``fps``, ``frame_start`` and ``frame_end`` (Blender keeps
-        scene extras as custom properties; ``bench/blender_import_curves.py`` sets the scene's
-        frame range from them; Blender's own importer does not set the scene range)
-    sparse_targets : store each morph target sparse (glTF ``accessor.sparse``: only the vertices it
-        moves, beyond :data:`SPARSE_POSITION_TOL` of the mesh's size), as for a rig whose shapes each
-        move a part of the head
-
-    See :func:`retarget.output.export.morph_targets` for how target shapes, regions and the
-    absolute form become glTF deltas and weights exactly.
-    """
-    gltf = _build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs, normals,
-                      normal_deltas, parts, first_frame, sparse_targets)
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))

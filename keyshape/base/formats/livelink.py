@@ -63,6 +63,16 @@ def csv_rows(values: np.ndarray, fps: float) -> tuple[list[str], list[list[str]]
     return header, rows
 
 
+def write_csv(path, values: np.ndarray, fps: float) -> None:
+    """Write the Live Link Face CSV of ``values`` (n_frames, 61; :func:`csv_rows`) atomically."""
+    import csv
+
+    from keyshape.base.files import atomic_write
+    header, rows = csv_rows(values, fps)
+    with atomic_write(path, newline="") as f:
+        csv.writer(f).writerows([header, *rows])
+
+
 def csv_to_packet(values: np.ndarray) -> np.ndarray:
     """(..., 61) values in CSV column order -> the packet's order."""
     v = np.asarray(values)

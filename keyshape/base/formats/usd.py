@@ -40,6 +40,7 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_path
+from keyshape.base.formats import Morphs
 
 SUFFIXES = (".usda", ".usdc", ".usd")
 JOINT = "head"
@@ -105,11 +106,9 @@ def _save_error(path: Path, said: str) -> OSError:
     return OSError(errno.EIO, f"USD could not write the file{': ' + first if first else ''}", str(path))
 
 
-def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarray], deltas: np.ndarray,
-              names: Sequence[str], weights: np.ndarray, fps: float = 30.0, head=None,
-              frames: np.ndarray | None = None, uvs: np.ndarray | None = None,
-              polygon_uvs: Sequence[np.ndarray] | None = None, normals: np.ndarray | None = None,
-              normal_deltas: np.ndarray | None = None, meters_per_unit: float = 0.01) -> dict:
+def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarray], morphs: Morphs, *,
+              uvs: np.ndarray | None = None, polygon_uvs: Sequence[np.ndarray] | None = None,
+              meters_per_unit: float = 0.01) -> dict:
     """Write a mesh, its blend shapes and a take as one USD stage, atomically (layout: module docstring).
 
     Parameters
@@ -117,18 +116,11 @@ def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarra
     path : ``.usda`` (text), ``.usdc`` (binary crate) or ``.usd`` (crate)
     points : (n_vertices, 3) the base shape (the neutral)
     polygons : vertex indices of each face (as read from the OBJ)
-    deltas : (n_shapes, n_vertices, 3) each blend shape minus ``points``
-    names : n_shapes shape names: the ``BlendShape`` prims' names and the ``blendShapes`` tokens
-        (made valid identifiers with ``Tf.MakeValidIdentifier`` and unique; a rig's names already are)
-    weights : (n_frames, n_shapes) weight of every shape at every frame
-    fps : the take's frame rate (``timeCodesPerSecond`` and ``framesPerSecond``)
-    head : :class:`keyshape.retarget.headpose.HeadMotion` (n_frames) for the head joint, or None
-        (the joint stays at rest)
-    frames : (n_frames,) strictly increasing frame numbers, the time codes (default ``0..n-1``)
+    morphs : the blend shapes from ``points`` and the take (weights required; ``frames``: the time codes,
+        strictly increasing; ``fps``: ``timeCodesPerSecond``; ``head``: the head joint's motion, None: at rest);
+        the names made valid identifiers (``Tf.MakeValidIdentifier``) and unique; a rig's already are
     uvs, polygon_uvs : OBJ texture coordinates and, per face, the UV index of each corner
         (``primvars:st``, face-varying, indexed); None when some face has no UVs
-    normals : (n_vertices, 3) vertex normals, or None (no ``normals``, no ``normalOffsets``)
-    normal_deltas : (n_shapes, n_vertices, 3) each shape's normals minus ``normals``
     meters_per_unit : length of one mesh unit in metres (``metersPerUnit``)
 
     Returns
@@ -144,17 +136,10 @@ def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarra
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
         raise InputError(f"USD output must end in {', '.join(SUFFIXES)}", path)
-    pts = np.asarray(points, dtype=np.float64)
-    d = np.asarray(deltas, dtype=np.float64)
-    w = np.asarray(weights, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"points: expected (n_vertices, 3), got {pts.shape}")
-    if d.ndim != 3 or d.shape[1:] != pts.shape or len(names) != len(d):
-        raise InputError(f"deltas: expected ({len(names)}, {len(pts)}, 3), got {d.shape}")
-    if w.ndim != 2 or w.shape[1] != len(d) or not np.all(np.isfinite(w)):
-        raise InputError(f"weights: expected finite (n_frames, {len(d)}), got {w.shape}")
-    if not (np.isfinite(fps) and fps > 0):
-        raise InputError(f"fps must be > 0, got {fps}")
+    names, fps, head, frames, normals = morphs.names, morphs.fps, morphs.head, morphs.frames, morphs.normals
+    pts, d, w, nd = morphs.checked(points)
+    if w is None:
+        raise InputError("weights: a USD take needs them (n_frames, n_shapes)")
     if not (np.isfinite(meters_per_unit) and meters_per_unit > 0):
         raise InputError(f"metres per unit must be > 0, got {meters_per_unit}")
     if not polygons:
@@ -163,16 +148,6 @@ def write_usd(path: str | Path, points: np.ndarray, polygons: Sequence[np.ndarra
     fr = np.arange(n) if frames is None else np.asarray(frames, dtype=np.int64)
     if fr.shape != (n,) or (n > 1 and np.any(np.diff(fr) <= 0)):
         raise InputError(f"frames: expected {n} strictly increasing frame numbers")
-    if head is not None and head.n_frames != n:
-        raise InputError(f"head motion has {head.n_frames} frames, weights {n}")
-    nd = None
-    if normals is not None:
-        if np.shape(normals) != pts.shape:
-            raise InputError(f"normals: expected {pts.shape}, got {np.shape(normals)}")
-        if normal_deltas is not None:
-            nd = np.asarray(normal_deltas, dtype=np.float64)
-            if nd.shape != d.shape:
-                raise InputError(f"normal deltas: expected {d.shape}, got {nd.shape}")
     start, end = (int(fr[0]), int(fr[-1])) if n else (0, 0)
 
     with atomic_path(path) as tmp:
