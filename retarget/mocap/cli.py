@@ -163,10 +163,8 @@ def _mocap(args) -> int:
             np.savez(tmp, vertices=verts.astype(np.float32), markers=res.markers, labels=np.array(res.labels),
                      rate=take.rate, triangles=mesh.triangles)
     elif out.suffix.lower() == ".glb":
-        try:
-            from keyshape.base.formats.gltf import write_glb
-        except ImportError:
-            raise InputError(".glb output needs keyshape.base.formats.gltf (not in this build): use .npz or an OBJ folder") from None
+        from keyshape.base.formats.gltf import write_glb
+
         base = verts[0]
         d = (verts - base).reshape(len(verts), -1)
         u, s, vt = np.linalg.svd(d, full_matrices=False)
