@@ -163,9 +163,7 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
 
     if not (np.isfinite(opposed) and -1.0 <= opposed <= 0.0):
         raise InputError(f"--opposed {opposed}: a cosine from -1 to 0")
-    for flag, v in (("--sparsity", sparsity), ("--symmetry", symmetry)):
-        if not (np.isfinite(v) and 0.0 <= v <= 100.0):
-            raise InputError(f"{flag} {v}: a number from 0 to 100")
+    check_solve_options(sparsity, symmetry, 0.0)
     scheme = load_scheme(scheme_name)
     lm_neutral, lm_deltas, reg_shapes, lm_path = _rig_points(rig, scheme, scheme_name, landmarks)
     stabilized = (head_pose or {}).get("method") in ("rigid", "3d")
