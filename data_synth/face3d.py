@@ -17,7 +17,7 @@ from keyshape.base.formats.tracks import Tracks
 from keyshape.base.formats.weights import write_weights
 from keyshape.base.schemes import load_scheme
 from keyshape.data_synth.performance import make_performance, smooth_noise
-from keyshape.data_synth.raster import rasterize
+from keyshape.base.raster import rasterize
 from keyshape.data_synth.video import _check_args, render_video, select_label_frames, write_truth
 
 #: Shapes the performance drives (ICT-FaceKit names); the curves CSV has every shape of the rig.
@@ -47,34 +47,27 @@ SIGN_CONVENTION = (
     "(eye yaw > 0 looks to the subject's left, eye pitch > 0 looks down); _L/_R = the subject's left/right")
 
 
-def rot_y(a):
+def _rot(a, axis: int) -> np.ndarray:
+    """Right-handed rotations by the angles ``a`` (radians, any shape) about ``axis`` (0 x, 1 y, 2 z): (..., 3, 3)."""
+    i, j = (axis + 1) % 3, (axis + 2) % 3
     c, s = np.cos(a), np.sin(a)
-    z, o = np.zeros_like(a), np.ones_like(a)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
-
-
-def rot_x(a):
-    c, s = np.cos(a), np.sin(a)
-    z, o = np.zeros_like(a), np.ones_like(a)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
-
-
-def rot_z(a):
-    c, s = np.cos(a), np.sin(a)
-    z, o = np.zeros_like(a), np.ones_like(a)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    R = np.zeros(np.shape(a) + (3, 3))
+    R[..., axis, axis] = 1.0
+    R[..., i, i] = R[..., j, j] = c
+    R[..., i, j], R[..., j, i] = -s, s
+    return R
 
 
 def head_rotation(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
     """``Ry(yaw) @ Rx(pitch) @ Rz(roll)`` (degrees; arrays broadcast) as (..., 3, 3)."""
     y, p, r = (np.deg2rad(np.asarray(a, dtype=np.float64)) for a in (yaw_deg, pitch_deg, roll_deg))
-    return rot_y(y) @ rot_x(p) @ rot_z(r)
+    return _rot(y, 1) @ _rot(p, 0) @ _rot(r, 2)
 
 
 def eye_rotation(yaw_deg, pitch_deg) -> np.ndarray:
     """``Ry(yaw) @ Rx(pitch)`` (degrees) as (..., 3, 3)."""
     y, p = (np.deg2rad(np.asarray(a, dtype=np.float64)) for a in (yaw_deg, pitch_deg))
-    return rot_y(y) @ rot_x(p)
+    return _rot(y, 1) @ _rot(p, 0)
 
 
 def _sphere_fit(p: np.ndarray) -> tuple[np.ndarray, float]:

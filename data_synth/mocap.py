@@ -46,8 +46,6 @@ FOREHEAD_MARKERS = {"forehead_R": -3.0, "forehead_C": 0.0, "forehead_L": 3.0}  #
 JIG = {"jig_front": (0.0, 15.5, 9.0), "jig_R": (-9.5, 11.0, 2.0), "jig_L": (9.5, 11.0, 2.0),
        "jig_top": (0.0, 17.5, 0.0), "jig_back": (0.0, 13.0, -9.0)}
 RIGID_NAMES = list(JIG)
-# the face markers that move with the skull (for a rigid fit without a jig)
-SKULL_NAMES = ["forehead_R", "forehead_C", "forehead_L", "nose_bridge", "templeR", "templeL"]
 
 
 @dataclass

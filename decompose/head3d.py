@@ -277,8 +277,7 @@ class HeadPose3D:
         ``c`` = ``robust`` x the rigid points' spread in the image: a point the expression moves far is
         trusted less in that frame (0: none)
     spread : degrees, the spread of a Gaussian prior on the head's rotation away from facing the camera
-        (``solve_pose``'s ``prior``; 0: none): it keeps a face that the 3D face fits badly (a 2D drawing,
-        an expression the weights let through) from turning to implausible angles
+        (``solve_pose``'s ``prior``; 0: none)
     eyeballs, eye_radius : the points (pupils) that turn on an eyeball of ``eye_radius`` cm behind their rest
         place, taken back to it rather than to their frontal plane (:func:`frontalise`, Eq. 3)
 

@@ -125,12 +125,16 @@ def _task(fn):
     """A batch task: runs with :func:`_one_thread` and adds ``span`` to its result: when and where it ran
     (``start``/``end`` epoch seconds, the worker's ``pid``) and the CPU seconds of the worker process and of
     the task's own thread (``cpu`` above ``thread_cpu`` is what the process's other threads did meanwhile:
-    the decode-ahead thread, Dask's own). The report lists them; bench/bench_batch.py reads them."""
+    the decode-ahead thread, Dask's own). The report lists them; bench/bench_batch.py reads them. An exception
+    is the task's failed result (reported per actor or take: the batch goes on)."""
     @functools.wraps(fn)
     def run(*args, **kwargs) -> dict:
         _one_thread()
-        t0, c0, th0 = time.time(), time.process_time(), time.thread_time()
-        res = fn(*args, **kwargs)
+        t0, c0, th0, p0 = time.time(), time.process_time(), time.thread_time(), time.perf_counter()
+        try:
+            res = fn(*args, **kwargs)
+        except Exception as exc:  # noqa: BLE001
+            res = {**_failure(exc), "seconds": time.perf_counter() - p0}
         res["span"] = {"start": round(t0, 4), "end": round(time.time(), 4), "pid": os.getpid(),
                        "cpu": round(time.process_time() - c0, 4), "thread_cpu": round(time.thread_time() - th0, 4)}
         return res
@@ -161,35 +165,32 @@ def take_dir(out: Path, take: Take) -> Path:
 def task_model(actor: Actor, out: str) -> dict:
     """Train the actor's model once (or take its model file); skip when the record matches."""
     t0, c0 = time.perf_counter(), time.process_time()
-    try:
-        adir = actor_dir(Path(out), actor.name)
-        rec_path = adir / RECORD
-        rec = read_record(rec_path)
-        if actor.model is not None:
-            sha = file_sha(actor.model, rec.get("model_file"))
-            from keyshape.tracker.eigenpoints import AppearanceModel
-            AppearanceModel.load(actor.model, actor.scheme)    # fail here, once, on a bad model file
-            rec.update(model_file=sha, model_key=digest(["file", sha["sha256"], __version__]))
-            write_record(rec_path, rec)
-            return {"ok": True, "path": str(actor.model), "key": rec["model_key"], "status": "given",
-                    "seconds": time.perf_counter() - t0}
-        video = file_sha(actor.video, rec.get("video"))
-        settings = [actor.scheme, actor.components, actor.morphs, actor.seed]
-        key = digest(["train", video["sha256"], tree_sha(actor.labels), settings, __version__])
-        path = adir / "model.npz"
-        if rec.get("model_key") == key and path.is_file() and \
-                file_sha(path)["sha256"] == rec.get("model_sha256"):
-            return {"ok": True, "path": str(path), "key": key, "status": "skipped", "seconds": 0.0}
-        from keyshape import api
-        model = api.train(actor.video, actor.labels, scheme=actor.scheme, components=actor.components,
-                          morphs=actor.morphs, seed=actor.seed)
-        model.save(path)
-        rec.update(video=video, model_key=key, model_sha256=file_sha(path)["sha256"])
+    adir = actor_dir(Path(out), actor.name)
+    rec_path = adir / RECORD
+    rec = read_record(rec_path)
+    if actor.model is not None:
+        sha = file_sha(actor.model, rec.get("model_file"))
+        from keyshape.tracker.eigenpoints import AppearanceModel
+        AppearanceModel.load(actor.model, actor.scheme)    # fail here, once, on a bad model file
+        rec.update(model_file=sha, model_key=digest(["file", sha["sha256"], __version__]))
         write_record(rec_path, rec)
-        return {"ok": True, "path": str(path), "key": key, "status": "trained", "seconds": time.perf_counter() - t0,
-                "cpu_seconds": time.process_time() - c0}
-    except Exception as exc:  # noqa: BLE001 - reported per actor, the batch goes on
-        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+        return {"ok": True, "path": str(actor.model), "key": rec["model_key"], "status": "given",
+                "seconds": time.perf_counter() - t0}
+    video = file_sha(actor.video, rec.get("video"))
+    settings = [actor.scheme, actor.components, actor.morphs, actor.seed]
+    key = digest(["train", video["sha256"], tree_sha(actor.labels), settings, __version__])
+    path = adir / "model.npz"
+    if rec.get("model_key") == key and path.is_file() and \
+            file_sha(path)["sha256"] == rec.get("model_sha256"):
+        return {"ok": True, "path": str(path), "key": key, "status": "skipped", "seconds": 0.0}
+    from keyshape import api
+    model = api.train(actor.video, actor.labels, scheme=actor.scheme, components=actor.components,
+                      morphs=actor.morphs, seed=actor.seed)
+    model.save(path)
+    rec.update(video=video, model_key=key, model_sha256=file_sha(path)["sha256"])
+    write_record(rec_path, rec)
+    return {"ok": True, "path": str(path), "key": key, "status": "trained", "seconds": time.perf_counter() - t0,
+            "cpu_seconds": time.process_time() - c0}
 
 
 @_task
@@ -198,41 +199,38 @@ def task_track(take: Take, actor: Actor, settings: Settings, model: dict, out: s
     t0, c0 = time.perf_counter(), time.process_time()
     if not model["ok"]:
         return {"ok": False, "error": f"actor {actor.name!r}: {model['error']}", "seconds": 0.0}
-    try:
-        tdir = take_dir(Path(out), take)
-        rec_path = tdir / RECORD
-        rec = read_record(rec_path)
-        video = file_sha(take.video, rec.get("video"))
-        key = digest(["track", video["sha256"], model["key"], settings.smooth, take.start, take.stop, __version__])
-        path = tdir / OUTPUT_FILES["tracks"]
-        if rec.get("track_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("tracks_sha256"):
-            return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["tracks_sha256"],
-                    "stats": rec["stats"], "seconds": 0.0}
-        from keyshape import api
-        from keyshape.base.formats.tracks import write_tracks
-        from keyshape.tracker.eigenpoints import AppearanceModel
+    tdir = take_dir(Path(out), take)
+    rec_path = tdir / RECORD
+    rec = read_record(rec_path)
+    video = file_sha(take.video, rec.get("video"))
+    key = digest(["track", video["sha256"], model["key"], settings.smooth, take.start, take.stop, __version__])
+    path = tdir / OUTPUT_FILES["tracks"]
+    if rec.get("track_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("tracks_sha256"):
+        return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["tracks_sha256"],
+                "stats": rec["stats"], "seconds": 0.0}
+    from keyshape import api
+    from keyshape.base.formats.tracks import write_tracks
+    from keyshape.tracker.eigenpoints import AppearanceModel
 
-        m = AppearanceModel.load(model["path"], actor.scheme)
-        # a worker process is one core: it decodes on its tracking thread (thread workers share
-        # the client's process and keep the decode-ahead thread)
-        tracks = api.track(take.video, m, smooth=settings.smooth, start=take.start, stop=take.stop,
-                           decode_thread=_CLIENT_PROCESS)
-        write_tracks(path, tracks)
-        seconds = time.perf_counter() - t0
-        stats = {"frames": int(tracks.n_frames), "lost_frames": int((~tracks.success).sum()),
-                 **_short_take(take, tracks.n_frames),
-                 "confidence": float(np.mean(tracks.confidence)), "track_seconds": round(seconds, 3),
-                 "track_cpu_seconds": round(time.process_time() - c0, 3),
-                 "worker_max_rss_mb": _max_rss_mb()}
-        # a re-tracked take invalidates its later stages: keep only what still holds
-        # (which output files batch wrote here stays recorded: they are still batch's to replace)
-        rec = {"video": video, "track_key": key, "tracks_sha256": file_sha(path)["sha256"], "stats": stats,
-               **{k: rec[k] for k in ("outputs", "outputs_sha256") if k in rec}}
-        write_record(rec_path, rec)
-        return {"ok": True, "status": "tracked", "path": str(path), "sha256": rec["tracks_sha256"], "stats": stats,
-                "seconds": seconds}
-    except Exception as exc:  # noqa: BLE001
-        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+    m = AppearanceModel.load(model["path"], actor.scheme)
+    # a worker process is one core: it decodes on its tracking thread (thread workers share
+    # the client's process and keep the decode-ahead thread)
+    tracks = api.track(take.video, m, smooth=settings.smooth, start=take.start, stop=take.stop,
+                       decode_thread=_CLIENT_PROCESS)
+    write_tracks(path, tracks)
+    seconds = time.perf_counter() - t0
+    stats = {"frames": int(tracks.n_frames), "lost_frames": int((~tracks.success).sum()),
+             **_short_take(take, tracks.n_frames),
+             "confidence": float(np.mean(tracks.confidence)), "track_seconds": round(seconds, 3),
+             "track_cpu_seconds": round(time.process_time() - c0, 3),
+             "worker_max_rss_mb": _max_rss_mb()}
+    # a re-tracked take invalidates its later stages: keep only what still holds
+    # (which output files batch wrote here stays recorded: they are still batch's to replace)
+    rec = {"video": video, "track_key": key, "tracks_sha256": file_sha(path)["sha256"], "stats": stats,
+           **{k: rec[k] for k in ("outputs", "outputs_sha256") if k in rec}}
+    write_record(rec_path, rec)
+    return {"ok": True, "status": "tracked", "path": str(path), "sha256": rec["tracks_sha256"], "stats": stats,
+            "seconds": seconds}
 
 
 def _short_take(take: Take, n_frames: int) -> dict:
@@ -259,30 +257,27 @@ def task_keys(actor: Actor, takes: list[Take], tracked: list[dict], out: str) ->
     used = [(t, r) for t, r in zip(takes, tracked) if r["ok"]]
     if not used:
         return {"ok": False, "error": f"actor {actor.name!r}: no take was tracked", "seconds": 0.0}
-    try:
-        adir = actor_dir(Path(out), actor.name)
-        rec_path = adir / RECORD
-        rec = read_record(rec_path)
-        key = digest(["keys", [(t.name, r["sha256"]) for t, r in used], actor.keys, actor.selector, actor.regions,
-                      actor.seed, actor.scheme, __version__])
-        path = adir / "keys.json"
-        names = [t.name for t, _ in used]
-        if rec.get("keys_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("keys_sha256"):
-            return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["keys_sha256"],
-                    "takes": names, "offsets": rec.get("keys_offsets"), "seconds": 0.0}
-        from keyshape import api
-        from keyshape.base.formats.tracks import read_tracks
+    adir = actor_dir(Path(out), actor.name)
+    rec_path = adir / RECORD
+    rec = read_record(rec_path)
+    key = digest(["keys", [(t.name, r["sha256"]) for t, r in used], actor.keys, actor.selector, actor.regions,
+                  actor.seed, actor.scheme, __version__])
+    path = adir / "keys.json"
+    names = [t.name for t, _ in used]
+    if rec.get("keys_key") == key and path.is_file() and file_sha(path)["sha256"] == rec.get("keys_sha256"):
+        return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["keys_sha256"],
+                "takes": names, "offsets": rec.get("keys_offsets"), "seconds": 0.0}
+    from keyshape import api
+    from keyshape.base.formats.tracks import read_tracks
 
-        tracks = [read_tracks(r["path"]) for _, r in used]
-        keys = api.select(tracks, actor.keys, actor.selector, actor.regions, scheme=actor.scheme, seed=actor.seed)
-        keys.save(path)
-        offsets = np.concatenate([[0], np.cumsum([t.n_frames for t in tracks])[:-1]]).tolist()
-        rec.update(keys_key=key, keys_sha256=file_sha(path)["sha256"], keys_takes=names, keys_offsets=offsets)
-        write_record(rec_path, rec)
-        return {"ok": True, "status": "selected", "path": str(path), "sha256": rec["keys_sha256"], "takes": names,
-                "offsets": offsets, "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
-    except Exception as exc:  # noqa: BLE001
-        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+    tracks = [read_tracks(r["path"]) for _, r in used]
+    keys = api.select(tracks, actor.keys, actor.selector, actor.regions, scheme=actor.scheme, seed=actor.seed)
+    keys.save(path)
+    offsets = np.concatenate([[0], np.cumsum([t.n_frames for t in tracks])[:-1]]).tolist()
+    rec.update(keys_key=key, keys_sha256=file_sha(path)["sha256"], keys_takes=names, keys_offsets=offsets)
+    write_record(rec_path, rec)
+    return {"ok": True, "status": "selected", "path": str(path), "sha256": rec["keys_sha256"], "takes": names,
+            "offsets": offsets, "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
 
 
 def _unchanged(files: dict, recorded: dict | None) -> bool:
@@ -348,44 +343,41 @@ def task_poses(actor: Actor, keys: dict, out: str) -> dict:
         return {"ok": True, "path": None, "sha256": None, "status": "none", "seconds": 0.0}
     if not keys["ok"]:
         return {"ok": False, "error": keys["error"], "seconds": 0.0}
-    try:
-        if actor.poses is not None:
-            from keyshape import api
-            api.PoseLibrary.load(actor.poses, api.load_rig(actor.rig, actor.neutral, with_mesh=False))
-            return {"ok": True, "path": str(actor.poses), "sha256": file_sha(actor.poses)["sha256"],
-                    "status": "given", "seconds": time.perf_counter() - t0}
-        adir = actor_dir(Path(out), actor.name)
-        rec_path = adir / RECORD
-        rec = read_record(rec_path)
-        key = digest(["poses", keys["sha256"], tree_sha(actor.rig), tree_sha(actor.neutral),
-                      tree_sha(actor.landmarks), __version__])
-        path = adir / "poses.json"
-        now = file_sha(path)["sha256"] if path.is_file() else None
-        if rec.get("poses_key") == key and now is not None and now == rec.get("poses_sha256"):
-            return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["poses_sha256"],
-                    "seconds": 0.0}
-        if now is not None and "poses_sha256" in rec and now != rec["poses_sha256"]:
-            # the artist corrected it (pose-edit): the corrections are why the file exists
-            if rec.get("poses_key") != key:
-                raise InputError("was changed since keyshape batch wrote it (corrected in pose-edit?) and its key "
-                                 "set or rig has changed since: batch does not refit over your corrections. To "
-                                 "keep them, give the file as the actor's 'poses' in the manifest; to discard "
-                                 "them, delete it and rerun", path)
-            from keyshape import api
-            api.PoseLibrary.load(path, api.load_rig(actor.rig, actor.neutral, with_mesh=False))
-            return {"ok": True, "status": "edited", "path": str(path), "sha256": now,
-                    "seconds": time.perf_counter() - t0}
+    if actor.poses is not None:
         from keyshape import api
-        lib = api.pose(api.Keys.load(keys["path"]), actor.rig, neutral=actor.neutral, landmarks=actor.landmarks)
-        lib.data["keys"]["file"] = str(keys["path"])
-        lib.save(path)
-        rec = read_record(rec_path)
-        rec.update(poses_key=key, poses_sha256=file_sha(path)["sha256"])
-        write_record(rec_path, rec)
-        return {"ok": True, "status": "fitted", "path": str(path), "sha256": rec["poses_sha256"],
+        api.PoseLibrary.load(actor.poses, api.load_rig(actor.rig, actor.neutral, with_mesh=False))
+        return {"ok": True, "path": str(actor.poses), "sha256": file_sha(actor.poses)["sha256"],
+                "status": "given", "seconds": time.perf_counter() - t0}
+    adir = actor_dir(Path(out), actor.name)
+    rec_path = adir / RECORD
+    rec = read_record(rec_path)
+    key = digest(["poses", keys["sha256"], tree_sha(actor.rig), tree_sha(actor.neutral),
+                  tree_sha(actor.landmarks), __version__])
+    path = adir / "poses.json"
+    now = file_sha(path)["sha256"] if path.is_file() else None
+    if rec.get("poses_key") == key and now is not None and now == rec.get("poses_sha256"):
+        return {"ok": True, "status": "skipped", "path": str(path), "sha256": rec["poses_sha256"],
+                "seconds": 0.0}
+    if now is not None and "poses_sha256" in rec and now != rec["poses_sha256"]:
+        # the artist corrected it (pose-edit): the corrections are why the file exists
+        if rec.get("poses_key") != key:
+            raise InputError("was changed since keyshape batch wrote it (corrected in pose-edit?) and its key "
+                             "set or rig has changed since: batch does not refit over your corrections. To "
+                             "keep them, give the file as the actor's 'poses' in the manifest; to discard "
+                             "them, delete it and rerun", path)
+        from keyshape import api
+        api.PoseLibrary.load(path, api.load_rig(actor.rig, actor.neutral, with_mesh=False))
+        return {"ok": True, "status": "edited", "path": str(path), "sha256": now,
                 "seconds": time.perf_counter() - t0}
-    except Exception as exc:  # noqa: BLE001
-        return {**_failure(exc), "seconds": time.perf_counter() - t0}
+    from keyshape import api
+    lib = api.pose(api.Keys.load(keys["path"]), actor.rig, neutral=actor.neutral, landmarks=actor.landmarks)
+    lib.data["keys"]["file"] = str(keys["path"])
+    lib.save(path)
+    rec = read_record(rec_path)
+    rec.update(poses_key=key, poses_sha256=file_sha(path)["sha256"])
+    write_record(rec_path, rec)
+    return {"ok": True, "status": "fitted", "path": str(path), "sha256": rec["poses_sha256"],
+            "seconds": time.perf_counter() - t0}
 
 
 @_task

@@ -159,21 +159,13 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     ``||A p - b|| / ||b||`` of its landmark motion.
     """
     from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.regions import available_regions, region_points
     from keyshape.retarget.rig.poses import auto_nuisance, pose_library
-    from keyshape.retarget.rig.model import project, rig_landmarks, shape_regions
 
     if not (np.isfinite(opposed) and -1.0 <= opposed <= 0.0):
         raise InputError(f"--opposed {opposed}: a cosine from -1 to 0")
-    for flag, v in (("--sparsity", sparsity), ("--symmetry", symmetry)):
-        if not (np.isfinite(v) and 0.0 <= v <= 100.0):
-            raise InputError(f"{flag} {v}: a number from 0 to 100")
-    W, lm_path = rig_landmarks(rig, scheme_name, landmarks)
+    check_solve_options(sparsity, symmetry, 0.0)
     scheme = load_scheme(scheme_name)
-    lm_neutral = project(W @ rig.neutral)
-    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
-    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
-    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
+    lm_neutral, lm_deltas, reg_shapes, lm_path = _rig_points(rig, scheme, scheme_name, landmarks)
     stabilized = (head_pose or {}).get("method") in ("rigid", "3d")
     if (head_pose or {}).get("method") == "rigid":
         # the keys' eye corners were held still: read the rig's motion in that frame too (as keyshape solve does)
@@ -189,6 +181,18 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
                     "landmarks": str(lm_path)},
             "range": list(rig.value_range), "regions": lib}
     return data, fit
+
+
+def _rig_points(rig, scheme, scheme_name: str, landmarks):
+    """The rig's scheme points projected: ``(neutral (n_points, 2), deltas (n_shapes, n_points, 2), {region: shape
+    indices}, landmark JSON path)`` (:func:`~keyshape.retarget.rig.model.rig_landmarks`, ``shape_regions``)."""
+    from keyshape.decompose.regions import available_regions, region_points
+    from keyshape.retarget.rig.model import project, rig_landmarks, shape_regions
+
+    W, path = rig_landmarks(rig, scheme_name, landmarks)
+    deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
+    return project(W @ rig.neutral), deltas, shape_regions(deltas, groups, names=rig.names), path
 
 
 def rig_curves(weights: np.ndarray, columns: Sequence[str], library: dict, rig, source=None) -> np.ndarray:
@@ -384,9 +388,9 @@ def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
               options: SolveOptions = SolveOptions(), *, report: dict | None = None):
     """:func:`solve_rig`, keeping the fitted solve: ``(TakeSolve, head motion, fps, eye angles or None)``."""
     from keyshape.base.schemes import load_scheme
-    from keyshape.decompose.regions import available_regions, head_shapes, region_points
+    from keyshape.decompose.regions import head_shapes
     from keyshape.decompose.stabilize import RigidStabilizer
-    from keyshape.retarget.rig.model import gaze_pupil_deltas, project, rig_landmarks, shape_regions
+    from keyshape.retarget.rig.model import gaze_pupil_deltas
     from keyshape.retarget.rig.solve import HeadParallax, RigLandmarks, RigSolver
 
     o = options
@@ -398,11 +402,7 @@ def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
                          f"{scheme.n_points}", source)
     shapes, stab = head_shapes(tracks, scheme, head_pose, source)
     rigid = stab.points if isinstance(stab, RigidStabilizer) else ()   # the frame the rig's motion is read in
-    W, _ = rig_landmarks(rig, scheme_name, o.landmarks)
-    lm_neutral = project(W @ rig.neutral)
-    lm_deltas = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
-    groups = {r: region_points(scheme, r) for r in available_regions(scheme)}
-    reg_shapes = shape_regions(lm_deltas, groups, names=rig.names)
+    lm_neutral, lm_deltas, reg_shapes, _ = _rig_points(rig, scheme, scheme_name, o.landmarks)
     regs = {rk.region: (rk.points, rk.rest if rk.rest is not None else rk.neutral) for rk in regions}
     units = o.head_units if o.head_units is not None else rig_head_units(rig, tracks, o.landmarks)
     est = take.head3d if o.head == "3d" else None

@@ -117,8 +117,7 @@ class KeyPointInserter:
     max_rounds : int
     sigma, smoothing : float, optional
         RBF width and ridge (see :func:`face_rbf`); sigma defaults to the initial keys' spacing and
-        stays fixed over the rounds (the paper's fixed sigma; shrinking it as keys are added undoes
-        what the earlier keys interpolated).
+        stays fixed over the rounds (the paper's fixed sigma).
     correspondence : bool
         True (default): the points of every frame correspond to the rest
         points (a tracked mesh, as SEQUENCE.npz holds): the error is the

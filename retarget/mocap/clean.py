@@ -87,9 +87,8 @@ def remove_rigid_motion(positions, rigid=None, reference: int | np.ndarray = 0, 
     outlier_threshold : float, optional
         Distance (file units) beyond which a rigid marker is an outlier in a frame. Default,
         with a named ``rigid`` set: 4 times the median residual of the rigid markers over the
-        take (about 6 noise standard deviations for 3D Gaussian noise), at least 1e-6 of the
-        rigid set's RMS radius; for the estimated set: no rejection (its skin markers slide
-        by more than marker noise, the reweighting above handles that). ``np.inf``: off.
+        take, at least 1e-6 of the rigid set's RMS radius; for the estimated set: no rejection.
+        ``np.inf``: off.
     """
     x = np.asarray(positions, dtype=np.float64)
     if x.ndim != 3 or x.shape[2] != 3:

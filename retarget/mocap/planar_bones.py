@@ -167,10 +167,7 @@ class PlanarBones:
         threads : bool
             Use a helper thread for :meth:`deform`/:meth:`deform_many` where there is a second core.
         dtype : {"float64", "float32"}
-            Precision of the bound matrices and of the output. ``float64`` (default) agrees with a
-            pair-by-pair evaluation of eqs. (1), (9)-(11) to rounding (1e-12); ``float32`` agrees to
-            within about 5e-7 of the mesh's extent and halves the memory (the command stores float32
-            vertices anyway, so it binds in float32).
+            Precision of the bound matrices and of the output (float32 halves the memory).
 
         Raises
         ------

@@ -425,11 +425,7 @@ def shape_regions(landmark_deltas: np.ndarray, region_points: dict[str, np.ndarr
     landmark_deltas : (n_shapes, n_points, 2) projected motion of the scheme's points per shape
     region_points : {region: point indices}
     min_fraction : a shape whose motion of its region (RMS over the region's points) is below this
-        fraction of the largest any shape gives that region drives no region (``PupilDilate``;
-        ICT-FaceKit's ``jawForward``, 4% of jawOpen's lip motion in a front view). Relative to the
-        region's own largest, not to all shapes': against jawOpen, eyeWide and eyeSquint (a third
-        of eyeBlink's lid motion) would be lost
-
+        fraction of the largest any shape gives that region drives no region (``PupilDilate``, ``jawForward``)
     names : the shapes' names; ARKit gaze shapes (``eyeLook*``) go to the ``pupils`` region
         (and to no region when there is none)
 

@@ -6,6 +6,19 @@ import argparse
 from keyshape.base import options
 
 
+def add_rig_options(p) -> None:
+    """``--rig``, ``--neutral`` and ``--landmarks``, as ``keyshape pose`` and ``keyshape solve`` take them."""
+    p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE",
+                   help="rig: folder of shape OBJs (or a list of OBJ files) of one topology")
+    p.add_argument("--neutral", default=None,
+                   help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
+    p.add_argument("--landmarks", default=None,
+                   help="rig landmarks: a keyshape-rig-landmarks JSON (the rig vertices of the scheme's points) or "
+                        "the rig's iBUG-68 vertex list, a JSON list or one index a line (default: the shipped "
+                        "correspondence for ICT-FaceKit rigs, else found on the rig and written beside the output, "
+                        "OUT.landmarks.json)")
+
+
 def register(subparsers) -> None:
     """Add ``pose`` to ``subparsers``."""
     p = subparsers.add_parser(
@@ -16,14 +29,7 @@ def register(subparsers) -> None:
                     "'keyshape retarget WEIGHTS.csv --poses POSES.json --rig RIG -o OUT'.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("keys", help="KEYS.json from keyshape select")
-    p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE",
-                   help="rig: folder of shape OBJs (or a list of OBJ files) of one topology")
-    p.add_argument("--neutral", default=None,
-                   help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
-    p.add_argument("--landmarks", default=None,
-                   help="rig landmarks: a keyshape-rig-landmarks JSON (the rig vertices of the scheme's points) or "
-                        "the rig's iBUG-68 vertex list (default: the shipped correspondence for ICT-FaceKit rigs, "
-                        "else found on the rig and written beside the output, OUT.landmarks.json)")
+    add_rig_options(p)
     p.add_argument("-o", "--output", required=True, help="POSES.json to write")
     p.add_argument("--edit", action="store_true",
                    help="then serve a local page (127.0.0.1) to correct the poses by hand; Ctrl-C stops it")

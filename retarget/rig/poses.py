@@ -254,12 +254,8 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
     bounds, sparsity : see :func:`fit_pose`; the L1 scale is the region's largest key motion
     nuisance : "auto" (default), "translation", "similarity" or "none", or a dict of them per
         region: motions of each region's points fitted freely besides the rig shapes
-        (:func:`nuisance_motions`). Head motion the 2D head-pose removal leaves behind shifts a
-        region (pitch moves the mouth against the eyes) and, with the tracker's pose alone, an
-        expression shifts, turns and scales the others; "auto" is :func:`auto_nuisance`. A rig
-        shape that only translates (or scales) a region is then lost. "auto" here assumes a head not
-        stabilised on rigid points (:func:`auto_nuisance`; :func:`~keyshape.retarget.api.fit_poses` resolves it
-        per region from the keys' ``head_pose``)
+        (:func:`nuisance_motions`); "auto" is :func:`auto_nuisance` for a head not stabilised on rigid
+        points (:func:`~keyshape.retarget.api.fit_poses` resolves it per region from the keys' ``head_pose``)
     exclusive : shapes of a region whose landmark motions (nuisances projected out) have a cosine
         below this are never used together in one pose (:func:`opposed_pairs`, :func:`fit_pose`);
         None allows every combination; mirror-image pairs opposed before the nuisances are projected

@@ -23,14 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("tracks", help="tracks CSV (keyshape track)")
     p.add_argument("--keys", required=True,
                    help="KEYS.json from keyshape select: the head stabilisation, the regions and the actor's neutral")
-    p.add_argument("--rig", nargs="+", required=True, metavar="DIR|FILE",
-                   help="rig: folder of shape OBJs (or a list of OBJ files) of one topology")
-    p.add_argument("--neutral", default=None,
-                   help="the rig's neutral OBJ (default: the folder's neutral.* or generic_neutral_mesh.obj)")
-    p.add_argument("--landmarks", default=None,
-                   help="rig landmarks: a keyshape-rig-landmarks JSON, or the rig's iBUG-68 vertex list (a JSON list or one "
-                        "index a line) (default: the shipped correspondence for ICT-FaceKit rigs, else found on "
-                        "the rig and written beside the output, OUT.landmarks.json)")
+    from keyshape.retarget.rig.pose_cli import add_rig_options
+
+    add_rig_options(p)
     p.add_argument("--poses", default=None,
                    help="POSES.json (keyshape pose, corrected by hand): with --weights, each key's rig pose is "
                         "what the rig shows at that key; the difference from the solve there is added in "
