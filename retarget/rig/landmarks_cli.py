@@ -18,7 +18,8 @@ SHEET_PANEL = 420
 def register(subparsers) -> None:
     """Add ``rig-check`` to ``subparsers``."""
     p = subparsers.add_parser(
-        "rig-check", help="a picture of a rig with its landmarks drawn (neutral, blink, jaw open, smile)",
+        "rig-check", help="a picture of a rig with its landmarks drawn (neutral, blink, jaw open, smile), or a "
+                          "page to correct them (-o FILE.json)",
         description="Draws the rig's scheme landmarks (lids, brows, pupils, lips) over the shaded rig in its "
                     "neutral and with its blinks, jawOpen and smiles at full weight, so a glance tells whether "
                     "they sit on the lids and the right lips. Without --landmarks, a rig that is not ICT-FaceKit "
