@@ -25,6 +25,35 @@ ARKIT = {"eyeBlink_L": "eyeBlinkLeft", "eyeBlink_R": "eyeBlinkRight", "mouthSmil
          "mouthSmile_R": "mouthSmileRight", "browInnerUp_L": "browInnerUp", "browInnerUp_R": "browInnerUp"}
 
 
+def _once(fn, memo: dict):
+    """``fn`` run once per distinct input (the pickled arguments: equal bytes, equal inputs), a copy of its first
+    result given back after that: for pure functions only."""
+    import copy
+    import hashlib
+    import pickle
+
+    def wrapper(*args, **kwargs):
+        key = hashlib.sha256(pickle.dumps((args, kwargs))).hexdigest()
+        if key not in memo:
+            memo[key] = fn(*args, **kwargs)
+        return copy.deepcopy(memo[key])
+    return wrapper
+
+
+@pytest.fixture(scope="module", autouse=True)
+def searched_once():
+    """The landmark search and the remeshing are pure functions of their inputs: in this module each runs once per
+    input. The commands given a rig that a test here has already searched (solve, rig-check) take the search's
+    result without searching it again; the rigs that share a seed share its remeshing."""
+    import keyshape.data_synth.remesh as remesh_mod
+    import keyshape.retarget.landmarks as landmarks_mod
+    memo: dict = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(landmarks_mod, "find_landmarks", _once(landmarks_mod.find_landmarks, memo))
+        mp.setattr(remesh_mod, "remesh", _once(remesh_mod.remesh, memo))
+        yield memo
+
+
 @pytest.fixture(scope="module")
 def rigs(tmp_path_factory):
     """The remeshed rig (cm, Y-up), the same rig in metres and Z-up, another face (reshaped, restyled) and
