@@ -68,7 +68,8 @@ def rigs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def loaded(rigs):
-    return {k: load_rig(v["rig"], cache=False) for k, v in rigs.items()}
+    """The rigs loaded (parsed once into the test run's rig cache, which the commands then read)."""
+    return {k: load_rig(v["rig"]) for k, v in rigs.items()}
 
 
 # ---------------------------------------------------------------------------------------- iBUG-68 lists
@@ -306,7 +307,8 @@ def test_found_landmarks_on_ict_facekit_itself_are_the_shipped_ones(shared_data)
     assert np.array_equal(found.W[26:28], W[26:28])
 
 
-def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(rigs, tmp_path, capsys, monkeypatch):
+def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(rigs, loaded, tmp_path, capsys,
+                                                                              monkeypatch):
     import cv2
     r = rigs["m_zup"]
     monkeypatch.setattr("keyshape.retarget.landmarks_cli.SHEET_PANEL", 160)
@@ -315,7 +317,7 @@ def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(ri
     assert img.shape[1] > 4 * 160                                      # neutral, blink, jaw open, smile
     assert (tmp_path / "sheet.landmarks.json").is_file()
     assert "found one" in capsys.readouterr().out
-    rig = load_rig(r["rig"], cache=False, with_mesh=False)
+    rig = loaded["m_zup"]
     W, _ = rig_landmarks(rig, "contours48", tmp_path / "sheet.landmarks.json")
     _, truth = read_rig_landmarks(r["landmarks"])
     assert (np.linalg.norm((W - truth) @ rig.neutral, axis=1) / r["scale"]).max() < 0.2
