@@ -226,10 +226,12 @@ def test_the_report_says_when_and_where_each_task_ran(first_run):
     assert all(s["start"] >= model[s["task"].split("-")[1]]["end"] for s in track)
 
 
-def test_a_worker_runs_its_libraries_on_one_thread():
+def test_a_worker_runs_its_libraries_on_one_thread(monkeypatch):
     """The local cluster's worker process starts with OpenMP/BLAS/FFmpeg's decoder at one thread (set before
     numpy loads), and a task keeps OpenCV's pool and every loaded BLAS/OpenMP pool at one thread."""
     from keyshape.batch import ONE_THREAD_ENV, _client
+    for k in ONE_THREAD_ENV:                     # not inherited from the test run's settings (conftest)
+        monkeypatch.delenv(k, raising=False)
 
     def pools():
         import os
