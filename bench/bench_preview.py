@@ -4,7 +4,7 @@ head; the 240-frame preview through ``keyshape preview`` in <= 12 s, loading inc
 Prints, each with the load average and a baseline measured in the same run:
 
 - the render loop: frames/s (wall, on the preview's threads) and CPU ms per frame of
-  :class:`keyshape.retarget.preview.RigRenderer` as ``keyshape preview`` fits it (``cull_hidden``: only the
+  :class:`keyshape.retarget.output.preview.RigRenderer` as ``keyshape preview`` fits it (``cull_hidden``: only the
   triangles some frame shows), against the same renderer drawing every front-facing triangle, with the
   share of pixels that differ between the two (more than 30 of 255 levels);
 - with ``--video --tracks --curves``: the whole command's wall time (``keyshape preview VIDEO --tracks T
@@ -35,7 +35,7 @@ def load() -> str:
 
 def render_loop(rig, curves, head, size: int, cull: bool, landmarks) -> tuple[list, float, float, float]:
     """(frames, fit seconds, wall seconds, CPU seconds) of rendering every row of ``curves``."""
-    from keyshape.retarget.preview import RigRenderer, ordered_map
+    from keyshape.retarget.output.preview import RigRenderer, ordered_map
     t = time.perf_counter()
     r = RigRenderer(rig, (size, size), landmarks=landmarks, cull_hidden=cull).fit(curves, head)
     fit = time.perf_counter() - t
@@ -66,13 +66,13 @@ def main() -> None:
     ap.add_argument("--baseline-python", default=None,
                     help="the python of another checkout's environment: the command run with its code too")
     a = ap.parse_args()
-    from keyshape.retarget.rig import default_landmarks, load_rig, rig_landmarks
+    from keyshape.retarget.rig.model import default_landmarks, load_rig, rig_landmarks
     t = time.perf_counter()
     rig = load_rig(a.rig)
     t_load = time.perf_counter() - t
     head = None
     if a.curves:
-        from keyshape.retarget.preview_cli import _curves_on_rig
+        from keyshape.retarget.output.preview_cli import _curves_on_rig
         _, curves, head = _curves_on_rig(a.curves, rig)
         curves, head = curves[: a.frames], None if head is None else head[: a.frames]
     else:

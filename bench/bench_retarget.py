@@ -2,7 +2,7 @@
 
 10,000 frames x 26,719 vertices (the ICT-FaceKit head) x 24 targets, float32
 output (10,000 x 80,157 x 4 B = 3.2 GB; float64 would be 6.4 GB), evaluated by
-:class:`retarget.blend.BlendBasis` and compared, in the same run, with a plain
+:class:`retarget.targets.blend.BlendBasis` and compared, in the same run, with a plain
 numpy matmul of the same size into the same preallocated buffer (the floor any
 implementation can reach). One output buffer is reused by every variant so the
 run peaks at about 3.3 GB. Also reported: the delta form (the neutral is one more
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from keyshape.retarget.blend import BlendBasis
+from keyshape.retarget.targets.blend import BlendBasis
 
 
 def main() -> None:

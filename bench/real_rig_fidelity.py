@@ -159,8 +159,8 @@ def contact_sheet(clip: str, tracks: Path, curves: Path, out: Path, n: int = 6, 
     from keyshape.base.formats.video import VideoReader
     from keyshape.base.formats.weights import read_weights
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.retarget.preview import RigRenderer, actor_panel
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.output.preview import RigRenderer, actor_panel
+    from keyshape.retarget.rig.model import load_rig
 
     rig = load_rig(RIG)
     frames, names, c, _ = read_weights(curves)

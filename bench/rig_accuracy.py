@@ -68,7 +68,7 @@ def run_chain(work: Path, seed: int, rig: Path, frames: int = 600, tracks: Path 
 def score(paths: dict, rig) -> dict:
     from keyshape.base.formats.weights import read_weights
     from keyshape.data_synth.rig_truth import component_columns, score_curves
-    from keyshape.retarget.rig import ICT_FACE_SKIN
+    from keyshape.retarget.rig.model import ICT_FACE_SKIN
     truth = json.loads(Path(paths["truth.json"]).read_text())
     hidden = np.asarray(truth["weights"])
     _, names, curves, _ = read_weights(paths["curves.csv"])
@@ -103,7 +103,7 @@ def score(paths: dict, rig) -> dict:
 def geometric_gains(truth: dict, rig) -> tuple[np.ndarray, np.ndarray]:
     """Per hidden component: the weight of its rig shape(s) that best makes its 2D motion, and the cosine."""
     from keyshape.data_synth.rig_truth import component_gains
-    from keyshape.retarget.rig import project, rig_landmarks
+    from keyshape.retarget.rig.model import project, rig_landmarks
     W, _ = rig_landmarks(rig, truth["scheme"])
     return component_gains(truth["neutral"], truth["basis"], truth["components"], rig.names, project(W @ rig.neutral),
                            project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True)))
@@ -119,7 +119,7 @@ def exact_key_curves(paths: dict, rig, cols, w) -> np.ndarray:
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import head_shapes
     from keyshape.retarget.api import fit_poses
-    from keyshape.retarget.poses import curves_from_library
+    from keyshape.retarget.rig.poses import curves_from_library
     scheme, _, regions = read_keys(paths["keys.json"])
     exact = Path(paths["truth.json"]).with_name("truth.csv")
     shapes, _ = head_shapes(read_tracks(exact), load_scheme(scheme), "rigid", exact)
@@ -189,7 +189,7 @@ def main() -> None:
     ap.add_argument("--work", default=None, help="work folder (kept; default a temporary one)")
     ap.add_argument("--rig", default=str(REPO.parent / "shared" / "data" / "ict-facekit"))
     a = ap.parse_args()
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
     rig = load_rig(a.rig, with_mesh=False)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(a.work or tmp)

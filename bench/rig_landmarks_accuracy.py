@@ -39,7 +39,7 @@ def main() -> None:
     from keyshape.base.formats.weights import read_weights
     from keyshape.cli import main as cli
     from keyshape.data_synth.remesh import remeshed_ict_rig
-    from keyshape.retarget.rig import found_landmarks, load_rig
+    from keyshape.retarget.rig.model import found_landmarks, load_rig
 
     work = Path(a.work)
     for name, kw in RIGS.items():

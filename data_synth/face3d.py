@@ -124,7 +124,7 @@ def check_facekit(folder) -> Path:
 def _load_facekit(folder: str):
     """Read ICT-FaceKit once per process: shape names (the rig's order), neutral mesh, identity and driven deltas."""
     from keyshape.base.formats.obj import read_obj, read_obj_vertices
-    from keyshape.retarget.rig import _rig_files
+    from keyshape.retarget.rig.model import _rig_files
 
     files, neutral_file = _rig_files(Path(folder), None)
     mesh = read_obj(neutral_file)
@@ -136,7 +136,7 @@ def _load_facekit(folder: str):
         f = Path(folder) / f"identity{i:03d}.obj"
         ident.append(read_obj_vertices(f) - base if f.is_file() else np.zeros_like(base))
     shapes = np.stack([read_obj_vertices(Path(folder) / f"{s}.obj") - base for s in DRIVEN])
-    from keyshape.retarget.rig import material_parts
+    from keyshape.retarget.rig.model import material_parts
     return tuple(f.stem for f in files), mesh, base, np.stack(ident), shapes, mesh.triangles, material_parts(mesh)
 
 
@@ -158,7 +158,7 @@ class Head3D:
 
     Attributes
     ----------
-    names : every shape of the rig, in :func:`keyshape.retarget.rig.load_rig`'s order (the curves CSV's columns)
+    names : every shape of the rig, in :func:`keyshape.retarget.rig.model.load_rig`'s order (the curves CSV's columns)
     neutral : (n_vertices, 3) the identity's neutral, scaled
     deltas : (len(DRIVEN), n_vertices, 3) the driven shapes' deltas, scaled
     landmark_weights : (53, n_vertices) contours48 points as vertex mixes (pupil rows replaced by the iris
@@ -169,7 +169,7 @@ class Head3D:
     """
 
     def __init__(self, folder, identity=(0.0, 0.0, 0.0, 0.0), scale: float = 1.0, skin=(0.80, 0.62, 0.52)):
-        from keyshape.retarget.rig import rig_landmarks, Rig
+        from keyshape.retarget.rig.model import rig_landmarks, Rig
 
         names, mesh, base, ident, shapes, triangles, parts = _load_facekit(str(Path(check_facekit(folder)).resolve()))
         self.names = list(names)

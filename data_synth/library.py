@@ -86,8 +86,8 @@ def ict_subset_rig(folder: str | Path, names=None, step: int = 1) -> tuple[Path,
     """
     from keyshape.base.formats.poses import read_rig_landmarks, write_rig_landmarks
     from keyshape.base.schemes import load_scheme
-    from keyshape.retarget.demo_targets import load_expressions
-    from keyshape.retarget.rig import DATA, ICT_N_VERTICES
+    from keyshape.retarget.targets.demo import load_expressions
+    from keyshape.retarget.rig.model import DATA, ICT_N_VERTICES
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

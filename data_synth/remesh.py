@@ -158,8 +158,8 @@ def remeshed_ict_rig(folder: str | Path, fraction: float = 0.4, seed: int = 0, u
     """
     from keyshape.base.formats.obj import Mesh, write_obj
     from keyshape.base.formats.poses import write_rig_landmarks
-    from keyshape.retarget.demo_targets import load_expressions
-    from keyshape.retarget.landmarks import contours48_from_ibug68, one_hot
+    from keyshape.retarget.targets.demo import load_expressions
+    from keyshape.retarget.rig.landmarks import contours48_from_ibug68, one_hot
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -11,9 +11,9 @@ from typing import Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.poses import fit_similarity
-from keyshape.retarget.rig import Rig
-from keyshape.retarget.targets import name_key
+from keyshape.retarget.rig.poses import fit_similarity
+from keyshape.retarget.rig.model import Rig
+from keyshape.retarget.targets.target_set import name_key
 
 
 def component_columns(rig_names: Sequence[str], component: str) -> list[int]:
@@ -62,7 +62,7 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
 
     Each component's landmark motion at weight 1 (``basis[k]``, model frame) is mapped into the
     rig's frame by the similarity between the face's neutral and the rig's neutral landmarks
-    (:func:`~keyshape.retarget.poses.fit_similarity`, as ``keyshape pose`` maps key motion) and
+    (:func:`~keyshape.retarget.rig.poses.fit_similarity`, as ``keyshape pose`` maps key motion) and
     compared with the projected landmark motion ``r_k`` of the component's rig shape(s) (both sides
     of an unsided name): ``gain_k = <m_k, r_k> / <r_k, r_k>`` is the weight of that shape whose motion
     best matches it (least squares), ``cos_k`` the cosine between the two motions. A 2D pose fit
@@ -76,7 +76,7 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
     basis : (n_components, n_points, 2) each component's landmark motion at weight 1 (truth.json ``basis``)
     components : the components' names
     rig_names : the rig's shape names
-    rig_neutral : (n_points, 2) the rig's projected neutral landmarks (:func:`~keyshape.retarget.rig.project`)
+    rig_neutral : (n_points, 2) the rig's projected neutral landmarks (:func:`~keyshape.retarget.rig.model.project`)
     rig_deltas : (n_shapes, n_points, 2) projected landmark motion per rig shape
 
     Returns

@@ -138,8 +138,8 @@ def animate(video: str | Path, rig, outputs: Sequence[str | Path] = (), *, livel
     from keyshape.base.files import check_outputs
     from keyshape.base.formats.tracks import read_tracks, write_tracks
     from keyshape.batch import digest, file_sha, tree_sha, write_record
-    from keyshape.retarget.export import output_kind
-    from keyshape.retarget.solve_cli import calibration_lines
+    from keyshape.retarget.output.export import output_kind
+    from keyshape.retarget.rig.solve_cli import calibration_lines
     from keyshape.retarget.defaults import SolveOptions
 
     t0 = time.perf_counter()

@@ -147,7 +147,7 @@ class Animation:
 
     Attributes
     ----------
-    retargeter : fitted :class:`~keyshape.retarget.retargeter.Retargeter`
+    retargeter : fitted :class:`~keyshape.retarget.targets.retargeter.Retargeter`
     weights : the :class:`Weights` driving it
     fps : frame rate
     head : :class:`~keyshape.retarget.headpose.HeadMotion` from the tracks, or None
@@ -167,8 +167,8 @@ class Animation:
                scheme=None, meters_per_unit: float = 0.01) -> dict:
         """Write ``path`` atomically: ``.glb``, ``.usda``/``.usdc``/``.usd`` (``keyshape[usd]``; ``meters_per_unit``:
         the meshes' unit, default centimetres), ``.csv`` (curves, or Live Link with ``livelink``), ``.mp4``,
-        or a folder of OBJ/PNG frames; see :func:`keyshape.retarget.export.export`."""
-        from keyshape.retarget.export import ExportOptions, export
+        or a folder of OBJ/PNG frames; see :func:`keyshape.retarget.output.export.export`."""
+        from keyshape.retarget.output.export import ExportOptions, export
 
         return export(path, self.retargeter, self.weights.frames, self.weights.values, fps=self.fps,
                       head=self.head, options=ExportOptions(clamp=clamp, livelink=livelink, bake_head=bake_head,
@@ -276,9 +276,9 @@ def decompose(tracks: Tracks, keys: Keys, solver: str = D.SOLVER, ridge: float =
 
 
 def load_rig(rig, neutral=None, with_mesh: bool = True):
-    """A blendshape rig (:class:`~keyshape.retarget.rig.Rig`) from a folder or a list of OBJ files, as the
+    """A blendshape rig (:class:`~keyshape.retarget.rig.model.Rig`) from a folder or a list of OBJ files, as the
     commands' ``--rig`` (``neutral``: their ``--neutral``); parsed once, then read from the rig cache."""
-    from keyshape.retarget.rig import Rig, load_rig as _load
+    from keyshape.retarget.rig.model import Rig, load_rig as _load
 
     if isinstance(rig, Rig):
         return rig
@@ -320,7 +320,7 @@ def pose(keys: Keys, rig, *, neutral=None, landmarks=None, sparsity: float = RA.
          nuisance: str = RA.NUISANCE, opposed: float = RA.OPPOSED, symmetry: float = RA.SYMMETRY) -> PoseLibrary:
     """Suggest every key's pose on an artist's blendshape rig (``keyshape pose``, with its defaults).
 
-    ``rig``: a :class:`~keyshape.retarget.rig.Rig` (:func:`load_rig`) or its folder / OBJ files
+    ``rig``: a :class:`~keyshape.retarget.rig.model.Rig` (:func:`load_rig`) or its folder / OBJ files
     (``neutral``: its neutral OBJ). ``landmarks``: rig landmark JSON (default: the shipped one for
     ICT-FaceKit rigs). See :func:`keyshape.retarget.api.fit_poses`.
     """
@@ -336,14 +336,14 @@ class RigAnimation:
 
     Attributes
     ----------
-    rig : the :class:`~keyshape.retarget.rig.Rig`
+    rig : the :class:`~keyshape.retarget.rig.model.Rig`
     frames : (n_frames,) frame numbers
     curves : (n_frames, n_shapes) the rig shapes' weights
     fps : frame rate
     head : :class:`~keyshape.retarget.headpose.HeadMotion` in the rig's units, or None
     eyes : (n_frames, 4) eye angles from the pupils (left yaw, pitch, right yaw, pitch; radians), or None
     calibration : what :func:`solve`'s calibrations did (``"eyes"``: one
-        :class:`~keyshape.retarget.solve.EyeCalibration` per eye, ``"brows"``: {shape: scale}), or None
+        :class:`~keyshape.retarget.rig.solve.EyeCalibration` per eye, ``"brows"``: {shape: scale}), or None
     """
 
     rig: object
@@ -360,8 +360,8 @@ class RigAnimation:
 
     def export(self, path: str | Path, livelink: bool = False) -> dict:
         """Write ``path`` atomically: ``.csv`` (the rig's curves, or Live Link with ``livelink``), ``.glb``,
-        ``.mp4`` (the shaded rig) or a folder of OBJ frames; see :func:`keyshape.retarget.rig_export.export_rig`."""
-        from keyshape.retarget.rig_export import export_rig
+        ``.mp4`` (the shaded rig) or a folder of OBJ frames; see :func:`keyshape.retarget.output.rig_export.export_rig`."""
+        from keyshape.retarget.output.rig_export import export_rig
 
         if not str(path).lower().endswith(".csv") and self.rig.mesh is None:
             self.rig = load_rig(self.rig.files if len(self.rig.files) else self.rig.neutral_file,
@@ -375,7 +375,7 @@ def solve(tracks: Tracks, keys: Keys, rig, options: SolveOptions | None = None, 
     """Drive a rig by solving its curves of every frame from ``tracks`` (``keyshape solve``, with its defaults).
 
     ``keys`` gives the head stabilisation, the regions and the actor's neutral; ``rig`` a
-    :class:`~keyshape.retarget.rig.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). ``options``: a
+    :class:`~keyshape.retarget.rig.model.Rig` or its folder / OBJ files (``neutral``: its neutral OBJ). ``options``: a
     :class:`SolveOptions` (None: the command's defaults): the priors, the calibrations, the gaze, the rig's
     landmarks and the head written beside the curves (:func:`keyshape.retarget.api.solve_rig`).
     ``poses`` (a corrected pose library) with the take's key ``weights``: the artist's poses over the solve,
@@ -406,12 +406,12 @@ def retarget(weights: Weights, targets=None, regions=None, options: RetargetOpti
     Parameters
     ----------
     targets : a folder or list of target files (OBJ meshes or 2D drawings) named by the weight
-        columns, or a :class:`~keyshape.retarget.targets.TargetSet` (the paper's route)
+        columns, or a :class:`~keyshape.retarget.targets.target_set.TargetSet` (the paper's route)
     regions : ``{region: vertex indices}``, a regions JSON or a grouped OBJ, or ``"auto"`` (None: no regions)
     options : a :class:`RetargetOptions` (None: the command's defaults): the blend's form, band and metric, the
         gaze, the head written with ``tracks`` and the rig's landmarks
     poses, rig : instead of targets, a pose library (:func:`pose`, or a POSES.json) and the rig it is for
-        (a :class:`~keyshape.retarget.rig.Rig` or its folder; ``neutral``: the rig's neutral OBJ)
+        (a :class:`~keyshape.retarget.rig.model.Rig` or its folder; ``neutral``: the rig's neutral OBJ)
     tracks : give the head motion (root transform), with a rig the pupils' gaze, and the frame rate (else the
         weights' own, else 30)
     neutral, mapping : as ``keyshape retarget --neutral/--map``
@@ -464,7 +464,7 @@ def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: st
             sheet_frames: int = 12, threads: int | None = None) -> dict:
     """The take's footage with its contours beside the shaded rig (``keyshape preview``): write ``path``
     (.mp4/.avi) and/or ``sheet`` (.jpg/.png); ``frames`` ``"A:B"`` limits the range."""
-    from keyshape.retarget.preview_cli import write_preview
+    from keyshape.retarget.output.preview_cli import write_preview
 
     r = animation.rig
     if r.mesh is None:

@@ -57,7 +57,7 @@ def _step(text: str) -> None:
 def _expand(ex, coeffs: dict[str, float]) -> dict[str, float]:
     """Map synthetic component names onto the expression set: a name the set has only with
     ``_L``/``_R`` suffixes (``browInnerUp``) drives both sides."""
-    from keyshape.retarget.targets import name_key
+    from keyshape.retarget.targets.target_set import name_key
 
     have = {name_key(n) for n in ex.names}
     out: dict[str, float] = {}
@@ -112,7 +112,7 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     from keyshape.decompose.cli import write_sheet
     from keyshape.decompose.regions import stable_pose
     from keyshape.base.schemes import load_scheme
-    from keyshape.retarget.demo_targets import demo_regions, load_expressions, write_demo_targets
+    from keyshape.retarget.targets.demo import demo_regions, load_expressions, write_demo_targets
 
     def at(p) -> Path:
         """Where ``p`` (inside ``out``) will be once the demo is done."""
@@ -210,9 +210,9 @@ def _preview_and_errors(out: Path, video: Path, tracks, weights, ex, names, hidd
     the retargeted face against the hidden performance applied to the same target face."""
     import cv2
 
-    from keyshape.retarget.demo_targets import demo_regions, demo_targets
-    from keyshape.retarget.render import render_frames, side_by_side
-    from keyshape.retarget.retargeter import Retargeter
+    from keyshape.retarget.targets.demo import demo_regions, demo_targets
+    from keyshape.retarget.output.render import render_frames, side_by_side
+    from keyshape.retarget.targets.retargeter import Retargeter
     from keyshape.base.draw import draw_shape
     from keyshape.base.schemes import load_scheme
     from keyshape.base.formats.video import VideoReader, video_writer

@@ -8,7 +8,7 @@ per frame), with ``--poses`` the artist's pose library over it as ``solve --pose
 :func:`keyshape.decompose.api.decompose_keys`, per-frame NNLS), the 3D head's yaw, pitch and roll and the eyes'
 angles (:class:`LiveHead`: fitted once on the calibration tracks, then
 :func:`keyshape.retarget.api.head_from_tracks` and :func:`keyshape.decompose.gaze.gaze_angles` per frame)
-and the Live Link Face values (:func:`keyshape.retarget.export.livelink_values`), then one Live Link Face
+and the Live Link Face values (:func:`keyshape.retarget.output.export.livelink_values`), then one Live Link Face
 UDP packet per frame
 (:mod:`keyshape.base.formats.livelink`; Unreal's Live Link Face source, port 11111) and, with
 ``--osc``, one OSC message per rig curve.
@@ -391,7 +391,7 @@ class LiveChain:
     def frame(self, index: int, fps: float, points: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
         """(rig curves (n_shapes,), Live Link values (61,) in CSV column order) of one tracked frame."""
         from keyshape.base.formats.tracks import Tracks
-        from keyshape.retarget.export import livelink_values
+        from keyshape.retarget.output.export import livelink_values
 
         p, aux = points[None].astype(np.float64), {}
         if self.model_scheme is not None:                  # the model's nose points: the 3D head's too
@@ -409,10 +409,10 @@ class LiveChain:
 
     def _override(self, tr, curves: np.ndarray) -> np.ndarray:
         """The pose library over one frame's solved curves, as ``solve --poses --weights`` does offline
-        (:func:`~keyshape.retarget.solve.pose_override`): the frame's key weights, the calibration's curves at
+        (:func:`~keyshape.retarget.rig.solve.pose_override`): the frame's key weights, the calibration's curves at
         the keys."""
         from keyshape.decompose.api import decompose_keys
-        from keyshape.retarget.solve import pose_override
+        from keyshape.retarget.rig.solve import pose_override
 
         columns, w = decompose_keys(tr, self.regions, "nnls", 0.1, D.RIDGE, None, self.head_pose)
         frames = np.r_[np.array(sorted(set(self.key_frames.values())), np.int64), -1]
@@ -449,8 +449,8 @@ def load_chain(model_path, keys_path, rig, *, poses=None, calibration=None, head
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.take import Take
     from keyshape.retarget.api import fit_solve
-    from keyshape.retarget.export import livelink_values
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.output.export import livelink_values
+    from keyshape.retarget.rig.model import load_rig
     from keyshape.tracker.eigenpoints import AppearanceModel
 
     if head not in LIVE_HEADS:

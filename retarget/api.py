@@ -1,12 +1,12 @@
 """The retarget stage's in-memory layer, with the product's defaults.
 
 ``keyshape retarget``, ``keyshape pose`` and ``keyshape preview`` (``retarget/cli.py``,
-``retarget/pose_cli.py``, ``retarget/preview_cli.py``: argument parsing and files),
+``retarget/rig/pose_cli.py``, ``retarget/output/preview_cli.py``: argument parsing and files),
 :mod:`keyshape.api`, ``keyshape batch`` and ``keyshape demo`` all call these functions and take
 their defaults from here:
 
-- sculpted targets: :func:`fit_retargeter` fits a :class:`~keyshape.retarget.retargeter.Retargeter`
-  to one target per key (files or a :class:`~keyshape.retarget.targets.TargetSet`);
+- sculpted targets: :func:`fit_retargeter` fits a :class:`~keyshape.retarget.targets.retargeter.Retargeter`
+  to one target per key (files or a :class:`~keyshape.retarget.targets.target_set.TargetSet`);
 - a rig: :func:`fit_poses` suggests every key's pose on the rig (a pose library, POSES.json's
   layout) and :func:`rig_curves` turns key weights into the rig's own curves;
 - :func:`head_from_tracks` turns tracks into head motion (in the rig's units with
@@ -24,8 +24,8 @@ from keyshape.base.errors import InputError
 from keyshape.base.formats.tracks import Tracks
 from keyshape.decompose.take import Take
 from keyshape.retarget.headpose import HeadMotion, head_motion, hold_invalid
-from keyshape.retarget.retargeter import Retargeter
-from keyshape.retarget.targets import TargetSet, load_targets, read_regions
+from keyshape.retarget.targets.retargeter import Retargeter
+from keyshape.retarget.targets.target_set import TargetSet, load_targets, read_regions
 
 from keyshape.retarget.defaults import (DEFAULT_FPS, FORM, GAZE, GAZES, HEAD_MOTION, METRIC, NUISANCE,  # noqa: F401,E402
                                         OPPOSED, SPARSITY, SYMMETRY, RetargetOptions, SolveOptions)
@@ -39,11 +39,11 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
     ----------
     columns : the weight columns (``REGION_K``) in order
     targets : a :class:`TargetSet`, a folder or a list of target files (see
-        :func:`~keyshape.retarget.targets.load_targets`)
+        :func:`~keyshape.retarget.targets.target_set.load_targets`)
     regions : ``{region: vertex indices}``, a regions JSON / grouped OBJ file, ``"auto"`` (from the
         targets' own support: each vertex to the region whose targets move it most; needs a
         neutral), or None
-    mapping, neutral : as :func:`~keyshape.retarget.targets.load_targets` (files only)
+    mapping, neutral : as :func:`~keyshape.retarget.targets.target_set.load_targets` (files only)
     form, band, metric : as :class:`Retargeter`
     """
     if isinstance(targets, TargetSet):
@@ -54,7 +54,7 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
         ts = load_targets(list(columns), targets, mapping=mapping, neutral=neutral)
     source = "regions"
     if isinstance(regions, str) and regions == "auto":
-        from keyshape.retarget.rig import support_regions
+        from keyshape.retarget.rig.model import support_regions
         if ts.neutral is None:
             raise InputError("--regions auto needs a neutral (--neutral or neutral.* among the targets)")
         regions = support_regions(ts.shapes, ts.neutral, ts.columns)
@@ -138,7 +138,7 @@ def rig_head_units(rig, tracks: Tracks, landmarks=None) -> float:
     """Rig units per tracker model unit: the rig's inter-ocular distance over the actor's (median, model frame)."""
     from keyshape.base.schemes import scheme_for_n_points
     from keyshape.decompose.regions import model_shapes
-    from keyshape.retarget.rig import rig_landmarks
+    from keyshape.retarget.rig.model import rig_landmarks
 
     scheme = scheme_for_n_points(tracks.n_points)
     W, _ = rig_landmarks(rig, scheme.name, landmarks)
@@ -157,10 +157,10 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     ----------
     regions : the keys' :class:`~keyshape.decompose.regions.RegionKeys` (model frame)
     scheme_name : their landmark scheme
-    rig : a :class:`~keyshape.retarget.rig.Rig`
+    rig : a :class:`~keyshape.retarget.rig.model.Rig`
     head_pose : the keys' KEYS.json ``head_pose`` entry (rigid stabilisation frees fewer nuisances)
     landmarks : rig landmark JSON (default: the shipped one for ICT-FaceKit rigs)
-    sparsity, nuisance, opposed, symmetry : see :func:`~keyshape.retarget.poses.pose_library`
+    sparsity, nuisance, opposed, symmetry : see :func:`~keyshape.retarget.rig.poses.pose_library`
 
     Returns
     -------
@@ -170,8 +170,8 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     """
     from keyshape.base.schemes import load_scheme
     from keyshape.decompose.regions import available_regions, region_points
-    from keyshape.retarget.poses import auto_nuisance, pose_library
-    from keyshape.retarget.rig import project, rig_landmarks, shape_regions
+    from keyshape.retarget.rig.poses import auto_nuisance, pose_library
+    from keyshape.retarget.rig.model import project, rig_landmarks, shape_regions
 
     if not (np.isfinite(opposed) and -1.0 <= opposed <= 0.0):
         raise InputError(f"--opposed {opposed}: a cosine from -1 to 0")
@@ -188,7 +188,7 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
     if (head_pose or {}).get("method") == "rigid":
         # the keys' eye corners were held still: read the rig's motion in that frame too (as keyshape solve does)
         from keyshape.decompose.gaze import pupil_points
-        from keyshape.retarget.solve import rigid_frame_deltas
+        from keyshape.retarget.rig.solve import rigid_frame_deltas
         lm_deltas = rigid_frame_deltas(lm_neutral, lm_deltas, head_pose.get("points", ()), keep=pupil_points(scheme))
     if nuisance == "auto":
         nuisance = {rk.region: auto_nuisance(rk.region, stabilized) for rk in regions}
@@ -203,7 +203,7 @@ def fit_poses(regions, scheme_name: str, rig, head_pose: dict | None = None, lan
 
 def rig_curves(weights: np.ndarray, columns: Sequence[str], library: dict, rig, source=None) -> np.ndarray:
     """The rig's curves (n_frames, n_shapes) for key ``weights`` (n_frames, n_keys) through a pose library."""
-    from keyshape.retarget.poses import curves_from_library
+    from keyshape.retarget.rig.poses import curves_from_library
 
     return curves_from_library(weights, columns, library, rig.names, source)
 
@@ -284,13 +284,13 @@ def apply_gaze(curves: np.ndarray, rig, tracks: Tracks, frames: np.ndarray, head
                say=print, gaze: str = GAZE) -> tuple[np.ndarray, np.ndarray | None]:
     """The eye angles from the pupils (n_frames, 4; :func:`gaze_from_tracks`; None where the scheme has no
     pupils or ``gaze`` is ``"none"``) and the rig's curves, with ``gaze="shapes"`` its ``eyeLook*`` shapes
-    set from them (:func:`~keyshape.retarget.rig.gaze_curves`). What the rig cannot show is said in one line
+    set from them (:func:`~keyshape.retarget.rig.model.gaze_curves`). What the rig cannot show is said in one line
     through ``say``.
 
     ``"angles"`` (the default) leaves the curves alone: ICT-FaceKit's ``eyeLook*`` shapes move the lids
     too, and the 2D pupils' vertical position goes with the lids', so driving them costs the lid closure
     (docs/benchmarks.md)."""
-    from keyshape.retarget.rig import gaze_curves
+    from keyshape.retarget.rig.model import gaze_curves
     if gaze not in GAZES:
         raise InputError(f"gaze {gaze!r}: use one of {', '.join(GAZES)}")
     if gaze == "none":
@@ -330,16 +330,16 @@ def solve_rig(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
     take : the :class:`~keyshape.decompose.take.Take` (the tracks with their frame rate and fitted 3D head)
     regions, scheme_name, head_pose : the key set's regions (their ``points`` and the actor's neutral, ``rest``),
         scheme and KEYS.json ``head_pose`` entry (how the head is taken out of the shapes)
-    rig : a :class:`~keyshape.retarget.rig.Rig`
+    rig : a :class:`~keyshape.retarget.rig.model.Rig`
     options : :class:`~keyshape.retarget.defaults.SolveOptions`: the solve's priors and calibrations
-        (:class:`~keyshape.retarget.solve.RigSolver`), the gaze (:func:`apply_gaze`; with ``gaze_lids`` the lids'
-        region solved with the pupils and the rig's gaze shapes, :func:`~keyshape.retarget.solve.gaze_in_eye_region`),
+        (:class:`~keyshape.retarget.rig.solve.RigSolver`), the gaze (:func:`apply_gaze`; with ``gaze_lids`` the lids'
+        region solved with the pupils and the rig's gaze shapes, :func:`~keyshape.retarget.rig.solve.gaze_in_eye_region`),
         the head motion written beside the curves (:func:`head_from_tracks`) and, where the keys' head is 2D and the
         scheme has a 3D face, the mouth's parallax under the 3D head's yaw (and pitch) taken out
-        (:func:`~keyshape.retarget.solve.yaw_slide`, :func:`~keyshape.retarget.solve.yaw_stretch`,
-        :func:`~keyshape.retarget.solve.pitch_parallax`), zero at the mouth's rest frame
+        (:func:`~keyshape.retarget.rig.solve.yaw_slide`, :func:`~keyshape.retarget.rig.solve.yaw_stretch`,
+        :func:`~keyshape.retarget.rig.solve.pitch_parallax`), zero at the mouth's rest frame
     report : a dict that receives what the eye and brow calibrations did
-        (:class:`~keyshape.retarget.solve.RigSolver`)
+        (:class:`~keyshape.retarget.rig.solve.RigSolver`)
 
     Returns
     -------
@@ -356,7 +356,7 @@ class TakeSolve:
 
     Attributes
     ----------
-    solver : the fitted :class:`~keyshape.retarget.solve.RigSolver`
+    solver : the fitted :class:`~keyshape.retarget.rig.solve.RigSolver`
     scheme, head_pose : the keys' scheme and KEYS.json ``head_pose`` entry (the head-frame shapes of new frames)
     estimator : the take's :class:`~keyshape.decompose.head3d.HeadPose3D` (the yaw and pitch of new frames, each
         posed alone), or None where the solve took no yaw out
@@ -376,9 +376,9 @@ class TakeSolve:
     def curves(self, tracks: Tracks, eyes: np.ndarray | None = None) -> np.ndarray:
         """The curves (n_frames, n_shapes) of new ``tracks`` (``eyes``: their eye angles (n_frames, 4), for
         ``gaze="shapes"``), solved with the take's statistics
-        (:meth:`~keyshape.retarget.solve.RigSolver.transform`)."""
+        (:meth:`~keyshape.retarget.rig.solve.RigSolver.transform`)."""
         from keyshape.decompose.regions import fitted_head_points, head_shapes
-        from keyshape.retarget.rig import gaze_curves
+        from keyshape.retarget.rig.model import gaze_curves
 
         shapes, _ = head_shapes(tracks, self.scheme, self.head_pose)
         yaw = pitch = None
@@ -402,8 +402,8 @@ def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
     from keyshape.decompose.gaze import LidDrag, has_gaze
     from keyshape.decompose.regions import available_regions, head_shapes, region_points
     from keyshape.decompose.stabilize import RigidStabilizer
-    from keyshape.retarget.rig import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
-    from keyshape.retarget.solve import HeadParallax, RigLandmarks, RigSolver, gaze_ceiling, gaze_in_eye_region
+    from keyshape.retarget.rig.model import gaze_columns, gaze_pupil_deltas, project, rig_landmarks, shape_regions
+    from keyshape.retarget.rig.solve import HeadParallax, RigLandmarks, RigSolver, gaze_ceiling, gaze_in_eye_region
 
     o = options
     check_solve_options(o.sparsity, o.symmetry, o.smooth)
@@ -457,8 +457,8 @@ def fit_solve(take: Take, regions, scheme_name: str, head_pose: dict | None, rig
 
 def _solve_yaw(take: Take, regions, head_pose: dict | None, est):
     """The 3D head's yaw of every frame and of the mouth's rest frame (its median where the rest frame is not
-    one of these tracks'), for :func:`~keyshape.retarget.solve.yaw_slide`, then its pitch alike, for
-    :func:`~keyshape.retarget.solve.pitch_parallax`, and the fitted head; ``(None, 0.0, None, 0.0, None)`` where the
+    one of these tracks'), for :func:`~keyshape.retarget.rig.solve.yaw_slide`, then its pitch alike, for
+    :func:`~keyshape.retarget.rig.solve.pitch_parallax`, and the fitted head; ``(None, 0.0, None, 0.0, None)`` where the
     keys' shapes are frontalised already (``head_pose`` 3d) or the scheme has no 3D face. ``est``: the take's
     fitted :class:`~keyshape.decompose.head3d.HeadPose3D` (None: ``take.head3d``)."""
     from keyshape.decompose.regions import fitted_head_points
@@ -485,8 +485,8 @@ def _solve_yaw(take: Take, regions, head_pose: dict | None, est):
 def override_poses(curves: np.ndarray, frames: np.ndarray, regions, weights: np.ndarray, columns: Sequence[str],
                    weight_frames: np.ndarray, library: dict, rig, source=None, weights_source=None) -> np.ndarray:
     """The artist's pose library (POSES.json, corrected in ``keyshape pose-edit``) over solved curves, in
-    proportion to each frame's key weights (:func:`~keyshape.retarget.solve.pose_override`)."""
-    from keyshape.retarget.solve import pose_override
+    proportion to each frame's key weights (:func:`~keyshape.retarget.rig.solve.pose_override`)."""
+    from keyshape.retarget.rig.solve import pose_override
 
     if len(weight_frames) != len(frames) or (np.asarray(weight_frames) != np.asarray(frames)).any():
         raise InputError("the weights' frames are not the tracks' frames", weights_source)

@@ -68,7 +68,7 @@ def run(args) -> int:
     from keyshape.base.files import check_output, check_output_dir
     from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.api import fit_retargeter
-    from keyshape.retarget.export import ExportOptions, export
+    from keyshape.retarget.output.export import ExportOptions, export
 
     if not (args.targets or args.poses or args.rig):
         raise InputError("give --targets (one target per key) or --poses POSES.json --rig RIG")
@@ -109,8 +109,8 @@ def run_rig(args, inputs: list) -> int:
     from keyshape.base.formats.poses import read_poses
     from keyshape.base.formats.weights import read_weights
     from keyshape.retarget.api import rig_curves
-    from keyshape.retarget.rig import load_rig
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.rig.model import load_rig
+    from keyshape.retarget.output.rig_export import export_rig
 
     if not (args.poses and args.rig):
         raise InputError("--poses and --rig go together (drive a rig with a pose library)")

@@ -15,7 +15,7 @@ from keyshape.decompose.defaults import DEFAULT_FPS  # noqa: F401  (a leaf modul
 FORM = "auto"                # delta with a neutral, else absolute
 METRIC = "geodesic"          # distance of the region band
 SPARSITY = 0.01              # keyshape pose: L1 weight of a pose fit
-NUISANCE = "auto"            # keyshape pose: region motions fitted freely (retarget.poses.auto_nuisance)
+NUISANCE = "auto"            # keyshape pose: region motions fitted freely (retarget.rig.poses.auto_nuisance)
 OPPOSED = -0.5               # keyshape pose: antagonist shapes never in one pose below this cosine
 SYMMETRY = 0.03              # keyshape pose: left-right prior (keyshape solve's)
 HEAD_MOTION = "3d"           # the head written beside the curves: the 3D head (yaw, pitch, roll, translation with depth)
@@ -47,11 +47,11 @@ class SolveOptions:
     head : the head motion written: ``3d``, or the 2D motion of ``rigid``/``tracker``
     rest_offset, yaw_slide, yaw_stretch : corrections, always on in the product (the actor's rest solved with
         the curves; the mouth's sideways parallax and vertical stretch under head yaw taken out,
-        :func:`~keyshape.retarget.solve.yaw_slide`, :func:`~keyshape.retarget.solve.yaw_stretch`); off only
+        :func:`~keyshape.retarget.rig.solve.yaw_slide`, :func:`~keyshape.retarget.rig.solve.yaw_stretch`); off only
         in tests that measure them
     pitch_parallax, gaze_lids : experiments, off (``bench/synth3d_accuracy.py``, ``bench/real_rig_fidelity.py``):
-        the mouth's vertical parallax under pitch taken out (:func:`~keyshape.retarget.solve.pitch_parallax`);
-        the lids solved with the pupils and the rig's ``eyeLook*`` (:func:`~keyshape.retarget.solve.gaze_in_eye_region`)
+        the mouth's vertical parallax under pitch taken out (:func:`~keyshape.retarget.rig.solve.pitch_parallax`);
+        the lids solved with the pupils and the rig's ``eyeLook*`` (:func:`~keyshape.retarget.rig.solve.gaze_in_eye_region`)
     """
 
     sparsity: float = 0.01
@@ -76,7 +76,7 @@ class RetargetOptions:
 
     Attributes
     ----------
-    form, band, metric : the blend (:class:`~keyshape.retarget.retargeter.Retargeter`): ``delta`` with a neutral
+    form, band, metric : the blend (:class:`~keyshape.retarget.targets.retargeter.Retargeter`): ``delta`` with a neutral
         (``auto``: delta where a neutral is given or found, else the paper's literal ``absolute``), the region
         band's width in mesh units (None: 10% of the bounding-box diagonal) and distance
     gaze : with a rig and tracks, as :class:`SolveOptions`

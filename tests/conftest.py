@@ -18,7 +18,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
-# the parsed-rig cache (retarget.rig.load_rig) of a test run goes to a folder of its own, not the user's home
+# the parsed-rig cache (retarget.rig.model.load_rig) of a test run goes to a folder of its own, not the user's home
 # (removed when the run ends: a test run leaves nothing behind in the system's temporary folder)
 if "KEYSHAPE_CACHE" not in os.environ:
     import atexit

@@ -186,17 +186,17 @@ def _fake_tree(tmp_path: Path, files: dict) -> tuple[Path, dict]:
 
 
 @pytest.mark.parametrize("upward", [
-    "from keyshape.retarget.blend import blend\n",                    # top level
-    "def f():\n    from keyshape.retarget import blend\n",            # inside a function
+    "from keyshape.retarget.targets.blend import blend\n",                    # top level
+    "def f():\n    from keyshape.retarget.targets.target_set import blend\n",            # inside a function
     "import keyshape.cli\n",                                          # a stage importing the roof
 ])
 def test_checker_catches_an_upward_import(tmp_path, upward):
     """The checker run on a fake tree: a tracker module importing retarget (or the roof) is reported;
     the same tree without that import is clean."""
     files = {"keyshape/__init__.py": "", "keyshape/base/__init__.py": "", "keyshape/base/errors.py": "",
-             "keyshape/cli.py": "import keyshape.retarget.blend\n",
+             "keyshape/cli.py": "import keyshape.retarget.targets.blend\n",
              "tracker/__init__.py": "", "tracker/fit.py": "from keyshape.base.errors import x\n",
-             "retarget/__init__.py": "", "retarget/blend.py": "from keyshape.tracker.fit import y\n"}
+             "retarget/__init__.py": "", "retarget/targets/blend.py": "from keyshape.tracker.fit import y\n"}
     root, folders = _fake_tree(tmp_path, files)
     assert check(root, folders) == []
     (root / "tracker" / "fit.py").write_text("from keyshape.base.errors import x\n" + upward)

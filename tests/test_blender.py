@@ -78,8 +78,8 @@ def _blender(args: list[str], tmp_path: Path) -> dict:
 def take(tmp_path_factory):
     """A toy rig's .glb and curves CSV of frames 100-111 at 24 fps."""
     from keyshape.base.formats.obj import Mesh
-    from keyshape.retarget.rig import Rig
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.rig.model import Rig
+    from keyshape.retarget.output.rig_export import export_rig
 
     trp = _toy()
     tmp = tmp_path_factory.mktemp("blender")
@@ -156,8 +156,8 @@ def test_blender_usd_import_of_keyshape_usda_and_usdc(take):
     pytest.importorskip("pxr", reason="usd-core not installed (pip install 'keyshape[usd]')")
     from keyshape.base.formats.obj import Mesh
     from keyshape.retarget.headpose import head_motion
-    from keyshape.retarget.rig import Rig
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.rig.model import Rig
+    from keyshape.retarget.output.rig_export import export_rig
     tmp, names, frames, curves = take
     trp = _toy()
     verts, deltas = trp.toy_rig_arrays()

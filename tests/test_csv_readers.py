@@ -14,8 +14,8 @@ from keyshape.base.formats.tracks import Tracks, read_tracks, write_tracks
 from keyshape.base.formats.weights import read_weights, read_weights_fps, write_weights
 from keyshape.base.files import atomic_write
 from keyshape.decompose.compare import COLUMNS, write_errors
-from keyshape.retarget.rig import Rig
-from keyshape.retarget.rig_export import export_rig
+from keyshape.retarget.rig.model import Rig
+from keyshape.retarget.output.rig_export import export_rig
 
 N = 6
 

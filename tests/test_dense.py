@@ -268,8 +268,8 @@ def test_sequence_roundtrip_and_errors(tmp_path):
 
 
 def test_cli_register_and_keypoints(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("keyshape.retarget.dense_cli.CONTROLS", 20)
-    monkeypatch.setattr("keyshape.retarget.dense_cli.SAMPLES", 225)
+    monkeypatch.setattr("keyshape.retarget.dense.cli.CONTROLS", 20)
+    monkeypatch.setattr("keyshape.retarget.dense.cli.SAMPLES", 225)
     from keyshape.base.formats.obj import Mesh, read_obj, write_obj
     v, t = grid(11)
     write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
@@ -361,7 +361,7 @@ def test_dense_sequences_are_deterministic(shared_data):
 
 
 def test_register_outputs_feed_the_mocap_command(tmp_path, monkeypatch):
-    monkeypatch.setattr("keyshape.retarget.dense_cli.CONTROLS", 20)
+    monkeypatch.setattr("keyshape.retarget.dense.cli.CONTROLS", 20)
     """``register --out-markers/--out-masks`` write what ``keyshape mocap --target-markers/--masks`` reads."""
     from keyshape.retarget.mocap.cli import read_target_markers
     from keyshape.base.formats.masks import read_masks

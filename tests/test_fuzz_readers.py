@@ -160,7 +160,7 @@ def _read_keys(p):
 
 
 def _read_regions(p):
-    from keyshape.retarget.targets import read_regions
+    from keyshape.retarget.targets.target_set import read_regions
     for idx in read_regions(p).values():
         assert np.asarray(idx).dtype.kind in "iu" and (np.asarray(idx) >= 0).all()
 
@@ -463,7 +463,7 @@ def _read_rig(p):
     import shutil
 
     from keyshape.base.formats.obj import Mesh, write_obj
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
     rig = p.parent / "rig"
     shutil.rmtree(rig, ignore_errors=True)
     rig.mkdir()

@@ -239,7 +239,7 @@ def test_errors():
 
 def _tiny_rig():
     from keyshape.base.formats.obj import Mesh
-    from keyshape.retarget.rig import Rig
+    from keyshape.retarget.rig.model import Rig
     verts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.5]])
     names = ["jawOpen", "eyeLookOut_L", "eyeLookIn_L", "eyeLookUp_R", "eyeLookDown_R", "eyeLookOut_R"]
     deltas = np.random.default_rng(1).normal(0, 0.1, (len(names), 4, 3))
@@ -267,7 +267,7 @@ def test_glb_head_node_turns_and_moves_in_depth(tmp_path):
     import pygltflib
 
     from keyshape.retarget.headpose import quaternion_matrix
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.output.rig_export import export_rig
     rig = _tiny_rig()
     head, R, t, _ = _turning_head()
     out = tmp_path / "take.glb"
@@ -288,7 +288,7 @@ def test_curves_csv_and_livelink_carry_the_head(tmp_path):
     import csv
 
     from keyshape.base.formats.weights import read_weights
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.output.rig_export import export_rig
     rig = _tiny_rig()
     head, R, t, ang = _turning_head()
     eyes = np.tile(np.radians([10.0, -5.0, 8.0, 4.0]), (12, 1))
@@ -310,7 +310,7 @@ def test_curves_csv_and_livelink_carry_the_head(tmp_path):
 
 
 def _arkit_rig():
-    from keyshape.retarget.rig import Rig
+    from keyshape.retarget.rig.model import Rig
     verts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
     return Rig(["jawOpen", "eyeBlinkLeft"], verts, np.zeros((2, 3, 3)))
 
@@ -318,8 +318,8 @@ def _arkit_rig():
 def test_a_left_turn_is_positive_head_yaw_end_to_end():
     """Rendered: the actor turns to their left (the face's left side, image right, goes away from
     the camera). Live Link's HeadYaw comes out positive (ARKit's face-anchor axes, see
-    ``retarget/export.py``), as does the curves CSV's headYaw."""
-    from keyshape.retarget.export import head_columns, livelink_rows
+    ``retarget/output/export.py``), as does the curves CSV's headYaw."""
+    from keyshape.retarget.output.export import head_columns, livelink_rows
     from keyshape.retarget.headpose import head_motion_3d
     yaw = np.concatenate([np.zeros(30), np.linspace(0, 20, 30)])
     pts = _render(yaw, np.zeros(60), np.zeros(60))
@@ -434,7 +434,7 @@ def test_lid_drag_refuses_misuse():
 
 
 def test_gaze_curves_drive_eyelook_shapes():
-    from keyshape.retarget.rig import gaze_curves
+    from keyshape.retarget.rig.model import gaze_curves
     names = ["eyeLookOut_L", "eyeLookIn_L", "eyeLookOutRight", "eyeLookIn_R", "eyeLookUp_L", "eyeLookDown_R", "jawOpen"]
     a = np.radians([[15.0, -12.5, 15.0, 25.0]])           # both look to the actor's left; left up, right down
     c, used = gaze_curves(a, names)

@@ -156,8 +156,8 @@ def test_every_packet_equals_the_offline_solve(take, capsys):
     from keyshape import api
     from keyshape.decompose.take import Take
     from keyshape.retarget.api import fit_solve
-    from keyshape.retarget.export import livelink_values
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.output.export import livelink_values
+    from keyshape.retarget.rig.model import load_rig
     tracks = api.track(take / "take.mp4", api.AppearanceModel.load(take / "model.npz"))
     keys = api.Keys.load(take / "k.json")
     rig = load_rig(take / "rig", with_mesh=False)
@@ -195,8 +195,8 @@ def test_head_and_eye_angles_equal_the_offline_ones(take):
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.decompose.take import Take
     from keyshape.retarget.api import gaze_from_tracks, head_from_tracks
-    from keyshape.retarget.export import livelink_values
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.output.export import livelink_values
+    from keyshape.retarget.rig.model import load_rig
     _, live = _receive(take)
     tr = read_tracks(take / "t.csv")
     assert tr.aux["nose"].shape == (N_FRAMES, 5, 2)                  # the model's nose: the 3D head's too
@@ -272,7 +272,7 @@ def test_face_lost_sends_the_neutral_and_found_resumes(take, tmp_path, capsys):
 def test_osc_one_message_per_rig_curve(take, capsys):
     pytest.importorskip("pythonosc", reason="python-osc not installed (pip install 'keyshape[osc]')")
     from pythonosc.osc_message import OscMessage
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
     names = load_rig(take / "rig", with_mesh=False).names
     ll, osc = Receiver(), Receiver()
     assert main(live_args(take, None, "--port", str(ll.port), "--osc", f"127.0.0.1:{osc.port}", "--no-pace")) == 0

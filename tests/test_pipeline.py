@@ -139,7 +139,7 @@ def test_the_take_frame_rate_travels_with_the_weights(tmp_path, capsys):
 
 def test_a_parsed_rig_is_cached_by_content_and_a_damaged_cache_is_rebuilt(tmp_path, monkeypatch):
     from keyshape.data_synth.library import ict_subset_rig
-    from keyshape.retarget.rig import cache_dir, load_rig
+    from keyshape.retarget.rig.model import cache_dir, load_rig
 
     monkeypatch.setenv("KEYSHAPE_CACHE", str(tmp_path / "cache"))
     rig, _ = ict_subset_rig(tmp_path / "rig", names=["jawOpen", "eyeBlink_L", "mouthSmile_L"])

@@ -9,8 +9,8 @@ import pytest
 from keyshape.base.formats.keys import write_keys
 from keyshape.base.formats.poses import read_poses
 from keyshape.cli import main
-from keyshape.retarget.pose_edit import PoseServer, check_pose
-from keyshape.retarget.rig import load_rig
+from keyshape.retarget.rig.pose_edit import PoseServer, check_pose
+from keyshape.retarget.rig.model import load_rig
 from server_helpers import request, serving
 from test_rig_poses import SHAPES, TRUE, actor_keys, write_toy_rig
 

@@ -1,4 +1,4 @@
-"""The preview's rig renderer (retarget/preview.py): culling what no frame shows, the float32
+"""The preview's rig renderer (retarget/output/preview.py): culling what no frame shows, the float32
 deformation of the moving shapes and the encoding thread leave the picture as it was.
 
 The rig: the shipped ICT-FaceKit face skin (9,409 vertices, 18,461 triangles; the nose, lids and
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from keyshape.retarget.rig import Rig
+from keyshape.retarget.rig.model import Rig
 
 from keyshape.base.formats.obj import Mesh
 
@@ -17,13 +17,13 @@ SHAPES = ("jawOpen", "mouthSmile_L", "mouthFunnel", "eyeBlink_L", "eyeBlink_R", 
 
 @pytest.fixture(scope="module")
 def face():
-    from keyshape.retarget.demo_targets import load_expressions
+    from keyshape.retarget.targets.demo import load_expressions
     ex = load_expressions()
     pick = [ex.names.index(n) for n in SHAPES]
     rig = Rig(list(SHAPES), ex.neutral, ex.deltas[pick], Mesh(ex.neutral, list(ex.triangles)))
     rng = np.random.default_rng(5)
     curves = rng.uniform(0, 1, (30, len(SHAPES))) * (rng.uniform(size=(30, len(SHAPES))) < 0.5)
-    from keyshape.retarget.preview import head_rotations
+    from keyshape.retarget.output.preview import head_rotations
     turns = head_rotations(["headYaw", "headPitch"], rng.uniform(-25, 25, (30, 2)))
     return rig, curves, turns
 
@@ -58,7 +58,7 @@ def zbuffer_reference(r, v: np.ndarray) -> np.ndarray:
 
 
 def test_culling_hidden_triangles_leaves_the_picture_as_it_was(face):
-    from keyshape.retarget.preview import RigRenderer
+    from keyshape.retarget.output.preview import RigRenderer
     rig, curves, turns = face
     fitted = slice(0, 20)                    # fitted on 20 frames, checked on those and 10 more it never saw
     full = RigRenderer(rig, (160, 160)).fit(curves[fitted], turns[fitted])
@@ -77,7 +77,7 @@ def test_culling_hidden_triangles_leaves_the_picture_as_it_was(face):
 
 
 def test_float32_deformation_of_the_moving_shapes_matches_the_rig(face):
-    from keyshape.retarget.preview import RigRenderer
+    from keyshape.retarget.output.preview import RigRenderer
     rig, curves, _ = face
     c = curves[:6].copy()
     c[:, 2] = 0.0                                    # a shape that does not move in the fitted curves
@@ -89,7 +89,7 @@ def test_float32_deformation_of_the_moving_shapes_matches_the_rig(face):
 
 def test_the_encoding_thread_writes_every_frame_in_order_and_reports_failure(tmp_path):
     import cv2
-    from keyshape.retarget.preview_cli import _maybe_writer
+    from keyshape.retarget.output.preview_cli import _maybe_writer
     out = tmp_path / "v.avi"
     with _maybe_writer(out, 10.0) as write:
         for k in range(12):

@@ -156,7 +156,7 @@ def test_partial_tracks_accepted_when_asked(work, tmp_path):
 
 
 def test_register_writes_nothing_when_markers_are_bad(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("keyshape.retarget.dense_cli.CONTROLS", 10)
+    monkeypatch.setattr("keyshape.retarget.dense.cli.CONTROLS", 10)
     from tests.test_dense import grid   # noqa: PLC0415 - the test meshes of test_dense
     v, t = grid(6)
     write_obj(tmp_path / "ref.obj", Mesh(v, list(t)))
@@ -390,7 +390,7 @@ def test_a_rig_edited_in_place_keeping_size_and_time_is_read_again(tmp_path, mon
     time (as ``cp -p``, ``rsync -a`` or tar leave it) is not served from the stale cache."""
     from test_rig_poses import write_toy_rig
 
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
     monkeypatch.setenv("KEYSHAPE_CACHE", str(tmp_path / "cache"))
     rig, _ = write_toy_rig(tmp_path / "rig")
     first = load_rig(rig)

@@ -6,10 +6,10 @@ import pytest
 from scipy.optimize import nnls
 
 from keyshape.base.errors import InputError, NotFittedError
-from keyshape.retarget.blend import BlendBasis, blend, mesh_edges, region_weights
+from keyshape.retarget.targets.blend import BlendBasis, blend, mesh_edges, region_weights
 from keyshape.retarget.headpose import head_motion, hold_invalid, similarity
-from keyshape.retarget.retargeter import Retargeter
-from keyshape.retarget.targets import TargetSet
+from keyshape.retarget.targets.retargeter import Retargeter
+from keyshape.retarget.targets.target_set import TargetSet
 
 
 def grid(nx=21, ny=11, h=1.0):
@@ -47,7 +47,7 @@ def test_absolute_and_delta_differ_by_unspent_weight_times_neutral():
 def test_one_default_form_for_blend_basis_and_retargeter():
     """``blend``, ``BlendBasis`` and ``Retargeter`` share the default "auto": delta when a neutral is
     given (it is never silently ignored), absolute without one."""
-    from keyshape.retarget.targets import TargetSet
+    from keyshape.retarget.targets.target_set import TargetSet
     rng = np.random.default_rng(8)
     b, n = rng.normal(size=(4, 20, 3)), rng.normal(size=(20, 3))
     w = rng.uniform(0, 1, size=(6, 4))
@@ -77,7 +77,7 @@ def test_blend_matches_reference_and_chunking_and_float32():
 def test_identity_2d_targets_equal_to_source_keys_reproduce_decomposed_frames(tmp_path):
     """Targets = the source key shapes (as .pts files): retargeting gives back sum w_i S_i, the
     decomposed source frames, and the source frames themselves where they lie in the keys' cone."""
-    from keyshape.retarget.targets import load_targets
+    from keyshape.retarget.targets.target_set import load_targets
     from keyshape.base.formats.labels import read_pts, write_pts
     rng = np.random.default_rng(4)
     cols = [f"mouth_{i}" for i in range(6)]
@@ -271,7 +271,7 @@ def test_identity_with_decompose_weights(tmp_path):
     ``interpolated`` column), targets = its 2D key shapes and mean shape: the retargeted frames
     are decompose's own reconstruction (auto form = delta, as the neutral is given)."""
     from keyshape.decompose.weights import nnls_weights, reconstruct
-    from keyshape.retarget.targets import load_targets
+    from keyshape.retarget.targets.target_set import load_targets
     from keyshape.base.formats.weights import read_weights, write_weights
     from keyshape.base.formats.labels import read_pts, write_pts
     rng = np.random.default_rng(11)

@@ -14,7 +14,7 @@ from keyshape import api
 from keyshape.cli import main
 from keyshape.base.errors import InputError, MissingFileError
 from keyshape.base.formats.obj import Mesh, read_obj_vertices, write_obj
-from keyshape.retarget.targets import load_targets, name_key, read_regions
+from keyshape.retarget.targets.target_set import load_targets, name_key, read_regions
 from keyshape.base.formats.weights import read_weights, write_weights
 
 REPO = Path(__file__).resolve().parents[1]
@@ -77,9 +77,9 @@ def test_name_matching():
 
 def test_glb_roundtrip_with_head_motion(scene):
     tmp, d, m, shapes, w = scene
-    from keyshape.retarget.export import export
+    from keyshape.retarget.output.export import export
     from keyshape.retarget.headpose import head_motion
-    from keyshape.retarget.retargeter import Retargeter
+    from keyshape.retarget.targets.retargeter import Retargeter
     ts = load_targets(list(shapes), d)
     assert ts.neutral is not None                      # neutral.obj picked up from the folder
     rt = Retargeter(form="delta").fit(ts)
@@ -188,7 +188,7 @@ def test_csv_outputs(scene):
 
 
 def test_livelink_csv(tmp_path):
-    from keyshape.retarget.export import livelink_rows
+    from keyshape.retarget.output.export import livelink_rows
     names = ["jawOpen", "mouthSmile_L", "browInnerUp_L", "browInnerUp_R", "mouth_3"]
     w = np.array([[0.5, 0.25, 0.2, 0.4, 0.9]] * 3)
     header, rows = livelink_rows(names, w, fps=30)
@@ -328,7 +328,7 @@ def test_mixed_2d_3d_targets(scene):
 # ---------------------------------------------------------------- render and demo targets
 
 def test_render_covers_triangle_and_zbuffer():
-    from keyshape.retarget.render import OrthoCamera, render
+    from keyshape.retarget.output.render import OrthoCamera, render
     v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 1], [10, 0, 1], [0, 10, 1.0]])
     cam = OrthoCamera(0, 10, 10.0, 100, 100)           # 10 px per unit, y up -> rows down
     img = render(v[:3], np.array([[0, 1, 2]]), cam, colour=(255, 255, 255), background=(0, 0, 0), ambient=1.0)
@@ -339,20 +339,20 @@ def test_render_covers_triangle_and_zbuffer():
 
 
 def test_side_by_side():
-    from keyshape.retarget.render import side_by_side
+    from keyshape.retarget.output.render import side_by_side
     out = side_by_side(np.zeros((288, 360), np.uint8), np.full((320, 320, 3), 200, np.uint8), gap=4)
     assert out.shape == (288, 360 + 4 + 288, 3) and out[0, -1, 0] == 200
 
 
 def test_demo_targets_builder(tmp_path):
-    from keyshape.retarget.demo_targets import demo_targets, load_expressions, write_demo_targets
+    from keyshape.retarget.targets.demo import demo_targets, load_expressions, write_demo_targets
     ex = load_expressions()
     assert ex.deltas.shape[1:] == ex.neutral.shape and "jawOpen" in ex.names
     ts = demo_targets({"mouth_0": {"jawOpen": 0.7, "mouthSmileLeft": 0.3}, "eyes_0": {"eyeBlink_L": 1.0}})
     j, s = ex.names.index("jawOpen"), ex.names.index("mouthSmile_L")
     np.testing.assert_allclose(ts.shapes[0], ex.neutral + 0.7 * ex.deltas[j] + 0.3 * ex.deltas[s], atol=1e-12)
-    from keyshape.retarget.demo_targets import demo_regions
-    from keyshape.retarget.retargeter import Retargeter
+    from keyshape.retarget.targets.demo import demo_regions
+    from keyshape.retarget.targets.retargeter import Retargeter
     reg = demo_regions(ex)
     assert len(reg["mouth"]) == 20 and len(reg["eyes"]) == 22
     rt = Retargeter(band=2.0).fit(ts, reg)           # delta form (neutral), geodesic band on the face
@@ -394,7 +394,7 @@ def test_ict_facekit_weights_against_direct_blend(shared_data, tmp_path):
     np.testing.assert_allclose(got, direct, atol=2e-6)     # written with 6 decimals (cm)
     assert np.abs(direct - neutral).max() > 0.5             # the expressions really move (cm)
     # the shipped subset is the same data on the face skin (float16 deltas)
-    from keyshape.retarget.demo_targets import load_expressions
+    from keyshape.retarget.targets.demo import load_expressions
     ex = load_expressions()
     np.testing.assert_allclose(ex.neutral, neutral[:len(ex.neutral)], atol=1e-5)
     j = ex.names.index("jawOpen")

@@ -29,7 +29,7 @@ def chain(tmp_path_factory, shared_data):
                                                   "rig_accuracy.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
     rigdir = shared_data / "ict-facekit"
     rig = load_rig(rigdir, with_mesh=False)
     work = tmp_path_factory.mktemp("rig_acceptance")

@@ -14,7 +14,7 @@ from keyshape.base.formats.poses import read_rig_landmarks, write_rig_landmarks
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.data_synth.remesh import remeshed_ict_rig
-from keyshape.retarget.rig import load_rig, project, rig_landmarks
+from keyshape.retarget.rig.model import load_rig, project, rig_landmarks
 
 from conftest import gaussian_bumps
 
@@ -77,7 +77,7 @@ def loaded(rigs):
 def test_an_ibug68_list_gives_the_shipped_ict_points(shared_data, tmp_path):
     """ICT-FaceKit's 68 landmark vertices, as a JSON list, one index a line and its own vertex_indices.json:
     contours48's points derived from them are the shipped file's (pupils on the eyeballs included)."""
-    from keyshape.retarget.rig import DATA
+    from keyshape.retarget.rig.model import DATA
     rig = load_rig(shared_data / "ict-facekit", with_mesh=False)
     ibug = json.loads((shared_data / "ict-facekit" / "vertex_indices.json").read_text())["idx_to_landmark_verts"]
     (tmp_path / "list.json").write_text(json.dumps(ibug))
@@ -99,7 +99,7 @@ def test_an_ibug68_list_on_a_face_mask_puts_the_pupils_between_the_corners(rigs,
     _, truth = read_rig_landmarks(r["landmarks"])
     assert np.abs(W - truth).max() < 1e-6
     assert np.allclose(W[26], 0.5 * (W[10] + W[14])) and np.allclose(W[27], 0.5 * (W[18] + W[22]))
-    monkeypatch.setattr("keyshape.retarget.landmarks_cli.SHEET_PANEL", 96)
+    monkeypatch.setattr("keyshape.retarget.rig.landmarks_cli.SHEET_PANEL", 96)
     assert main(["rig-check", str(r["rig"]), "--landmarks", str(r["ibug68"]), "-o", str(tmp_path / "s.png")]) == 0
     out = capsys.readouterr().out
     assert "no eyeballs" in out and "Live Link's eye angles" in out
@@ -157,8 +157,8 @@ def test_wrong_landmark_files_are_refused_in_one_line(rigs, loaded, tmp_path, ca
 def test_the_remeshed_rig_is_another_topology_carrying_the_shapes(rigs, loaded):
     """Fewer vertices in another order, a manifold, and the true landmarks move as ICT-FaceKit's do;
     the metres Z-up variant is the same rig turned upright by loading (rig.turned) and scaled."""
-    from keyshape.retarget.demo_targets import load_expressions
-    from keyshape.retarget.landmarks import contours48_from_ibug68, one_hot
+    from keyshape.retarget.targets.demo import load_expressions
+    from keyshape.retarget.rig.landmarks import contours48_from_ibug68, one_hot
     ex = load_expressions()
     rig = loaded["plain"]
     assert rig.n_vertices < 0.45 * len(ex.neutral) and set(rig.names) == set(ex.names)
@@ -183,7 +183,7 @@ def test_the_remeshed_rig_is_another_topology_carrying_the_shapes(rigs, loaded):
 def test_found_landmarks_lie_within_2mm_of_the_truth(rigs, loaded, kind):
     """Every scheme point, inner lips included, within 0.2 cm (ICT's scale) of the true one, in the neutral
     and under every shape (a point on the wrong lip would be 0.3-1 cm off with the jaw open)."""
-    from keyshape.retarget.rig import found_landmarks
+    from keyshape.retarget.rig.model import found_landmarks
     rig, r = loaded[kind], rigs[kind]
     _, truth = read_rig_landmarks(r["landmarks"])
     found = found_landmarks(rig, "contours48").W
@@ -277,8 +277,8 @@ def test_a_rig_in_metres_and_z_up_gives_the_curves_of_the_same_rig_in_cm_and_y_u
 
 def test_face_axes_turn_a_rig_upright_whatever_way_it_faces():
     """The rig's own blinks and jawOpen give the rotation back for each axis-aligned way a rig can face."""
-    from keyshape.retarget.demo_targets import load_expressions
-    from keyshape.retarget.landmarks import face_axes
+    from keyshape.retarget.targets.demo import load_expressions
+    from keyshape.retarget.rig.landmarks import face_axes
     ex = load_expressions()
     assert np.array_equal(face_axes(ex.neutral, ex.deltas, ex.names), np.eye(3))
     z_up = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])              # Blender: Z up, the face towards -Y
@@ -296,8 +296,8 @@ def test_found_landmarks_on_ict_facekit_itself_are_the_shipped_ones(shared_data)
     """The full ICT-FaceKit rig (26,719 vertices with eyeballs, teeth, tongue and eye shells, which are left
     out as pieces of their own): the landmarks found are the shipped file's within 0.05 cm, the pupils on
     the eyeballs found as the shipped ones are."""
-    from keyshape.retarget.demo_targets import load_expressions
-    from keyshape.retarget.landmarks import find_landmarks
+    from keyshape.retarget.targets.demo import load_expressions
+    from keyshape.retarget.rig.landmarks import find_landmarks
     rig = load_rig(shared_data / "ict-facekit")
     W, _ = rig_landmarks(rig, "contours48")
     found = find_landmarks(rig.neutral, rig.deltas, rig.names, rig.mesh.triangles, load_expressions())
@@ -311,7 +311,7 @@ def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(ri
                                                                               monkeypatch):
     import cv2
     r = rigs["m_zup"]
-    monkeypatch.setattr("keyshape.retarget.landmarks_cli.SHEET_PANEL", 160)
+    monkeypatch.setattr("keyshape.retarget.rig.landmarks_cli.SHEET_PANEL", 160)
     assert main(["rig-check", str(r["rig"]), "-o", str(tmp_path / "sheet.png")]) == 0
     img = cv2.imread(str(tmp_path / "sheet.png"))
     assert img.shape[1] > 4 * 160                                      # neutral, blink, jaw open, smile

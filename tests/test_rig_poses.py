@@ -15,9 +15,9 @@ from keyshape.base.formats.poses import read_poses, write_rig_landmarks
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.decompose.regions import RegionKeys, region_points
-from keyshape.retarget.poses import (curves_from_library, fit_pose, fit_similarity, pose_library, rig_curves)
+from keyshape.retarget.rig.poses import (curves_from_library, fit_pose, fit_similarity, pose_library, rig_curves)
 from keyshape.retarget.api import fit_poses
-from keyshape.retarget.rig import load_rig, project, shape_regions
+from keyshape.retarget.rig.model import load_rig, project, shape_regions
 
 SCHEME = load_scheme("contours48")
 
@@ -186,7 +186,7 @@ def test_pose_reads_the_rig_in_the_frame_the_keys_were_stabilised_in(tmp_path):
     """A rig blink that also lowers its eye's corners (ICT-FaceKit's does), and the actor's blink key
     stabilised on the eye corners (``select --head-pose rigid``), which therefore never shows the corners
     move: ``pose`` reads the rig's motion in that same frame (the rigid points' mean height held,
-    :func:`~keyshape.retarget.solve.rigid_frame_deltas`, as ``solve`` does) and gets the blink whole. Read
+    :func:`~keyshape.retarget.rig.solve.rigid_frame_deltas`, as ``solve`` does) and gets the blink whole. Read
     in the rig's own frame, the key's corners held still took the brows down with them: eyeBlink_L 0.66
     and browInnerUp 0.17 on both sides, residual 39%."""
     from keyshape.retarget.api import fit_poses
@@ -304,7 +304,7 @@ def test_pose_options_out_of_range_are_refused_before_the_fit(tmp_path, option, 
 
 
 def test_rig_without_landmarks_asks_for_them(tmp_path, capsys):
-    """No correspondence and no blink shapes to find one by (retarget/landmarks.py): one line asks for
+    """No correspondence and no blink shapes to find one by (retarget/rig/landmarks.py): one line asks for
     --landmarks and says what was missing."""
     from keyshape.base.formats.keys import write_keys
     rig, _ = write_toy_rig(tmp_path / "rig", shapes={k: v for k, v in SHAPES.items() if not k.startswith("eyeBlink")})
@@ -320,8 +320,8 @@ def test_rig_glb_has_normals_materials_frame_range_and_passes_validator(tmp_path
     import pygltflib
 
     from keyshape.base.geometry import vertex_normals
-    from keyshape.retarget.rig import Rig
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.rig.model import Rig
+    from keyshape.retarget.output.rig_export import export_rig
     verts, deltas = toy_rig_arrays()
     polys = [np.array([i, i + 1, 48]) for i in range(0, 47)] + [np.array([0, 49, 47, 10])]
     mesh = Mesh(verts, polys, materials={"M_Face": np.arange(0, 30), "M_Teeth": np.arange(30, 48)})
@@ -410,8 +410,8 @@ def test_preview_renders_range_and_sheet(tmp_path):
 
 
 def test_rig_renderer_draws_the_face_and_moves_with_the_curves(tmp_path):
-    from keyshape.retarget.preview import RigRenderer
-    from keyshape.retarget.rig import Rig
+    from keyshape.retarget.output.preview import RigRenderer
+    from keyshape.retarget.rig.model import Rig
     # a square of two triangles facing the camera, one shape moving it right
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     d = np.zeros((1, 4, 3))
@@ -429,9 +429,9 @@ def test_rig_renderer_draws_the_face_and_moves_with_the_curves(tmp_path):
 
 
 def test_threaded_rendering_gives_the_same_frames_in_order(tmp_path):
-    from keyshape.retarget.preview import RigRenderer, ordered_map
+    from keyshape.retarget.output.preview import RigRenderer, ordered_map
     rig, _ = write_toy_rig(tmp_path / "rig")
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
     rig = load_rig(rig)
     curves = np.random.default_rng(3).uniform(0, 1, (23, rig.n_shapes))
     r = RigRenderer(rig, size=(96, 96)).fit(curves)
@@ -448,7 +448,7 @@ def test_threaded_rendering_gives_the_same_frames_in_order(tmp_path):
 
 
 def test_support_regions_from_the_targets_themselves(tmp_path):
-    from keyshape.retarget.rig import support_regions
+    from keyshape.retarget.rig.model import support_regions
     verts, deltas = toy_rig_arrays()
     names = list(SHAPES)
     cols = ["mouth_0", "mouth_1", "eyes_0", "eyes_1"]
@@ -518,7 +518,7 @@ def test_opposed_shapes_are_never_used_together_and_the_better_one_stays():
     """Two shapes that cancel in the points (a raise and a lowering of one brow) plus one that makes the
     rest of the key: without the rule the fit mixes both opposed shapes to shape the key; with it one goes,
     the one whose loss costs the fit least, and the free fit of the other shapes absorbs the rest."""
-    from keyshape.retarget.poses import opposed_pairs
+    from keyshape.retarget.rig.poses import opposed_pairs
     rng = np.random.default_rng(3)
     up = rng.normal(size=30)
     down = -up + 0.4 * rng.normal(size=30)            # mostly the opposite motion, partly its own shape
@@ -584,7 +584,7 @@ def test_a_sideways_pair_stays_opposed_under_a_free_translation():
     translation free that part is projected out and what is left of the two (each narrows the lips a
     little) no longer opposes, so both at once would make a narrowing: a mirrored pair opposed by its
     motions before the nuisances are projected out stays opposed."""
-    from keyshape.retarget.poses import nuisance_motions, opposed_pairs
+    from keyshape.retarget.rig.poses import nuisance_motions, opposed_pairs
     rng = np.random.default_rng(7)
     pts = rng.normal(size=(12, 2))
     narrow = (-pts * [1.0, 0.0]).ravel()                        # corners in
@@ -606,8 +606,8 @@ def test_ict_antagonists_and_eye_shapes_of_the_real_rig(shared_data):
     """On ICT-FaceKit: browDown/browOuterUp and mouthLeft/mouthRight are opposed pairs; eyeWide,
     eyeSquint and cheekSquint drive the eyes (a third of eyeBlink's lid motion, far below jawOpen's);
     jawForward, invisible from the front, drives nothing."""
-    from keyshape.retarget.poses import landmark_motion, opposed_pairs
-    from keyshape.retarget.rig import rig_landmarks
+    from keyshape.retarget.rig.poses import landmark_motion, opposed_pairs
+    from keyshape.retarget.rig.model import rig_landmarks
     from keyshape.decompose.regions import available_regions, region_points
     rig = load_rig(shared_data / "ict-facekit", with_mesh=False)
     W, _ = rig_landmarks(rig, "contours48")
@@ -631,7 +631,7 @@ def test_preview_compare_panel_crop_and_head_turn(tmp_path):
     the conventions of retarget's head columns)."""
     from keyshape.base.formats.video import video_info
     from keyshape.base.formats.weights import write_weights
-    from keyshape.retarget.preview import face_crop, head_rotations
+    from keyshape.retarget.output.preview import face_crop, head_rotations
     rig, c = _preview_inputs(tmp_path, 20, (320, 240))
     write_weights(tmp_path / "m.csv", np.arange(20), list(SHAPES), c[::-1])
     base = ["preview", str(tmp_path / "v.mp4"), "--tracks", str(tmp_path / "t.csv"), "--curves",
@@ -661,8 +661,8 @@ def test_preview_compare_panel_crop_and_head_turn(tmp_path):
 
 
 def test_rig_renderer_turns_with_the_head(tmp_path):
-    from keyshape.retarget.preview import RigRenderer, head_rotations
-    from keyshape.retarget.rig import Rig
+    from keyshape.retarget.output.preview import RigRenderer, head_rotations
+    from keyshape.retarget.rig.model import Rig
     # a box's front face and a side face: a yaw towards +x shows less of the front and more of the side
     v = np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1], [1, 0, 1], [1, 0, 0], [1, 1, 0], [1, 1, 1]], float)
     rig = Rig(["none"], v, np.zeros((1, 8, 3)), Mesh(v, [np.array([0, 1, 2, 3]), np.array([4, 5, 6, 7])]))

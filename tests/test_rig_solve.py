@@ -1,4 +1,4 @@
-"""The per-frame rig solve (retarget/solve.py, ``keyshape solve``): ground truth from the rig's own landmarks."""
+"""The per-frame rig solve (retarget/rig/solve.py, ``keyshape solve``): ground truth from the rig's own landmarks."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,8 +10,8 @@ from keyshape.cli import main
 from keyshape.decompose.regions import available_regions, region_points
 from keyshape.decompose.take import Take
 from keyshape.retarget.defaults import SolveOptions
-from keyshape.retarget.rig import load_rig, project, rig_landmarks, shape_regions
-from keyshape.retarget.solve import (HeadParallax, RigLandmarks, RigSolver, _box_lsq, brow_calibration, contour_measures,
+from keyshape.retarget.rig.model import load_rig, project, rig_landmarks, shape_regions
+from keyshape.retarget.rig.solve import (HeadParallax, RigLandmarks, RigSolver, _box_lsq, brow_calibration, contour_measures,
                                      eye_calibration, eye_width_motions,
                                      mirror_pairs, mirror_partners, pitch_parallax, pose_override,
                                      symmetric_offsets, yaw_slide, yaw_stretch)
@@ -378,7 +378,7 @@ def test_gaze_pupil_deltas_turn_the_pupils_as_the_eye_angles_read_them(shared_da
     read back: 25 degrees down, 30 sideways), the other pupil and every other point stay; the mirror pairs
     cross the horizontal gaze shapes (a look to one side is one eye's Out and the other's In)."""
     from keyshape.decompose.gaze import gaze_angles
-    from keyshape.retarget.rig import gaze_pupil_deltas
+    from keyshape.retarget.rig.model import gaze_pupil_deltas
     rig, ln, ld, _ = _ict(shared_data)
     names = rig.names
     gd = gaze_pupil_deltas(ln, ld, names, SCHEME)
@@ -400,8 +400,8 @@ def test_gaze_lids_tell_a_look_down_from_a_blink(shared_data):
     0.80/0.83, p95 0.26-0.33 where the truth's is 0-0.06). With the pupils and the gaze shapes in the region
     (each at most what the pupils show, held half a second) the blinks come back and the looks stay looks."""
     from keyshape.decompose.gaze import gaze_angles
-    from keyshape.retarget.rig import gaze_pupil_deltas
-    from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region
+    from keyshape.retarget.rig.model import gaze_pupil_deltas
+    from keyshape.retarget.rig.solve import gaze_ceiling, gaze_in_eye_region
     rig, ln, ld, rs = _ict(shared_data)
     names = rig.names
     n = 300
@@ -459,7 +459,7 @@ def _face_turned(R: np.ndarray, seed: int, rest: int = 7) -> tuple[np.ndarray, n
     """Face-like 3D points (four eye corners at about one depth, twelve mouth points in front of and below them)
     turned by the rotations ``R`` (T, 3, 3), seen from the front (orthographic, image axes) and stabilised as the
     chain does (each frame's similarity on the eye corners onto frame ``rest``'s): ``(points X, stabilised)``."""
-    from keyshape.retarget.poses import fit_similarity
+    from keyshape.retarget.rig.poses import fit_similarity
     rng = np.random.default_rng(seed)
     corners = np.array([[-4.5, 0.0, 0.0], [-1.8, 0.0, 0.4], [1.8, 0.0, 0.4], [4.5, 0.0, 0.0]])
     mouth = np.column_stack([rng.uniform(-2.5, 2.5, 12), rng.uniform(-7.0, -5.0, 12), rng.uniform(1.0, 3.0, 12)])
@@ -638,7 +638,7 @@ def test_rigid_frame_deltas_hold_the_rigid_points_height(seed):
     """A shape's motion made of an expression that leaves the rigid points' mean height alone plus a lift of
     the whole face: the expression comes back exactly (its own sideways and rotating motion kept); the rigid
     points' mean height then stays still; no rigid points: the motion as given."""
-    from keyshape.retarget.solve import rigid_frame_deltas
+    from keyshape.retarget.rig.solve import rigid_frame_deltas
     rng = np.random.default_rng(seed)
     P = rng.normal(size=(48, 2))
     rigid = list(SCHEME.rigid)
@@ -704,8 +704,8 @@ def test_gaze_lids_pupils_in_the_skulls_frame_do_not_read_parallax_as_blinks(sha
     pupils, fixed in its skull, do rise with its blinks here."""
     from keyshape.decompose.gaze import gaze_angles
     from keyshape.decompose.stabilize import RigidStabilizer
-    from keyshape.retarget.rig import gaze_pupil_deltas
-    from keyshape.retarget.solve import gaze_ceiling, gaze_in_eye_region
+    from keyshape.retarget.rig.model import gaze_pupil_deltas
+    from keyshape.retarget.rig.solve import gaze_ceiling, gaze_in_eye_region
     rig, ln, ld, rs = _ict(shared_data)
     names = rig.names
     n = 300

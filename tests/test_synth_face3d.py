@@ -96,7 +96,7 @@ def test_head_angle_signs(sv):
 def test_nose_truth_is_the_ibug68_vertices(sv):
     """The truth's nose points (contours48+nose) are the posed mesh's vertices of iBUG-68 points 27, 30, 31, 33,
     35 (the rig landmark correspondence), projected."""
-    from keyshape.retarget.rig import Rig, rig_landmarks
+    from keyshape.retarget.rig.model import Rig, rig_landmarks
     h = sv.head
     W68, _ = rig_landmarks(Rig(h.names, h.neutral, np.zeros((0, len(h.neutral), 3)), h.mesh), "ibug68")
     tr = sv.tracks()
@@ -185,7 +185,7 @@ def test_performance_ranges(sv):
 
 def test_cli_writes_the_take(facekit, tmp_path):
     """60 frames at 320x240 in a few seconds: every file, the curves in the rig's layout, labels = truth."""
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
     out = tmp_path / "take"
     t0 = time.perf_counter()
     assert main(["synth", "face3d", str(out), "--rig", str(facekit), "--frames", "60", "--size", "320x240",

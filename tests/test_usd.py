@@ -82,10 +82,10 @@ def _head(n):
                                                  ("absolute", True, ".usd")])
 def test_sculpted_targets_evaluated_by_usdskel_equal_keyshape(scene, form, regions, suffix):
     tmp, d, m, cols, w, frames = scene
-    from keyshape.retarget.export import export
-    from keyshape.retarget.retargeter import Retargeter
+    from keyshape.retarget.output.export import export
+    from keyshape.retarget.targets.retargeter import Retargeter
     from keyshape.base.geometry import vertex_normals
-    from keyshape.retarget.targets import load_targets
+    from keyshape.retarget.targets.target_set import load_targets
     ts = load_targets(list(cols), d)
     reg = {"mouth": np.arange(0, 18), "eyes": np.arange(17, 35)} if regions else None
     rt = Retargeter(form=form).fit(ts, reg)
@@ -147,8 +147,8 @@ def _toy_rig():
 
 def test_rig_usd_holds_the_moving_shapes_under_the_rig_names(tmp_path):
     from keyshape.base.formats.obj import Mesh
-    from keyshape.retarget.rig import Rig
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.rig.model import Rig
+    from keyshape.retarget.output.rig_export import export_rig
     trp = _toy_rig()
     verts, deltas = trp.toy_rig_arrays()
     polys = [np.array([i, i + 1, 48]) for i in range(0, 47)]
@@ -165,8 +165,8 @@ def test_rig_usd_holds_the_moving_shapes_under_the_rig_names(tmp_path):
 
 @pytest.mark.shared_data
 def test_ict_facekit_rig_usd_evaluated_by_usdskel_equals_the_rig(shared_data, tmp_path):
-    from keyshape.retarget.rig import load_rig
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.rig.model import load_rig
+    from keyshape.retarget.output.rig_export import export_rig
     rig = load_rig(shared_data / "ict-facekit")
     rng = np.random.default_rng(7)
     n = 30

@@ -1,7 +1,7 @@
 """The safety rules and plumbing shared by keyshape's small local web pages.
 
 ``keyshape label`` (correct landmark labels, :mod:`keyshape.tracker.labelling.server`) and
-``keyshape pose-edit`` (correct a pose library, :mod:`keyshape.retarget.pose_edit`) each serve
+``keyshape pose-edit`` (correct a pose library, :mod:`keyshape.retarget.rig.pose_edit`) each serve
 one static page and accept one kind of JSON write. Both rest on the rules here:
 
 * the server binds to ``127.0.0.1`` only, and the handler also refuses (403) any peer that is

@@ -1,5 +1,5 @@
 """A small vectorised z-buffer rasteriser (numpy only): the synthetic 3D head (:mod:`keyshape.data_synth.face3d`)
-and the triangles a rig preview can ever show (:class:`keyshape.retarget.preview.RigRenderer`).
+and the triangles a rig preview can ever show (:class:`keyshape.retarget.output.preview.RigRenderer`).
 
 Per triangle the covered pixel rows, per row the covered span of pixel centres (where all three
 barycentric weights, affine in the pixel, are >= 0), then every pixel of every span at once

@@ -15,7 +15,7 @@ Written with pygltflib. Layout (the conventions of glTF 2.0 morph targets):
 
 Weights above 1: glTF allows any real weight and readers apply them as given, so
 they are **kept** by default (an NNLS weight of 1.2 means "20% past the key
-shape"); :func:`retarget.export.morph_targets` can clamp them to [0, 1] (what
+shape"); :func:`retarget.output.export.morph_targets` can clamp them to [0, 1] (what
 ARKit-style consumers expect) and reports how many values changed.
 """
 from __future__ import annotations
@@ -259,7 +259,7 @@ def write_glb(path: str | Path, base: np.ndarray, triangles: np.ndarray, deltas:
         moves, beyond :data:`SPARSE_POSITION_TOL` of the mesh's size), as for a rig whose shapes each
         move a part of the head
 
-    See :func:`retarget.export.morph_targets` for how target shapes, regions and the
+    See :func:`retarget.output.export.morph_targets` for how target shapes, regions and the
     absolute form become glTF deltas and weights exactly.
     """
     gltf = _build_gltf(base, triangles, deltas, names, weights, fps, head, default_weights, uvs, normals,

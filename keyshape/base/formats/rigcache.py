@@ -2,7 +2,7 @@
 
 Parsing ICT-FaceKit's 54 OBJ files (26,719 vertices each) takes seconds; reading this file takes
 a few hundredths. One file per rig, named by a sha256 over the content of the rig's files (see
-:func:`keyshape.retarget.rig.load_rig`), so an edited shape is a different file and a stale
+:func:`keyshape.retarget.rig.model.load_rig`), so an edited shape is a different file and a stale
 cache is never read. Layout (``np.savez``, no pickles)::
 
     format      "keyshape-rig-cache", version 1

@@ -56,18 +56,18 @@ def landmark_entries(W: np.ndarray) -> list:
 def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: str | Path | None,
                       say: Callable[[str], None] = print) -> str | Path | None:
     """The landmark file a command uses on ``rig``: ``landmarks`` as given, or the shipped one, or, for a rig
-    with neither, the landmarks found on it (:func:`keyshape.retarget.rig.found_landmarks`), written
+    with neither, the landmarks found on it (:func:`keyshape.retarget.rig.model.found_landmarks`), written
     beside ``output`` (:func:`landmarks_beside`) and said in one line. What the landmarks imply for the
     gaze (a rig without eyeballs) is said in one more line.
 
     Raises :class:`~keyshape.base.errors.InputError` (one line, naming the file) for a file that is wrong.
     """
     from keyshape.base.formats.poses import read_landmark_list, write_rig_landmarks
-    from keyshape.retarget.rig import default_landmarks, found_landmarks, rig_landmarks
+    from keyshape.retarget.rig.model import default_landmarks, found_landmarks, rig_landmarks
     if landmarks is not None:
         rig_landmarks(rig, scheme, landmarks)                       # refused here, before the work
         if read_landmark_list(landmarks) is not None and scheme == "contours48":
-            from keyshape.retarget.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
+            from keyshape.retarget.rig.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
             W68 = one_hot(read_landmark_list(landmarks), rig.n_vertices)
             for note in contours48_from_ibug68(W68, rig.neutral, still_vertices(
                     rig.deltas, rig.names, eye_width(W68, rig.neutral))).notes:
@@ -90,8 +90,8 @@ def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: st
 def check_sheet(rig, W: np.ndarray, scheme, size: int = SHEET_PANEL) -> np.ndarray:
     """The check sheet (BGR): the rig in each of :data:`PANELS` that it has the shapes for, its landmarks drawn."""
     from keyshape.base.draw import contact_sheet
-    from keyshape.retarget.preview import RigRenderer
-    from keyshape.retarget.targets import name_key
+    from keyshape.retarget.output.preview import RigRenderer
+    from keyshape.retarget.targets.target_set import name_key
     keys = [name_key(n) for n in rig.names]
     rows, captions = [], []
     for caption, mix in PANELS:
@@ -113,7 +113,7 @@ def run(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_write, check_output
     from keyshape.base.schemes import load_scheme
-    from keyshape.retarget.rig import load_rig, rig_landmarks
+    from keyshape.retarget.rig.model import load_rig, rig_landmarks
 
     if Path(args.output).suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise InputError("the sheet must be a .png or .jpg", args.output)

@@ -37,7 +37,7 @@ def _curves_on_rig(path, rig):
 
     from keyshape.base.errors import InputError
     from keyshape.base.formats.weights import read_weights
-    from keyshape.retarget.preview import head_rotations
+    from keyshape.retarget.output.preview import head_rotations
 
     frames, names, c, _ = read_weights(path)
     curves = np.zeros((len(frames), rig.n_shapes))
@@ -56,7 +56,7 @@ def run(args) -> int:
 
     from keyshape.base.errors import InputError
     from keyshape.base.formats.tracks import read_tracks
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
 
     _check_outputs(args.output, args.sheet, size=args.size)
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
@@ -111,10 +111,10 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     ----------
     frame_numbers : the curves' frame numbers; ``frames``: the range to render, ``"A:B"`` (B exclusive;
         default all)
-    head : (n_frames, 3, 3) head rotations the rig is turned by (:func:`~keyshape.retarget.preview.head_rotations`)
+    head : (n_frames, 3, 3) head rotations the rig is turned by (:func:`~keyshape.retarget.output.preview.head_rotations`)
     compare : ``(curves, head rotations or None)`` of a second set of curves for a third panel
     crop : ``"face"``: the footage cut to a steady square around the tracked face and the rig framed
-        on the same face box (:func:`~keyshape.retarget.preview.face_crop`); ``"full"``: the whole frame
+        on the same face box (:func:`~keyshape.retarget.output.preview.face_crop`); ``"full"``: the whole frame
     contours : draw the rig's own scheme contours over it (None: where its landmarks are known);
         ``landmarks``: the rig landmark JSON (default: the shipped one for ICT-FaceKit rigs)
     captions : one per panel ('' or missing: none)
@@ -133,9 +133,9 @@ def write_preview(video, tracks, rig, frame_numbers, curves, output=None, *, she
     from keyshape.base.formats.video import VideoReader
     from keyshape.base.progress import Progress
     from keyshape.base.schemes import scheme_for_n_points
-    from keyshape.retarget.preview import (RigRenderer, actor_panel, caption, face_crop, ordered_map, panel_row,
+    from keyshape.retarget.output.preview import (RigRenderer, actor_panel, caption, face_crop, ordered_map, panel_row,
                                            parse_frames)
-    from keyshape.retarget.rig import default_landmarks, rig_landmarks
+    from keyshape.retarget.rig.model import default_landmarks, rig_landmarks
 
     _check_outputs(output, sheet, sheet_frames, size)
     if crop not in ("face", "full"):

@@ -3,7 +3,7 @@
 ``keyshape pose ... --edit`` (after fitting) or ``keyshape pose-edit POSES.json --rig RIG``
 serves, on 127.0.0.1 only, a page listing every key of every region: the actor's key
 contour over the actor's neutral (from KEYS.json, when it can be found), the rig rendered
-in the key's pose (:class:`~keyshape.retarget.preview.RigRenderer`), and one slider per
+in the key's pose (:class:`~keyshape.retarget.output.preview.RigRenderer`), and one slider per
 rig shape of the key's region. A slider change is sent as ``PUT /api/poses/<key>`` with
 ``{"pose": {shape: weight}}``; the server checks it (the key exists, every shape is one
 of its region's shapes, every weight a finite number within the rig's range) and rewrites
@@ -123,7 +123,7 @@ class PoseServer(LocalServer):
     Parameters
     ----------
     poses : path of the POSES.json to correct (read and checked against the rig's shapes)
-    rig : :class:`~keyshape.retarget.rig.Rig`, with its mesh for the rendered preview
+    rig : :class:`~keyshape.retarget.rig.model.Rig`, with its mesh for the rendered preview
     keys : KEYS.json the library came from (default: its ``keys.file`` when that exists);
         gives the actor's key contours shown beside each pose
     port : TCP port on 127.0.0.1 (0: any free port; see :attr:`port`)
@@ -142,7 +142,7 @@ class PoseServer(LocalServer):
         self.actor = self._actor_shapes(keys)
         self.renderer = None
         if rig.mesh is not None and rig.mesh.polygons:
-            from keyshape.retarget.preview import RigRenderer
+            from keyshape.retarget.output.preview import RigRenderer
             self.renderer = RigRenderer(rig, (size, size)).fit(np.eye(rig.n_shapes))
         self._index = {n: j for j, n in enumerate(rig.names)}
         super().__init__(port, PoseHandler)

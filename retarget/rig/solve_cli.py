@@ -57,8 +57,8 @@ def run(args) -> int:
     from keyshape.decompose.take import Take
     from keyshape.retarget.api import solve_rig
     from keyshape.retarget.defaults import SolveOptions
-    from keyshape.retarget.rig import load_rig
-    from keyshape.retarget.rig_export import export_rig
+    from keyshape.retarget.rig.model import load_rig
+    from keyshape.retarget.output.rig_export import export_rig
 
     if bool(args.poses) != bool(args.weights):
         raise InputError("--poses and --weights go together (the artist's pose library and the key weights)")
@@ -73,7 +73,7 @@ def run(args) -> int:
                          args.tracks)
     needs_mesh = not str(args.output).lower().endswith(".csv")
     rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
-    from keyshape.retarget.landmarks_cli import resolve_landmarks
+    from keyshape.retarget.rig.landmarks_cli import resolve_landmarks
     args.landmarks = resolve_landmarks(rig, scheme_name, args.landmarks, args.output)
     report: dict = {}
     curves, head, fps, eyes = solve_rig(Take.fit(tracks, args.tracks), regions, scheme_name,
@@ -92,7 +92,7 @@ def run(args) -> int:
 
 
 def calibration_lines(report: dict) -> list[str]:
-    """What the solve's calibrations did (:meth:`keyshape.retarget.solve.RigSolver.fit`'s ``report``), for the
+    """What the solve's calibrations did (:meth:`keyshape.retarget.rig.solve.RigSolver.fit`'s ``report``), for the
     animator: each eye's deepest closure and how far its lids' travel was scaled, the brow shapes' scales."""
     lines = [e.describe() for e in report.get("eyes", [])]
     brows = report.get("brows", {})

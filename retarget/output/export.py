@@ -21,8 +21,8 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
 from keyshape.retarget.headpose import HeadMotion
-from keyshape.retarget.retargeter import Retargeter
-from keyshape.retarget.targets import name_key
+from keyshape.retarget.targets.retargeter import Retargeter
+from keyshape.retarget.targets.target_set import name_key
 from keyshape.base.formats.weights import write_weights
 # the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
 from keyshape.base.formats.livelink import ARKIT52, LIVELINK_TAIL, csv_rows  # noqa: F401
@@ -200,7 +200,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
 
     Parameters
     ----------
-    rt : fitted :class:`~retarget.retargeter.Retargeter`
+    rt : fitted :class:`~retarget.targets.retargeter.Retargeter`
     frames : (n_frames,) frame numbers; weights : (n_frames, n_keys)
     fps : frame rate of the animation (glTF sampler times ``i / fps``, Live Link timecode)
     head : root motion (glTF node animation; baked into OBJ/PNG/video frames only with ``options.bake_head``)
@@ -229,7 +229,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         if len(tri) == 0:
             raise InputError("the target meshes have no faces: .glb needs faces", ts.files[0])
         from keyshape.base.geometry import vertex_normals
-        from keyshape.retarget.rig import material_parts
+        from keyshape.retarget.rig.model import material_parts
         mt = ts.mesh.triangles
         n0 = vertex_normals(base, mt)
         nd = np.stack([vertex_normals(base + d, mt) - n0 for d in deltas]) if len(deltas) else None
@@ -263,7 +263,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
                 wr.writerow(header)
                 wr.writerows(rows)
         else:
-            from keyshape.retarget.retargeter import _unique
+            from keyshape.retarget.targets.retargeter import _unique
             write_weights(path, frames, _unique(names, ts.columns), w, fps=fps)
         return info
     out = rt.transform(weights, chunk_frames=chunk_frames)
@@ -280,7 +280,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
         pts = _head_2d(out, head) if (head is not None and bake_head) else out
         images = _draw_2d(pts, size, _scheme_for(ts.n_vertices, scheme))
     else:
-        from keyshape.retarget.render import render_frames
+        from keyshape.retarget.output.render import render_frames
         verts = head.apply(out) if (head is not None and bake_head) else out
         images = render_frames(verts, ts.mesh.triangles, size)
     if kind == "png_frames":

@@ -12,19 +12,19 @@ from typing import Sequence
 import numpy as np
 
 from keyshape.base.errors import InputError, NotFittedError
-from keyshape.retarget.blend import BlendBasis, _check_weights, mesh_edges, region_weights
-from keyshape.retarget.targets import TargetSet, key_regions
+from keyshape.retarget.targets.blend import BlendBasis, _check_weights, mesh_edges, region_weights
+from keyshape.retarget.targets.target_set import TargetSet, key_regions
 
 
 class Retargeter:
-    """Blend a :class:`~retarget.targets.TargetSet` with per-frame key-shape weights.
+    """Blend a :class:`~retarget.targets.target_set.TargetSet` with per-frame key-shape weights.
 
     Parameters
     ----------
     form : {"auto", "absolute", "delta"}
         ``sum_i w_i B_i`` (the paper's literal Eq. 2) or ``N + sum_i w_i (B_i - N)``; "auto"
         (default) is "delta" when the targets have a neutral, else "absolute" (see
-        :mod:`keyshape.retarget.blend`: use the form the weights were fitted in).
+        :mod:`keyshape.retarget.targets.blend`: use the form the weights were fitted in).
     band : float or None
         Width of the region blending band in mesh units (default: 10% of the mesh's
         bounding-box diagonal).
@@ -49,7 +49,7 @@ class Retargeter:
 
     def fit(self, targets: TargetSet, regions: dict[str, np.ndarray] | None = None,
             regions_source: str = "regions") -> "Retargeter":
-        """Precompute the blend basis (regions folded in, see :class:`~retarget.blend.BlendBasis`)."""
+        """Precompute the blend basis (regions folded in, see :class:`~retarget.targets.blend.BlendBasis`)."""
         self.targets_ = targets
         self.region_names_ = self.key_regions_ = self.region_weights_ = None
         if regions:

@@ -51,7 +51,7 @@ class BlendBasis:
     ----------
     form : {"auto", "absolute", "delta"}
         See the module docstring; "delta" needs a neutral; "auto" (default, as
-        :class:`~keyshape.retarget.retargeter.Retargeter`) is "delta" when ``fit`` is given a
+        :class:`~keyshape.retarget.targets.retargeter.Retargeter`) is "delta" when ``fit`` is given a
         neutral, else "absolute".
     dtype : numpy dtype
         Dtype of the stored basis and of the output (float32 halves memory; the
@@ -160,7 +160,7 @@ def blend(weights: np.ndarray, targets: np.ndarray, neutral: np.ndarray | None =
     """Blend ``targets`` (n_keys, n_vertices, dim) with ``weights`` (n_frames, n_keys) in one product.
 
     ``form`` is "absolute", "delta" (needs ``neutral``) or "auto" (default: delta when
-    ``neutral`` is given, else absolute, as :class:`~keyshape.retarget.retargeter.Retargeter`);
+    ``neutral`` is given, else absolute, as :class:`~keyshape.retarget.targets.retargeter.Retargeter`);
     see the module docstring.
 
     Examples

@@ -29,8 +29,8 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.render import OrthoCamera
-from keyshape.retarget.rig import Rig, material_parts
+from keyshape.retarget.output.render import OrthoCamera
+from keyshape.retarget.rig.model import Rig, material_parts
 
 
 #: Drawing layers by material-name keyword (painter's order: lower first), so that the inner parts
@@ -61,7 +61,7 @@ class RigRenderer:
     vertices : optional vertex subset to frame the camera on (default: the face skin for an
         ICT-FaceKit rig, else all vertices)
     landmarks : optional ``(W, scheme)``: the (n_points, n_vertices) matrix taking the rig's vertices
-        to a landmark scheme's points (:func:`~keyshape.retarget.rig.rig_landmarks`) and the scheme;
+        to a landmark scheme's points (:func:`~keyshape.retarget.rig.model.rig_landmarks`) and the scheme;
         its contours (lids, brows, lips) are drawn over the shaded rig, in the colours of the actor's
         contours, so lids and brows read at a glance and compare with the actor's
     cull_hidden : drop, in :meth:`fit`, the triangles that no sampled frame of the curves shows
@@ -101,7 +101,7 @@ class RigRenderer:
         triangles that any of the extreme ones turns towards the camera are kept for drawing. When
         there is one per row of ``curves`` (row i's turn), ``cull_hidden`` samples the frames turned.
         """
-        from keyshape.retarget.rig import ICT_FACE_SKIN, ICT_N_VERTICES
+        from keyshape.retarget.rig.model import ICT_FACE_SKIN, ICT_N_VERTICES
         vsel = self.vertices
         if vsel is None and self.rig.n_vertices == ICT_N_VERTICES:
             vsel = np.arange(ICT_FACE_SKIN)
@@ -391,7 +391,7 @@ def caption(img: np.ndarray, text: str) -> np.ndarray:
 
 def panel_row(panels: list[np.ndarray]) -> np.ndarray:
     """Panels side by side (each scaled to the first one's height), separated by a thin gap."""
-    from keyshape.retarget.render import side_by_side
+    from keyshape.retarget.output.render import side_by_side
     out = panels[0]
     for p in panels[1:]:
         out = side_by_side(out, p)

@@ -21,9 +21,9 @@ import numpy as np
 
 from keyshape.base.errors import InputError, require_file
 from keyshape.base.formats.obj import Mesh
-from keyshape.retarget.targets import TargetSet, name_key
+from keyshape.retarget.targets.target_set import TargetSet, name_key
 
-DATA = Path(__file__).parent / "data" / "ict_face.npz"
+DATA = Path(__file__).parents[1] / "data" / "ict_face.npz"
 
 
 @dataclass
@@ -93,7 +93,7 @@ LANDMARK_REGIONS = {"mouth": list(range(48, 68)), "eyes": list(range(17, 27)) + 
 def demo_regions(expressions: ExpressionSet | None = None, names: Sequence[str] = ("mouth", "eyes")) \
         -> dict[str, np.ndarray]:
     """Region vertex groups on the shipped face (decompose's region names), from its 68 landmark vertices:
-    ready for :meth:`retarget.retargeter.Retargeter.fit` (``regions=``)."""
+    ready for :meth:`retarget.targets.retargeter.Retargeter.fit` (``regions=``)."""
     ex = load_expressions() if expressions is None else expressions
     if len(ex.landmarks) != 68:
         raise InputError("this expression set has no 68 landmark vertices")

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from keyshape.base.errors import InputError
-from keyshape.retarget.rig import mirror_pairs
+from keyshape.retarget.rig.model import mirror_pairs
 
 
 def fit_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -62,7 +62,7 @@ def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float =
     free : (m, k) nuisance motions, projected out of the columns first (what the fit ignores)
     cosine : pairs whose motions' cosine is below this are opposed (ARKit's browDown and browOuterUp
         of one side: -0.75; mouthLeft and mouthRight: -0.89; jawOpen and mouthClose: -0.99)
-    mirrored : mirror-image pairs (:func:`~keyshape.retarget.rig.mirror_pairs`) that are opposed when their
+    mirrored : mirror-image pairs (:func:`~keyshape.retarget.rig.model.mirror_pairs`) that are opposed when their
         motions *before* the nuisances are projected out have a cosine below ``cosine``: a sideways
         pair (mouthLeft and mouthRight) opposes by its translation, which a free translation hides;
         both at once is then a narrowing of the lips no artist sculpts (on the synthetic take of
@@ -92,7 +92,7 @@ def opposed_pairs(A: np.ndarray, free: np.ndarray | None = None, cosine: float =
 
 def mirror_differences(mirrored: Sequence[tuple[int, int]], n: int) -> np.ndarray:
     """(len(mirrored), n) rows ``e_i - e_j`` of the mirrored pairs: ``|S p|^2 = sum (p_i - p_j)^2``, the
-    left-right prior of :func:`fit_pose` and of ``keyshape solve`` (:class:`~keyshape.retarget.solve.RigSolver`)."""
+    left-right prior of :func:`fit_pose` and of ``keyshape solve`` (:class:`~keyshape.retarget.rig.solve.RigSolver`)."""
     S = np.zeros((len(mirrored), n))
     for r, (i, j) in enumerate(mirrored):
         S[r, i], S[r, j] = 1.0, -1.0
@@ -128,8 +128,8 @@ def fit_pose(A: np.ndarray, b: np.ndarray, bounds: tuple[float, float] = (0.0, 1
         mean squared column norm of ``A / scale``, so the prior does not depend on units): a face is
         near symmetric, and a 2D fit can trade one side's shape for the other's neighbours (a smile
         fitted as mouthSmile_L with mouthStretch_R). The same prior as ``keyshape solve``'s
-        (:class:`~keyshape.retarget.solve.RigSolver`); a one-sided key still fits one-sided
-    mirrored : mirror-image shape pairs (:func:`~keyshape.retarget.rig.mirror_pairs`)
+        (:class:`~keyshape.retarget.rig.solve.RigSolver`); a one-sided key still fits one-sided
+    mirrored : mirror-image shape pairs (:func:`~keyshape.retarget.rig.model.mirror_pairs`)
 
     Returns
     -------
@@ -291,9 +291,9 @@ def pose_library(regions, shape_names: Sequence[str], landmark_neutral: np.ndarr
     regions : list of :class:`~keyshape.decompose.regions.RegionKeys` (model frame), each with ``rest``
         (the actor's neutral; the region's ``neutral`` is used when it has none)
     shape_names : the rig's shape names
-    landmark_neutral : (n_points, 2) the rig's neutral scheme points, projected (:func:`~keyshape.retarget.rig.project`)
+    landmark_neutral : (n_points, 2) the rig's neutral scheme points, projected (:func:`~keyshape.retarget.rig.model.project`)
     landmark_deltas : (n_shapes, n_points, 2) projected motion of the scheme points per rig shape
-    region_shapes : {region: indices of the rig shapes it may drive} (:func:`~keyshape.retarget.rig.shape_regions`)
+    region_shapes : {region: indices of the rig shapes it may drive} (:func:`~keyshape.retarget.rig.model.shape_regions`)
     bounds, sparsity : see :func:`fit_pose`; the L1 scale is the region's largest key motion
     nuisance : "auto" (default), "translation", "similarity" or "none", or a dict of them per
         region: motions of each region's points fitted freely besides the rig shapes

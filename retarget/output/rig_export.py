@@ -22,7 +22,7 @@ import numpy as np
 from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir, atomic_write, run_overwrite_inputs
 from keyshape.retarget.headpose import HeadMotion
-from keyshape.retarget.rig import Rig
+from keyshape.retarget.rig.model import Rig
 
 #: frames evaluated (OBJ frames) or rendered (video) at a time: bounds the memory, not the output
 CHUNK_FRAMES = 64
@@ -34,14 +34,14 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     """Write rig curves (n_frames, n_shapes) to ``path``; returns ``{"kind", "path"}``. Nothing is left on error.
 
     ``meters_per_unit``: the rig's length unit in metres (USD ``metersPerUnit``; ICT-FaceKit: cm, 0.01).
-    With ``head`` the curves CSV gets the columns of :func:`~keyshape.retarget.export.head_columns`
+    With ``head`` the curves CSV gets the columns of :func:`~keyshape.retarget.output.export.head_columns`
     (``headYaw, headPitch, headRoll`` in degrees, ``headX, headY, headZ``), the Live Link CSV its
     HeadYaw/HeadPitch/HeadRoll and the .glb the head node's rotation and translation; ``eyes``
     (n_frames, 4: left yaw, left pitch, right yaw, right pitch, radians) go to the Live Link eye columns.
     A folder output follows the running command's ``--overwrite`` and inputs
     (:func:`~keyshape.base.files.run_overwrite_inputs`).
     """
-    from keyshape.retarget.export import HEAD_COLUMNS, head_columns, livelink_rows, output_kind
+    from keyshape.retarget.output.export import HEAD_COLUMNS, head_columns, livelink_rows, output_kind
     path = Path(path)
     curves = np.asarray(curves, dtype=np.float64)
     if curves.shape != (len(frames), rig.n_shapes):
@@ -70,7 +70,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
     if kind == "glb":
         from keyshape.base.formats.gltf import split_at_uv_seams, write_glb
         from keyshape.base.geometry import vertex_normals
-        from keyshape.retarget.rig import material_parts
+        from keyshape.retarget.rig.model import material_parts
         ids, uvs, tri = split_at_uv_seams(rig.mesh)
         mt = rig.mesh.triangles
         # only the shapes that move, each stored sparse (the vertices it moves): a shape at 0 throughout
@@ -85,7 +85,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
                   first_frame=int(frames[0]) if len(frames) else 0, sparse_targets=True)
         return info
     if kind == "usd":
-        from keyshape.retarget.export import write_usd_take
+        from keyshape.retarget.output.export import write_usd_take
         moving = np.flatnonzero(np.abs(curves).max(axis=0) > 0) if len(curves) else np.arange(0)
         info.update(write_usd_take(path, rig.mesh, rig.neutral, rig.deltas[moving], [rig.names[j] for j in moving],
                                    curves[:, moving], np.asarray(frames), fps, head, meters_per_unit))
@@ -99,7 +99,7 @@ def export_rig(path: str | Path, rig: Rig, frames: np.ndarray, curves: np.ndarra
         return info
     if kind == "video":
         from keyshape.base.formats.video import video_writer
-        from keyshape.retarget.preview import RigRenderer
+        from keyshape.retarget.output.preview import RigRenderer
         r = RigRenderer(rig, size=size).fit(curves)
         with video_writer(path, fps, size) as wr:
             for s in range(0, len(curves), CHUNK_FRAMES):

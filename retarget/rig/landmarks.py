@@ -193,7 +193,7 @@ def landmark_problem(points: np.ndarray, scheme, centroid: np.ndarray | None = N
     return None
 
 
-#: the rig shapes (ARKit/ICT name keys, :func:`keyshape.retarget.targets.name_key`) whose motion finds the
+#: the rig shapes (ARKit/ICT name keys, :func:`keyshape.retarget.targets.target_set.name_key`) whose motion finds the
 #: face: each feature is the sum of its shapes' deltas; the first three are required
 FEATURES = {"blink_left": ("eyeblinkleft",), "blink_right": ("eyeblinkright",), "jaw": ("jawopen",),
             "brows": ("browinnerup", "browinnerupleft", "browinnerupright"),
@@ -207,7 +207,7 @@ TELLING = ("jaw", "blink_left", "blink_right")
 
 def feature_deltas(deltas: np.ndarray, names: Sequence[str]) -> dict[str, np.ndarray]:
     """{feature: (n_vertices, 3) summed deltas} of the :data:`FEATURES` the rig has (by name, either spelling)."""
-    from keyshape.retarget.targets import name_key
+    from keyshape.retarget.targets.target_set import name_key
     keys = [name_key(n) for n in names]
     out = {}
     for f, wanted in FEATURES.items():
@@ -301,7 +301,7 @@ def _shared_motion(ref_deltas, ref_names, deltas, names, rot, n_dims):
     """Both faces' motion under every shape they share by name (gaze shapes aside), each shape's motion
     relative to its largest on its own face, the reference's turned into the rig's axes, reduced to
     their ``n_dims`` principal components: (n_ref, n_dims), (n_vertices, n_dims)."""
-    from keyshape.retarget.targets import name_key
+    from keyshape.retarget.targets.target_set import name_key
     rk = {name_key(n): j for j, n in enumerate(ref_names) if not n.lower().startswith("eyelook")}
     pairs = [(rk[name_key(n)], j) for j, n in enumerate(names) if name_key(n) in rk]
     a = np.concatenate([(ref_deltas[i] @ rot.T) / _motion_scale(ref_deltas[i]) for i, _ in pairs], 1)
@@ -373,7 +373,7 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     """The 68 iBUG points found on a rig with no correspondence, as (68, n_vertices) weight rows.
 
     ``reference``: a face with known iBUG-68 vertices and the same :data:`FEATURES` (the shipped
-    ICT-FaceKit subset, :func:`keyshape.retarget.demo_targets.load_expressions`).
+    ICT-FaceKit subset, :func:`keyshape.retarget.targets.demo.load_expressions`).
 
     0. With ``skin_only``, the rig's skin alone is used (:func:`skin_triangles`: its largest connected
        piece; eyeballs, teeth, the tongue and the eye shells, and their motion, are left out).

@@ -63,7 +63,7 @@ def run(args) -> int:
     from keyshape.base.formats.keys import read_keys, read_keys_head_pose, read_keys_source
     from keyshape.base.formats.poses import write_poses
     from keyshape.retarget.api import fit_poses
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.model import load_rig
 
     scheme_name, n_points, regions = read_keys(args.keys)
     t0 = time.perf_counter()
@@ -72,7 +72,7 @@ def run(args) -> int:
     n_keys = sum(len(rk.keys) for rk in regions)
     print(f"keyshape pose: {rig.n_shapes} shapes of {rig.n_vertices} vertices ({time.perf_counter() - t0:.1f} s); "
           f"fitting {n_keys} keys of {len(regions)} regions ...", flush=True)
-    from keyshape.retarget.landmarks_cli import resolve_landmarks
+    from keyshape.retarget.rig.landmarks_cli import resolve_landmarks
     args.landmarks = resolve_landmarks(rig, scheme_name, args.landmarks, args.output)
     t1 = time.perf_counter()
     data, fit = fit_poses(regions, scheme_name, rig, read_keys_head_pose(args.keys), args.landmarks)
@@ -105,15 +105,15 @@ def run(args) -> int:
               f"{describe_residual(fit[worst])}")
     print(f"wrote {Path(args.output)}")
     if args.edit:
-        from keyshape.retarget.pose_edit import serve
+        from keyshape.retarget.rig.pose_edit import serve
         serve(args.output, load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral),
               args.keys, args.port)
     return 0
 
 
 def run_edit(args) -> int:
-    from keyshape.retarget.pose_edit import serve
-    from keyshape.retarget.rig import load_rig
+    from keyshape.retarget.rig.pose_edit import serve
+    from keyshape.retarget.rig.model import load_rig
 
     from keyshape.base.errors import require_file
     require_file(args.poses, "pose library (POSES.json)")           # before the rig is loaded
