@@ -46,7 +46,7 @@ def searched_once():
     input. The commands given a rig that a test here has already searched (solve, rig-check) take the search's
     result without searching it again; the rigs that share a seed share its remeshing."""
     import keyshape.data_synth.remesh as remesh_mod
-    import keyshape.retarget.landmarks as landmarks_mod
+    import keyshape.retarget.rig.landmarks as landmarks_mod
     memo: dict = {}
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(landmarks_mod, "find_landmarks", _once(landmarks_mod.find_landmarks, memo))
