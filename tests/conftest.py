@@ -8,6 +8,13 @@ from pathlib import Path
 
 import pytest
 
+# BLAS at one thread for the whole run, in this process and in the processes the tests start (set before numpy
+# loads; a value the caller set is kept): the tests' problems are small, where OpenBLAS's threads mostly spin and
+# take the cores from each other and from the run's other processes. The package pins its own hot paths the same
+# way (tracker.fitting.single_threaded, decompose's threadpool_limits, the batch's workers).
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 

@@ -35,13 +35,28 @@ def _animate(take: Path, out: Path, *extra: str) -> int:
                  str(out / "preview.mp4"), "--work", str(out / "work"), *extra])
 
 
+@pytest.fixture(scope="module")
+def animated(take, tmp_path_factory) -> tuple[Path, str, str]:
+    """``keyshape animate``'s first run on the take (a new work folder): the output folder and what it printed
+    (stdout, stderr). test_a_rerun_reuses_what_did_not_change reruns in this folder and changes it: the tests
+    that only read it come before it."""
+    import contextlib
+    import io
+
+    a = tmp_path_factory.mktemp("animated") / "animate"
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        assert _animate(take, a) == 0
+    return a, out.getvalue(), err.getvalue()
+
+
 def _steps(err: str) -> dict:
     return {line.split("] ")[1].split(":")[0]: line.split(": ", 2)[2] for line in err.splitlines()
             if line.startswith("keyshape animate: [")}
 
 
-def test_animate_gives_the_chains_files(take, tmp_path, capsys):
-    foot, c, a = take / "foot", tmp_path / "chain", tmp_path / "animate"
+def test_animate_gives_the_chains_files(take, animated, tmp_path, capsys):
+    foot, c = take / "foot", tmp_path / "chain"
     c.mkdir()
     video, rig, lm = foot / "video.mp4", take / "rig", take / "rig_landmarks.json"
     assert main(["train", str(video), "--labels", str(foot / "labels"), "-o", str(c / "model.npz")]) == 0
@@ -53,8 +68,7 @@ def test_animate_gives_the_chains_files(take, tmp_path, capsys):
         assert main(["solve", str(c / "tracks.csv"), "--keys", str(c / "keys.json"), "--rig", str(rig),
                      "--landmarks", str(lm), *extra, "-o", str(c / name)]) == 0
         printed.append(capsys.readouterr().out)
-    assert _animate(take, a) == 0
-    out, err = capsys.readouterr()
+    a, out, err = animated
     for name in ("curves.csv", "livelink.csv", "rig.glb"):
         assert filecmp.cmp(c / name, a / name, shallow=False), name
     assert filecmp.cmp(c / "tracks.csv", a / "work" / "tracks.csv", shallow=False)
@@ -78,10 +92,8 @@ def test_animate_gives_the_chains_files(take, tmp_path, capsys):
     cap.release()
 
 
-def test_a_rerun_reuses_what_did_not_change(take, tmp_path, capsys):
-    a = tmp_path / "a"
-    assert _animate(take, a) == 0
-    capsys.readouterr()
+def test_a_rerun_reuses_what_did_not_change(take, animated, tmp_path, capsys):
+    a = animated[0]
     times = {p: p.stat().st_mtime_ns for p in [*a.glob("*.*"), *(a / "work").glob("*.*")] if p.name != "animate.json"}
     assert _animate(take, a) == 0
     steps = _steps(capsys.readouterr().err)

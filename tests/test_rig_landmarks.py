@@ -25,6 +25,35 @@ ARKIT = {"eyeBlink_L": "eyeBlinkLeft", "eyeBlink_R": "eyeBlinkRight", "mouthSmil
          "mouthSmile_R": "mouthSmileRight", "browInnerUp_L": "browInnerUp", "browInnerUp_R": "browInnerUp"}
 
 
+def _once(fn, memo: dict):
+    """``fn`` run once per distinct input (the pickled arguments: equal bytes, equal inputs), a copy of its first
+    result given back after that: for pure functions only."""
+    import copy
+    import hashlib
+    import pickle
+
+    def wrapper(*args, **kwargs):
+        key = hashlib.sha256(pickle.dumps((args, kwargs))).hexdigest()
+        if key not in memo:
+            memo[key] = fn(*args, **kwargs)
+        return copy.deepcopy(memo[key])
+    return wrapper
+
+
+@pytest.fixture(scope="module", autouse=True)
+def searched_once():
+    """The landmark search and the remeshing are pure functions of their inputs: in this module each runs once per
+    input. The commands given a rig that a test here has already searched (solve, rig-check) take the search's
+    result without searching it again; the rigs that share a seed share its remeshing."""
+    import keyshape.data_synth.remesh as remesh_mod
+    import keyshape.retarget.rig.landmarks as landmarks_mod
+    memo: dict = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(landmarks_mod, "find_landmarks", _once(landmarks_mod.find_landmarks, memo))
+        mp.setattr(remesh_mod, "remesh", _once(remesh_mod.remesh, memo))
+        yield memo
+
+
 @pytest.fixture(scope="module")
 def rigs(tmp_path_factory):
     """The remeshed rig (cm, Y-up), the same rig in metres and Z-up, another face (reshaped, restyled), a face
@@ -42,7 +71,8 @@ def rigs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def loaded(rigs):
-    return {k: load_rig(v["rig"], cache=False) for k, v in rigs.items()}
+    """The rigs loaded (parsed once into the test run's rig cache, which the commands then read)."""
+    return {k: load_rig(v["rig"]) for k, v in rigs.items()}
 
 
 # ---------------------------------------------------------------------------------------- iBUG-68 lists
@@ -280,7 +310,8 @@ def test_found_landmarks_on_ict_facekit_itself_are_the_shipped_ones(shared_data)
     assert np.array_equal(found.W[26:28], W[26:28])
 
 
-def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(rigs, tmp_path, capsys, monkeypatch):
+def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(rigs, loaded, tmp_path, capsys,
+                                                                              monkeypatch):
     import cv2
     r = rigs["m_zup"]
     monkeypatch.setattr("keyshape.retarget.rig.landmarks_cli.SHEET_PANEL", 160)
@@ -289,7 +320,7 @@ def test_rig_check_draws_the_found_landmarks_and_writes_them_beside_the_sheet(ri
     assert img.shape[1] > 4 * 160                                      # neutral, blink, jaw open, smile
     assert (tmp_path / "sheet.landmarks.json").is_file()
     assert "found one" in capsys.readouterr().out
-    rig = load_rig(r["rig"], cache=False, with_mesh=False)
+    rig = loaded["m_zup"]
     W, _ = rig_landmarks(rig, "contours48", tmp_path / "sheet.landmarks.json")
     _, truth = read_rig_landmarks(r["landmarks"])
     assert (np.linalg.norm((W - truth) @ rig.neutral, axis=1) / r["scale"]).max() < 0.2

@@ -144,13 +144,22 @@ def test_eye_calibration_maps_the_deepest_closure_onto_the_rigs_closed_eye():
     assert np.allclose(eye_calibration(SCHEME, pts, rest, two, rig_rest)[eye], 1.5)
 
 
+_ICT: dict = {}
+
+
 def _ict(shared_data):
-    rig = load_rig(shared_data / "ict-facekit", with_mesh=False)
-    W, _ = rig_landmarks(rig, "contours48")
-    ln = project(W @ rig.neutral)
-    ld = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
-    groups = {r: region_points(SCHEME, r) for r in available_regions(SCHEME)}
-    return rig, ln, ld, shape_regions(ld, groups, names=rig.names)
+    """ICT-FaceKit, its landmarks' rest and deltas in the front view and its shape regions: loaded once for the
+    module's tests, which share them (their arrays read-only)."""
+    if shared_data not in _ICT:
+        rig = load_rig(shared_data / "ict-facekit", with_mesh=False)
+        W, _ = rig_landmarks(rig, "contours48")
+        ln = project(W @ rig.neutral)
+        ld = project(np.einsum("pv,svc->spc", W, rig.deltas, optimize=True))
+        groups = {r: region_points(SCHEME, r) for r in available_regions(SCHEME)}
+        for a in (rig.neutral, rig.deltas, ln, ld):
+            a.setflags(write=False)
+        _ICT[shared_data] = rig, ln, ld, shape_regions(ld, groups, names=rig.names)
+    return _ICT[shared_data]
 
 
 def _performance(names, n=400, seed=0):
