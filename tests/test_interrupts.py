@@ -56,7 +56,7 @@ STRESS = textwrap.dedent("""
             stopped += 1
         armed[0] = False
         time.sleep(0.006)
-    time.sleep(0.3)                     # a closed producer notices within Handoff.poll (0.05 s)
+    time.sleep(0.3)                     # a closed producer is woken by close()
     left = [t.name for t in threading.enumerate() if t.name == "keyshape-decode"]
     print(stopped, len(left))
 """)
@@ -90,7 +90,7 @@ def test_handoff_keeps_order_and_its_bound():
 
 
 def test_handoff_close_releases_a_waiting_producer():
-    h = Handoff(1, poll=0.01)
+    h = Handoff(1, poll=60.0)           # woken by close() itself, not by its next poll a minute later
     assert h.put("a")
     got = []
     t = threading.Thread(target=lambda: got.append(h.put("b")))

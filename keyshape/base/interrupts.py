@@ -75,6 +75,8 @@ class Handoff:
                 self._free.get(timeout=self.poll)
             except queue.Empty:
                 continue
+            if self.closed:                     # woken by close()
+                return False
             self._items.put(item)
             return True
         return False
@@ -86,5 +88,6 @@ class Handoff:
         return item
 
     def close(self) -> None:
-        """Stop: a :meth:`put` waiting for room, and every later one, returns False."""
+        """Stop: a :meth:`put` waiting for room (woken at once), and every later one, returns False."""
         self.closed = True
+        self._free.put(None)
