@@ -26,7 +26,7 @@ import numpy as np
 
 from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
                                           warp_patch, warp_patch_u8)
-from keyshape.tracker.kernels import polish_step, read_global, refine_regions
+from keyshape.tracker.kernels import polish_step, read_global, refine_regions, refine_shape
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
@@ -300,6 +300,11 @@ class Tracker:
         # which read() takes instead of sampling it again (the same warp: the same uint8 values)
         self._polished: tuple | None = None
         m = model
+        lr = getattr(m, "lip_refiner_", None)
+        # the lips' shape fitted by analysis by synthesis after the reading (ShapeRefiner): its constant arrays,
+        # work arrays, and where its written points sit among its points
+        self._lips = None if lr is None else (lr, lr.tables(), lr.work(),
+                                              np.searchsorted(lr.points, lr.write))
         size = m.patch_size_
         n_pix = len(m.index_)
         mean = np.zeros(size * size)
@@ -497,7 +502,30 @@ class Tracker:
             hit, reg = self.read_regions(pyr, pose, patch)
             w = self.global_weight
             shape[hit] = reg if not w else (1.0 - w) * reg + w * shape[hit]
+        if self._lips is not None:
+            self.refine_lips(pyr, pose, shape)
         return shape, apply_affine(pose, shape), r
+
+    #: Gauss-Newton steps of the lips' shape fit a frame (each stops early once no parameter moves by 1e-3)
+    LIP_STEPS = 6
+
+    def refine_lips(self, pyr: Pyramid, pose: np.ndarray, shape: np.ndarray) -> None:
+        """Fit the lips' shape to the frame from the reading ``shape`` (model frame, updated in place: the
+        refiner's written points) by :func:`~keyshape.tracker.kernels.refine_shape` (the model's
+        :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`)."""
+        lr, tables, work, at = self._lips
+        s = shape[lr.points].ravel()
+        lvl = pyramid_level(pyr, pose)
+        f = 0.5 ** lvl
+        xy = apply_affine(pose, shape[lr.points]) * f + (0.5 * f - 0.5)
+        lo, hi = xy.min(0), xy.max(0)
+        pad = 0.6 * (hi - lo).max() + 4.0
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and pad < 1e6):
+            return
+        img = pyr.window(lvl, math.floor(lo[0] - pad), math.floor(lo[1] - pad), math.ceil(hi[0] + pad),
+                         math.ceil(hi[1] + pad))
+        refine_shape(img, f, pose.ravel(), s, tables, work, self.LIP_STEPS)
+        shape[lr.write] = s.reshape(-1, 2)[at]
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for

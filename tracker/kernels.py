@@ -584,3 +584,129 @@ def read_global(patch, reading, work):
             acc += basis[j, a] * c[a]
         shape[j] = acc
     return max(ee - 2.0 * cue + cgc, 0.0) / n, sd, m2 / k
+
+
+@njit(**_JIT)
+def _bilinear(img, x, y):
+    """Bilinear sample of ``img`` at ``(x, y)`` (float), the border replicated."""
+    H, W = img.shape
+    x = min(max(x, 0.0), W - 1.0)
+    y = min(max(y, 0.0), H - 1.0)
+    ix = min(int(x), W - 2) if W > 1 else 0
+    iy = min(int(y), H - 2) if H > 1 else 0
+    ax = x - ix
+    ay = y - iy
+    x1 = min(ix + 1, W - 1)
+    y1 = min(iy + 1, H - 1)
+    p00 = float(img[iy, ix])
+    p01 = float(img[iy, x1])
+    p10 = float(img[y1, ix])
+    p11 = float(img[y1, x1])
+    v0 = p00 + ax * (p01 - p00)
+    v1 = p10 + ax * (p11 - p10)
+    return v0 + ay * (v1 - v0)
+
+
+@njit(**_JIT)
+def sample_shape(img, f, pose, g, s, v, gx, gy, grad):
+    """Grey levels ``v`` (n_pix,) of a shape-normalised template: template pixel ``i`` lies at the model-frame
+    point ``sum_j g[i, j] s_j`` (``g`` (n_pix, m): piecewise-affine weights of the shape's ``m`` points ``s``,
+    flat ``(x0, y0, x1, ...)``), mapped to the image by ``pose`` (6,) and to pyramid level ``img`` by its
+    scale ``f`` (``x_l = f x + f/2 - 1/2``). With ``grad``, also the level's gradients there (central
+    differences half a pixel either side) in ``gx``, ``gy``."""
+    n, m = g.shape
+    a0, a1, a2, a3, a4, a5 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5]
+    d = 0.5 * f - 0.5
+    for i in range(n):
+        mx = 0.0
+        my = 0.0
+        for j in range(m):
+            mx += g[i, j] * s[2 * j]
+            my += g[i, j] * s[2 * j + 1]
+        x = f * (a0 * mx + a1 * my + a2) + d
+        y = f * (a3 * mx + a4 * my + a5) + d
+        v[i] = _bilinear(img, x, y)
+        if grad:
+            gx[i] = _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y)
+            gy[i] = _bilinear(img, x, y + 0.5) - _bilinear(img, x, y - 0.5)
+
+
+@njit(**_JIT)
+def refine_shape(img, f, pose, s, tables, work, n_iter):
+    """Fit a region's shape to the frame by analysis by synthesis (a project-out active appearance model,
+    forward additive Gauss-Newton): the shape ``s`` (flat model-frame points, updated in place) moves in its
+    subspace ``s0 + S p`` so that the normalised grey levels of its shape-normalised template
+    (:func:`sample_shape`) match the mean appearance ``a0`` up to the appearance basis (projected out
+    with ``qt``, which holds the ones too), under the Gaussian prior ``w p²`` (``w`` the pixel noise over
+    each shape component's variance). ``tables`` = ``(g, gsx, gsy, sb, s0, a0, qt, w)``: ``gsx = g S_x``,
+    ``gsy = g S_y`` (n_pix, k), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(v, gx, gy, e, jac, qe, qj,
+    hess, grad, p, dp)``. At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
+    g, gsx, gsy, sb, s0, a0, qt, w = tables
+    v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
+    n, k = gsx.shape
+    q = qt.shape[0]
+    for c in range(k):                               # the start's parameters (the rest of s is kept)
+        acc = 0.0
+        for r in range(s.shape[0]):
+            acc += sb[r, c] * (s[r] - s0[r])
+        p[c] = acc
+    a0x, a1x, a3x, a4x = pose[0] * f, pose[1] * f, pose[3] * f, pose[4] * f
+    steps = 0
+    for _ in range(n_iter):
+        sample_shape(img, f, pose, g, s, v, gx, gy, True)
+        mu = 0.0
+        for i in range(n):
+            mu += v[i]
+        mu /= n
+        var = 0.0
+        for i in range(n):
+            var += (v[i] - mu) * (v[i] - mu)
+        sd = max(math.sqrt(var / n), 1e-6)
+        inv = 1.0 / sd
+        for i in range(n):
+            e[i] = (v[i] - mu) * inv - a0[i]
+            jx = (gx[i] * a0x + gy[i] * a3x) * inv
+            jy = (gx[i] * a1x + gy[i] * a4x) * inv
+            for c in range(k):
+                jac[i, c] = jx * gsx[i, c] + jy * gsy[i, c]
+        for a in range(q):
+            acc = 0.0
+            for i in range(n):
+                acc += qt[a, i] * e[i]
+            qe[a] = acc
+            for c in range(k):
+                acc = 0.0
+                for i in range(n):
+                    acc += qt[a, i] * jac[i, c]
+                qj[a, c] = acc
+        for c in range(k):
+            acc = 0.0
+            for i in range(n):
+                acc += jac[i, c] * e[i]
+            for a in range(q):
+                acc -= qj[a, c] * qe[a]
+            grad[c] = acc + w[c] * p[c]
+            for c2 in range(c + 1):
+                acc = 0.0
+                for i in range(n):
+                    acc += jac[i, c] * jac[i, c2]
+                for a in range(q):
+                    acc -= qj[a, c] * qj[a, c2]
+                hess[c, c2] = acc
+                hess[c2, c] = acc
+            hess[c, c] += w[c]
+        if not _cholesky_solve(hess, grad, k, dp):
+            break
+        big = 0.0
+        for c in range(k):
+            p[c] += dp[c]
+            big = max(big, abs(dp[c]))
+        for r in range(s.shape[0]):
+            acc = 0.0
+            for c in range(k):
+                acc += sb[r, c] * dp[c]
+            s[r] += acc
+        steps += 1
+        if big < 1e-3:
+            break
+    return steps
