@@ -379,12 +379,14 @@ class ShapeRefiner:
     ``write``: the points whose refined positions replace the reading (the others only take part).
     """
 
-    ARRAYS = ("points", "write", "g", "s0", "basis", "weights", "a0", "qt")
+    ARRAYS = ("points", "write", "ext", "tri", "bary", "s0", "basis", "weights", "a0", "qt")
 
-    def __init__(self, points, write, g, s0, basis, weights, a0, qt):
+    def __init__(self, points, write, ext, tri, bary, s0, basis, weights, a0, qt):
         self.points = np.asarray(points, np.intp)
         self.write = np.asarray(write, np.intp)
-        self.g = np.ascontiguousarray(g, np.float64)
+        self.ext = np.ascontiguousarray(ext, np.float64)
+        self.tri = np.ascontiguousarray(tri, np.intp)
+        self.bary = np.ascontiguousarray(bary, np.float64)
         self.s0 = np.ascontiguousarray(s0, np.float64)
         self.basis = np.ascontiguousarray(basis, np.float64)
         self.weights = np.ascontiguousarray(weights, np.float64)
@@ -417,9 +419,7 @@ class ShapeRefiner:
         grid, simp = grid[simp >= 0], simp[simp >= 0]
         t = tri.transform[simp]
         b = np.einsum("nij,nj->ni", t[:, :2], grid - t[:, 2])
-        bary = np.zeros((len(grid), len(v0)))
-        np.put_along_axis(bary, tri.simplices[simp], np.column_stack([b, 1 - b.sum(1)]), axis=1)
-        g = bary @ ext
+        tri_i, bary = tri.simplices[simp].astype(np.intp), np.column_stack([b, 1 - b.sum(1)])
         x = (sh - s0).reshape(len(sh), -1)
         _, sv, vt = np.linalg.svd(x, full_matrices=False)
         lam = sv ** 2 / len(sh)
@@ -429,14 +429,13 @@ class ShapeRefiner:
             tr = tr - basis @ (basis.T @ tr)
             if np.linalg.norm(tr) > 1e-3:
                 basis = np.column_stack([basis, tr / np.linalg.norm(tr)])
-                lam = np.append(lam, max(lam.max(), 1.0) * 4.0)
-        n_pix = len(g)
+                lam = np.append(lam, 4.0)                    # 2 model pixels
+        n_pix = len(grid)
         a = np.empty((len(sh), n_pix))
-        gflat = g.copy()
+        vx = np.empty((len(ext), 2))
         for i, (pyr, pose, shp) in enumerate(zip(pyramids, poses, sh)):
-            lvl = pyramid_level(pyr, pose)
-            sample_shape(pyr[lvl], 0.5 ** lvl, np.asarray(pose, np.float64).ravel(), gflat, shp.ravel().copy(),
-                         a[i], a[i], a[i], False)
+            img, f, at = cls.image(pyr, np.asarray(pose, np.float64), shp)
+            sample_shape(img, f, at, tri_i, bary, ext, shp.ravel().copy(), vx, a[i], a[i], a[i], False)
         a = normalise(a)
         a0 = a.mean(0)
         ax, va = _pca_rows(a - a0)
@@ -452,18 +451,49 @@ class ShapeRefiner:
             e = e - vti.T @ (vti @ e)
             res.append(float(e @ e / n_pix))
         weights = prior * float(np.median(res)) / np.maximum(lam, 1e-12)
-        return cls(pts, write, g, s0.ravel(), basis, weights, a0, q.T)
+        return cls(pts, write, ext, tri_i, bary, s0.ravel(), basis, weights, a0, q.T)
+
+    #: the Gaussian blur (pixels of the level sampled) of the crop the shape is fitted on
+    BLUR = 1.0
+
+    @classmethod
+    def image(cls, pyr: Pyramid, pose: np.ndarray, shape: np.ndarray):
+        """The image a shape near ``shape`` (model frame, (m, 2)) is fitted on: a crop of the pyramid level one
+        finer than :func:`pyramid_level`'s (about one source pixel per model pixel), blurred by ``BLUR``,
+        around the shape's points (60% of their extent and 4 pixels beyond). Returns ``(crop, f, pose6)``:
+        the crop (float32), the level's scale and the pose (6,) moved to the crop's origin; None for the
+        crop where the shape is not finite."""
+        lvl = max(pyramid_level(pyr, pose) - 1, 0)
+        f = 0.5 ** lvl
+        xy = apply_affine(pose, shape) * f + (0.5 * f - 0.5)
+        lo, hi = xy.min(0), xy.max(0)
+        pad = 0.6 * float((hi - lo).max()) + 4.0
+        h, w = pyr._sizes[lvl]
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and pad < 1e6):
+            return None, f, pose.ravel()
+        x0, y0 = min(max(math.floor(lo[0] - pad), 0), w - 2), min(max(math.floor(lo[1] - pad), 0), h - 2)
+        x1, y1 = max(min(math.ceil(hi[0] + pad), w), x0 + 2), max(min(math.ceil(hi[1] + pad), h), y0 + 2)
+        crop = pyr.window(lvl, x0, y0, x1, y1)[y0:y1, x0:x1].astype(np.float32)
+        crop = cv2.GaussianBlur(crop, (0, 0), cls.BLUR, borderType=cv2.BORDER_REPLICATE)
+        at = pose.ravel().copy()
+        at[2] -= x0 / f
+        at[5] -= y0 / f
+        return crop, f, at
 
     def tables(self) -> tuple:
         """The constant arrays of :func:`~keyshape.tracker.kernels.refine_shape`."""
-        gsx = np.ascontiguousarray(self.g @ self.basis[0::2])
-        gsy = np.ascontiguousarray(self.g @ self.basis[1::2])
-        return (self.g, gsx, gsy, self.basis, self.s0, self.a0, self.qt, self.weights)
+        g = np.zeros((len(self.tri), len(self.ext)))
+        np.put_along_axis(g, self.tri, self.bary, axis=1)
+        g = g @ self.ext                             # (n_pix, m): each pixel's weights of the shape's points
+        gsx = np.ascontiguousarray(g @ self.basis[0::2])
+        gsy = np.ascontiguousarray(g @ self.basis[1::2])
+        return (self.tri, self.bary, self.ext, gsx, gsy, self.basis, self.s0, self.a0, self.qt, self.weights)
 
     def work(self) -> tuple:
         """Work arrays of :func:`~keyshape.tracker.kernels.refine_shape`, allocated once per tracker."""
-        n, k, q = len(self.g), self.basis.shape[1], len(self.qt)
-        return (np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((n, k)), np.empty(q),
+        n, k, q = len(self.tri), self.basis.shape[1], len(self.qt)
+        return (np.empty((len(self.ext), 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((n, k)),
+                np.empty(q),
                 np.empty((q, k)), np.empty((k, k)), np.empty(k), np.empty(k), np.empty(k))
 
 
@@ -552,8 +582,8 @@ class AppearanceModel:
         outer brows r 0.77 -> 0.70, cap12_edit's eyes closed 0.76 / 0.75 -> 0.75 / 0.72).
     lip_refine : bool
         Fit the lips' shape to the frame by analysis by synthesis after the eigen-points reading
-        (:class:`ShapeRefiner`, the inner lips' points replaced; schemes with ``lip_outer`` and
-        ``lip_inner`` contours): the linear reading shrinks the mouth's opening toward the labelled frames'
+        (:class:`ShapeRefiner`; every lip point replaced but the mouth's corners, which the eigen-points
+        reading places better on real footage; schemes with ``lip_outer`` and ``lip_inner`` contours): the linear reading shrinks the mouth's opening toward the labelled frames'
         mean (``docs/tracker.md``). Model files written before it read as False.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
@@ -717,8 +747,11 @@ class AppearanceModel:
         self.lip_refiner_ = None
         lips = {k: v for k, v in scheme.contours.items() if k in ("lip_outer", "lip_inner")}
         if self.lip_refine and len(lips) == 2:
+            outer = np.asarray(lips["lip_outer"], np.intp)
+            corners = outer[[np.argmin(ref[outer, 0]), np.argmax(ref[outer, 0])]]
+            pts = sorted(set(lips["lip_outer"]) | set(lips["lip_inner"]))
             self.lip_refiner_ = ShapeRefiner.fit(
-                sorted(set(lips["lip_outer"]) | set(lips["lip_inner"])), lips["lip_inner"],
+                pts, [i for i in pts if i not in corners],
                 [build_pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
         self._precompute()
         return self
@@ -964,10 +997,12 @@ class AppearanceModel:
                 raise InputError(f"model file is inconsistent (region model {r.name!r})", path)
         lr = model.lip_refiner_
         if lr is not None:
-            n_pix, k = len(lr.g), lr.basis.shape[1] if lr.basis.ndim == 2 else 0
-            m = len(lr.points)
+            n_pix, k = len(lr.tri), lr.basis.shape[1] if lr.basis.ndim == 2 else 0
+            m, nv = len(lr.points), len(lr.ext)
             if (lr.points.ndim != 1 or m < 3 or lr.points.min() < 0 or lr.points.max() >= n_pts
-                    or not np.isin(lr.write, lr.points).all() or lr.g.shape != (n_pix, m) or n_pix < 1
+                    or not np.isin(lr.write, lr.points).all() or lr.ext.shape != (nv, m) or nv < 3 or n_pix < 1
+                    or lr.tri.shape != (n_pix, 3) or lr.tri.min() < 0 or lr.tri.max() >= nv
+                    or lr.bary.shape != (n_pix, 3)
                     or lr.s0.shape != (2 * m,) or lr.basis.shape != (2 * m, k) or k < 1
                     or lr.weights.shape != (k,) or lr.a0.shape != (n_pix,) or lr.qt.ndim != 2
                     or lr.qt.shape[1] != n_pix

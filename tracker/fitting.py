@@ -515,16 +515,10 @@ class Tracker:
         :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`)."""
         lr, tables, work, at = self._lips
         s = shape[lr.points].ravel()
-        lvl = pyramid_level(pyr, pose)
-        f = 0.5 ** lvl
-        xy = apply_affine(pose, shape[lr.points]) * f + (0.5 * f - 0.5)
-        lo, hi = xy.min(0), xy.max(0)
-        pad = 0.6 * (hi - lo).max() + 4.0
-        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and pad < 1e6):
+        img, f, a = lr.image(pyr, pose, shape[lr.points])
+        if img is None:
             return
-        img = pyr.window(lvl, math.floor(lo[0] - pad), math.floor(lo[1] - pad), math.ceil(hi[0] + pad),
-                         math.ceil(hi[1] + pad))
-        refine_shape(img, f, pose.ravel(), s, tables, work, self.LIP_STEPS)
+        refine_shape(img, f, a, s, tables, work, self.LIP_STEPS)
         shape[lr.write] = s.reshape(-1, 2)[at]
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -608,21 +608,29 @@ def _bilinear(img, x, y):
 
 
 @njit(**_JIT)
-def sample_shape(img, f, pose, g, s, v, gx, gy, grad):
-    """Grey levels ``v`` (n_pix,) of a shape-normalised template: template pixel ``i`` lies at the model-frame
-    point ``sum_j g[i, j] s_j`` (``g`` (n_pix, m): piecewise-affine weights of the shape's ``m`` points ``s``,
-    flat ``(x0, y0, x1, ...)``), mapped to the image by ``pose`` (6,) and to pyramid level ``img`` by its
-    scale ``f`` (``x_l = f x + f/2 - 1/2``). With ``grad``, also the level's gradients there (central
+def sample_shape(img, f, pose, tri, bary, ext, s, vx, v, gx, gy, grad):
+    """Grey levels ``v`` (n_pix,) of a shape-normalised template: template pixel ``i`` lies in the triangle
+    ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the shape's ``m`` points ``s``, flat
+    ``(x0, y0, x1, ...)``, to the triangulation's vertices; ``vx`` (n_vertices, 2) receives them) at the
+    barycentric weights ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to
+    pyramid level ``img`` (``x_l = f x + f/2 - 1/2``). With ``grad``, also the level's gradients there (central
     differences half a pixel either side) in ``gx``, ``gy``."""
-    n, m = g.shape
+    nv, m = ext.shape
+    for r in range(nv):
+        ax = 0.0
+        ay = 0.0
+        for j in range(m):
+            ax += ext[r, j] * s[2 * j]
+            ay += ext[r, j] * s[2 * j + 1]
+        vx[r, 0] = ax
+        vx[r, 1] = ay
     a0, a1, a2, a3, a4, a5 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5]
     d = 0.5 * f - 0.5
-    for i in range(n):
-        mx = 0.0
-        my = 0.0
-        for j in range(m):
-            mx += g[i, j] * s[2 * j]
-            my += g[i, j] * s[2 * j + 1]
+    for i in range(tri.shape[0]):
+        t0, t1, t2 = tri[i, 0], tri[i, 1], tri[i, 2]
+        b0, b1, b2 = bary[i, 0], bary[i, 1], bary[i, 2]
+        mx = b0 * vx[t0, 0] + b1 * vx[t1, 0] + b2 * vx[t2, 0]
+        my = b0 * vx[t0, 1] + b1 * vx[t1, 1] + b2 * vx[t2, 1]
         x = f * (a0 * mx + a1 * my + a2) + d
         y = f * (a3 * mx + a4 * my + a5) + d
         v[i] = _bilinear(img, x, y)
@@ -638,11 +646,12 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     subspace ``s0 + S p`` so that the normalised grey levels of its shape-normalised template
     (:func:`sample_shape`) match the mean appearance ``a0`` up to the appearance basis (projected out
     with ``qt``, which holds the ones too), under the Gaussian prior ``w p²`` (``w`` the pixel noise over
-    each shape component's variance). ``tables`` = ``(g, gsx, gsy, sb, s0, a0, qt, w)``: ``gsx = g S_x``,
-    ``gsy = g S_y`` (n_pix, k), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(v, gx, gy, e, jac, qe, qj,
+    each shape component's variance). ``tables`` = ``(tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w)``: the
+    template of :func:`sample_shape`, ``gsx = G S_x``, ``gsy = G S_y`` (n_pix, k; ``G`` the pixels' weights
+    of the shape's points), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(vx, v, gx, gy, e, jac, qe, qj,
     hess, grad, p, dp)``. At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
-    g, gsx, gsy, sb, s0, a0, qt, w = tables
-    v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
+    tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w = tables
+    vx, v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
     n, k = gsx.shape
     q = qt.shape[0]
     for c in range(k):                               # the start's parameters (the rest of s is kept)
@@ -653,7 +662,7 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     a0x, a1x, a3x, a4x = pose[0] * f, pose[1] * f, pose[3] * f, pose[4] * f
     steps = 0
     for _ in range(n_iter):
-        sample_shape(img, f, pose, g, s, v, gx, gy, True)
+        sample_shape(img, f, pose, tri, bary, ext, s, vx, v, gx, gy, True)
         mu = 0.0
         for i in range(n):
             mu += v[i]
