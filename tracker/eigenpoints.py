@@ -582,8 +582,8 @@ class AppearanceModel:
         outer brows r 0.77 -> 0.70, cap12_edit's eyes closed 0.76 / 0.75 -> 0.75 / 0.72).
     lip_refine : bool
         Fit the lips' shape to the frame by analysis by synthesis after the eigen-points reading
-        (:class:`ShapeRefiner`; every lip point replaced but the mouth's corners, which the eigen-points
-        reading places better on real footage; schemes with ``lip_outer`` and ``lip_inner`` contours): the linear reading shrinks the mouth's opening toward the labelled frames'
+        (:class:`ShapeRefiner`, every lip point replaced; schemes with ``lip_outer`` and ``lip_inner``
+        contours): the linear reading shrinks the mouth's opening toward the labelled frames'
         mean (``docs/tracker.md``). Model files written before it read as False.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
@@ -747,11 +747,9 @@ class AppearanceModel:
         self.lip_refiner_ = None
         lips = {k: v for k, v in scheme.contours.items() if k in ("lip_outer", "lip_inner")}
         if self.lip_refine and len(lips) == 2:
-            outer = np.asarray(lips["lip_outer"], np.intp)
-            corners = outer[[np.argmin(ref[outer, 0]), np.argmax(ref[outer, 0])]]
             pts = sorted(set(lips["lip_outer"]) | set(lips["lip_inner"]))
             self.lip_refiner_ = ShapeRefiner.fit(
-                pts, [i for i in pts if i not in corners],
+                pts, pts,
                 [build_pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
         self._precompute()
         return self
