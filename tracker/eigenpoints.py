@@ -435,7 +435,7 @@ class ShapeRefiner:
         vx = np.empty((len(ext), 2))
         for i, (pyr, pose, shp) in enumerate(zip(pyramids, poses, sh)):
             img, f, at = cls.image(pyr, np.asarray(pose, np.float64), shp)
-            sample_shape(img, f, at, tri_i, bary, ext, shp.ravel().copy(), vx, a[i], a[i], a[i], False)
+            sample_shape(img, f, at, (tri_i, bary, ext), shp.ravel().copy(), (vx, a[i], a[i], a[i]), False)
         a = normalise(a)
         a0 = a.mean(0)
         ax, va = _pca_rows(a - a0)

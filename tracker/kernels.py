@@ -608,13 +608,16 @@ def _bilinear(img, x, y):
 
 
 @njit(**_JIT)
-def sample_shape(img, f, pose, tri, bary, ext, s, vx, v, gx, gy, grad):
-    """Grey levels ``v`` (n_pix,) of a shape-normalised template: template pixel ``i`` lies in the triangle
-    ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the shape's ``m`` points ``s``, flat
-    ``(x0, y0, x1, ...)``, to the triangulation's vertices; ``vx`` (n_vertices, 2) receives them) at the
-    barycentric weights ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to
-    pyramid level ``img`` (``x_l = f x + f/2 - 1/2``). With ``grad``, also the level's gradients there (central
-    differences half a pixel either side) in ``gx``, ``gy``."""
+def sample_shape(img, f, pose, template, s, out, grad):
+    """Grey levels ``v`` (n_pix,) of a shape-normalised template, ``template = (tri, bary, ext)``: template
+    pixel ``i`` lies in the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the
+    shape's ``m`` points ``s``, flat ``(x0, y0, x1, ...)``, to the triangulation's vertices) at the barycentric
+    weights ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to pyramid level
+    ``img`` (``x_l = f x + f/2 - 1/2``; ``img`` uint8 or float). ``out = (vx, v, gx, gy)``: ``vx``
+    (n_vertices, 2) receives the vertices; with ``grad``, ``gx``, ``gy`` the image's gradients at the
+    samples (central differences half a pixel either side)."""
+    tri, bary, ext = template
+    vx, v, gx, gy = out
     nv, m = ext.shape
     for r in range(nv):
         ax = 0.0
@@ -662,7 +665,7 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     a0x, a1x, a3x, a4x = pose[0] * f, pose[1] * f, pose[3] * f, pose[4] * f
     steps = 0
     for _ in range(n_iter):
-        sample_shape(img, f, pose, tri, bary, ext, s, vx, v, gx, gy, True)
+        sample_shape(img, f, pose, (tri, bary, ext), s, (vx, v, gx, gy), True)
         mu = 0.0
         for i in range(n):
             mu += v[i]
