@@ -502,24 +502,24 @@ class Tracker:
             hit, reg = self.read_regions(pyr, pose, patch)
             w = self.global_weight
             shape[hit] = reg if not w else (1.0 - w) * reg + w * shape[hit]
-        if self._lips is not None:
-            self.refine_lips(pyr, pose, shape)
         return shape, apply_affine(pose, shape), r
 
     #: Gauss-Newton steps of the lips' shape fit a frame (each stops early once no parameter moves by 1e-3)
     LIP_STEPS = 6
 
-    def refine_lips(self, pyr: Pyramid, pose: np.ndarray, shape: np.ndarray) -> None:
-        """Fit the lips' shape to the frame from the reading ``shape`` (model frame, updated in place: the
+    def refine_lips(self, pyr: Pyramid, pose: np.ndarray, points: np.ndarray) -> None:
+        """Fit the lips' shape to the frame from the reading ``points`` (image pixels, updated in place: the
         refiner's written points) by :func:`~keyshape.tracker.kernels.refine_shape` (the model's
-        :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`)."""
+        :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`); :meth:`step` calls it once a frame, on the pose
+        and reading it keeps."""
         lr, tables, work, at = self._lips
-        s = shape[lr.points].ravel()
-        img, f, a = lr.image(pyr, pose, shape[lr.points])
+        shape = apply_affine(invert_affine(pose), points[lr.points])
+        s = shape.ravel()
+        img, f, a = lr.image(pyr, pose, shape)
         if img is None:
             return
         refine_shape(img, f, a, s, tables, work, self.LIP_STEPS)
-        shape[lr.write] = s.reshape(-1, 2)[at]
+        points[lr.write] = apply_affine(pose, s.reshape(-1, 2)[at])
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for
@@ -792,6 +792,8 @@ class Tracker:
         if best is None:
             return FrameResult(index, np.full((n_pts, 2), np.nan), np.full((2, 3), np.nan), np.inf, 0.0, False, 0)
         ok, r, pose, pts, m2 = best
+        if ok and self._lips is not None:
+            self.refine_lips(pyr, pose, pts)
         conf = min(max((self.lost_threshold - r) / max(self.lost_threshold - self.ref_residual, 1e-9), 0.0), 1.0,
                    max((self.max_shape_m2 - m2) / (self.max_shape_m2 - self.typical_shape_m2), 0.0))
         if ok:
