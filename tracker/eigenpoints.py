@@ -492,7 +492,7 @@ class ShapeRefiner:
     def work(self) -> tuple:
         """Work arrays of :func:`~keyshape.tracker.kernels.refine_shape`, allocated once per tracker."""
         n, k, q = len(self.tri), self.basis.shape[1], len(self.qt)
-        return (np.empty((len(self.ext), 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((n, k)),
+        return (np.empty((len(self.ext), 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((k, n)),
                 np.empty(q),
                 np.empty((q, k)), np.empty((k, k)), np.empty(k), np.empty(k), np.empty(k))
 

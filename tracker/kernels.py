@@ -652,7 +652,7 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     each shape component's variance). ``tables`` = ``(tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w)``: the
     template of :func:`sample_shape`, ``gsx = G S_x``, ``gsy = G S_y`` (n_pix, k; ``G`` the pixels' weights
     of the shape's points), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(vx, v, gx, gy, e, jac, qe, qj,
-    hess, grad, p, dp)``. At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
+    hess, grad, p, dp)``, ``jac`` (k, n_pix). At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
     tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w = tables
     vx, v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
     n, k = gsx.shape
@@ -680,7 +680,7 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
             jx = (gx[i] * a0x + gy[i] * a3x) * inv
             jy = (gx[i] * a1x + gy[i] * a4x) * inv
             for c in range(k):
-                jac[i, c] = jx * gsx[i, c] + jy * gsy[i, c]
+                jac[c, i] = jx * gsx[i, c] + jy * gsy[i, c]
         for a in range(q):
             acc = 0.0
             for i in range(n):
@@ -689,19 +689,19 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
             for c in range(k):
                 acc = 0.0
                 for i in range(n):
-                    acc += qt[a, i] * jac[i, c]
+                    acc += qt[a, i] * jac[c, i]
                 qj[a, c] = acc
         for c in range(k):
             acc = 0.0
             for i in range(n):
-                acc += jac[i, c] * e[i]
+                acc += jac[c, i] * e[i]
             for a in range(q):
                 acc -= qj[a, c] * qe[a]
             grad[c] = acc + w[c] * p[c]
             for c2 in range(c + 1):
                 acc = 0.0
                 for i in range(n):
-                    acc += jac[i, c] * jac[i, c2]
+                    acc += jac[c, i] * jac[c2, i]
                 for a in range(q):
                     acc -= qj[a, c] * qj[a, c2]
                 hess[c, c2] = acc
