@@ -396,8 +396,24 @@ class ShapeRefiner:
     @classmethod
     def fit(cls, points, write, pyramids, poses, shapes, step=0.5, ring=1.3, variance=0.98, appearance=0.95,
             prior=16.0):
-        """Train from the labelled frames' pyramids, their ``image_from_model`` poses and model-frame
-        shapes (n, n_points, 2)."""
+        """Train from the labelled frames.
+
+        Parameters
+        ----------
+        points : the region's point indices (all the scheme's lip points)
+        write : the points whose fitted positions replace the reading (a subset of ``points``)
+        pyramids : the labelled frames' :class:`Pyramid`
+        poses : (n, 2, 3) their ``image_from_model`` affines
+        shapes : (n, n_points, 2) their points in the model frame
+        step : the template's grid spacing (model pixels)
+        ring : the outer ring's size over the points' hull, about their centroid
+        variance, appearance : fractions of the shape's and of the appearance's variance kept
+        prior : the prior's weight (times the pixel noise over each shape component's variance)
+
+        Returns
+        -------
+        ShapeRefiner
+        """
         from scipy.spatial import Delaunay          # training only
         from keyshape.tracker.kernels import sample_shape
 
