@@ -122,10 +122,10 @@ def test_the_compiled_step_reads_what_the_numpy_step_read(model, footage):  # no
     the reading (``AppearanceModel.lip_refiner_``, issue 40 item 1), so the model here is without it."""
     frames, _ = footage
     want = np.load(REFERENCE)
-    model = copy.copy(model)
-    model.lip_refiner_ = None
+    bare = copy.copy(model)
+    bare.lip_refiner_ = None
     with single_threaded():
-        got = _reference_cases(model, frames, want["poses"])
+        got = _reference_cases(bare, frames, want["poses"])
     for key in ("region_points", "lip_points", "read_shapes"):
         assert np.abs(got[key] - want[key]).max() < 0.005, key
     assert np.abs(got["polished_poses"] - want["polished_poses"]).max() < 1e-3
