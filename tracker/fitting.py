@@ -26,7 +26,7 @@ import numpy as np
 
 from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
                                           warp_patch, warp_patch_u8)
-from keyshape.tracker.kernels import polish_step, read_global, refine_regions
+from keyshape.tracker.kernels import polish_step, read_global, refine_regions, refine_shape
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
@@ -300,6 +300,11 @@ class Tracker:
         # which read() takes instead of sampling it again (the same warp: the same uint8 values)
         self._polished: tuple | None = None
         m = model
+        lr = getattr(m, "lip_refiner_", None)
+        # the lips' shape fitted by analysis by synthesis after the reading (ShapeRefiner): its constant arrays,
+        # work arrays, and where its written points sit among its points
+        self._lips = None if lr is None else (lr, lr.tables(), lr.work(),
+                                              np.searchsorted(lr.points, lr.write))
         size = m.patch_size_
         n_pix = len(m.index_)
         mean = np.zeros(size * size)
@@ -498,6 +503,23 @@ class Tracker:
             w = self.global_weight
             shape[hit] = reg if not w else (1.0 - w) * reg + w * shape[hit]
         return shape, apply_affine(pose, shape), r
+
+    #: Gauss-Newton steps of the lips' shape fit a frame (each stops early once no parameter moves by 1e-3)
+    LIP_STEPS = 6
+
+    def refine_lips(self, pyr: Pyramid, pose: np.ndarray, points: np.ndarray) -> None:
+        """Fit the lips' shape to the frame from the reading ``points`` (image pixels, updated in place: the
+        refiner's written points) by :func:`~keyshape.tracker.kernels.refine_shape` (the model's
+        :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`); :meth:`step` calls it once a frame, on the pose
+        and reading it keeps."""
+        lr, tables, work, at = self._lips
+        shape = apply_affine(invert_affine(pose), points[lr.points])
+        s = shape.ravel()
+        img, f, a = lr.image(pyr, pose, shape)
+        if img is None:
+            return
+        refine_shape(img, f, a, s, tables, work, self.LIP_STEPS)
+        points[lr.write] = apply_affine(pose, s.reshape(-1, 2)[at])
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for
@@ -770,6 +792,8 @@ class Tracker:
         if best is None:
             return FrameResult(index, np.full((n_pts, 2), np.nan), np.full((2, 3), np.nan), np.inf, 0.0, False, 0)
         ok, r, pose, pts, m2 = best
+        if ok and self._lips is not None:
+            self.refine_lips(pyr, pose, pts)
         conf = min(max((self.lost_threshold - r) / max(self.lost_threshold - self.ref_residual, 1e-9), 0.0), 1.0,
                    max((self.max_shape_m2 - m2) / (self.max_shape_m2 - self.typical_shape_m2), 0.0))
         if ok:

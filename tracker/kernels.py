@@ -584,3 +584,141 @@ def read_global(patch, reading, work):
             acc += basis[j, a] * c[a]
         shape[j] = acc
     return max(ee - 2.0 * cue + cgc, 0.0) / n, sd, m2 / k
+
+
+@njit(**_JIT)
+def _bilinear(img, x, y):
+    """Bilinear sample of ``img`` at ``(x, y)`` (float), the border replicated."""
+    H, W = img.shape
+    x = min(max(x, 0.0), W - 1.0)
+    y = min(max(y, 0.0), H - 1.0)
+    ix = min(int(x), W - 2) if W > 1 else 0
+    iy = min(int(y), H - 2) if H > 1 else 0
+    ax = x - ix
+    ay = y - iy
+    x1 = min(ix + 1, W - 1)
+    y1 = min(iy + 1, H - 1)
+    p00 = float(img[iy, ix])
+    p01 = float(img[iy, x1])
+    p10 = float(img[y1, ix])
+    p11 = float(img[y1, x1])
+    v0 = p00 + ax * (p01 - p00)
+    v1 = p10 + ax * (p11 - p10)
+    return v0 + ay * (v1 - v0)
+
+
+@njit(**_JIT)
+def sample_shape(img, f, pose, template, s, out, grad):
+    """Grey levels ``v`` (n_pix,) of a shape-normalised template, ``template = (tri, bary, ext)``: template
+    pixel ``i`` lies in the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the
+    shape's ``m`` points ``s``, flat ``(x0, y0, x1, ...)``, to the triangulation's vertices) at the barycentric
+    weights ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to pyramid level
+    ``img`` (``x_l = f x + f/2 - 1/2``; ``img`` uint8 or float). ``out = (vx, v, gx, gy)``: ``vx``
+    (n_vertices, 2) receives the vertices; with ``grad``, ``gx``, ``gy`` the image's gradients at the
+    samples (central differences half a pixel either side)."""
+    tri, bary, ext = template
+    vx, v, gx, gy = out
+    nv, m = ext.shape
+    for r in range(nv):
+        ax = 0.0
+        ay = 0.0
+        for j in range(m):
+            ax += ext[r, j] * s[2 * j]
+            ay += ext[r, j] * s[2 * j + 1]
+        vx[r, 0] = ax
+        vx[r, 1] = ay
+    a0, a1, a2, a3, a4, a5 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5]
+    d = 0.5 * f - 0.5
+    for i in range(tri.shape[0]):
+        t0, t1, t2 = tri[i, 0], tri[i, 1], tri[i, 2]
+        b0, b1, b2 = bary[i, 0], bary[i, 1], bary[i, 2]
+        mx = b0 * vx[t0, 0] + b1 * vx[t1, 0] + b2 * vx[t2, 0]
+        my = b0 * vx[t0, 1] + b1 * vx[t1, 1] + b2 * vx[t2, 1]
+        x = f * (a0 * mx + a1 * my + a2) + d
+        y = f * (a3 * mx + a4 * my + a5) + d
+        v[i] = _bilinear(img, x, y)
+        if grad:
+            gx[i] = _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y)
+            gy[i] = _bilinear(img, x, y + 0.5) - _bilinear(img, x, y - 0.5)
+
+
+@njit(**_JIT)
+def refine_shape(img, f, pose, s, tables, work, n_iter):
+    """Fit a region's shape to the frame by analysis by synthesis (a project-out active appearance model,
+    forward additive Gauss-Newton): the shape ``s`` (flat model-frame points, updated in place) moves in its
+    subspace ``s0 + S p`` so that the normalised grey levels of its shape-normalised template
+    (:func:`sample_shape`) match the mean appearance ``a0`` up to the appearance basis (projected out
+    with ``qt``, which holds the ones too), under the Gaussian prior ``w p²`` (``w`` the pixel noise over
+    each shape component's variance). ``tables`` = ``(tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w)``: the
+    template of :func:`sample_shape`, ``gsx = G S_x``, ``gsy = G S_y`` (n_pix, k; ``G`` the pixels' weights
+    of the shape's points), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(vx, v, gx, gy, e, jac, qe, qj,
+    hess, grad, p, dp)``, ``jac`` (k, n_pix). At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
+    tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w = tables
+    vx, v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
+    n, k = gsx.shape
+    q = qt.shape[0]
+    for c in range(k):                               # the start's parameters (the rest of s is kept)
+        acc = 0.0
+        for r in range(s.shape[0]):
+            acc += sb[r, c] * (s[r] - s0[r])
+        p[c] = acc
+    a0x, a1x, a3x, a4x = pose[0] * f, pose[1] * f, pose[3] * f, pose[4] * f
+    steps = 0
+    for _ in range(n_iter):
+        sample_shape(img, f, pose, (tri, bary, ext), s, (vx, v, gx, gy), True)
+        mu = 0.0
+        for i in range(n):
+            mu += v[i]
+        mu /= n
+        var = 0.0
+        for i in range(n):
+            var += (v[i] - mu) * (v[i] - mu)
+        sd = max(math.sqrt(var / n), 1e-6)
+        inv = 1.0 / sd
+        for i in range(n):
+            e[i] = (v[i] - mu) * inv - a0[i]
+            jx = (gx[i] * a0x + gy[i] * a3x) * inv
+            jy = (gx[i] * a1x + gy[i] * a4x) * inv
+            for c in range(k):
+                jac[c, i] = jx * gsx[i, c] + jy * gsy[i, c]
+        for a in range(q):
+            acc = 0.0
+            for i in range(n):
+                acc += qt[a, i] * e[i]
+            qe[a] = acc
+            for c in range(k):
+                acc = 0.0
+                for i in range(n):
+                    acc += qt[a, i] * jac[c, i]
+                qj[a, c] = acc
+        for c in range(k):
+            acc = 0.0
+            for i in range(n):
+                acc += jac[c, i] * e[i]
+            for a in range(q):
+                acc -= qj[a, c] * qe[a]
+            grad[c] = acc + w[c] * p[c]
+            for c2 in range(c + 1):
+                acc = 0.0
+                for i in range(n):
+                    acc += jac[c, i] * jac[c2, i]
+                for a in range(q):
+                    acc -= qj[a, c] * qj[a, c2]
+                hess[c, c2] = acc
+                hess[c2, c] = acc
+            hess[c, c] += w[c]
+        if not _cholesky_solve(hess, grad, k, dp):
+            break
+        big = 0.0
+        for c in range(k):
+            p[c] += dp[c]
+            big = max(big, abs(dp[c]))
+        for r in range(s.shape[0]):
+            acc = 0.0
+            for c in range(k):
+                acc += sb[r, c] * dp[c]
+            s[r] += acc
+        steps += 1
+        if big < 1e-3:
+            break
+    return steps

@@ -1,0 +1,94 @@
+"""The lips' shape fitted by analysis by synthesis after the eigen-points reading (issue 40 item 1):
+:class:`keyshape.tracker.eigenpoints.ShapeRefiner` and :func:`keyshape.tracker.kernels.refine_shape`."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from keyshape.base.schemes import load_scheme
+from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, ShapeRefiner
+from keyshape.tracker.kernels import refine_shape
+
+SCHEME = load_scheme("contours48")
+OUTER = list(SCHEME.contours["lip_outer"])
+INNER = list(SCHEME.contours["lip_inner"])
+H, W = 120, 160
+
+
+def _mouth(gap: float, width: float = 56.0) -> np.ndarray:
+    """contours48's 48 points with a mouth at (80, 60): outer lips on an ellipse, inner lips ``gap`` apart
+    (corner, upper, corner, lower, as the scheme orders them); the other points at the origin."""
+    pts = np.zeros((48, 2))
+    a = np.linspace(np.pi, 0, 7)                           # image-left corner over the top to the right corner
+    b = np.linspace(0, -np.pi, 7)[1:-1]                    # and back along the bottom
+    t = np.concatenate([a, b])
+    pts[OUTER] = np.column_stack([80 + width / 2 * np.cos(t), 60 - (6 + gap / 2) * np.sin(t)])
+    ti = np.concatenate([np.linspace(np.pi, 0, 5), np.linspace(0, -np.pi, 5)[1:-1]])
+    pts[INNER] = np.column_stack([80 + 0.4 * width * np.cos(ti), 60 - gap / 2 * np.sin(ti)])
+    return pts
+
+
+def _frame(pts: np.ndarray, rng) -> np.ndarray:
+    """Skin with a smooth texture (the same in every frame), lips a darker grey, the mouth's inside darkest;
+    ``rng`` adds a little pixel noise."""
+    tex = cv2.GaussianBlur(np.random.default_rng(0).normal(size=(H, W)).astype(np.float32), (0, 0), 4.0)
+    img = 150 + 200 * tex
+    mask = np.zeros((H, W), np.uint8)
+    cv2.fillPoly(mask, [np.round(pts[OUTER] * 8).astype(np.int32)], 1, shift=3)
+    img[mask > 0] = 90 + 0.5 * (img[mask > 0] - 150)
+    inner = np.zeros((H, W), np.uint8)
+    cv2.fillPoly(inner, [np.round(pts[INNER] * 8).astype(np.int32)], 1, shift=3)
+    img[inner > 0] = 25
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8) + rng.normal(0, 2.0, (H, W))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_the_lips_shape_fit_reads_an_opening_the_start_shrank():
+    """Trained on four openings (2-14 px), the fit started at the training mean (8 px) finds a 12 px opening
+    and a 4 px one within 0.5 px, and keeps the mouth's width: a linear reading's shrinkage toward the mean
+    does not survive it."""
+    rng = np.random.default_rng(0)
+    gaps = [2.0, 6.0, 10.0, 14.0]
+    shapes = np.stack([_mouth(g, w) for g, w in zip(gaps, (58.0, 62.0, 56.0, 60.0))])
+    pose = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    pyrs = [Pyramid(_frame(s, np.random.default_rng(k))) for k, s in enumerate(shapes)]
+    lr = ShapeRefiner.fit(sorted(OUTER + INNER), INNER, pyrs, [pose] * 4, shapes)
+    start = shapes.mean(0)[lr.points]
+    for gap in (12.0, 4.0):
+        truth = _mouth(gap, 59.0)
+        img = _frame(truth, rng)
+        s = start.ravel().copy()
+        crop, f, at = lr.image(Pyramid(img), pose, start)
+        steps = refine_shape(crop, f, at, s, lr.tables(), lr.work(), 10)
+        got = s.reshape(-1, 2)
+        pts = dict(zip(lr.points.tolist(), got))
+        read = pts[INNER[6]][1] - pts[INNER[2]][1]           # lower mid minus upper mid
+        assert steps >= 1 and abs(read - gap) < 0.5, (gap, read)
+        width = pts[OUTER[6]][0] - pts[OUTER[0]][0]
+        assert abs(width - 59.0) < 1.0, width
+
+
+def test_models_carry_the_lips_refiner_and_older_files_read_without_it(tmp_path):
+    """``AppearanceModel(lip_refine=True)`` (the default) keeps a :class:`ShapeRefiner` for the lips,
+    saved and loaded with the model; ``lip_refine=False`` and files written before it have none."""
+    rng = np.random.default_rng(1)
+    frames, labels = [], []
+    for k, g in enumerate((2.0, 6.0, 10.0, 14.0, 8.0)):
+        pts = _mouth(g, 56.0 + k)
+        pts[:28] = np.column_stack([40 + 80 * rng.uniform(size=28), 15 + 25 * rng.uniform(size=28)])
+        pts[10], pts[22] = (45, 30), (115, 30)
+        frames.append(_frame(pts, np.random.default_rng(k)))
+        labels.append(pts)
+    model = AppearanceModel("contours48", n_morphs=4, rng=0).fit(frames, np.stack(labels))
+    assert model.lip_refiner_ is not None and sorted(model.lip_refiner_.write) == sorted(OUTER + INNER)
+    model.save(tmp_path / "m.npz")
+    back = AppearanceModel.load(tmp_path / "m.npz")
+    for k in ShapeRefiner.ARRAYS:
+        np.testing.assert_array_equal(getattr(back.lip_refiner_, k), getattr(model.lip_refiner_, k))
+    off = AppearanceModel("contours48", n_morphs=4, rng=0, lip_refine=False).fit(frames, np.stack(labels))
+    assert off.lip_refiner_ is None
+    mf = model.to_file()
+    del mf.params["lip_refine"]
+    for k in ShapeRefiner.ARRAYS:
+        del mf.arrays[f"lip_refiner_{k}"]
+    assert AppearanceModel.from_file(mf).lip_refiner_ is None
