@@ -18,7 +18,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 #: folders whose Python files hold no before-and-after figures
-CLEAN = ["decompose", "data_synth", "keyshape", "bench", "retarget"]
+CLEAN = ["decompose", "data_synth", "keyshape", "bench", "retarget", "tracker"]
 
 HISTORY = re.compile(r"\bround[- ]?\d+|\b(this|last|previous)\s+round\b", re.I)
 ISSUE_TITLE = re.compile(r"^#+ .*\bissues? \d+", re.I | re.M)

