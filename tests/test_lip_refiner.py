@@ -92,3 +92,41 @@ def test_models_carry_the_lips_refiner_and_older_files_read_without_it(tmp_path)
     for k in ShapeRefiner.ARRAYS:
         del mf.arrays[f"lip_refiner_{k}"]
     assert AppearanceModel.from_file(mf).lip_refiner_ is None
+
+
+def test_the_compiled_fit_matches_its_parts():
+    """The tracker's lips fit (:func:`~keyshape.tracker.kernels.lip_box` then
+    :func:`~keyshape.tracker.kernels.refine_write`, one compiled call each) gives the points of
+    :meth:`ShapeRefiner.image` and :func:`refine_shape` mapped back to the image, to rounding; and the
+    samples' gradients from the 3 x 3 pixels they share are the differences of bilinear samples, border included."""
+    from keyshape.tracker.kernels import _bilinear, _bilinear_grad, lip_box, refine_write
+
+    rng = np.random.default_rng(2)
+    gaps = [2.0, 6.0, 10.0, 14.0]
+    shapes = np.stack([_mouth(g, w) for g, w in zip(gaps, (58.0, 62.0, 56.0, 60.0))])
+    pose = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    lr = ShapeRefiner.fit(sorted(OUTER + INNER), INNER, [Pyramid(_frame(s, np.random.default_rng(k)))
+                                                         for k, s in enumerate(shapes)], [pose] * 4, shapes)
+    img_pose = np.array([[1.1, 0.05, 3.0], [-0.04, 1.05, -2.0]])         # image_from_model
+    truth = _mouth(11.0, 59.0)
+    pyr = Pyramid(_frame(truth, rng))
+    start = shapes.mean(0)
+    points = start @ img_pose[:, :2].T + img_pose[:, 2]
+    crop, f, at = lr.image(pyr, img_pose, start[lr.points])
+    s = start[lr.points].ravel().copy()
+    refine_shape(crop, f, at, s, lr.tables(), lr.work(), 6)
+    want = s.reshape(-1, 2)[np.searchsorted(lr.points, lr.write)] @ img_pose[:, :2].T + img_pose[:, 2]
+    s2, box = np.empty(2 * len(lr.points)), np.empty(4, np.intp)
+    assert lip_box(img_pose, points, lr.points, f, pyr._sizes[0], s2, box)
+    got = points.copy()
+    refine_write(lr.crop(pyr, 0, box), f, img_pose, box, s2, lr.tables(), lr.work(), 6,
+                 np.searchsorted(lr.points, lr.write), lr.write, got)
+    assert np.abs(got[lr.write] - want).max() < 1e-9
+    others = np.setdiff1d(np.arange(len(points)), lr.write)
+    assert np.array_equal(got[others], points[others])
+    flat = crop.astype(np.float32)
+    hh, ww = flat.shape
+    for x, y in zip(rng.uniform(-2, ww + 1, 3000), rng.uniform(-2, hh + 1, 3000)):
+        ref = (_bilinear(flat, x, y), _bilinear(flat, x + 0.5, y) - _bilinear(flat, x - 0.5, y),
+               _bilinear(flat, x, y + 0.5) - _bilinear(flat, x, y - 0.5))
+        assert np.allclose(_bilinear_grad(flat, x, y), ref, rtol=0, atol=1e-9)

@@ -491,30 +491,36 @@ class ShapeRefiner:
         around the shape's points (60% of their extent and 4 pixels beyond). Returns ``(crop, f, pose6)``:
         the crop (float32), the level's scale and the pose (6,) moved to the crop's origin; None for the
         crop where the shape is not finite."""
+        from keyshape.tracker.kernels import shape_box
+
         lvl = max(pyramid_level(pyr, pose) - 1, 0)
         f = 0.5 ** lvl
-        xy = apply_affine(pose, shape) * f + (0.5 * f - 0.5)
-        lo, hi = xy.min(0), xy.max(0)
-        pad = 0.6 * float((hi - lo).max()) + 4.0
-        h, w = pyr._sizes[lvl]
-        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and pad < 1e6):
+        box = np.empty(4, np.intp)
+        if not shape_box(np.asarray(pose, np.float64), np.ascontiguousarray(shape, np.float64).ravel(), f,
+                         pyr._sizes[lvl], box):
             return None, f, pose.ravel()
-        x0, y0 = min(max(math.floor(lo[0] - pad), 0), w - 2), min(max(math.floor(lo[1] - pad), 0), h - 2)
-        x1, y1 = max(min(math.ceil(hi[0] + pad), w), x0 + 2), max(min(math.ceil(hi[1] + pad), h), y0 + 2)
-        crop = pyr.window(lvl, x0, y0, x1, y1)[y0:y1, x0:x1].astype(np.float32)
-        crop = cv2.GaussianBlur(crop, (0, 0), cls.BLUR, borderType=cv2.BORDER_REPLICATE)
+        x0, y0 = int(box[0]), int(box[1])
+        crop = cls.crop(pyr, lvl, box)
         at = pose.ravel().copy()
         at[2] -= x0 / f
         at[5] -= y0 / f
         return crop, f, at
+
+    @classmethod
+    def crop(cls, pyr: Pyramid, lvl: int, box: np.ndarray) -> np.ndarray:
+        """Pixels ``box`` (``x0, y0, x1, y1``, :func:`~keyshape.tracker.kernels.shape_box`) of pyramid level
+        ``lvl`` (float32), blurred by ``BLUR``."""
+        x0, y0, x1, y1 = box.tolist()
+        crop = pyr.window(lvl, x0, y0, x1, y1)[y0:y1, x0:x1].astype(np.float32)
+        return cv2.GaussianBlur(crop, (0, 0), cls.BLUR, borderType=cv2.BORDER_REPLICATE)
 
     def tables(self) -> tuple:
         """The constant arrays of :func:`~keyshape.tracker.kernels.refine_shape`."""
         g = np.zeros((len(self.tri), len(self.ext)))
         np.put_along_axis(g, self.tri, self.bary, axis=1)
         g = g @ self.ext                             # (n_pix, m): each pixel's weights of the shape's points
-        gsx = np.ascontiguousarray(g @ self.basis[0::2])
-        gsy = np.ascontiguousarray(g @ self.basis[1::2])
+        gsx = np.ascontiguousarray((g @ self.basis[0::2]).T)
+        gsy = np.ascontiguousarray((g @ self.basis[1::2]).T)
         return (self.tri, self.bary, self.ext, gsx, gsy, self.basis, self.s0, self.a0, self.qt, self.weights)
 
     def work(self) -> tuple:

@@ -608,6 +608,39 @@ def _bilinear(img, x, y):
 
 
 @njit(**_JIT)
+def _bilinear_grad(img, x, y):
+    """``(_bilinear(img, x, y), _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y), _bilinear(img, x, y + 0.5)
+    - _bilinear(img, x, y - 0.5))``: where none of the five samples meets the border, from the 3 x 3 pixels
+    they share (a difference of two bilinear samples a pixel apart is the bilinear sample of the pixels'
+    differences half a pixel back: the same values to rounding, without the clamps and branches)."""
+    H, W = img.shape
+    if not (0.5 <= x < W - 1.5 and 0.5 <= y < H - 1.5):
+        return (_bilinear(img, x, y), _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y),
+                _bilinear(img, x, y + 0.5) - _bilinear(img, x, y - 0.5))
+    c = int(x - 0.5)                                 # the first of the three columns of the x-differences
+    r = int(y - 0.5)                                 # and of the three rows of the y-differences
+    t = x - 0.5 - c
+    u = y - 0.5 - r
+    ix = int(x)
+    iy = int(y)
+    ax = x - ix
+    ay = y - iy
+    a0, a1, a2 = float(img[iy, c]), float(img[iy, c + 1]), float(img[iy, c + 2])
+    b0, b1, b2 = float(img[iy + 1, c]), float(img[iy + 1, c + 1]), float(img[iy + 1, c + 2])
+    dxa = (a1 - a0) + t * ((a2 - a1) - (a1 - a0))
+    dxb = (b1 - b0) + t * ((b2 - b1) - (b1 - b0))
+    l0, l1, l2 = float(img[r, ix]), float(img[r + 1, ix]), float(img[r + 2, ix])
+    m0, m1, m2 = float(img[r, ix + 1]), float(img[r + 1, ix + 1]), float(img[r + 2, ix + 1])
+    dya = (l1 - l0) + u * ((l2 - l1) - (l1 - l0))
+    dyb = (m1 - m0) + u * ((m2 - m1) - (m1 - m0))
+    p00, p01 = float(img[iy, ix]), float(img[iy, ix + 1])
+    p10, p11 = float(img[iy + 1, ix]), float(img[iy + 1, ix + 1])
+    v0 = p00 + ax * (p01 - p00)
+    v1 = p10 + ax * (p11 - p10)
+    return v0 + ay * (v1 - v0), dxa + ay * (dxb - dxa), dya + ax * (dyb - dya)
+
+
+@njit(**_JIT)
 def sample_shape(img, f, pose, template, s, out, grad):
     """Grey levels ``v`` (n_pix,) of a shape-normalised template, ``template = (tri, bary, ext)``: template
     pixel ``i`` lies in the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the
@@ -636,10 +669,10 @@ def sample_shape(img, f, pose, template, s, out, grad):
         my = b0 * vx[t0, 1] + b1 * vx[t1, 1] + b2 * vx[t2, 1]
         x = f * (a0 * mx + a1 * my + a2) + d
         y = f * (a3 * mx + a4 * my + a5) + d
-        v[i] = _bilinear(img, x, y)
         if grad:
-            gx[i] = _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y)
-            gy[i] = _bilinear(img, x, y + 0.5) - _bilinear(img, x, y - 0.5)
+            v[i], gx[i], gy[i] = _bilinear_grad(img, x, y)
+        else:
+            v[i] = _bilinear(img, x, y)
 
 
 @njit(**_JIT)
@@ -650,12 +683,12 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     (:func:`sample_shape`) match the mean appearance ``a0`` up to the appearance basis (projected out
     with ``qt``, which holds the ones too), under the Gaussian prior ``w p²`` (``w`` the pixel noise over
     each shape component's variance). ``tables`` = ``(tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w)``: the
-    template of :func:`sample_shape`, ``gsx = G S_x``, ``gsy = G S_y`` (n_pix, k; ``G`` the pixels' weights
+    template of :func:`sample_shape`, ``gsx = (G S_x)ᵀ``, ``gsy = (G S_y)ᵀ`` (k, n_pix; ``G`` the pixels' weights
     of the shape's points), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(vx, v, gx, gy, e, jac, qe, qj,
     hess, grad, p, dp)``, ``jac`` (k, n_pix). At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
     tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w = tables
     vx, v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
-    n, k = gsx.shape
+    k, n = gsx.shape
     q = qt.shape[0]
     for c in range(k):                               # the start's parameters (the rest of s is kept)
         acc = 0.0
@@ -679,8 +712,11 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
             e[i] = (v[i] - mu) * inv - a0[i]
             jx = (gx[i] * a0x + gy[i] * a3x) * inv
             jy = (gx[i] * a1x + gy[i] * a4x) * inv
-            for c in range(k):
-                jac[c, i] = jx * gsx[i, c] + jy * gsy[i, c]
+            gx[i] = jx
+            gy[i] = jy
+        for c in range(k):
+            for i in range(n):
+                jac[c, i] = gx[i] * gsx[c, i] + gy[i] * gsy[c, i]
         for a in range(q):
             acc = 0.0
             for i in range(n):
@@ -721,4 +757,58 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
         steps += 1
         if big < 1e-3:
             break
+    return steps
+
+
+@njit(**_JIT)
+def shape_box(pose, s, f, size, box):
+    """The crop a shape near ``s`` (flat model-frame points) is fitted on: the box (``box`` (4,) int, ``x0, y0,
+    x1, y1``) of level ``f`` (of ``size = (height, width)``) around the points mapped by ``pose`` ((2, 3)
+    ``image_from_model``), 60% of their extent and 4 pixels beyond, at least 2 x 2 pixels inside the level.
+    Returns False (``box`` unset) where a point is not finite."""
+    h, w = size[0], size[1]
+    d = 0.5 * f - 0.5
+    lx = ly = math.inf
+    hx = hy = -math.inf
+    for j in range(s.shape[0] // 2):
+        x = (s[2 * j] * pose[0, 0] + s[2 * j + 1] * pose[0, 1] + pose[0, 2]) * f + d
+        y = (s[2 * j] * pose[1, 0] + s[2 * j + 1] * pose[1, 1] + pose[1, 2]) * f + d
+        lx, hx, ly, hy = min(lx, x), max(hx, x), min(ly, y), max(hy, y)
+    pad = 0.6 * max(hx - lx, hy - ly) + 4.0
+    if not (math.isfinite(lx) and math.isfinite(hx) and math.isfinite(ly) and math.isfinite(hy) and pad < 1e6):
+        return False
+    box[0] = min(max(math.floor(lx - pad), 0), w - 2)
+    box[1] = min(max(math.floor(ly - pad), 0), h - 2)
+    box[2] = max(min(math.ceil(hx + pad), w), box[0] + 2)
+    box[3] = max(min(math.ceil(hy + pad), h), box[1] + 2)
+    return True
+
+
+@njit(**_JIT)
+def lip_box(pose, points, idx, f, size, s, box):
+    """``s`` (flat, 2 len(idx)) the model-frame positions of the image points ``points[idx]`` under ``pose``
+    ((2, 3) ``image_from_model``), and their crop (:func:`shape_box`). Returns :func:`shape_box`'s flag."""
+    det = pose[0, 0] * pose[1, 1] - pose[0, 1] * pose[1, 0]
+    i00, i01, i10, i11 = pose[1, 1] / det, -pose[0, 1] / det, -pose[1, 0] / det, pose[0, 0] / det
+    for j in range(idx.shape[0]):
+        x = points[idx[j], 0] - pose[0, 2]
+        y = points[idx[j], 1] - pose[1, 2]
+        s[2 * j] = i00 * x + i01 * y
+        s[2 * j + 1] = i10 * x + i11 * y
+    return shape_box(pose, s, f, size, box)
+
+
+@njit(**_JIT)
+def refine_write(crop, f, pose, box, s, tables, work, n_iter, at, write, points):
+    """:func:`refine_shape` on ``crop`` (level ``f``'s pixels from ``box``'s corner, :func:`lip_box`) from the
+    shape ``s``, then the fitted points ``s[at]`` mapped by ``pose`` into ``points[write]`` (image pixels).
+    Returns the steps."""
+    a = np.empty(6)
+    a[0], a[1], a[2] = pose[0, 0], pose[0, 1], pose[0, 2] - box[0] / f
+    a[3], a[4], a[5] = pose[1, 0], pose[1, 1], pose[1, 2] - box[1] / f
+    steps = refine_shape(crop, f, a, s, tables, work, n_iter)
+    for j in range(at.shape[0]):
+        x, y = s[2 * at[j]], s[2 * at[j] + 1]
+        points[write[j], 0] = pose[0, 0] * x + pose[0, 1] * y + pose[0, 2]
+        points[write[j], 1] = pose[1, 0] * x + pose[1, 1] * y + pose[1, 2]
     return steps
