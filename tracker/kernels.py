@@ -586,69 +586,80 @@ def read_global(patch, reading, work):
     return max(ee - 2.0 * cue + cgc, 0.0) / n, sd, m2 / k
 
 
-@njit(**_JIT)
-def _bilinear(img, x, y):
-    """Bilinear sample of ``img`` at ``(x, y)`` (float), the border replicated."""
-    H, W = img.shape
-    x = min(max(x, 0.0), W - 1.0)
-    y = min(max(y, 0.0), H - 1.0)
-    ix = min(int(x), W - 2) if W > 1 else 0
-    iy = min(int(y), H - 2) if H > 1 else 0
-    ax = x - ix
-    ay = y - iy
-    x1 = min(ix + 1, W - 1)
-    y1 = min(iy + 1, H - 1)
-    p00 = float(img[iy, ix])
-    p01 = float(img[iy, x1])
-    p10 = float(img[y1, ix])
-    p11 = float(img[y1, x1])
-    v0 = p00 + ax * (p01 - p00)
-    v1 = p10 + ax * (p11 - p10)
-    return v0 + ay * (v1 - v0)
+#: the border (pixels, replicated) of the images :func:`sample_shape` samples
+PAD = 4
 
 
 @njit(**_JIT)
 def _bilinear_grad(img, x, y):
-    """``(_bilinear(img, x, y), _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y), _bilinear(img, x, y + 0.5)
-    - _bilinear(img, x, y - 0.5))``: where none of the five samples meets the border, from the 3 x 3 pixels
-    they share (a difference of two bilinear samples a pixel apart is the bilinear sample of the pixels'
-    differences half a pixel back: the same values to rounding, without the clamps and branches)."""
+    """The bilinear sample ``b(x, y)`` of ``img`` (float64, ``PAD`` pixels of replicated border around the
+    image sampled) and its differences half a pixel either side, ``b(x + 1/2, y) - b(x - 1/2, y)`` and
+    ``b(x, y + 1/2) - b(x, y - 1/2)``, from the 3 x 3 pixels the five samples share (a difference of two
+    bilinear samples a pixel apart is the bilinear sample of the pixels' differences half a pixel back),
+    without branches so that the loop over the samples vectorises. Samples beyond the image take its
+    border's values (each coordinate clamped to 1.5 pixels beyond the border, where the five samples all
+    read the replicated border)."""
     H, W = img.shape
-    if not (0.5 <= x < W - 1.5 and 0.5 <= y < H - 1.5):
-        return (_bilinear(img, x, y), _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y),
-                _bilinear(img, x, y + 0.5) - _bilinear(img, x, y - 0.5))
-    c = int(x - 0.5)                                 # the first of the three columns of the x-differences
-    r = int(y - 0.5)                                 # and of the three rows of the y-differences
+    x = min(max(x, PAD - 1.5), W - PAD + 0.5)
+    y = min(max(y, PAD - 1.5), H - PAD + 0.5)
+    c = int(x - 0.5)                                 # the block's first column and row
+    r = int(y - 0.5)
     t = x - 0.5 - c
     u = y - 0.5 - r
-    ix = int(x)
-    iy = int(y)
+    ix = int(x)                                      # c or c + 1
+    iy = int(y)                                      # r or r + 1
     ax = x - ix
     ay = y - iy
-    a0, a1, a2 = float(img[iy, c]), float(img[iy, c + 1]), float(img[iy, c + 2])
-    b0, b1, b2 = float(img[iy + 1, c]), float(img[iy + 1, c + 1]), float(img[iy + 1, c + 2])
-    dxa = (a1 - a0) + t * ((a2 - a1) - (a1 - a0))
-    dxb = (b1 - b0) + t * ((b2 - b1) - (b1 - b0))
-    l0, l1, l2 = float(img[r, ix]), float(img[r + 1, ix]), float(img[r + 2, ix])
-    m0, m1, m2 = float(img[r, ix + 1]), float(img[r + 1, ix + 1]), float(img[r + 2, ix + 1])
-    dya = (l1 - l0) + u * ((l2 - l1) - (l1 - l0))
-    dyb = (m1 - m0) + u * ((m2 - m1) - (m1 - m0))
-    p00, p01 = float(img[iy, ix]), float(img[iy, ix + 1])
-    p10, p11 = float(img[iy + 1, ix]), float(img[iy + 1, ix + 1])
-    v0 = p00 + ax * (p01 - p00)
-    v1 = p10 + ax * (p11 - p10)
+    p00, p01, p02 = img[r, c], img[r, c + 1], img[r, c + 2]
+    p10, p11, p12 = img[r + 1, c], img[r + 1, c + 1], img[r + 1, c + 2]
+    p20, p21, p22 = img[r + 2, c], img[r + 2, c + 1], img[r + 2, c + 2]
+    dx0 = (p01 - p00) + t * ((p02 - p01) - (p01 - p00))      # each row's x-difference at x
+    dx1 = (p11 - p10) + t * ((p12 - p11) - (p11 - p10))
+    dx2 = (p21 - p20) + t * ((p22 - p21) - (p21 - p20))
+    dy0 = (p10 - p00) + u * ((p20 - p10) - (p10 - p00))      # each column's y-difference at y
+    dy1 = (p11 - p01) + u * ((p21 - p11) - (p11 - p01))
+    dy2 = (p12 - p02) + u * ((p22 - p12) - (p12 - p02))
+    top = iy == r                                    # selections, not branches: the pixels' order is random
+    left = ix == c
+    dxa = dx0 if top else dx1
+    dxb = dx1 if top else dx2
+    dya = dy0 if left else dy1
+    dyb = dy1 if left else dy2
+    q0 = (p00 if left else p01) if top else (p10 if left else p11)
+    q1 = (p01 if left else p02) if top else (p11 if left else p12)
+    s0 = (p10 if left else p11) if top else (p20 if left else p21)
+    s1 = (p11 if left else p12) if top else (p21 if left else p22)
+    v0 = q0 + ax * (q1 - q0)
+    v1 = s0 + ax * (s1 - s0)
     return v0 + ay * (v1 - v0), dxa + ay * (dxb - dxa), dya + ax * (dyb - dya)
 
 
 @njit(**_JIT)
-def sample_shape(img, f, pose, template, s, out, grad):
-    """Grey levels ``v`` (n_pix,) of a shape-normalised template, ``template = (tri, bary, ext)``: template
-    pixel ``i`` lies in the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the
-    shape's ``m`` points ``s``, flat ``(x0, y0, x1, ...)``, to the triangulation's vertices) at the barycentric
-    weights ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to pyramid level
-    ``img`` (``x_l = f x + f/2 - 1/2``; ``img`` uint8 or float). ``out = (vx, v, gx, gy)``: ``vx``
-    (n_vertices, 2) receives the vertices; with ``grad``, ``gx``, ``gy`` the image's gradients at the
-    samples (central differences half a pixel either side)."""
+def padded(crop):
+    """``crop`` as float64 with ``PAD`` pixels of replicated border (the images :func:`sample_shape` samples)."""
+    h, w = crop.shape
+    out = np.empty((h + 2 * PAD, w + 2 * PAD))
+    for r in range(h + 2 * PAD):
+        src = crop[min(max(r - PAD, 0), h - 1)]
+        row = out[r]
+        for c in range(w):
+            row[c + PAD] = src[c]
+        for c in range(PAD):
+            row[c] = src[0]
+            row[w + PAD + c] = src[w - 1]
+    return out
+
+
+@njit(**_JIT)
+def sample_shape(img, f, pose, template, s, out):
+    """Grey levels ``v`` (n_pix,) of a shape-normalised template, ``template = (tri, bary, ext)``, and the
+    image's gradients at them (central differences half a pixel either side): template pixel ``i`` lies in
+    the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the shape's ``m`` points
+    ``s``, flat ``(x0, y0, x1, ...)``, to the triangulation's vertices) at the barycentric weights
+    ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to pyramid level ``img``
+    (``x_l = f x + f/2 - 1/2``; ``img`` float64 with ``PAD`` pixels of replicated border, :func:`padded`,
+    ``pose`` mapping to its pixels). ``out = (vx, v, gx, gy)``: ``vx`` (n_vertices, 2) receives the
+    vertices, ``v``, ``gx``, ``gy`` (distinct arrays) the samples and gradients."""
     tri, bary, ext = template
     vx, v, gx, gy = out
     nv, m = ext.shape
@@ -669,10 +680,7 @@ def sample_shape(img, f, pose, template, s, out, grad):
         my = b0 * vx[t0, 1] + b1 * vx[t1, 1] + b2 * vx[t2, 1]
         x = f * (a0 * mx + a1 * my + a2) + d
         y = f * (a3 * mx + a4 * my + a5) + d
-        if grad:
-            v[i], gx[i], gy[i] = _bilinear_grad(img, x, y)
-        else:
-            v[i] = _bilinear(img, x, y)
+        v[i], gx[i], gy[i] = _bilinear_grad(img, x, y)
 
 
 @njit(**_JIT)
@@ -698,7 +706,7 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     a0x, a1x, a3x, a4x = pose[0] * f, pose[1] * f, pose[3] * f, pose[4] * f
     steps = 0
     for _ in range(n_iter):
-        sample_shape(img, f, pose, (tri, bary, ext), s, (vx, v, gx, gy), True)
+        sample_shape(img, f, pose, (tri, bary, ext), s, (vx, v, gx, gy))
         mu = 0.0
         for i in range(n):
             mu += v[i]
@@ -800,12 +808,13 @@ def lip_box(pose, points, idx, f, size, s, box):
 
 @njit(**_JIT)
 def refine_write(crop, f, pose, box, s, tables, work, n_iter, at, write, points):
-    """:func:`refine_shape` on ``crop`` (level ``f``'s pixels from ``box``'s corner, :func:`lip_box`) from the
+    """:func:`refine_shape` on ``crop`` (level ``f``'s pixels from ``box``'s corner, :func:`lip_box`, with
+    :func:`padded`'s border) from the
     shape ``s``, then the fitted points ``s[at]`` mapped by ``pose`` into ``points[write]`` (image pixels).
     Returns the steps."""
     a = np.empty(6)
-    a[0], a[1], a[2] = pose[0, 0], pose[0, 1], pose[0, 2] - box[0] / f
-    a[3], a[4], a[5] = pose[1, 0], pose[1, 1], pose[1, 2] - box[1] / f
+    a[0], a[1], a[2] = pose[0, 0], pose[0, 1], pose[0, 2] - (box[0] - PAD) / f
+    a[3], a[4], a[5] = pose[1, 0], pose[1, 1], pose[1, 2] - (box[1] - PAD) / f
     steps = refine_shape(crop, f, a, s, tables, work, n_iter)
     for j in range(at.shape[0]):
         x, y = s[2 * at[j]], s[2 * at[j] + 1]
