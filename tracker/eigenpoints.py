@@ -197,10 +197,15 @@ def _pca_rows(xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Principal axes (rows, orthonormal) and their variances of centred rows ``xc`` (n, d), n << d.
 
     Uses the n x n Gram matrix (``xc xc^T = V Λ V^T`` gives axes ``Λ^{-1/2} V^T xc``),
-    the same axes as an SVD of ``xc`` at a fraction of the cost when n << d.
+    the same axes as an SVD of ``xc`` at a fraction of the cost when n << d. BLAS runs on the calling
+    thread: training calls it a hundred times on small matrices, where a thread pool's threads only spin
+    (measured in ``docs/benchmarks.md``).
     """
-    g = xc @ xc.T
-    lam, v = np.linalg.eigh(g)
+    from threadpoolctl import threadpool_limits      # training only
+
+    with threadpool_limits(1):
+        g = xc @ xc.T
+        lam, v = np.linalg.eigh(g)
     order = np.argsort(lam)[::-1]
     lam, v = lam[order], v[:, order]
     keep = lam > lam[0] * 1e-10 if len(lam) and lam[0] > 0 else np.zeros(len(lam), bool)
