@@ -3,9 +3,10 @@
 :class:`keyshape.tracker.fitting.Tracker` calls these for the work every frame repeats: the region
 models' Gauss-Newton refinement and reading (:func:`refine_regions`: the boxes' sampling, their
 normalised errors, gradients and projected-out normal equations, every step of every region in one
-call), the pose polish's normal equations and solve (:func:`polish_step`) and the global eigen-points
-reading (:func:`read_global`). Each frame is otherwise hundreds of small numpy and OpenCV calls whose
-overhead outweighs their arithmetic (a region's box is a few hundred pixels).
+call), the pose polish's normal equations and solve (:func:`polish_step`), the global eigen-points
+reading (:func:`read_global`) and the lips' shape fitted by analysis by synthesis (:func:`lip_box`,
+then :func:`refine_write` on the crop it chose). Each frame is otherwise hundreds of small numpy and
+OpenCV calls whose overhead outweighs their arithmetic (a region's box is a few hundred pixels).
 
 The kernels are compiled on first use and cached on disk (``cache=True``): beside this module's
 ``__pycache__`` where it is writable, else in numba's user cache directory (``NUMBA_CACHE_DIR`` when
