@@ -597,7 +597,8 @@ def _bilinear_grad(img, x, y):
     image sampled) and its differences half a pixel either side, ``b(x + 1/2, y) - b(x - 1/2, y)`` and
     ``b(x, y + 1/2) - b(x, y - 1/2)``, from the 3 x 3 pixels the five samples share (a difference of two
     bilinear samples a pixel apart is the bilinear sample of the pixels' differences half a pixel back),
-    without branches so that the loop over the samples vectorises. Samples beyond the image take its
+    with selections, not branches (which of the block's rows and columns a sample uses changes from
+    pixel to pixel, which a branch predicts badly). Samples beyond the image take its
     border's values (each coordinate clamped to 1.5 pixels beyond the border, where the five samples all
     read the replicated border)."""
     H, W = img.shape
@@ -620,7 +621,7 @@ def _bilinear_grad(img, x, y):
     dy0 = (p10 - p00) + u * ((p20 - p10) - (p10 - p00))      # each column's y-difference at y
     dy1 = (p11 - p01) + u * ((p21 - p11) - (p11 - p01))
     dy2 = (p12 - p02) + u * ((p22 - p12) - (p12 - p02))
-    top = iy == r                                    # selections, not branches: the pixels' order is random
+    top = iy == r
     left = ix == c
     dxa = dx0 if top else dx1
     dxb = dx1 if top else dx2
