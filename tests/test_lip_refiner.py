@@ -92,3 +92,67 @@ def test_models_carry_the_lips_refiner_and_older_files_read_without_it(tmp_path)
     for k in ShapeRefiner.ARRAYS:
         del mf.arrays[f"lip_refiner_{k}"]
     assert AppearanceModel.from_file(mf).lip_refiner_ is None
+
+
+def test_the_compiled_fit_matches_its_parts():
+    """The tracker's lips fit (:func:`~keyshape.tracker.kernels.lip_box` then
+    :func:`~keyshape.tracker.kernels.refine_write`, one compiled call each) gives the points of
+    :meth:`ShapeRefiner.image` and :func:`refine_shape` mapped back to the image, to rounding; and the
+    samples' gradients from the 3 x 3 pixels they share are the differences of bilinear samples, border included."""
+    from keyshape.tracker.kernels import PAD, _bilinear_grad, lip_box, padded, refine_write
+
+    rng = np.random.default_rng(2)
+    gaps = [2.0, 6.0, 10.0, 14.0]
+    shapes = np.stack([_mouth(g, w) for g, w in zip(gaps, (58.0, 62.0, 56.0, 60.0))])
+    pose = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    lr = ShapeRefiner.fit(sorted(OUTER + INNER), INNER, [Pyramid(_frame(s, np.random.default_rng(k)))
+                                                         for k, s in enumerate(shapes)], [pose] * 4, shapes)
+    img_pose = np.array([[1.1, 0.05, 3.0], [-0.04, 1.05, -2.0]])         # image_from_model
+    truth = _mouth(11.0, 59.0)
+    pyr = Pyramid(_frame(truth, rng))
+    start = shapes.mean(0)
+    points = start @ img_pose[:, :2].T + img_pose[:, 2]
+    crop, f, at = lr.image(pyr, img_pose, start[lr.points])
+    s = start[lr.points].ravel().copy()
+    refine_shape(crop, f, at, s, lr.tables(), lr.work(), 6)
+    want = s.reshape(-1, 2)[np.searchsorted(lr.points, lr.write)] @ img_pose[:, :2].T + img_pose[:, 2]
+    s2, box = np.empty(2 * len(lr.points)), np.empty(4, np.intp)
+    assert lip_box(img_pose, points, lr.points, f, pyr._sizes[0], s2, box)
+    got = points.copy()
+    refine_write(lr.crop(pyr, 0, box), f, img_pose, box, s2, lr.tables(), lr.work(), 6,
+                 np.searchsorted(lr.points, lr.write), lr.write, got)
+    assert np.abs(got[lr.write] - want).max() < 1e-9
+    others = np.setdiff1d(np.arange(len(points)), lr.write)
+    assert np.array_equal(got[others], points[others])
+    flat = crop[PAD:-PAD, PAD:-PAD].astype(np.float32)
+    hh, ww = flat.shape
+
+    def bilinear(x, y):                              # the border replicated
+        x, y = min(max(x, 0.0), ww - 1.0), min(max(y, 0.0), hh - 1.0)
+        ix, iy = min(int(x), ww - 2), min(int(y), hh - 2)
+        ax, ay = x - ix, y - iy
+        p = flat[iy:iy + 2, ix:ix + 2].astype(np.float64)
+        v0, v1 = p[0, 0] + ax * (p[0, 1] - p[0, 0]), p[1, 0] + ax * (p[1, 1] - p[1, 0])
+        return v0 + ay * (v1 - v0)
+
+    img = padded(flat)
+    for x, y in zip(rng.uniform(-4, ww + 3, 3000), rng.uniform(-4, hh + 3, 3000)):
+        ref = (bilinear(x, y), bilinear(x + 0.5, y) - bilinear(x - 0.5, y), bilinear(x, y + 0.5) - bilinear(x, y - 0.5))
+        assert np.allclose(_bilinear_grad(img, x + PAD, y + PAD), ref, rtol=0, atol=1e-9), (x, y)
+
+
+def test_the_crop_is_blurred_as_gaussian_blur_blurs_it_in_float32():
+    """:meth:`ShapeRefiner.crop` blurs the uint8 crop into float32 in one call (``cv2.sepFilter2D`` with
+    ``_GAUSS``): the values of ``cv2.GaussianBlur`` of the crop converted to float32 first (to float32's
+    rounding), within the replicated border :func:`~keyshape.tracker.kernels.padded` adds."""
+    from keyshape.tracker.kernels import PAD
+
+    frame = _frame(_mouth(8.0), np.random.default_rng(3))
+    box = np.array([30, 20, 131, 97], np.intp)
+    got = ShapeRefiner.crop(Pyramid(frame), 0, box)
+    want = cv2.GaussianBlur(frame[20:97, 30:131].astype(np.float32), (0, 0), ShapeRefiner.BLUR,
+                            borderType=cv2.BORDER_REPLICATE)
+    assert got.dtype == np.float64 and got.shape == (77 + 2 * PAD, 101 + 2 * PAD)
+    assert np.abs(got[PAD:-PAD, PAD:-PAD] - want).max() < 1e-4
+    assert np.array_equal(got[:PAD], np.repeat(got[PAD:PAD + 1], PAD, 0))
+    assert np.array_equal(got[:, -PAD:], np.repeat(got[:, -PAD - 1:-PAD], PAD, 1))

@@ -197,10 +197,15 @@ def _pca_rows(xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Principal axes (rows, orthonormal) and their variances of centred rows ``xc`` (n, d), n << d.
 
     Uses the n x n Gram matrix (``xc xc^T = V Λ V^T`` gives axes ``Λ^{-1/2} V^T xc``),
-    the same axes as an SVD of ``xc`` at a fraction of the cost when n << d.
+    the same axes as an SVD of ``xc`` at a fraction of the cost when n << d. BLAS runs on the calling
+    thread: training calls it a hundred times on small matrices, where a thread pool's threads only spin
+    (measured in ``docs/benchmarks.md``).
     """
-    g = xc @ xc.T
-    lam, v = np.linalg.eigh(g)
+    from threadpoolctl import threadpool_limits      # training only
+
+    with threadpool_limits(1):
+        g = xc @ xc.T
+        lam, v = np.linalg.eigh(g)
     order = np.argsort(lam)[::-1]
     lam, v = lam[order], v[:, order]
     keep = lam > lam[0] * 1e-10 if len(lam) and lam[0] > 0 else np.zeros(len(lam), bool)
@@ -460,10 +465,10 @@ class ShapeRefiner:
                 lam = np.append(lam, 4.0)                    # 2 model pixels
         n_pix = len(grid)
         a = np.empty((len(sh), n_pix))
-        vx = np.empty((len(ext), 2))
+        vx, gx, gy = np.empty((len(ext), 2)), np.empty(n_pix), np.empty(n_pix)
         for i, (pyr, pose, shp) in enumerate(zip(pyramids, poses, sh)):
             img, f, at = cls.image(pyr, np.asarray(pose, np.float64), shp)
-            sample_shape(img, f, at, (tri_i, bary, ext), shp.ravel().copy(), (vx, a[i], a[i], a[i]), False)
+            sample_shape(img, f, at, (tri_i, bary, ext), shp.ravel().copy(), (vx, a[i], gx, gy))
         a = normalise(a)
         a0 = a.mean(0)
         ax, va = _pca_rows(a - a0)
@@ -483,38 +488,49 @@ class ShapeRefiner:
 
     #: the Gaussian blur (pixels of the level sampled) of the crop the shape is fitted on
     BLUR = 1.0
+    #: its kernel: cv2.GaussianBlur's for float32 images (4 sigmas either side, float32 weights), so the
+    #: uint8 crop is blurred into float32 in one call with the values of converting it first
+    _GAUSS = cv2.getGaussianKernel(int(round(8 * BLUR + 1)) | 1, BLUR, cv2.CV_32F)
 
     @classmethod
     def image(cls, pyr: Pyramid, pose: np.ndarray, shape: np.ndarray):
         """The image a shape near ``shape`` (model frame, (m, 2)) is fitted on: a crop of the pyramid level one
         finer than :func:`pyramid_level`'s (about one source pixel per model pixel), blurred by ``BLUR``,
         around the shape's points (60% of their extent and 4 pixels beyond). Returns ``(crop, f, pose6)``:
-        the crop (float32), the level's scale and the pose (6,) moved to the crop's origin; None for the
+        the crop (:meth:`crop`), the level's scale and the pose (6,) moved to the crop's origin; None for the
         crop where the shape is not finite."""
+        from keyshape.tracker.kernels import PAD, shape_box
+
         lvl = max(pyramid_level(pyr, pose) - 1, 0)
         f = 0.5 ** lvl
-        xy = apply_affine(pose, shape) * f + (0.5 * f - 0.5)
-        lo, hi = xy.min(0), xy.max(0)
-        pad = 0.6 * float((hi - lo).max()) + 4.0
-        h, w = pyr._sizes[lvl]
-        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and pad < 1e6):
+        box = np.empty(4, np.intp)
+        if not shape_box(np.asarray(pose, np.float64), np.ascontiguousarray(shape, np.float64).ravel(), f,
+                         pyr._sizes[lvl], box):
             return None, f, pose.ravel()
-        x0, y0 = min(max(math.floor(lo[0] - pad), 0), w - 2), min(max(math.floor(lo[1] - pad), 0), h - 2)
-        x1, y1 = max(min(math.ceil(hi[0] + pad), w), x0 + 2), max(min(math.ceil(hi[1] + pad), h), y0 + 2)
-        crop = pyr.window(lvl, x0, y0, x1, y1)[y0:y1, x0:x1].astype(np.float32)
-        crop = cv2.GaussianBlur(crop, (0, 0), cls.BLUR, borderType=cv2.BORDER_REPLICATE)
+        crop = cls.crop(pyr, lvl, box)
         at = pose.ravel().copy()
-        at[2] -= x0 / f
-        at[5] -= y0 / f
+        at[2] -= (int(box[0]) - PAD) / f
+        at[5] -= (int(box[1]) - PAD) / f
         return crop, f, at
+
+    @classmethod
+    def crop(cls, pyr: Pyramid, lvl: int, box: np.ndarray) -> np.ndarray:
+        """Pixels ``box`` (``x0, y0, x1, y1``, :func:`~keyshape.tracker.kernels.shape_box`) of pyramid level
+        ``lvl`` blurred by ``BLUR`` (in float32), as float64 with the border
+        :func:`~keyshape.tracker.kernels.sample_shape` reads (:func:`~keyshape.tracker.kernels.padded`)."""
+        from keyshape.tracker.kernels import padded
+
+        x0, y0, x1, y1 = box.tolist()
+        crop = pyr.window(lvl, x0, y0, x1, y1)[y0:y1, x0:x1]
+        return padded(cv2.sepFilter2D(crop, cv2.CV_32F, cls._GAUSS, cls._GAUSS, borderType=cv2.BORDER_REPLICATE))
 
     def tables(self) -> tuple:
         """The constant arrays of :func:`~keyshape.tracker.kernels.refine_shape`."""
         g = np.zeros((len(self.tri), len(self.ext)))
         np.put_along_axis(g, self.tri, self.bary, axis=1)
         g = g @ self.ext                             # (n_pix, m): each pixel's weights of the shape's points
-        gsx = np.ascontiguousarray(g @ self.basis[0::2])
-        gsy = np.ascontiguousarray(g @ self.basis[1::2])
+        gsx = np.ascontiguousarray((g @ self.basis[0::2]).T)
+        gsy = np.ascontiguousarray((g @ self.basis[1::2]).T)
         return (self.tri, self.bary, self.ext, gsx, gsy, self.basis, self.s0, self.a0, self.qt, self.weights)
 
     def work(self) -> tuple:

@@ -26,7 +26,7 @@ import numpy as np
 
 from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
                                           warp_patch, warp_patch_u8)
-from keyshape.tracker.kernels import polish_step, read_global, refine_regions, refine_shape
+from keyshape.tracker.kernels import lip_box, polish_step, read_global, refine_regions, refine_write
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
@@ -303,8 +303,8 @@ class Tracker:
         lr = getattr(m, "lip_refiner_", None)
         # the lips' shape fitted by analysis by synthesis after the reading (ShapeRefiner): its constant arrays,
         # work arrays, and where its written points sit among its points
-        self._lips = None if lr is None else (lr, lr.tables(), lr.work(),
-                                              np.searchsorted(lr.points, lr.write))
+        self._lips = None if lr is None else (lr, lr.tables(), lr.work(), np.searchsorted(lr.points, lr.write),
+                                              np.empty(2 * len(lr.points)), np.empty(4, np.intp))
         size = m.patch_size_
         n_pix = len(m.index_)
         mean = np.zeros(size * size)
@@ -512,14 +512,11 @@ class Tracker:
         refiner's written points) by :func:`~keyshape.tracker.kernels.refine_shape` (the model's
         :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`); :meth:`step` calls it once a frame, on the pose
         and reading it keeps."""
-        lr, tables, work, at = self._lips
-        shape = apply_affine(invert_affine(pose), points[lr.points])
-        s = shape.ravel()
-        img, f, a = lr.image(pyr, pose, shape)
-        if img is None:
-            return
-        refine_shape(img, f, a, s, tables, work, self.LIP_STEPS)
-        points[lr.write] = apply_affine(pose, s.reshape(-1, 2)[at])
+        lr, tables, work, at, s, box = self._lips
+        lvl = max(pyramid_level(pyr, pose) - 1, 0)
+        f = 0.5 ** lvl
+        if lip_box(pose, points, lr.points, f, pyr._sizes[lvl], s, box):
+            refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, at, lr.write, points)
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for

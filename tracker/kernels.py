@@ -3,9 +3,10 @@
 :class:`keyshape.tracker.fitting.Tracker` calls these for the work every frame repeats: the region
 models' Gauss-Newton refinement and reading (:func:`refine_regions`: the boxes' sampling, their
 normalised errors, gradients and projected-out normal equations, every step of every region in one
-call), the pose polish's normal equations and solve (:func:`polish_step`) and the global eigen-points
-reading (:func:`read_global`). Each frame is otherwise hundreds of small numpy and OpenCV calls whose
-overhead outweighs their arithmetic (a region's box is a few hundred pixels).
+call), the pose polish's normal equations and solve (:func:`polish_step`), the global eigen-points
+reading (:func:`read_global`) and the lips' shape fitted by analysis by synthesis (:func:`lip_box`,
+then :func:`refine_write` on the crop it chose). Each frame is otherwise hundreds of small numpy and
+OpenCV calls whose overhead outweighs their arithmetic (a region's box is a few hundred pixels).
 
 The kernels are compiled on first use and cached on disk (``cache=True``): beside this module's
 ``__pycache__`` where it is writable, else in numba's user cache directory (``NUMBA_CACHE_DIR`` when
@@ -586,36 +587,81 @@ def read_global(patch, reading, work):
     return max(ee - 2.0 * cue + cgc, 0.0) / n, sd, m2 / k
 
 
+#: the border (pixels, replicated) of the images :func:`sample_shape` samples
+PAD = 4
+
+
 @njit(**_JIT)
-def _bilinear(img, x, y):
-    """Bilinear sample of ``img`` at ``(x, y)`` (float), the border replicated."""
+def _bilinear_grad(img, x, y):
+    """The bilinear sample ``b(x, y)`` of ``img`` (float64, ``PAD`` pixels of replicated border around the
+    image sampled) and its differences half a pixel either side, ``b(x + 1/2, y) - b(x - 1/2, y)`` and
+    ``b(x, y + 1/2) - b(x, y - 1/2)``, from the 3 x 3 pixels the five samples share (a difference of two
+    bilinear samples a pixel apart is the bilinear sample of the pixels' differences half a pixel back),
+    with selections, not branches (which of the block's rows and columns a sample uses changes from
+    pixel to pixel, which a branch predicts badly). Samples beyond the image take its
+    border's values (each coordinate clamped to 1.5 pixels beyond the border, where the five samples all
+    read the replicated border)."""
     H, W = img.shape
-    x = min(max(x, 0.0), W - 1.0)
-    y = min(max(y, 0.0), H - 1.0)
-    ix = min(int(x), W - 2) if W > 1 else 0
-    iy = min(int(y), H - 2) if H > 1 else 0
+    x = min(max(x, PAD - 1.5), W - PAD + 0.5)
+    y = min(max(y, PAD - 1.5), H - PAD + 0.5)
+    c = int(x - 0.5)                                 # the block's first column and row
+    r = int(y - 0.5)
+    t = x - 0.5 - c
+    u = y - 0.5 - r
+    ix = int(x)                                      # c or c + 1
+    iy = int(y)                                      # r or r + 1
     ax = x - ix
     ay = y - iy
-    x1 = min(ix + 1, W - 1)
-    y1 = min(iy + 1, H - 1)
-    p00 = float(img[iy, ix])
-    p01 = float(img[iy, x1])
-    p10 = float(img[y1, ix])
-    p11 = float(img[y1, x1])
-    v0 = p00 + ax * (p01 - p00)
-    v1 = p10 + ax * (p11 - p10)
-    return v0 + ay * (v1 - v0)
+    p00, p01, p02 = img[r, c], img[r, c + 1], img[r, c + 2]
+    p10, p11, p12 = img[r + 1, c], img[r + 1, c + 1], img[r + 1, c + 2]
+    p20, p21, p22 = img[r + 2, c], img[r + 2, c + 1], img[r + 2, c + 2]
+    dx0 = (p01 - p00) + t * ((p02 - p01) - (p01 - p00))      # each row's x-difference at x
+    dx1 = (p11 - p10) + t * ((p12 - p11) - (p11 - p10))
+    dx2 = (p21 - p20) + t * ((p22 - p21) - (p21 - p20))
+    dy0 = (p10 - p00) + u * ((p20 - p10) - (p10 - p00))      # each column's y-difference at y
+    dy1 = (p11 - p01) + u * ((p21 - p11) - (p11 - p01))
+    dy2 = (p12 - p02) + u * ((p22 - p12) - (p12 - p02))
+    top = iy == r
+    left = ix == c
+    dxa = dx0 if top else dx1
+    dxb = dx1 if top else dx2
+    dya = dy0 if left else dy1
+    dyb = dy1 if left else dy2
+    q0 = (p00 if left else p01) if top else (p10 if left else p11)
+    q1 = (p01 if left else p02) if top else (p11 if left else p12)
+    s0 = (p10 if left else p11) if top else (p20 if left else p21)
+    s1 = (p11 if left else p12) if top else (p21 if left else p22)
+    v0 = q0 + ax * (q1 - q0)
+    v1 = s0 + ax * (s1 - s0)
+    return v0 + ay * (v1 - v0), dxa + ay * (dxb - dxa), dya + ax * (dyb - dya)
 
 
 @njit(**_JIT)
-def sample_shape(img, f, pose, template, s, out, grad):
-    """Grey levels ``v`` (n_pix,) of a shape-normalised template, ``template = (tri, bary, ext)``: template
-    pixel ``i`` lies in the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the
-    shape's ``m`` points ``s``, flat ``(x0, y0, x1, ...)``, to the triangulation's vertices) at the barycentric
-    weights ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to pyramid level
-    ``img`` (``x_l = f x + f/2 - 1/2``; ``img`` uint8 or float). ``out = (vx, v, gx, gy)``: ``vx``
-    (n_vertices, 2) receives the vertices; with ``grad``, ``gx``, ``gy`` the image's gradients at the
-    samples (central differences half a pixel either side)."""
+def padded(crop):
+    """``crop`` as float64 with ``PAD`` pixels of replicated border (the images :func:`sample_shape` samples)."""
+    h, w = crop.shape
+    out = np.empty((h + 2 * PAD, w + 2 * PAD))
+    for r in range(h + 2 * PAD):
+        src = crop[min(max(r - PAD, 0), h - 1)]
+        row = out[r]
+        for c in range(w):
+            row[c + PAD] = src[c]
+        for c in range(PAD):
+            row[c] = src[0]
+            row[w + PAD + c] = src[w - 1]
+    return out
+
+
+@njit(**_JIT)
+def sample_shape(img, f, pose, template, s, out):
+    """Grey levels ``v`` (n_pix,) of a shape-normalised template, ``template = (tri, bary, ext)``, and the
+    image's gradients at them (central differences half a pixel either side): template pixel ``i`` lies in
+    the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the shape's ``m`` points
+    ``s``, flat ``(x0, y0, x1, ...)``, to the triangulation's vertices) at the barycentric weights
+    ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to pyramid level ``img``
+    (``x_l = f x + f/2 - 1/2``; ``img`` float64 with ``PAD`` pixels of replicated border, :func:`padded`,
+    ``pose`` mapping to its pixels). ``out = (vx, v, gx, gy)``: ``vx`` (n_vertices, 2) receives the
+    vertices, ``v``, ``gx``, ``gy`` (distinct arrays) the samples and gradients."""
     tri, bary, ext = template
     vx, v, gx, gy = out
     nv, m = ext.shape
@@ -636,10 +682,7 @@ def sample_shape(img, f, pose, template, s, out, grad):
         my = b0 * vx[t0, 1] + b1 * vx[t1, 1] + b2 * vx[t2, 1]
         x = f * (a0 * mx + a1 * my + a2) + d
         y = f * (a3 * mx + a4 * my + a5) + d
-        v[i] = _bilinear(img, x, y)
-        if grad:
-            gx[i] = _bilinear(img, x + 0.5, y) - _bilinear(img, x - 0.5, y)
-            gy[i] = _bilinear(img, x, y + 0.5) - _bilinear(img, x, y - 0.5)
+        v[i], gx[i], gy[i] = _bilinear_grad(img, x, y)
 
 
 @njit(**_JIT)
@@ -650,12 +693,12 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     (:func:`sample_shape`) match the mean appearance ``a0`` up to the appearance basis (projected out
     with ``qt``, which holds the ones too), under the Gaussian prior ``w p²`` (``w`` the pixel noise over
     each shape component's variance). ``tables`` = ``(tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w)``: the
-    template of :func:`sample_shape`, ``gsx = G S_x``, ``gsy = G S_y`` (n_pix, k; ``G`` the pixels' weights
+    template of :func:`sample_shape`, ``gsx = (G S_x)ᵀ``, ``gsy = (G S_y)ᵀ`` (k, n_pix; ``G`` the pixels' weights
     of the shape's points), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(vx, v, gx, gy, e, jac, qe, qj,
     hess, grad, p, dp)``, ``jac`` (k, n_pix). At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
     tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w = tables
     vx, v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
-    n, k = gsx.shape
+    k, n = gsx.shape
     q = qt.shape[0]
     for c in range(k):                               # the start's parameters (the rest of s is kept)
         acc = 0.0
@@ -665,7 +708,7 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     a0x, a1x, a3x, a4x = pose[0] * f, pose[1] * f, pose[3] * f, pose[4] * f
     steps = 0
     for _ in range(n_iter):
-        sample_shape(img, f, pose, (tri, bary, ext), s, (vx, v, gx, gy), True)
+        sample_shape(img, f, pose, (tri, bary, ext), s, (vx, v, gx, gy))
         mu = 0.0
         for i in range(n):
             mu += v[i]
@@ -679,8 +722,11 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
             e[i] = (v[i] - mu) * inv - a0[i]
             jx = (gx[i] * a0x + gy[i] * a3x) * inv
             jy = (gx[i] * a1x + gy[i] * a4x) * inv
-            for c in range(k):
-                jac[c, i] = jx * gsx[i, c] + jy * gsy[i, c]
+            gx[i] = jx
+            gy[i] = jy
+        for c in range(k):
+            for i in range(n):
+                jac[c, i] = gx[i] * gsx[c, i] + gy[i] * gsy[c, i]
         for a in range(q):
             acc = 0.0
             for i in range(n):
@@ -721,4 +767,59 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
         steps += 1
         if big < 1e-3:
             break
+    return steps
+
+
+@njit(**_JIT)
+def shape_box(pose, s, f, size, box):
+    """The crop a shape near ``s`` (flat model-frame points) is fitted on: the box (``box`` (4,) int, ``x0, y0,
+    x1, y1``) of level ``f`` (of ``size = (height, width)``) around the points mapped by ``pose`` ((2, 3)
+    ``image_from_model``), 60% of their extent and 4 pixels beyond, at least 2 x 2 pixels inside the level.
+    Returns False (``box`` unset) where a point is not finite."""
+    h, w = size[0], size[1]
+    d = 0.5 * f - 0.5
+    lx = ly = math.inf
+    hx = hy = -math.inf
+    for j in range(s.shape[0] // 2):
+        x = (s[2 * j] * pose[0, 0] + s[2 * j + 1] * pose[0, 1] + pose[0, 2]) * f + d
+        y = (s[2 * j] * pose[1, 0] + s[2 * j + 1] * pose[1, 1] + pose[1, 2]) * f + d
+        lx, hx, ly, hy = min(lx, x), max(hx, x), min(ly, y), max(hy, y)
+    pad = 0.6 * max(hx - lx, hy - ly) + 4.0
+    if not (math.isfinite(lx) and math.isfinite(hx) and math.isfinite(ly) and math.isfinite(hy) and pad < 1e6):
+        return False
+    box[0] = min(max(math.floor(lx - pad), 0), w - 2)
+    box[1] = min(max(math.floor(ly - pad), 0), h - 2)
+    box[2] = max(min(math.ceil(hx + pad), w), box[0] + 2)
+    box[3] = max(min(math.ceil(hy + pad), h), box[1] + 2)
+    return True
+
+
+@njit(**_JIT)
+def lip_box(pose, points, idx, f, size, s, box):
+    """``s`` (flat, 2 len(idx)) the model-frame positions of the image points ``points[idx]`` under ``pose``
+    ((2, 3) ``image_from_model``), and their crop (:func:`shape_box`). Returns :func:`shape_box`'s flag."""
+    det = pose[0, 0] * pose[1, 1] - pose[0, 1] * pose[1, 0]
+    i00, i01, i10, i11 = pose[1, 1] / det, -pose[0, 1] / det, -pose[1, 0] / det, pose[0, 0] / det
+    for j in range(idx.shape[0]):
+        x = points[idx[j], 0] - pose[0, 2]
+        y = points[idx[j], 1] - pose[1, 2]
+        s[2 * j] = i00 * x + i01 * y
+        s[2 * j + 1] = i10 * x + i11 * y
+    return shape_box(pose, s, f, size, box)
+
+
+@njit(**_JIT)
+def refine_write(crop, f, pose, box, s, tables, work, n_iter, at, write, points):
+    """:func:`refine_shape` on ``crop`` (level ``f``'s pixels from ``box``'s corner, :func:`lip_box`, with
+    :func:`padded`'s border) from the
+    shape ``s``, then the fitted points ``s[at]`` mapped by ``pose`` into ``points[write]`` (image pixels).
+    Returns the steps."""
+    a = np.empty(6)
+    a[0], a[1], a[2] = pose[0, 0], pose[0, 1], pose[0, 2] - (box[0] - PAD) / f
+    a[3], a[4], a[5] = pose[1, 0], pose[1, 1], pose[1, 2] - (box[1] - PAD) / f
+    steps = refine_shape(crop, f, a, s, tables, work, n_iter)
+    for j in range(at.shape[0]):
+        x, y = s[2 * at[j]], s[2 * at[j] + 1]
+        points[write[j], 0] = pose[0, 0] * x + pose[0, 1] * y + pose[0, 2]
+        points[write[j], 1] = pose[1, 0] * x + pose[1, 1] * y + pose[1, 2]
     return steps
