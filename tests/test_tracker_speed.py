@@ -68,14 +68,14 @@ def test_warp_level_is_bit_identical_to_the_old_warp():
 REFERENCE = Path(__file__).parent / "data" / "tracker_step_reference.npz"
 
 
-def _reference_cases(model, frames, poses=None):
+def _reference_cases(tracking_model, frames, poses=None):
     """What ``tests/data/tracker_step_reference.npz`` holds, computed by the tracker under test: the track of
     ``frames`` then ``frames`` reversed (points, poses, residuals), and at ``poses`` (3 per frame of ``frames[:6]``,
     the tracked poses moved by a little noise: drawn here when None) each region's reading
     (``read_region``, the eyes and brows in the model's order), the lips' (``read_lips``), the largest shape
     plausibility, the polished pose and the global reading (``read``'s shape and residual)."""
     out = {}
-    tr = Tracker(model)
+    tr = Tracker(tracking_model)
     seq = list(frames) + list(frames[::-1])
     res = [tr.step(f, i) for i, f in enumerate(seq)]
     out["track_points"] = np.stack([r.points for r in res])
@@ -86,13 +86,13 @@ def _reference_cases(model, frames, poses=None):
         poses = np.stack([out["track_poses"][k] + np.hstack([rng.normal(0, 0.01, (2, 2)), rng.normal(0, 1.5, (2, 1))])
                           for k in range(6) for _ in range(3)])
     out["poses"] = poses
-    tr = Tracker(model)
+    tr = Tracker(tracking_model)
     cols = {k: [] for k in ("region_points", "lip_points", "m2", "polished_poses", "read_shapes", "read_residuals")}
-    alone = [rm for rm in model.region_models_ if not tr._is_lip(rm)]
-    lips = [rm for rm in model.region_models_ if tr._is_lip(rm)]
+    alone = [rm for rm in tracking_model.region_models_ if not tr._is_lip(rm)]
+    lips = [rm for rm in tracking_model.region_models_ if tr._is_lip(rm)]
     for j, pose in enumerate(poses):
         pyr = Pyramid(frames[j // 3])
-        patch = warp_patch_u8(pyr, pose, model.patch_size_)
+        patch = warp_patch_u8(pyr, pose, tracking_model.patch_size_)
         tr._m2 = 0.0
         cols["region_points"].append(np.concatenate([tr.read_region(pyr, pose, rm, patch) for rm in alone]))
         cols["lip_points"].append(np.concatenate(tr.read_lips(pyr, pose, lips, patch)))

@@ -121,6 +121,30 @@ class LocalHandler(BaseHTTPRequestHandler):
             self.send_error_json(HTTPStatus.BAD_REQUEST, expected)
             return NO_BODY
 
+    #: GET routing of a page with rendered panels, set by a subclass: its static files, the JSON route of
+    #: the server's ``page_data()``; ``/api/render/NAME.png`` goes to :meth:`get_render`
+    page_files: dict[str, tuple[Path, str]] = {}
+    data_path: str | None = None
+
+    def get_render(self, name: str) -> None:
+        """Answer ``/api/render/NAME.png`` (404 unless a subclass overrides)."""
+        self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
+
+    def do_GET(self) -> None:  # noqa: N802
+        """Local only: the page's files, its JSON data (under the server's lock), its rendered panels."""
+        if not self.is_local():
+            return
+        path = self.path.split("?", 1)[0]
+        if self.send_page_file(path, self.page_files):
+            return
+        if self.data_path is not None and path == self.data_path:
+            with self.server.lock:
+                self.send_json(HTTPStatus.OK, self.server.page_data())
+        elif path.startswith("/api/render/") and path.endswith(".png"):
+            self.get_render(unquote(path[len("/api/render/"):-len(".png")]))
+        else:
+            self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
+
     #: PUT routing, set by a subclass: the URL prefix of the one kind of write, what it is, the 400
     #: message for a body of the wrong form, and the 405 message for any other URL
     put_prefix: str | None = None

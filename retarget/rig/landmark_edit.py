@@ -96,24 +96,14 @@ class LandmarkHandler(LocalHandler):
 
     server_version = "keyshape-rig-landmarks"
 
-    def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
-        if not self.is_local():
-            return
-        path = self.path.split("?", 1)[0]
-        srv = self.server
-        if self.send_page_file(path, PAGE_FILES):
-            pass
-        elif path == "/api/landmarks":
-            with srv.lock:
-                self.send_json(HTTPStatus.OK, srv.page_data())
-        elif path.startswith("/api/render/") and path.endswith(".png"):
-            k = path[len("/api/render/"):-len(".png")]
-            if not (k.isascii() and k.isdigit() and len(k) < 6 and int(k) < len(srv.captions)):
-                self.send_error_json(HTTPStatus.NOT_FOUND, f"no panel {k!r}")
-            else:
-                self.send_body(HTTPStatus.OK, srv.render_png(int(k)), "image/png")
+    page_files = PAGE_FILES
+    data_path = "/api/landmarks"
+
+    def get_render(self, k: str) -> None:
+        if not (k.isascii() and k.isdigit() and len(k) < 6 and int(k) < len(self.server.captions)):
+            self.send_error_json(HTTPStatus.NOT_FOUND, f"no panel {k!r}")
         else:
-            self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
+            self.send_body(HTTPStatus.OK, self.server.render_png(int(k)), "image/png")
 
     put_prefix = "/api/points/"
     put_what = "the point"

@@ -7,7 +7,6 @@ from __future__ import annotations
 import threading
 from http import HTTPStatus
 from pathlib import Path
-from urllib.parse import unquote
 
 import numpy as np
 
@@ -64,26 +63,17 @@ class PoseHandler(LocalHandler):
 
     server_version = "keyshape-pose"
 
-    def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
-        if not self.is_local():
-            return
-        path = self.path.split("?", 1)[0]
+    page_files = PAGE_FILES
+    data_path = "/api/library"
+
+    def get_render(self, key: str) -> None:
         srv = self.server
-        if self.send_page_file(path, PAGE_FILES):
-            pass
-        elif path == "/api/library":
-            with srv.lock:
-                self.send_json(HTTPStatus.OK, srv.page_data())
-        elif path.startswith("/api/render/") and path.endswith(".png"):
-            key = unquote(path[len("/api/render/"):-len(".png")])
-            if not srv.has_key(key):
-                self.send_error_json(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
-            elif srv.renderer is None:
-                self.send_error_json(HTTPStatus.NOT_FOUND, "the rig has no faces to render")
-            else:
-                self.send_body(HTTPStatus.OK, srv.render_png(key), "image/png")
+        if not srv.has_key(key):
+            self.send_error_json(HTTPStatus.NOT_FOUND, f"no key {key!r} in the pose library")
+        elif srv.renderer is None:
+            self.send_error_json(HTTPStatus.NOT_FOUND, "the rig has no faces to render")
         else:
-            self.send_error_json(HTTPStatus.NOT_FOUND, "not found")
+            self.send_body(HTTPStatus.OK, srv.render_png(key), "image/png")
 
     put_prefix = "/api/poses/"
     put_what = "the pose"
