@@ -120,7 +120,7 @@ def test_the_compiled_fit_matches_its_parts():
     assert lip_box(img_pose, points, lr.points, f, pyr._sizes[0], s2, box)
     got = points.copy()
     refine_write(lr.crop(pyr, 0, box), f, img_pose, box, s2, lr.tables(), lr.work(), 6,
-                 np.searchsorted(lr.points, lr.write), lr.write, got)
+                 (np.searchsorted(lr.points, lr.write), lr.write), got)
     assert np.abs(got[lr.write] - want).max() < 1e-9
     others = np.setdiff1d(np.arange(len(points)), lr.write)
     assert np.array_equal(got[others], points[others])

@@ -516,7 +516,7 @@ class Tracker:
         lvl = max(pyramid_level(pyr, pose) - 1, 0)
         f = 0.5 ** lvl
         if lip_box(pose, points, lr.points, f, pyr._sizes[lvl], s, box):
-            refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, at, lr.write, points)
+            refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, (at, lr.write), points)
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for

@@ -809,11 +809,12 @@ def lip_box(pose, points, idx, f, size, s, box):
 
 
 @njit(**_JIT)
-def refine_write(crop, f, pose, box, s, tables, work, n_iter, at, write, points):
+def refine_write(crop, f, pose, box, s, tables, work, n_iter, where, points):
     """:func:`refine_shape` on ``crop`` (level ``f``'s pixels from ``box``'s corner, :func:`lip_box`, with
     :func:`padded`'s border) from the
-    shape ``s``, then the fitted points ``s[at]`` mapped by ``pose`` into ``points[write]`` (image pixels).
-    Returns the steps."""
+    shape ``s``, then the fitted points ``s[at]`` mapped by ``pose`` into ``points[write]`` (image pixels),
+    ``where = (at, write)``. Returns the steps."""
+    at, write = where
     a = np.empty(6)
     a[0], a[1], a[2] = pose[0, 0], pose[0, 1], pose[0, 2] - (box[0] - PAD) / f
     a[3], a[4], a[5] = pose[1, 0], pose[1, 1], pose[1, 2] - (box[1] - PAD) / f
