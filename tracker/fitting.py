@@ -302,9 +302,9 @@ class Tracker:
         m = model
         lr = getattr(m, "lip_refiner_", None)
         # the lips' shape fitted by analysis by synthesis after the reading (ShapeRefiner): its constant arrays,
-        # work arrays, and where its written points sit among its points
-        self._lips = None if lr is None else (lr, lr.tables(), lr.work(), np.searchsorted(lr.points, lr.write),
-                                              np.empty(2 * len(lr.points)), np.empty(4, np.intp))
+        # work arrays, and where its written points sit among its points and in the frame's points
+        self._lips = None if lr is None else (lr, lr.tables(), lr.work(), (np.searchsorted(lr.points, lr.write),
+                                              lr.write), np.empty(2 * len(lr.points)), np.empty(4, np.intp))
         size = m.patch_size_
         n_pix = len(m.index_)
         mean = np.zeros(size * size)
@@ -512,11 +512,11 @@ class Tracker:
         refiner's written points) by :func:`~keyshape.tracker.kernels.refine_shape` (the model's
         :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`); :meth:`step` calls it once a frame, on the pose
         and reading it keeps."""
-        lr, tables, work, at, s, box = self._lips
+        lr, tables, work, where, s, box = self._lips
         lvl = max(pyramid_level(pyr, pose) - 1, 0)
         f = 0.5 ** lvl
         if lip_box(pose, points, lr.points, f, pyr._sizes[lvl], s, box):
-            refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, (at, lr.write), points)
+            refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, where, points)
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for

@@ -148,13 +148,12 @@ class LandmarkServer(LocalServer):
         # framed on the landmarks' vertices in every panel; the points are drawn by the page, not in the image
         self.renderer = RigRenderer(rig, (size, size), vertices=np.flatnonzero(self.W.any(axis=0))).fit(self.curves)
         self.posed = rig.evaluate(self.curves)                            # (n_panels, n_vertices, 3)
-        cam = self.renderer.camera_
-        self.xy = np.stack([cam.project(v)[:, :2] for v in self.posed])   # (n_panels, n_vertices, 2) pixels
+        projected = [self.renderer.camera_.project(v) for v in self.posed]
+        self.xy = np.stack([p[:, :2] for p in projected])                # (n_panels, n_vertices, 2) pixels
         # each panel's visible vertices per pixel: the nearest triangle's (z-buffer)
         tri = self.renderer.tri_fit_
         self.cover = []
-        for v in self.posed:                                              # 4 panels
-            p = cam.project(v)
+        for p in projected:                                               # 4 panels
             f = rasterize(p[:, :2], -p[:, 2], tri, size, size)
             self.cover.append((f.pixel, tri[f.triangle]))
         self.size = size
@@ -171,10 +170,14 @@ class LandmarkServer(LocalServer):
         self._entries = landmark_entries
         super().__init__(port, LandmarkHandler)
 
+    def places(self, W: np.ndarray) -> list:
+        """Every point's place (pixels, two decimals) in each panel for landmark rows ``W``."""
+        return np.round(np.einsum("pv,kvc->kpc", W, self.xy), 2).tolist()
+
     def page_data(self) -> dict:
         """What the page needs: the file, the panels, each point's place in each panel, the contours."""
         return {"file": self.path.name, "scheme": self.scheme.name, "size": self.size, "panels": self.captions,
-                "points": np.round(np.einsum("pv,kvc->kpc", self.W, self.xy), 2).tolist(),
+                "points": self.places(self.W),
                 "contours": {k: list(map(int, v)) for k, v in self.scheme.contours.items()},
                 "closed": {k: bool(self.scheme.closed.get(k, False)) for k in self.scheme.contours},
                 "sides": {str(p): s for p, s in self.sides.items()}}
@@ -224,7 +227,7 @@ class LandmarkServer(LocalServer):
             self.W = W                              # an OSError above leaves the points what the file holds
             problem = landmark_problem(W @ self.rig.neutral, self.scheme, self.rig.neutral.mean(axis=0))
             return {"saved": point, "vertex": v, "problem": problem,
-                    "points": np.round(np.einsum("pv,kvc->kpc", W, self.xy), 2).tolist()}
+                    "points": self.places(W)}
 
     def render_png(self, panel: int) -> bytes:
         """The rig in ``panel``'s shape, as PNG bytes (rendered once)."""
