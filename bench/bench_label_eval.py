@@ -37,6 +37,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -53,7 +54,7 @@ sys.path.insert(0, str(REPO))
 from keyshape.base.files import atomic_write  # noqa: E402
 from keyshape.base.formats.labels import read_labels  # noqa: E402
 from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: E402
-from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker, Timing  # noqa: E402
+from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker  # noqa: E402
 from keyshape.tracker.labelling.frames import spread_frames  # noqa: E402
 from keyshape.tracker.labelling.prepare import prepare_label_folder  # noqa: E402
 from keyshape.base.schemes import load_scheme  # noqa: E402
@@ -78,6 +79,43 @@ def region_nme(pred: np.ndarray, ref: np.ndarray) -> dict:
     return out
 
 
+@dataclass
+class Timing:
+    """Seconds spent in face detection and in shape prediction over ``n_frames`` frames (``*_cpu_s``: the
+    calling thread's CPU seconds, the fair figure on a shared machine: dlib runs on one thread)."""
+
+    detect_s: float = 0.0
+    predict_s: float = 0.0
+    n_frames: int = 0
+    n_found: int = 0
+    detect_cpu_s: float = 0.0
+    predict_cpu_s: float = 0.0
+
+    def per_frame_ms(self, cpu: bool = False) -> tuple[float, float]:
+        """Mean (detection, prediction) milliseconds per frame (thread CPU time with ``cpu``)."""
+        n = max(self.n_frames, 1)
+        if cpu:
+            return 1e3 * self.detect_cpu_s / n, 1e3 * self.predict_cpu_s / n
+        return 1e3 * self.detect_s / n, 1e3 * self.predict_s / n
+
+
+def timed_detect(lm: DlibLandmarker, gray: np.ndarray, previous, t: Timing):
+    """``lm.detect(gray, previous)`` with its time added to ``t``."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    box = lm.detect_box(gray, previous)
+    t1, c1 = time.perf_counter(), time.thread_time()
+    t.detect_s += t1 - t0
+    t.detect_cpu_s += c1 - c0
+    t.n_frames += 1
+    if box is None:
+        return None
+    pts = lm.predict(gray, box)
+    t.predict_s += time.perf_counter() - t1
+    t.predict_cpu_s += time.thread_time() - c1
+    t.n_found += 1
+    return pts
+
+
 def dlib_all_frames(video: Path, cache: Path) -> tuple[np.ndarray, np.ndarray, Timing]:
     """dlib on every frame -> (ibug68 (n,68,2), contours48 (n,48,2), timing); cached in ``cache``."""
     if cache.is_file():
@@ -86,11 +124,12 @@ def dlib_all_frames(video: Path, cache: Path) -> tuple[np.ndarray, np.ndarray, T
                    *(float(z[k]) for k in ("detect_cpu_s", "predict_cpu_s")))
         return z["p68"], z["p48"], t
     lm = DlibLandmarker()
+    t = Timing()
     p68, p48 = [], []
     previous = None
     for _, frame in VideoReader(video):
         gray = lm._gray(frame)
-        p = lm.detect(gray, previous)
+        p = timed_detect(lm, gray, previous, t)
         if p is None:
             p68.append(np.full((68, 2), np.nan))
             p48.append(np.full((48, 2), np.nan))
@@ -99,7 +138,6 @@ def dlib_all_frames(video: Path, cache: Path) -> tuple[np.ndarray, np.ndarray, T
         p68.append(p)
         p48.append(ibug68_to_contours48(p, gray))
     p68, p48 = np.stack(p68), np.stack(p48)
-    t = lm.timing
     cache.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(cache, "wb") as fh:
         np.savez(fh, p68=p68, p48=p48, detect_s=t.detect_s, predict_s=t.predict_s,

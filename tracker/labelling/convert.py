@@ -1,26 +1,9 @@
 """Convert iBUG-68 points to the ``contours48`` scheme.
 
-``contours48`` (paper 004_119ba07521a9af0b.txt, section 3) keeps brows, eyes,
-pupils and lips with points evenly spaced by arc length between contour
-corners. From iBUG-68 (brows 17-26, eyes 36-47, mouth 48-67):
-
-* each brow (5 points) is resampled to 5 points evenly spaced along it;
-* each eye's upper lid (corner, 2 points, corner) and lower lid become 3 evenly
-  spaced points each between the same corners (8 points per eye);
-* the outer lip (12 points) gets 5 points on each lip between its corners, the
-  inner lip (8 points) 3 on each; each lip's middle point is iBUG's mid-lip
-  point (51, 57, 62, 66: the philtrum's line, a feature of the face) and the
-  others are evenly spaced by arc length on either side of it. Plain arc-length
-  spacing between the corners would slide the middle point along the lip
-  whenever the head turns (the nearer half of the lip looks longer): on
-  ``franck.mp4`` that alone put 0.02 inter-ocular distances of frame-varying
-  error on the mid-lip points, against MediaPipe and dlib alike;
-* each pupil is the centre of the dark iris blob inside the eye contour (needs
-  the image; without it, the eye contour's centroid).
-
-Curves are interpolated through the iBUG points with a chord-length
-parametrised cubic spline (straight segments where there are only 2 points)
-before resampling, so the new points lie on the smooth lid/lip curve.
+Each brow, lid and lip of iBUG-68 is resampled to evenly spaced points by arc length between its corners along a
+chord-length cubic spline through its points (each lip's middle point kept at iBUG's mid-lip point, so that it does
+not slide when the head turns); each pupil is the dark iris blob inside the eye contour (needs the image; else the
+contour's centroid). The layout: docs/formats.md, docs/label.md.
 """
 from __future__ import annotations
 

