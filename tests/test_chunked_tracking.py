@@ -14,7 +14,7 @@ from keyshape.base.formats.video import VideoReader, video_writer
 from keyshape.cli import main
 from keyshape.tracker.chunked import SEAM_FRAMES, _crc, _resume, iter_track_chunked, plan_chunks
 from keyshape.tracker.defaults import TrackOptions
-from keyshape.tracker.commands import track_frames, train_model
+from keyshape.tracker.commands import fit_model, track_frames
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,7 @@ def clip(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("chunked")
     paths = synthesize(d, frames=150, seed=3, size=(320, 240))
-    model, _ = train_model(paths["video"], paths["labels"])
+    model = fit_model(paths["video"], paths["labels"])
     return paths["video"], model, read_tracks(paths["truth"])
 
 

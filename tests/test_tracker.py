@@ -14,7 +14,7 @@ from keyshape.tracker.fitting import Tracker
 from keyshape.base.formats.tracks import read_tracks
 from keyshape.base.formats.labels import write_labels, write_pts
 from keyshape.base.schemes import load_scheme
-from keyshape.tracker.smoothing import StreamSmoother, smooth
+from keyshape.tracker.smoothing import StreamSmoother
 from keyshape.base.formats.video import VideoReader, video_writer
 from keyshape.base.geometry import apply_affine, compose_affine, fit_affine, fit_similarity, invert_affine
 from keyshape.base.warp import PiecewiseAffine, morph, triangulate
@@ -237,6 +237,16 @@ def test_bad_model_files(model, tmp_path):
 
 
 # --------------------------------------------------------------------------- smoothing
+
+
+def smooth(points: np.ndarray, method: str = "none", fps: float = 30.0) -> np.ndarray:
+    """Smooth a whole track ``(n_frames, n_points, 2)`` with :class:`StreamSmoother`."""
+    s = StreamSmoother(method, fps)
+    out = []
+    for p in np.asarray(points, np.float64):
+        out += [q for q, _ in s.push(p)]
+    out += [q for q, _ in s.flush()]
+    return np.stack(out) if out else np.asarray(points, np.float64).copy()
 
 
 @pytest.mark.parametrize("method", ["savgol", "oneeuro"])

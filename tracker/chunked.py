@@ -1,27 +1,11 @@
 """Track one video on several cores: contiguous chunks in worker processes, stitched in frame order.
 
-:meth:`~keyshape.tracker.fitting.Tracker.step` starts from nothing on a tracker's first frame (the
-whole-frame search and the training poses), so a worker can start anywhere. The frame range is
-split into ``jobs`` contiguous chunks; the worker of chunk ``k > 0`` seeks to ``warmup`` frames
-before its own first frame, tracks those (the warm-up) and its own frames; each worker streams its
-rows back to this process, which emits them in frame order as the sequential tracker would.
-
-At each seam the hand-over from the stream emitted so far to chunk ``k + 1`` is checked: the frames
-both decoded must be the same bytes (checksums of the overlap frames: the seek was frame-exact),
-and on the last ``SEAM_FRAMES`` frames before the seam chunk ``k + 1``'s warm-up must agree with
-what was emitted (the same success flags, the last frame tracked in both, every point within
-``seam_tol`` pixels). Where it does not, this process tracks on from chunk ``k``'s final tracker
-state (:meth:`~keyshape.tracker.fitting.Tracker.state`), the same frames decoded sequentially (from a
-seek to ``SEAM_FRAMES`` frames before the seam when those decode to the checksums of the frames
-emitted there, else from the video's start), frame by frame, until the chunk's own rows agree again
-on ``SEAM_FRAMES`` frames; so the result differs from one sequential run only within the tracker's
-own convergence tolerance (its alignment stops when a step moves the patch less than 0.01-0.03 px,
-so two runs that start apart end up that close, not equal), and never by a wrong frame.
-
-Temporal smoothing runs here, on the stitched stream, so it is the same as the sequential run's.
-Workers are spawned processes (the tracker is bound to Python's interpreter lock: threads would not
-help) with OpenCV, BLAS and FFmpeg's decoder on one thread each; they ignore Ctrl-C, which this
-process turns into stopping them.
+The frame range is split into ``jobs`` contiguous chunks; the worker of chunk ``k > 0`` seeks to ``warmup`` frames
+before its own first frame and tracks those from a cold start; each worker streams its rows back to this process,
+which emits them in frame order. At each seam chunk ``k + 1`` takes over when the overlap frames decoded alike
+(checksums) and its warm-up agrees with the last ``SEAM_FRAMES`` frames emitted (success flags, every point within
+``seam_tol`` px); else this process tracks on from chunk ``k``'s final tracker state until they agree. Smoothing
+runs here, on the stitched stream. Workers are spawned processes on one thread each. docs/tracker.md, ``--jobs``.
 """
 from __future__ import annotations
 
@@ -70,13 +54,12 @@ def plan_chunks(start: int, stop: int, jobs: int, warmup: int, min_frames: int =
 @dataclass
 class Seam:
     """How one seam was crossed: at ``frame``, the points of the chunk after it against the frames
-    emitted before it (``max_px``/``median_px`` over the last ``SEAM_FRAMES`` frames, NaN where they
-    could not be compared), whether the overlap frames decoded the same (``frames_equal``), and how
-    many frames this process tracked sequentially before handing over (``repaired``; 0: none)."""
+    emitted before it (``max_px`` over the last ``SEAM_FRAMES`` frames, NaN where they could not be
+    compared; ``checks``: each try's), whether the overlap frames decoded the same (``frames_equal``), and
+    how many frames this process tracked sequentially before handing over (``repaired``; 0: none)."""
 
     frame: int
     max_px: float = float("nan")
-    median_px: float = float("nan")
     frames_equal: bool = True
     repaired: int = 0
     checks: list = field(default_factory=list)
@@ -125,27 +108,25 @@ def _worker(k: int, video: str, inbox, lo: int, own: int, end: int | None, warmu
                  else f"{type(exc).__name__}: {exc}"))
 
 
-def _agree(emitted: deque, rows: dict, seam_tol: float) -> tuple[bool, float, float]:
+def _agree(emitted: deque, rows: dict, seam_tol: float) -> tuple[bool, float]:
     """Whether ``rows`` (index -> row) agree with the last ``SEAM_FRAMES`` ``emitted`` rows
-    ``(index, points, success)``; also the max and median point difference (px) of those frames."""
+    ``(index, points, success)``; also the largest point difference (px) of those frames."""
     if len(emitted) < SEAM_FRAMES:
-        return False, float("nan"), float("nan")
+        return False, float("nan")
     diffs = []
     ok = True
     for i, pts, success in emitted:
         r = rows.get(i)
         if r is None:
-            return False, float("nan"), float("nan")
+            return False, float("nan")
         if bool(r[5]) != bool(success):
             ok = False
         elif success:
             diffs.append(np.abs(r[1] - pts).max(axis=-1))
     if not emitted[-1][2]:
         ok = False              # a lost last frame: the trackers' search states may differ
-    d = np.concatenate(diffs) if diffs else np.array([np.nan])
-    mx = float(np.nanmax(d)) if diffs else float("nan")
-    ok = ok and bool(diffs) and mx <= seam_tol
-    return ok, mx, float(np.nanmedian(d)) if diffs else float("nan")
+    mx = float(np.nanmax(np.concatenate(diffs))) if diffs else float("nan")
+    return ok and bool(diffs) and mx <= seam_tol, mx
 
 
 def _resume(reader: VideoReader, i: int, stop: int | None, known: dict):
@@ -205,10 +186,8 @@ def iter_track_chunked(video, model, options: TrackOptions | None = None, *, war
         ends[-1] = None                               # the last chunk reads to the video's real end
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
-    # the model goes to the workers through a queue, not as a process argument: a spawned process's
-    # arguments (a few MB here) are written to it by start(), which then waits until the child has
-    # started Python and imported what it needs, 0.6-1.1 s each on a loaded 2-core machine (issue 26),
-    # so the chunks after the first started that much later; the queue's thread writes meanwhile
+    # the model goes to the workers through a queue, not as a process argument: start() would wait for each child
+    # to import keyshape before starting the next
     inbox = ctx.Queue()
     for q in (out, inbox):
         q.cancel_join_thread()      # never wait at exit for a queue's feeder thread, even after an interrupt
@@ -288,10 +267,9 @@ def iter_track_chunked(video, model, options: TrackOptions | None = None, *, war
                     ok = False
                     if seam.frames_equal and has(o, i):
                         seam.frames_equal = all(hashes[o].get(f, h) == h for f, h in emitted_hash.items())
-                        ok, mx, med = _agree(emitted, rows[o], seam_tol)
+                        ok, mx = _agree(emitted, rows[o], seam_tol)
                         seam.checks.append(mx)
-                        if len(seam.checks) == 1:
-                            seam.max_px, seam.median_px = mx, med
+                        seam.max_px = seam.checks[0]
                         ok = ok and seam.frames_equal
                     if ok:
                         src, seq, seq_frames = o, None, None

@@ -87,12 +87,16 @@ def _check_footage(args) -> None:
 
 def _train(args) -> int:
     from keyshape.base.errors import InputError
-    from keyshape.tracker.commands import train_model
+    import time
+
+    from keyshape.tracker.commands import fit_model
 
     if args.morphs < 0:
         raise InputError(f"--morphs {args.morphs}: must be >= 0")
     _check_footage(args)
-    model, seconds = train_model(args.video, args.labels, args.scheme, n_morphs=args.morphs)
+    t0 = time.perf_counter()
+    model = fit_model(args.video, args.labels, args.scheme, n_morphs=args.morphs)
+    seconds = time.perf_counter() - t0
     model.save(args.output)
     print(f"keyshape train: {len(model.train_poses_)} labelled frames + {model.n_samples_ - len(model.train_poses_)} "
           f"morphs, {model.k_} components ({100 * model.explained_variance_ratio_.sum():.1f}% of the variance), "

@@ -97,14 +97,6 @@ def model_fingerprint(model: AppearanceModel) -> str:
     return "sha256:" + h.hexdigest()[:16]
 
 
-def train_model(video, labels_dir, scheme: str | None = None, n_components: int | None = None, n_morphs: int = 120,
-                rng=0) -> tuple[AppearanceModel, float]:
-    """:func:`fit_model` from a labels folder; return the model and the seconds taken."""
-    t0 = time.perf_counter()
-    model = fit_model(video, labels_dir, scheme, n_components=n_components, n_morphs=n_morphs, rng=rng)
-    return model, time.perf_counter() - t0
-
-
 class _Raised:
     """An exception raised by :func:`_prefetched`'s producer, handed to the consumer."""
 
@@ -115,12 +107,9 @@ class _Raised:
 def _prefetched(items, depth: int = 8, batch: int = 4):
     """Iterate over ``items`` while a background thread produces up to ``depth`` of them ahead.
 
-    The producer hands them over in lists of ``batch`` (the queue holds ``depth // batch`` lists, so
-    with the list being filled and the one being consumed up to ``depth + 2 * batch`` items are held):
-    each hand-over wakes the other thread and passes the GIL back and forth, so lists cost the consumer
-    (the tracker) less CPU a frame than single items (measured in ``docs/benchmarks.md``). The producer's exceptions are re-raised in the consumer
-    after the items produced before them; leaving the loop early (``break``, Ctrl-C, an error) stops
-    the producer and closes ``items`` in its thread.
+    The producer hands them over in lists of ``batch`` (each hand-over passes the GIL back and forth: lists cost
+    the tracker less CPU a frame than single items). Its exceptions are re-raised in the consumer after the items
+    produced before them; leaving the loop early stops the producer and closes ``items`` in its thread.
     """
     import threading
 
@@ -198,17 +187,13 @@ def iter_track(video, model: AppearanceModel, options: TrackOptions | None = Non
 
     Yields ``(points (n_points, 2), FrameResult, frame or None)`` in frame order, after the temporal
     smoothing. On Ctrl-C the frames the smoother still holds are yielded, then ``KeyboardInterrupt`` is raised again.
-    With ``decode_thread`` (default) a background thread decodes up to 8 frames ahead (handed over
-    four at a time, :func:`_prefetched`) and converts them to gray (OpenCV's decoder and conversion
-    release the GIL, so both overlap tracking; same frames, same order, the same gray levels as the
-    tracker's own conversion).
+    With ``decode_thread`` (default) a background thread decodes and converts to gray up to 8 frames ahead
+    (:func:`_prefetched`; the same gray levels as the tracker's own conversion).
 
-    ``jobs`` above 1 tracks contiguous chunks of the range in that many worker processes and stitches
-    them in frame order (:func:`keyshape.tracker.chunked.iter_track_chunked`: the same points within the
-    tracker's convergence tolerance, checked at every seam; frames are not kept, so not with
-    ``keep_frames``); ``progress`` then counts the frames as the workers track them (with one job it is
-    not touched: the caller counts the frames yielded) and ``seams`` (a list) receives how each seam was
-    crossed (:class:`keyshape.tracker.chunked.Seam`).
+    ``jobs`` above 1 tracks contiguous chunks in that many worker processes, stitched in frame order
+    (:func:`keyshape.tracker.chunked.iter_track_chunked`; frames not kept); ``progress`` then counts the frames as
+    the workers track them (with one job the caller counts those yielded) and ``seams`` (a list) receives a
+    :class:`keyshape.tracker.chunked.Seam` per seam.
     """
     from keyshape.tracker.fitting import Tracker, single_threaded
     from keyshape.tracker.smoothing import StreamSmoother
@@ -228,10 +213,8 @@ def iter_track(video, model: AppearanceModel, options: TrackOptions | None = Non
     smoother = StreamSmoother(smooth, reader.info.fps)
     interrupted: KeyboardInterrupt | None = None
     try:
-        # OpenCV and BLAS single-threaded while tracking (issue 16: less CPU per frame, the
-        # same points); restored when the loop ends or the generator is closed. The tracker is built
-        # there too: its QR factorisations of a few thousand by a dozen are far slower with OpenBLAS's
-        # threads on a loaded machine than on one (docs/benchmarks.md; the same factors, bit for bit)
+        # OpenCV and BLAS single-threaded while tracking and building the tracker (its QR factorisations):
+        # less CPU per frame, the same points; restored when the loop ends or the generator is closed
         with single_threaded():
             tracker = Tracker(model, **(o.tracker or {}))
             frames = _prefetched(_with_gray(reader, start)) if decode_thread else ((i, f, f) for i, f in reader)
@@ -245,10 +228,8 @@ def iter_track(video, model: AppearanceModel, options: TrackOptions | None = Non
                     yield from ((pts, r, fr) for pts, (r, fr) in
                                 smoother.push(res.points, (res, frame if keep_frames else None)))
             finally:
-                # stop and join the decode thread now: an interruption's traceback keeps this frame, and
-                # so the producer, alive until the process ends, and a daemon thread still decoding in
-                # OpenCV then is ended by the interpreter inside C++ ("FATAL: exception not rethrown",
-                # SIGABRT instead of exit status 143; seen once in CI)
+                # stop and join the decode thread now: a daemon thread still decoding in OpenCV at exit is
+                # ended inside C++ (SIGABRT instead of exit status 143)
                 frames.close()
     except KeyboardInterrupt as exc:
         interrupted = exc
@@ -286,9 +267,13 @@ def track_frames(video, model, options: TrackOptions | None = None, scheme=None,
     frame = np.array([r[0] for r in rows], dtype=np.int64)
     points, aux = model.scheme_.split(np.stack([r[3] for r in rows]))
     return Tracks(frame, frame / fps, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                  points, np.stack([r[4] for r in rows]),
-                  {"model": model_fingerprint(model), "scheme": model.scheme_.base_name,
-                   "image_size": [int(reader.info.width), int(reader.info.height)], "fps": float(fps)}, aux)
+                  points, np.stack([r[4] for r in rows]), _tracks_meta(model, reader.info), aux)
+
+
+def _tracks_meta(model: AppearanceModel, info) -> dict:
+    """The tracks' ``# keyshape-tracks`` metadata of ``model`` on a video of ``info``."""
+    return {"model": model_fingerprint(model), "scheme": model.scheme_.base_name,
+            "image_size": [int(info.width), int(info.height)], "fps": float(info.fps)}
 
 
 #: the fewest frames a chunk gets from :func:`auto_jobs` (a worker's start, about a second, and its
@@ -379,8 +364,7 @@ def track_video(video, model, output, overlay=None, options: TrackOptions | None
         with contextlib.ExitStack() as stack:
             f = stack.enter_context(open(tmp_csv, "w", newline="\n"))
             sch = model.scheme_
-            meta = {"model": model_fingerprint(model), "scheme": sch.base_name,
-                    "image_size": [int(info.width), int(info.height)], "fps": float(info.fps)}
+            meta = _tracks_meta(model, info)
             writer = TracksWriter(f, sch.core, {g: len(src) for g, src in sch.auxiliary.items()} if sch.n_core else None)
             vw = stack.enter_context(video_writer(tmp_vid, info.fps, (info.width, info.height))) if overlay else None
             try:

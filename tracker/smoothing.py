@@ -1,18 +1,7 @@
 """Optional temporal smoothing of tracked landmarks (off by default).
 
-Two filters, both leaving fast motion (a mouth snapping open) at most one frame late:
-
-- ``savgol``: a centred Savitzky-Golay filter (local quadratic least squares
-  over a window of 5 frames, the value of the fit at the centre frame).
-  Centred means zero lag: any quadratic trajectory passes through unchanged,
-  and a step keeps its midpoint at the same frame. Streaming, it delays its
-  output by two frames (it needs two future frames), not the motion.
-- ``oneeuro``: the causal one-euro filter (Casiraghi, Roussel & Vogel 2012)
-  whose cut-off frequency rises with speed, so still landmarks are steadied
-  and moving ones follow within a frame.
-
-Frames with ``success = False`` (NaN landmarks) stay NaN and split the
-sequence: smoothing never runs across a lost stretch.
+``savgol`` (a centred Savitzky-Golay filter, zero lag, delaying the output stream by two frames) or ``oneeuro``
+(Casiraghi, Roussel & Vogel 2012, causal); never across a lost frame (NaN). docs/tracker.md, ``--smooth``.
 """
 from __future__ import annotations
 
@@ -112,12 +101,3 @@ class StreamSmoother:
         self._prev = a * x + (1 - a) * self._prev
         return self._prev
 
-
-def smooth(points: np.ndarray, method: str = "none", fps: float = 30.0) -> np.ndarray:
-    """Smooth a whole track ``(n_frames, n_points, 2)`` with :class:`StreamSmoother`."""
-    s = StreamSmoother(method, fps)
-    out = []
-    for p in np.asarray(points, np.float64):
-        out += [q for q, _ in s.push(p)]
-    out += [q for q, _ in s.flush()]
-    return np.stack(out) if out else np.asarray(points, np.float64).copy()

@@ -4,6 +4,7 @@ Design notes and figures: docs/scale.md, "Notes on the code", ``tracker/torch_ba
 """
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -47,7 +48,7 @@ class _Frames:
         if isinstance(frames, torch.Tensor):
             t = frames.to(device)
         else:
-            arr = np.asarray(frames) if not isinstance(frames, (list, tuple)) else np.stack([np.asarray(f) for f in frames])
+            arr = _stacked(frames)
             if arr.dtype != np.uint8:
                 raise InputError(f"frames: expected uint8 images, got {arr.dtype}")
             t = torch.from_numpy(np.ascontiguousarray(arr)).to(device)
@@ -60,12 +61,7 @@ class _Frames:
         else:
             raise InputError(f"frames: expected (B, height, width) or (B, height, width, 3), got {tuple(t.shape)}")
         self.levels = [g[:, None]]
-        h, w = g.shape[-2:] if full_size is None else full_size
-        n = 1
-        while n < levels and min(h, w) >= 64:       # the same level count as Pyramid
-            h, w = (h + 1) // 2, (w + 1) // 2
-            n += 1
-        self.n_levels = n
+        self.n_levels = _n_levels(*(g.shape[-2:] if full_size is None else full_size), levels)
         k = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], device=g.device)
         self._kx, self._ky = k[None, None, None, :], k[None, None, :, None]     # separable 5x5 binomial
 
@@ -81,6 +77,19 @@ class _Frames:
         return self.levels[lvl]
 
 
+def _stacked(frames) -> np.ndarray:
+    return np.stack([np.asarray(f) for f in frames]) if isinstance(frames, (list, tuple)) else np.asarray(frames)
+
+
+def _n_levels(h: int, w: int, levels: int) -> int:
+    """The pyramid's level count for (h, w) frames, as :class:`~keyshape.tracker.eigenpoints.Pyramid`'s."""
+    n = 1
+    while n < levels and min(h, w) >= 64:
+        h, w = (h + 1) // 2, (w + 1) // 2
+        n += 1
+    return n
+
+
 def _crop(torch, frames, poses: np.ndarray, size: int, device, margin: float = 0.5, levels: int = 4):
     """The frames cut to the region the patches of ``poses`` can reach, as :class:`_Frames`.
 
@@ -92,15 +101,11 @@ def _crop(torch, frames, poses: np.ndarray, size: int, device, margin: float = 0
     """
     if isinstance(frames, torch.Tensor):                  # already on the device: used whole
         return _Frames(torch, frames, device, levels), (0, 0)
-    arr = np.asarray(frames) if not isinstance(frames, (list, tuple)) else np.stack([np.asarray(f) for f in frames])
+    arr = _stacked(frames)
     if arr.ndim not in (3, 4) or len(arr) != len(poses) or not np.isfinite(poses).all():
         return _Frames(torch, arr, device, levels), (0, 0)
     H, W = arr.shape[1:3]
-    n = 1
-    h, w = H, W
-    while n < levels and min(h, w) >= 64:
-        h, w = (h + 1) // 2, (w + 1) // 2
-        n += 1
+    n = _n_levels(H, W, levels)
     corners = np.array([[0, 0, 1], [size, 0, 1], [0, size, 1], [size, size, 1]], np.float64)
     pts = np.einsum("bij,kj->bki", poses, corners).reshape(-1, 2)
     lo, hi = pts.min(0), pts.max(0)
@@ -159,11 +164,8 @@ def _read(torch, kornia, model, fr: _Frames, poses):
     rd = model.reading_
     dev = poses.device
     idx = torch.as_tensor(model.index_, device=dev)
-    patch = _warp(torch, kornia, fr, poses, model.patch_size_)
-    flat = patch.reshape(len(patch), -1).index_select(1, idx).to(torch.float64)
-    e = flat - flat.mean(1, keepdim=True)
-    sd = e.pow(2).mean(1, keepdim=True).sqrt().clamp_min(1e-6)
-    e = e / sd - torch.as_tensor(rd.mean_i, device=dev)
+    e, _ = _normalised(torch, _warp(torch, kornia, fr, poses, model.patch_size_), idx)
+    e = e - torch.as_tensor(rd.mean_i, device=dev)
     # [coefficients | U_Iᵀe] of every frame in one product: e (B, n_pix) @ [pinv_iᵀ | U_I]
     k = len(rd.pinv_i)
     mat = torch.as_tensor(np.hstack([rd.pinv_i.T, rd.basis_i]), device=dev)
@@ -195,13 +197,19 @@ def read_batch(model, frames, poses, device: str = "cpu") -> tuple[np.ndarray, n
     torch, kornia = require_torch()
     model._check_fitted()
     dev = _device(torch, device)
-    poses = np.array(poses, np.float64)
     with torch.no_grad():
-        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev, margin=0.0)
-        p = _as_poses(torch, poses, len(fr), dev)
-        p[:, :, 2] -= torch.tensor([x0, y0], dtype=torch.float64, device=dev)
+        fr, off, p = _cropped(torch, model, frames, poses, dev, 0.0)
         _, pts, r = _read(torch, kornia, model, fr, p)
-    return pts.cpu().numpy() + (x0, y0), r.cpu().numpy()
+    return pts.cpu().numpy() + off, r.cpu().numpy()
+
+
+def _cropped(torch, model, frames, poses, dev, margin: float):
+    """:func:`_crop`'s frames and corner, and ``poses`` as a tensor in the crop's pixels."""
+    poses = np.array(poses, np.float64)
+    fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev, margin=margin)
+    p = _as_poses(torch, poses, len(fr), dev)
+    p[:, :, 2] -= torch.tensor([x0, y0], dtype=torch.float64, device=dev)
+    return fr, (x0, y0), p
 
 
 # --------------------------------------------------------------------------- refinement
@@ -256,6 +264,12 @@ def _normalised(torch, patch, index):
     return e / sd, sd
 
 
+def _step_affine(torch, d):
+    """The (B, 2, 3) affines ``identity + step`` of the steps ``d`` (B, 6) (column-major parameters)."""
+    return torch.stack([torch.stack([1 + d[:, 0], d[:, 2], d[:, 4]], 1),
+                        torch.stack([d[:, 1], 1 + d[:, 3], d[:, 5]], 1)], 1)
+
+
 def _align_level(torch, kornia, fr, a, lv: _LevelOps, n_iter: int, max_aniso: float):
     """Inverse-compositional steps of ``Tracker.align`` at one level, every frame in parallel."""
     al = _compose(a, lv.to_fine)
@@ -266,8 +280,7 @@ def _align_level(torch, kornia, fr, a, lv: _LevelOps, n_iter: int, max_aniso: fl
             break
         v, _ = _normalised(torch, _warp(torch, kornia, fr, al, lv.size), lv.index)
         dp = (v - lv.template) @ lv.update.T                    # (B, 6)
-        w = torch.stack([torch.stack([1 + dp[:, 0], dp[:, 2], dp[:, 4]], 1),
-                         torch.stack([dp[:, 1], 1 + dp[:, 3], dp[:, 5]], 1)], 1)
+        w = _step_affine(torch, dp)
         winv_lin = torch.linalg.inv(w[:, :, :2])
         winv = torch.cat([winv_lin, -(winv_lin @ w[:, :, 2:])], 2)
         new = _clamp(torch, _compose(al, winv), max_aniso)
@@ -314,9 +327,7 @@ def _polish(torch, kornia, fr, a, lv: _LevelOps, n_polish: int, max_aniso: float
         hess = jtj - qj.transpose(1, 2) @ qj + 1e-9 * torch.eye(6, dtype=torch.float64, device=dev)
         rhs = (qj * qe[:, :, None]).sum(1) - jte
         d = torch.linalg.solve(hess, rhs[:, :, None])[:, :, 0]
-        wm = torch.stack([torch.stack([1 + d[:, 0], d[:, 2], d[:, 4]], 1),
-                          torch.stack([d[:, 1], 1 + d[:, 3], d[:, 5]], 1)], 1)
-        new = _clamp(torch, _compose(a, wm), max_aniso)
+        new = _clamp(torch, _compose(a, _step_affine(torch, d)), max_aniso)
         a = torch.where(active[:, None, None], new, a)
         its += active
         done = (d[:, 4:].abs().amax(1) < 0.01) & (d[:, :4].abs().amax(1) < 3e-4)
@@ -373,14 +384,11 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
         tracker = Tracker(model, n_iter=n_iter, n_polish=n_polish, search=False, region_iter=-1)
     tracker.n_polish = int(n_polish)
     dev = _device(torch, device)
-    poses = np.array(poses, np.float64)
     with torch.no_grad():
-        fr, (x0, y0) = _crop(torch, frames, poses, model.patch_size_, dev, margin=0.2)
-        p = _as_poses(torch, poses, len(fr), dev)
-        p[:, :, 2] -= torch.tensor([x0, y0], dtype=torch.float64, device=dev)
+        fr, off, p = _cropped(torch, model, frames, poses, dev, 0.2)
         a, its = _refine(torch, kornia, tracker, fr, p, tuple(levels), int(n_iter), dev)
     a = a.cpu().numpy()
-    a[:, :, 2] += (x0, y0)
+    a[:, :, 2] += off
     return a, its.cpu().numpy()
 
 
@@ -432,18 +440,8 @@ def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int 
         frames_iter = iter(video)
     pts_all, poses_all, res_all = [], [], []
     last = None if start_pose is None else np.asarray(start_pose, np.float64)
-    done = False
     with torch.no_grad():
-        while not done:
-            chunk = []
-            for f in frames_iter:
-                chunk.append(f)
-                if len(chunk) == batch:
-                    break
-            else:
-                done = True
-            if not chunk:
-                break
+        while chunk := list(itertools.islice(frames_iter, batch)):
             if last is None:
                 res = tracker.step(chunk[0])
                 if not res.success:
