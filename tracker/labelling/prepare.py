@@ -1,12 +1,7 @@
 """Make a label folder: choose frames, save them as images, pre-fill their points, draw a contact sheet.
 
-This is the I/O side of ``keyshape label``; the algorithms live in
-:mod:`keyshape.tracker.labelling.frames` (frame choice), :mod:`keyshape.tracker.labelling.convert`
-(iBUG-68 to contours48) and :mod:`keyshape.tracker.labelling.dlib_landmarker`.
-
-Running it again on the same folder and video keeps the chosen frames and any
-``.pts`` file already there (the user's corrections), and only redraws the
-contact sheet.
+The I/O side of ``keyshape label``. Running it again on the same folder and video keeps the chosen frames and any
+``.pts`` file already there (the user's corrections), and only redraws the contact sheet.
 """
 from __future__ import annotations
 
@@ -29,15 +24,21 @@ def mean_ibug68() -> np.ndarray:
 
 def template_points(scheme, width: int, height: int) -> np.ndarray:
     """A generic face in ``scheme``'s layout, centred in a ``width`` x ``height`` frame (no pre-fill)."""
+    p = mean_ibug68() * (0.3 * min(width, height)) + [width / 2, 0.4 * height]
+    return _from_ibug68(p, scheme, None, f"no starting template for scheme {scheme.name!r} ({scheme.n_points} "
+                        "points): use contours48 or ibug68")
+
+
+def _from_ibug68(p: np.ndarray, scheme, image, refusal: str) -> np.ndarray:
+    """iBUG-68 points ``p`` in ``scheme``'s layout (``image``: the frame, for the pupils); ``refusal``
+    is the error for a scheme other than ibug68 or contours48."""
     from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
 
-    p = mean_ibug68() * (0.3 * min(width, height)) + [width / 2, 0.4 * height]
     if scheme.core == 68:
         return with_auxiliary(p, p, scheme)
     if scheme.core == 48:
-        return with_auxiliary(ibug68_to_contours48(p), p, scheme)
-    raise InputError(f"no starting template for scheme {scheme.name!r} ({scheme.n_points} points): "
-                     f"use contours48 or ibug68")
+        return with_auxiliary(ibug68_to_contours48(p, image), p, scheme)
+    raise InputError(refusal)
 
 
 def with_auxiliary(points: np.ndarray, points68: np.ndarray, scheme) -> np.ndarray:
@@ -70,19 +71,11 @@ def prefill(images: np.ndarray, scheme, landmarker) -> list[np.ndarray | None]:
 
     Each face's points are the mean over 14 views (:meth:`DlibLandmarker.predict_averaged`).
     """
-    from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: PLC0415
-
     out: list[np.ndarray | None] = []
     for im in images:
-        p = landmarker.detect(im, averaged=True)       # 14 views averaged: less of dlib's error in the labels
-        if p is None:
-            out.append(None)
-        elif scheme.core == 68:
-            out.append(with_auxiliary(p, p, scheme))
-        elif scheme.core == 48:
-            out.append(with_auxiliary(ibug68_to_contours48(p, im), p, scheme))
-        else:
-            raise InputError(f"dlib pre-fill gives ibug68 or contours48, not {scheme.name!r}: use --no-prefill")
+        p = landmarker.detect(im, averaged=True)
+        out.append(None if p is None else _from_ibug68(
+            p, scheme, im, f"dlib pre-fill gives ibug68 or contours48, not {scheme.name!r}: use --no-prefill"))
     return out
 
 
@@ -151,6 +144,20 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker  # noqa: PLC0415
         landmarker = DlibLandmarker()
     session = None
+
+    def checked(frames) -> list[int]:
+        frames = sorted(set(int(f) for f in frames))
+        if frames and (frames[0] < 0 or frames[-1] >= info.n_frames):
+            raise InputError(f"--frames must be frame indices in 0..{info.n_frames - 1}", info.path)
+        return frames
+
+    def new_session(frames, **extra) -> dict:
+        return {"scheme": scheme.name, "video": str(info.path.resolve()), "frames": [int(f) for f in frames],
+                **extra, "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+
+    def min_gap(n: int) -> int:         # half a second, or less where the video is short
+        return min(max(1, int(round(info.fps / 2))) if info.fps > 0 else 12, max(1, n // (2 * count)))
+
     if sess_path.is_file():
         from keyshape.base.formats.labels import read_session  # noqa: PLC0415
         old = read_session(out)
@@ -158,20 +165,15 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
             session = old
             scheme = load_scheme(old["scheme"])     # a folder labelled before the nose points stays without them
             if frames is not None:      # --frames (or --more) on an existing folder: add those frames
-                add = sorted(set(int(f) for f in frames))
-                if add and (add[0] < 0 or add[-1] >= info.n_frames):
-                    raise InputError(f"--frames must be frame indices in 0..{info.n_frames - 1}", info.path)
-                session["frames"] = sorted(set(session["frames"]) | set(add))
+                session["frames"] = sorted(set(session["frames"]) | set(checked(frames)))
         else:
             raise InputError(f"already holds labels of {old.get('video')} in scheme {old['scheme']}: "
                              f"choose another output folder", out)
     if session is None and frames is not None:
-        frames = sorted(set(int(f) for f in frames))
-        if not frames or frames[0] < 0 or frames[-1] >= info.n_frames:
+        frames = checked(frames)
+        if not frames:
             raise InputError(f"--frames must be frame indices in 0..{info.n_frames - 1}", info.path)
-        session = {"scheme": scheme.name, "video": str(info.path.resolve()), "frames": frames,
-                   "prefilled": landmarker is not None,
-                   "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+        session = new_session(frames, prefilled=landmarker is not None)
     if session is None and landmarker is not None:
         # whole-video cues from dlib (eye closure, mouth, brows, head pose): cover what the face does
         from keyshape.tracker.labelling.dlib_landmarker import landmark_video_chained  # noqa: PLC0415
@@ -187,13 +189,10 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         prof = np.full((len(pts68), 20), np.nan)
         for i, v in profiles.items():
             prof[i] = v
-        gap = max(1, int(round(info.fps / 2))) if info.fps > 0 else 12
-        gap = min(gap, max(1, len(pts68) // (2 * count)))
         if np.isfinite(pts68).all(axis=(1, 2)).sum() >= count:
-            chosen = choose_frames_by_cues(pts68, count, min_gap=gap, exclude=exclude, eye_profiles=prof)
-            session = {"scheme": scheme.name, "video": str(info.path.resolve()),
-                       "frames": [int(f) for f in chosen], "chosen_by": "dlib cues",
-                       "prefilled": True, "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+            chosen = choose_frames_by_cues(pts68, count, min_gap=min_gap(len(pts68)), exclude=exclude,
+                                           eye_profiles=prof)
+            session = new_session(chosen, chosen_by="dlib cues", prefilled=True)
     if session is None:
         box = None
         if landmarker is not None:
@@ -202,13 +201,8 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         with Progress(info.n_frames, "describing frames", enabled=not quiet) as prog:
             desc, sharp = describe_video(VideoReader(video, gray=True), box,
                                          progress=lambda i: prog.update())
-        gap = max(1, int(round(info.fps / 2))) if info.fps > 0 else 12
-        gap = min(gap, max(1, len(desc) // (2 * count)))
-        choice = choose_frames(desc, sharp, count, min_gap=gap, exclude=exclude, rng=rng)
-        session = {"scheme": scheme.name, "video": str(info.path.resolve()),
-                   "frames": [int(f) for f in choice.frames], "face_box": box,
-                   "prefilled": landmarker is not None,
-                   "note": "NNNNNN.pts holds the points of zero-based frame NNNNNN"}
+        choice = choose_frames(desc, sharp, count, min_gap=min_gap(len(desc)), exclude=exclude, rng=rng)
+        session = new_session(choice.frames, face_box=box, prefilled=landmarker is not None)
     frames = session["frames"]
     (out / "frames").mkdir(parents=True, exist_ok=True)
     images = reader.read_frames(frames)
