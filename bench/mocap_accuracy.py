@@ -18,11 +18,22 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from keyshape.data_synth.mocap import (FACE_SKIN, discontinuity_regions, identity_face, lip_vertices,  # noqa: E402
+from keyshape.data_synth.mocap import (FACE_SKIN, discontinuity_regions, identity_face,  # noqa: E402
                               load_facekit, synthesize)
 from keyshape.retarget.mocap.drive import drive_mesh  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict-facekit"
+
+
+def lip_vertices(kit) -> np.ndarray:
+    """Face-skin vertices of the lips: within the mouth landmarks' ellipse (evaluation region)."""
+    v = kit.neutral[:FACE_SKIN]
+    lm = kit.neutral[kit.landmarks]
+    mouth = lm[48:68].mean(axis=0)
+    width = np.ptp(lm[48:68, 0])
+    height = np.ptp(lm[48:60, 1])
+    e = np.linalg.norm((v - mouth)[:, :2] / [0.55 * width, 0.75 * height], axis=1)
+    return np.flatnonzero((e < 1.0) & (v[:, 2] > mouth[2] - 1.5))
 
 
 def errors(pred, truth, idx, frames):

@@ -323,17 +323,6 @@ def discontinuity_regions(kit: FaceKit, labels, split: float = 0.3) -> list:
     return out
 
 
-def lip_vertices(kit: FaceKit) -> np.ndarray:
-    """Face-skin vertices of the lips: within the mouth landmarks' ellipse (evaluation region)."""
-    v = kit.neutral[:FACE_SKIN]
-    lm = kit.neutral[kit.landmarks]
-    mouth = lm[48:68].mean(axis=0)
-    width = np.ptp(lm[48:68, 0])
-    height = np.ptp(lm[48:60, 1])
-    e = np.linalg.norm((v - mouth)[:, :2] / [0.55 * width, 0.75 * height], axis=1)
-    return np.flatnonzero((e < 1.0) & (v[:, 2] > mouth[2] - 1.5))
-
-
 def animface_target_markers(kit: FaceKit, labels, neutral_mm) -> dict:
     """Target markers on ICT for the AnimFace take's labels (real data, ``mocap/animface``).
 

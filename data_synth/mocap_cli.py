@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-DEFAULT_FACEKIT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict-facekit"
+from keyshape.data_synth.face3d_cli import DEFAULT_FACEKIT
 
 
 def register(subparsers) -> None:

@@ -1,4 +1,4 @@
-"""Score a rig's recovered curves against a synthetic take's hidden components (issue 14's acceptance).
+"""A rig's curves against a synthetic take's hidden components.
 
 ``truth.json`` of ``keyshape synth video`` names its 10 hidden components with
 ARKit / ICT-FaceKit names; an unsided one (``browInnerUp``) stands for both sides
@@ -12,7 +12,6 @@ import numpy as np
 
 from keyshape.base.errors import InputError
 from keyshape.base.geometry import fit_similarity
-from keyshape.retarget.rig.model import Rig
 from keyshape.retarget.targets.target_set import name_key
 
 
@@ -25,35 +24,6 @@ def component_columns(rig_names: Sequence[str], component: str) -> list[int]:
     if k + "left" in key and k + "right" in key:
         return [key[k + "left"], key[k + "right"]]
     raise InputError(f"the rig has no shape for component {component!r}")
-
-
-def truth_curves(rig_names: Sequence[str], components: Sequence[str], hidden: np.ndarray) -> np.ndarray:
-    """(n_frames, n_shapes) rig curves of the hidden weights (unsided components drive both sides)."""
-    out = np.zeros((len(hidden), len(rig_names)))
-    for i, c in enumerate(components):
-        out[:, component_columns(rig_names, c)] = hidden[:, [i]]
-    return out
-
-
-def score_curves(rig: Rig, curves: np.ndarray, components: Sequence[str], hidden: np.ndarray,
-                 vertices: np.ndarray | None = None) -> dict:
-    """Pearson r per component (recovered curve, or the mean of both sides, against the hidden weight)
-    and the mean vertex error of the rig driven by ``curves`` against the rig driven by the hidden weights,
-    with the hidden motion (the rig driven by the hidden weights against the still neutral) for scale."""
-    r = {}
-    for i, c in enumerate(components):
-        rec = curves[:, component_columns(rig.names, c)].mean(axis=1)
-        r[c] = float(np.corrcoef(rec, hidden[:, i])[0, 1]) if rec.std() > 0 and hidden[:, i].std() > 0 else 0.0
-    truth = truth_curves(rig.names, components, hidden)
-    err = motion = 0.0
-    for s in range(0, len(curves), 100):                          # chunks: bounded memory
-        vt = rig.evaluate(truth[s:s + 100], vertices)
-        vr = rig.evaluate(curves[s:s + 100], vertices)
-        n0 = rig.neutral if vertices is None else rig.neutral[vertices]
-        err += np.linalg.norm(vr - vt, axis=2).mean(axis=1).sum()
-        motion += np.linalg.norm(vt - n0, axis=2).mean(axis=1).sum()
-    return {"r": r, "mean_r": float(np.mean(list(r.values()))), "vertex_error": err / len(curves),
-            "hidden_motion": motion / len(curves), "error_ratio": err / max(motion, 1e-12)}
 
 
 def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence[str], rig_names: Sequence[str],

@@ -249,6 +249,12 @@ def frontalise(X: np.ndarray, p: np.ndarray, R: np.ndarray, t: np.ndarray, focal
     return np.einsum("tji,tnj->tni", R, Y - t[:, None])
 
 
+def _frontalise_ok(X, p, R, t, ok, focal, centre, eyeballs=(), eye_radius=1.2) -> np.ndarray:
+    """:func:`frontalise` with the frames not ``ok`` given harmless values (their rows are not meaningful)."""
+    return frontalise(X, np.where(ok[:, None, None], p, 0.0), np.where(ok[:, None, None], R, np.eye(3)),
+                      np.where(ok[:, None], t, 1.0), focal, centre, eyeballs, eye_radius)
+
+
 def mirror_pairs(template: np.ndarray) -> np.ndarray:
     """Index of each point's left-right mirror image on a face (n, 3) symmetric about x = 0."""
     m = template * np.array([-1.0, 1.0, 1.0])
@@ -332,9 +338,6 @@ class HeadPose3D:
             raise InputError(f"bad 3D head settings: smooth {self.smooth} (>= 0), distance {self.distance} (> 0)")
         return arr
 
-    def _base_weights(self) -> np.ndarray:
-        return np.asarray(self.weights, np.float64)
-
     def _initial(self, X: np.ndarray, p: np.ndarray, w: np.ndarray, focal: float, centre: np.ndarray):
         """Starting poses: the weighted 2D similarity of the face's x, y onto each frame's points (its
         in-plane angle, and the depth its scale gives), facing the camera."""
@@ -349,14 +352,17 @@ class HeadPose3D:
         t = np.concatenate([(trans - centre) * (z / focal)[:, None], z[:, None]], -1)
         return R, t
 
+    def _image_spread(self, X: np.ndarray, focal: float) -> float:
+        """The rigid points' RMS spread in the image (pixels), the face ``distance`` away."""
+        rig = list(self.rigid)
+        return np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean()) * focal / self.distance
+
     def _prior(self, X: np.ndarray, focal: float) -> float:
         """``lambda`` of Eq. 1's rotation prior: ``(sigma_p / sigma_R)^2`` with ``sigma_R`` = ``spread``
-        degrees and ``sigma_p`` 3% of the rigid points' spread in the image (the face ``distance`` away)."""
+        degrees and ``sigma_p`` 3% of the rigid points' spread in the image."""
         if self.spread <= 0:
             return 0.0
-        rig = list(self.rigid)
-        size = np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean()) * focal / self.distance
-        return float((0.03 * size / np.radians(self.spread)) ** 2)
+        return float((0.03 * self._image_spread(X, focal) / np.radians(self.spread)) ** 2)
 
     def _poses(self, X, p, ok, w, focal, centre):
         """Raw (unsmoothed) camera-axes poses of the frames ``ok``; others NaN."""
@@ -379,9 +385,7 @@ class HeadPose3D:
         return R, t
 
     def _robust_scale(self, X: np.ndarray, focal: float) -> float:
-        rig = list(self.rigid)
-        size = np.sqrt(((X[rig, :2] - X[rig, :2].mean(0)) ** 2).sum(-1).mean()) * focal / self.distance
-        return self.robust * size
+        return self.robust * self._image_spread(X, focal)
 
     # ------------------------------------------------------------------ fit
     def fit(self, points: np.ndarray) -> "HeadPose3D":
@@ -393,7 +397,7 @@ class HeadPose3D:
             raise InputError("no successful frame to take the head's pose from")
         rig = list(self.rigid)
         X = self.template @ FLIP.T                       # camera axes at rest
-        w = self._base_weights()
+        w = np.asarray(self.weights, np.float64)
         pairs = mirror_pairs(self.template)
         centre = np.nanmean(p[ok][:, rig].reshape(-1, 2), axis=0) if self.centre is None \
             else np.asarray(self.centre, np.float64)
@@ -415,8 +419,7 @@ class HeadPose3D:
         R, t = self._smooth(R, t, ok)
         self.camera_pose_ = (R, t)
         self._pose_memo = (self._pose_key(p), (R.copy(), t.copy()))  # camera_pose of these points: this solve
-        H = frontalise(X, np.where(ok[:, None, None], p, 0.0), np.where(ok[:, None, None], R, np.eye(3)),
-                       np.where(ok[:, None], t, 1.0), focal, centre)
+        H = _frontalise_ok(X, p, R, t, ok, focal, centre)
         H[~ok] = np.nan
         if self.eyeballs:
             # each eyeball behind where its pupil sits looking straight ahead: the take's median pupil (the
@@ -517,9 +520,8 @@ class HeadPose3D:
         p = self._check(points)
         ok = np.isfinite(p).all(axis=(1, 2))
         R, t = self.camera_pose(p) if pose is None else pose
-        H = frontalise(self.template_, np.where(ok[:, None, None], p, 0.0),
-                       np.where(ok[:, None, None], R, np.eye(3)), np.where(ok[:, None], t, 1.0),
-                       self.focal_, self.centre_, self.eyeballs, self.eye_radius)[..., :2]
+        H = _frontalise_ok(self.template_, p, R, t, ok, self.focal_, self.centre_, self.eyeballs,
+                           self.eye_radius)[..., :2]
         out = self.frame_[0] * H + self.frame_[1:]
         if self.anchor and ok.any():
             from keyshape.base.geometry import rigid_fit
