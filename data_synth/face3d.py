@@ -16,7 +16,7 @@ from keyshape.base.files import atomic_write
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.formats.weights import write_weights
 from keyshape.base.schemes import load_scheme
-from keyshape.data_synth.performance import make_performance, smooth_noise
+from keyshape.data_synth.performance import _pulse, make_performance, smooth_noise
 from keyshape.base.raster import rasterize
 from keyshape.data_synth.video import _check_args, render_video, select_label_frames, write_truth
 
@@ -377,12 +377,6 @@ def _soft_limit(x: np.ndarray, r: float) -> np.ndarray:
     a = np.abs(x)
     knee = 0.8 * r
     return np.sign(x) * np.where(a < knee, a, knee + (r - knee) * np.tanh((a - knee) / (r - knee)))
-
-
-def _pulse(t, t0, dur, attack):
-    a = np.clip((t - t0) / attack, 0, 1)
-    b = np.clip((t0 + dur - t) / attack, 0, 1)
-    return np.sin(0.5 * np.pi * np.minimum(a, b)) ** 2
 
 
 # ---------------------------------------------------------------------- the take

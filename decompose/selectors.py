@@ -77,16 +77,13 @@ class _Selector:
         ``neutral`` (n_points, dim): the shape the keys and weights are relative to
         (default: the mean shape, the paper's centring; the actor's neutral frame makes
         the NNLS cone start at the relaxed face)."""
-        arr = _check_shapes(shapes, self._needed_keys())
+        arr = _check_shapes(shapes, self.n_keys)
         self.neutral_ = arr.mean(axis=0) if neutral is None else np.asarray(neutral, dtype=np.float64)
         X = (arr - self.neutral_).reshape(len(arr), -1)
         idx, keys = self._select(X, arr)
         self.indices_ = np.asarray(idx, dtype=np.intp)
         self.keys_ = arr[self.indices_].copy() if keys is None else keys
         return self
-
-    def _needed_keys(self) -> int | None:
-        return self.n_keys
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "indices_"):
@@ -189,19 +186,11 @@ class KMeansSelector(_Selector):
 
 
 class HullSelector(_Selector):
-    """Frames on the 2D convex hull of the first two PCA coordinates (section 4.2, "Convex hull").
+    """Frames on the 2D convex hull of the first two PCA coordinates (section 4.2, "Convex hull"): every frame on
+    the hull is a key, however many that is."""
 
-    Parameters
-    ----------
-    n_keys : int or None
-        None (default, the paper's method): every frame on the hull is a key, however
-        many that is. An int keeps that many of them, farthest-point first in the PCA
-        plane (the hull frame farthest from the mean, then the one farthest from those
-        chosen...): ``order_`` is nested as spread's and greedy's.
-    """
-
-    def __init__(self, n_keys: int | None = None):
-        self.n_keys = n_keys
+    def __init__(self):
+        self.n_keys = None
 
     def _select(self, X, arr):
         from scipy.spatial import ConvexHull, QhullError
@@ -213,20 +202,7 @@ class HullSelector(_Selector):
             hull = ConvexHull(scores[:, :2])
         except QhullError as exc:
             raise InputError(f"convex hull failed ({str(exc).splitlines()[0]})") from None
-        if self.n_keys is None:
-            self.order_ = np.asarray(hull.vertices, dtype=np.intp)
-            return hull.vertices, None
-        if self.n_keys > len(hull.vertices):
-            raise InputError(f"cannot choose {self.n_keys} key shapes from the {len(hull.vertices)} frames on the hull")
-        Y = scores[hull.vertices, :2]
-        chosen = [int(np.argmax(np.linalg.norm(Y, axis=1)))]          # farthest from the mean
-        d = np.linalg.norm(Y - Y[chosen[0]], axis=1)
-        for _ in range(1, self.n_keys):
-            d[chosen] = -1.0
-            chosen.append(int(np.argmax(d)))
-            d = np.minimum(d, np.linalg.norm(Y - Y[chosen[-1]], axis=1))
-        self.order_ = np.asarray(hull.vertices, dtype=np.intp)[chosen]
-        return self.order_, None
+        return hull.vertices, None
 
 
 class RandomSelector(_Selector):

@@ -312,16 +312,6 @@ def test_kmeans_recovers_known_clusters(n_dims):
         np.testing.assert_allclose(key, Q[truth == c].mean(0), atol=1e-9)
 
 
-def test_hull_selector_is_built_like_its_siblings(toy):
-    _, _, Q = toy
-    full = HullSelector().fit(Q)
-    some = HullSelector(4).fit(Q)
-    assert some.n_keys_ == 4 and set(some.indices_) <= set(full.indices_)
-    np.testing.assert_array_equal(HullSelector(3).fit(Q).indices_, some.indices_[:3])     # nested
-    with pytest.raises(InputError, match="on the hull"):
-        HullSelector(len(full.indices_) + 1).fit(Q)
-
-
 def test_random_selector_uses_rng(toy):
     _, _, Q = toy
     a = RandomSelector(6, rng=1).fit(Q).indices_
