@@ -13,6 +13,7 @@ from scipy.fft import dct, idct
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from keyshape.base.errors import InputError
+from keyshape.decompose.defaults import SOLVERS
 
 _WORKERS = max(1, min(4, os.cpu_count() or 1))  # scipy.fft threads for the smoothed solver's DCTs
 
@@ -198,13 +199,8 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: fl
               passive: np.ndarray | None = None, coarse: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """Exact NNLS ``min_{w >= 0} w^T G w - 2 h^T w`` for many right-hand sides at once.
 
-    Block principal pivoting (Kim and Park 2011): every infeasible variable exchanged at once, one (the largest
-    index) when that stops reducing their number; it ends at the KKT point ``w >= 0``, ``y = G w - h >= 0``,
-    ``w * y = 0``, the NNLS solution Lawson-Hanson finds (eq. 4, [Law74]), accurate to about ``eps * cond(B_P)^2``
-    relative to the weights. Each step's passive systems ``G_PP w_P = h_P`` are Cholesky-solved as one stack
-    grouped by ``|P|`` (:func:`_passive_solve`). Warm start (shared ``G``, no ``passive``): rows are frames in time
-    order; every ``coarse``-th row is solved first, then the rows halfway between, each from its solved
-    predecessor's passive set, halving the stride to 1 (the result does not depend on the order).
+    Block principal pivoting (Kim and Park 2011), ending at the KKT point Lawson-Hanson finds (eq. 4), with a
+    warm start over rows in time order; the method: docs/decompose.md, "Notes on the code".
 
     Parameters
     ----------
@@ -216,13 +212,10 @@ def nnls_gram(G: np.ndarray, h: np.ndarray, max_iter: int | None = None, tol: fl
         Pivoting iterations (default ``10 * n_keys``) per stage.
     tol : float
         Relative feasibility tolerance of the weights (``w_P > -tol``, then clipped at 0); the
-        gradient of the zero weights must satisfy the tighter ``y > -tol / 1000``, because with an
-        ill-conditioned basis a small negative ``y`` hides a weight that is not small (bench data,
-        condition number 7e4: ``y = -5e-11`` for a weight of 8e-8 that scipy finds).
+        gradient of the zero weights must satisfy the tighter ``y > -tol / 1000``.
     passive : (m, n_keys) bool, optional
         Initial guess of the positive weights (warm start); default: those
-        positive in the unconstrained solution (with the hierarchical warm start above
-        for a shared ``G``).
+        positive in the unconstrained solution (with the hierarchical warm start for a shared ``G``).
     coarse : int
         Stride of the first stage of the warm start (a power of two; 1 = off).
 
@@ -310,10 +303,8 @@ def nnls_result(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None
                 ridge: float = 0.0) -> SolveResult:
     """Non-negative least-squares weights, eq. (4) of 004_119ba07521a9af0b.txt, for all frames at once.
 
-    ``min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2`` for each frame ``t``.
-    The key basis is factored once (QR -> Gram ``R^T R``), all frames are projected
-    with one product, and the k-sized problems are solved together by
-    :func:`nnls_gram`; the result equals ``scipy.optimize.nnls`` frame by frame.
+    ``min_{w_t >= 0} ||Q_t - neutral - sum_i w_ti (S_i - neutral)||^2`` for each frame ``t`` (:func:`nnls_gram`
+    on the key basis' Gram matrix; the result equals ``scipy.optimize.nnls`` frame by frame).
 
     Parameters
     ----------
@@ -352,14 +343,10 @@ def smooth_result(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | No
     """NNLS over the whole sequence with a penalty on frame-to-frame weight change, as one QP.
 
     Solves ``min_{W >= 0} sum_t m_t ||B^T w_t - x_t||^2 + mu sum_t ||w_t - w_{t-1}||^2`` with
-    ``mu = smooth_lambda * trace(G) / n_keys`` (``smooth_lambda`` dimensionless), ``m_t`` = 1 for observed frames
-    and 0 for failed ones (whose weights the penalty interpolates). ``method="pdas"``: the primal-dual active-set
-    method (Hintermueller, Ito and Kunisch 2002) with one banded Cholesky factorisation of
-    ``diag(m) (x) G + mu L (x) I`` per iteration (:func:`_smooth_pdas`), exact at its KKT point; ``max_iter`` at
-    most 200. ``method="admm"`` (also the fallback should PDAS fail): ADMM on ``W = Z, Z >= 0`` with type-II
-    Anderson acceleration of memory ``anderson`` (:func:`_smooth_admm`), stopped when its residuals fall below
-    ``tol * max(1, max Z)``. With ``smooth_lambda = 0`` and every frame observed it returns per-frame NNLS
-    (eq. 4); ``ridge`` adds :func:`nnls_weights`' Tikhonov term on observed frames.
+    ``mu = smooth_lambda * trace(G) / n_keys``, ``m_t`` = 1 for observed frames and 0 for failed ones (whose
+    weights the penalty interpolates), by ``method`` ``pdas`` (:func:`_smooth_pdas`, at most 200 iterations) or
+    ``admm`` (:func:`_smooth_admm` with Anderson memory ``anderson``, to ``tol``; also PDAS's fallback); the
+    methods: docs/decompose.md, "Notes on the code". ``ridge`` adds :func:`nnls_weights`' Tikhonov term.
 
     Returns
     -------
@@ -418,12 +405,9 @@ def _smooth_pdas(Gs: np.ndarray, H: np.ndarray, m: np.ndarray, mu: float, W: np.
     """Exact active-set solution of the smoothed-NNLS QP (primal-dual active set, Hintermueller,
     Ito and Kunisch 2002), started from ``W`` (per-frame NNLS); see :func:`smooth_weights`.
 
-    The QP is ``min_{W >= 0} 1/2 vec(W)^T Q vec(W) - vec(H)^T vec(W)``, ``Q = diag(m) (x) Gs + mu L (x) I`` (a band
-    matrix of half-bandwidth ``k``). Each iteration holds the active weights at zero, solves the free ones by one
-    banded Cholesky factorisation and exchanges every infeasible weight; where the infeasible weights cover under
-    :data:`_COVER` of the take only frames within ``window`` of them are re-solved. Against cycling, after three
-    exchanges that do not lower the count of infeasible weights only the last is exchanged (Murty's rule). Returns
-    ``(W, iterations, converged)``; ``converged`` is False on a failed factorisation or after ``max_iter``.
+    Frames within ``window`` of the infeasible weights are re-solved while those cover under :data:`_COVER` of the
+    take (the method: docs/decompose.md). Returns ``(W, iterations, converged)``; ``converged`` is False on a
+    failed factorisation or after ``max_iter``.
     """
     from scipy.linalg.lapack import dpbtrf, dpbtrs
     from threadpoolctl import threadpool_limits
@@ -658,9 +642,6 @@ class _Anderson:
         rhs = self.dF[:self.n] @ f
         gamma = np.linalg.lstsq(M + 1e-12 * np.trace(M) * np.eye(self.n), rhs, rcond=None)[0]
         return (g - gamma @ self.dG[:self.n]).reshape(s.shape)
-
-
-SOLVERS = ("nnls", "lstsq", "smooth")
 
 
 def solve_weights(shapes: np.ndarray, keys: np.ndarray, neutral: np.ndarray | None = None,
