@@ -2,7 +2,7 @@
 
 Baseline, measured in the same run: the unconstrained least-squares solve of the
 same size (``np.linalg.lstsq`` of all frames at once, the paper's "bad example").
-Data: the toy low-rank performance (decompose.toy) tiled to 100,000 frames with
+Data: the toy low-rank performance (bench/toy.py) tiled to 100,000 frames with
 fresh tracking noise, all 48 points, 24 key frames chosen by spread.
 
 Run: ``python bench/bench_decompose.py [--frames N] [--admm] [--plain-admm]``. Wall-clock ratios, and
@@ -17,7 +17,7 @@ import numpy as np
 
 from keyshape.decompose.regions import model_shapes
 from keyshape.decompose.selectors import SpreadSelector
-from keyshape.decompose.toy import toy_tracks
+from toy import toy_tracks
 from keyshape.decompose.weights import lstsq_weights, nnls_result, smooth_result
 
 

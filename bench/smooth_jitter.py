@@ -9,7 +9,7 @@ where the region's true shape moves less than ``--still`` px (max over points).
 
 Reported per file and region: RMS frame-to-frame weight change on those pairs
 (jitter) and the RMS reconstruction error against the noisy tracks (what the
-solver sees), with the smooth/nnls ratios. Without files it uses decompose.toy.
+solver sees), with the smooth/nnls ratios. Without files it uses bench/toy.py.
 
 Run: ``PYTHONPATH=. python bench/smooth_jitter.py truth0.csv truth1.csv ...``
 """
@@ -38,7 +38,7 @@ def main() -> None:
     if args.tracks:
         items = [(p, read_tracks(p)) for p in args.tracks]
     else:
-        from keyshape.decompose.toy import toy_tracks
+        from toy import toy_tracks
         items = [(f"toy seed {s}", toy_tracks(600, noise_px=0.0, rng=s)) for s in (5, 6, 7)]
     print("file,region,still_pairs,jitter_nnls,jitter_smooth,jitter_ratio,rms_nnls_px,rms_smooth_px,error_ratio")
     for name, tracks in items:

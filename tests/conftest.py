@@ -4,6 +4,7 @@ from __future__ import annotations
 import hashlib
 import os
 import signal
+import sys
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,8 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+# the synthetic data that only tests and benchmarks use lives in bench/ (bench/toy.py ...), outside the package
+sys.path.append(str(REPO / "bench"))
 
 # the parsed-rig cache (retarget.rig.model.load_rig) of a test run goes to a folder of its own, not the user's home
 # (removed when the run ends: a test run leaves nothing behind in the system's temporary folder)

@@ -18,7 +18,7 @@ from keyshape.base.formats.weights import read_weights, write_weights
 from keyshape.decompose.regions import decompose_region, model_shapes, region_points, select_region
 from keyshape.decompose.selectors import (GreedySelector, HullSelector, KMeansSelector, RandomSelector, SpreadSelector,
                                  make_selector)
-from keyshape.decompose.toy import toy_tracks
+from toy import toy_tracks
 from keyshape.decompose.weights import (SolveResult, lstsq_weights, nnls_gram, nnls_result, nnls_weights, reconstruct,
                                        smooth_result, smooth_weights,
                                solve_weights)

@@ -11,7 +11,7 @@ from keyshape.base.formats.weights import read_weights
 from keyshape.base.formats.tracks import read_tracks, write_tracks
 from keyshape.cli import main
 from keyshape.decompose.regions import head_shapes, region_points, relaxed_frame
-from keyshape.decompose.toy import toy_tracks
+from toy import toy_tracks
 from keyshape.base.schemes import load_scheme
 
 SCHEME = load_scheme("contours48")
@@ -170,7 +170,7 @@ def test_face_rest_frame_is_relaxed_where_a_region_alone_picks_a_held_expression
     shape is the held raise; the whole face's is a relaxed frame, and select records it for every region."""
     from keyshape.base.formats.tracks import Tracks
     from keyshape.decompose.regions import face_rest_frame
-    from keyshape.decompose.toy import mean_face
+    from toy import mean_face
     rng = np.random.default_rng(0)
     n = 400
     X = np.repeat(mean_face()[None], n, axis=0)

@@ -245,7 +245,7 @@ def test_preview_refuses_a_video_of_another_size_than_the_tracks(tmp_path, capsy
     from keyshape.base.formats.tracks import write_tracks
     from keyshape.base.formats.video import video_writer
     from keyshape.base.formats.weights import write_weights
-    from keyshape.decompose.toy import toy_tracks
+    from toy import toy_tracks
     from test_rig_poses import SHAPES, write_toy_rig
     rig, _ = write_toy_rig(tmp_path / "rig")
     tr = toy_tracks(30, rng=1)

@@ -394,7 +394,7 @@ def _preview_inputs(tmp_path, n: int, size: tuple[int, int]):
     from keyshape.base.formats.tracks import write_tracks
     from keyshape.base.formats.video import video_writer
     from keyshape.base.formats.weights import write_weights
-    from keyshape.decompose.toy import toy_tracks
+    from toy import toy_tracks
     rig, _ = write_toy_rig(tmp_path / "rig")
     write_tracks(tmp_path / "t.csv", toy_tracks(n, rng=1))
     with video_writer(tmp_path / "v.mp4", 10, size) as wr:

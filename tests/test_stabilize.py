@@ -15,7 +15,7 @@ from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
 from keyshape.decompose.regions import head_shapes, model_shapes, stable_pose, to_image
 from keyshape.decompose.stabilize import RigidStabilizer, similarity_affines
-from keyshape.decompose.toy import mean_face, toy_tracks
+from toy import mean_face, toy_tracks
 
 SCHEME = load_scheme("contours48")
 

@@ -1,6 +1,7 @@
 """A small synthetic performance for tests and benchmarks: low-rank non-negative expression model.
 
-Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/toy.py``.
+Design notes: docs/decompose.md, "Notes on the code", ``bench/toy.py``. The tests import it from here (tests/conftest.py
+puts bench/ on the import path).
 """
 from __future__ import annotations
 
