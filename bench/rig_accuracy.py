@@ -65,42 +65,9 @@ def run_chain(work: Path, seed: int, rig: Path, frames: int = 600, tracks: Path 
     return p
 
 
-def truth_curves(rig_names: list, components: list, hidden: np.ndarray) -> np.ndarray:
-    """(n_frames, n_shapes) rig curves of the hidden weights (unsided components drive both sides)."""
-    from keyshape.data_synth.rig_truth import component_columns
-
-    out = np.zeros((len(hidden), len(rig_names)))
-    for i, c in enumerate(components):
-        out[:, component_columns(rig_names, c)] = hidden[:, [i]]
-    return out
-
-
-def score_curves(rig, curves: np.ndarray, components: list, hidden: np.ndarray,
-                 vertices: np.ndarray | None = None) -> dict:
-    """Pearson r per component (recovered curve, or the mean of both sides, against the hidden weight)
-    and the mean vertex error of the rig driven by ``curves`` against the rig driven by the hidden weights,
-    with the hidden motion (the rig driven by the hidden weights against the still neutral) for scale."""
-    from keyshape.data_synth.rig_truth import component_columns
-
-    r = {}
-    for i, c in enumerate(components):
-        rec = curves[:, component_columns(rig.names, c)].mean(axis=1)
-        r[c] = float(np.corrcoef(rec, hidden[:, i])[0, 1]) if rec.std() > 0 and hidden[:, i].std() > 0 else 0.0
-    truth = truth_curves(rig.names, components, hidden)
-    err = motion = 0.0
-    for s in range(0, len(curves), 100):                          # chunks: bounded memory
-        vt = rig.evaluate(truth[s:s + 100], vertices)
-        vr = rig.evaluate(curves[s:s + 100], vertices)
-        n0 = rig.neutral if vertices is None else rig.neutral[vertices]
-        err += np.linalg.norm(vr - vt, axis=2).mean(axis=1).sum()
-        motion += np.linalg.norm(vt - n0, axis=2).mean(axis=1).sum()
-    return {"r": r, "mean_r": float(np.mean(list(r.values()))), "vertex_error": err / len(curves),
-            "hidden_motion": motion / len(curves), "error_ratio": err / max(motion, 1e-12)}
-
-
 def score(paths: dict, rig) -> dict:
     from keyshape.base.formats.weights import read_weights
-    from keyshape.data_synth.rig_truth import component_columns
+    from rig_truth import component_columns, score_curves
     from keyshape.retarget.rig.model import ICT_FACE_SKIN
     truth = json.loads(Path(paths["truth.json"]).read_text())
     hidden = np.asarray(truth["weights"])
@@ -135,7 +102,7 @@ def score(paths: dict, rig) -> dict:
 
 def geometric_gains(truth: dict, rig) -> tuple[np.ndarray, np.ndarray]:
     """Per hidden component: the weight of its rig shape(s) that best makes its 2D motion, and the cosine."""
-    from keyshape.data_synth.rig_truth import component_gains
+    from rig_truth import component_gains
     from keyshape.retarget.rig.model import project, rig_landmarks
     W, _ = rig_landmarks(rig, truth["scheme"])
     return component_gains(truth["neutral"], truth["basis"], truth["components"], rig.names, project(W @ rig.neutral),
@@ -167,6 +134,8 @@ def exact_key_curves(paths: dict, rig, cols, w) -> np.ndarray:
 def oracle_curves(paths: dict, rig, cols, w, components, hidden) -> np.ndarray:
     """Rig curves from the key weights with oracle poses: each key's pose is the hidden weights at
     its frame minus those at the region's neutral frame, on the region's shapes (POSES.json)."""
+    from rig_truth import truth_curves
+
     from keyshape.base.formats.keys import read_keys
     _, _, regions = read_keys(paths["keys.json"])
     lib = json.loads(Path(paths["poses.json"]).read_text())["regions"]

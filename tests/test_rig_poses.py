@@ -498,7 +498,7 @@ def test_component_gains_against_a_rig_made_from_the_face_itself():
     similarity and driven at known amplitudes, gives back those amplitudes (gain = 1 / amplitude)
     with cosine 1; an unsided component split over _L/_R shapes counts both sides."""
     from keyshape.data_synth.face_model import COMPONENTS, FaceModel
-    from keyshape.data_synth.rig_truth import component_gains
+    from rig_truth import component_gains
     neutral, basis = FaceModel(rng=5).basis()
     ang, s, t = 0.3, 0.07, np.array([2.0, -1.0])
     R = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])

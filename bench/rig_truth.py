@@ -1,4 +1,4 @@
-"""A rig's curves against a synthetic take's hidden components.
+"""A rig's curves against a synthetic take's hidden components (bench/rig_accuracy.py and its tests).
 
 ``truth.json`` of ``keyshape synth video`` names its 10 hidden components with
 ARKit / ICT-FaceKit names; an unsided one (``browInnerUp``) stands for both sides
@@ -59,3 +59,32 @@ def component_gains(neutral: np.ndarray, basis: np.ndarray, components: Sequence
         gains[k] = float(m @ r) / rr
         cos[k] = float(m @ r) / np.sqrt(rr * float(m @ m))
     return gains, cos
+
+
+def truth_curves(rig_names: list, components: list, hidden: np.ndarray) -> np.ndarray:
+    """(n_frames, n_shapes) rig curves of the hidden weights (unsided components drive both sides)."""
+    out = np.zeros((len(hidden), len(rig_names)))
+    for i, c in enumerate(components):
+        out[:, component_columns(rig_names, c)] = hidden[:, [i]]
+    return out
+
+
+def score_curves(rig, curves: np.ndarray, components: list, hidden: np.ndarray,
+                 vertices: np.ndarray | None = None) -> dict:
+    """Pearson r per component (recovered curve, or the mean of both sides, against the hidden weight)
+    and the mean vertex error of the rig driven by ``curves`` against the rig driven by the hidden weights,
+    with the hidden motion (the rig driven by the hidden weights against the still neutral) for scale."""
+    r = {}
+    for i, c in enumerate(components):
+        rec = curves[:, component_columns(rig.names, c)].mean(axis=1)
+        r[c] = float(np.corrcoef(rec, hidden[:, i])[0, 1]) if rec.std() > 0 and hidden[:, i].std() > 0 else 0.0
+    truth = truth_curves(rig.names, components, hidden)
+    err = motion = 0.0
+    for s in range(0, len(curves), 100):                          # chunks: bounded memory
+        vt = rig.evaluate(truth[s:s + 100], vertices)
+        vr = rig.evaluate(curves[s:s + 100], vertices)
+        n0 = rig.neutral if vertices is None else rig.neutral[vertices]
+        err += np.linalg.norm(vr - vt, axis=2).mean(axis=1).sum()
+        motion += np.linalg.norm(vt - n0, axis=2).mean(axis=1).sum()
+    return {"r": r, "mean_r": float(np.mean(list(r.values()))), "vertex_error": err / len(curves),
+            "hidden_motion": motion / len(curves), "error_ratio": err / max(motion, 1e-12)}
