@@ -1,6 +1,6 @@
 """Automatic rig landmarks against the truth of remeshed ICT-FaceKit rigs (issue 39).
 
-For each test rig (``data_synth/remesh.py``: the shipped face decimated to ~40% of its vertices in a
+For each test rig (``bench/remesh_rig.py``: the shipped face decimated to ~40% of its vertices in a
 shuffled order; ``plain``, the same in metres and Z-up, and other faces: ``reshape`` 0.6 and 1.0 cm of
 other proportions with other artists' shapes; ``mask0.6``: such a face cut to its front, as ARKit's
 face mesh; ``arkit``: that mask in metres, Z-up, with ARKit's shape names), prints the largest distance (cm, ICT's scale) of the
@@ -46,7 +46,7 @@ def main() -> None:
     from keyshape.base.formats.poses import read_rig_landmarks
     from keyshape.base.formats.weights import read_weights
     from keyshape.cli import main as cli
-    from keyshape.data_synth.remesh import remeshed_ict_rig
+    from remesh_rig import remeshed_ict_rig
     from keyshape.retarget.rig.model import found_landmarks, load_rig
 
     work = Path(a.work)

@@ -11,7 +11,7 @@ import pytest
 from keyshape.base.formats.poses import read_rig_landmarks, write_rig_landmarks
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
-from keyshape.data_synth.remesh import remeshed_ict_rig
+from remesh_rig import remeshed_ict_rig
 from keyshape.retarget.rig.landmark_edit import LandmarkServer, point_sides
 from keyshape.retarget.rig.model import load_rig
 from server_helpers import request, serving

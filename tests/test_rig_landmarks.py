@@ -1,6 +1,6 @@
 """A rig of any topology (issue 39): iBUG-68 vertex lists, refused landmark files, landmarks found automatically,
 rigs as they come (units, axes), the check sheet; against the truth of a remeshed ICT-FaceKit rig
-(data_synth/remesh.py), whose true landmarks are known by construction."""
+(bench/remesh_rig.py), whose true landmarks are known by construction."""
 from __future__ import annotations
 
 import json
@@ -13,7 +13,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.formats.poses import read_rig_landmarks, write_rig_landmarks
 from keyshape.base.schemes import load_scheme
 from keyshape.cli import main
-from keyshape.data_synth.remesh import remeshed_ict_rig
+from remesh_rig import remeshed_ict_rig
 from keyshape.retarget.rig.model import load_rig, project, rig_landmarks
 
 from conftest import gaussian_bumps
@@ -45,7 +45,7 @@ def searched_once():
     """The landmark search and the remeshing are pure functions of their inputs: in this module each runs once per
     input. The commands given a rig that a test here has already searched (solve, rig-check) take the search's
     result without searching it again; the rigs that share a seed share its remeshing."""
-    import keyshape.data_synth.remesh as remesh_mod
+    import remesh_rig as remesh_mod
     import keyshape.retarget.rig.landmarks as landmarks_mod
     memo: dict = {}
     with pytest.MonkeyPatch.context() as mp:

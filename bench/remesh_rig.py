@@ -1,4 +1,5 @@
-"""A test rig of another topology made from ICT-FaceKit, whose true landmarks are known by construction.
+"""A test rig of another topology made from ICT-FaceKit, whose true landmarks are known by construction
+(bench/rig_landmarks_accuracy.py and the tests of the rig landmarks).
 
 :func:`remesh` decimates a rig's mesh by edge collapses: each pass collapses a random set of edges
 whose stars do not touch (so the collapses are independent), each edge's two vertices merged into one
