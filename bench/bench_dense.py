@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from keyshape.data_synth.dense import LANDMARKS68, PERFORMANCES, dense_sequence, realistic_face
+from dense_synth import LANDMARKS68, PERFORMANCES, dense_sequence, realistic_face
 from keyshape.retarget.dense.keypoints import KeyPointInserter, random_insertion, sequence_errors
 from keyshape.retarget.dense.registration import place_markers, register_mesh
 from keyshape.retarget.dense.transfer import transfer_sequence

@@ -127,7 +127,7 @@ def test_transfer_onto_own_neutral_reproduces_the_sequence():
 
 def _ict_case(ict, step=3, n_frames=6):
     """A decimated ICT "talk" case: every ``step``-th face-skin vertex, ``n_frames`` frames, 68 landmarks as keys."""
-    from keyshape.data_synth.dense import dense_sequence
+    from dense_synth import dense_sequence
     from keyshape.base.formats.obj import read_obj_vertices
     frames, _ = dense_sequence(ict, "talk", n_frames, rng=0)
     lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
@@ -156,7 +156,7 @@ def test_ict_transfer_identity_and_onto_identity000(shared_data):
 @pytest.mark.slow
 @pytest.mark.parametrize("target", ["self", "identity000", "identity003"])
 def test_ict_transfer_full_size(shared_data, target):
-    from keyshape.data_synth.dense import dense_sequence
+    from dense_synth import dense_sequence
     from keyshape.base.formats.obj import read_obj_vertices
     ict = shared_data / "ict-facekit"
     frames, _ = dense_sequence(ict, "talk", 8, rng=0)
@@ -314,7 +314,7 @@ def test_cli_register_and_keypoints(tmp_path, capsys, monkeypatch):
         "and under the chin, far from the 12 frontal landmarks (docs/keypoints.md)"))),
 ])
 def test_ict_registration_halves_error_and_places_markers(shared_data, target):
-    from keyshape.data_synth.dense import LANDMARKS68, realistic_face
+    from dense_synth import LANDMARKS68, realistic_face
     from keyshape.base.formats.obj import read_obj, read_obj_vertices
     ict = shared_data / "ict-facekit"
     ref = read_obj(ict / "generic_neutral_mesh.obj")
@@ -335,7 +335,7 @@ def test_ict_registration_halves_error_and_places_markers(shared_data, target):
 @pytest.mark.slow
 @pytest.mark.parametrize("performance", ["talk", "stretch"])
 def test_ict_insertion_beats_random(shared_data, performance):
-    from keyshape.data_synth.dense import dense_sequence
+    from dense_synth import dense_sequence
     ict = shared_data / "ict-facekit"
     lm68 = np.array(json.loads((ict / "vertex_indices.json").read_text())["idx_to_landmark_verts"])
     frames, _ = dense_sequence(ict, performance, 60, rng=0)
@@ -351,7 +351,7 @@ def test_ict_insertion_beats_random(shared_data, performance):
 
 @pytest.mark.slow
 def test_dense_sequences_are_deterministic(shared_data):
-    from keyshape.data_synth.dense import dense_sequence
+    from dense_synth import dense_sequence
     a, tri = dense_sequence(shared_data / "ict-facekit", "smile", 5, rng=3)
     b, _ = dense_sequence(shared_data / "ict-facekit", "smile", 5, rng=3)
     c, _ = dense_sequence(shared_data / "ict-facekit", "smile", 5, rng=4)

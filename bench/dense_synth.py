@@ -1,4 +1,5 @@
-"""Dense synthetic facial performances from the ICT-FaceKit expressions (ground truth for 002's tables).
+"""Dense synthetic facial performances from the ICT-FaceKit expressions (ground truth for 002's tables;
+bench/bench_dense.py and tests/test_dense.py).
 
 Each performance drives a handful of ICT-FaceKit expression targets with
 smooth, seeded weight curves in [0, 1]; frame 0 is the neutral face, as the
