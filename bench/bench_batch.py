@@ -6,7 +6,7 @@ got; asserts nothing.
     python bench/bench_batch.py --all             # also serial commands, thread workers, 1 worker on all cores
     python bench/bench_batch.py [--actors 2] [--takes 4] [--frames 750] [--clip 150] [--library DIR]
 
-The library (``keyshape.data_synth.library.synth_library``: one synthetic person per actor) is
+The library (``bench/synth_library.py``: one synthetic person per actor) is
 synthesised with ``--clip`` frames per take, then every take is lengthened to ``--frames`` by playing
 its clip forwards and backwards (continuous motion; synthesis costs ~20 ms a frame, tracking ~4): the
 work per run must dwarf the fixed start-up (the cluster, each worker's imports: a few seconds) for
@@ -61,7 +61,7 @@ def lengthen(path: Path, clip: int, frames: int) -> None:
 
 
 def library(folder: Path, actors: int, takes: int, clip: int, frames: int) -> Path:
-    from keyshape.data_synth.library import synth_library
+    from synth_library import synth_library
 
     manifest = synth_library(folder, actors=actors, takes=takes, frames=clip, keys=8)
     for p in sorted(folder.glob("actor*/take*.mp4")):

@@ -18,7 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from keyshape.data_synth.mocap import (FACE_SKIN, discontinuity_regions, identity_face,  # noqa: E402
+from mocap_targets import identity_face  # noqa: E402
+from keyshape.data_synth.mocap import (FACE_SKIN, discontinuity_regions,  # noqa: E402
                               load_facekit, synthesize)
 from keyshape.retarget.mocap.drive import drive_mesh  # noqa: E402
 

@@ -16,7 +16,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from keyshape.data_synth.mocap import FACE_SKIN, animface_target_markers, load_facekit  # noqa: E402
+from keyshape.data_synth.mocap import FACE_SKIN, load_facekit  # noqa: E402
+from mocap_targets import animface_target_markers  # noqa: E402
 from keyshape.retarget.mocap.clean import fill_gaps, remove_rigid_motion  # noqa: E402
 from keyshape.retarget.mocap.drive import drive_mesh  # noqa: E402
 from keyshape.base.formats.markers import read_trc  # noqa: E402

@@ -234,18 +234,6 @@ def dense_frames(kit: FaceKit, weights: np.ndarray, base: np.ndarray | None = No
     return (b.reshape(1, -1) + weights @ d).reshape(len(weights), -1, 3).astype(out_dtype)
 
 
-def identity_face(kit: FaceKit, coeffs=(3.0, -2.0, 2.0, 1.5), scale: float = 1.05) -> np.ndarray:
-    """A realistically different face with the same topology (data README's recipe)."""
-    from keyshape.base.formats.obj import read_obj_vertices
-
-    v = kit.neutral.copy()
-    for i, c in enumerate(coeffs):
-        p = require_file(kit.folder / f"identity{i:03d}.obj", "ICT-FaceKit identity")
-        v += c * (read_obj_vertices(p, len(v)) - kit.neutral)
-    centre = kit.neutral[:FACE_SKIN].mean(axis=0)
-    return centre + scale * (v - centre)
-
-
 def write_take(out_dir, kit: FaceKit, perf: MocapTake, formats=("c3d", "trc")) -> dict:
     """Write markers (C3D/TRC, mm, 120 Hz), target markers JSON, rigid names and ground truth .npz atomically."""
     from keyshape.base.files import atomic_dir, atomic_path, atomic_write
@@ -320,27 +308,4 @@ def discontinuity_regions(kit: FaceKit, labels, split: float = 0.3) -> list:
         lower = skin[area & (d < 0.05 * d.max()) & (v[:FACE_SKIN, 1] < eye[1])]
         out.append(Region(f"upper_lid_{side}", upper, known - {f"lid{side}_lower"}))
         out.append(Region(f"lower_lid_{side}", lower, known - {f"lid{side}_upper"}))
-    return out
-
-
-def animface_target_markers(kit: FaceKit, labels, neutral_mm) -> dict:
-    """Target markers on ICT for the AnimFace take's labels (real data, ``mocap/animface``).
-
-    The source neutral markers are carried onto the ICT face by a similarity fit on nine
-    hand-matched landmarks (nose top and tip, eye and mouth corners, chin), then snapped to
-    the nearest face-skin vertex: a stand-in for the hand placement of section 5.1.
-    """
-    from keyshape.base.geometry import rigid_fit
-
-    lm = kit.neutral[kit.landmarks]
-    pairs = {"NoseTop": 27, "NoseHead": 30, "Leye_Outside": 45, "Reye_Outside": 36, "Mouth_Lend": 54,
-             "Mouth_Rend": 48, "Chin": 8, "Leye_Inside": 42, "Reye_Inside": 39}
-    src = np.array([neutral_mm[labels.index(k)] for k in pairs])
-    dst = lm[list(pairs.values())]
-    rot, trans, sc = rigid_fit(src, dst[None], scale=True)
-    carried = sc[0] * neutral_mm @ rot[0].T + trans[0]
-    skin = kit.neutral[:9409]
-    out = {}
-    for lab, p in zip(labels, carried):
-        out[lab] = skin[np.argmin(np.linalg.norm(skin - p, axis=1))]
     return out

@@ -13,7 +13,7 @@ import numpy as np
 import pygltflib
 import pytest
 
-from keyshape.data_synth.library import grid_targets
+from synth_library import grid_targets
 
 REPO = Path(__file__).resolve().parents[1]
 REGIONS = {"mouth": 8, "eyes": 8}

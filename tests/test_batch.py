@@ -32,7 +32,7 @@ RIG_SHAPES = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L", "eyeBlink
 
 @pytest.fixture(scope="module")
 def library(tmp_path_factory) -> Path:
-    from keyshape.data_synth.library import synth_library
+    from synth_library import synth_library
 
     return synth_library(tmp_path_factory.mktemp("library"), actors=2, takes=2, frames=FRAMES, keys=4, morphs=30,
                          size=(320, 240))

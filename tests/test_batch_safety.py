@@ -23,7 +23,7 @@ def tree(root: Path) -> dict[str, str]:
 @pytest.fixture(scope="module")
 def small(tmp_path_factory) -> Path:
     """One actor, one take of 30 frames, run once: (library folder, its first output folder)."""
-    from keyshape.data_synth.library import synth_library
+    from synth_library import synth_library
 
     lib = synth_library(tmp_path_factory.mktemp("lib"), actors=1, takes=1, frames=30, keys=3, morphs=20,
                         size=(320, 240), labels=8)

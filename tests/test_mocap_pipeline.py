@@ -86,7 +86,8 @@ def test_mask_image_carries_to_another_face(kit, tmp_path):
     the same vertices of another face of the same topology."""
     import cv2
 
-    from keyshape.data_synth.mocap import discontinuity_regions, identity_face, marker_layout
+    from keyshape.data_synth.mocap import discontinuity_regions, marker_layout
+    from mocap_targets import identity_face
 
     names, idx = marker_layout(kit)
     regions = {r.name: r.vertices for r in discontinuity_regions(kit, names)[:2]}
@@ -283,7 +284,7 @@ def test_real_animface_runs_onto_ict(kit, shared_data):
     take = read_trc(shared_data / "mocap/animface/jaw.trc")
     x = take.positions[::10]
     x[20:24, 5] = np.nan                                  # a gap to fill
-    from keyshape.data_synth.mocap import animface_target_markers
+    from mocap_targets import animface_target_markers
 
     tm = animface_target_markers(kit, take.labels, x[0])
     res = drive_mesh(x, take.labels, kit.neutral, tm, method="planar")

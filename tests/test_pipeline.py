@@ -21,7 +21,8 @@ RIG_SHAPES = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "eyeBlink_L", "eyeBlink
 
 @pytest.fixture(scope="module")
 def take(tmp_path_factory) -> Path:
-    from keyshape.data_synth.library import grid_targets, ict_subset_rig
+    from keyshape.data_synth.library import ict_subset_rig
+    from synth_library import grid_targets
     from keyshape.data_synth.video import synthesize
 
     d = tmp_path_factory.mktemp("pipeline")
@@ -113,7 +114,7 @@ def test_the_take_frame_rate_travels_with_the_weights(tmp_path, capsys):
 
     from keyshape import api
     from keyshape.base.formats.weights import read_weights, read_weights_fps
-    from keyshape.data_synth.library import grid_targets
+    from synth_library import grid_targets
 
     regions = grid_targets(tmp_path / "targets", {"mouth": 2})
     w = api.Weights(np.arange(5), ["mouth_0", "mouth_1"], np.full((5, 2), 0.5), fps=24.0)
