@@ -60,12 +60,7 @@ def rodrigues(v: np.ndarray) -> np.ndarray:
 def rotation_vector(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) of rotation matrices (..., 3, 3) (angles below pi)."""
     R = np.asarray(R, np.float64)
-    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    th = np.arccos(c)
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    s = np.sin(th)
-    k = np.where(th < 1e-9, 0.5, th / (2 * np.where(th < 1e-9, 1.0, s)))
-    return w * k[..., None]
+    return _rotvec(R.reshape(-1, 3, 3)).reshape(R.shape[:-1])
 
 
 def euler_angles(R: np.ndarray) -> np.ndarray:
@@ -113,7 +108,7 @@ def _rodrigues_left(v: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
-    """:func:`rotation_vector` of (T, 3, 3) rotations with fewer array operations (the solver's loop)."""
+    """:func:`rotation_vector` of (T, 3, 3) rotations."""
     Rf = R.reshape(-1, 9)
     th = np.arccos(np.minimum(np.maximum((Rf[:, ::4].sum(-1) - 1) / 2, -1.0), 1.0))
     k = np.where(th < 1e-9, 0.5, th / (2 * np.sin(np.maximum(th, 1e-9))))
