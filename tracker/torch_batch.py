@@ -353,15 +353,9 @@ def _refine(torch, kornia, tracker, fr, poses, levels, n_iter, dev):
 
 def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: int = 3, device: str = "cpu",
                  tracker=None) -> tuple[np.ndarray, np.ndarray]:
-    """Refine ``B`` poses at once: :meth:`Tracker.align` applied to every frame in parallel.
-
-    Each frame gets the CPU tracker's update: ``n_iter`` inverse-compositional steps on each of
-    ``levels`` (0: the half-resolution level, 1: full resolution; ``()`` skips them, as the
-    tracker's fast path does), then ``n_polish`` forward-compositional Gauss-Newton steps on the
-    eigen residual (a step is kept only if it lowers the residual). Frames stop iterating
-    independently (the same convergence tests), so the result is, frame by frame, what
-    ``Tracker(model, n_iter=n_iter, n_polish=n_polish).align(Pyramid(frame), pose, levels)`` gives,
-    up to the warp's sub-grey-level differences (module docstring).
+    """Refine ``B`` poses at once: :meth:`Tracker.align` applied to every frame in parallel (frame by frame what
+    ``Tracker(model, n_iter=n_iter, n_polish=n_polish).align(Pyramid(frame), pose, levels)`` gives, up to the
+    warp's sub-grey-level differences; ``levels`` 0: the half-resolution level, 1: full resolution, ``()``: none).
 
     Parameters
     ----------
@@ -396,13 +390,9 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
 
 def track_batch(video, model, batch: int = 64, device: str = "cpu", n_iter: int = 5, passes: int = 3,
                 start_pose=None, crop_margin: float = 0.5):
-    """Track a whole video offline, ``batch`` frames per tensor call (the GPU path).
-
-    The first frame is found by the CPU tracker unless ``start_pose`` is given. Pass 1 starts every frame of a
-    batch from the previous batch's last pose (coarse-to-fine alignment and polish); each further pass starts
-    frame ``i`` from frame ``i - 1``'s refined pose (the full-resolution polish only), so more passes or smaller
-    batches come closer to the CPU tracker. No lost-track recovery: a frame above the lost threshold is
-    reported with ``success`` False and keeps its pose.
+    """Track a whole video offline, ``batch`` frames per tensor call (the GPU path; docs/tracker.md, "Batched torch
+    path"): the first frame by the CPU tracker unless ``start_pose`` is given, then ``passes`` refinements per
+    batch; no lost-track recovery (a frame above the lost threshold has ``success`` False and keeps its pose).
 
     Parameters
     ----------
