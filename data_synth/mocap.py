@@ -133,27 +133,23 @@ def expression_weights(n_frames: int, rate: float, rng: np.random.Generator, nam
     syll = np.maximum(0.0, np.sin(2 * np.pi * 2.2 * t + rng.uniform(0, 6)))  # ~4.4 syllables/s
     talk = 0.5 + 0.5 * band_limited_noise(rng, n_frames, rate, 0.3)                    # loudness envelope
     put("jawOpen", 0.75 * talk * syll ** 1.5)
-    put("mouthLowerDown_L", 0.4 * talk * syll)
-    put("mouthLowerDown_R", 0.4 * talk * syll)
-    put("mouthUpperUp_L", 0.25 * talk * syll)
-    put("mouthUpperUp_R", 0.25 * talk * syll)
+    for side in "LR":
+        put(f"mouthLowerDown_{side}", 0.4 * talk * syll)
+        put(f"mouthUpperUp_{side}", 0.25 * talk * syll)
     put("mouthFunnel", 0.5 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 1.5)))
     put("mouthPucker", 0.5 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 1.5)))
     put("mouthClose", 0.3 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 1.0)) * (1 - syll))
     smile = 0.5 - 0.5 * np.cos(2 * np.pi * t / 3.0 + rng.uniform(0, 2))            # one smile every 3 s
-    put("mouthSmile_L", 0.8 * smile ** 2)
-    put("mouthSmile_R", 0.8 * (smile ** 2) * 0.9)
-    put("cheekSquint_L", 0.4 * smile ** 2)
-    put("cheekSquint_R", 0.4 * smile ** 2)
-    put("mouthStretch_L", 0.3 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 0.8)))
-    put("mouthStretch_R", 0.3 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 0.8)))
+    for side, k in (("L", 1.0), ("R", 0.9)):                                        # the right side a little less
+        put(f"mouthSmile_{side}", 0.8 * smile ** 2 * k)
+        put(f"cheekSquint_{side}", 0.4 * smile ** 2)
+    for side in "LR":                                                               # each side its own noise
+        put(f"mouthStretch_{side}", 0.3 * np.maximum(0, band_limited_noise(rng, n_frames, rate, 0.8)))
     brow = np.sin(2 * np.pi * t / 2.5 + rng.uniform(0, 6))                            # raise / frown
-    put("browInnerUp_L", 0.8 * np.maximum(0, brow))
-    put("browInnerUp_R", 0.8 * np.maximum(0, brow))
-    put("browOuterUp_L", 0.6 * np.maximum(0, brow))
-    put("browOuterUp_R", 0.6 * np.maximum(0, brow))
-    put("browDown_L", 0.6 * np.maximum(0, -brow))
-    put("browDown_R", 0.6 * np.maximum(0, -brow))
+    for side in "LR":
+        put(f"browInnerUp_{side}", 0.8 * np.maximum(0, brow))
+        put(f"browOuterUp_{side}", 0.6 * np.maximum(0, brow))
+        put(f"browDown_{side}", 0.6 * np.maximum(0, -brow))
     # blinks: ~150 ms closures every 2-4 s
     blink = np.zeros(n_frames)
     tb = rng.uniform(0.3, 1.5)
