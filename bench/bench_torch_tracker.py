@@ -29,7 +29,7 @@ def main() -> None:
     import torch
 
     from keyshape.base.formats.video import VideoReader
-    from keyshape.tracker.commands import train_model
+    from keyshape.tracker.commands import fit_model
     from keyshape.tracker.eigenpoints import Pyramid
     from keyshape.tracker.fitting import Tracker
     from keyshape.tracker.torch_batch import read_batch, track_batch
@@ -37,7 +37,7 @@ def main() -> None:
     sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)
     with tempfile.TemporaryDirectory() as tmp:
         video, labels, truth_path = footage(args, tmp)
-        model, _ = train_model(video, labels, args.scheme)
+        model = fit_model(video, labels, args.scheme)
         t0 = time.perf_counter()
         frames = np.stack([f for _, f in VideoReader(video)])
         decode = len(frames) / (time.perf_counter() - t0)

@@ -107,7 +107,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     add_footage_args(ap, frames=600)
     args = ap.parse_args()
-    from keyshape.tracker.commands import track_video, train_model
+    from keyshape.tracker.commands import fit_model, track_video
     from keyshape.tracker.defaults import TrackOptions
     from keyshape.base.formats.video import VideoReader
     from keyshape.tracker.fitting import Tracker
@@ -115,7 +115,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         video, labels, truth = footage(args, tmp)
         t0 = time.perf_counter()
-        model, _ = train_model(video, labels, args.scheme)
+        model = fit_model(video, labels, args.scheme)
         t_train = time.perf_counter() - t0
         load0 = os.getloadavg()[0]
         decode, cpu_decode = _decode_rate(video)

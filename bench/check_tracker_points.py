@@ -24,14 +24,14 @@ VARIANTS = {"default": {}, "region_iter0": {"region_iter": 0}, "no_blend": {"glo
 def run(frames: int) -> dict[str, np.ndarray]:
     from keyshape.base.formats.video import VideoReader
     from keyshape.data_synth.video import synthesize
-    from keyshape.tracker.commands import train_model
+    from keyshape.tracker.commands import fit_model
     from keyshape.tracker.commands import track_frames
     from keyshape.tracker.fitting import Tracker
 
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         syn = synthesize(Path(tmp) / "footage", frames=frames, seed=0)
-        model, _ = train_model(syn["video"], syn["labels"], "contours48")
+        model = fit_model(syn["video"], syn["labels"], "contours48")
         imgs = [f for _, f in VideoReader(syn["video"])]
         # the command's path (decode thread, iter_track's settings), default tracker
         t0, c0 = time.perf_counter(), time.process_time()

@@ -32,7 +32,7 @@ def longest_run(mask: np.ndarray) -> int:
 
 def evaluate(video=VIDEO, cache=None, n_labels: int = 12, sheet=None) -> dict:
     from dlib_points import label_video
-    from keyshape.tracker.commands import track_video, train_model
+    from keyshape.tracker.commands import fit_model, track_video
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.formats.labels import write_labels
     from keyshape.base.schemes import load_scheme
@@ -44,7 +44,7 @@ def evaluate(video=VIDEO, cache=None, n_labels: int = 12, sheet=None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         write_labels(Path(tmp) / "labels", idx, dl[idx])
         t0 = time.perf_counter()
-        model, _ = train_model(video, Path(tmp) / "labels", "ibug68")
+        model = fit_model(video, Path(tmp) / "labels", "ibug68")
         t_train = time.perf_counter() - t0
         summ = track_video(video, model, Path(tmp) / "tracks.csv", show_progress=False)
         tr = read_tracks(Path(tmp) / "tracks.csv")

@@ -29,13 +29,13 @@ def nme_table(points, truth, scheme) -> dict:
 
 def run_seed(seed: int, frames: int, workdir: Path) -> dict:
     from keyshape.data_synth.video import synthesize
-    from keyshape.tracker.commands import track_video, train_model
+    from keyshape.tracker.commands import fit_model, track_video
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.schemes import load_scheme
 
     out = synthesize(workdir / f"s{seed}", frames=frames, seed=seed)
     t0 = time.perf_counter()
-    model, _ = train_model(out["video"], out["labels"], "contours48")
+    model = fit_model(out["video"], out["labels"], "contours48")
     t_train = time.perf_counter() - t0
     summ = track_video(out["video"], model, workdir / f"s{seed}" / "tracks.csv", show_progress=False)
     tr = read_tracks(workdir / f"s{seed}" / "tracks.csv")

@@ -269,10 +269,10 @@ def take_3d(facekit, tmp_path_factory):
 @pytest.fixture(scope="module")
 def tracked_3d_take(take_3d, tmp_path_factory):
     """The normal train + track chain on :func:`take_3d`: (tracks, truth, model)."""
-    from keyshape.tracker.commands import track_video, train_model
+    from keyshape.tracker.commands import fit_model, track_video
     tmp = tmp_path_factory.mktemp("track3d")
     out = take_3d
-    model, _ = train_model(out["video"], out["labels"], "contours48")
+    model = fit_model(out["video"], out["labels"], "contours48")
     track_video(out["video"], model, tmp / "tracks.csv", show_progress=False)
     return read_tracks(tmp / "tracks.csv"), read_tracks(out["truth"]), model
 
