@@ -55,10 +55,10 @@ from keyshape.base.files import atomic_write  # noqa: E402
 from keyshape.base.formats.labels import read_labels  # noqa: E402
 from keyshape.tracker.labelling.convert import ibug68_to_contours48  # noqa: E402
 from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker  # noqa: E402
-from keyshape.tracker.labelling.frames import spread_frames  # noqa: E402
 from keyshape.tracker.labelling.prepare import prepare_label_folder  # noqa: E402
 from keyshape.base.schemes import load_scheme  # noqa: E402
 from keyshape.base.formats.video import VideoReader, video_info  # noqa: E402
+from heldout import spread_frames  # noqa: E402
 
 LABELS = REPO / "bench" / "labels"
 SCHEME = load_scheme("contours48")

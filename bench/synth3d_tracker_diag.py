@@ -150,7 +150,7 @@ def main() -> None:
     ap.add_argument("--more-labels", action="store_true", help="also train on 24 and 48 labelled frames")
     a = ap.parse_args()
     from keyshape.tracker.eigenpoints import AppearanceModel
-    from keyshape.tracker.labelling.frames import spread_frames
+    from heldout import spread_frames
     work = Path(a.work)
     frames, truth, head, labs = load(work)
     yaw, pitch = head["head_yaw_deg"], head["head_pitch_deg"]

@@ -208,8 +208,6 @@ def _decompose(args) -> int:
 
 
 def _compare(args) -> int:
-    from pathlib import Path
-
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_dir, check_output_dir
     from keyshape.decompose.compare import compare, plot_errors, write_errors

@@ -4,8 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from heldout import spread_frames
+
 from keyshape.base.errors import InputError
-from keyshape.tracker.labelling.frames import choose_frames, describe, spread_frames
+from keyshape.tracker.labelling.frames import choose_frames, describe
 
 
 def face(mouth: float, brow: float, blur: bool = False, rng=None) -> np.ndarray:
