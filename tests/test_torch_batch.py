@@ -30,7 +30,6 @@ def clip(tmp_path_factory):
     out = synthesize(tmp_path_factory.mktemp("torch_clip"), frames=40, seed=0)
     model = fit_model(out["video"], out["labels"], n_morphs=40)
     model.lip_refiner_ = None                  # the torch path reads the whole-face model only: no lips' fit
-    model.eye_refiners_ = []                   # nor the eyes'
     frames = np.stack([f for _, f in VideoReader(out["video"])])
     tracker = Tracker(model, region_iter=-1)
     results = [tracker.step(f, i) for i, f in enumerate(frames)]

@@ -119,13 +119,11 @@ def test_the_compiled_step_reads_what_the_numpy_step_read(model, footage):  # no
     At the same pose, each region's reading, the lips', the global reading and the polished pose are within
     a thousandth of a pixel (the rounding of sums, and one grey level in about 50,000 sampled pixels: the
     boxes are sampled by the kernel, not ``cv2.warpAffine``). The old step had no fit of the lips' shape after
-    the reading (``AppearanceModel.lip_refiner_``, ``eye_refiners_``, issue 40 item 1), so the model here is without
-    them."""
+    the reading (``AppearanceModel.lip_refiner_``, issue 40 item 1), so the model here is without it."""
     frames, _ = footage
     want = np.load(REFERENCE)
     bare = copy.copy(model)
     bare.lip_refiner_ = None
-    bare.eye_refiners_ = []
     with single_threaded():
         got = _reference_cases(bare, frames, want["poses"])
     for key in ("region_points", "lip_points", "read_shapes"):

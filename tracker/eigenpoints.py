@@ -394,14 +394,11 @@ class ShapeRefiner:
     at the tracker's reading and moves by Gauss-Newton steps under a Gaussian prior on its components
     (``prior`` times the pixel noise, the leave-one-label-out residual, over each component's variance).
     ``write``: the points whose refined positions replace the reading (the others only take part).
-    ``strict``: the fit's Jacobian holds the normalisation's scale and a step that raises the cost is undone
-    (:func:`~keyshape.tracker.kernels.refine_shape`; the eyes' refiners, whose templates are small).
     """
 
     ARRAYS = ("points", "write", "ext", "tri", "bary", "s0", "basis", "weights", "a0", "qt")
 
-    def __init__(self, points, write, ext, tri, bary, s0, basis, weights, a0, qt, strict: bool = False):
-        self.strict = bool(strict)
+    def __init__(self, points, write, ext, tri, bary, s0, basis, weights, a0, qt):
         self.points = np.asarray(points, np.intp)
         self.write = np.asarray(write, np.intp)
         self.ext = np.ascontiguousarray(ext, np.float64)
@@ -415,7 +412,7 @@ class ShapeRefiner:
 
     @classmethod
     def fit(cls, points, write, pyramids, poses, shapes, step=0.5, ring=1.3, variance=0.98, appearance=0.95,
-            prior=16.0, inside=None):
+            prior=16.0):
         """Train from the labelled frames.
 
         Parameters
@@ -429,9 +426,6 @@ class ShapeRefiner:
         ring : the outer ring's size over the points' hull, about their centroid
         variance, appearance : fractions of the shape's and of the appearance's variance kept
         prior : the prior's weight (times the pixel noise over each shape component's variance)
-        inside : None, or the template keeps only the pixels within ``inside`` model pixels of the outline
-            ``points`` make in their order (a closed contour: an eye's, without its pupil) and those outside it:
-            what moves inside it on its own (the iris) is left out; such a refiner is ``strict``
 
         Returns
         -------
@@ -456,10 +450,6 @@ class ShapeRefiner:
         grid = np.column_stack([gx.ravel(), gy.ravel()])
         simp = tri.find_simplex(grid)
         grid, simp = grid[simp >= 0], simp[simp >= 0]
-        if inside is not None:                     # signed distance to the outline, > 0 inside it
-            outline = s0.astype(np.float32).reshape(-1, 1, 2)
-            depth = np.array([cv2.pointPolygonTest(outline, (float(x), float(y)), True) for x, y in grid])
-            grid, simp = grid[depth < inside], simp[depth < inside]
         t = tri.transform[simp]
         b = np.einsum("nij,nj->ni", t[:, :2], grid - t[:, 2])
         tri_i, bary = tri.simplices[simp].astype(np.intp), np.column_stack([b, 1 - b.sum(1)])
@@ -494,7 +484,7 @@ class ShapeRefiner:
             e = e - vti.T @ (vti @ e)
             res.append(float(e @ e / n_pix))
         weights = prior * float(np.median(res)) / np.maximum(lam, 1e-12)
-        return cls(pts, write, ext, tri_i, bary, s0.ravel(), basis, weights, a0, q.T, inside is not None)
+        return cls(pts, write, ext, tri_i, bary, s0.ravel(), basis, weights, a0, q.T)
 
     #: the Gaussian blur (pixels of the level sampled) of the crop the shape is fitted on
     BLUR = 1.0
@@ -541,8 +531,7 @@ class ShapeRefiner:
         g = g @ self.ext                             # (n_pix, m): each pixel's weights of the shape's points
         gsx = np.ascontiguousarray((g @ self.basis[0::2]).T)
         gsy = np.ascontiguousarray((g @ self.basis[1::2]).T)
-        return (self.tri, self.bary, self.ext, gsx, gsy, self.basis, self.s0, self.a0, self.qt, self.weights,
-                self.strict)
+        return (self.tri, self.bary, self.ext, gsx, gsy, self.basis, self.s0, self.a0, self.qt, self.weights)
 
     def work(self) -> tuple:
         """Work arrays of :func:`~keyshape.tracker.kernels.refine_shape`, allocated once per tracker."""
@@ -634,11 +623,6 @@ class AppearanceModel:
         (:class:`ShapeRefiner`, every lip point replaced; schemes with ``lip_outer`` and ``lip_inner``
         contours): the linear reading shrinks the mouth's opening toward the labelled frames'
         mean (``docs/tracker.md``). Model files written before it read as False.
-    eye_refine : bool
-        Fit each eye's outline to the frame the same way after the reading (one :class:`ShapeRefiner`
-        per closed ``eye_*`` contour, its points replaced, the pupil kept as read; the template leaves the
-        eye's inside out but for a band along the lids, so the iris moving with the gaze does not pull the
-        lids). Model files written before it read as False.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
 
@@ -656,15 +640,13 @@ class AppearanceModel:
     train_shapes_ : (n_labels, n_points, 2) model-frame labels
     region_models_ : list of :class:`RegionModel` (empty when ``regions`` is False)
     lip_refiner_ : :class:`ShapeRefiner` or None (``lip_refine`` off, or no inner lips in the scheme)
-    eye_refiners_ : list of :class:`ShapeRefiner`, one per eye (empty: ``eye_refine`` off)
     """
 
     def __init__(self, scheme: str | Scheme = "contours48", n_components: int | None = None,
                  variance: float = 0.98, face_width: int = 64, margin: float = 0.22, n_morphs: int = 120,
                  landmark_weight: float = 1.0, ridge: float = 1.0, regions: bool = True, split_mouth: bool = True,
                  region_grow: float = 0.1, lip_grow: float | None = 0.14, brow_grow: float | None = None,
-                 centre_eyes: bool = False, eye_variance: float | None = None, lip_refine: bool = True,
-                 eye_refine: bool = True, rng=None):
+                 centre_eyes: bool = False, eye_variance: float | None = None, lip_refine: bool = True, rng=None):
         self.scheme = scheme
         self.n_components = n_components
         self.variance = variance
@@ -681,7 +663,6 @@ class AppearanceModel:
         self.centre_eyes = centre_eyes
         self.eye_variance = eye_variance
         self.lip_refine = lip_refine
-        self.eye_refine = eye_refine
         self.rng = rng
 
     # ---------------------------------------------------------------- fitting
@@ -790,25 +771,13 @@ class AppearanceModel:
                                                                   self))
         self.lip_refiner_ = None
         lips = {k: v for k, v in scheme.contours.items() if k in ("lip_outer", "lip_inner")}
-        eyes = [list(c) for k, c in scheme.contours.items() if k.startswith("eye_") and len(c) >= 4
-                and scheme.closed.get(k, False)] if self.eye_refine else []
-        pyramids = [build_pyramid(to_gray(img)) for img in frames] if (self.lip_refine and len(lips) == 2) or eyes \
-            else []
         if self.lip_refine and len(lips) == 2:
             pts = sorted(set(lips["lip_outer"]) | set(lips["lip_inner"]))
-            self.lip_refiner_ = ShapeRefiner.fit(pts, pts, pyramids, self.train_poses_, self.train_shapes_)
-        # each eye's outline, its template wider around the lids (skin that moves with them) and its inside left
-        # out but for a band along the lids (the iris moves with the gaze): docs/tracker.md
-        self.eye_refiners_ = [ShapeRefiner.fit(pts, pts, pyramids, self.train_poses_, self.train_shapes_,
-                                               ring=self.EYE_RING, appearance=0.99, inside=self.EYE_INSIDE)
-                              for pts in eyes]
+            self.lip_refiner_ = ShapeRefiner.fit(
+                pts, pts,
+                [build_pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
         self._precompute()
         return self
-
-    #: the eyes' refiners: the template's outer ring (times the outline's size about its centroid) and the band
-    #: of the eye's inside it keeps along the lids (model pixels)
-    EYE_RING = 1.6
-    EYE_INSIDE = 0.5
 
     def _variance(self, name: str) -> float:
         """Fraction of variance kept by region ``name``: ``eye_variance`` for the eyes, else ``variance``."""
@@ -940,7 +909,7 @@ class AppearanceModel:
                      "split_mouth": (bool, False, None, None), "region_grow": (float, False, 0.0, 10.0),
                      "lip_grow": (float, True, 0.0, 10.0), "brow_grow": (float, True, 0.0, 10.0),
                      "centre_eyes": (bool, False, None, None), "eye_variance": (float, True, 1e-6, 1.0),
-                     "lip_refine": (bool, False, None, None), "eye_refine": (bool, False, None, None)}
+                     "lip_refine": (bool, False, None, None)}
     _PARAMS = tuple(_PARAM_RANGES)                       # the constructor parameters a model file keeps
     _STATE = ("landmark_scale_", "patch_size_", "n_samples_")
 
@@ -960,11 +929,6 @@ class AppearanceModel:
         if getattr(self, "lip_refiner_", None) is not None:
             for k in ShapeRefiner.ARRAYS:
                 arrays[f"lip_refiner_{k}"] = getattr(self.lip_refiner_, k)
-        eyes = getattr(self, "eye_refiners_", [])
-        state["eye_refiners"] = len(eyes)
-        for i, r in enumerate(eyes):
-            for k in ShapeRefiner.ARRAYS:
-                arrays[f"eye_refiner{i}_{k}"] = getattr(r, k)
         return ModelFile(self.scheme_, {k: getattr(self, k) for k in self._PARAMS}, state, arrays)
 
     @classmethod
@@ -993,7 +957,7 @@ class AppearanceModel:
             params = dict(mf.params)
             for k, old in (("regions", False), ("split_mouth", False), ("region_grow", 0.06), ("lip_grow", None),
                            ("brow_grow", None), ("centre_eyes", False), ("eye_variance", None),
-                           ("lip_refine", False), ("eye_refine", False)):
+                           ("lip_refine", False)):
                 params.setdefault(k, old)         # files written before region models existed
             cls._check_params(params, path)
             model = cls(mf.scheme, **params)
@@ -1017,11 +981,6 @@ class AppearanceModel:
                 for i, r in enumerate(mf.state.get("region_models", []))]
             model.lip_refiner_ = ShapeRefiner(*(np.asarray(mf.arrays[f"lip_refiner_{k}"]) for k in ShapeRefiner.ARRAYS)) \
                 if model.lip_refine else None
-            n_eyes = mf.state.get("eye_refiners", 0) if model.eye_refine else 0
-            if not (isinstance(n_eyes, int) and not isinstance(n_eyes, bool) and 0 <= n_eyes <= 2):
-                raise InputError(f"model file: eye_refiners {n_eyes!r} is not 0, 1 or 2", path)
-            model.eye_refiners_ = [ShapeRefiner(*(np.asarray(mf.arrays[f"eye_refiner{i}_{k}"])
-                                                  for k in ShapeRefiner.ARRAYS), strict=True) for i in range(n_eyes)]
         except KeyError as exc:
             raise InputError(f"model file is missing {exc}", path) from None
         except (TypeError, ValueError, OverflowError) as exc:
@@ -1059,10 +1018,8 @@ class AppearanceModel:
                             and np.isfinite(r.variance).all() and np.isfinite(r.train_residuals).all())
                     or not (np.isfinite(r.landmark_scale) and r.landmark_scale > 0)):
                 raise InputError(f"model file is inconsistent (region model {r.name!r})", path)
-        for what, lr in [("the lips' shape refiner", model.lip_refiner_)] + [
-                (f"eye refiner {i}", r) for i, r in enumerate(model.eye_refiners_)]:
-            if lr is None:
-                continue
+        lr = model.lip_refiner_
+        if lr is not None:
             n_pix, k = len(lr.tri), lr.basis.shape[1] if lr.basis.ndim == 2 else 0
             m, nv = len(lr.points), len(lr.ext)
             if (lr.points.ndim != 1 or m < 3 or lr.points.min() < 0 or lr.points.max() >= n_pts
@@ -1073,7 +1030,7 @@ class AppearanceModel:
                     or lr.weights.shape != (k,) or lr.a0.shape != (n_pix,) or lr.qt.ndim != 2
                     or lr.qt.shape[1] != n_pix
                     or not all(np.isfinite(getattr(lr, a)).all() for a in ShapeRefiner.ARRAYS)):
-                raise InputError(f"model file is inconsistent ({what})", path)
+                raise InputError("model file is inconsistent (the lips' shape refiner)", path)
         try:
             with np.errstate(over="raise", invalid="raise", divide="raise"):
                 model._precompute()

@@ -300,11 +300,11 @@ class Tracker:
         # which read() takes instead of sampling it again (the same warp: the same uint8 values)
         self._polished: tuple | None = None
         m = model
-        # the lips' and the eyes' shapes fitted by analysis by synthesis after the reading (ShapeRefiner): each
-        # one's constant arrays, work arrays, and where its written points sit among its points and in the frame's
-        refiners = [getattr(m, "lip_refiner_", None)] + list(getattr(m, "eye_refiners_", []))
-        self._shapes = [(lr, lr.tables(), lr.work(), (np.searchsorted(lr.points, lr.write), lr.write),
-                         np.empty(2 * len(lr.points)), np.empty(4, np.intp)) for lr in refiners if lr is not None]
+        lr = getattr(m, "lip_refiner_", None)
+        # the lips' shape fitted by analysis by synthesis after the reading (ShapeRefiner): its constant arrays,
+        # work arrays, and where its written points sit among its points and in the frame's points
+        self._lips = None if lr is None else (lr, lr.tables(), lr.work(), (np.searchsorted(lr.points, lr.write),
+                                              lr.write), np.empty(2 * len(lr.points)), np.empty(4, np.intp))
         size = m.patch_size_
         n_pix = len(m.index_)
         mean = np.zeros(size * size)
@@ -504,19 +504,19 @@ class Tracker:
             shape[hit] = reg if not w else (1.0 - w) * reg + w * shape[hit]
         return shape, apply_affine(pose, shape), r
 
-    #: Gauss-Newton steps of a shape fit (lips, eyes) a frame (each stops early once no parameter moves by 1e-3)
+    #: Gauss-Newton steps of the lips' shape fit a frame (each stops early once no parameter moves by 1e-3)
     LIP_STEPS = 6
 
-    def refine_shapes(self, pyr: Pyramid, pose: np.ndarray, points: np.ndarray) -> None:
-        """Fit the lips' and the eyes' shapes to the frame from the reading ``points`` (image pixels, updated in
-        place: the refiners' written points) by :func:`~keyshape.tracker.kernels.refine_shape` (the model's
-        :class:`~keyshape.tracker.eigenpoints.ShapeRefiner` objects, each from the reading); :meth:`step` calls it
-        once a frame, on the pose and reading it keeps."""
+    def refine_lips(self, pyr: Pyramid, pose: np.ndarray, points: np.ndarray) -> None:
+        """Fit the lips' shape to the frame from the reading ``points`` (image pixels, updated in place: the
+        refiner's written points) by :func:`~keyshape.tracker.kernels.refine_shape` (the model's
+        :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`); :meth:`step` calls it once a frame, on the pose
+        and reading it keeps."""
+        lr, tables, work, where, s, box = self._lips
         lvl = max(pyramid_level(pyr, pose) - 1, 0)
         f = 0.5 ** lvl
-        for lr, tables, work, where, s, box in self._shapes:
-            if lip_box(pose, points, lr.points, f, pyr._sizes[lvl], s, box):
-                refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, where, points)
+        if lip_box(pose, points, lr.points, f, pyr._sizes[lvl], s, box):
+            refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, where, points)
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for
@@ -789,8 +789,8 @@ class Tracker:
         if best is None:
             return FrameResult(index, np.full((n_pts, 2), np.nan), np.full((2, 3), np.nan), np.inf, 0.0, False, 0)
         ok, r, pose, pts, m2 = best
-        if ok and self._shapes:
-            self.refine_shapes(pyr, pose, pts)
+        if ok and self._lips is not None:
+            self.refine_lips(pyr, pose, pts)
         conf = min(max((self.lost_threshold - r) / max(self.lost_threshold - self.ref_residual, 1e-9), 0.0), 1.0,
                    max((self.max_shape_m2 - m2) / (self.max_shape_m2 - self.typical_shape_m2), 0.0))
         if ok:

@@ -692,16 +692,11 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
     subspace ``s0 + S p`` so that the normalised grey levels of its shape-normalised template
     (:func:`sample_shape`) match the mean appearance ``a0`` up to the appearance basis (projected out
     with ``qt``, which holds the ones too), under the Gaussian prior ``w p²`` (``w`` the pixel noise over
-    each shape component's variance). ``tables`` = ``(tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w, strict)``: the
+    each shape component's variance). ``tables`` = ``(tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w)``: the
     template of :func:`sample_shape`, ``gsx = (G S_x)ᵀ``, ``gsy = (G S_y)ᵀ`` (k, n_pix; ``G`` the pixels' weights
     of the shape's points), ``sb`` the basis ``S`` (2m, k). ``work`` = ``(vx, v, gx, gy, e, jac, qe, qj,
-    hess, grad, p, dp)``, ``jac`` (k, n_pix). At most ``n_iter`` steps, until no parameter moves by 1e-3.
-    ``strict`` (a small template, as an eye's): the Jacobian also holds the normalisation's scale (the
-    derivative of ``1/sd``: each column less ``z (zᵀj)/n``, ``z`` the normalised samples), and where a step
-    raised the cost ``|e|² - |Qᵀe|² + Σ w p²`` half of it is taken back (each halving one of the ``n_iter``
-    iterations; all of it, and the fit ends, once half moves no parameter by 1e-3). Returns the Gauss-Newton
-    steps solved."""
-    tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w, strict = tables
+    hess, grad, p, dp)``, ``jac`` (k, n_pix). At most ``n_iter`` steps, until no parameter moves by 1e-3. Returns the steps."""
+    tri, bary, ext, gsx, gsy, sb, s0, a0, qt, w = tables
     vx, v, gx, gy, e, jac, qe, qj, hess, grad, p, dp = work
     k, n = gsx.shape
     q = qt.shape[0]
@@ -712,7 +707,6 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
         p[c] = acc
     a0x, a1x, a3x, a4x = pose[0] * f, pose[1] * f, pose[3] * f, pose[4] * f
     steps = 0
-    best = math.inf
     for _ in range(n_iter):
         sample_shape(img, f, pose, (tri, bary, ext), s, (vx, v, gx, gy))
         mu = 0.0
@@ -730,49 +724,14 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
             jy = (gx[i] * a1x + gy[i] * a4x) * inv
             gx[i] = jx
             gy[i] = jy
+        for c in range(k):
+            for i in range(n):
+                jac[c, i] = gx[i] * gsx[c, i] + gy[i] * gsy[c, i]
         for a in range(q):
             acc = 0.0
             for i in range(n):
                 acc += qt[a, i] * e[i]
             qe[a] = acc
-        if strict:
-            cost = 0.0
-            for i in range(n):
-                cost += e[i] * e[i]
-            for a in range(q):
-                cost -= qe[a] * qe[a]
-            for c in range(k):
-                cost += w[c] * p[c] * p[c]
-            if cost > best:                          # the last step raised the cost: take half of it back
-                big = 0.0
-                for c in range(k):
-                    dp[c] *= 0.5
-                    big = max(big, abs(dp[c]))
-                if big < 1e-3:                       # and all of it where half is too small to matter; stop
-                    for c in range(k):
-                        dp[c] *= 2.0
-                for c in range(k):
-                    p[c] -= dp[c]
-                for r in range(s.shape[0]):
-                    acc = 0.0
-                    for c in range(k):
-                        acc += sb[r, c] * dp[c]
-                    s[r] -= acc
-                if big < 1e-3:
-                    break
-                continue
-            best = cost
-        for c in range(k):
-            for i in range(n):
-                jac[c, i] = gx[i] * gsx[c, i] + gy[i] * gsy[c, i]
-            if strict:                               # d(1/sd): each column less z (zᵀj)/n
-                acc = 0.0
-                for i in range(n):
-                    acc += (v[i] - mu) * jac[c, i]
-                acc *= inv * inv / n
-                for i in range(n):
-                    jac[c, i] -= (v[i] - mu) * acc
-        for a in range(q):
             for c in range(k):
                 acc = 0.0
                 for i in range(n):
