@@ -1,15 +1,5 @@
-"""Write retargeted animation, chosen by the extension of the output path.
-
-=================  ==========================================================
-``OUT.glb``        glTF 2.0 binary: mesh, morph targets, weight + head animation (3D)
-``OUT.usda/.usdc``  USD (also ``.usd``): the mesh with UsdSkel blend shapes, a head joint with the
-                   head motion, the weights per time code (3D; needs ``keyshape[usd]``)
-``OUT.csv``        per-frame weights per target name (``frame,time,<name>,...``), or the
-                   Live Link Face layout with ``livelink=True``
-``OUT.mp4/.avi``   rendered animation: the drawn character (2D) or the shaded mesh (3D)
-``OUT`` (folder)   one OBJ per frame (3D) or one PNG per frame (2D), written atomically
-=================  ==========================================================
-"""
+"""Write retargeted animation, chosen by the extension of the output path (.glb, .usda/.usdc/.usd, .csv,
+.mp4/.avi or a folder of OBJ/PNG frames: docs/retarget.md, "Outputs")."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -208,7 +198,7 @@ class ExportOptions:
 
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
            head: HeadMotion | None = None, options: ExportOptions | None = None) -> dict:
-    """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
+    """Write the retargeted animation to ``path`` (kind by extension: docs/retarget.md, "Outputs").
 
     Parameters
     ----------

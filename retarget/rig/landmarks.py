@@ -1,25 +1,8 @@
 """A rig's scheme landmarks from what rigs publish (iBUG-68 vertex lists), checked, or found on the rig itself.
 
-Three things a rig of any topology needs before ``keyshape solve`` can drive it:
-
-* :func:`contours48_from_ibug68`: the ``contours48`` points from the 68 iBUG (Multi-PIE) landmarks that
-  rigs publish (ICT-FaceKit's ``vertex_indices.json``, Apple's ARKit face mesh list), exactly as the
-  shipped ICT-FaceKit file ``retarget/data/ict_landmarks_contours48.json`` was made
-  (``data_synth/build_ict_landmarks.py``): brows = iBUG 17-21 and 22-26; each eye's six iBUG points
-  (corner, two upper-lid points, corner, two lower-lid points) resampled to eight, the 3 upper and
-  3 lower lid points at 1/4, 1/2 and 3/4 of the lid polyline's arc length (corner, two lid landmarks,
-  corner) as weighted pairs of vertices; the pupils: the eyeball's front vertex, or, on a rig
-  without eyeballs (a face mask), the midpoint of the eye's corners (they then move with no shape:
-  gaze goes only to Live Link's eye angles); lips = iBUG 48-67 one to one.
-* :func:`landmark_problem`: what is wrong with a correspondence on this rig (wrong count; points in
-  the wrong order, e.g. iBUG's first 48 points given as a ``contours48`` file), read from geometry.
-* :func:`find_ibug68`: the 68 iBUG points found on a rig with no correspondence: ICT-FaceKit's face
-  (the shipped subset) is brought onto the rig's neutral by the similarity that maps the regions the
-  rig's own shapes move (each ``eyeBlink`` = a lid, ``jawOpen`` = the jaw and lower lip,
-  ``browInnerUp`` = the brows; ARKit and ICT names in either spelling) onto ICT's, and each of ICT's
-  landmarks is then placed on the nearest point of the rig's surface that moves as the landmark
-  does under those shapes (an upper lip point on the upper lip, which ``jawOpen`` leaves, not on the
-  lower lip it touches in a closed-mouth neutral).
+:func:`contours48_from_ibug68` derives the ``contours48`` points from a published iBUG-68 list,
+:func:`landmark_problem` says what the geometry refutes in a correspondence, :func:`find_ibug68` finds the 68 points
+on a rig with none; how each works: docs/formats.md (rig landmarks, 1-3).
 
 Pure functions over arrays: no file is opened here (:mod:`keyshape.base.formats.poses` reads and writes).
 """
@@ -90,7 +73,7 @@ class Derived:
 
 
 def contours48_from_ibug68(W68: np.ndarray, neutral: np.ndarray, still: np.ndarray | None = None) -> Derived:
-    """contours48's 48 points from iBUG-68's 68 (see the module docstring), as weight rows.
+    """contours48's 48 points from iBUG-68's 68 (docs/formats.md, rig landmarks 2), as weight rows.
 
     Parameters
     ----------

@@ -1,22 +1,7 @@
 """glTF 2.0 binary (.glb) output: base mesh, morph targets, weight and head-motion animation.
 
-Written with pygltflib. Layout (the conventions of glTF 2.0 morph targets):
-
-* node 0 ``head`` (root): carries the head motion as translation/rotation/scale
-  channels (see :mod:`keyshape.retarget.headpose`); node 1 ``face`` (its child) holds the mesh.
-* mesh: one primitive per material (all sharing the vertex attributes and targets),
-  triangles (polygons fan-triangulated), ``NORMAL`` when given, ``POSITION`` of the base
-  shape, ``TEXCOORD_0`` when the OBJ has UVs (vertices split at UV seams), ``targets[i].POSITION`` = target i minus the base (deltas), default
-  ``mesh.weights`` and the target names in ``mesh.extras.targetNames`` (read by
-  Blender's importer, three.js and glTFast).
-* animation ``performance``: one sampler drives ``weights`` of the face node at the
-  video frame rate (input: frame times ``frame / fps`` in seconds; output:
-  n_frames x n_targets weights, LINEAR), plus one sampler per head-motion path.
-
-Weights above 1: glTF allows any real weight and readers apply them as given, so
-they are **kept** by default (an NNLS weight of 1.2 means "20% past the key
-shape"); :func:`retarget.output.export.morph_targets` can clamp them to [0, 1] (what
-ARKit-style consumers expect) and reports how many values changed.
+Written with pygltflib. The layout (node ``head`` with child ``face``, one primitive per material, the
+``performance`` animation) and why weights above 1 are kept: docs/retarget.md, "Outputs", and docs/formats.md.
 """
 from __future__ import annotations
 
