@@ -40,14 +40,11 @@ def _curves_on_rig(path, rig):
     from keyshape.retarget.output.preview import head_rotations
 
     frames, names, c, _ = read_weights(path)
-    curves = np.zeros((len(frames), rig.n_shapes))
-    found = 0
-    for j, n in enumerate(rig.names):
-        if n in names:
-            curves[:, j] = c[:, names.index(n)]
-            found += 1
+    found = [(j, names.index(n)) for j, n in enumerate(rig.names) if n in names]
     if not found:
         raise InputError("no column names a rig shape", path)
+    curves = np.zeros((len(frames), rig.n_shapes))
+    curves[:, [j for j, _ in found]] = c[:, [k for _, k in found]]
     return frames, curves, head_rotations(names, c)
 
 

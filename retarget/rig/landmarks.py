@@ -106,6 +106,12 @@ def contours48_from_ibug68(W68: np.ndarray, neutral: np.ndarray, still: np.ndarr
     return Derived(np.concatenate(rows), notes)
 
 
+def contours48_on_rig(W68: np.ndarray, neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str]) -> Derived:
+    """:func:`contours48_from_ibug68` on a rig, with its eyeballs (:func:`still_vertices`) where it has some."""
+    neutral = np.asarray(neutral, np.float64)
+    return contours48_from_ibug68(W68, neutral, still_vertices(deltas, names, eye_width(W68, neutral)))
+
+
 def still_vertices(deltas: np.ndarray, names: Sequence[str], width: float) -> np.ndarray:
     """(n_vertices,) bool: vertices that no shape but the gaze shapes (``eyeLook*``) moves by
     :data:`STILL` eye widths or more (the eyeballs of a rig that turns them with bones; the back of the head)."""
@@ -518,11 +524,7 @@ def find_landmarks(neutral, deltas, names, triangles, reference, scheme_name: st
     """The scheme's points found on a rig (:func:`find_ibug68`, then for contours48
     :func:`contours48_from_ibug68`, with the rig's eyeballs where it has some)."""
     W68 = find_ibug68(neutral, deltas, names, triangles, reference, options)
-    width = eye_width(W68, np.asarray(neutral, np.float64))
-    if scheme_name == "ibug68":
-        return Derived(W68, [])
-    d = contours48_from_ibug68(W68, np.asarray(neutral, np.float64), still_vertices(deltas, names, width))
-    return d
+    return Derived(W68, []) if scheme_name == "ibug68" else contours48_on_rig(W68, neutral, deltas, names)
 
 
 def landmark_entries(W: np.ndarray) -> list:

@@ -59,10 +59,9 @@ def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: st
     if landmarks is not None:
         rig_landmarks(rig, scheme, landmarks)                       # refused here, before the work
         if read_landmark_list(landmarks) is not None and scheme == "contours48":
-            from keyshape.retarget.rig.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
+            from keyshape.retarget.rig.landmarks import contours48_on_rig, one_hot
             W68 = one_hot(read_landmark_list(landmarks), rig.n_vertices)
-            for note in contours48_from_ibug68(W68, rig.neutral, still_vertices(
-                    rig.deltas, rig.names, eye_width(W68, rig.neutral))).notes:
+            for note in contours48_on_rig(W68, rig.neutral, rig.deltas, rig.names).notes:
                 say(f"keyshape: {note}")
         return landmarks
     if default_landmarks(rig.n_vertices, scheme) is not None:
