@@ -121,7 +121,6 @@ class PoseServer(LocalServer):
         if rig.mesh is not None and rig.mesh.polygons:
             from keyshape.retarget.output.preview import RigRenderer
             self.renderer = RigRenderer(rig, (size, size)).fit(np.eye(rig.n_shapes))
-        self._index = {n: j for j, n in enumerate(rig.names)}
         super().__init__(port, PoseHandler)
 
     def _actor_shapes(self, keys) -> dict:
@@ -173,12 +172,11 @@ class PoseServer(LocalServer):
     def render_png(self, key: str) -> bytes:
         """The rig in ``key``'s current pose, as PNG bytes."""
         import cv2
-        c = np.zeros((1, self.rig.n_shapes))
+
+        from keyshape.retarget.rig.poses import pose_vector
         with self.lock:
             pose = next(reg["keys"][key] for reg in self.library["regions"].values() if key in reg["keys"])
-            for s, v in pose.items():
-                c[0, self._index[s]] = v
-        img = self.renderer.render(self.rig.evaluate(c)[0])
+        img = self.renderer.render(self.rig.evaluate(pose_vector(pose, self.rig.names)[None])[0])
         ok, buf = cv2.imencode(".png", img)
         return buf.tobytes()
 

@@ -803,6 +803,7 @@ def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, c
     -------
     (T, n_shapes) within the library's range
     """
+    from keyshape.retarget.rig.poses import pose_vector
     index = {n: j for j, n in enumerate(shape_names)}
     row = {int(f): i for i, f in enumerate(frames)}
     col = {c: i for i, c in enumerate(columns)}
@@ -815,9 +816,6 @@ def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, c
                 raise InputError(f"key {key!r} of the pose library has no weight column", source)
             if key not in key_frames or key_frames[key] not in row:
                 raise InputError(f"key {key!r} of the pose library is not a frame of these tracks", source)
-            p = np.zeros(len(shapes))
-            for s, v in pose.items():
-                p[reg["shapes"].index(s)] = v
-            delta = p - np.asarray(curves, float)[row[key_frames[key]], shapes]
+            delta = pose_vector(pose, reg["shapes"]) - np.asarray(curves, float)[row[key_frames[key]], shapes]
             out[:, shapes] += np.asarray(weights, float)[:, [col[key]]] * delta[None]
     return np.clip(out, lo, hi)
