@@ -32,17 +32,12 @@ class _Blob:
     def add(self, array: np.ndarray, type_: str, component: int, target: int | None = None,
             minmax: bool = False) -> int:
         import pygltflib as g
-        data = np.ascontiguousarray(array).tobytes()
-        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=self.offset, byteLength=len(data),
-                                                  target=target))
-        pad = (-len(data)) % 4
-        self.parts.append(data + b"\0" * pad)
-        self.offset += len(data) + pad
+        view = self._view(np.ascontiguousarray(array).tobytes(), target)
         kw = {}
         if minmax:
             a = np.asarray(array).reshape(len(array), -1)
             kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
-        self.gltf.accessors.append(g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=component,
+        self.gltf.accessors.append(g.Accessor(bufferView=view, componentType=component,
                                               count=len(array), type=type_, **kw))
         return len(self.gltf.accessors) - 1
 

@@ -104,6 +104,14 @@ def _floats(rows: list[str], path: Path, first_line: list[int], width: int, what
     return arr
 
 
+def _obj_lines(path: str | Path) -> tuple[Path, list[str]]:
+    path = require_file(path, "mesh")
+    try:
+        return path, path.read_text().splitlines()
+    except UnicodeDecodeError:
+        raise InputError("not a text OBJ file", path) from None
+
+
 def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
     """Read an OBJ file keeping vertex order; raise :class:`InputError` naming file and line.
 
@@ -113,11 +121,7 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
     require_faces : bool
         Raise when the file has no faces.
     """
-    path = require_file(path, "mesh")
-    try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError:
-        raise InputError("not a text OBJ file", path) from None
+    path, lines = _obj_lines(path)
     v_rows, v_ln, vt_rows, vt_ln = [], [], [], []
     polygons, polygon_uvs = [], []
     groups: dict[str, list[int]] = {}
@@ -205,11 +209,7 @@ def read_obj_vertices(path: str | Path, n_vertices: int | None = None) -> np.nda
 
     Raises :class:`InputError` when ``n_vertices`` is given and differs.
     """
-    path = require_file(path, "mesh")
-    try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError:
-        raise InputError("not a text OBJ file", path) from None
+    path, lines = _obj_lines(path)
     rows = [(ln, l) for ln, l in enumerate(lines, start=1) if l.startswith("v ")]
     if not rows:
         raise InputError("no vertices ('v x y z' lines): not an OBJ mesh", path)
