@@ -25,16 +25,12 @@ USD_SUFFIXES = (".usda", ".usdc", ".usd")
 def output_kind(path: str | Path, dim: int) -> str:
     """``"glb"``, ``"usd"``, ``"csv"``, ``"video"``, ``"obj_frames"`` or ``"png_frames"`` for ``path``."""
     suffix = Path(path).suffix.lower()
-    if suffix == ".glb":
-        return "glb"
-    if suffix in USD_SUFFIXES:
-        return "usd"
-    if suffix == ".csv":
-        return "csv"
-    if suffix in VIDEO_SUFFIXES:
-        return "video"
-    if suffix == "" or Path(path).is_dir():
-        return "obj_frames" if dim == 3 else "png_frames"
+    kind = {".glb": "glb", ".csv": "csv", **dict.fromkeys(USD_SUFFIXES, "usd"),
+            **dict.fromkeys(VIDEO_SUFFIXES, "video")}.get(suffix)
+    if kind is None and (suffix == "" or Path(path).is_dir()):
+        kind = "obj_frames" if dim == 3 else "png_frames"
+    if kind is not None:
+        return kind
     raise InputError("output must end in .glb, .usda/.usdc/.usd, .csv, .mp4/.avi, or be a folder (OBJ or PNG "
                      "frames)", path)
 
@@ -154,11 +150,7 @@ def _scheme_for(n_points: int, scheme):
     from keyshape.base.schemes import BUILTIN, load_scheme
     if scheme is not None:
         return load_scheme(scheme)
-    for name in BUILTIN:
-        s = load_scheme(name)
-        if s.n_points == n_points:
-            return s
-    return None
+    return next((s for s in map(load_scheme, BUILTIN) if s.n_points == n_points), None)
 
 
 def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
