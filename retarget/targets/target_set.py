@@ -157,9 +157,7 @@ def load_targets(columns: Sequence[str], sources: Sequence[str | Path] | str | P
                 raise MissingFileError(p, f"target for column {k!r}")
     else:
         mapping_src, chosen = None, {}
-    by_key: dict[str, Path] = {}
-    for f in files:
-        by_key.setdefault(name_key(f.stem), f)
+    by_key = {name_key(f.stem): f for f in reversed(files)}          # the first file of a name
     col_keys = {name_key(c) for c in columns}
     if neutral is None:  # a mapping's "neutral" entry, else a file named neutral.* among the sources
         for s in NEUTRAL_STEMS:
@@ -167,14 +165,8 @@ def load_targets(columns: Sequence[str], sources: Sequence[str | Path] | str | P
                 neutral = chosen.pop(s)
             elif s in by_key and s not in col_keys:
                 neutral = by_key[s]
-    missing, paths = [], []
-    for c in columns:
-        p = chosen.get(c)
-        if p is None:
-            p = by_key.get(name_key(c))
-        if p is None:
-            missing.append(c)
-        paths.append(p)
+    paths = [chosen.get(c) or by_key.get(name_key(c)) for c in columns]
+    missing = [c for c, p in zip(columns, paths) if p is None]
     if missing:
         where = mapping_src or folder or "the target files given"
         avail = ", ".join(sorted(f.stem for f in files)[:12]) or "none"
