@@ -127,7 +127,4 @@ class Retargeter:
 
 
 def _unique(names: Sequence[str], columns: Sequence[str]) -> list[str]:
-    out = []
-    for n, c in zip(names, columns):
-        out.append(n if list(names).count(n) == 1 else f"{n}_{c}")
-    return out
+    return [n if list(names).count(n) == 1 else f"{n}_{c}" for n, c in zip(names, columns)]
