@@ -738,7 +738,8 @@ def read_json(path: str | Path, what: str = "JSON file"):
         raise InputError("not valid JSON (nested too deeply)", path) from None
 
 
-def write_json(path: str | Path, data, indent: int | None = 1) -> None:
-    """Write ``data`` as JSON (``indent`` 1, or compact with ``None``) atomically."""
+def write_json(path: str | Path, data, indent: int | None = 1, end: str = "", sort_keys: bool = False) -> None:
+    """Write ``data`` as JSON (``indent`` 1, or compact with ``None``; then ``end``, e.g. a newline) atomically."""
     with atomic_write(path) as f:
-        json.dump(data, f, indent=indent)
+        json.dump(data, f, indent=indent, sort_keys=sort_keys)
+        f.write(end)
