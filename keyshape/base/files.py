@@ -556,26 +556,13 @@ def atomic_dir(path: str | Path, overwrite: bool | None = None, inputs: Iterable
                kind: str = "output") -> Iterator[Path]:
     """Yield a hidden temporary folder whose files are moved into the folder ``path`` on success.
 
-    The ownership rule (``docs/reliability.md``): the folder's :data:`MANIFEST` records, per
-    command ``kind`` (``"retarget"``, ``"compare"``, ``"demo"``, ...), the files that kind wrote
-    there. When this run succeeds:
-
-    * its files are moved in; a file of the same name already there is replaced only when it
-      is recorded under this ``kind`` (or by an older keyshape without a kind), or with
-      ``overwrite``; never when it is one of ``inputs`` or inside an input folder (see
-      :class:`InputSet` for an output folder inside an input folder), never
-      through a symbolic link to a folder;
-    * files recorded under this ``kind`` that this run did not write are deleted, except an
-      input, a file inside an input folder, a symbolic link, or one reached through a link;
-      nothing recorded under another kind, and nothing unrecorded, is ever deleted;
-    * the record is rewritten: this kind's entry lists this run's files; files this run took
-      over leave other kinds' entries.
-
-    Every check is made before the first file moves. A non-empty folder without a record is
-    refused unless ``overwrite``; a malformed record is an :class:`InputError`. ``overwrite`` and
-    ``inputs`` left None are the running command's ``--overwrite`` and declared inputs (:class:`Run`). On error or
-    interruption the temporary folder is removed and ``path`` is as it was (a folder created
-    for the run is removed again).
+    The ownership rule, exactly as docs/reliability.md ("Folder outputs") states it: the folder's
+    :data:`MANIFEST` records, per command ``kind`` (``"retarget"``, ``"demo"``, ...), the files that kind
+    wrote with their content hashes; a run replaces and prunes only its own kind's earlier files, unchanged
+    (or replaces with ``overwrite``), never an input, a file inside an input folder (:class:`InputSet`) or
+    anything through a symbolic link, and rewrites the record. Every check is made before the first file
+    moves; ``overwrite`` and ``inputs`` left None are the running command's (:class:`Run`). On error or
+    interruption the temporary folder is removed and ``path`` is as it was.
     """
     if not kind:
         raise ValueError("atomic_dir needs a command kind")

@@ -366,23 +366,8 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     ``reference``: a face with known iBUG-68 vertices and the same :data:`FEATURES` (the shipped
     ICT-FaceKit subset, :func:`keyshape.retarget.targets.demo.load_expressions`).
 
-    0. With ``skin_only``, the rig's skin alone is used (:func:`skin_triangles`: its largest connected
-       piece; eyeballs, teeth, the tongue and the eye shells, and their motion, are left out).
-    1. The reference's feature centroids (:func:`feature_centroid`: the regions the blinks, jawOpen,
-       browInnerUp and the smiles move) are mapped onto the rig's by a similarity (Umeyama): it takes
-       the rig's units and axes.
-    2. The reference's face (its vertices within ``face_margin`` eye distances of its landmarks: no
-       scalp, ears or neck, which a face mask lacks) is fitted onto the rig by non-rigid ICP: each
-       reference point and (``symmetric``) each rig vertex is paired with its nearest point of the other
-       face in position and motion (:func:`_shared_motion`: how every shape the two faces share by name
-       moves it, each relative to its largest, times ``motion_weight`` eye distances), pairs beyond three
-       times the median distance dropped; the displacement is a ridge-regularised sum of Gaussians on 150
-       reference points, ``widths`` eye distances wide, one width per iteration, from coarse to fine.
-    3. Each fitted landmark goes to the nearest point of the rig's surface that moves as it does under the
-       :data:`TELLING` shapes (jawOpen, the blinks), the motion choosing the surface only (an upper-lip point
-       lands on the upper lip that jawOpen leaves, not on the lower lip it touches in a closed-mouth
-       neutral); the inner mouth corners, where the lips meet, by position and by where jawOpen's motion lies
-       between the lips' around them (:func:`place_landmarks`).
+    The method, step by step, with the options each step takes: docs/retarget.md, "Notes on the code",
+    ``retarget/rig/landmarks.py``.
 
     Measured on remeshed ICT-FaceKit rigs (``bench/rig_landmarks_accuracy.py``, docs/benchmarks.md).
 
@@ -486,20 +471,7 @@ def place_landmarks(target: np.ndarray, desc_ref: np.ndarray, V: np.ndarray, tri
     ``desc_ref`` (68, 3 t) and ``desc_rig`` (n_vertices, 3 t): how the :data:`TELLING` shapes (jawOpen first)
     move each landmark and each rig vertex, relative to each shape's largest motion on its own face, times
     ``options.motion_weight`` eye distances; ``eyes``: the distance between the eyes; ``corners``: the
-    reference's inner mouth corners' :func:`corner_fractions`.
-
-    1. The surface a landmark lies on: of the closest points to it on the triangles around its 64 nearest
-       vertices, those whose motion is within ``options.side_tolerance`` (of the largest motion) of the
-       best match's: the upper lip that jawOpen leaves, not the lower lip an upper-lip point touches in a
-       closed-mouth neutral; the upper lid, not the lower one. The landmark goes to the nearest of them in
-       position: the motion only chooses the surface, since another artist's shapes move it by other
-       amounts.
-    2. The inner mouth corners (:data:`INNER_CORNERS`), where the lips meet and the vertices of both lips and
-       of the corner lie within a fraction of a millimetre of each other, each moved by jawOpen as its own
-       lip: the point nearest in position and in jawOpen's motion to the motion that lies where the
-       reference's corner lies between its lips' (:func:`corner_fractions`), among the rig's vertices within
-       ``options.corner_radius`` eye distances of the fitted corner: a fraction, so neither the motion's
-       amount (another artist's) nor the fit's last fraction of a millimetre matters.
+    reference's inner mouth corners' :func:`corner_fractions`. Step by step: docs/retarget.md, "Notes on the code", ``retarget/rig/landmarks.py``.
     """
     L = options.motion_weight * eyes
     cand = _candidates(target, V, tri, desc_rig)
