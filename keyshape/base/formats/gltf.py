@@ -23,6 +23,14 @@ SPARSE_POSITION_TOL = 1e-6
 SPARSE_NORMAL_TOL = 1e-5
 
 
+def _bounds(array: np.ndarray, minmax: bool) -> dict:
+    """An accessor's ``min``/``max`` per component (glTF requires them on positions), or {}."""
+    if not minmax:
+        return {}
+    a = np.asarray(array).reshape(len(array), -1)
+    return dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
+
+
 class _Blob:
     """Accumulates tightly packed, 4-byte aligned buffer views and their accessors."""
 
@@ -33,12 +41,8 @@ class _Blob:
             minmax: bool = False) -> int:
         import pygltflib as g
         view = self._view(np.ascontiguousarray(array).tobytes(), target)
-        kw = {}
-        if minmax:
-            a = np.asarray(array).reshape(len(array), -1)
-            kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
         self.gltf.accessors.append(g.Accessor(bufferView=view, componentType=component,
-                                              count=len(array), type=type_, **kw))
+                                              count=len(array), type=type_, **_bounds(array, minmax)))
         return len(self.gltf.accessors) - 1
 
     def _view(self, data: bytes, target: int | None = None) -> int:
@@ -61,9 +65,6 @@ class _Blob:
         rows = np.flatnonzero(keep)
         if 16 * len(rows) >= 12 * len(a):
             return self.add(a, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=minmax)
-        kw = {}
-        if minmax:
-            kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
         sparse = None
         if len(rows):
             sparse = g.Sparse(count=len(rows),
@@ -71,7 +72,7 @@ class _Blob:
                                                               componentType=UINT),
                               values=g.AccessorSparseValues(bufferView=self._view(a[rows].tobytes())))
         self.gltf.accessors.append(g.Accessor(componentType=FLOAT, count=len(a), type="VEC3", sparse=sparse,
-                                              byteOffset=None, **kw))
+                                              byteOffset=None, **_bounds(a, minmax)))
         return len(self.gltf.accessors) - 1
 
     def bytes(self) -> bytes:
