@@ -7,6 +7,7 @@ written (``polygons``) and fan-triangulated on demand (``triangles``).
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,22 +169,21 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
             raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
         if any(not -nt <= i <= nt for i in ti):
             raise InputError(f"face names a texture coordinate outside 1..{nt}", path, ln)
-        vi = np.array([i - 1 if i > 0 else nv + i for i in vi], dtype=np.intp)
-        if vi.min() < 0 or vi.max() >= nv:
-            raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
-        polygons.append(vi)
-        if all(ti):
-            t = np.array([i - 1 if i > 0 else nt + i for i in ti], dtype=np.intp)
-            if t.min() < 0 or t.max() >= nt:
-                raise InputError(f"face names a texture coordinate outside 1..{nt}", path, ln)
-            polygon_uvs.append(t)
-        else:
-            polygon_uvs.append(None)
+        polygons.append(_zero_based(vi, nv, "a vertex", path, ln))
+        polygon_uvs.append(_zero_based(ti, nt, "a texture coordinate", path, ln) if all(ti) else None)
     if require_faces and not polygons:
         raise InputError("mesh has no faces ('f' lines)", path)
     return Mesh(vertices, polygons, uvs, polygon_uvs, {k: np.array(v, dtype=np.intp) for k, v in groups.items()},
                 {k: np.array(v, dtype=np.intp) for k, v in materials.items() if v},
                 _material_colours([path.parent / m for m in mtllibs]))
+
+
+def _zero_based(indices: list[int], n: int, what: str, path: Path, ln: int) -> np.ndarray:
+    """A face's one-based (or negative, from the end) OBJ indices, zero-based and checked."""
+    a = np.array([i - 1 if i > 0 else n + i for i in indices], dtype=np.intp)
+    if a.min() < 0 or a.max() >= n:
+        raise InputError(f"face names {what} outside 1..{n}", path, ln)
+    return a
 
 
 def _material_colours(files) -> dict:
@@ -197,10 +197,8 @@ def _material_colours(files) -> dict:
             if len(parts) >= 2 and parts[0] == "newmtl":
                 name = " ".join(parts[1:])
             elif len(parts) >= 4 and parts[0] == "Kd" and name is not None:
-                try:
+                with contextlib.suppress(ValueError):
                     out[name] = tuple(float(x) for x in parts[1:4])
-                except ValueError:
-                    pass
     return out
 
 
