@@ -13,13 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, listen, serve_until_stopped
+from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, listen, page_files, serve_until_stopped
 
-_PAGE = Path(__file__).parent / "pose_page"
-PAGE_FILES = {"/": (_PAGE / "landmarks.html", "text/html; charset=utf-8"),
-              "/index.html": (_PAGE / "landmarks.html", "text/html; charset=utf-8"),
-              "/app.js": (_PAGE / "landmarks.js", "text/javascript; charset=utf-8"),
-              "/style.css": (_PAGE / "style.css", "text/css; charset=utf-8")}
+PAGE_FILES = page_files(Path(__file__).parent / "pose_page", "landmarks.html", "landmarks.js")
 #: the port the page is served on when free (else any free one)
 PORT = 8767
 #: a click picks among the visible vertices within this many pixels of it
