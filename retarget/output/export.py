@@ -49,7 +49,8 @@ def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None,
     in-plane angle) is set. The eye columns take ``eyes`` (n_frames, 4): left yaw, left pitch, right
     yaw, right pitch in radians (the actor's left and right eyes), when given.
     Raises :class:`InputError` when no target name is an ARKit name.
-    One mapping for the CSV (:func:`livelink_rows`) and the live packets (``keyshape live``).
+    One mapping for the CSV (:func:`~keyshape.base.formats.livelink.csv_rows` of these values) and the live
+    packets (``keyshape live``).
     """
     weights = np.asarray(weights, dtype=np.float64)
     col = {name_key(n): j for j, n in enumerate(names)}
@@ -74,13 +75,6 @@ def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None,
     if eyes is not None:
         tail[:, [3, 4, 6, 7]] = np.nan_to_num(np.asarray(eyes, np.float64))
     return out
-
-
-def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None,
-                  eyes: np.ndarray | None = None):
-    """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``):
-    :func:`livelink_values` in the layout of :func:`keyshape.base.formats.livelink.csv_rows`."""
-    return csv_rows(livelink_values(names, weights, head, eyes), fps)
 
 
 def write_mesh_take(path: Path, mesh, base: np.ndarray, morphs: Morphs, meters_per_unit: float = 0.01,
