@@ -252,11 +252,7 @@ def load_rig(rig, neutral=None, with_mesh: bool = True):
     commands' ``--rig`` (``neutral``: their ``--neutral``); parsed once, then read from the rig cache."""
     from keyshape.retarget.rig.model import Rig, load_rig as _load
 
-    if isinstance(rig, Rig):
-        return rig
-    if isinstance(rig, (list, tuple)) and len(rig) == 1:
-        rig = rig[0]
-    return _load(rig, neutral, with_mesh=with_mesh)
+    return rig if isinstance(rig, Rig) else _load(rig, neutral, with_mesh=with_mesh)
 
 
 @dataclass

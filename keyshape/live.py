@@ -444,7 +444,7 @@ def load_chain(model_path, keys_path, rig, *, poses=None, calibration=None, head
                          f"set {keys_path} is of scheme {scheme!r} ({n_points} points): use the model and keys "
                          "of one actor and scheme", model_path)
     model = AppearanceModel.from_file(mf)
-    rig_obj = load_rig(rig if len(rig) > 1 else rig[0], neutral, with_mesh=False)
+    rig_obj = load_rig(rig, neutral, with_mesh=False)
     livelink_values(rig_obj.names, np.zeros((1, rig_obj.n_shapes)))   # the rig has ARKit names, or one line
     lib = read_poses(poses, rig_obj.names) if poses else None
     from keyshape.tracker.commands import model_fingerprint

@@ -39,8 +39,6 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
     if isinstance(targets, TargetSet):
         ts = targets
     else:
-        if isinstance(targets, (list, tuple)) and len(targets) == 1:
-            targets = targets[0]
         ts = load_targets(list(columns), targets, mapping=mapping, neutral=neutral)
     source = "regions"
     if isinstance(regions, str) and regions == "auto":

@@ -69,8 +69,7 @@ def run(args) -> int:
         return run_rig(args)
     weights = read_weights(args.weights)
     frames, columns = weights.frames, weights.names
-    targets = args.targets[0] if len(args.targets) == 1 else args.targets
-    rt = fit_retargeter(columns, targets, args.regions, neutral=args.neutral)
+    rt = fit_retargeter(columns, args.targets, args.regions, neutral=args.neutral)
     if args.regions == "auto":
         print("keyshape retarget: regions from the targets' own support: " + ", ".join(rt.region_names_ or []))
     ts = rt.targets_
@@ -102,7 +101,7 @@ def run_rig(args) -> int:
     weights = read_weights(args.weights)
     frames, columns = weights.frames, weights.names
     needs_mesh = not str(args.output).lower().endswith(".csv")
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    rig = load_rig(args.rig, args.neutral, with_mesh=needs_mesh)
     lib = read_poses(args.poses, rig.names)
     pose_model = (lib.get("keys") or {}).get("model") if isinstance(lib.get("keys"), dict) else None
     if pose_model and args.tracks:

@@ -58,7 +58,7 @@ def run(args) -> int:
     from keyshape.retarget.rig.model import load_rig
 
     _check_outputs(args.output, args.sheet, size=args.size)
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    rig = load_rig(args.rig, args.neutral)
     frames, curves, head = _curves_on_rig(args.curves, rig)
     compare = None
     if args.compare:

@@ -100,7 +100,7 @@ def run(args) -> int:
         raise InputError("the output must be a sheet (.png or .jpg) or, to correct the landmarks in a local web "
                          "page, a landmarks file (.json)", args.output)
     scheme = load_scheme("contours48")
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    rig = load_rig(args.rig, args.neutral)
     if edit and (rig.mesh is None or not rig.mesh.polygons):
         raise InputError("the rig's neutral has no faces to show", rig.neutral_file)
     if edit and args.landmarks is not None:             # a file the geometry refutes is what the page corrects
