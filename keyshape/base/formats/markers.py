@@ -434,8 +434,11 @@ def write_csv(path, markers: Markers) -> None:
     body = [",".join([str(i), f"{t:.6f}", *row]) for i, (t, row) in enumerate(zip(markers.times, cells))]
     text = f"{head}\n" + "\n".join(body) + "\n"
     path = Path(path)
-    with atomic_write(path, newline="\n", encoding="utf-8") as f:     # the bytes on disk are the text hashed
-        f.write(text)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="\n", encoding="utf-8") as f:     # the bytes on disk are the text hashed
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
         write_json(_csv_meta_path(path), {CSV_META_KEY: 1, "csv_sha256": hashlib.sha256(text.encode()).hexdigest(),
                                           "rate": float(markers.rate), "units": markers.units})
 

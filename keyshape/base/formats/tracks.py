@@ -9,6 +9,7 @@ import io as _io
 import json
 import warnings
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_write, read_json, write_json
+from keyshape.base.files import atomic_path, read_json, write_json
 from keyshape.base.schemes import AUX_NAME
 
 POSE_COLUMNS = ("pose_a11", "pose_a12", "pose_tx", "pose_a21", "pose_a22", "pose_ty")
@@ -126,8 +127,11 @@ def write_tracks(path: str | Path, tracks: Tracks) -> None:
     text = ",".join(header) + "\n" + buf.getvalue().replace("nan", "")
     # the CSV's bytes reach the disk first, then the sidecar replaces the old one, then the CSV is
     # renamed into place: a full disk fails before anything is replaced (old CSV and old sidecar stay)
-    with atomic_write(path, newline="\n") as f:        # the bytes on disk are the text hashed
-        f.write(text)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="\n") as f:        # the bytes on disk are the text hashed
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
         write_meta(path, tracks.meta, hashlib.sha256(text.encode()).hexdigest())
 
 
