@@ -79,10 +79,7 @@ def _rig_files(sources: Sequence[str | Path] | str | Path, neutral: str | Path |
         else:
             files.append(require_file(p, "rig shape"))
     if neutral is None:
-        for f in files:
-            if f.stem.lower() in NEUTRAL_NAMES:
-                neutral = f
-                break
+        neutral = next((f for f in files if f.stem.lower() in NEUTRAL_NAMES), None)
     if neutral is None:
         raise InputError("no neutral mesh: give --neutral FILE or put neutral.obj in the rig folder",
                          folder or (files[0] if files else None))
@@ -98,13 +95,8 @@ def _rig_files(sources: Sequence[str | Path] | str | Path, neutral: str | Path |
             shapes = [f for f in shapes if f.stem in keep or f.parent != folder]
     if not shapes:
         raise InputError("no rig shapes (OBJ files besides the neutral) found", folder or neutral)
-    seen: dict[str, Path] = {}
-    for f in shapes:                    # as --targets: jawOpen.obj and JawOpen.obj are one name on some systems
-        key = f.stem.casefold()
-        if key in seen and seen[key] != f:
-            raise InputError(f"two rig shapes whose names differ only by case: {seen[key].name} and {f.name} "
-                             "(which one is meant?); rename or remove one", f.parent)
-        seen[key] = f
+    from keyshape.retarget.targets.target_set import refuse_name_twins
+    refuse_name_twins(shapes, "rig shapes whose names differ only by case")
     return shapes, neutral
 
 

@@ -180,8 +180,8 @@ def region_rows(scheme, points: np.ndarray, motion: np.ndarray, floor: float = 0
         if not idx:
             continue
         M = np.zeros((2 * len(idx), len(points), 2))
-        for r, i in enumerate(idx):
-            M[2 * r, i, 0] = M[2 * r + 1, i, 1] = 1.0
+        r = np.arange(len(idx))
+        M[2 * r, idx, 0] = M[2 * r + 1, idx, 1] = 1.0
         blocks.append((name, M))
     blocks += contour_measures(scheme, points)
     ok = np.isfinite(motion).all(axis=(1, 2))
@@ -250,14 +250,11 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """
     P = np.asarray(rig_points, float)
     partner = mirror_partners(P)
-    cols = []
-    for i, j in enumerate(partner):
-        if j < i or not (keep[i] and keep[j]):
-            continue
-        up = np.zeros((len(P), 2))
-        up[[i, j], 1] = 1.0
-        cols.append(up.ravel())
-    return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
+    keep = np.asarray(keep, bool)
+    i = np.flatnonzero((partner >= np.arange(len(P))) & keep & keep[partner])      # one column per pair
+    out = np.zeros((len(P), 2, len(i)))
+    out[i, 1, np.arange(len(i))] = out[partner[i], 1, np.arange(len(i))] = 1.0
+    return out.reshape(2 * len(P), len(i))
 
 
 def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequence[int],

@@ -96,17 +96,23 @@ def _candidates(sources: Sequence[str | Path] | str | Path) -> tuple[list[Path],
                             and not q.name.startswith("."))    # hidden: keyshape's manifest, editors' files
         else:
             files.append(require_file(p, "target"))
-    seen: dict[str, Path] = {}
-    for f in files:
-        key = f.stem.casefold()
-        if key in seen and seen[key] != f:
-            raise InputError(f"two targets whose names differ only by case or extension: {seen[key].name} and "
-                             f"{f.name} (which one is meant?); rename or remove one", f.parent)
-        seen[key] = f
+    refuse_name_twins(files, "targets whose names differ only by case or extension")
     if not files:
         where = folder if folder is not None else ", ".join(map(str, sources))
         raise InputError(f"no target files ({'/'.join(TARGET_SUFFIXES)}) found", where)
     return files, folder
+
+
+def refuse_name_twins(files: Sequence[Path], what: str) -> None:
+    """One-line :class:`InputError` for two ``files`` whose names differ only by case (jawOpen.obj and JawOpen.obj
+    are one file on some systems; which one is meant?); ``what`` names them in the message."""
+    seen: dict[str, Path] = {}
+    for f in files:
+        key = f.stem.casefold()
+        if key in seen and seen[key] != f:
+            raise InputError(f"two {what}: {seen[key].name} and {f.name} (which one is meant?); rename or remove one",
+                             f.parent)
+        seen[key] = f
 
 
 def read_mapping(path: str | Path) -> dict[str, Path]:
