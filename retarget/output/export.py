@@ -11,7 +11,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir
 from keyshape.base.formats import Morphs
 from keyshape.retarget.headpose import HeadMotion
-from keyshape.retarget.targets.retargeter import Retargeter
+from keyshape.retarget.targets.retargeter import Retargeter, clamp_weights
 from keyshape.retarget.targets.target_set import name_key
 from keyshape.base.formats.weights import write_weights
 # the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
@@ -226,11 +226,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
             info["n_morph_targets"] = len(names)
         return info
     if kind == "csv":
-        w = weights
-        if clamp:
-            c = np.clip(w, 0, 1)
-            info["n_clamped"] = int(np.count_nonzero(c != w))
-            w = c
+        w, info["n_clamped"] = clamp_weights(weights, clamp)
         names = list(ts.names)
         if livelink:
             write_livelink(path, livelink_values(names, w, head), fps)
