@@ -298,17 +298,14 @@ def calibration_tracks(calibration, keys_path, scheme_name: str, model: str | No
     fingerprint, :func:`keyshape.tracker.commands.model_fingerprint`) or of another scheme."""
     from pathlib import Path
 
+    from keyshape.base.files import found_beside
     from keyshape.base.formats.keys import read_keys_source
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.schemes import load_scheme
 
     if calibration is None:
         listed = read_keys_source(keys_path).get("tracks") or []
-        for f in listed[:1]:
-            for cand in (Path(f), Path(keys_path).parent / Path(f).name):
-                if cand.is_file():
-                    calibration = cand
-                    break
+        calibration = found_beside(listed[0], Path(keys_path).parent) if listed else None
         if calibration is None:
             why = "the key set names none" if not listed else f"{listed[0]} is gone"
             raise InputError(f"keyshape live solves with the statistics of a calibration take and has none ({why}): "

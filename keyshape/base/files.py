@@ -677,6 +677,12 @@ def partial_name(path: str | Path) -> Path:
     return path.with_name(f"{path.stem}.partial{path.suffix}")
 
 
+def found_beside(name: str | Path, folder: Path) -> Path | None:
+    """The file ``name`` as given, else the file of its name in ``folder`` (a record naming a file that moved
+    with it), else None."""
+    return next((p for p in (Path(name), Path(folder) / Path(name).name) if p.is_file()), None)
+
+
 def describe_os_error(exc: OSError) -> str:
     """One line for an :class:`OSError`: the file and what went wrong (disk full, read-only, ...)."""
     name = exc.filename

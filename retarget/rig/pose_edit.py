@@ -52,10 +52,8 @@ def find_keys_file(poses_path: Path, library: dict) -> Path | None:
     name = (library.get("keys") or {}).get("file")
     if not name:
         return None
-    for p in (Path(name), poses_path.parent / Path(name).name):
-        if p.is_file():
-            return p
-    return None
+    from keyshape.base.files import found_beside
+    return found_beside(name, poses_path.parent)
 
 
 class PoseHandler(LocalHandler):
