@@ -360,15 +360,11 @@ def check_output(path: str | Path, kind: str = "file", inputs: Iterable[str | Pa
         if len(os.fsencode(path.name)) + 20 > name_max:
             raise InputError(f"file name too long ({len(os.fsencode(path.name))} bytes; at most "
                              f"{name_max - 20} here)", path)
-    if kind == "file":
         guard_file(path, what)
     elif _RUN is not None and path.is_symlink():
         raise InputError(f"is a symbolic link; keyshape never writes through a link: choose another {what} folder",
                          path)
-    for inp in inputs:
-        if inp is None:
-            continue
-        inp = Path(inp)
+    for inp in (Path(i) for i in inputs if i is not None):
         if kind == "file" and _same(path, inp):
             raise InputError(f"the {what} is one of the inputs ({inp}); choose another name", path)
         if kind == "folder" and path.is_dir() and inp.exists() and _same(path, inp):
