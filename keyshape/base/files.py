@@ -492,10 +492,7 @@ class InputSet:
     def __init__(self, inputs: Iterable[str | Path | None], output: str | Path | None = None):
         self.items = []
         out = _real(output) if output is not None else None
-        for i in inputs:
-            if i is None or str(i) == "":
-                continue
-            p = Path(i)
+        for p in (Path(i) for i in inputs if i is not None and str(i) != ""):
             if p.exists():
                 real = _real(p)
                 self.items.append((p, real, p.is_dir(), out if out is not None and p.is_dir() and

@@ -189,10 +189,8 @@ def _zero_based(indices: list[int], n: int, what: str, path: Path, ln: int) -> n
 def _material_colours(files) -> dict:
     """``Kd`` of every ``newmtl`` in the given .mtl files that exist (others are skipped)."""
     out, name = {}, None
-    for f in files:
-        if not Path(f).is_file():
-            continue
-        for line in Path(f).read_text(errors="replace").splitlines():
+    for mtl in (Path(f) for f in files if Path(f).is_file()):
+        for line in mtl.read_text(errors="replace").splitlines():
             parts = line.split()
             if len(parts) >= 2 and parts[0] == "newmtl":
                 name = " ".join(parts[1:])
