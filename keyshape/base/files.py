@@ -379,9 +379,7 @@ def check_outputs(files: Iterable[str | Path | None] = (), folders: Iterable[str
     inputs = [i for i in inputs if i is not None]
     seen: dict[str, Path] = {}
     for kind, paths in (("file", files), ("folder", folders)):
-        for p in paths:
-            if p is None:
-                continue
+        for p in (p for p in paths if p is not None):
             check_output(p, kind, inputs)
             key = os.path.abspath(p)
             if key in seen:
