@@ -5,7 +5,6 @@ Design notes and figures: docs/live.md, "Notes on the code", ``keyshape/live.py`
 from __future__ import annotations
 
 import argparse
-import contextlib
 import re
 import socket
 import sys
@@ -64,7 +63,8 @@ class FrameSource:
         self.pace, self.max_frames = pace, max_frames
         self.luma_table = None
         if self.camera:
-            with _quiet_opencv():
+            from keyshape.base.formats.video import opencv_log
+            with opencv_log(cv2.utils.logging.LOG_LEVEL_SILENT):   # the one-line error says what failed
                 cap = cv2.VideoCapture(int(source))
                 ok = cap.isOpened() and cap.read()[0]
             if not ok:
@@ -121,18 +121,6 @@ class FrameSource:
                 yield i, frame
         finally:
             self.cap.release()
-
-
-@contextlib.contextmanager
-def _quiet_opencv():
-    """OpenCV's own warnings off while probing a camera (the one-line error says what failed)."""
-    import cv2
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    try:
-        yield
-    finally:
-        cv2.utils.logging.setLogLevel(level)
 
 
 # ------------------------------------------------------------------------------------------------ sinks
