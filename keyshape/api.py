@@ -252,11 +252,7 @@ def load_rig(rig, neutral=None, with_mesh: bool = True):
     commands' ``--rig`` (``neutral``: their ``--neutral``); parsed once, then read from the rig cache."""
     from keyshape.retarget.rig.model import Rig, load_rig as _load
 
-    if isinstance(rig, Rig):
-        return rig
-    if isinstance(rig, (list, tuple)) and len(rig) == 1:
-        rig = rig[0]
-    return _load(rig, neutral, with_mesh=with_mesh)
+    return rig if isinstance(rig, Rig) else _load(rig, neutral, with_mesh=with_mesh)
 
 
 @dataclass
@@ -407,7 +403,7 @@ def retarget(weights: Weights, targets=None, regions=None, options: RetargetOpti
         lib = poses if isinstance(poses, PoseLibrary) else PoseLibrary.load(poses, r)
         curves = RA.rig_curves(weights.values, weights.names, lib.data, r,
                                None if isinstance(poses, PoseLibrary) else poses)
-        motion, fps, kind = _head(weights, tracks, o, r)
+        motion, fps, kind = RA.take_motion(tracks, weights.frames, weights.fps, r, o)
         eyes = None
         if tracks is not None:
             curves, eyes = RA.apply_gaze(curves, r, tracks, weights.frames, kind, gaze=o.gaze)
@@ -416,19 +412,8 @@ def retarget(weights: Weights, targets=None, regions=None, options: RetargetOpti
         raise InputError("give targets (one target per key) or poses and a rig")
     rt = RA.fit_retargeter(weights.names, targets, regions, mapping=mapping, neutral=neutral, form=o.form, band=o.band,
                            metric=o.metric)
-    motion, fps, _ = _head(weights, tracks, o)
+    motion, fps, _ = RA.take_motion(tracks, weights.frames, weights.fps, None, o)
     return Animation(rt, weights, fps, motion)
-
-
-def _head(weights: Weights, tracks, o: RetargetOptions, rig=None):
-    """Head motion (or None), the frame rate (:func:`keyshape.decompose.api.take_fps`: the tracks', else the
-    weights', else 30) and the head the gaze is read in (the take's fitted 3D head, or a 2D kind; None without
-    tracks)."""
-    fps = D.take_fps(tracks, weights.fps)
-    if tracks is None:
-        return None, fps, None
-    head, kind = RA.take_head(D.Take.fit(tracks), weights.frames, rig, o)     # the 3D head fitted once
-    return head, fps, kind
 
 
 def preview(video: str | Path, tracks: Tracks, animation: RigAnimation, path: str | Path | None = None, *,

@@ -18,7 +18,7 @@ import numpy as np
 
 from keyshape import __version__
 from keyshape.base.errors import InputError, KeyshapeError
-from keyshape.base.files import InputSet, atomic_write, sha256_file
+from keyshape.base.files import InputSet, sha256_file, write_json
 from keyshape.manifest import OUTPUT_FILES, Actor, Manifest, Settings, Take, read_manifest
 
 REPORT_FORMAT = "keyshape-batch-report"
@@ -69,9 +69,7 @@ def read_record(path: Path) -> dict:
 
 
 def write_record(path: Path, rec: dict) -> None:
-    with atomic_write(path) as f:
-        json.dump(rec, f, indent=1, sort_keys=True)
-        f.write("\n")
+    write_json(path, rec, end="\n", sort_keys=True)
 
 
 def _failure(exc: BaseException) -> dict:
@@ -664,9 +662,7 @@ def run_batch(manifest: str | Path | Manifest, out_dir: str | Path, scheduler: s
     report = _report(m, out, scheduler, n_workers, processes, [results[f.key] for f in finals], model_res, keys_res,
                      time.perf_counter() - t0, poses_res)
     report["tasks"] = spans
-    with atomic_write(out / "report.json") as f:
-        json.dump(report, f, indent=1)
-        f.write("\n")
+    write_json(out / "report.json", report, end="\n")
     return report
 
 

@@ -88,19 +88,13 @@ def _is_folder_output(path: Path) -> bool:
 def declared(command: str, args: argparse.Namespace) -> tuple[list[Path], list[Path], list[Path]]:
     """(inputs, output files, output folders) that ``args`` of ``command`` name."""
     roles = ROLES.get(command, {})
-    inputs: list[Path] = []
-    files: list[Path] = []
-    folders: list[Path] = []
+    named: dict[str, list[Path]] = {"in": [], "file": [], "folder": []}
     for dest, role in roles.items():
-        for v in _values(getattr(args, dest, None)):
-            if role == "in":
-                inputs.append(Path(v))
-            elif role == "file":
-                files.append(Path(v))
-            elif role == "folder":
-                folders.append(Path(v))
-            elif role == "file|folder":
-                (folders if _is_folder_output(Path(v)) else files).append(Path(v))
+        for v in map(Path, _values(getattr(args, dest, None))):
+            kind = ("folder" if _is_folder_output(v) else "file") if role == "file|folder" else role
+            if kind in named:                   # not a text option
+                named[kind].append(v)
+    inputs, files, folders = named["in"], named["file"], named["folder"]
     if command in SIDECARS and all(getattr(args, d, None) is not None for d, r in roles.items()
                                    if r in ("file", "folder") and d in ("output", "out")):
         files += list(SIDECARS[command](args))

@@ -88,7 +88,7 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     face), ``target_motion_mm`` (mean vertex motion of that performance: a still face's error),
     ``seconds``."""
     from keyshape import api
-    from keyshape.base.files import atomic_write
+    from keyshape.base.files import write_json
     from keyshape.base.formats.tracks import read_tracks, write_tracks
     from keyshape.data_synth.video import synthesize
     from keyshape.decompose.cli import write_sheet
@@ -146,8 +146,7 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     neutral_coeffs = _expand(ex, base)
     write_demo_targets(out / "targets", key_coeffs, ex, neutral_coeffs)
     regions_json = out / "targets_regions.json"
-    with atomic_write(regions_json) as f:
-        json.dump({k: v.tolist() for k, v in demo_regions(ex).items()}, f)
+    write_json(regions_json, {k: v.tolist() for k, v in demo_regions(ex).items()}, indent=None)
     _step(f"retarget(weights, {str(at(out / 'targets'))!r}, regions={str(at(regions_json))!r}, tracks=tracks)"
           f".export({str(at(out / 'animation.glb'))!r})")
     anim = api.retarget(weights, out / "targets", regions_json, tracks=tracks)
@@ -163,8 +162,7 @@ def _run_demo(out: Path, frames: int, seed: int, keys: int, method: str, labels:
     figures = {"nme_mean": float(np.nanmean(nme)), "nme_worst": float(np.nanmax(nme)),
                "failed_frames": int((~tracks.success).sum()), "target_error_mm": report["mean_mm"],
                "target_motion_mm": report["motion_mm"], "seconds": time.perf_counter() - t0}
-    with atomic_write(out / "demo_report.json", "w") as f:
-        json.dump(figures, f, indent=1)
+    write_json(out / "demo_report.json", figures)
     return figures
 
 

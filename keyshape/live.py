@@ -11,6 +11,7 @@ import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -28,6 +29,15 @@ GAZE_FRAMES = 301
 # ----------------------------------------------------------------------------------------------- sources
 #: highest camera number accepted as a source (OpenCV's device indices are small integers)
 CAMERA_MAX = 9999
+
+
+def _is_camera(source: str) -> bool:
+    """Whether ``source`` is a camera number (one-line error above :data:`CAMERA_MAX`) rather than a file."""
+    camera = re.fullmatch(r"\d+", str(source)) is not None
+    if camera and int(source) > CAMERA_MAX:
+        raise InputError(f"camera {source}: a camera number is from 0 to {CAMERA_MAX} (or give a video file)")
+    return camera
+
 
 class FrameSource:
     """Frames of a camera (OpenCV device index) or of a video file, with their capture times.
@@ -49,13 +59,12 @@ class FrameSource:
 
     def __init__(self, source: str, pace: bool = True, max_frames: int | None = None):
         import cv2
-        self.camera = re.fullmatch(r"\d+", str(source)) is not None
-        if self.camera and int(source) > CAMERA_MAX:
-            raise InputError(f"camera {source}: a camera number is from 0 to {CAMERA_MAX} (or give a video file)")
+        self.camera = _is_camera(source)
         self.pace, self.max_frames = pace, max_frames
         self.luma_table = None
         if self.camera:
-            with _quiet_opencv():
+            from keyshape.base.formats.video import opencv_log
+            with opencv_log(cv2.utils.logging.LOG_LEVEL_SILENT):   # the one-line error says what failed
                 cap = cv2.VideoCapture(int(source))
                 ok = cap.isOpened() and cap.read()[0]
             if not ok:
@@ -72,10 +81,9 @@ class FrameSource:
             self.name = str(source)
         self.cap = cap
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        self.info = type("Info", (), {})()
-        self.info.fps = fps if np.isfinite(fps) and 1.0 <= fps <= 1000.0 else 30.0
-        self.info.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
-        self.info.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        self.info = SimpleNamespace(fps=fps if np.isfinite(fps) and 1.0 <= fps <= 1000.0 else 30.0,
+                                    width=int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                                    height=int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         self.captured: dict[int, float] = {}
         self.lost = 0
         self.n_read = 0
@@ -113,20 +121,6 @@ class FrameSource:
                 yield i, frame
         finally:
             self.cap.release()
-
-
-class _quiet_opencv:
-    """OpenCV's own warnings off while probing a camera (the one-line error says what failed)."""
-
-    def __enter__(self):
-        import cv2
-        self.level = cv2.utils.logging.getLogLevel()
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-
-    def __exit__(self, *exc):
-        import cv2
-        cv2.utils.logging.setLogLevel(self.level)
-        return False
 
 
 # ------------------------------------------------------------------------------------------------ sinks
@@ -168,13 +162,12 @@ class LiveLinkSender:
         except BaseException:
             self.sock.close()
             raise
-        self.refused = 0
 
     def send(self, packet: bytes) -> None:
         try:
             self.sock.send(packet)
         except ConnectionRefusedError:          # nobody listening (yet): Unreal may start later
-            self.refused += 1
+            pass
         except OSError as exc:
             raise InputError(f"cannot send to {self.target}: {exc.strerror}") from None
 
@@ -293,17 +286,14 @@ def calibration_tracks(calibration, keys_path, scheme_name: str, model: str | No
     fingerprint, :func:`keyshape.tracker.commands.model_fingerprint`) or of another scheme."""
     from pathlib import Path
 
+    from keyshape.base.files import found_beside
     from keyshape.base.formats.keys import read_keys_source
     from keyshape.base.formats.tracks import read_tracks
     from keyshape.base.schemes import load_scheme
 
     if calibration is None:
         listed = read_keys_source(keys_path).get("tracks") or []
-        for f in listed[:1]:
-            for cand in (Path(f), Path(keys_path).parent / Path(f).name):
-                if cand.is_file():
-                    calibration = cand
-                    break
+        calibration = found_beside(listed[0], Path(keys_path).parent) if listed else None
         if calibration is None:
             why = "the key set names none" if not listed else f"{listed[0]} is gone"
             raise InputError(f"keyshape live solves with the statistics of a calibration take and has none ({why}): "
@@ -439,7 +429,7 @@ def load_chain(model_path, keys_path, rig, *, poses=None, calibration=None, head
                          f"set {keys_path} is of scheme {scheme!r} ({n_points} points): use the model and keys "
                          "of one actor and scheme", model_path)
     model = AppearanceModel.from_file(mf)
-    rig_obj = load_rig(rig if len(rig) > 1 else rig[0], neutral, with_mesh=False)
+    rig_obj = load_rig(rig, neutral, with_mesh=False)
     livelink_values(rig_obj.names, np.zeros((1, rig_obj.n_shapes)))   # the rig has ARKit names, or one line
     lib = read_poses(poses, rig_obj.names) if poses else None
     from keyshape.tracker.commands import model_fingerprint
@@ -474,7 +464,6 @@ class LiveStats:
     """What a live run did: frames tracked and sent, lost frames, latencies (seconds), send times."""
 
     frames: int = 0
-    sent: int = 0
     lost: int = 0
     face_lost_frames: int = 0
     latencies: list = field(default_factory=list)
@@ -491,7 +480,6 @@ class LiveStats:
         if latency is not None:
             self.latencies.append(latency)
         self.frames += 1
-        self.sent += 1
 
     @property
     def fps(self) -> float:
@@ -536,12 +524,7 @@ def stream(source: FrameSource, model, chain: LiveChain, sender: LiveLinkSender,
         if status is None:
             return
         text = stats.line(face_ok, final)
-        if tty and not final:
-            status.write("\r" + text + "\x1b[K")
-        elif final or tty:
-            status.write(("\r" + text + "\x1b[K" if tty else text) + "\n")
-        else:
-            status.write(text + "\n")
+        status.write(("\r" + text + "\x1b[K" if tty else text) + ("\n" if final or not tty else ""))
         status.flush()
 
     try:
@@ -612,10 +595,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     if not 0 < args.port < 65536:
         raise InputError(f"--port {args.port}: must be in 1..65535")
-    camera = re.fullmatch(r"\d+", args.source) is not None
-    if camera and int(args.source) > CAMERA_MAX:
-        raise InputError(f"camera {args.source}: a camera number is from 0 to {CAMERA_MAX} (or give a video file)")
-    if not camera:
+    if not _is_camera(args.source):
         require_file(args.source, "video")
     osc_addr = parse_host_port(args.osc, "--osc") if args.osc else None
     notes: list[str] = []                       # said once everything has opened (bad input stays one line)

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from keyshape.base.errors import InputError, require_file
+from keyshape.cli import SEED_MAX
 from keyshape.decompose import defaults as D
 from keyshape.decompose.defaults import METHODS, SOLVERS
 
@@ -24,8 +25,6 @@ REGION_NAMES = ("mouth", "eyes", "pupils")
 #: names batch writes inside an actor's folder (a take may not be named one of them) and in OUT_DIR
 ACTOR_FILES = ("batch.json", "model.npz", "keys.json")
 TOP_FILES = ("report.json",)
-#: the largest seed numpy accepts
-_SEED_MAX = 2 ** 32 - 1
 
 
 @dataclass
@@ -203,7 +202,7 @@ def read_manifest(path: str | Path) -> Manifest:
             err(f"selector {actor.selector!r}: expected one of {', '.join(METHODS)}", "actors", name, "selector")
         if actor.keys < 1:
             err(f"keys must be >= 1, got {actor.keys}", "actors", name, "keys")
-        for key, lo, hi in (("components", 1, 10_000), ("morphs", 0, 100_000), ("seed", 0, _SEED_MAX)):
+        for key, lo, hi in (("components", 1, 10_000), ("morphs", 0, 100_000), ("seed", 0, SEED_MAX)):
             v = getattr(actor, key)
             if v is not None and not lo <= v <= hi:
                 err(f"{key} = {v}: must be an integer from {lo} to {hi}", "actors", name, key)

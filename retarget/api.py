@@ -39,8 +39,6 @@ def fit_retargeter(columns: Sequence[str], targets, regions=None, mapping=None, 
     if isinstance(targets, TargetSet):
         ts = targets
     else:
-        if isinstance(targets, (list, tuple)) and len(targets) == 1:
-            targets = targets[0]
         ts = load_targets(list(columns), targets, mapping=mapping, neutral=neutral)
     source = "regions"
     if isinstance(regions, str) and regions == "auto":
@@ -68,6 +66,18 @@ def take_head(take: Take, frames: np.ndarray, rig=None, options: RetargetOptions
                 "actor's)")
     kind = take.head3d if options.head == "3d" and take.head3d is not None else options.head
     return head_from_tracks(take.tracks, frames, options.reference_frame, units, take.source, head=kind), kind
+
+
+def take_motion(tracks: Tracks | None, frames: np.ndarray, weights_fps: float | None = None, rig=None,
+                options: RetargetOptions = RetargetOptions(), source=None, say=None):
+    """``(head motion of frames or None, frame rate, the head the gaze is read in or None)`` of a take's ``tracks``
+    (None: no head): :func:`take_head` on the take fitted once, and :func:`~keyshape.decompose.take.take_fps` (the
+    tracks' rate, else the weights' ``weights_fps``, else 30)."""
+    from keyshape.decompose.take import take_fps
+    if tracks is None:
+        return None, take_fps(None, weights_fps), None
+    head, kind = take_head(Take.fit(tracks, source), frames, rig, options, say)
+    return head, take_fps(tracks, weights_fps), kind
 
 
 def head_from_tracks(tracks: Tracks, frames: np.ndarray, reference_frame: int | None = None, head_units: float = 1.0,

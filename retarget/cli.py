@@ -69,8 +69,7 @@ def run(args) -> int:
         return run_rig(args)
     weights = read_weights(args.weights)
     frames, columns = weights.frames, weights.names
-    targets = args.targets[0] if len(args.targets) == 1 else args.targets
-    rt = fit_retargeter(columns, targets, args.regions, neutral=args.neutral)
+    rt = fit_retargeter(columns, args.targets, args.regions, neutral=args.neutral)
     if args.regions == "auto":
         print("keyshape retarget: regions from the targets' own support: " + ", ".join(rt.region_names_ or []))
     ts = rt.targets_
@@ -102,7 +101,7 @@ def run_rig(args) -> int:
     weights = read_weights(args.weights)
     frames, columns = weights.frames, weights.names
     needs_mesh = not str(args.output).lower().endswith(".csv")
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    rig = load_rig(args.rig, args.neutral, with_mesh=needs_mesh)
     lib = read_poses(args.poses, rig.names)
     pose_model = (lib.get("keys") or {}).get("model") if isinstance(lib.get("keys"), dict) else None
     if pose_model and args.tracks:
@@ -127,19 +126,15 @@ def run_rig(args) -> int:
 
 
 def _head(args, weights, rig=None):
-    """Head motion from ``--tracks`` (or None), the frame rate (:func:`keyshape.decompose.api.take_fps`: the
-    tracks', else the weights' own, else 30) and, with ``--tracks``, ``(tracks, head kind)`` for the gaze (else None):
-    :func:`keyshape.retarget.api.take_head` with the command's defaults."""
-    from keyshape.base.formats.weights import read_weights_fps
-    from keyshape.decompose.take import Take, take_fps
-    from keyshape.retarget.api import RetargetOptions, take_head
-
-    wfps = read_weights_fps(args.weights)
-    if not args.tracks:
-        return None, take_fps(None, wfps), None
+    """Head motion from ``--tracks`` (or None), the frame rate (the tracks', else the weights' own, else 30) and, with
+    ``--tracks``, ``(tracks, head kind)`` for the gaze (else None): :func:`keyshape.retarget.api.take_motion` with
+    the command's defaults."""
     from keyshape.base.formats.tracks import read_tracks
+    from keyshape.base.formats.weights import read_weights_fps
+    from keyshape.retarget.api import RetargetOptions, take_motion
 
-    tr = read_tracks(args.tracks, accept_partial=args.accept_partial)
-    head, kind = take_head(Take.fit(tr, args.tracks), weights.frames, rig, RetargetOptions(landmarks=args.landmarks),
-                           say=lambda line: print(f"keyshape retarget: {line}"))
-    return head, take_fps(tr, wfps), (tr, kind)
+    tr = read_tracks(args.tracks, accept_partial=args.accept_partial) if args.tracks else None
+    head, fps, kind = take_motion(tr, weights.frames, read_weights_fps(args.weights), rig,
+                                  RetargetOptions(landmarks=args.landmarks), args.tracks,
+                                  say=lambda line: print(f"keyshape retarget: {line}"))
+    return head, fps, None if tr is None else (tr, kind)

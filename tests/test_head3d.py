@@ -319,7 +319,7 @@ def test_a_left_turn_is_positive_head_yaw_end_to_end():
     """Rendered: the actor turns to their left (the face's left side, image right, goes away from
     the camera). Live Link's HeadYaw comes out positive (ARKit's face-anchor axes, see
     ``retarget/output/export.py``), as does the curves CSV's headYaw."""
-    from keyshape.retarget.output.export import head_columns, livelink_rows
+    from keyshape.retarget.output.export import csv_rows, head_columns, livelink_values
     from keyshape.retarget.headpose import head_motion_3d
     yaw = np.concatenate([np.zeros(30), np.linspace(0, 20, 30)])
     pts = _render(yaw, np.zeros(60), np.zeros(60))
@@ -328,7 +328,7 @@ def test_a_left_turn_is_positive_head_yaw_end_to_end():
     est = HeadPose3D(X, W, SCHEME.rigid, smooth=0).fit(pts)
     hp = est.head_pose(pts)
     head = head_motion_3d(hp["rotation"], hp["translation"], hp["angles"])
-    header, rows = livelink_rows(["jawOpen"], np.zeros((60, 1)), 30.0, head)
+    header, rows = csv_rows(livelink_values(["jawOpen"], np.zeros((60, 1)), head), 30.0)
     assert float(rows[-1][header.index("HeadYaw")]) == pytest.approx(np.radians(20), abs=np.radians(3))
     assert head_columns(head)[-1, 0] == pytest.approx(20, abs=3)
 

@@ -188,10 +188,10 @@ def test_csv_outputs(scene):
 
 
 def test_livelink_csv(tmp_path):
-    from keyshape.retarget.output.export import livelink_rows
+    from keyshape.retarget.output.export import csv_rows, livelink_values
     names = ["jawOpen", "mouthSmile_L", "browInnerUp_L", "browInnerUp_R", "mouth_3"]
     w = np.array([[0.5, 0.25, 0.2, 0.4, 0.9]] * 3)
-    header, rows = livelink_rows(names, w, fps=30)
+    header, rows = csv_rows(livelink_values(names, w), 30)
     assert header[:3] == ["Timecode", "BlendShapeCount", "EyeBlinkLeft"] and len(header) == 2 + 52 + 9
     assert header[-9:-6] == ["HeadYaw", "HeadPitch", "HeadRoll"] and header[54] == "HeadYaw"
     r = dict(zip(header, rows[1]))
@@ -199,7 +199,7 @@ def test_livelink_csv(tmp_path):
     assert float(r["JawOpen"]) == 0.5 and float(r["MouthSmileLeft"]) == 0.25
     assert float(r["BrowInnerUp"]) == pytest.approx(0.3) and float(r["TongueOut"]) == 0
     with pytest.raises(InputError, match="ARKit"):
-        livelink_rows(["mouth_0"], w[:, :1], 30)
+        livelink_values(["mouth_0"], w[:, :1])
 
 
 def test_obj_frames_folder(scene):

@@ -18,10 +18,7 @@ _COLOURS = {"brow": (40, 200, 255), "eye": (255, 200, 40), "pupil": (60, 60, 255
 
 
 def _colour(name: str) -> tuple[int, int, int]:
-    for key, c in _COLOURS.items():
-        if name.startswith(key):
-            return c
-    return (255, 255, 255)
+    return next((c for key, c in _COLOURS.items() if name.startswith(key)), (255, 255, 255))
 
 
 def draw_shape(image: np.ndarray, points: np.ndarray, scheme: Scheme, colour: tuple[int, int, int] | None = None,

@@ -29,12 +29,7 @@ class InputError(KeyshapeError, ValueError):
     def __init__(self, message: str, path: str | Path | None = None, line: int | None = None):
         self.path = None if path is None else Path(path)
         self.line = line
-        where = ""
-        if path is not None:
-            where = f"{path}"
-            if line is not None:
-                where += f", line {line}"
-            where += ": "
+        where = "" if path is None else f"{path}" + ("" if line is None else f", line {line}") + ": "
         super().__init__(where + message)
 
 

@@ -360,15 +360,11 @@ def check_output(path: str | Path, kind: str = "file", inputs: Iterable[str | Pa
         if len(os.fsencode(path.name)) + 20 > name_max:
             raise InputError(f"file name too long ({len(os.fsencode(path.name))} bytes; at most "
                              f"{name_max - 20} here)", path)
-    if kind == "file":
         guard_file(path, what)
     elif _RUN is not None and path.is_symlink():
         raise InputError(f"is a symbolic link; keyshape never writes through a link: choose another {what} folder",
                          path)
-    for inp in inputs:
-        if inp is None:
-            continue
-        inp = Path(inp)
+    for inp in (Path(i) for i in inputs if i is not None):
         if kind == "file" and _same(path, inp):
             raise InputError(f"the {what} is one of the inputs ({inp}); choose another name", path)
         if kind == "folder" and path.is_dir() and inp.exists() and _same(path, inp):
@@ -383,9 +379,7 @@ def check_outputs(files: Iterable[str | Path | None] = (), folders: Iterable[str
     inputs = [i for i in inputs if i is not None]
     seen: dict[str, Path] = {}
     for kind, paths in (("file", files), ("folder", folders)):
-        for p in paths:
-            if p is None:
-                continue
+        for p in (p for p in paths if p is not None):
             check_output(p, kind, inputs)
             key = os.path.abspath(p)
             if key in seen:
@@ -496,10 +490,7 @@ class InputSet:
     def __init__(self, inputs: Iterable[str | Path | None], output: str | Path | None = None):
         self.items = []
         out = _real(output) if output is not None else None
-        for i in inputs:
-            if i is None or str(i) == "":
-                continue
-            p = Path(i)
+        for p in (Path(i) for i in inputs if i is not None and str(i) != ""):
             if p.exists():
                 real = _real(p)
                 self.items.append((p, real, p.is_dir(), out if out is not None and p.is_dir() and
@@ -556,26 +547,13 @@ def atomic_dir(path: str | Path, overwrite: bool | None = None, inputs: Iterable
                kind: str = "output") -> Iterator[Path]:
     """Yield a hidden temporary folder whose files are moved into the folder ``path`` on success.
 
-    The ownership rule (``docs/reliability.md``): the folder's :data:`MANIFEST` records, per
-    command ``kind`` (``"retarget"``, ``"compare"``, ``"demo"``, ...), the files that kind wrote
-    there. When this run succeeds:
-
-    * its files are moved in; a file of the same name already there is replaced only when it
-      is recorded under this ``kind`` (or by an older keyshape without a kind), or with
-      ``overwrite``; never when it is one of ``inputs`` or inside an input folder (see
-      :class:`InputSet` for an output folder inside an input folder), never
-      through a symbolic link to a folder;
-    * files recorded under this ``kind`` that this run did not write are deleted, except an
-      input, a file inside an input folder, a symbolic link, or one reached through a link;
-      nothing recorded under another kind, and nothing unrecorded, is ever deleted;
-    * the record is rewritten: this kind's entry lists this run's files; files this run took
-      over leave other kinds' entries.
-
-    Every check is made before the first file moves. A non-empty folder without a record is
-    refused unless ``overwrite``; a malformed record is an :class:`InputError`. ``overwrite`` and
-    ``inputs`` left None are the running command's ``--overwrite`` and declared inputs (:class:`Run`). On error or
-    interruption the temporary folder is removed and ``path`` is as it was (a folder created
-    for the run is removed again).
+    The ownership rule, exactly as docs/reliability.md ("Folder outputs") states it: the folder's
+    :data:`MANIFEST` records, per command ``kind`` (``"retarget"``, ``"demo"``, ...), the files that kind
+    wrote with their content hashes; a run replaces and prunes only its own kind's earlier files, unchanged
+    (or replaces with ``overwrite``), never an input, a file inside an input folder (:class:`InputSet`) or
+    anything through a symbolic link, and rewrites the record. Every check is made before the first file
+    moves; ``overwrite`` and ``inputs`` left None are the running command's (:class:`Run`). On error or
+    interruption the temporary folder is removed and ``path`` is as it was.
     """
     if not kind:
         raise ValueError("atomic_dir needs a command kind")
@@ -690,6 +668,12 @@ def partial_name(path: str | Path) -> Path:
     return path.with_name(f"{path.stem}.partial{path.suffix}")
 
 
+def found_beside(name: str | Path, folder: Path) -> Path | None:
+    """The file ``name`` as given, else the file of its name in ``folder`` (a record naming a file that moved
+    with it), else None."""
+    return next((p for p in (Path(name), Path(folder) / Path(name).name) if p.is_file()), None)
+
+
 def describe_os_error(exc: OSError) -> str:
     """One line for an :class:`OSError`: the file and what went wrong (disk full, read-only, ...)."""
     name = exc.filename
@@ -738,7 +722,8 @@ def read_json(path: str | Path, what: str = "JSON file"):
         raise InputError("not valid JSON (nested too deeply)", path) from None
 
 
-def write_json(path: str | Path, data, indent: int | None = 1) -> None:
-    """Write ``data`` as JSON (``indent`` 1, or compact with ``None``) atomically."""
+def write_json(path: str | Path, data, indent: int | None = 1, end: str = "", sort_keys: bool = False) -> None:
+    """Write ``data`` as JSON (``indent`` 1, or compact with ``None``; then ``end``, e.g. a newline) atomically."""
     with atomic_write(path) as f:
-        json.dump(data, f, indent=indent)
+        json.dump(data, f, indent=indent, sort_keys=sort_keys)
+        f.write(end)

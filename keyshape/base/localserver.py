@@ -34,11 +34,12 @@ def is_loopback(address: str) -> bool:
     return ip.is_loopback
 
 
-def page_files(folder: Path) -> dict[str, tuple[Path, str]]:
-    """URL path -> (file, content type) for a page folder holding index.html, app.js and style.css."""
-    html = (folder / "index.html", "text/html; charset=utf-8")
-    return {"/": html, "/index.html": html,
-            "/app.js": (folder / "app.js", "text/javascript; charset=utf-8"),
+def page_files(folder: Path, html: str = "index.html", js: str = "app.js") -> dict[str, tuple[Path, str]]:
+    """URL path -> (file, content type) for a page folder holding the page ``html``, ``js`` and style.css
+    (served as ``/``, ``/index.html``, ``/app.js`` and ``/style.css``)."""
+    page = (folder / html, "text/html; charset=utf-8")
+    return {"/": page, "/index.html": page,
+            "/app.js": (folder / js, "text/javascript; charset=utf-8"),
             "/style.css": (folder / "style.css", "text/css; charset=utf-8")}
 
 

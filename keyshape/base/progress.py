@@ -7,9 +7,6 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Iterable, Iterator, TypeVar
-
-T = TypeVar("T")
 
 
 class Progress:
@@ -77,12 +74,3 @@ class Progress:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def progress(items: Iterable[T], total: int | None = None, desc: str = "", unit: str = "frames",
-             enabled: bool = True) -> Iterator[T]:
-    """Iterate over ``items`` while reporting progress."""
-    with Progress(total, desc, unit, enabled) as p:
-        for item in items:
-            yield item
-            p.update()

@@ -151,12 +151,10 @@ def _transfer(args) -> int:
     if args.landmarks:
         pairs = read_pairs(args.landmarks)
         _, tk, _ = resolve_landmarks(pairs, frames[0], tgt.vertices, args.landmarks)
-        sk = []
-        for i, p in enumerate(pairs):
-            if not isinstance(p["reference"], int):
-                raise InputError(f"pair {i}: the source side must be a vertex index for transfer", args.landmarks)
-            sk.append(p["reference"])
-        sk = np.array(sk, np.intp)
+        bad = [i for i, p in enumerate(pairs) if not isinstance(p["reference"], int)]
+        if bad:
+            raise InputError(f"pair {bad[0]}: the source side must be a vertex index for transfer", args.landmarks)
+        sk = np.array([p["reference"] for p in pairs], np.intp)
     else:
         if tgt.n_vertices != frames.shape[1]:
             raise InputError(f"target has {tgt.n_vertices} vertices, the sequence {frames.shape[1]} points: "

@@ -34,7 +34,6 @@ def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.nd
     if len(pairs) < 4:
         raise InputError(f"{len(pairs)} landmark pair(s): at least 4 are needed (10-12 recommended)", source)
     out = {"reference": [], "target": []}
-    ref_idx = []
     for i, p in enumerate(pairs):
         if not isinstance(p, dict) or set(p) != {"reference", "target"}:
             raise InputError(f"pair {i}: expected {{'reference': R, 'target': T}}, got {p!r:.80}", source)
@@ -47,13 +46,9 @@ def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.nd
                     raise InputError(f"pair {i}: {side} vertex {x} does not exist "
                                      f"(the {side} mesh has vertices 0..{len(verts) - 1})", source)
                 out[side].append(verts[x])
-                if side == "reference":
-                    ref_idx.append(x)
             elif isinstance(x, list) and len(x) == 3 and all(isinstance(c, (int, float)) and not isinstance(c, bool)
                                                              for c in x) and np.all(np.isfinite(x)):
                 out[side].append(np.array(x, np.float64))
-                if side == "reference":
-                    ref_idx.append(-1)
             else:
                 raise InputError(f"pair {i}: {side} must be a vertex index or [x, y, z], got {x!r:.60}", source)
     r, t = np.array(out["reference"]), np.array(out["target"])
@@ -75,7 +70,7 @@ def resolve_landmarks(pairs: list, ref_vertices: np.ndarray, tgt_vertices: np.nd
         if side == "target" and dt.min() < 1e-9 * max(1.0, np.abs(pts).max()):
             i, j = np.unravel_index(np.argmin(dt), dt.shape)
             raise InputError(f"pairs {i} and {j} send two reference points to the same target point", source)
-    return r, t, np.array(ref_idx, np.intp)
+    return r, t, np.array([p["reference"] if isinstance(p["reference"], int) else -1 for p in pairs], np.intp)
 
 
 def landmark_warp(vertices: np.ndarray, ref_points: np.ndarray, tgt_points: np.ndarray) -> np.ndarray:

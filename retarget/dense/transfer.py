@@ -11,9 +11,8 @@ from keyshape.base.errors import InputError
 from keyshape.retarget.dense.keypoints import check_sequence, face_rbf
 
 
-#: the deformation's kernel width over the median spacing of the target key points (3: enough overlap that the
-#: Gaussian interpolant does not sag between samples; ICT "talk", 5 frames, onto its own neutral, 6000 samples:
-#: mean skin error 1.22 mm at 1.25x, 0.66 mm at 2.5x, 0.59 mm at 3.5x); the RBF systems' ridge; target vertices
+#: the deformation's kernel width over the median spacing of the target key points (enough overlap that the
+#: Gaussian interpolant does not sag between samples: docs/keypoints.md); the RBF systems' ridge; target vertices
 #: deformed at a time (bounds the kernel matrix's memory)
 SPREAD, SMOOTHING, CHUNK = 3.0, 1e-2, 8192
 

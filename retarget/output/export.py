@@ -1,15 +1,5 @@
-"""Write retargeted animation, chosen by the extension of the output path.
-
-=================  ==========================================================
-``OUT.glb``        glTF 2.0 binary: mesh, morph targets, weight + head animation (3D)
-``OUT.usda/.usdc``  USD (also ``.usd``): the mesh with UsdSkel blend shapes, a head joint with the
-                   head motion, the weights per time code (3D; needs ``keyshape[usd]``)
-``OUT.csv``        per-frame weights per target name (``frame,time,<name>,...``), or the
-                   Live Link Face layout with ``livelink=True``
-``OUT.mp4/.avi``   rendered animation: the drawn character (2D) or the shaded mesh (3D)
-``OUT`` (folder)   one OBJ per frame (3D) or one PNG per frame (2D), written atomically
-=================  ==========================================================
-"""
+"""Write retargeted animation, chosen by the extension of the output path (.glb, .usda/.usdc/.usd, .csv,
+.mp4/.avi or a folder of OBJ/PNG frames: docs/retarget.md, "Outputs")."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -21,7 +11,7 @@ from keyshape.base.errors import InputError
 from keyshape.base.files import atomic_dir
 from keyshape.base.formats import Morphs
 from keyshape.retarget.headpose import HeadMotion
-from keyshape.retarget.targets.retargeter import Retargeter
+from keyshape.retarget.targets.retargeter import Retargeter, clamp_weights
 from keyshape.retarget.targets.target_set import name_key
 from keyshape.base.formats.weights import write_weights
 # the Live Link Face names and CSV layout live with the format (ARKIT52, LIVELINK_TAIL re-exported here)
@@ -35,16 +25,12 @@ USD_SUFFIXES = (".usda", ".usdc", ".usd")
 def output_kind(path: str | Path, dim: int) -> str:
     """``"glb"``, ``"usd"``, ``"csv"``, ``"video"``, ``"obj_frames"`` or ``"png_frames"`` for ``path``."""
     suffix = Path(path).suffix.lower()
-    if suffix == ".glb":
-        return "glb"
-    if suffix in USD_SUFFIXES:
-        return "usd"
-    if suffix == ".csv":
-        return "csv"
-    if suffix in VIDEO_SUFFIXES:
-        return "video"
-    if suffix == "" or Path(path).is_dir():
-        return "obj_frames" if dim == 3 else "png_frames"
+    kind = {".glb": "glb", ".csv": "csv", **dict.fromkeys(USD_SUFFIXES, "usd"),
+            **dict.fromkeys(VIDEO_SUFFIXES, "video")}.get(suffix)
+    if kind is None and (suffix == "" or Path(path).is_dir()):
+        kind = "obj_frames" if dim == 3 else "png_frames"
+    if kind is not None:
+        return kind
     raise InputError("output must end in .glb, .usda/.usdc/.usd, .csv, .mp4/.avi, or be a folder (OBJ or PNG "
                      "frames)", path)
 
@@ -63,7 +49,8 @@ def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None,
     in-plane angle) is set. The eye columns take ``eyes`` (n_frames, 4): left yaw, left pitch, right
     yaw, right pitch in radians (the actor's left and right eyes), when given.
     Raises :class:`InputError` when no target name is an ARKit name.
-    One mapping for the CSV (:func:`livelink_rows`) and the live packets (``keyshape live``).
+    One mapping for the CSV (:func:`~keyshape.base.formats.livelink.csv_rows` of these values) and the live
+    packets (``keyshape live``).
     """
     weights = np.asarray(weights, dtype=np.float64)
     col = {name_key(n): j for j, n in enumerate(names)}
@@ -88,13 +75,6 @@ def livelink_values(names, weights: np.ndarray, head: HeadMotion | None = None,
     if eyes is not None:
         tail[:, [3, 4, 6, 7]] = np.nan_to_num(np.asarray(eyes, np.float64))
     return out
-
-
-def livelink_rows(names, weights: np.ndarray, fps: float, head: HeadMotion | None = None,
-                  eyes: np.ndarray | None = None):
-    """Header and rows of a Live Link Face CSV (``Timecode,BlendShapeCount,<52 ARKit>,Head...,Eye...``):
-    :func:`livelink_values` in the layout of :func:`keyshape.base.formats.livelink.csv_rows`."""
-    return csv_rows(livelink_values(names, weights, head, eyes), fps)
 
 
 def write_mesh_take(path: Path, mesh, base: np.ndarray, morphs: Morphs, meters_per_unit: float = 0.01,
@@ -164,11 +144,7 @@ def _scheme_for(n_points: int, scheme):
     from keyshape.base.schemes import BUILTIN, load_scheme
     if scheme is not None:
         return load_scheme(scheme)
-    for name in BUILTIN:
-        s = load_scheme(name)
-        if s.n_points == n_points:
-            return s
-    return None
+    return next((s for s in map(load_scheme, BUILTIN) if s.n_points == n_points), None)
 
 
 def _head_2d(points: np.ndarray, head: HeadMotion) -> np.ndarray:
@@ -208,7 +184,7 @@ class ExportOptions:
 
 def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.ndarray, fps: float = 30.0,
            head: HeadMotion | None = None, options: ExportOptions | None = None) -> dict:
-    """Write the retargeted animation to ``path`` (kind by extension, see module docstring).
+    """Write the retargeted animation to ``path`` (kind by extension: docs/retarget.md, "Outputs").
 
     Parameters
     ----------
@@ -250,11 +226,7 @@ def export(path: str | Path, rt: Retargeter, frames: np.ndarray, weights: np.nda
             info["n_morph_targets"] = len(names)
         return info
     if kind == "csv":
-        w = weights
-        if clamp:
-            c = np.clip(w, 0, 1)
-            info["n_clamped"] = int(np.count_nonzero(c != w))
-            w = c
+        w, info["n_clamped"] = clamp_weights(weights, clamp)
         names = list(ts.names)
         if livelink:
             write_livelink(path, livelink_values(names, w, head), fps)

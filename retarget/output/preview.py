@@ -369,11 +369,10 @@ def caption(img: np.ndarray, text: str) -> np.ndarray:
 
 def panel_row(panels: list[np.ndarray]) -> np.ndarray:
     """Panels side by side (each scaled to the first one's height), separated by a thin gap."""
+    from functools import reduce
+
     from keyshape.retarget.output.render import side_by_side
-    out = panels[0]
-    for p in panels[1:]:
-        out = side_by_side(out, p)
-    return out
+    return reduce(side_by_side, panels)
 
 
 def default_workers() -> int:

@@ -40,14 +40,11 @@ def _curves_on_rig(path, rig):
     from keyshape.retarget.output.preview import head_rotations
 
     frames, names, c, _ = read_weights(path)
-    curves = np.zeros((len(frames), rig.n_shapes))
-    found = 0
-    for j, n in enumerate(rig.names):
-        if n in names:
-            curves[:, j] = c[:, names.index(n)]
-            found += 1
+    found = [(j, names.index(n)) for j, n in enumerate(rig.names) if n in names]
     if not found:
         raise InputError("no column names a rig shape", path)
+    curves = np.zeros((len(frames), rig.n_shapes))
+    curves[:, [j for j, _ in found]] = c[:, [k for _, k in found]]
     return frames, curves, head_rotations(names, c)
 
 
@@ -61,7 +58,7 @@ def run(args) -> int:
     from keyshape.retarget.rig.model import load_rig
 
     _check_outputs(args.output, args.sheet, size=args.size)
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    rig = load_rig(args.rig, args.neutral)
     frames, curves, head = _curves_on_rig(args.curves, rig)
     compare = None
     if args.compare:

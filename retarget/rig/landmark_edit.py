@@ -1,17 +1,8 @@
 """A tiny local web page for correcting a rig's landmarks (a keyshape-rig-landmarks file) by hand.
 
-``keyshape rig-check RIG [--landmarks FILE] -o LANDMARKS.json`` serves, on 127.0.0.1 only, the rig in
-its neutral and with its blinks, jawOpen and smiles at full weight (the check sheet's panels,
-:data:`keyshape.retarget.rig.landmarks.PANELS`), the scheme's points and contours drawn over each.
-The user clicks a point, then the place where it should be, in any panel: the page sends
-``PUT /api/points/<point>`` with ``{"panel": k, "at": [x, y]}`` (pixels of that panel) or
-``{"vertex": v}``; the server picks the rig vertex under the click (:meth:`LandmarkServer.pick`: the
-nearest visible vertex, on the point's own lip or lid), sets the point to it and rewrites
-LANDMARKS.json atomically. Nothing else is ever written.
-
-The safety rules are the pose page's (:mod:`keyshape.base.localserver`): loopback peers and ``Host``
-names only, JSON bodies under 1 MB with ``Content-Type: application/json``, points and panels
-checked by number (no path is ever built from a request).
+``keyshape rig-check``'s page (docs/formats.md, "Correcting a point"): a click puts a point on the rig vertex under it
+(:meth:`LandmarkServer.pick`) and rewrites LANDMARKS.json atomically; nothing else is written. The safety rules are
+:mod:`keyshape.base.localserver`'s.
 """
 from __future__ import annotations
 
@@ -22,13 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, listen, serve_until_stopped
+from keyshape.base.localserver import NO_BODY, LocalHandler, LocalServer, listen, page_files, serve_until_stopped
 
-_PAGE = Path(__file__).parent / "pose_page"
-PAGE_FILES = {"/": (_PAGE / "landmarks.html", "text/html; charset=utf-8"),
-              "/index.html": (_PAGE / "landmarks.html", "text/html; charset=utf-8"),
-              "/app.js": (_PAGE / "landmarks.js", "text/javascript; charset=utf-8"),
-              "/style.css": (_PAGE / "style.css", "text/css; charset=utf-8")}
+PAGE_FILES = page_files(Path(__file__).parent / "pose_page", "landmarks.html", "landmarks.js")
 #: the port the page is served on when free (else any free one)
 PORT = 8767
 #: a click picks among the visible vertices within this many pixels of it
@@ -121,7 +108,7 @@ class LandmarkHandler(LocalHandler):
 
 
 class LandmarkServer(LocalServer):
-    """The landmark-correction server for one rig (see the module docstring).
+    """The landmark-correction server for one rig (docs/formats.md, "Correcting a point").
 
     Parameters
     ----------

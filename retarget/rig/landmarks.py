@@ -1,25 +1,8 @@
 """A rig's scheme landmarks from what rigs publish (iBUG-68 vertex lists), checked, or found on the rig itself.
 
-Three things a rig of any topology needs before ``keyshape solve`` can drive it:
-
-* :func:`contours48_from_ibug68`: the ``contours48`` points from the 68 iBUG (Multi-PIE) landmarks that
-  rigs publish (ICT-FaceKit's ``vertex_indices.json``, Apple's ARKit face mesh list), exactly as the
-  shipped ICT-FaceKit file ``retarget/data/ict_landmarks_contours48.json`` was made
-  (``data_synth/build_ict_landmarks.py``): brows = iBUG 17-21 and 22-26; each eye's six iBUG points
-  (corner, two upper-lid points, corner, two lower-lid points) resampled to eight, the 3 upper and
-  3 lower lid points at 1/4, 1/2 and 3/4 of the lid polyline's arc length (corner, two lid landmarks,
-  corner) as weighted pairs of vertices; the pupils: the eyeball's front vertex, or, on a rig
-  without eyeballs (a face mask), the midpoint of the eye's corners (they then move with no shape:
-  gaze goes only to Live Link's eye angles); lips = iBUG 48-67 one to one.
-* :func:`landmark_problem`: what is wrong with a correspondence on this rig (wrong count; points in
-  the wrong order, e.g. iBUG's first 48 points given as a ``contours48`` file), read from geometry.
-* :func:`find_ibug68`: the 68 iBUG points found on a rig with no correspondence: ICT-FaceKit's face
-  (the shipped subset) is brought onto the rig's neutral by the similarity that maps the regions the
-  rig's own shapes move (each ``eyeBlink`` = a lid, ``jawOpen`` = the jaw and lower lip,
-  ``browInnerUp`` = the brows; ARKit and ICT names in either spelling) onto ICT's, and each of ICT's
-  landmarks is then placed on the nearest point of the rig's surface that moves as the landmark
-  does under those shapes (an upper lip point on the upper lip, which ``jawOpen`` leaves, not on the
-  lower lip it touches in a closed-mouth neutral).
+:func:`contours48_from_ibug68` derives the ``contours48`` points from a published iBUG-68 list,
+:func:`landmark_problem` says what the geometry refutes in a correspondence, :func:`find_ibug68` finds the 68 points
+on a rig with none; how each works: docs/formats.md (rig landmarks, 1-3).
 
 Pure functions over arrays: no file is opened here (:mod:`keyshape.base.formats.poses` reads and writes).
 """
@@ -90,7 +73,7 @@ class Derived:
 
 
 def contours48_from_ibug68(W68: np.ndarray, neutral: np.ndarray, still: np.ndarray | None = None) -> Derived:
-    """contours48's 48 points from iBUG-68's 68 (see the module docstring), as weight rows.
+    """contours48's 48 points from iBUG-68's 68 (docs/formats.md, rig landmarks 2), as weight rows.
 
     Parameters
     ----------
@@ -121,6 +104,12 @@ def contours48_from_ibug68(W68: np.ndarray, neutral: np.ndarray, still: np.ndarr
     rows.append(np.stack(pupils))
     rows.append(W68[48:68])                                                   # 28-47 lips
     return Derived(np.concatenate(rows), notes)
+
+
+def contours48_on_rig(W68: np.ndarray, neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str]) -> Derived:
+    """:func:`contours48_from_ibug68` on a rig, with its eyeballs (:func:`still_vertices`) where it has some."""
+    neutral = np.asarray(neutral, np.float64)
+    return contours48_from_ibug68(W68, neutral, still_vertices(deltas, names, eye_width(W68, neutral)))
 
 
 def still_vertices(deltas: np.ndarray, names: Sequence[str], width: float) -> np.ndarray:
@@ -377,23 +366,8 @@ def find_ibug68(neutral: np.ndarray, deltas: np.ndarray, names: Sequence[str], t
     ``reference``: a face with known iBUG-68 vertices and the same :data:`FEATURES` (the shipped
     ICT-FaceKit subset, :func:`keyshape.retarget.targets.demo.load_expressions`).
 
-    0. With ``skin_only``, the rig's skin alone is used (:func:`skin_triangles`: its largest connected
-       piece; eyeballs, teeth, the tongue and the eye shells, and their motion, are left out).
-    1. The reference's feature centroids (:func:`feature_centroid`: the regions the blinks, jawOpen,
-       browInnerUp and the smiles move) are mapped onto the rig's by a similarity (Umeyama): it takes
-       the rig's units and axes.
-    2. The reference's face (its vertices within ``face_margin`` eye distances of its landmarks: no
-       scalp, ears or neck, which a face mask lacks) is fitted onto the rig by non-rigid ICP: each
-       reference point and (``symmetric``) each rig vertex is paired with its nearest point of the other
-       face in position and motion (:func:`_shared_motion`: how every shape the two faces share by name
-       moves it, each relative to its largest, times ``motion_weight`` eye distances), pairs beyond three
-       times the median distance dropped; the displacement is a ridge-regularised sum of Gaussians on 150
-       reference points, ``widths`` eye distances wide, one width per iteration, from coarse to fine.
-    3. Each fitted landmark goes to the nearest point of the rig's surface that moves as it does under the
-       :data:`TELLING` shapes (jawOpen, the blinks), the motion choosing the surface only (an upper-lip point
-       lands on the upper lip that jawOpen leaves, not on the lower lip it touches in a closed-mouth
-       neutral); the inner mouth corners, where the lips meet, by position and by where jawOpen's motion lies
-       between the lips' around them (:func:`place_landmarks`).
+    The method, step by step, with the options each step takes: docs/retarget.md, "Notes on the code",
+    ``retarget/rig/landmarks.py``.
 
     Measured on remeshed ICT-FaceKit rigs (``bench/rig_landmarks_accuracy.py``, docs/benchmarks.md).
 
@@ -497,20 +471,7 @@ def place_landmarks(target: np.ndarray, desc_ref: np.ndarray, V: np.ndarray, tri
     ``desc_ref`` (68, 3 t) and ``desc_rig`` (n_vertices, 3 t): how the :data:`TELLING` shapes (jawOpen first)
     move each landmark and each rig vertex, relative to each shape's largest motion on its own face, times
     ``options.motion_weight`` eye distances; ``eyes``: the distance between the eyes; ``corners``: the
-    reference's inner mouth corners' :func:`corner_fractions`.
-
-    1. The surface a landmark lies on: of the closest points to it on the triangles around its 64 nearest
-       vertices, those whose motion is within ``options.side_tolerance`` (of the largest motion) of the
-       best match's: the upper lip that jawOpen leaves, not the lower lip an upper-lip point touches in a
-       closed-mouth neutral; the upper lid, not the lower one. The landmark goes to the nearest of them in
-       position: the motion only chooses the surface, since another artist's shapes move it by other
-       amounts.
-    2. The inner mouth corners (:data:`INNER_CORNERS`), where the lips meet and the vertices of both lips and
-       of the corner lie within a fraction of a millimetre of each other, each moved by jawOpen as its own
-       lip: the point nearest in position and in jawOpen's motion to the motion that lies where the
-       reference's corner lies between its lips' (:func:`corner_fractions`), among the rig's vertices within
-       ``options.corner_radius`` eye distances of the fitted corner: a fraction, so neither the motion's
-       amount (another artist's) nor the fit's last fraction of a millimetre matters.
+    reference's inner mouth corners' :func:`corner_fractions`. Step by step: docs/retarget.md, "Notes on the code", ``retarget/rig/landmarks.py``.
     """
     L = options.motion_weight * eyes
     cand = _candidates(target, V, tri, desc_rig)
@@ -535,11 +496,7 @@ def find_landmarks(neutral, deltas, names, triangles, reference, scheme_name: st
     """The scheme's points found on a rig (:func:`find_ibug68`, then for contours48
     :func:`contours48_from_ibug68`, with the rig's eyeballs where it has some)."""
     W68 = find_ibug68(neutral, deltas, names, triangles, reference, options)
-    width = eye_width(W68, np.asarray(neutral, np.float64))
-    if scheme_name == "ibug68":
-        return Derived(W68, [])
-    d = contours48_from_ibug68(W68, np.asarray(neutral, np.float64), still_vertices(deltas, names, width))
-    return d
+    return Derived(W68, []) if scheme_name == "ibug68" else contours48_on_rig(W68, neutral, deltas, names)
 
 
 def landmark_entries(W: np.ndarray) -> list:

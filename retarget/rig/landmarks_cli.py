@@ -59,10 +59,9 @@ def resolve_landmarks(rig, scheme: str, landmarks: str | Path | None, output: st
     if landmarks is not None:
         rig_landmarks(rig, scheme, landmarks)                       # refused here, before the work
         if read_landmark_list(landmarks) is not None and scheme == "contours48":
-            from keyshape.retarget.rig.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
+            from keyshape.retarget.rig.landmarks import contours48_on_rig, one_hot
             W68 = one_hot(read_landmark_list(landmarks), rig.n_vertices)
-            for note in contours48_from_ibug68(W68, rig.neutral, still_vertices(
-                    rig.deltas, rig.names, eye_width(W68, rig.neutral))).notes:
+            for note in contours48_on_rig(W68, rig.neutral, rig.deltas, rig.names).notes:
                 say(f"keyshape: {note}")
         return landmarks
     if default_landmarks(rig.n_vertices, scheme) is not None:
@@ -101,7 +100,7 @@ def run(args) -> int:
         raise InputError("the output must be a sheet (.png or .jpg) or, to correct the landmarks in a local web "
                          "page, a landmarks file (.json)", args.output)
     scheme = load_scheme("contours48")
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    rig = load_rig(args.rig, args.neutral)
     if edit and (rig.mesh is None or not rig.mesh.polygons):
         raise InputError("the rig's neutral has no faces to show", rig.neutral_file)
     if edit and args.landmarks is not None:             # a file the geometry refutes is what the page corrects

@@ -4,6 +4,7 @@ Design notes and figures: docs/retarget.md, "Notes on the code", ``retarget/rig/
 """
 from __future__ import annotations
 
+import contextlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -78,10 +79,7 @@ def _rig_files(sources: Sequence[str | Path] | str | Path, neutral: str | Path |
         else:
             files.append(require_file(p, "rig shape"))
     if neutral is None:
-        for f in files:
-            if f.stem.lower() in NEUTRAL_NAMES:
-                neutral = f
-                break
+        neutral = next((f for f in files if f.stem.lower() in NEUTRAL_NAMES), None)
     if neutral is None:
         raise InputError("no neutral mesh: give --neutral FILE or put neutral.obj in the rig folder",
                          folder or (files[0] if files else None))
@@ -97,13 +95,8 @@ def _rig_files(sources: Sequence[str | Path] | str | Path, neutral: str | Path |
             shapes = [f for f in shapes if f.stem in keep or f.parent != folder]
     if not shapes:
         raise InputError("no rig shapes (OBJ files besides the neutral) found", folder or neutral)
-    seen: dict[str, Path] = {}
-    for f in shapes:                    # as --targets: jawOpen.obj and JawOpen.obj are one name on some systems
-        key = f.stem.casefold()
-        if key in seen and seen[key] != f:
-            raise InputError(f"two rig shapes whose names differ only by case: {seen[key].name} and {f.name} "
-                             "(which one is meant?); rename or remove one", f.parent)
-        seen[key] = f
+    from keyshape.retarget.targets.target_set import refuse_name_twins
+    refuse_name_twins(shapes, "rig shapes whose names differ only by case")
     return shapes, neutral
 
 
@@ -146,11 +139,8 @@ def _file_hashes(paths: Sequence[Path]) -> list[str]:
         out.append(h)
         changed = True
     if changed:
-        try:
-            with keyshape_store():
-                write_json(index_path, index, indent=None)
-        except OSError:
-            pass
+        with contextlib.suppress(OSError), keyshape_store():
+            write_json(index_path, index, indent=None)
     return out
 
 
@@ -217,11 +207,8 @@ def load_rig(sources: Sequence[str | Path] | str | Path, neutral: str | Path | N
             pass                                  # damaged: parse again and rewrite it below
     base, deltas, mesh = _parse_rig(files, neutral, True)
     from keyshape.base.files import keyshape_store
-    try:
-        with keyshape_store():
-            write_rig_cache(path, names, base, deltas, mesh)
-    except OSError:
-        pass                                      # a read-only home: the rig is parsed each time
+    with contextlib.suppress(OSError), keyshape_store():     # a read-only home: the rig is parsed each time
+        write_rig_cache(path, names, base, deltas, mesh)
     return upright(Rig(names, base, deltas, mesh if with_mesh else None, files, neutral))
 
 
@@ -290,7 +277,7 @@ def rig_landmarks(rig: Rig, scheme: str, path: str | Path | None = None, check: 
 
 def _from_published_list(rig: Rig, sch, indices: np.ndarray, path) -> np.ndarray:
     """The scheme's weight rows from a rig's published iBUG-68 vertex list (checked)."""
-    from keyshape.retarget.rig.landmarks import contours48_from_ibug68, eye_width, one_hot, still_vertices
+    from keyshape.retarget.rig.landmarks import contours48_on_rig, one_hot
     if len(indices) != 68:
         raise InputError(f"{len(indices)} vertex indices: a rig's published landmark list must hold iBUG-68's 68 "
                          "(jaw 0-16, brows 17-26, nose 27-35, eyes 36-47, lips 48-67)", path)
@@ -304,8 +291,7 @@ def _from_published_list(rig: Rig, sch, indices: np.ndarray, path) -> np.ndarray
     if sch.name != "contours48":
         raise InputError(f"an iBUG-68 vertex list gives the contours48 or ibug68 schemes' points, not {sch.name!r}",
                          path)
-    return contours48_from_ibug68(W68, rig.neutral,
-                                  still_vertices(rig.deltas, rig.names, eye_width(W68, rig.neutral))).W
+    return contours48_on_rig(W68, rig.neutral, rig.deltas, rig.names).W
 
 
 def found_landmarks(rig: Rig, scheme: str):
@@ -377,11 +363,10 @@ def gaze_curves(angles: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, l
     """
     a = np.asarray(angles, np.float64)
     out = np.zeros((len(a), len(names)))
-    used = []
-    for j, col, sign in gaze_columns(names):
+    cols = gaze_columns(names)
+    for j, col, sign in cols:
         out[:, j] = np.clip(sign * a[:, col] / GAZE_RANGE[col % 2], 0.0, 1.0)
-        used.append(j)
-    return out, used
+    return out, [j for j, _, _ in cols]
 
 
 def gaze_pupil_deltas(landmark_neutral: np.ndarray, landmark_deltas: np.ndarray, names: Sequence[str],
@@ -461,11 +446,7 @@ def material_colour(mesh: Mesh, name: str) -> tuple:
     """RGBA base colour of material ``name``: the .mtl ``Kd`` when there is one, else by keyword."""
     if name in mesh.material_colours:
         return (*mesh.material_colours[name], 1.0)
-    low = name.lower()
-    for key, rgba in MATERIAL_COLOURS:
-        if key in low:
-            return rgba
-    return SKIN
+    return next((rgba for key, rgba in MATERIAL_COLOURS if key in name.lower()), SKIN)
 
 
 def triangle_polygons(mesh: Mesh) -> np.ndarray:
@@ -500,10 +481,7 @@ def support_regions(shapes: np.ndarray, neutral: np.ndarray, columns: Sequence[s
     them across a band.
     """
     from keyshape.retarget.targets.target_set import column_region
-    names: list[str] = []
-    for c in columns:
-        if column_region(c) not in names:
-            names.append(column_region(c))
+    names = list(dict.fromkeys(column_region(c) for c in columns))
     disp = np.linalg.norm(np.asarray(shapes) - neutral, axis=2)          # (n_keys, n_vertices)
     per = np.stack([disp[[i for i, c in enumerate(columns) if column_region(c) == r]].max(axis=0) for r in names])
     best = np.argmax(per, axis=0)

@@ -74,7 +74,7 @@ def run(args) -> int:
     scheme_name, n_points, regions = read_keys(args.keys)
     t0 = time.perf_counter()
     print(f"keyshape pose: loading the rig {' '.join(map(str, args.rig))} ...", flush=True)
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=False)
+    rig = load_rig(args.rig, args.neutral, with_mesh=False)
     n_keys = sum(len(rk.keys) for rk in regions)
     print(f"keyshape pose: {rig.n_shapes} shapes of {rig.n_vertices} vertices ({time.perf_counter() - t0:.1f} s); "
           f"fitting {n_keys} keys of {len(regions)} regions ...", flush=True)
@@ -112,8 +112,7 @@ def run(args) -> int:
     print(f"wrote {Path(args.output)}")
     if args.edit:
         from keyshape.retarget.rig.pose_edit import serve
-        serve(args.output, load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral),
-              args.keys, args.port)
+        serve(args.output, load_rig(args.rig, args.neutral), args.keys, args.port)
     return 0
 
 
@@ -123,6 +122,6 @@ def run_edit(args) -> int:
 
     from keyshape.base.errors import require_file
     require_file(args.poses, "pose library (POSES.json)")           # before the rig is loaded
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral)
+    rig = load_rig(args.rig, args.neutral)
     serve(args.poses, rig, args.keys, args.port)
     return 0

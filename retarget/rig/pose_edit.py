@@ -52,10 +52,8 @@ def find_keys_file(poses_path: Path, library: dict) -> Path | None:
     name = (library.get("keys") or {}).get("file")
     if not name:
         return None
-    for p in (Path(name), poses_path.parent / Path(name).name):
-        if p.is_file():
-            return p
-    return None
+    from keyshape.base.files import found_beside
+    return found_beside(name, poses_path.parent)
 
 
 class PoseHandler(LocalHandler):
@@ -121,7 +119,6 @@ class PoseServer(LocalServer):
         if rig.mesh is not None and rig.mesh.polygons:
             from keyshape.retarget.output.preview import RigRenderer
             self.renderer = RigRenderer(rig, (size, size)).fit(np.eye(rig.n_shapes))
-        self._index = {n: j for j, n in enumerate(rig.names)}
         super().__init__(port, PoseHandler)
 
     def _actor_shapes(self, keys) -> dict:
@@ -173,12 +170,11 @@ class PoseServer(LocalServer):
     def render_png(self, key: str) -> bytes:
         """The rig in ``key``'s current pose, as PNG bytes."""
         import cv2
-        c = np.zeros((1, self.rig.n_shapes))
+
+        from keyshape.retarget.rig.poses import pose_vector
         with self.lock:
             pose = next(reg["keys"][key] for reg in self.library["regions"].values() if key in reg["keys"])
-            for s, v in pose.items():
-                c[0, self._index[s]] = v
-        img = self.renderer.render(self.rig.evaluate(c)[0])
+        img = self.renderer.render(self.rig.evaluate(pose_vector(pose, self.rig.names)[None])[0])
         ok, buf = cv2.imencode(".png", img)
         return buf.tobytes()
 

@@ -179,6 +179,14 @@ def rig_curves(weights: np.ndarray, poses: np.ndarray, neutral_pose: np.ndarray 
     return c if bounds is None else np.clip(c, *bounds)
 
 
+def pose_vector(pose: Mapping[str, float], names: Sequence[str]) -> np.ndarray:
+    """A pose ``{shape: weight}`` as weights over ``names`` (shapes it does not name at 0)."""
+    p = np.zeros(len(names))
+    for s, v in pose.items():
+        p[list(names).index(s)] = v
+    return p
+
+
 def curves_from_library(weights: np.ndarray, columns: Sequence[str], library: Mapping,
                         shape_names: Sequence[str], source=None) -> np.ndarray:
     """Rig curves (n_frames, n_shapes) for weight ``columns`` from a pose library dict (POSES.json layout).
@@ -200,14 +208,8 @@ def curves_from_library(weights: np.ndarray, columns: Sequence[str], library: Ma
         if not keys:
             continue
         shapes = [index[s] for s in reg["shapes"]]
-        local = {s: i for i, s in enumerate(reg["shapes"])}
-        P = np.zeros((len(keys), len(shapes)))
-        for i, k in enumerate(keys):
-            for s, v in reg["keys"][k].items():
-                P[i, local[s]] = v
-        pn = np.zeros(len(shapes))
-        for s, v in reg.get("neutral", {}).items():
-            pn[local[s]] = v
+        P = np.array([pose_vector(reg["keys"][k], reg["shapes"]) for k in keys]).reshape(len(keys), len(shapes))
+        pn = pose_vector(reg.get("neutral", {}), reg["shapes"])
         out[:, shapes] += rig_curves(W[:, [col[k] for k in keys]], P, pn, None)
     return np.clip(out, lo, hi)
 

@@ -180,8 +180,8 @@ def region_rows(scheme, points: np.ndarray, motion: np.ndarray, floor: float = 0
         if not idx:
             continue
         M = np.zeros((2 * len(idx), len(points), 2))
-        for r, i in enumerate(idx):
-            M[2 * r, i, 0] = M[2 * r + 1, i, 1] = 1.0
+        r = np.arange(len(idx))
+        M[2 * r, idx, 0] = M[2 * r + 1, idx, 1] = 1.0
         blocks.append((name, M))
     blocks += contour_measures(scheme, points)
     ok = np.isfinite(motion).all(axis=(1, 2))
@@ -250,14 +250,11 @@ def symmetric_offsets(rig_points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """
     P = np.asarray(rig_points, float)
     partner = mirror_partners(P)
-    cols = []
-    for i, j in enumerate(partner):
-        if j < i or not (keep[i] and keep[j]):
-            continue
-        up = np.zeros((len(P), 2))
-        up[[i, j], 1] = 1.0
-        cols.append(up.ravel())
-    return np.array(cols).T if cols else np.zeros((2 * len(P), 0))
+    keep = np.asarray(keep, bool)
+    i = np.flatnonzero((partner >= np.arange(len(P))) & keep & keep[partner])      # one column per pair
+    out = np.zeros((len(P), 2, len(i)))
+    out[i, 1, np.arange(len(i))] = out[partner[i], 1, np.arange(len(i))] = 1.0
+    return out.reshape(2 * len(P), len(i))
 
 
 def rigid_frame_deltas(rig_points: np.ndarray, deltas: np.ndarray, rigid: Sequence[int],
@@ -681,14 +678,9 @@ class RigSolver:
                 continue
             idx = np.asarray(idx)
             rest_r = np.asarray(rest, float) @ Msim.T
-            Xr = X[ok][:, idx]
-            if yaw is not None and o.yaw_stretch and len(rigid) and region in yaw_regions:
-                Xr = Xr - yaw_stretch(Xr, X[ok][:, list(rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok], rest_yaw)
-            motion = (Xr - rest) @ Msim.T
+            motion = self._motion(X, ok, idx, np.asarray(rest, float), region, yaw, fixed)
             if fixed is not None:
-                fx = np.asarray(fixed, float)[ok]
-                sh = sh[np.abs(fx[:, sh]).max(axis=0, initial=0.0) == 0]
-                motion = motion - np.einsum("ts,spd->tpd", fx, landmark_deltas[:, idx])
+                sh = sh[np.abs(np.asarray(fixed, float)[ok][:, sh]).max(axis=0, initial=0.0) == 0]
             slope = None
             if yaw is not None and o.yaw_slide and region in yaw_regions:
                 sy = np.sin(np.asarray(yaw, float)[ok]) - np.sin(float(rest_yaw))
@@ -731,11 +723,20 @@ class RigSolver:
                 for j in range(len(sh)):          # loop over shapes, not frames
                     full[~ok, j] = np.interp(t[~ok], t[ok], c[:, j])
             out[:, sh] = full
-        if fixed is not None:
-            live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
-            out[:, live] = np.asarray(fixed, float)[:, live]
-        self.curves_ = out
+        self.curves_ = _with_fixed(out, fixed)
         return self
+
+    def _motion(self, X: np.ndarray, ok: np.ndarray, idx: np.ndarray, rest: np.ndarray, region: str, yaw, fixed):
+        """The ``ok`` frames' motion of a region's points ``idx`` from ``rest`` in the rig's frame: the turn's
+        vertical stretch (:func:`yaw_stretch`) and the ``fixed`` curves' landmark motion taken out."""
+        head, Xr = self.head_, X[ok][:, idx]
+        if head.yaw is not None and self.options.yaw_stretch and len(head.rigid) and region in head.regions:
+            Xr = Xr - yaw_stretch(Xr, X[ok][:, list(head.rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok],
+                                  head.rest_yaw)
+        motion = (Xr - rest) @ self.similarity_.T
+        if fixed is not None:
+            motion = motion - np.einsum("ts,spd->tpd", np.asarray(fixed, float)[ok], self.deltas_[:, idx])
+        return motion
 
     def transform(self, shapes: np.ndarray, yaw: np.ndarray | None = None,
                   fixed: np.ndarray | None = None) -> np.ndarray:
@@ -755,14 +756,7 @@ class RigSolver:
         if yaw is None and head.yaw is not None and (o.yaw_slide or o.yaw_stretch):
             raise InputError("RigSolver.transform: the solver was fitted with the head's yaw; give the frames'")
         for f in self.regions_:
-            along = f.name in head.regions                 # the yaw corrections' regions
-            Xr = X[ok][:, f.idx]
-            if head.yaw is not None and o.yaw_stretch and len(head.rigid) and along:
-                Xr = Xr - yaw_stretch(Xr, X[ok][:, list(head.rigid), 1].mean(axis=1), np.asarray(yaw, float)[ok],
-                                      head.rest_yaw)
-            motion = (Xr - f.rest) @ self.similarity_.T
-            if fixed is not None:
-                motion = motion - np.einsum("ts,spd->tpd", np.asarray(fixed, float)[ok], self.deltas_[:, f.idx])
+            motion = self._motion(X, ok, f.idx, f.rest, f.name, yaw, fixed)
             if f.slope is not None:
                 sy = np.sin(np.asarray(yaw, float)[ok]) - np.sin(float(head.rest_yaw))
                 motion = motion - sy[:, None, None] * f.slope[None]
@@ -774,10 +768,15 @@ class RigSolver:
             full = np.full((len(X), len(f.sh)), float(bounds[0]))
             full[ok] = c
             out[:, f.sh] = full
-        if fixed is not None:
-            live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
-            out[:, live] = np.asarray(fixed, float)[:, live]
-        return out
+        return _with_fixed(out, fixed)
+
+
+def _with_fixed(curves: np.ndarray, fixed: np.ndarray | None) -> np.ndarray:
+    """``curves`` with the ``fixed`` curves (the gaze shapes') where those are not 0 throughout."""
+    if fixed is not None:
+        live = np.abs(np.asarray(fixed, float)).max(axis=0, initial=0.0) > 0
+        curves[:, live] = np.asarray(fixed, float)[:, live]
+    return curves
 
 
 def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, columns: Sequence[str],
@@ -803,6 +802,7 @@ def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, c
     -------
     (T, n_shapes) within the library's range
     """
+    from keyshape.retarget.rig.poses import pose_vector
     index = {n: j for j, n in enumerate(shape_names)}
     row = {int(f): i for i, f in enumerate(frames)}
     col = {c: i for i, c in enumerate(columns)}
@@ -815,9 +815,6 @@ def pose_override(curves: np.ndarray, frames: np.ndarray, weights: np.ndarray, c
                 raise InputError(f"key {key!r} of the pose library has no weight column", source)
             if key not in key_frames or key_frames[key] not in row:
                 raise InputError(f"key {key!r} of the pose library is not a frame of these tracks", source)
-            p = np.zeros(len(shapes))
-            for s, v in pose.items():
-                p[reg["shapes"].index(s)] = v
-            delta = p - np.asarray(curves, float)[row[key_frames[key]], shapes]
+            delta = pose_vector(pose, reg["shapes"]) - np.asarray(curves, float)[row[key_frames[key]], shapes]
             out[:, shapes] += np.asarray(weights, float)[:, [col[key]]] * delta[None]
     return np.clip(out, lo, hi)

@@ -64,7 +64,7 @@ def run(args) -> int:
         raise InputError(f"the tracks have {tracks.n_points} points, the keys' scheme {scheme_name} {n_points}",
                          args.tracks)
     needs_mesh = not str(args.output).lower().endswith(".csv")
-    rig = load_rig(args.rig if len(args.rig) > 1 else args.rig[0], args.neutral, with_mesh=needs_mesh)
+    rig = load_rig(args.rig, args.neutral, with_mesh=needs_mesh)
     from keyshape.retarget.rig.landmarks_cli import resolve_landmarks
     args.landmarks = resolve_landmarks(rig, scheme_name, args.landmarks, args.output)
     report: dict = {}

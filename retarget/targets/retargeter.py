@@ -103,12 +103,7 @@ class Retargeter:
         ts = self.targets_
         if ts.dim != 3:
             raise InputError("glTF output needs 3D (OBJ) targets; these are 2D drawings")
-        w = _check_weights(weights, len(ts.columns)).astype(np.float64)
-        n_clamped = 0
-        if clamp:
-            c = np.clip(w, 0.0, 1.0)
-            n_clamped = int(np.count_nonzero(c != w))
-            w = c
+        w, n_clamped = clamp_weights(_check_weights(weights, len(ts.columns)).astype(np.float64), clamp)
         base = ts.neutral if ts.neutral is not None else ts.shapes[0]
         if self.region_weights_ is None:
             rw, kr, rnames = np.ones((1, ts.n_vertices)), np.zeros(len(ts.columns), np.intp), [None]
@@ -126,8 +121,13 @@ class Retargeter:
         return base, deltas, names, mw, n_clamped
 
 
+def clamp_weights(weights: np.ndarray, clamp: bool = True) -> tuple[np.ndarray, int]:
+    """``weights`` clipped to [0, 1] where ``clamp`` (glTF and ARKit consumers' range), and how many values changed."""
+    if not clamp:
+        return weights, 0
+    c = np.clip(weights, 0.0, 1.0)
+    return c, int(np.count_nonzero(c != weights))
+
+
 def _unique(names: Sequence[str], columns: Sequence[str]) -> list[str]:
-    out = []
-    for n, c in zip(names, columns):
-        out.append(n if list(names).count(n) == 1 else f"{n}_{c}")
-    return out
+    return [n if list(names).count(n) == 1 else f"{n}_{c}" for n, c in zip(names, columns)]

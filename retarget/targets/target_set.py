@@ -96,17 +96,23 @@ def _candidates(sources: Sequence[str | Path] | str | Path) -> tuple[list[Path],
                             and not q.name.startswith("."))    # hidden: keyshape's manifest, editors' files
         else:
             files.append(require_file(p, "target"))
-    seen: dict[str, Path] = {}
-    for f in files:
-        key = f.stem.casefold()
-        if key in seen and seen[key] != f:
-            raise InputError(f"two targets whose names differ only by case or extension: {seen[key].name} and "
-                             f"{f.name} (which one is meant?); rename or remove one", f.parent)
-        seen[key] = f
+    refuse_name_twins(files, "targets whose names differ only by case or extension")
     if not files:
         where = folder if folder is not None else ", ".join(map(str, sources))
         raise InputError(f"no target files ({'/'.join(TARGET_SUFFIXES)}) found", where)
     return files, folder
+
+
+def refuse_name_twins(files: Sequence[Path], what: str) -> None:
+    """One-line :class:`InputError` for two ``files`` whose names differ only by case (jawOpen.obj and JawOpen.obj
+    are one file on some systems; which one is meant?); ``what`` names them in the message."""
+    seen: dict[str, Path] = {}
+    for f in files:
+        key = f.stem.casefold()
+        if key in seen and seen[key] != f:
+            raise InputError(f"two {what}: {seen[key].name} and {f.name} (which one is meant?); rename or remove one",
+                             f.parent)
+        seen[key] = f
 
 
 def read_mapping(path: str | Path) -> dict[str, Path]:
@@ -157,9 +163,7 @@ def load_targets(columns: Sequence[str], sources: Sequence[str | Path] | str | P
                 raise MissingFileError(p, f"target for column {k!r}")
     else:
         mapping_src, chosen = None, {}
-    by_key: dict[str, Path] = {}
-    for f in files:
-        by_key.setdefault(name_key(f.stem), f)
+    by_key = {name_key(f.stem): f for f in reversed(files)}          # the first file of a name
     col_keys = {name_key(c) for c in columns}
     if neutral is None:  # a mapping's "neutral" entry, else a file named neutral.* among the sources
         for s in NEUTRAL_STEMS:
@@ -167,14 +171,8 @@ def load_targets(columns: Sequence[str], sources: Sequence[str | Path] | str | P
                 neutral = chosen.pop(s)
             elif s in by_key and s not in col_keys:
                 neutral = by_key[s]
-    missing, paths = [], []
-    for c in columns:
-        p = chosen.get(c)
-        if p is None:
-            p = by_key.get(name_key(c))
-        if p is None:
-            missing.append(c)
-        paths.append(p)
+    paths = [chosen.get(c) or by_key.get(name_key(c)) for c in columns]
+    missing = [c for c, p in zip(columns, paths) if p is None]
     if missing:
         where = mapping_src or folder or "the target files given"
         avail = ", ".join(sorted(f.stem for f in files)[:12]) or "none"

@@ -1,22 +1,7 @@
 """glTF 2.0 binary (.glb) output: base mesh, morph targets, weight and head-motion animation.
 
-Written with pygltflib. Layout (the conventions of glTF 2.0 morph targets):
-
-* node 0 ``head`` (root): carries the head motion as translation/rotation/scale
-  channels (see :mod:`keyshape.retarget.headpose`); node 1 ``face`` (its child) holds the mesh.
-* mesh: one primitive per material (all sharing the vertex attributes and targets),
-  triangles (polygons fan-triangulated), ``NORMAL`` when given, ``POSITION`` of the base
-  shape, ``TEXCOORD_0`` when the OBJ has UVs (vertices split at UV seams), ``targets[i].POSITION`` = target i minus the base (deltas), default
-  ``mesh.weights`` and the target names in ``mesh.extras.targetNames`` (read by
-  Blender's importer, three.js and glTFast).
-* animation ``performance``: one sampler drives ``weights`` of the face node at the
-  video frame rate (input: frame times ``frame / fps`` in seconds; output:
-  n_frames x n_targets weights, LINEAR), plus one sampler per head-motion path.
-
-Weights above 1: glTF allows any real weight and readers apply them as given, so
-they are **kept** by default (an NNLS weight of 1.2 means "20% past the key
-shape"); :func:`retarget.output.export.morph_targets` can clamp them to [0, 1] (what
-ARKit-style consumers expect) and reports how many values changed.
+Written with pygltflib. The layout (node ``head`` with child ``face``, one primitive per material, the
+``performance`` animation) and why weights above 1 are kept: docs/retarget.md, "Outputs", and docs/formats.md.
 """
 from __future__ import annotations
 
@@ -38,6 +23,14 @@ SPARSE_POSITION_TOL = 1e-6
 SPARSE_NORMAL_TOL = 1e-5
 
 
+def _bounds(array: np.ndarray, minmax: bool) -> dict:
+    """An accessor's ``min``/``max`` per component (glTF requires them on positions), or {}."""
+    if not minmax:
+        return {}
+    a = np.asarray(array).reshape(len(array), -1)
+    return dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
+
+
 class _Blob:
     """Accumulates tightly packed, 4-byte aligned buffer views and their accessors."""
 
@@ -47,18 +40,9 @@ class _Blob:
     def add(self, array: np.ndarray, type_: str, component: int, target: int | None = None,
             minmax: bool = False) -> int:
         import pygltflib as g
-        data = np.ascontiguousarray(array).tobytes()
-        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=self.offset, byteLength=len(data),
-                                                  target=target))
-        pad = (-len(data)) % 4
-        self.parts.append(data + b"\0" * pad)
-        self.offset += len(data) + pad
-        kw = {}
-        if minmax:
-            a = np.asarray(array).reshape(len(array), -1)
-            kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
-        self.gltf.accessors.append(g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=component,
-                                              count=len(array), type=type_, **kw))
+        view = self._view(np.ascontiguousarray(array).tobytes(), target)
+        self.gltf.accessors.append(g.Accessor(bufferView=view, componentType=component,
+                                              count=len(array), type=type_, **_bounds(array, minmax)))
         return len(self.gltf.accessors) - 1
 
     def _view(self, data: bytes, target: int | None = None) -> int:
@@ -81,9 +65,6 @@ class _Blob:
         rows = np.flatnonzero(keep)
         if 16 * len(rows) >= 12 * len(a):
             return self.add(a, "VEC3", FLOAT, g.ARRAY_BUFFER, minmax=minmax)
-        kw = {}
-        if minmax:
-            kw = dict(min=[float(x) for x in a.min(axis=0)], max=[float(x) for x in a.max(axis=0)])
         sparse = None
         if len(rows):
             sparse = g.Sparse(count=len(rows),
@@ -91,7 +72,7 @@ class _Blob:
                                                               componentType=UINT),
                               values=g.AccessorSparseValues(bufferView=self._view(a[rows].tobytes())))
         self.gltf.accessors.append(g.Accessor(componentType=FLOAT, count=len(a), type="VEC3", sparse=sparse,
-                                              byteOffset=None, **kw))
+                                              byteOffset=None, **_bounds(a, minmax)))
         return len(self.gltf.accessors) - 1
 
     def bytes(self) -> bytes:

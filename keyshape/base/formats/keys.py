@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_write, read_json
+from keyshape.base.files import read_json, write_json
 
 FORMAT = "keyshape-keys"
 #: face regions (section 5 of the paper) and the scheme regions they are built from
@@ -83,9 +83,7 @@ def write_keys(path: str | Path, scheme_name: str, n_points: int, regions: list[
         if rk.takes is not None:
             for k, t in zip(data["regions"][rk.region]["keys"], rk.takes):
                 k["take"] = int(t)
-    with atomic_write(path) as f:
-        json.dump(data, f, indent=1)
-        f.write("\n")
+    write_json(path, data, end="\n")
 
 
 def read_keys(path: str | Path) -> tuple[str, int, list[RegionKeys]]:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, KeyshapeError, require_dir, require_file
-from keyshape.base.files import atomic_write
+from keyshape.base.files import atomic_write, write_json
 
 #: largest plausible pixel coordinate (no image is 100 000 pixels wide)
 MAX_PIXELS = 1e5
@@ -172,8 +172,7 @@ def footage_record(video: str | Path) -> dict:
 
 def write_footage(folder: str | Path, record: dict) -> None:
     """Write the footage record (:func:`footage_record`) into a label folder."""
-    with atomic_write(Path(folder) / FOOTAGE_FILE) as f:
-        json.dump(record, f, indent=1)
+    write_json(Path(folder) / FOOTAGE_FILE, record)
 
 
 def read_footage(folder: str | Path) -> dict | None:

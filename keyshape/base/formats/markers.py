@@ -371,13 +371,8 @@ def read_trc(path, duplicates: str = "error") -> Markers:
     if "" in names and len(packed) == n_markers:
         names = packed                          # labels not on the X/Y/Z grid but one per marker
     labels = _fix_labels(names, n_markers, path, duplicates)
-    rows, row_ln = [], []
-    for ln in range(5, len(lines)):
-        line = lines[ln]
-        if not line.strip() or not line.split(sep)[0].strip():
-            continue
-        rows.append(line)
-        row_ln.append(ln + 1)
+    row_ln = [ln + 1 for ln in range(5, len(lines)) if lines[ln].split(sep)[0].strip()]
+    rows = [lines[ln - 1] for ln in row_ln]
     if not rows:
         raise InputError("no data rows", path)
     width = 2 + 3 * n_markers
@@ -507,20 +502,21 @@ READERS = {".c3d": read_c3d, ".trc": read_trc, ".csv": read_csv}
 WRITERS = {".c3d": write_c3d, ".trc": write_trc, ".csv": write_csv}
 
 
+def _by_extension(path, table: dict):
+    ext = Path(path).suffix.lower()
+    if ext not in table:
+        raise InputError(f"unknown marker format {ext!r}: expected .c3d, .trc or .csv", path)
+    return table[ext]
+
+
 def read_markers(path, duplicates: str = "error") -> Markers:
     """Read a marker file by its extension (.c3d, .trc, .csv)."""
-    ext = Path(path).suffix.lower()
-    if ext not in READERS:
-        raise InputError(f"unknown marker format {ext!r}: expected .c3d, .trc or .csv", path)
-    return READERS[ext](path, duplicates=duplicates)
+    return _by_extension(path, READERS)(path, duplicates=duplicates)
 
 
 def write_markers(path, markers: Markers) -> None:
     """Write a marker file by its extension (.c3d, .trc, .csv), atomically."""
-    ext = Path(path).suffix.lower()
-    if ext not in WRITERS:
-        raise InputError(f"unknown marker format {ext!r}: expected .c3d, .trc or .csv", path)
-    WRITERS[ext](path, markers)
+    _by_extension(path, WRITERS)(path, markers)
 
 
 # --------------------------------------------------------------------------- markers on a mesh (JSON)

@@ -7,6 +7,7 @@ written (``polygons``) and fan-triangulated on demand (``triangles``).
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -104,6 +105,14 @@ def _floats(rows: list[str], path: Path, first_line: list[int], width: int, what
     return arr
 
 
+def _obj_lines(path: str | Path) -> tuple[Path, list[str]]:
+    path = require_file(path, "mesh")
+    try:
+        return path, path.read_text().splitlines()
+    except UnicodeDecodeError:
+        raise InputError("not a text OBJ file", path) from None
+
+
 def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
     """Read an OBJ file keeping vertex order; raise :class:`InputError` naming file and line.
 
@@ -113,11 +122,7 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
     require_faces : bool
         Raise when the file has no faces.
     """
-    path = require_file(path, "mesh")
-    try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError:
-        raise InputError("not a text OBJ file", path) from None
+    path, lines = _obj_lines(path)
     v_rows, v_ln, vt_rows, vt_ln = [], [], [], []
     polygons, polygon_uvs = [], []
     groups: dict[str, list[int]] = {}
@@ -164,17 +169,8 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
             raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
         if any(not -nt <= i <= nt for i in ti):
             raise InputError(f"face names a texture coordinate outside 1..{nt}", path, ln)
-        vi = np.array([i - 1 if i > 0 else nv + i for i in vi], dtype=np.intp)
-        if vi.min() < 0 or vi.max() >= nv:
-            raise InputError(f"face names a vertex outside 1..{nv}", path, ln)
-        polygons.append(vi)
-        if all(ti):
-            t = np.array([i - 1 if i > 0 else nt + i for i in ti], dtype=np.intp)
-            if t.min() < 0 or t.max() >= nt:
-                raise InputError(f"face names a texture coordinate outside 1..{nt}", path, ln)
-            polygon_uvs.append(t)
-        else:
-            polygon_uvs.append(None)
+        polygons.append(_zero_based(vi, nv, "a vertex", path, ln))
+        polygon_uvs.append(_zero_based(ti, nt, "a texture coordinate", path, ln) if all(ti) else None)
     if require_faces and not polygons:
         raise InputError("mesh has no faces ('f' lines)", path)
     return Mesh(vertices, polygons, uvs, polygon_uvs, {k: np.array(v, dtype=np.intp) for k, v in groups.items()},
@@ -182,21 +178,25 @@ def read_obj(path: str | Path, require_faces: bool = False) -> Mesh:
                 _material_colours([path.parent / m for m in mtllibs]))
 
 
+def _zero_based(indices: list[int], n: int, what: str, path: Path, ln: int) -> np.ndarray:
+    """A face's one-based (or negative, from the end) OBJ indices, zero-based and checked."""
+    a = np.array([i - 1 if i > 0 else n + i for i in indices], dtype=np.intp)
+    if a.min() < 0 or a.max() >= n:
+        raise InputError(f"face names {what} outside 1..{n}", path, ln)
+    return a
+
+
 def _material_colours(files) -> dict:
     """``Kd`` of every ``newmtl`` in the given .mtl files that exist (others are skipped)."""
     out, name = {}, None
-    for f in files:
-        if not Path(f).is_file():
-            continue
-        for line in Path(f).read_text(errors="replace").splitlines():
+    for mtl in (Path(f) for f in files if Path(f).is_file()):
+        for line in mtl.read_text(errors="replace").splitlines():
             parts = line.split()
             if len(parts) >= 2 and parts[0] == "newmtl":
                 name = " ".join(parts[1:])
             elif len(parts) >= 4 and parts[0] == "Kd" and name is not None:
-                try:
+                with contextlib.suppress(ValueError):
                     out[name] = tuple(float(x) for x in parts[1:4])
-                except ValueError:
-                    pass
     return out
 
 
@@ -205,11 +205,7 @@ def read_obj_vertices(path: str | Path, n_vertices: int | None = None) -> np.nda
 
     Raises :class:`InputError` when ``n_vertices`` is given and differs.
     """
-    path = require_file(path, "mesh")
-    try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError:
-        raise InputError("not a text OBJ file", path) from None
+    path, lines = _obj_lines(path)
     rows = [(ln, l) for ln, l in enumerate(lines, start=1) if l.startswith("v ")]
     if not rows:
         raise InputError("no vertices ('v x y z' lines): not an OBJ mesh", path)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError, require_file
-from keyshape.base.files import atomic_write
+from keyshape.base.files import write_json
 
 FORMAT = "keyshape-poses"
 LANDMARKS_FORMAT = "keyshape-rig-landmarks"
@@ -41,9 +41,7 @@ def write_poses(path: str | Path, data: dict) -> None:
         regions[r] = {"shapes": list(reg["shapes"]), "neutral": rounded(reg.get("neutral", {})),
                       "keys": {k: rounded(pose) for k, pose in reg["keys"].items()}}
     out["regions"] = regions
-    with atomic_write(path) as f:
-        json.dump(out, f, indent=1)
-        f.write("\n")
+    write_json(path, out, end="\n")
 
 
 def read_poses(path: str | Path, rig_shapes: list[str] | None = None) -> dict:
@@ -113,9 +111,7 @@ def write_rig_landmarks(path: str | Path, scheme: str, n_vertices: int, points: 
     """Write a rig landmark JSON (see the module docstring)."""
     data = {"format": LANDMARKS_FORMAT, "version": 1, "scheme": scheme, "n_vertices": int(n_vertices),
             "points": points}
-    with atomic_write(path) as f:
-        json.dump(data, f)
-        f.write("\n")
+    write_json(path, data, indent=None, end="\n")
 
 
 def read_rig_landmarks(path: str | Path, n_vertices: int | None = None) -> tuple[str, np.ndarray]:

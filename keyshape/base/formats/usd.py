@@ -1,30 +1,8 @@
 """USD (``.usda``/``.usdc``/``.usd``) output: the mesh with UsdSkel blend shapes, a head joint and the take.
 
-Written with Pixar's ``usd-core`` (``pip install keyshape[usd]``), never by hand. Layout
-(the UsdSkel schema; ``maya-usd``, Houdini's Solaris, Omniverse and Unreal read it)::
-
-    /Character                 SkelRoot (default prim)
-        Skeleton               Skeleton: one joint ``head`` (bind and rest pose the identity),
-                               ``skel:animationSource`` -> Performance
-            Performance        SkelAnimation: ``blendShapes`` (the shape names),
-                               ``blendShapeWeights`` per time code, and the head joint's
-                               ``translations``/``rotations``/``scales`` per time code
-        Face                   Mesh (polygons as in the OBJ, ``primvars:st`` face-varying UVs,
-                               vertex ``normals``), SkelBindingAPI: rigidly bound to ``head``
-                               (``primvars:skel:jointIndices`` 0, weight 1), ``skel:blendShapes``
-                               and ``skel:blendShapeTargets``
-            <shape>            BlendShape: sparse ``offsets`` (+ ``pointIndices``) and
-                               ``normalOffsets`` where the mesh has normals
-
-Time: one time code per video frame (the frame number), ``timeCodesPerSecond`` and
-``framesPerSecond`` the take's frame rate, ``startTimeCode``/``endTimeCode`` its first and
-last frame. ``metersPerUnit`` is the mesh's length unit (ICT-FaceKit: centimetres, 0.01),
-``upAxis`` Y. Weights are kept as given (NNLS weights may exceed 1; USD applies them as
-given). The head joint's scale is a ``half3`` in UsdSkel (about 3 significant digits:
-a uniform scale near 1 is exact to about 5e-4).
-
-:func:`read_usd` reads a file back and evaluates the animated mesh with UsdSkel's own
-machinery (:class:`pxr.UsdSkel.Cache`, the blend-shape query and the skinning query).
+Written with Pixar's ``usd-core`` (``pip install keyshape[usd]``), never by hand; :func:`read_usd` reads a file back
+and evaluates it with UsdSkel's own machinery. The stage's layout, time codes, units and precision:
+docs/retarget.md, "USD".
 """
 from __future__ import annotations
 

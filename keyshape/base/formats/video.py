@@ -41,15 +41,21 @@ def _open(path: Path, raw: bool = False) -> cv2.VideoCapture:
     return cap
 
 
+@contextlib.contextmanager
+def opencv_log(level: int) -> Iterator[None]:
+    """OpenCV's own log at ``level`` (``cv2.utils.logging.LOG_LEVEL_*``) while the block runs."""
+    old = cv2.utils.logging.setLogLevel(level)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(old)
+
+
 def _read_raw(cap: cv2.VideoCapture):
     """``cap.read()`` without OpenCV's once-per-process warning that the raw picture format (yuv420p) "will be
     treated as 8UC1": that is what is wanted here."""
-    logging = cv2.utils.logging
-    level = logging.setLogLevel(logging.LOG_LEVEL_ERROR)
-    try:
+    with opencv_log(cv2.utils.logging.LOG_LEVEL_ERROR):
         return cap.read()
-    finally:
-        logging.setLogLevel(level)
 
 
 def open_capture(path: str | Path, table: np.ndarray | None = None) -> cv2.VideoCapture:

@@ -86,9 +86,7 @@ def _read(path, key_names: bool = False) -> tuple[WeightsTable, np.ndarray | Non
     skip = 0
     while skip < len(rows) and rows[skip] and rows[skip][0].lstrip().startswith("#"):
         skip += 1
-    comments = [",".join(r) for r in rows[:skip]]
-    if skip:
-        rows = rows[skip:]
+    comments, rows = [",".join(r) for r in rows[:skip]], rows[skip:]
     if not rows or not rows[0] or rows[0][0].strip() != "frame":
         raise InputError("expected a header 'frame,time,<key shape>,...'", path, 1 + skip)
     names = [c.strip() for c in rows[0][1:]]

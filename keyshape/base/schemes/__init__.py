@@ -78,11 +78,6 @@ class Scheme:
         """The iBUG-68 source point of each auxiliary point, all groups in order."""
         return [i for src in self.auxiliary.values() for i in src]
 
-    @property
-    def n_auxiliary(self) -> int:
-        """Number of auxiliary points (of all groups)."""
-        return sum(len(v) for v in self.auxiliary.values())
-
     def full(self) -> "Scheme":
         """The scheme with its auxiliary groups appended as points (each an open contour and a region),
         named ``NAME+GROUP``; ``self`` where it has none or is already full. ``rigid`` stays the base
