@@ -116,11 +116,6 @@ class Pyramid:
         return buf
 
 
-def build_pyramid(gray: np.ndarray, levels: int = 4) -> Pyramid:
-    """Lazy Gaussian pyramid of a gray frame (see :class:`Pyramid`)."""
-    return Pyramid(gray, levels)
-
-
 def warp_patch(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.ndarray:
     """Sample the ``size`` x ``size`` model-frame patch of a frame (float32).
 
@@ -300,15 +295,9 @@ def split_upper_lower(points: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, 
 class RegionModel:
     """Eigen-points model of one facial region inside the global model frame.
 
-    Coupled PCA of the region's normalised intensities (a dilated hull of its
-    points in the model frame, sampled in the region's bounding ``box``) and
-    its points, over the same labelled and morphed training patches as the
-    global model (section 3 of 004_119ba07521a9af0b.txt applied per feature,
-    as eigen-points is usually used). Reading a region is a projection of its
-    pixels on its intensity rows (MAP with the PCA prior, as the global
-    model) and the region's points from the same coefficients; the tracker
-    first refines the region's translation in the model frame
-    (:meth:`tracker.fitting.Tracker.read`).
+    Coupled PCA of the region's normalised intensities (a dilated hull of its points, sampled in the
+    region's bounding ``box``) and its points, over the global model's training patches; the tracker
+    refines the region's translation first (:meth:`keyshape.tracker.fitting.Tracker.read_regions`).
 
     ``box`` is ``(x0, y0, width, height)`` in model pixels, ``index`` the flat
     indices of the region's pixels in that box. ``centred``: trained on crops that follow the
@@ -714,7 +703,7 @@ class AppearanceModel:
         for img, lab in zip(frames, labels):
             a = fit_affine(ref, lab)
             poses.append(a)
-            patches.append(warp_patch(build_pyramid(to_gray(img)), a, size))
+            patches.append(warp_patch(Pyramid(to_gray(img)), a, size))
             shapes.append(apply_affine(invert_affine(a), lab))
         self.train_poses_ = np.stack(poses)
         self.train_shapes_ = np.stack(shapes)
@@ -764,7 +753,7 @@ class AppearanceModel:
             pts = sorted(set(lips["lip_outer"]) | set(lips["lip_inner"]))
             self.lip_refiner_ = ShapeRefiner.fit(
                 pts, pts,
-                [build_pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
+                [Pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
         self._precompute()
         return self
 
@@ -852,7 +841,7 @@ class AppearanceModel:
     def predict(self, frame: np.ndarray, image_from_model: np.ndarray) -> tuple[np.ndarray, float]:
         """Image landmarks ``(n_points, 2)`` and residual of ``frame`` warped by ``image_from_model``."""
         self._check_fitted()
-        patch = warp_patch(build_pyramid(to_gray(frame)), image_from_model, self.patch_size_)
+        patch = warp_patch(Pyramid(to_gray(frame)), image_from_model, self.patch_size_)
         c, r = self.project(self.intensities(patch))
         shape = self.landmarks(c)
         glob = shape.copy()

@@ -1,18 +1,7 @@
 """The tracking loop: pose refinement, eigen-points projection, lost-track detection and recovery.
 
-For each frame (section 3 of 004_119ba07521a9af0b.txt): start from the previous
-frame's ``image_from_model`` affine, refine it by image alignment of the
-model-frame patch against the model's mean appearance (inverse-compositional
-Lucas-Kanade with the appearance subspace projected out, coarse to fine),
-warp the frame into the model frame, project it on the eigen-points basis with
-the intensity rows only, read the landmarks from the same coefficients and map
-them back with the affine.
-
-A frame is *lost* when its appearance residual is far above the training
-residuals or the pose/shape collapses; the tracker then searches translations
-and scales around the last good pose and, failing that, re-initialises from
-the best match of the mean appearance over the whole frame (no face detector
-needed). Lost frames are returned with ``success = False`` and NaN landmarks.
+Section 3 of 004_119ba07521a9af0b.txt; each step in docs/tracker.md, "How each frame is tracked".
+Lost frames are returned with ``success = False`` and NaN landmarks.
 """
 from __future__ import annotations
 
