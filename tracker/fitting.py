@@ -120,64 +120,45 @@ class _RegionTables:
         kq = max(len(rm.qt) for rm in regions)
         kc = max(len(rm.pinv_i) for rm in regions)
         pmax = max(len(rm.points) for rm in regions)
-        self.names = [rm.name for rm in regions]
-        self.geo = np.zeros((n_reg, 6), np.int64)          # box x0, y0, w, h, its pixel count and basis rows
-        self.box_cx = np.zeros(n_reg)
-        self.index = np.zeros((n_reg, nmax), np.int64)
-        self.mean_i = np.zeros((n_reg, nmax))
-        self.xc = np.zeros((n_reg, nmax))
-        self.qt = np.zeros((n_reg, kq, nmax))
-        self.coef = np.zeros((n_reg, kc, kq))                   # pinv_i Q: coefficients from Qᵀe
-        self.inv_var = np.zeros((n_reg, kc))
-        self.mean_l = np.zeros((n_reg, 2 * pmax))
-        self.ul = np.zeros((n_reg, 2 * pmax, kc))
+        geo = np.zeros((n_reg, 6), np.int64)             # box x0, y0, w, h, its pixel count and basis rows
+        box_cx, index = np.zeros(n_reg), np.zeros((n_reg, nmax), np.int64)
+        mean_i, xc = np.zeros((n_reg, nmax)), np.zeros((n_reg, nmax))
+        qt, coef = np.zeros((n_reg, kq, nmax)), np.zeros((n_reg, kc, kq))     # coef: pinv_i Q (coefficients from Qᵀe)
+        inv_var, mean_l, ul = np.zeros((n_reg, kc)), np.zeros((n_reg, 2 * pmax)), np.zeros((n_reg, 2 * pmax, kc))
         for r, rm in enumerate(regions):
             x0, y0, w, h = (int(v) for v in rm.box)
             n, q, c, p = rm.n_pix, len(rm.qt), len(rm.pinv_i), len(rm.points)
-            self.geo[r] = x0, y0, w, h, n, q
-            self.box_cx[r] = rm.box_cx
-            self.index[r, :n] = rm.index
-            self.mean_i[r, :n] = rm.mean_i
-            self.xc[r, :n] = rm.box_xc
-            self.qt[r, :q, :n] = rm.qt
-            self.coef[r, :c, :q] = rm.pinv_i @ rm.qt.T
-            self.inv_var[r, :c] = 1.0 / rm.variance
-            self.mean_l[r, :2 * p] = rm.mean_l
-            self.ul[r, :2 * p, :rm.ul.shape[1]] = rm.ul
-        self.groups = np.zeros((len(groups), 4), np.int64)    # first, last (exclusive), steps, stretch
+            geo[r] = x0, y0, w, h, n, q
+            box_cx[r] = rm.box_cx
+            index[r, :n] = rm.index
+            mean_i[r, :n] = rm.mean_i
+            xc[r, :n] = rm.box_xc
+            qt[r, :q, :n] = rm.qt
+            coef[r, :c, :q] = rm.pinv_i @ rm.qt.T
+            inv_var[r, :c] = 1.0 / rm.variance
+            mean_l[r, :2 * p] = rm.mean_l
+            ul[r, :2 * p, :rm.ul.shape[1]] = rm.ul
+        table = np.zeros((len(groups), 4), np.int64)     # first, last (exclusive), steps, stretch
         first, widest = 0, 1
         for g, (members, steps, stretch) in enumerate(groups):
-            self.groups[g] = first, first + len(members), steps, int(stretch)
+            table[g] = first, first + len(members), steps, int(stretch)
             first += len(members)
             widest = max(widest, len(members))
-        self.lims = np.array([lim, slim])
-        grow = lim + slim * float(self.geo[:, 2].max()) / 2 + 2.0
-        lo = self.geo[:, :2].min(0) - 1 - grow
-        hi = (self.geo[:, :2] + self.geo[:, 2:4]).max(0) + grow
+        grow = lim + slim * float(geo[:, 2].max()) / 2 + 2.0
+        lo = geo[:, :2].min(0) - 1 - grow
+        hi = (geo[:, :2] + geo[:, 2:4]).max(0) + grow
         self.reach = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
-        hmax, wmax = int(self.geo[:, 3].max()), int(self.geo[:, 2].max())
-        npar = 2 * widest + 2
-        self.crop = np.zeros(hmax * wmax, np.uint8)
-        self.gxy = np.zeros((2, hmax * wmax))
-        self.e = np.zeros(nmax)
-        self.jac = np.zeros((4, nmax))
-        self.qj = np.zeros((kq, 4))
-        self.qe = np.zeros((n_reg, kq))
-        self.best_qe = np.zeros((n_reg, kq))
-        self.hess = np.zeros((npar, npar))
-        self.grad = np.zeros(npar)
-        self.sol = np.zeros(npar)
-        self.t = np.zeros((n_reg, 4))
+        hw, npar = int(geo[:, 3].max()) * int(geo[:, 2].max()), 2 * widest + 2
         self.pts = np.zeros((n_reg, pmax, 2))
         # the sum over regions of each point's readings: scatter (n_points, n_reg pmax) @ pts
         self.scatter = np.zeros((n_points, n_reg * pmax))
         for r, rm in enumerate(regions):
             self.scatter[rm.points, r * pmax + np.arange(len(rm.points))] = 1.0
-        # what refine_regions takes: the constant tables and the work arrays
-        self.tables = (self.groups, self.geo, self.box_cx, self.index, self.mean_i, self.xc, self.qt, self.coef,
-                       self.inv_var, self.mean_l, self.ul, self.lims)
-        self.work = (self.crop, self.gxy, self.e, self.jac, self.qj, self.qe, self.best_qe, self.hess, self.grad,
-                     self.sol, self.t, self.pts)
+        # what refine_regions takes (its docstring names them): the constant tables and the work arrays
+        self.tables = (table, geo, box_cx, index, mean_i, xc, qt, coef, inv_var, mean_l, ul, np.array([lim, slim]))
+        self.work = (np.zeros(hw, np.uint8), np.zeros((2, hw)), np.zeros(nmax), np.zeros((4, nmax)), np.zeros((kq, 4)),
+                     np.zeros((n_reg, kq)), np.zeros((n_reg, kq)), np.zeros((npar, npar)), np.zeros(npar),
+                     np.zeros(npar), np.zeros((n_reg, 4)), self.pts)
 
 
 class Tracker:
@@ -244,27 +225,23 @@ class Tracker:
         # work arrays, and where its written points sit among its points and in the frame's points
         self._lips = None if lr is None else (lr, lr.tables(), lr.work(), (np.searchsorted(lr.points, lr.write),
                                               lr.write), np.empty(2 * len(lr.points)), np.empty(4, np.intp))
-        size = m.patch_size_
-        n_pix = len(m.index_)
-        mean = np.zeros(size * size)
-        mean[m.index_] = m.mean_[:n_pix]
-        mean = mean.reshape(size, size)
-        basis = np.zeros((m.k_, size * size))
-        basis[:, m.index_] = m.components_[:, :n_pix]
-        basis = basis.reshape(m.k_, size, size)
+        size, n_pix, half = m.patch_size_, len(m.index_), m.patch_size_ // 2
+
+        def image(values: np.ndarray) -> np.ndarray:            # values at the mask's pixels -> (..., size, size)
+            out = np.zeros(values.shape[:-1] + (size * size,))
+            out[..., m.index_] = values
+            return out.reshape(values.shape[:-1] + (size, size))
+
+        def down(img: np.ndarray) -> np.ndarray:                # the coarse level's image
+            return cv2.resize(img, (half, half), interpolation=cv2.INTER_AREA)
+
+        mean, basis = image(m.mean_[:n_pix]), image(m.components_[:, :n_pix])
+        var = image((m.components_[:, :n_pix] ** 2 * m.explained_variance_[:, None]).sum(0))
         noise = float(np.median(m.train_residuals_))
-        var = np.zeros(size * size)
-        var[m.index_] = (m.components_[:, :n_pix] ** 2 * m.explained_variance_[:, None]).sum(0)
-        var = var.reshape(size, size)
         fine = _Level(mean, basis, m.mask_, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var, noise)
-        half = size // 2
-        cmean = cv2.resize(mean, (half, half), interpolation=cv2.INTER_AREA)
-        cbasis = np.stack([cv2.resize(b, (half, half), interpolation=cv2.INTER_AREA) for b in basis])
-        cmask = cv2.resize(m.mask_.astype(np.float32), (half, half), interpolation=cv2.INTER_AREA) > 0.99
         scale = size / half
-        cvar = cv2.resize(var, (half, half), interpolation=cv2.INTER_AREA)
-        coarse = _Level(cmean, cbasis, cmask, np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2]]),
-                        cvar, noise)
+        coarse = _Level(down(mean), np.stack([down(b) for b in basis]), down(m.mask_.astype(np.float32)) > 0.99,
+                        np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2]]), down(var), noise)
         self.levels = [coarse, fine]
         sv = np.linalg.svd(m.train_poses_[:, :, :2], compute_uv=False)
         self.max_anisotropy = float(np.exp(np.log(sv[:, 0] / sv[:, 1]).max() + np.log(1.03)))
@@ -279,15 +256,10 @@ class Tracker:
         self._template_cache: dict = {}
         # read(): coefficients and U_Iᵀe in one product, the Gram matrix for the residual
         rd = m.reading_
-        self._read_mat = np.vstack([rd.pinv_i, rd.basis_i.T])
-        self._read_gram = np.ascontiguousarray(rd.basis_i.T @ rd.basis_i)
-        self._read_ul = np.ascontiguousarray(rd.basis_l)
-        self._read_mean_i, self._read_mean_l = rd.mean_i, rd.mean_l
-        self._read_inv_var = 1.0 / m.explained_variance_
-        self._read_index = m.index_.astype(np.int64)
-        self._read_e, self._read_c, self._read_shape = np.zeros(len(m.index_)), np.zeros(m.k_), np.zeros(2 * m.n_points)
-        self._reading = (self._read_index, self._read_mean_i, self._read_mat, self._read_gram, self._read_ul,
-                         self._read_mean_l, self._read_inv_var)
+        self._reading = (m.index_.astype(np.int64), rd.mean_i, np.vstack([rd.pinv_i, rd.basis_i.T]),
+                         np.ascontiguousarray(rd.basis_i.T @ rd.basis_i), np.ascontiguousarray(rd.basis_l),
+                         rd.mean_l, 1.0 / m.explained_variance_)
+        self._read_work = (np.zeros(len(m.index_)), np.zeros(m.k_), np.zeros(2 * m.n_points))
         regions = list(m.region_models_)
         lips = [rm for rm in regions if self._is_lip(rm)]
         count = np.zeros(m.n_points)
@@ -302,8 +274,9 @@ class Tracker:
         self._tables = _RegionTables(groups, 0.08 * m.face_width, self.lip_stretch, m.n_points) if groups else None
         self._region_count = count
         pe = self.levels[-1]
-        self._polish_work = (np.zeros((2, pe.size * pe.size)), np.zeros(len(pe.index)), np.zeros((6, len(pe.index))), np.zeros(pe.q.shape[1]),
-                             np.zeros((pe.q.shape[1], 6)), np.zeros((6, 6)), np.zeros(6), np.zeros(6))
+        self._polish_work = (np.zeros((2, pe.size * pe.size)), np.zeros(len(pe.index)), np.zeros((6, len(pe.index))),
+                             np.zeros(pe.q.shape[1]), np.zeros((pe.q.shape[1], 6)), np.zeros((6, 6)), np.zeros(6),
+                             np.zeros(6))
         self.reset()
 
     def reset(self) -> None:
@@ -424,8 +397,8 @@ class Tracker:
             patch = got[2]                      # polish() sampled this pose last (its step was not kept)
         else:
             patch = warp_patch_u8(pyr, pose, m.patch_size_)
-        flat = self._read_shape
-        r, self._contrast, self._m2 = read_global(patch, self._reading, (self._read_e, self._read_c, flat))
+        flat = self._read_work[2]
+        r, self._contrast, self._m2 = read_global(patch, self._reading, self._read_work)
         shape = flat.reshape(-1, 2).copy()
         if m.region_models_ and self.region_iter >= 0:
             hit, reg = self.read_regions(pyr, pose, patch)
