@@ -481,15 +481,7 @@ class ShapeRefiner:
         ax, va = _pca_rows(a - a0)
         ka = min(int(np.searchsorted(np.cumsum(va) / max(va.sum(), 1e-300), appearance) + 1), len(va))
         q, _ = np.linalg.qr(np.column_stack([np.ones(n_pix), ax[:ka].T]))
-        res = []
-        for i in range(len(a)):                    # leave-one-label-out residual: the pixel noise
-            keep = np.arange(len(a)) != i
-            mu = a[keep].mean(0)
-            vti, _ = _pca_rows(a[keep] - mu)
-            vti = vti[:ka]
-            e = a[i] - mu
-            e = e - vti.T @ (vti @ e)
-            res.append(float(e @ e / n_pix))
+        res = _held_out_residuals(a, np.repeat(np.arange(len(a))[:, None], 2, 1), len(a), ka)   # the pixel noise
         weights = prior * float(np.median(res)) / np.maximum(lam, 1e-12)
         return cls(pts, write, ext, tri_i, bary, s0.ravel(), basis, weights, a0, q.T)
 
