@@ -388,19 +388,15 @@ class RegionModel:
 
 class ShapeRefiner:
     """A region's shape fitted to the frame by analysis by synthesis (a project-out active appearance model,
-    Matthews and Baker 2004; menpofit's fitters), after the eigen-points reading.
+    Matthews and Baker 2004; menpofit's fitters), after the eigen-points reading (docs/tracker.md, "The lips'
+    shape fitted to the frame").
 
-    A linear reading regresses toward the labelled frames' mean away from them (a wide-open mouth reads
-    less open); fitting the shape so that the frame, warped from that shape to the mean shape, looks like
-    the labelled frames does not. Trained on the labelled frames only: the shape model is the PCA of the
-    region's points in the model frame (plus the two translations); the appearance is the frames' grey
-    levels in a template over the mean shape (a grid of ``step`` model pixels inside the triangulation of
-    the points and of a ring around their hull, ``ring`` times its size about the centroid), normalised as
-    the eigen-points patches, their mean ``a0`` and principal components (``appearance`` of the variance),
-    which the fit projects out. Per frame (:func:`keyshape.tracker.kernels.refine_shape`) the shape starts
-    at the tracker's reading and moves by Gauss-Newton steps under a Gaussian prior on its components
-    (``prior`` times the pixel noise, the leave-one-label-out residual, over each component's variance).
-    ``write``: the points whose refined positions replace the reading (the others only take part).
+    Trained on the labelled frames: the shape model is the PCA of the region's points in the model frame (plus
+    the two translations); the appearance, the frames' normalised grey levels in a template over the mean shape
+    (a grid of ``step`` model pixels inside the triangulation of the points and of a ring ``ring`` times their
+    hull), its mean ``a0`` and principal components, projected out. Per frame
+    (:func:`keyshape.tracker.kernels.refine_shape`) the shape moves from the reading by Gauss-Newton steps under a
+    Gaussian prior on its components. ``write``: the points whose refined positions replace the reading.
     """
 
     ARRAYS = ("points", "write", "ext", "tri", "bary", "s0", "basis", "weights", "a0", "qt")
