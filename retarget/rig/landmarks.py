@@ -5,7 +5,7 @@ Three things a rig of any topology needs before ``keyshape solve`` can drive it:
 * :func:`contours48_from_ibug68`: the ``contours48`` points from the 68 iBUG (Multi-PIE) landmarks that
   rigs publish (ICT-FaceKit's ``vertex_indices.json``, Apple's ARKit face mesh list), exactly as the
   shipped ICT-FaceKit file ``retarget/data/ict_landmarks_contours48.json`` was made
-  (``data_synth/build_ict_landmarks.py``): brows = iBUG 17-21 and 22-26; each eye's six iBUG points
+  (``bench/build_ict_landmarks.py``): brows = iBUG 17-21 and 22-26; each eye's six iBUG points
   (corner, two upper-lid points, corner, two lower-lid points) resampled to eight, the 3 upper and
   3 lower lid points at 1/4, 1/2 and 3/4 of the lid polyline's arc length (corner, two lid landmarks,
   corner) as weighted pairs of vertices; the pupils: the eyeball's front vertex, or, on a rig

@@ -2,7 +2,7 @@
 
 Usage (from the repository root)::
 
-    python -m keyshape.data_synth.build_ict_landmarks [--source ../shared/data/ict-facekit]
+    PYTHONPATH=. python bench/build_ict_landmarks.py [--source ../shared/data/ict-facekit]
 
 From ICT-FaceKit's 68 Multi-PIE landmark vertices (``vertex_indices.json``, ``idx_to_landmark_verts``):
 ``ibug68`` as they are, ``contours48`` derived as docs/formats.md says (the rig's published iBUG-68 list);
