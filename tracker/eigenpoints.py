@@ -687,11 +687,12 @@ class AppearanceModel:
         self.mask_ = mask
         self._index = np.flatnonzero(mask.ravel())
 
+        pyramids = [Pyramid(to_gray(img)) for img in frames]
         poses, patches, shapes = [], [], []
-        for img, lab in zip(frames, labels):
+        for pyr, lab in zip(pyramids, labels):
             a = fit_affine(ref, lab)
             poses.append(a)
-            patches.append(warp_patch(Pyramid(to_gray(img)), a, size))
+            patches.append(warp_patch(pyr, a, size))
             shapes.append(apply_affine(invert_affine(a), lab))
         self.train_poses_ = np.stack(poses)
         self.train_shapes_ = np.stack(shapes)
@@ -726,22 +727,17 @@ class AppearanceModel:
         src_of = np.array(src_of)
         self.train_residuals_ = np.array(_held_out_residuals(intens, src_of, n, self.k_))
         self.scheme_ = scheme
-        self.region_models_ = []
-        if self.regions:
-            groups = region_groups(scheme)
-            if "mouth" in groups and self.split_mouth:
-                # upper and lower lip move apart (jaw drop): each gets its own translation
-                groups["lip_upper"], groups["lip_lower"] = split_upper_lower(groups.pop("mouth"), ref)
-            for name, pts in groups.items():
-                self.region_models_.append(RegionModel.fit_region(name, pts, ref, all_patches, all_shapes, src_of, n,
-                                                                  self))
+        groups = region_groups(scheme) if self.regions else {}
+        if "mouth" in groups and self.split_mouth:
+            # upper and lower lip move apart (jaw drop): each gets its own translation
+            groups["lip_upper"], groups["lip_lower"] = split_upper_lower(groups.pop("mouth"), ref)
+        self.region_models_ = [RegionModel.fit_region(name, pts, ref, all_patches, all_shapes, src_of, n, self)
+                               for name, pts in groups.items()]
         self.lip_refiner_ = None
         lips = {k: v for k, v in scheme.contours.items() if k in ("lip_outer", "lip_inner")}
         if self.lip_refine and len(lips) == 2:
             pts = sorted(set(lips["lip_outer"]) | set(lips["lip_inner"]))
-            self.lip_refiner_ = ShapeRefiner.fit(
-                pts, pts,
-                [Pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
+            self.lip_refiner_ = ShapeRefiner.fit(pts, pts, pyramids, self.train_poses_, self.train_shapes_)
         self._precompute()
         return self
 
