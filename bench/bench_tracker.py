@@ -5,9 +5,7 @@ its labels (timed) and reports frames/s of decode-only, of decode + tracking
 (decoding in a background thread, the default) and their ratio, and the same
 without the decode thread, and the CPU time per frame of each (``time.process_time``), and on
 synthetic footage the track's NME against the true points;
-then the tracker with the region models' forward-additive steps (the default, compiled) against the
-inverse-compositional ones (``Tracker(region_step="inverse")``, thread CPU time on the same decoded frames,
-interleaved), the compiled kernels' first-run compile time (a fresh process with an empty numba cache,
+then the tracker step's thread CPU time on the decoded frames, the compiled kernels' first-run compile time (a fresh process with an empty numba cache,
 then one that loads them from it), and the command-level ratio: ``keyshape track`` run as a command (imports and model loading
 included) against decoding the same file, with one job and with ``--jobs 2`` (two worker processes
 tracking halves of the video, stitched). The load average is printed beside the figures.
@@ -42,9 +40,8 @@ def _decode_rate(video, **reader) -> tuple[float, float]:
     return best
 
 
-def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
-    """Thread CPU seconds per frame of ``Tracker.step`` with the region models' steps forward-additive (the
-    default) and inverse-compositional, on the same decoded frames (interleaved, best of ``reps``)."""
+def _step_time(video, model, n_frames: int = 300, reps: int = 3) -> float:
+    """Thread CPU seconds per frame of ``Tracker.step`` on the same decoded frames (best of ``reps``)."""
     from keyshape.base.formats.video import VideoReader
     from keyshape.tracker.fitting import Tracker, single_threaded
 
@@ -53,17 +50,15 @@ def _region_modes(video, model, n_frames: int = 300, reps: int = 3) -> dict:
         if i >= n_frames:
             break
         frames.append(f)
-    options = {"forward": {}, "inverse": {"region_step": "inverse"}}
-    out = {k: float("inf") for k in options}
+    best = float("inf")
     with single_threaded():
         for _ in range(reps):
-            for k, opts in options.items():
-                tr = Tracker(model, **opts)
-                c0 = time.thread_time()
-                for i, f in enumerate(frames):
-                    tr.step(f, i)
-                out[k] = min(out[k], (time.thread_time() - c0) / len(frames))
-    return out
+            tr = Tracker(model)
+            c0 = time.thread_time()
+            for i, f in enumerate(frames):
+                tr.step(f, i)
+            best = min(best, (time.thread_time() - c0) / len(frames))
+    return best
 
 
 _FIRST_STEPS = """
@@ -130,7 +125,7 @@ def main() -> None:
         summ0 = track_video(video, model, Path(tmp) / "tracks0.csv", options=TrackOptions(decode_thread=False),
                             show_progress=False)
         cpu_plain = (time.process_time() - c0) / summ0.n_frames
-        modes = _region_modes(video, model)
+        step = _step_time(video, model)
         # the command as a user runs it: a fresh process, imports and the model file included
         model_path = Path(tmp) / "model.npz"
         model.save(model_path)
@@ -170,9 +165,7 @@ def main() -> None:
         print(f"CPU per frame: decode only {1e3 * cpu_decode:.3f} ms; decode + track {1e3 * cpu_thread:.3f} ms "
               f"(without the decode thread {1e3 * cpu_plain:.3f} ms); tracking alone about "
               f"{1e3 * (cpu_plain - cpu_decode):.3f} ms")
-        print(f"tracker step, thread CPU per frame: region steps forward-additive (default, compiled) "
-              f"{1e3 * modes['forward']:.3f} ms; inverse-compositional (region_step='inverse') "
-              f"{1e3 * modes['inverse']:.3f} ms (speed ratio {modes['forward'] / modes['inverse']:.2f})")
+        print(f"tracker step, thread CPU per frame: {1e3 * step:.3f} ms")
 
 
 if __name__ == "__main__":

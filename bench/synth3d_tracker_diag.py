@@ -125,9 +125,9 @@ def oracles(model, frames, truth, labs) -> tuple[np.ndarray, np.ndarray]:
     """Truth-pose readings through the 2D affine frame and through a depth-aware frame (module docstring, 3)."""
     import keyshape.tracker.eigenpoints as ep
     from keyshape.base.geometry import apply_affine, fit_affine, procrustes_mean
-    from keyshape.tracker.eigenpoints import AppearanceModel, build_pyramid, warp_patch
+    from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, warp_patch
     ref, size = model.reference_, model.patch_size_
-    flat = np.stack([apply_affine(a, read_in_place(model, warp_patch(build_pyramid(f), a, size)))
+    flat = np.stack([apply_affine(a, read_in_place(model, warp_patch(Pyramid(f), a, size)))
                      for f, a in ((f, fit_affine(ref, t)) for f, t in zip(frames, truth))])
     df = DepthFrame(ref, size)
     model_mean = procrustes_mean(truth[labs])

@@ -24,11 +24,10 @@ def register(subparsers) -> None:
 
 
 def _synth_mocap(args) -> int:
-    from keyshape.data_synth.mocap import discontinuity_regions, load_facekit, synthesize, write_take
-
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_dir, check_output_dir
     from keyshape.base.formats.masks import write_masks
+    from keyshape.data_synth.mocap import discontinuity_regions, load_facekit, synthesize, write_take
     from keyshape.retarget.mocap.masks import masks_from_regions
 
     if args.frames < 2:

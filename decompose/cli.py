@@ -210,9 +210,8 @@ def _decompose(args) -> int:
 def _compare(args) -> int:
     from keyshape.base.errors import InputError
     from keyshape.base.files import atomic_dir, check_output_dir
-    from keyshape.decompose.compare import compare, plot_errors, write_errors
-
     from keyshape.base.progress import Progress
+    from keyshape.decompose.compare import compare, plot_errors, write_errors
 
     if not 1 <= args.kmin <= args.kmax:
         raise InputError(f"--kmin {args.kmin} --kmax {args.kmax}: need 1 <= kmin <= kmax")

@@ -1,18 +1,9 @@
 """Gaze: each eye's yaw and pitch from its pupil relative to its corners, in the head's frame.
 
-A pupil moved by ``d`` (in eye widths, along the eye's corner-to-corner axis and across it) from where it sits looking
-straight ahead (its median over the take) has turned the eyeball by
-
-    ``yaw = asin(d_x w_cm / r)``,  ``pitch = asin(d_y w_cm / r)``                          (1)
-
-with ``r`` = 1.2 cm the eyeball's radius and ``w_cm`` = 2.6 cm an adult eye's width. The lids' pull
-(:class:`LidDrag`) on a tracked pupil is modelled as
-
-    ``d_t = g_t + k b_t``,   ``b_t = c_t - open_{s_b}(c)_t``,   ``c_t = 1 - gap_t / median(gap)``   (2)
-
-``b`` the brief part of the lids' closure ``c`` (``c`` less its grey opening over ``s_b`` = 0.4 s), ``k`` a 2-vector per
-eye. Signs follow the head's: yaw > 0 when the eye turns to the actor's left, pitch > 0 when it looks down.
-Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/gaze.py``.
+Eq. 1 turns a pupil's offset from where it sits looking straight ahead into the eyeball's angles, Eq. 2 models
+the lids' pull on a tracked pupil during blinks (:class:`LidDrag`). Signs follow the head's: yaw > 0 when the eye
+turns to the actor's left, pitch > 0 when it looks down.
+The equations and the design: docs/decompose.md, "Notes on the code", ``decompose/gaze.py``.
 """
 from __future__ import annotations
 

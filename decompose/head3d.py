@@ -1,22 +1,10 @@
 """The head's 3D pose from a 2D track, and the shapes in the head's frame (frontalised).
 
 :class:`HeadPose3D`: the scheme's points on ICT-FaceKit's generic neutral adapted to the actor; per frame a pose
-minimising the weighted reprojection error under a pinhole camera (Levenberg-Marquardt, all frames at once),
-
-    ``E(R, t) = sum_i w_i || pi(R X_i + t) - p_i ||^2``,  ``pi(P) = f (P_x, P_y) / P_z + c``   (1)
-
-each observed point taken back along its ray to the plane through its face point parallel to the face's frontal plane
-(``n = R e_z``, ``q_i = ((p_i - c) / f, 1)``) and into the head's frame,
-
-    ``Y_i = lambda q_i``,  ``lambda = n.(R X_i + t) / n.q_i``,  ``H_i = R^T (Y_i - t)``     (2)
-
-and each pupil to its eyeball, a sphere of radius ``r`` centred ``r`` behind its straight-ahead place,
-
-    ``|lambda q_i - C_i| = r``,  ``C_i = R (X_i + r e_z) + t``                              (3)
-
-Angles (:func:`euler_angles`): ``R = Rz(roll) Ry(yaw) Rx(pitch)`` in ARKit's head axes (x the actor's left, y up,
-z to the camera); yaw > 0 turning to the actor's left, pitch > 0 looking down, roll > 0 toward the right shoulder.
-Design notes and figures: docs/decompose.md, "Notes on the code", ``decompose/head3d.py``.
+minimising the weighted reprojection error under a pinhole camera (Eq. 1, Levenberg-Marquardt, all frames at once);
+each observed point taken back along its ray to its face point's frontal plane (Eq. 2), each pupil to its eyeball
+(Eq. 3); angles ``R = Rz(roll) Ry(yaw) Rx(pitch)`` in ARKit's head axes (:func:`euler_angles`).
+The equations, the axes and the design: docs/decompose.md, "Notes on the code", ``decompose/head3d.py``.
 """
 from __future__ import annotations
 
@@ -258,7 +246,7 @@ def mirror_pairs(template: np.ndarray) -> np.ndarray:
 
 
 class HeadPose3D:
-    """A track's head pose in 3D and its shapes in the head's frame (module docstring, Eqs. 1-2).
+    """A track's head pose in 3D and its shapes in the head's frame (Eqs. 1-2 of docs/decompose.md).
 
     Parameters
     ----------

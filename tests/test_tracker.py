@@ -498,14 +498,14 @@ def test_eye_variance_is_the_eye_regions_own_and_survives_the_model_file(footage
             assert len(b.variance) > len(a.variance), a.name
         else:
             np.testing.assert_array_equal(a.components, b.components)
-    from keyshape.tracker.eigenpoints import build_pyramid, warp_patch
+    from keyshape.tracker.eigenpoints import Pyramid, warp_patch
     full = AppearanceModel("contours48", n_morphs=10, ridge=0.0, rng=0, eye_variance=1.0).fit(list(frames[:8]),
                                                                                                labels[:8])
     eyes = {i for c, v in SCHEME.contours.items() if c.startswith(("eye", "pupil")) for i in v}
     rm = {r.name: r for r in full.region_models_ if r.name.startswith("eye")}
     assert eyes == {int(p) for r in rm.values() for p in r.points}
     for i in range(8):
-        patch = warp_patch(build_pyramid(frames[i]), full.train_poses_[i], full.patch_size_)
+        patch = warp_patch(Pyramid(frames[i]), full.train_poses_[i], full.patch_size_)
         for name, r in rm.items():          # model-frame points against the label's, in model pixels
             assert np.abs(r.read(r.crop(patch)) - full.train_shapes_[i][r.points]).max() < 0.05, (i, name)
     more.save(tmp_path / "m.npz")

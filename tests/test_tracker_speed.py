@@ -12,11 +12,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from keyshape.tracker.eigenpoints import Pyramid, pyramid_level, warp_level, warp_patch_u8
-from keyshape.base.geometry import apply_affine
-from keyshape.tracker.fitting import Tracker, single_threaded
+from keyshape.tracker.fitting import Tracker, _RegionTables, single_threaded
 from keyshape.tracker.kernels import sample_affine
 from test_tracker import footage, model  # noqa: F401  (module fixtures)
 
@@ -68,11 +66,20 @@ def test_warp_level_is_bit_identical_to_the_old_warp():
 REFERENCE = Path(__file__).parent / "data" / "tracker_step_reference.npz"
 
 
+def _read_group(tr, rms, stretch, pyr, pose, patch):
+    """One group of ``tr.read_regions`` alone (a region, or the lips together with ``stretch``): each region's
+    model-frame points at ``pose``."""
+    group = (rms, max(tr.region_steps.get(rm.name, tr.region_iter) for rm in rms), stretch)
+    tb = _RegionTables([group], 0.08 * tr.model.face_width, tr.lip_stretch, tr.model.n_points)
+    pts = tr._run_tables(tb, pyr, pose, patch)
+    return [pts[i, :len(rm.points)].copy() for i, rm in enumerate(rms)]
+
+
 def _reference_cases(tracking_model, frames, poses=None):
     """What ``tests/data/tracker_step_reference.npz`` holds, computed by the tracker under test: the track of
     ``frames`` then ``frames`` reversed (points, poses, residuals), and at ``poses`` (3 per frame of ``frames[:6]``,
     the tracked poses moved by a little noise: drawn here when None) each region's reading
-    (``read_region``, the eyes and brows in the model's order), the lips' (``read_lips``), the largest shape
+    (each alone, the eyes and brows in the model's order), the lips' (together), the largest shape
     plausibility, the polished pose and the global reading (``read``'s shape and residual)."""
     out = {}
     tr = Tracker(tracking_model)
@@ -94,8 +101,9 @@ def _reference_cases(tracking_model, frames, poses=None):
         pyr = Pyramid(frames[j // 3])
         patch = warp_patch_u8(pyr, pose, tracking_model.patch_size_)
         tr._m2 = 0.0
-        cols["region_points"].append(np.concatenate([tr.read_region(pyr, pose, rm, patch) for rm in alone]))
-        cols["lip_points"].append(np.concatenate(tr.read_lips(pyr, pose, lips, patch)))
+        cols["region_points"].append(np.concatenate([_read_group(tr, [rm], False, pyr, pose, patch)[0]
+                                                     for rm in alone]))
+        cols["lip_points"].append(np.concatenate(_read_group(tr, lips, True, pyr, pose, patch)))
         cols["m2"].append(tr._m2)
         tr._polished = None
         cols["polished_poses"].append(tr.polish(Pyramid(frames[j // 3]), pose)[0])
@@ -189,42 +197,6 @@ def test_single_threaded_restores_the_settings_and_keeps_the_points(model, foota
     assert cv2.getNumThreads() == before
     outside = [b.step(f).points for f in frames[:4]]
     assert np.abs(np.stack(inside) - np.stack(outside)).max() < 1e-9
-
-
-def test_inverse_region_step_tracks_as_well_as_the_forward_one(model, footage):  # noqa: F811
-    """Issue 26: the eyes' and brows' inverse-compositional step (precomputed Jacobians) against the
-    forward-additive one (the default), on frames with exact landmarks: the same error to a small fraction
-    of a pixel, and each region's read at poses a little off the truth pulled back as far."""
-    frames, truth = footage
-    inv = Tracker(model, region_step="inverse")
-    fwd = Tracker(model)
-    assert inv.region_step == "inverse" and inv._inverse and not fwd._inverse
-    with single_threaded():
-        a = np.stack([r.points for r in inv.track(frames)])
-        b = np.stack([r.points for r in fwd.track(frames)])
-    err_inv = np.linalg.norm(a - truth, axis=-1).mean()
-    err_fwd = np.linalg.norm(b - truth, axis=-1).mean()
-    # measured: 0.0558 px against 0.0562 px (90 px faces)
-    assert err_inv < 1.1 * err_fwd + 0.005, (err_inv, err_fwd)
-    rng = np.random.default_rng(2)
-    regions = [rm for rm in model.region_models_ if rm.name in inv._inverse]
-    assert regions
-    gains = []
-    for frame, pts in zip(frames, truth):
-        res = fwd.step(frame)
-        pose = res.pose + np.hstack([np.zeros((2, 2)), rng.normal(0, 1.0, (2, 1))])   # the regions must move
-        pyr = Pyramid(frame)
-        patch = warp_patch_u8(pyr, pose, model.patch_size_)
-        for rm in regions:
-            want = apply_affine(res.pose, fwd.read_region(pyr, res.pose, rm, warp_patch_u8(pyr, res.pose, model.patch_size_)))
-            got_i = apply_affine(pose, inv.read_region_inverse(pyr, pose, rm, patch))
-            got_f = apply_affine(pose, fwd.read_region(pyr, pose, rm, patch))
-            gains.append((np.abs(got_i - want).mean(), np.abs(got_f - want).mean()))
-    gains = np.array(gains)
-    # measured: mean 0.008 px (forward 0.004), at most 0.045 px (forward 0.016), from a 1 px shift
-    assert gains[:, 0].mean() < 0.02 and gains[:, 0].max() < 0.1, (gains.mean(0), gains.max(0))
-    with pytest.raises(ValueError, match="region_step"):
-        Tracker(model, region_step="sideways")
 
 
 def test_read_takes_the_patch_polish_sampled_last_and_tracks_the_same(model, footage):  # noqa: F811

@@ -86,9 +86,9 @@ def _check_footage(args) -> None:
 
 
 def _train(args) -> int:
-    from keyshape.base.errors import InputError
     import time
 
+    from keyshape.base.errors import InputError
     from keyshape.tracker.commands import fit_model
 
     if args.morphs < 0:
@@ -109,10 +109,9 @@ def _train(args) -> int:
 
 
 def _track(args) -> int:
+    from keyshape.base.errors import InputError
     from keyshape.tracker.commands import track_video
     from keyshape.tracker.defaults import TrackOptions
-
-    from keyshape.base.errors import InputError
 
     if args.jobs is not None and args.jobs < 1:
         raise InputError(f"--jobs {args.jobs}: must be >= 1 (or leave it out: one per core)")

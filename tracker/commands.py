@@ -8,6 +8,8 @@ tracked when the video is truncated or the run is interrupted (Ctrl-C).
 from __future__ import annotations
 
 import contextlib
+import os
+import shutil
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -15,14 +17,14 @@ from pathlib import Path
 import numpy as np
 
 from keyshape.base.errors import InputError
-from keyshape.base.files import atomic_write
+from keyshape.base.files import _tmp_sibling, atomic_write, check_outputs, commit, partial_name, sha256_file
 from keyshape.base.progress import Progress
 from keyshape.tracker.defaults import TrackOptions
 from keyshape.tracker.eigenpoints import AppearanceModel, to_gray
 from keyshape.base.formats.tracks import PARTIAL_MARK, Tracks, TracksWriter, meta_line, meta_path, write_meta
 from keyshape.base.formats.labels import labels_scheme, read_labels
 from keyshape.base.schemes import load_scheme
-from keyshape.base.formats.video import VideoReader, video_info
+from keyshape.base.formats.video import VideoReader, video_info, video_writer
 
 
 def fit_model(video, labels, scheme: str | None = None, n_components: int | None = None, n_morphs: int = 120,
@@ -335,12 +337,6 @@ def track_video(video, model, output, overlay=None, options: TrackOptions | None
     import cv2
 
     from keyshape.base.draw import draw_shape
-    from keyshape.base.formats.video import video_writer
-
-    import os
-    import shutil
-
-    from keyshape.base.files import _tmp_sibling, check_outputs, commit, partial_name, sha256_file
 
     check_outputs([output, meta_path(output), overlay],
                   inputs=[video, model if not isinstance(model, AppearanceModel) else None])

@@ -116,11 +116,6 @@ class Pyramid:
         return buf
 
 
-def build_pyramid(gray: np.ndarray, levels: int = 4) -> Pyramid:
-    """Lazy Gaussian pyramid of a gray frame (see :class:`Pyramid`)."""
-    return Pyramid(gray, levels)
-
-
 def warp_patch(pyramid: Pyramid, image_from_model: np.ndarray, size: int) -> np.ndarray:
     """Sample the ``size`` x ``size`` model-frame patch of a frame (float32).
 
@@ -230,6 +225,35 @@ def _held_out_residuals(intens: np.ndarray, src_of: np.ndarray, n_labels: int, k
     return res
 
 
+def _hull_mask(points: np.ndarray, size: int, grow: int) -> np.ndarray:
+    """``uint8`` mask (size, size) of the convex hull of ``points`` (rounded), dilated by ``grow`` pixels."""
+    mask = np.zeros((size, size), np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.round(points).astype(np.int32)), 1)
+    return cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+
+
+def _coupled(intens: np.ndarray, land: np.ndarray, weight: float) -> tuple[float, np.ndarray]:
+    """The eigen-points coupling: the landmark rows' scale (their total variance ``weight`` times the
+    intensity rows') and the stacked vectors ``[intens, land * scale]``."""
+    scale = float(np.sqrt(weight * intens.var(0).sum() / max(land.var(0).sum(), 1e-12)))
+    return scale, np.hstack([intens, land * scale])
+
+
+def _reading_operators(components, mean, n_pix: int, landmark_scale: float, variance, residuals, ridge: float):
+    """``(U_I, pinv_I, mean_I, mean_L, U_L)`` of coupled eigenvectors ``components`` (rows) and their ``mean``:
+    the intensity rows, the coefficients' operator, and the landmark rows unscaled. With ``ridge > 0``
+    ``pinv_I`` is the MAP estimate under the PCA prior ``c_j ~ N(0, λ_j)`` and pixel noise ``σ²`` (``ridge``
+    times the median leave-one-out residual), ``(U_IᵀU_I + σ²Λ⁻¹)⁻¹U_Iᵀ``: the prior stops components whose
+    intensity rows are nearly dependent from amplifying noise; 0: the paper's plain least squares."""
+    ui = components[:, :n_pix].T                                      # (n_pix, k)
+    if ridge > 0:
+        sigma2 = ridge * float(np.median(residuals))
+        pinv = np.linalg.solve(ui.T @ ui + np.diag(sigma2 / np.maximum(variance, 1e-12)), ui.T)
+    else:
+        pinv = np.linalg.pinv(ui)
+    return ui, pinv, mean[:n_pix], mean[n_pix:] / landmark_scale, components[:, n_pix:].T / landmark_scale
+
+
 # --------------------------------------------------------------------------- the model
 
 def region_groups(scheme: Scheme) -> dict[str, np.ndarray]:
@@ -271,15 +295,9 @@ def split_upper_lower(points: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, 
 class RegionModel:
     """Eigen-points model of one facial region inside the global model frame.
 
-    Coupled PCA of the region's normalised intensities (a dilated hull of its
-    points in the model frame, sampled in the region's bounding ``box``) and
-    its points, over the same labelled and morphed training patches as the
-    global model (section 3 of 004_119ba07521a9af0b.txt applied per feature,
-    as eigen-points is usually used). Reading a region is a projection of its
-    pixels on its intensity rows (MAP with the PCA prior, as the global
-    model) and the region's points from the same coefficients; the tracker
-    first refines the region's translation in the model frame
-    (:meth:`tracker.fitting.Tracker.read`).
+    Coupled PCA of the region's normalised intensities (a dilated hull of its points, sampled in the
+    region's bounding ``box``) and its points, over the global model's training patches; the tracker
+    refines the region's translation first (:meth:`keyshape.tracker.fitting.Tracker.read_regions`).
 
     ``box`` is ``(x0, y0, width, height)`` in model pixels, ``index`` the flat
     indices of the region's pixels in that box. ``centred``: trained on crops that follow the
@@ -320,18 +338,14 @@ class RegionModel:
             patches = np.stack([shift_patch(p, v) for p, v in zip(patches, d)])
             shapes = shapes.copy()
             shapes[:, points] -= d[:, None]
-        hull = cv2.convexHull(np.round(ref[points]).astype(np.int32))
-        mask = np.zeros((size, size), np.uint8)
-        cv2.fillConvexPoly(mask, hull, 1)
-        mask = cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+        mask = _hull_mask(ref[points], size, grow)
         x0, y0, w, h = cv2.boundingRect(mask)
         mask = mask.astype(bool)[y0:y0 + h, x0:x0 + w]
         index = np.flatnonzero(mask.ravel())
         crops = patches[:, y0:y0 + h, x0:x0 + w]
         intens = normalise(crops.reshape(len(crops), -1)[:, index])
         land = shapes[:, points].reshape(len(shapes), -1)
-        scale = float(np.sqrt(landmark_weight * intens.var(0).sum() / max(land.var(0).sum(), 1e-12)))
-        x = np.hstack([intens, land * scale])
+        scale, x = _coupled(intens, land, landmark_weight)
         mean = x.mean(0)
         vt, var = _pca_rows(x - mean)
         ratio = var / max(var.sum(), 1e-300)
@@ -342,20 +356,13 @@ class RegionModel:
 
     def precompute(self, ridge: float) -> None:
         n_pix = len(self.index)
-        ui = self.components[:, :n_pix].T
-        self.mean_i = self.mean[:n_pix]
-        self.mean_l = self.mean[n_pix:] / self.landmark_scale
-        self.ul = np.ascontiguousarray(self.components[:, n_pix:].T / self.landmark_scale)
-        if ridge > 0:
-            sigma2 = ridge * float(np.median(self.train_residuals))
-            reg = np.diag(sigma2 / np.maximum(self.variance, 1e-12))
-            self.pinv_i = np.linalg.solve(ui.T @ ui + reg, ui.T)
-        else:
-            self.pinv_i = np.linalg.pinv(ui)
+        ui, self.pinv_i, self.mean_i, self.mean_l, ul = _reading_operators(
+            self.components, self.mean, n_pix, self.landmark_scale, self.variance, self.train_residuals, ridge)
+        self.ul = np.ascontiguousarray(ul)
         q, _ = np.linalg.qr(np.hstack([np.ones((n_pix, 1)), ui]))
         self.qt = np.ascontiguousarray(q.T)
         self.n_pix = n_pix
-        # the lips' stretch and tilt (Tracker.read_lips): the box centre's x, and each pixel's x from it
+        # the lips' stretch and tilt (Tracker.read_regions): the box centre's x, and each pixel's x from it
         self.box_cx = (int(self.box[2]) - 1) / 2.0
         self.box_xc = (self.index % int(self.box[2])).astype(np.float64) - self.box_cx
 
@@ -381,19 +388,15 @@ class RegionModel:
 
 class ShapeRefiner:
     """A region's shape fitted to the frame by analysis by synthesis (a project-out active appearance model,
-    Matthews and Baker 2004; menpofit's fitters), after the eigen-points reading.
+    Matthews and Baker 2004; menpofit's fitters), after the eigen-points reading (docs/tracker.md, "The lips'
+    shape fitted to the frame").
 
-    A linear reading regresses toward the labelled frames' mean away from them (a wide-open mouth reads
-    less open); fitting the shape so that the frame, warped from that shape to the mean shape, looks like
-    the labelled frames does not. Trained on the labelled frames only: the shape model is the PCA of the
-    region's points in the model frame (plus the two translations); the appearance is the frames' grey
-    levels in a template over the mean shape (a grid of ``step`` model pixels inside the triangulation of
-    the points and of a ring around their hull, ``ring`` times its size about the centroid), normalised as
-    the eigen-points patches, their mean ``a0`` and principal components (``appearance`` of the variance),
-    which the fit projects out. Per frame (:func:`keyshape.tracker.kernels.refine_shape`) the shape starts
-    at the tracker's reading and moves by Gauss-Newton steps under a Gaussian prior on its components
-    (``prior`` times the pixel noise, the leave-one-label-out residual, over each component's variance).
-    ``write``: the points whose refined positions replace the reading (the others only take part).
+    Trained on the labelled frames: the shape model is the PCA of the region's points in the model frame (plus
+    the two translations); the appearance, the frames' normalised grey levels in a template over the mean shape
+    (a grid of ``step`` model pixels inside the triangulation of the points and of a ring ``ring`` times their
+    hull), its mean ``a0`` and principal components, projected out. Per frame
+    (:func:`keyshape.tracker.kernels.refine_shape`) the shape moves from the reading by Gauss-Newton steps under a
+    Gaussian prior on its components. ``write``: the points whose refined positions replace the reading.
     """
 
     ARRAYS = ("points", "write", "ext", "tri", "bary", "s0", "basis", "weights", "a0", "qt")
@@ -474,15 +477,7 @@ class ShapeRefiner:
         ax, va = _pca_rows(a - a0)
         ka = min(int(np.searchsorted(np.cumsum(va) / max(va.sum(), 1e-300), appearance) + 1), len(va))
         q, _ = np.linalg.qr(np.column_stack([np.ones(n_pix), ax[:ka].T]))
-        res = []
-        for i in range(len(a)):                    # leave-one-label-out residual: the pixel noise
-            keep = np.arange(len(a)) != i
-            mu = a[keep].mean(0)
-            vti, _ = _pca_rows(a[keep] - mu)
-            vti = vti[:ka]
-            e = a[i] - mu
-            e = e - vti.T @ (vti @ e)
-            res.append(float(e @ e / n_pix))
+        res = _held_out_residuals(a, np.repeat(np.arange(len(a))[:, None], 2, 1), len(a), ka)   # the pixel noise
         weights = prior * float(np.median(res)) / np.maximum(lam, 1e-12)
         return cls(pts, write, ext, tri_i, bary, s0.ravel(), basis, weights, a0, q.T)
 
@@ -582,47 +577,26 @@ class AppearanceModel:
         Total variance of the landmark rows relative to the intensity rows in
         the stacked PCA vectors (the coupling of eigen-points).
     regions : bool
-        Also learn one eigen-points model per facial region (each eye with its
-        pupil, each brow, the mouth) on the same pre-warped training set: the
-        global model gives the pose, each region reads its own points from its
-        own pixels, so eye state and mouth state combine freely (a blink with
-        an open mouth need not have been labelled). Regions follow the
-        scheme's contours named ``eye_*``/``pupil_*``, ``brow_*``, ``lip_*``;
-        the other points (jaw, nose) keep the global reading.
+        Also learn one eigen-points model per facial region (each eye with its pupil, each brow, the
+        mouth: the scheme's contours ``eye_*``/``pupil_*``, ``brow_*``, ``lip_*``) on the same training set;
+        each reads its own points from its own pixels (``docs/tracker.md``, "How each frame is tracked").
     split_mouth : bool
         Read the upper and the lower lip (corners in both) with separate region
         models, each with its own translation (the jaw drops the lower lip).
     region_grow : float
         Border added around each region's points (fraction of ``face_width``):
         the pixels a region model sees.
-    lip_grow : float or None
-        The same for the lip regions (None: ``region_grow``). The lips move
-        against the cheeks and chin around them, which tell the region model
-        where they are: a wider border than the eyes' helps (measured on the
-        real clips, ``docs/tracker.md``).
-    brow_grow : float or None
-        The same for the brow regions (None: ``region_grow``). A brow's outer end fades into the
-        skin of the temple, and the forehead around it may tell the region model how high it is.
-        A wider border helps the real clips' outer brows a little but reads the synthetic clips'
-        brows worse (measured in ``docs/tracker.md``), so it is not the default.
+    lip_grow, brow_grow : float or None
+        The same for the lip and the brow regions (None: ``region_grow``; measured in ``docs/tracker.md``).
     centre_eyes : bool
-        Train the eyes' region models (each eye with its pupil) on crops that follow the region's
-        centroid (its points keep their place in the box), so that the tracker's alignment of the
-        box reads where the eye is and the region's eigen-points only its shape (issue 23: a linear
-        reading of a feature's displacement shrinks toward the labelled frames' mean; on the 3D
-        synthetic take the lid gaps read at 0.63-0.74 of their true size). The tracker aligns those
-        boxes in 4 steps (``Tracker(region_iter=None)``). It reads the 3D take's lid gaps larger and
-        leaves the real clips' own error as it was, but the rig chain's curves are mixed, so it is off
-        by default; centring the brows, nose or lips as well gave no more (measured in ``docs/tracker.md``).
+        Train the eyes' region models on crops that follow the eye's centroid, so that the tracker's
+        alignment of the box reads where the eye is (off by default: ``docs/tracker.md``).
     eye_variance : float or None
-        Fraction of variance the eyes' region models keep (None: ``variance``). More eye components
-        read the pupils' height further on the 3D synthetic take but not on the real clips, so it is off
-        by default (``bench/pupil_travel.py``; figures in ``docs/benchmarks.md``).
+        Fraction of variance the eyes' region models keep (None: ``variance``; off by default,
+        ``docs/tracker.md``).
     lip_refine : bool
-        Fit the lips' shape to the frame by analysis by synthesis after the eigen-points reading
-        (:class:`ShapeRefiner`, every lip point replaced; schemes with ``lip_outer`` and ``lip_inner``
-        contours): the linear reading shrinks the mouth's opening toward the labelled frames'
-        mean (``docs/tracker.md``). Model files written before it read as False.
+        Fit the lips' shape to the frame by analysis by synthesis after the reading (:class:`ShapeRefiner`;
+        schemes with ``lip_outer`` and ``lip_inner`` contours). Model files written before it read as False.
     rng : None, int or Generator
         Randomness of the choice of morph pairs.
 
@@ -709,19 +683,16 @@ class AppearanceModel:
         self.reference_ = ref
         self.patch_size_ = size
 
-        hull = cv2.convexHull(np.round(ref).astype(np.int32))
-        mask = np.zeros((size, size), np.uint8)
-        cv2.fillConvexPoly(mask, hull, 1)
-        grow = max(1, int(round(self.face_width * 0.08)))
-        mask = cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)).astype(bool)
+        mask = _hull_mask(ref, size, max(1, int(round(self.face_width * 0.08)))).astype(bool)
         self.mask_ = mask
         self._index = np.flatnonzero(mask.ravel())
 
+        pyramids = [Pyramid(to_gray(img)) for img in frames]
         poses, patches, shapes = [], [], []
-        for img, lab in zip(frames, labels):
+        for pyr, lab in zip(pyramids, labels):
             a = fit_affine(ref, lab)
             poses.append(a)
-            patches.append(warp_patch(build_pyramid(to_gray(img)), a, size))
+            patches.append(warp_patch(pyr, a, size))
             shapes.append(apply_affine(invert_affine(a), lab))
         self.train_poses_ = np.stack(poses)
         self.train_shapes_ = np.stack(shapes)
@@ -750,32 +721,23 @@ class AppearanceModel:
 
         intens = normalise(all_patches.reshape(len(all_patches), -1)[:, self._index])
         land = all_shapes.reshape(len(all_shapes), -1)
-        # coupling weight: landmark rows get `landmark_weight` times the intensity rows' total variance
-        var_i = intens.var(0).sum()
-        var_l = max(land.var(0).sum(), 1e-12)
-        self.landmark_scale_ = float(np.sqrt(self.landmark_weight * var_i / var_l))
-        x = np.hstack([intens, land * self.landmark_scale_])
+        self.landmark_scale_, x = _coupled(intens, land, self.landmark_weight)
         self._pca(x)
 
         src_of = np.array(src_of)
         self.train_residuals_ = np.array(_held_out_residuals(intens, src_of, n, self.k_))
         self.scheme_ = scheme
-        self.region_models_ = []
-        if self.regions:
-            groups = region_groups(scheme)
-            if "mouth" in groups and self.split_mouth:
-                # upper and lower lip move apart (jaw drop): each gets its own translation
-                groups["lip_upper"], groups["lip_lower"] = split_upper_lower(groups.pop("mouth"), ref)
-            for name, pts in groups.items():
-                self.region_models_.append(RegionModel.fit_region(name, pts, ref, all_patches, all_shapes, src_of, n,
-                                                                  self))
+        groups = region_groups(scheme) if self.regions else {}
+        if "mouth" in groups and self.split_mouth:
+            # upper and lower lip move apart (jaw drop): each gets its own translation
+            groups["lip_upper"], groups["lip_lower"] = split_upper_lower(groups.pop("mouth"), ref)
+        self.region_models_ = [RegionModel.fit_region(name, pts, ref, all_patches, all_shapes, src_of, n, self)
+                               for name, pts in groups.items()]
         self.lip_refiner_ = None
         lips = {k: v for k, v in scheme.contours.items() if k in ("lip_outer", "lip_inner")}
         if self.lip_refine and len(lips) == 2:
             pts = sorted(set(lips["lip_outer"]) | set(lips["lip_inner"]))
-            self.lip_refiner_ = ShapeRefiner.fit(
-                pts, pts,
-                [build_pyramid(to_gray(img)) for img in frames], self.train_poses_, self.train_shapes_)
+            self.lip_refiner_ = ShapeRefiner.fit(pts, pts, pyramids, self.train_poses_, self.train_shapes_)
         self._precompute()
         return self
 
@@ -814,21 +776,9 @@ class AppearanceModel:
     def _precompute(self) -> None:
         """Everything constant per frame: the pseudo-inverse of the intensity rows."""
         n_pix = len(self._index)
-        ui = self.components_[:, :n_pix].T                      # (n_pix, k)
-        self._mean_i = self.mean_[:n_pix]
-        self._mean_l = self.mean_[n_pix:] / self.landmark_scale_
-        self._ul = self.components_[:, n_pix:].T / self.landmark_scale_   # (2 n_points, k)
-        if self.ridge > 0:
-            # MAP estimate under the PCA prior c_j ~ N(0, λ_j) and pixel noise σ² (the typical
-            # leave-one-out residual): c = (U_Iᵀ U_I + σ² Λ⁻¹)⁻¹ U_Iᵀ e. With ridge = 0 it is the plain
-            # least squares of the paper; the prior stops components whose intensity rows are
-            # nearly dependent from amplifying noise into wild landmark readings.
-            sigma2 = self.ridge * float(np.median(self.train_residuals_))
-            reg = np.diag(sigma2 / np.maximum(self.explained_variance_, 1e-12))
-            self._pinv_i = np.linalg.solve(ui.T @ ui + reg, ui.T)
-        else:
-            self._pinv_i = np.linalg.pinv(ui)                   # (k, n_pix): least squares on intensity rows
-        self._ui = ui
+        self._ui, self._pinv_i, self._mean_i, self._mean_l, self._ul = _reading_operators(
+            self.components_, self.mean_, n_pix, self.landmark_scale_, self.explained_variance_,
+            self.train_residuals_, self.ridge)
         self._n_pix = n_pix
         for rm in getattr(self, "region_models_", []):
             rm.precompute(self.ridge)
@@ -875,7 +825,7 @@ class AppearanceModel:
     def predict(self, frame: np.ndarray, image_from_model: np.ndarray) -> tuple[np.ndarray, float]:
         """Image landmarks ``(n_points, 2)`` and residual of ``frame`` warped by ``image_from_model``."""
         self._check_fitted()
-        patch = warp_patch(build_pyramid(to_gray(frame)), image_from_model, self.patch_size_)
+        patch = warp_patch(Pyramid(to_gray(frame)), image_from_model, self.patch_size_)
         c, r = self.project(self.intensities(patch))
         shape = self.landmarks(c)
         glob = shape.copy()
@@ -886,11 +836,6 @@ class AppearanceModel:
             else:
                 shape[rm.points] = rm.read(rm.crop(patch))
         return apply_affine(image_from_model, shape), float(r)
-
-    def initial_pose(self) -> np.ndarray:
-        """Mean ``image_from_model`` of the labelled frames (a start for tracking)."""
-        self._check_fitted()
-        return self.train_poses_.mean(0)
 
     @property
     def reading_(self) -> "Reading":

@@ -1,18 +1,7 @@
 """The tracking loop: pose refinement, eigen-points projection, lost-track detection and recovery.
 
-For each frame (section 3 of 004_119ba07521a9af0b.txt): start from the previous
-frame's ``image_from_model`` affine, refine it by image alignment of the
-model-frame patch against the model's mean appearance (inverse-compositional
-Lucas-Kanade with the appearance subspace projected out, coarse to fine),
-warp the frame into the model frame, project it on the eigen-points basis with
-the intensity rows only, read the landmarks from the same coefficients and map
-them back with the affine.
-
-A frame is *lost* when its appearance residual is far above the training
-residuals or the pose/shape collapses; the tracker then searches translations
-and scales around the last good pose and, failing that, re-initialises from
-the best match of the mean appearance over the whole frame (no face detector
-needed). Lost frames are returned with ``success = False`` and NaN landmarks.
+Section 3 of 004_119ba07521a9af0b.txt; each step in docs/tracker.md, "How each frame is tracked".
+Lost frames are returned with ``success = False`` and NaN landmarks.
 """
 from __future__ import annotations
 
@@ -24,10 +13,8 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from keyshape.tracker.eigenpoints import (AppearanceModel, Pyramid, normalise, pyramid_level, warp_level,
-                                          warp_patch, warp_patch_u8)
+from keyshape.tracker.eigenpoints import AppearanceModel, Pyramid, normalise, pyramid_level, warp_patch, warp_patch_u8
 from keyshape.tracker.kernels import lip_box, polish_step, read_global, refine_regions, refine_write
-from keyshape.base.errors import InputError
 from keyshape.base.geometry import apply_affine, compose_affine, invert_affine
 
 _HALF = np.array([[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]])   # fine model coords from coarse (pyrDown centres)
@@ -115,28 +102,6 @@ class _Level:
         self.update = np.linalg.solve(hess, (sd_po * wgt[:, None]).T)   # (6, n_pix)
 
 
-def _inverse_step(rm) -> np.ndarray:
-    """``[Qᵀ; (S⊥ᵀS⊥)⁻¹S⊥ᵀ]`` of a region model (:meth:`Tracker.read_region_inverse`): rows ``q`` its
-    projection basis, then the two rows that map a normalised error to the translation step.
-
-    ``S`` (n, 2) is the gradient (3x3 Sobel / 8) of the region's mean appearance laid in its box,
-    zero at the pixels whose neighbourhood leaves the region (their gradient would see the box's
-    empty pixels); ``S⊥ = S - Q QᵀS``.
-    """
-    x0, y0, w, h = (int(v) for v in rm.box)
-    img = np.zeros(w * h)
-    img[rm.index] = rm.mean_i
-    img = img.reshape(h, w)
-    inside = np.zeros(w * h, np.uint8)
-    inside[rm.index] = 1
-    inner = cv2.erode(inside.reshape(h, w), np.ones((3, 3), np.uint8)).ravel()[rm.index].astype(np.float64)
-    sd = np.stack([cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, scale=1 / 8).ravel()[rm.index] * inner,
-                   cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, scale=1 / 8).ravel()[rm.index] * inner], 1)
-    q = rm.qt.T
-    sd_po = sd - q @ (rm.qt @ sd)
-    return np.vstack([rm.qt, np.linalg.solve(sd_po.T @ sd_po + 1e-6 * np.eye(2), sd_po.T)])
-
-
 class _RegionTables:
     """The region models' constant arrays for :func:`keyshape.tracker.kernels.refine_regions`, padded to
     common sizes (region ``r`` in row ``r``, its pixels, basis rows, coefficients and points first), its
@@ -155,68 +120,49 @@ class _RegionTables:
         kq = max(len(rm.qt) for rm in regions)
         kc = max(len(rm.pinv_i) for rm in regions)
         pmax = max(len(rm.points) for rm in regions)
-        self.names = [rm.name for rm in regions]
-        self.geo = np.zeros((n_reg, 6), np.int64)          # box x0, y0, w, h, its pixel count and basis rows
-        self.box_cx = np.zeros(n_reg)
-        self.index = np.zeros((n_reg, nmax), np.int64)
-        self.mean_i = np.zeros((n_reg, nmax))
-        self.xc = np.zeros((n_reg, nmax))
-        self.qt = np.zeros((n_reg, kq, nmax))
-        self.coef = np.zeros((n_reg, kc, kq))                   # pinv_i Q: coefficients from Qᵀe
-        self.inv_var = np.zeros((n_reg, kc))
-        self.mean_l = np.zeros((n_reg, 2 * pmax))
-        self.ul = np.zeros((n_reg, 2 * pmax, kc))
+        geo = np.zeros((n_reg, 6), np.int64)             # box x0, y0, w, h, its pixel count and basis rows
+        box_cx, index = np.zeros(n_reg), np.zeros((n_reg, nmax), np.int64)
+        mean_i, xc = np.zeros((n_reg, nmax)), np.zeros((n_reg, nmax))
+        qt, coef = np.zeros((n_reg, kq, nmax)), np.zeros((n_reg, kc, kq))     # coef: pinv_i Q (coefficients from Qᵀe)
+        inv_var, mean_l, ul = np.zeros((n_reg, kc)), np.zeros((n_reg, 2 * pmax)), np.zeros((n_reg, 2 * pmax, kc))
         for r, rm in enumerate(regions):
             x0, y0, w, h = (int(v) for v in rm.box)
             n, q, c, p = rm.n_pix, len(rm.qt), len(rm.pinv_i), len(rm.points)
-            self.geo[r] = x0, y0, w, h, n, q
-            self.box_cx[r] = rm.box_cx
-            self.index[r, :n] = rm.index
-            self.mean_i[r, :n] = rm.mean_i
-            self.xc[r, :n] = rm.box_xc
-            self.qt[r, :q, :n] = rm.qt
-            self.coef[r, :c, :q] = rm.pinv_i @ rm.qt.T
-            self.inv_var[r, :c] = 1.0 / rm.variance
-            self.mean_l[r, :2 * p] = rm.mean_l
-            self.ul[r, :2 * p, :rm.ul.shape[1]] = rm.ul
-        self.groups = np.zeros((len(groups), 4), np.int64)    # first, last (exclusive), steps, stretch
+            geo[r] = x0, y0, w, h, n, q
+            box_cx[r] = rm.box_cx
+            index[r, :n] = rm.index
+            mean_i[r, :n] = rm.mean_i
+            xc[r, :n] = rm.box_xc
+            qt[r, :q, :n] = rm.qt
+            coef[r, :c, :q] = rm.pinv_i @ rm.qt.T
+            inv_var[r, :c] = 1.0 / rm.variance
+            mean_l[r, :2 * p] = rm.mean_l
+            ul[r, :2 * p, :rm.ul.shape[1]] = rm.ul
+        table = np.zeros((len(groups), 4), np.int64)     # first, last (exclusive), steps, stretch
         first, widest = 0, 1
         for g, (members, steps, stretch) in enumerate(groups):
-            self.groups[g] = first, first + len(members), steps, int(stretch)
+            table[g] = first, first + len(members), steps, int(stretch)
             first += len(members)
             widest = max(widest, len(members))
-        self.lims = np.array([lim, slim])
-        grow = lim + slim * float(self.geo[:, 2].max()) / 2 + 2.0
-        lo = self.geo[:, :2].min(0) - 1 - grow
-        hi = (self.geo[:, :2] + self.geo[:, 2:4]).max(0) + grow
+        grow = lim + slim * float(geo[:, 2].max()) / 2 + 2.0
+        lo = geo[:, :2].min(0) - 1 - grow
+        hi = (geo[:, :2] + geo[:, 2:4]).max(0) + grow
         self.reach = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
-        hmax, wmax = int(self.geo[:, 3].max()), int(self.geo[:, 2].max())
-        npar = 2 * widest + 2
-        self.crop = np.zeros(hmax * wmax, np.uint8)
-        self.gxy = np.zeros((2, hmax * wmax))
-        self.e = np.zeros(nmax)
-        self.jac = np.zeros((4, nmax))
-        self.qj = np.zeros((kq, 4))
-        self.qe = np.zeros((n_reg, kq))
-        self.best_qe = np.zeros((n_reg, kq))
-        self.hess = np.zeros((npar, npar))
-        self.grad = np.zeros(npar)
-        self.sol = np.zeros(npar)
-        self.t = np.zeros((n_reg, 4))
+        hw, npar = int(geo[:, 3].max()) * int(geo[:, 2].max()), 2 * widest + 2
         self.pts = np.zeros((n_reg, pmax, 2))
         # the sum over regions of each point's readings: scatter (n_points, n_reg pmax) @ pts
         self.scatter = np.zeros((n_points, n_reg * pmax))
         for r, rm in enumerate(regions):
             self.scatter[rm.points, r * pmax + np.arange(len(rm.points))] = 1.0
-        # what refine_regions takes: the constant tables and the work arrays
-        self.tables = (self.groups, self.geo, self.box_cx, self.index, self.mean_i, self.xc, self.qt, self.coef,
-                       self.inv_var, self.mean_l, self.ul, self.lims)
-        self.work = (self.crop, self.gxy, self.e, self.jac, self.qj, self.qe, self.best_qe, self.hess, self.grad,
-                     self.sol, self.t, self.pts)
+        # what refine_regions takes (its docstring names them): the constant tables and the work arrays
+        self.tables = (table, geo, box_cx, index, mean_i, xc, qt, coef, inv_var, mean_l, ul, np.array([lim, slim]))
+        self.work = (np.zeros(hw, np.uint8), np.zeros((2, hw)), np.zeros(nmax), np.zeros((4, nmax)), np.zeros((kq, 4)),
+                     np.zeros((n_reg, kq)), np.zeros((n_reg, kq)), np.zeros((npar, npar)), np.zeros(npar),
+                     np.zeros(npar), np.zeros((n_reg, 4)), self.pts)
 
 
 class Tracker:
-    """Track an :class:`AppearanceModel` through frames.
+    """Track an :class:`AppearanceModel` through frames (``docs/tracker.md``, "How each frame is tracked").
 
     Parameters
     ----------
@@ -224,11 +170,9 @@ class Tracker:
     n_iter : int
         Alignment iterations per level.
     lost_factor : float
-        A frame is lost when its residual exceeds ``lost_factor`` times the
-        largest leave-one-out training residual (clipped to [0.15, 0.4]; a
-        patch unrelated to the face, the background or a black frame, scores
-        0.6-1), or when the patch has no contrast (standard deviation under
-        ``min_contrast`` grey levels: a black or blank frame).
+        A frame is lost when its residual exceeds ``lost_factor`` times the largest leave-one-out
+        training residual (clipped to [0.15, 0.4]), or when the patch's standard deviation is under
+        ``min_contrast`` grey levels (a black or blank frame).
     search : bool
         Recover lost tracks (local search, then global re-initialisation).
     n_polish : int
@@ -237,48 +181,24 @@ class Tracker:
     reinit_every : int
         While lost, the (costlier) whole-frame search runs every this many frames.
     max_shape_m2 : float
-        Plausibility of the shape read (a check independent of the residual):
-        the mean squared coefficient over its PCA variance, ``mean_j c_j² / λ_j``,
-        of the global model and of each region model, the largest of them.
-        Above this the coefficients lie far outside anything the labelled
-        frames span (an appearance the model extrapolates wildly from: a head
-        turned further than any label), and the frame is lost; from 8 up the
-        confidence falls linearly to 0 here. Measured: at most 8 on tracked
-        synthetic footage, 99th percentile 20-23 on franck and cap12_edit,
-        about 47 on a 47-degree synthetic head turn read wrongly.
+        Plausibility of the shape read: the largest over the global and the region models of the mean
+        squared coefficient over its PCA variance, ``mean_j c_j² / λ_j``. Above this the frame is lost;
+        from 8 up the confidence falls linearly to 0 here.
     region_iter : int or None
-        Translation refinements of each region model per frame (0: read the
-        regions where the global pose puts them; -1: ignore the region models).
-        None: 2, and 4 for the region models trained on crops that follow their centroid
-        (``AppearanceModel(centre_eyes=True)``: the box alignment reads the eye's displacement,
-        a few pixels, from a start at the global pose; those regions' counts are in ``region_steps``).
+        Translation refinements of each region model per frame (0: read the regions where the global
+        pose puts them; -1: ignore the region models). None: 2, and 4 for the region models trained on
+        centred crops (``AppearanceModel(centre_eyes=True)``; the counts that differ are in ``region_steps``).
     global_weight : float
-        Weight of the global model's reading in the points the region models
-        read: ``(1 - w) region + w global``. The two read the same pixels with
-        models trained on the same labels but err differently (the region
-        model has fewer pixels and a translation of its own, the global one a
-        whole face of context), so a blend has less error than either on real
-        footage; on synthetic footage the regions alone are a little better
-        (measured in ``docs/tracker.md``).
+        Weight of the global model's reading in the points the region models read:
+        ``(1 - w) region + w global``.
     lip_stretch : float
-        The lip regions are read together (:meth:`read_lips`): besides each lip's translation,
-        their boxes share a horizontal stretch and a tilt, each at most this fraction (0: the lips
-        translate only, as the eyes and brows). It lowers the own error on real footage and the
-        synthetic NME (measured in ``docs/tracker.md``).
-    region_step : {"forward", "inverse"}
-        The translation step of the eyes' and brows' region models (the lips read together keep
-        theirs). ``"forward"`` (default): forward-additive with the gradients of the current crop
-        (:meth:`read_region`). ``"inverse"``: inverse-compositional (:meth:`read_region_inverse`;
-        the Jacobian is the region's mean appearance's gradient projected out of its subspace,
-        precomputed, so a step is one matrix-vector product; evaluated in numpy, not compiled). Its
-        synthetic NME is a little higher than the forward step's (``docs/tracker.md``), which keeps it
-        off by default.
+        The lip regions' boxes share a horizontal stretch and a tilt, each at most this fraction
+        (0: the lips translate only, as the eyes and brows).
     """
 
     def __init__(self, model: AppearanceModel, n_iter: int = 5, lost_factor: float = 3.0, search: bool = True,
                  reinit_every: int = 3, n_polish: int = 3, region_iter: int | None = None, min_contrast: float = 3.0,
-                 max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15,
-                 region_step: str = "forward"):
+                 max_shape_m2: float = 30.0, global_weight: float = 0.3, lip_stretch: float = 0.15):
         model._check_fitted()
         self.model = model
         self.n_iter = n_iter
@@ -305,27 +225,23 @@ class Tracker:
         # work arrays, and where its written points sit among its points and in the frame's points
         self._lips = None if lr is None else (lr, lr.tables(), lr.work(), (np.searchsorted(lr.points, lr.write),
                                               lr.write), np.empty(2 * len(lr.points)), np.empty(4, np.intp))
-        size = m.patch_size_
-        n_pix = len(m.index_)
-        mean = np.zeros(size * size)
-        mean[m.index_] = m.mean_[:n_pix]
-        mean = mean.reshape(size, size)
-        basis = np.zeros((m.k_, size * size))
-        basis[:, m.index_] = m.components_[:, :n_pix]
-        basis = basis.reshape(m.k_, size, size)
+        size, n_pix, half = m.patch_size_, len(m.index_), m.patch_size_ // 2
+
+        def image(values: np.ndarray) -> np.ndarray:            # values at the mask's pixels -> (..., size, size)
+            out = np.zeros(values.shape[:-1] + (size * size,))
+            out[..., m.index_] = values
+            return out.reshape(values.shape[:-1] + (size, size))
+
+        def down(img: np.ndarray) -> np.ndarray:                # the coarse level's image
+            return cv2.resize(img, (half, half), interpolation=cv2.INTER_AREA)
+
+        mean, basis = image(m.mean_[:n_pix]), image(m.components_[:, :n_pix])
+        var = image((m.components_[:, :n_pix] ** 2 * m.explained_variance_[:, None]).sum(0))
         noise = float(np.median(m.train_residuals_))
-        var = np.zeros(size * size)
-        var[m.index_] = (m.components_[:, :n_pix] ** 2 * m.explained_variance_[:, None]).sum(0)
-        var = var.reshape(size, size)
         fine = _Level(mean, basis, m.mask_, np.array([[1.0, 0, 0], [0, 1.0, 0]]), var, noise)
-        half = size // 2
-        cmean = cv2.resize(mean, (half, half), interpolation=cv2.INTER_AREA)
-        cbasis = np.stack([cv2.resize(b, (half, half), interpolation=cv2.INTER_AREA) for b in basis])
-        cmask = cv2.resize(m.mask_.astype(np.float32), (half, half), interpolation=cv2.INTER_AREA) > 0.99
         scale = size / half
-        cvar = cv2.resize(var, (half, half), interpolation=cv2.INTER_AREA)
-        coarse = _Level(cmean, cbasis, cmask, np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2]]),
-                        cvar, noise)
+        coarse = _Level(down(mean), np.stack([down(b) for b in basis]), down(m.mask_.astype(np.float32)) > 0.99,
+                        np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2]]), down(var), noise)
         self.levels = [coarse, fine]
         sv = np.linalg.svd(m.train_poses_[:, :, :2], compute_uv=False)
         self.max_anisotropy = float(np.exp(np.log(sv[:, 0] / sv[:, 1]).max() + np.log(1.03)))
@@ -340,41 +256,27 @@ class Tracker:
         self._template_cache: dict = {}
         # read(): coefficients and U_Iᵀe in one product, the Gram matrix for the residual
         rd = m.reading_
-        self._read_mat = np.vstack([rd.pinv_i, rd.basis_i.T])
-        self._read_gram = np.ascontiguousarray(rd.basis_i.T @ rd.basis_i)
-        self._read_ul = np.ascontiguousarray(rd.basis_l)
-        self._read_mean_i, self._read_mean_l = rd.mean_i, rd.mean_l
-        self._read_inv_var = 1.0 / m.explained_variance_
-        self._read_index = m.index_.astype(np.int64)
-        self._read_e, self._read_c, self._read_shape = np.zeros(len(m.index_)), np.zeros(m.k_), np.zeros(2 * m.n_points)
-        self._reading = (self._read_index, self._read_mean_i, self._read_mat, self._read_gram, self._read_ul,
-                         self._read_mean_l, self._read_inv_var)
+        self._reading = (m.index_.astype(np.int64), rd.mean_i, np.vstack([rd.pinv_i, rd.basis_i.T]),
+                         np.ascontiguousarray(rd.basis_i.T @ rd.basis_i), np.ascontiguousarray(rd.basis_l),
+                         rd.mean_l, 1.0 / m.explained_variance_)
+        self._read_work = (np.zeros(len(m.index_)), np.zeros(m.k_), np.zeros(2 * m.n_points))
         regions = list(m.region_models_)
-        if region_step not in ("inverse", "forward"):
-            raise InputError(f"region_step must be 'inverse' or 'forward', got {region_step!r}")
-        self.region_step = region_step
-        self._inverse = {rm.name: _inverse_step(rm) for rm in regions
-                         if region_step == "inverse" and not self._is_lip(rm)}
-        alone = [rm for rm in regions if not self._is_lip(rm)]
         lips = [rm for rm in regions if self._is_lip(rm)]
-        self._region_sets = (alone, lips)
         count = np.zeros(m.n_points)
         for rm in regions:
             count[rm.points] += 1
         self._region_hit = count > 0               # the points the regions read (the lip corners by two)
-        # the compiled regions' tables (the inverse-compositional ones are read apart): each region alone, the
-        # lips together; one table per group too, for read_region and read_lips
-        lim, slim = 0.08 * m.face_width, self.lip_stretch
-        groups = [([rm], self.region_steps.get(rm.name, self.region_iter), False) for rm in alone
-                  if rm.name not in self._inverse]
+        # the compiled regions' tables: each region alone, the lips together
+        groups = [([rm], self.region_steps.get(rm.name, self.region_iter), False) for rm in regions
+                  if rm not in lips]
         if lips:
             groups.append((lips, max(self.region_steps.get(rm.name, self.region_iter) for rm in lips), True))
-        self._tables = _RegionTables(groups, lim, slim, m.n_points) if groups else None
-        self._group_tables = {tuple(rm.name for rm in g[0]): _RegionTables([g], lim, slim, m.n_points) for g in groups}
+        self._tables = _RegionTables(groups, 0.08 * m.face_width, self.lip_stretch, m.n_points) if groups else None
         self._region_count = count
         pe = self.levels[-1]
-        self._polish_work = (np.zeros((2, pe.size * pe.size)), np.zeros(len(pe.index)), np.zeros((6, len(pe.index))), np.zeros(pe.q.shape[1]),
-                             np.zeros((pe.q.shape[1], 6)), np.zeros((6, 6)), np.zeros(6), np.zeros(6))
+        self._polish_work = (np.zeros((2, pe.size * pe.size)), np.zeros(len(pe.index)), np.zeros((6, len(pe.index))),
+                             np.zeros(pe.q.shape[1]), np.zeros((pe.q.shape[1], 6)), np.zeros((6, 6)), np.zeros(6),
+                             np.zeros(6))
         self.reset()
 
     def reset(self) -> None:
@@ -495,8 +397,8 @@ class Tracker:
             patch = got[2]                      # polish() sampled this pose last (its step was not kept)
         else:
             patch = warp_patch_u8(pyr, pose, m.patch_size_)
-        flat = self._read_shape
-        r, self._contrast, self._m2 = read_global(patch, self._reading, (self._read_e, self._read_c, flat))
+        flat = self._read_work[2]
+        r, self._contrast, self._m2 = read_global(patch, self._reading, self._read_work)
         shape = flat.reshape(-1, 2).copy()
         if m.region_models_ and self.region_iter >= 0:
             hit, reg = self.read_regions(pyr, pose, patch)
@@ -519,9 +421,12 @@ class Tracker:
             refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, where, points)
 
     def read_regions(self, pyr: Pyramid, pose: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every region model's points: :meth:`read_region` for each region alone and :meth:`read_lips` for
-        the lips, in one call of the compiled :func:`~keyshape.tracker.kernels.refine_regions` (the regions
-        with ``region_step="inverse"`` by :meth:`read_region_inverse`).
+        """Every region model's points: each region's box translated in the model frame (at most
+        ``region_iter`` Gauss-Newton steps on its distance from its own appearance subspace, forward additive,
+        each kept only if it lowers that distance, ``|t|`` at most 8% of the face width), the lips' boxes
+        together with one shared horizontal stretch and tilt as well (``lip_stretch``), then each region's
+        eigen-points at the best motion; one call of the compiled
+        :func:`~keyshape.tracker.kernels.refine_regions` (``docs/tracker.md``).
 
         Returns
         -------
@@ -531,9 +436,6 @@ class Tracker:
         acc = np.zeros((self.model.n_points, 2))
         if self._tables is not None:
             acc += self._tables.scatter @ self._run_tables(self._tables, pyr, pose, patch).reshape(-1, 2)
-        for rm in self._region_sets[0]:
-            if rm.name in self._inverse:
-                acc[rm.points] += self.read_region_inverse(pyr, pose, rm, patch)
         hit = self._region_hit
         return hit, acc[hit] / self._region_count[hit, None]
 
@@ -559,104 +461,6 @@ class Tracker:
 
     def _is_lip(self, rm) -> bool:
         return self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth"))
-
-    def _refine_region(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray, measure, delta) -> np.ndarray:
-        """The loop :meth:`read_region` and :meth:`read_region_inverse` share: refine the region box's
-        translation ``t`` in the model frame, then read its eigen-points at the best ``t``.
-
-        ``measure(crop)`` gives ``(distance, error, state)`` of a crop; ``delta(crop, error, state)`` the
-        step to add to ``t`` (None: stop). At most ``region_iter`` steps, each at most 2 px and kept
-        only if the distance falls, ``|t|`` at most 8% of the face width.
-        """
-        x0, y0, w, h = rm.box.tolist()
-        crop = rm.crop(patch)
-        tx = ty = 0.0
-        best = None
-        lim = 0.08 * self.model.face_width
-        (a00, a01, a02), (a10, a11, a12) = pose.tolist()
-        lvl = pyramid_level(pyr, pose)          # the sub-affines below share the pose's linear part
-        last = self.region_steps.get(rm.name, self.region_iter)
-        for it in range(last + 1):
-            if it:
-                bx, by = x0 + tx, y0 + ty
-                crop = warp_level(pyr, lvl, [[a00, a01, a02 + a00 * bx + a01 * by],
-                                             [a10, a11, a12 + a10 * bx + a11 * by]], w, h)
-            r, e, state = measure(crop)
-            if best is not None and r >= best[0]:
-                break
-            best = (r, (tx, ty), e)
-            if it == last:
-                break
-            d = delta(crop, e, state)
-            if d is None:
-                break
-            tx = max(-lim, min(lim, tx + max(-2.0, min(2.0, d[0]))))
-            ty = max(-lim, min(lim, ty + max(-2.0, min(2.0, d[1]))))
-        _, t, e = best
-        t = np.array(t)
-        c = rm.pinv_i @ e
-        self._m2 = max(self._m2, float(c @ (c / rm.variance)) / len(c))
-        return (rm.mean_l + rm.ul @ c).reshape(-1, 2) + t
-
-    def read_region_inverse(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray) -> np.ndarray:
-        """:meth:`read_region` with inverse-compositional steps (Baker and Matthews' project-out
-        algorithm applied to the region's translation; ``Tracker(region_step="inverse")``).
-
-        The Jacobian is the gradient of the region's mean appearance ``T`` (its pixels whose 3x3
-        neighbourhood lies in the region), projected out of the region's subspace:
-        ``S⊥ = S - Q QᵀS``; the step ``Δt = (S⊥ᵀS⊥)⁻¹ S⊥ᵀ e`` is one product with a precomputed
-        ``2 x n`` matrix (stacked under ``Qᵀ``, which gives the distance ``|e|² - |Qᵀe|²``), and
-        the translation composes inversely: ``t ← t - Δt``. The same limits (2 px a step, ``|t|``
-        at most 8% of the face width) and the same test (a step is kept only if the distance
-        falls) as the forward step; the fixed point differs in that the forward step linearises
-        about the current crop and this one about the mean appearance.
-        """
-        mat = self._inverse[rm.name]
-        nq = len(rm.qt)
-
-        def measure(crop):
-            e, _ = rm.error(crop)
-            out = mat @ e
-            qe = out[:nq]
-            return float(e @ e) - float(qe @ qe), e, out
-
-        def delta(crop, e, out):
-            d0, d1 = out[nq:].tolist()
-            return -d0, -d1                     # inverse composition: t <- t - dt
-
-        return self._refine_region(pyr, pose, rm, patch, measure, delta)
-
-    def read_region(self, pyr: Pyramid, pose: np.ndarray, rm, patch: np.ndarray) -> np.ndarray:
-        """Model-frame points of one region: refine its translation, then read its eigen-points.
-
-        Gauss-Newton on the region's distance from its own appearance subspace
-        (``|P⊥ (v(x + t) - mean)|²``, forward additive in the translation ``t``
-        of the region's box in the model frame, at most ``region_iter`` steps,
-        each kept only if it lowers that distance, ``|t|`` at most 8% of the
-        face width): the global affine cannot follow every part of a face
-        that turns or deforms, each feature moves a little on its own.
-        One group of :meth:`read_regions` (the compiled step, :func:`~keyshape.tracker.kernels.refine_regions`).
-        """
-        tb = self._group_tables[(rm.name,)]
-        return self._run_tables(tb, pyr, pose, patch)[0, :len(rm.points)].copy()
-
-    def read_lips(self, pyr: Pyramid, pose: np.ndarray, rms: list, patch: np.ndarray) -> list[np.ndarray]:
-        """:meth:`read_region` for the lip regions together: each box has its own translation, and all
-        stretch horizontally and tilt together (one stretch ``s`` and one tilt ``k`` for the mouth).
-
-        Each box moves in the model frame by ``b -> box corner + b + t_r + (s (b_x - c_x), k (b_x - c_x))``
-        (``b`` box pixel coordinates, ``c`` the box centre, ``t_r`` the region's translation): the
-        mouth widens or narrows and its far end rises or drops. Gauss-Newton on the sum of the regions'
-        distances from their appearance subspaces (as :meth:`read_region`: forward additive, each
-        step kept only if it lowers that sum; ``|s|, |k| <= lip_stretch``); the points read in each
-        box are mapped by the same motion. The upper and lower lip share the mouth's corners, so
-        they share its width and tilt (estimated apart on ``franck.mp4`` they correlate 0.95).
-        Why (``docs/tracker.md``): a smile or a pucker widens or narrows the mouth beyond what
-        twelve labelled frames span, and the lower face shears against the global affine when the
-        head turns and tilts; the regions' PCA read both as smaller changes of shape. The vertical stretch is left out: the lips' opening is the shape modes' to read.
-        """
-        pts = self._run_tables(self._group_tables[tuple(rm.name for rm in rms)], pyr, pose, patch)
-        return [pts[i, :len(rm.points)].copy() for i, rm in enumerate(rms)]
 
     def _sane(self, pose: np.ndarray, shape: np.ndarray, image_size: tuple[int, int]) -> bool:
         lin = pose[:, :2]

@@ -1,20 +1,12 @@
 """The tracker's per-frame arithmetic as compiled kernels (numba), over arrays allocated once per tracker.
 
-:class:`keyshape.tracker.fitting.Tracker` calls these for the work every frame repeats: the region
-models' Gauss-Newton refinement and reading (:func:`refine_regions`: the boxes' sampling, their
-normalised errors, gradients and projected-out normal equations, every step of every region in one
-call), the pose polish's normal equations and solve (:func:`polish_step`), the global eigen-points
-reading (:func:`read_global`) and the lips' shape fitted by analysis by synthesis (:func:`lip_box`,
-then :func:`refine_write` on the crop it chose). Each frame is otherwise hundreds of small numpy and
-OpenCV calls whose overhead outweighs their arithmetic (a region's box is a few hundred pixels).
-
-The kernels are compiled on first use and cached on disk (``cache=True``): beside this module's
-``__pycache__`` where it is writable, else in numba's user cache directory (``NUMBA_CACHE_DIR`` when
-set), so an installation in a read-only place compiles once per user, not once per run.
-Sums are reassociated for vectorisation (``fastmath`` ``reassoc``/``contract`` only: no assumptions
-about NaN or infinities), which halves the step's time against sums in their written order. Results
-differ from a plain numpy evaluation by rounding, and a kernel compiled in this process can differ by a
-rounding (1e-14 px) from the same kernel loaded from the cache by another process (a ``--jobs`` worker).
+:class:`keyshape.tracker.fitting.Tracker` calls these for the work every frame repeats: the region models'
+refinement and reading (:func:`refine_regions`), the pose polish's step (:func:`polish_step`), the global
+reading (:func:`read_global`) and the lips' shape fit (:func:`lip_box`, then :func:`refine_write`).
+Compiled on first use and cached on disk (``cache=True``; docs/tracker.md, "The per-frame step compiled").
+Sums are reassociated for vectorisation (``fastmath`` ``reassoc``/``contract`` only: no assumptions about
+NaN or infinities), so results differ from numpy's by rounding, and a kernel compiled in this process can
+differ by a rounding (1e-14 px) from the same kernel loaded from the cache by a ``--jobs`` worker.
 Divisions follow numpy's error model (no test for a zero divisor, which would stop the loops' vectorisation).
 
 Conventions: images are ``uint8`` (row, column); affines ``(a00, a01, a02, a10, a11, a12)`` map a
@@ -171,6 +163,15 @@ def _project(qt, e, n, q, qe):
 
 
 @njit(**_JIT)
+def _scaled_gradients(gxy, idx, k, ga, gb):
+    """``ga``, ``gb``: the gradients ``gxy`` (2, flat) at the pixels ``idx``, times ``k``."""
+    for i in range(idx.size):
+        kk = np.uint64(idx[i])
+        ga[i] = gxy[0, kk] * k
+        gb[i] = gxy[1, kk] * k
+
+
+@njit(**_JIT)
 def _cholesky_solve(h, g, npar, sol):
     """``sol = -h⁻¹ g`` by Cholesky (``h`` npar x npar, overwritten), as ``cv2.solve(..., DECOMP_CHOLESKY)``:
     False where a pivot falls under machine epsilon (not positive definite)."""
@@ -207,10 +208,7 @@ def _box_normal_equations(gxy, idx, k, xc, stretch, qt, q, e, qe, jac, qj, at, s
     box centre, ``qt`` its basis (``q`` rows), ``e`` and ``qe`` its error and ``Qᵀe``."""
     n = idx.size
     ga, gb = jac[0], jac[1]
-    for i in range(n):
-        kk = np.uint64(idx[i])
-        ga[i] = gxy[0, kk] * k
-        gb[i] = gxy[1, kk] * k
+    _scaled_gradients(gxy, idx, k, ga, gb)
     p = 4 if stretch else 2
     for a in range(q):                          # QᵀJ: a pass over the pixels per basis row
         s0 = s1 = s2 = s3 = 0.0
@@ -448,10 +446,7 @@ def polish_step(patch, level, work):
     k = 1.0 / (8.0 * sd)
     _gradients(flat, h, w, gxy[0], gxy[1])
     ga, gb = jac[0], jac[1]
-    for i in range(n):
-        kk = index[i]
-        ga[i] = gxy[0, kk] * k
-        gb[i] = gxy[1, kk] * k
+    _scaled_gradients(gxy, index, k, ga, gb)
     # QᵀJ, a pass over the pixels per basis row
     nq = qt.shape[0]
     for a in range(nq):
@@ -561,11 +556,7 @@ def read_global(patch, reading, work):
     k = c.size
     sd, ee = _normalised_error(patch.reshape(patch.size), index, mean_i, e)
     cu = np.empty(2 * k)
-    for a in range(2 * k):
-        acc = 0.0
-        for i in range(n):
-            acc += pinv[a, i] * e[i]
-        cu[a] = acc
+    _project(pinv, e, n, 2 * k, cu)
     cue = 0.0
     m2 = 0.0
     for a in range(k):
@@ -727,11 +718,8 @@ def refine_shape(img, f, pose, s, tables, work, n_iter):
         for c in range(k):
             for i in range(n):
                 jac[c, i] = gx[i] * gsx[c, i] + gy[i] * gsy[c, i]
+        _project(qt, e, n, q, qe)
         for a in range(q):
-            acc = 0.0
-            for i in range(n):
-                acc += qt[a, i] * e[i]
-            qe[a] = acc
             for c in range(k):
                 acc = 0.0
                 for i in range(n):

@@ -351,8 +351,8 @@ def _refine(torch, kornia, tracker, fr, poses, levels, n_iter, dev):
     return a, its
 
 
-def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: int = 3, device: str = "cpu",
-                 tracker=None) -> tuple[np.ndarray, np.ndarray]:
+def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: int = 3,
+                 device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """Refine ``B`` poses at once: :meth:`Tracker.align` applied to every frame in parallel (frame by frame what
     ``Tracker(model, n_iter=n_iter, n_polish=n_polish).align(Pyramid(frame), pose, levels)`` gives, up to the
     warp's sub-grey-level differences; ``levels`` 0: the half-resolution level, 1: full resolution, ``()``: none).
@@ -364,7 +364,6 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
     poses : (B, 2, 3) starting ``image_from_model`` affines
     n_iter, levels, n_polish : as :class:`~keyshape.tracker.fitting.Tracker` and its ``align``
     device : torch device
-    tracker : a Tracker of ``model`` to take the alignment data from (built when None)
 
     Returns
     -------
@@ -374,9 +373,7 @@ def refine_batch(model, frames, poses, n_iter: int = 5, levels=(0,), n_polish: i
     torch, kornia = require_torch()
     from keyshape.tracker.fitting import Tracker
 
-    if tracker is None:
-        tracker = Tracker(model, n_iter=n_iter, n_polish=n_polish, search=False, region_iter=-1)
-    tracker.n_polish = int(n_polish)
+    tracker = Tracker(model, n_iter=n_iter, n_polish=n_polish, search=False, region_iter=-1)
     dev = _device(torch, device)
     with torch.no_grad():
         fr, off, p = _cropped(torch, model, frames, poses, dev, 0.2)

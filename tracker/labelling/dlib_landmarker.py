@@ -145,19 +145,14 @@ def _pick(boxes: list, centre: np.ndarray | None):
 
 
 def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None = None, detect_every: int = 4,
-                           half_above: int = 100000, progress=None, per_frame=None) -> np.ndarray:
+                           progress=None, per_frame=None) -> np.ndarray:
     """dlib's points on every frame, cheaply: (n_frames, 68, 2), NaN where no face.
 
-    The HOG detector runs every ``detect_every`` frames (and whenever the face
-    was lost) on a half-size image when the frame is at least 240 pixels
-    high (about 10 ms instead of 40 at 400x300); in between, the shape
-    predictor (about 2 ms) starts from a box around the previous frame's
-    points. Used by ``keyshape label`` for its whole-video cues (eye closure,
-    mouth opening, brows, head pose). ``per_frame(index, gray, points)`` is
-    called for every frame with a face (extra cues from the pixels).
+    The HOG detector runs every ``detect_every`` frames (and whenever the face was lost); in between, the
+    shape predictor (about 2 ms) starts from a box around the previous frame's points (docs/label.md,
+    "Which frames"). ``per_frame(index, gray, points)`` is called for every frame with a face (extra cues
+    from the pixels).
     """
-    import cv2  # noqa: PLC0415
-
     from keyshape.base.formats.video import VideoReader  # noqa: PLC0415
 
     lm = landmarker if landmarker is not None else DlibLandmarker()
@@ -170,13 +165,10 @@ def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None =
         gray = np.ascontiguousarray(gray, dtype=np.uint8)
         pts = None
         if previous is None or i % max(1, int(detect_every)) == 0:
-            f = 0.5 if min(gray.shape) >= 2 * half_above else 1.0
-            small = cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_AREA) if f < 1 else gray
-            b = _pick([b for b in lm._detector(small, 0) if b.width() / f >= lm.min_size],
-                      None if previous is None else previous.mean(0) * f)
+            b = _pick([b for b in lm._detector(gray, 0) if b.width() >= lm.min_size],
+                      None if previous is None else previous.mean(0))
             if b is not None:
-                box = dlib.rectangle(int(b.left() / f), int(b.top() / f), int(b.right() / f), int(b.bottom() / f))
-                pts = lm.predict(gray, box)
+                pts = lm.predict(gray, b)
         if pts is None and previous is not None:
             # a box placed as the HOG detector places it around these points (as wide as their larger extent,
             # its centre a tenth of that above theirs): one centred on the points drifts down and shrinks

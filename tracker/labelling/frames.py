@@ -250,9 +250,8 @@ def eye_profile(gray: np.ndarray, points68: np.ndarray, width: int = 16, height:
     return prof / (prof.std() + 1e-6)
 
 
-def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, min_gap: int = 12,
-                          exclude=(), n_blinks: int | None = None, blink_ratio: float = 0.7,
-                          sharp_window: int = 3, eye_profiles: np.ndarray | None = None,
+def choose_frames_by_cues(points68: np.ndarray, count: int, *, min_gap: int = 12, exclude=(),
+                          n_blinks: int | None = None, blink_ratio: float = 0.7, eye_profiles: np.ndarray | None = None,
                           extreme_tol: float = 0.15) -> np.ndarray:
     """Choose ``count`` frames covering the performance from per-frame iBUG-68 shapes (dlib over the video).
 
@@ -260,8 +259,8 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
     principal components, then the deepest blinks (``n_blinks``, default ``max(1, count // 5)``; eye aperture
     below ``blink_ratio`` of its median, or with ``eye_profiles`` from :func:`eye_profile` a profile far from the
     median open eye) and, with ``count`` >= 6, the mouth's extremes (when no chosen frame is within
-    ``extreme_tol`` of the cue's range of them) replace the most redundant chosen frames; then each frame is
-    swapped for a sharper look-alike within ``sharp_window`` frames. Frames without a face are never chosen.
+    ``extreme_tol`` of the cue's range of them) replace the most redundant chosen frames. Frames without a face
+    are never chosen.
     The method: docs/label.md, "Which frames". Returns the chosen frame indices in time order.
     """
     p = np.asarray(points68, np.float64)
@@ -377,26 +376,6 @@ def choose_frames_by_cues(points68: np.ndarray, count: int, *, sharpness=None, m
                 done = swap_in(int(b))
                 if done is not False:
                     break
-    # sharpness: swap for a sharper neighbour with (nearly) the same cues, blinks kept as they are
-    if sharpness is not None:
-        sharp = np.asarray(sharpness, np.float64)
-        out = []
-        cs = np.array(chosen)
-        for f in chosen:
-            if f in protected:
-                out.append(f)
-                continue
-            nb = np.arange(max(f - sharp_window, 0), min(f + sharp_window + 1, n))
-            nb = nb[free[nb]]
-            d_self = np.linalg.norm(X[nb] - X[f], axis=1)
-            oth = cs[cs != f]
-            if len(oth):
-                d_other = np.min(np.linalg.norm(X[nb][:, None] - X[oth][None], axis=2), axis=1)
-                nb = nb[d_self < 0.25 * d_other]
-            nb = nb[[min((abs(int(x) - g) for g in out + [h for h in chosen if h != f]), default=min_gap)
-                     >= min_gap for x in nb]] if len(nb) else nb
-            out.append(int(nb[np.argmax(sharp[nb])]) if len(nb) else f)
-        chosen = out
     return np.array(sorted(chosen), dtype=np.intp)
 
 

@@ -2,7 +2,7 @@
 
 Usage (from the repository root)::
 
-    python -m data_synth.build_ict_subset [--source ../shared/data/ict-facekit] [--out retarget/data/ict_face.npz]
+    PYTHONPATH=. python bench/build_ict_subset.py [--source ../shared/data/ict-facekit] [--out retarget/data/ict_face.npz]
 
 Keeps the face skin only (vertices 0-9408 of ``generic_neutral_mesh.obj``, the
 polygons made only of them, fan-triangulated), the neutral positions and the

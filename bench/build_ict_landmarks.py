@@ -2,19 +2,12 @@
 
 Usage (from the repository root)::
 
-    python -m keyshape.data_synth.build_ict_landmarks [--source ../shared/data/ict-facekit]
+    PYTHONPATH=. python bench/build_ict_landmarks.py [--source ../shared/data/ict-facekit]
 
-From ICT-FaceKit's 68 Multi-PIE landmark vertices (``vertex_indices.json``,
-``idx_to_landmark_verts``):
-
-* ``ibug68``: the 68 vertices as they are;
-* ``contours48``: brows = landmarks 17-21 / 22-26; lips: outer 48-59 and inner 60-67
-  map one to one (corners, 5 + 5 outer, 3 + 3 inner); each eye's 3 upper and 3 lower
-  lid points (at 1/4, 1/2, 3/4 of the lid's arc length, contours48's spacing) are
-  interpolated along the landmark polyline (corner, 2 lid landmarks, corner) as
-  weighted pairs of vertices; the pupils are the eyeball vertex in front of the eye's
-  centre. ICT-FaceKit turns its eyeballs with bones, not blendshapes (``eyeLook*`` move
-  only the lids), so the pupils move with no shape and the ``pupils`` region drives none.
+From ICT-FaceKit's 68 Multi-PIE landmark vertices (``vertex_indices.json``, ``idx_to_landmark_verts``):
+``ibug68`` as they are, ``contours48`` derived as docs/formats.md says (the rig's published iBUG-68 list);
+the pupils are the eyeball vertex in front of the eye's centre (ICT-FaceKit turns its eyeballs with bones,
+so the ``pupils`` region drives no shape).
 """
 from __future__ import annotations
 
