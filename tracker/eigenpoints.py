@@ -487,17 +487,23 @@ class ShapeRefiner:
     #: uint8 crop is blurred into float32 in one call with the values of converting it first
     _GAUSS = cv2.getGaussianKernel(int(round(8 * BLUR + 1)) | 1, BLUR, cv2.CV_32F)
 
+    @staticmethod
+    def level(pyr: Pyramid, pose: np.ndarray) -> tuple[int, float]:
+        """The pyramid level a shape is fitted on, one finer than :func:`pyramid_level`'s (about one source pixel
+        per model pixel), and its scale."""
+        lvl = max(pyramid_level(pyr, pose) - 1, 0)
+        return lvl, 0.5 ** lvl
+
     @classmethod
     def image(cls, pyr: Pyramid, pose: np.ndarray, shape: np.ndarray):
-        """The image a shape near ``shape`` (model frame, (m, 2)) is fitted on: a crop of the pyramid level one
-        finer than :func:`pyramid_level`'s (about one source pixel per model pixel), blurred by ``BLUR``,
+        """The image a shape near ``shape`` (model frame, (m, 2)) is fitted on: a crop of :meth:`level`'s pyramid
+        level, blurred by ``BLUR``,
         around the shape's points (60% of their extent and 4 pixels beyond). Returns ``(crop, f, pose6)``:
         the crop (:meth:`crop`), the level's scale and the pose (6,) moved to the crop's origin; None for the
         crop where the shape is not finite."""
         from keyshape.tracker.kernels import PAD, shape_box
 
-        lvl = max(pyramid_level(pyr, pose) - 1, 0)
-        f = 0.5 ** lvl
+        lvl, f = cls.level(pyr, pose)
         box = np.empty(4, np.intp)
         if not shape_box(np.asarray(pose, np.float64), np.ascontiguousarray(shape, np.float64).ravel(), f,
                          pyr._sizes[lvl], box):

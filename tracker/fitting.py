@@ -415,8 +415,7 @@ class Tracker:
         :class:`~keyshape.tracker.eigenpoints.ShapeRefiner`); :meth:`step` calls it once a frame, on the pose
         and reading it keeps."""
         lr, tables, work, where, s, box = self._lips
-        lvl = max(pyramid_level(pyr, pose) - 1, 0)
-        f = 0.5 ** lvl
+        lvl, f = lr.level(pyr, pose)
         if lip_box(pose, points, lr.points, f, pyr._sizes[lvl], s, box):
             refine_write(lr.crop(pyr, lvl, box), f, pose, box, s, tables, work, self.LIP_STEPS, where, points)
 

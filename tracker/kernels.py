@@ -799,8 +799,7 @@ def lip_box(pose, points, idx, f, size, s, box):
 @njit(**_JIT)
 def refine_write(crop, f, pose, box, s, tables, work, n_iter, where, points):
     """:func:`refine_shape` on ``crop`` (level ``f``'s pixels from ``box``'s corner, :func:`lip_box`, with
-    :func:`padded`'s border) from the
-    shape ``s``, then the fitted points ``s[at]`` mapped by ``pose`` into ``points[write]`` (image pixels),
+    :func:`padded`'s border) from the shape ``s``, then the fitted points ``s[at]`` mapped by ``pose`` into ``points[write]`` (image pixels),
     ``where = (at, write)``. Returns the steps."""
     at, write = where
     a = np.empty(6)
