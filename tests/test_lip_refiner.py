@@ -124,7 +124,7 @@ def test_the_compiled_fit_matches_its_parts():
     assert np.abs(got[lr.write] - want).max() < 1e-9
     others = np.setdiff1d(np.arange(len(points)), lr.write)
     assert np.array_equal(got[others], points[others])
-    flat = crop[PAD:-PAD, PAD:-PAD].astype(np.float32)
+    flat = crop[0, PAD:-PAD, PAD:-PAD].astype(np.float32)
     hh, ww = flat.shape
 
     def bilinear(x, y):                              # the border replicated
@@ -152,7 +152,11 @@ def test_the_crop_is_blurred_as_gaussian_blur_blurs_it_in_float32():
     got = ShapeRefiner.crop(Pyramid(frame), 0, box)
     want = cv2.GaussianBlur(frame[20:97, 30:131].astype(np.float32), (0, 0), ShapeRefiner.BLUR,
                             borderType=cv2.BORDER_REPLICATE)
-    assert got.dtype == np.float64 and got.shape == (77 + 2 * PAD, 101 + 2 * PAD)
-    assert np.abs(got[PAD:-PAD, PAD:-PAD] - want).max() < 1e-4
-    assert np.array_equal(got[:PAD], np.repeat(got[PAD:PAD + 1], PAD, 0))
-    assert np.array_equal(got[:, -PAD:], np.repeat(got[:, -PAD - 1:-PAD], PAD, 1))
+    assert got.dtype == np.float64 and got.shape == (3, 77 + 2 * PAD, 101 + 2 * PAD)
+    img = got[0]
+    assert np.abs(img[PAD:-PAD, PAD:-PAD] - want).max() < 1e-4
+    assert np.array_equal(img[:PAD], np.repeat(img[PAD:PAD + 1], PAD, 0))
+    assert np.array_equal(img[:, -PAD:], np.repeat(img[:, -PAD - 1:-PAD], PAD, 1))
+    # the differences to the next column and row that the samples' gradients are read from
+    assert np.array_equal(got[1][:, :-1], np.diff(img, axis=1)) and not got[1][:, -1].any()
+    assert np.array_equal(got[2][:-1], np.diff(img, axis=0)) and not got[2][-1].any()

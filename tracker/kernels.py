@@ -583,63 +583,63 @@ PAD = 4
 
 
 @njit(**_JIT)
-def _bilinear_grad(img, x, y):
-    """The bilinear sample ``b(x, y)`` of ``img`` (float64, ``PAD`` pixels of replicated border around the
-    image sampled) and its differences half a pixel either side, ``b(x + 1/2, y) - b(x - 1/2, y)`` and
-    ``b(x, y + 1/2) - b(x, y - 1/2)``, from the 3 x 3 pixels the five samples share (a difference of two
-    bilinear samples a pixel apart is the bilinear sample of the pixels' differences half a pixel back),
-    with selections, not branches (which of the block's rows and columns a sample uses changes from
-    pixel to pixel, which a branch predicts badly). Samples beyond the image take its
-    border's values (each coordinate clamped to 1.5 pixels beyond the border, where the five samples all
-    read the replicated border)."""
-    H, W = img.shape
-    x = min(max(x, PAD - 1.5), W - PAD + 0.5)
-    y = min(max(y, PAD - 1.5), H - PAD + 0.5)
-    c = int(x - 0.5)                                 # the block's first column and row
-    r = int(y - 0.5)
-    t = x - 0.5 - c
-    u = y - 0.5 - r
-    ix = int(x)                                      # c or c + 1
-    iy = int(y)                                      # r or r + 1
+def _bilinear(img, x, y):
+    """The bilinear sample of ``img`` at ``(x, y)`` (pixel centres at integers), ``x`` and ``y`` at least 0 and
+    under the last column and row (no test: the caller clamps)."""
+    ix = int(x)
+    iy = int(y)
     ax = x - ix
     ay = y - iy
-    p00, p01, p02 = img[r, c], img[r, c + 1], img[r, c + 2]
-    p10, p11, p12 = img[r + 1, c], img[r + 1, c + 1], img[r + 1, c + 2]
-    p20, p21, p22 = img[r + 2, c], img[r + 2, c + 1], img[r + 2, c + 2]
-    dx0 = (p01 - p00) + t * ((p02 - p01) - (p01 - p00))      # each row's x-difference at x
-    dx1 = (p11 - p10) + t * ((p12 - p11) - (p11 - p10))
-    dx2 = (p21 - p20) + t * ((p22 - p21) - (p21 - p20))
-    dy0 = (p10 - p00) + u * ((p20 - p10) - (p10 - p00))      # each column's y-difference at y
-    dy1 = (p11 - p01) + u * ((p21 - p11) - (p11 - p01))
-    dy2 = (p12 - p02) + u * ((p22 - p12) - (p12 - p02))
-    top = iy == r
-    left = ix == c
-    dxa = dx0 if top else dx1
-    dxb = dx1 if top else dx2
-    dya = dy0 if left else dy1
-    dyb = dy1 if left else dy2
-    q0 = (p00 if left else p01) if top else (p10 if left else p11)
-    q1 = (p01 if left else p02) if top else (p11 if left else p12)
-    s0 = (p10 if left else p11) if top else (p20 if left else p21)
-    s1 = (p11 if left else p12) if top else (p21 if left else p22)
-    v0 = q0 + ax * (q1 - q0)
-    v1 = s0 + ax * (s1 - s0)
-    return v0 + ay * (v1 - v0), dxa + ay * (dxb - dxa), dya + ax * (dyb - dya)
+    # unsigned indices: no wrap-around test for negative ones
+    x0, x1, y0, y1 = np.uint64(ix), np.uint64(ix + 1), np.uint64(iy), np.uint64(iy + 1)
+    p00 = img[y0, x0]
+    p10 = img[y1, x0]
+    v0 = p00 + ax * (img[y0, x1] - p00)
+    v1 = p10 + ax * (img[y1, x1] - p10)
+    return v0 + ay * (v1 - v0)
+
+
+@njit(**_JIT)
+def _bilinear_grad(img, x, y):
+    """The bilinear sample ``b(x, y)`` of ``img[0]`` and its differences half a pixel either side,
+    ``b(x + 1/2, y) - b(x - 1/2, y)`` and ``b(x, y + 1/2) - b(x, y - 1/2)``, ``img`` a :func:`padded` stack
+    (``PAD`` pixels of replicated border around the image sampled): a difference of two bilinear samples a
+    pixel apart is the bilinear sample of the pixels' differences (``img[1]``, ``img[2]``) half a pixel back.
+    Samples beyond the image take its border's values (each coordinate clamped to 1.5 pixels beyond the
+    border, where the five samples all read the replicated border)."""
+    H, W = img.shape[1], img.shape[2]
+    x = min(max(x, PAD - 1.5), W - PAD + 0.5)
+    y = min(max(y, PAD - 1.5), H - PAD + 0.5)
+    return _bilinear(img[0], x, y), _bilinear(img[1], x - 0.5, y), _bilinear(img[2], x, y - 0.5)
 
 
 @njit(**_JIT)
 def padded(crop):
-    """``crop`` as float64 with ``PAD`` pixels of replicated border (the images :func:`sample_shape` samples)."""
+    """``crop`` as float64 with ``PAD`` pixels of replicated border (the images :func:`sample_shape` samples),
+    stacked with its differences to the next column and to the next row (0 past the last): (3, h + 2 PAD,
+    w + 2 PAD)."""
     h, w = crop.shape
-    out = np.empty((h + 2 * PAD, w + 2 * PAD))
-    for r in range(h + 2 * PAD):
+    H, W = h + 2 * PAD, w + 2 * PAD
+    out = np.empty((3, H, W))
+    img, dx, dy = out[0], out[1], out[2]
+    for r in range(H):
         src = crop[min(max(r - PAD, 0), h - 1)]
-        row = out[r]
+        row = img[r]
         for c in range(w):
             row[c + PAD] = src[c]
         for c in range(PAD):
             row[c] = src[0]
             row[w + PAD + c] = src[w - 1]
+        drow = dx[r]
+        for c in range(W - 1):
+            drow[c] = row[c + 1] - row[c]
+        drow[W - 1] = 0.0
+    for r in range(H - 1):
+        a, b, drow = img[r], img[r + 1], dy[r]
+        for c in range(W):
+            drow[c] = b[c] - a[c]
+    for c in range(W):
+        dy[H - 1, c] = 0.0
     return out
 
 
@@ -650,29 +650,27 @@ def sample_shape(img, f, pose, template, s, out):
     the triangle ``tri[i]`` of the vertices ``ext s`` (``ext`` (n_vertices, m) maps the shape's ``m`` points
     ``s``, flat ``(x0, y0, x1, ...)``, to the triangulation's vertices) at the barycentric weights
     ``bary[i]``, in the model frame; ``pose`` (6,) maps it to the image and ``f`` to pyramid level ``img``
-    (``x_l = f x + f/2 - 1/2``; ``img`` float64 with ``PAD`` pixels of replicated border, :func:`padded`,
-    ``pose`` mapping to its pixels). ``out = (vx, v, gx, gy)``: ``vx`` (n_vertices, 2) receives the
-    vertices, ``v``, ``gx``, ``gy`` (distinct arrays) the samples and gradients."""
+    (``x_l = f x + f/2 - 1/2``; ``img`` the :func:`padded` stack of the level's pixels, ``pose`` mapping to
+    its pixels). ``out = (vx, v, gx, gy)``: ``vx`` (n_vertices, 2) receives the vertices at the level,
+    ``v``, ``gx``, ``gy`` (distinct arrays) the samples and gradients."""
     tri, bary, ext = template
     vx, v, gx, gy = out
     nv, m = ext.shape
-    for r in range(nv):
+    a0, a1, a2, a3, a4, a5 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5]
+    d = 0.5 * f - 0.5
+    for r in range(nv):                              # the vertices, mapped to the level (the map is affine)
         ax = 0.0
         ay = 0.0
         for j in range(m):
             ax += ext[r, j] * s[2 * j]
             ay += ext[r, j] * s[2 * j + 1]
-        vx[r, 0] = ax
-        vx[r, 1] = ay
-    a0, a1, a2, a3, a4, a5 = pose[0], pose[1], pose[2], pose[3], pose[4], pose[5]
-    d = 0.5 * f - 0.5
+        vx[r, 0] = f * (a0 * ax + a1 * ay + a2) + d
+        vx[r, 1] = f * (a3 * ax + a4 * ay + a5) + d
     for i in range(tri.shape[0]):
-        t0, t1, t2 = tri[i, 0], tri[i, 1], tri[i, 2]
+        t0, t1, t2 = np.uint64(tri[i, 0]), np.uint64(tri[i, 1]), np.uint64(tri[i, 2])
         b0, b1, b2 = bary[i, 0], bary[i, 1], bary[i, 2]
-        mx = b0 * vx[t0, 0] + b1 * vx[t1, 0] + b2 * vx[t2, 0]
-        my = b0 * vx[t0, 1] + b1 * vx[t1, 1] + b2 * vx[t2, 1]
-        x = f * (a0 * mx + a1 * my + a2) + d
-        y = f * (a3 * mx + a4 * my + a5) + d
+        x = b0 * vx[t0, 0] + b1 * vx[t1, 0] + b2 * vx[t2, 0]
+        y = b0 * vx[t0, 1] + b1 * vx[t1, 1] + b2 * vx[t2, 1]
         v[i], gx[i], gy[i] = _bilinear_grad(img, x, y)
 
 
