@@ -365,7 +365,7 @@ def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_
 
 
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
-                    frames: int = 3, min_closure: float = 0.25, max_scale: float = 2.5,
+                    frames: int = 3, min_closure: float = 0.5, max_scale: float = 2.5,
                     report: list | None = None) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
 
