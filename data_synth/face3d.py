@@ -16,7 +16,7 @@ from keyshape.base.files import atomic_write
 from keyshape.base.formats.tracks import Tracks
 from keyshape.base.formats.weights import write_weights
 from keyshape.base.schemes import load_scheme
-from keyshape.data_synth.performance import _pulse, make_performance, smooth_noise
+from keyshape.data_synth.performance import pulse, make_performance, smooth_noise
 from keyshape.base.raster import rasterize
 from keyshape.data_synth.video import _check_args, render_video, select_label_frames, write_truth
 
@@ -335,7 +335,7 @@ def make_performance3d(n_frames: int, fps: float, rng: np.random.Generator) -> P
     frown = np.zeros(n_frames)
     n_ep = max(1, int(n_frames / fps / 6.0))
     for e, d in zip(r_extra.uniform(0, n_frames / fps, n_ep), r_extra.uniform(0.8, 2.0, n_ep)):
-        frown = np.maximum(frown, r_extra.uniform(0.5, 1.0) * _pulse(t, e, d, 0.3))
+        frown = np.maximum(frown, r_extra.uniform(0.5, 1.0) * pulse(t, e, d, 0.3))
     lean = np.tanh(smooth_noise(n_frames, 2 * fps, r_extra))
     up = np.maximum(cur[:, D["browInnerUp_L"]], cur[:, D["browInnerUp_R"]])
     cur[:, D["browDown_L"]] = np.clip(frown * (1 + 0.5 * lean) * (1 - up), 0, 1)

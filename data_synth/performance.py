@@ -51,7 +51,7 @@ def smooth_noise(n: int, sigma: float, rng: np.random.Generator) -> np.ndarray:
     return x * np.sqrt(2 * np.sqrt(np.pi) * sigma)
 
 
-def _pulse(t: np.ndarray, t0: float, dur: float, attack: float) -> np.ndarray:
+def pulse(t: np.ndarray, t0: float, dur: float, attack: float) -> np.ndarray:
     """A plateau from ``t0`` lasting ``dur`` with raised-cosine attack and release of ``attack`` seconds."""
     a = np.clip((t - t0) / attack, 0, 1)
     b = np.clip((t0 + dur - t) / attack, 0, 1)
@@ -92,7 +92,7 @@ def make_performance(n_frames: int, fps: float = 30.0, rng=None) -> Performance:
         for _ in range(n_syll):
             d = r_speech.uniform(0.18, 0.26)
             kind = r_speech.choice(4, p=[0.55, 0.17, 0.13, 0.15])
-            env = _pulse(t, now, d, d * 0.5)
+            env = pulse(t, now, d, d * 0.5)
             amp = r_speech.uniform(0.25, 1.0) ** 0.8
             if kind == 0:      # open vowel
                 jaw += amp * env
@@ -100,7 +100,7 @@ def make_performance(n_frames: int, fps: float = 30.0, rng=None) -> Performance:
                 funnel += amp * env
                 jaw += 0.35 * amp * env
             elif kind == 2:    # "u": pucker, mouth nearly shut
-                pucker += amp * _pulse(t, now - 0.04, d + 0.08, d * 0.5)
+                pucker += amp * pulse(t, now - 0.04, d + 0.08, d * 0.5)
                 jaw += 0.08 * env
             else:              # "i/e": spread lips, half open
                 stretch += amp * env
@@ -115,7 +115,7 @@ def make_performance(n_frames: int, fps: float = 30.0, rng=None) -> Performance:
     # --- smiles: slow episodes, slightly asymmetric, suppressed by rounding
     smile = np.zeros(n_frames)
     for e in _events(total, 4.0, r_expr, start=-1.0):
-        smile = np.maximum(smile, r_expr.uniform(0.4, 1.0) * _pulse(t, e, r_expr.uniform(0.8, 2.5), 0.35))
+        smile = np.maximum(smile, r_expr.uniform(0.4, 1.0) * pulse(t, e, r_expr.uniform(0.8, 2.5), 0.35))
     asym = 0.25 * smooth_noise(n_frames, 2.0 * fps, r_expr)
     rounding = np.clip(W[:, _C["mouthFunnel"]] + W[:, _C["mouthPucker"]], 0, 1)
     base = (smile + 0.35 * sm(stretch)) * (1 - 0.8 * rounding)
@@ -125,19 +125,19 @@ def make_performance(n_frames: int, fps: float = 30.0, rng=None) -> Performance:
     # --- brows: inner raises on emphasis, outer raises now and then, one side at a time sometimes
     brow_in = np.zeros(n_frames)
     for e in _events(total, 3.5, r_expr, start=-0.5):
-        brow_in = np.maximum(brow_in, r_expr.uniform(0.3, 1.0) * _pulse(t, e, r_expr.uniform(0.4, 1.5), 0.2))
+        brow_in = np.maximum(brow_in, r_expr.uniform(0.3, 1.0) * pulse(t, e, r_expr.uniform(0.4, 1.5), 0.2))
     W[:, _C["browInnerUp"]] = brow_in
     for name in ("browOuterUp_L", "browOuterUp_R"):
         b = np.zeros(n_frames)
         for e in _events(total, 5.0, r_expr, start=-1.0):
-            b = np.maximum(b, r_expr.uniform(0.3, 1.0) * _pulse(t, e, r_expr.uniform(0.5, 1.8), 0.25))
+            b = np.maximum(b, r_expr.uniform(0.3, 1.0) * pulse(t, e, r_expr.uniform(0.5, 1.8), 0.25))
         W[:, _C[name]] = np.maximum(b, 0.6 * brow_in)
 
     # --- blinks: every 2-5 s, 0.12-0.25 s long; one in seven is one eye only
     bl = np.zeros((n_frames, 2))
     for e in _events(total, 3.2, r_blink, start=-1.5):
         d = r_blink.uniform(0.12, 0.25)
-        env = _pulse(t, e, d, d * 0.45)
+        env = pulse(t, e, d, d * 0.45)
         which = r_blink.choice(3, p=[0.86, 0.07, 0.07])
         amp = r_blink.uniform(0.85, 1.0)
         if which in (0, 1):

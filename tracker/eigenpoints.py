@@ -39,6 +39,16 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return image
 
 
+def level_sizes(h: int, w: int, levels: int = 4) -> list[tuple[int, int]]:
+    """``(height, width)`` of each level of a :class:`Pyramid` of an ``h`` x ``w`` frame, finest first: at most
+    ``levels``, each ``cv2.pyrDown``'s of the one before, down to the first under 64 pixels a side."""
+    sizes = [(h, w)]
+    while len(sizes) < levels and min(h, w) >= 64:
+        h, w = (h + 1) // 2, (w + 1) // 2
+        sizes.append((h, w))
+    return sizes
+
+
 class Pyramid:
     """Gaussian pyramid (``cv2.pyrDown``) of a frame, finest first, built lazily on access.
 
@@ -57,14 +67,8 @@ class Pyramid:
         self._src = image
         self._levels = [image] if image.ndim == 2 else []
         self._regions: dict = {}
-        n = 1
-        h, w = image.shape[:2]
-        self._sizes = [(h, w)]
-        while n < levels and min(h, w) >= 64:
-            h, w = (h + 1) // 2, (w + 1) // 2
-            self._sizes.append((h, w))
-            n += 1
-        self.n_levels = n
+        self._sizes = level_sizes(*image.shape[:2], levels)
+        self.n_levels = len(self._sizes)
 
     def __len__(self) -> int:
         return self.n_levels

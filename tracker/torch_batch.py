@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from keyshape.base.errors import InputError, KeyshapeError
+from keyshape.tracker.eigenpoints import level_sizes
 
 __all__ = ["read_batch", "refine_batch", "track_batch", "require_torch"]
 
@@ -61,7 +62,7 @@ class _Frames:
         else:
             raise InputError(f"frames: expected (B, height, width) or (B, height, width, 3), got {tuple(t.shape)}")
         self.levels = [g[:, None]]
-        self.n_levels = _n_levels(*(g.shape[-2:] if full_size is None else full_size), levels)
+        self.n_levels = len(level_sizes(*(g.shape[-2:] if full_size is None else full_size), levels))
         k = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], device=g.device)
         self._kx, self._ky = k[None, None, None, :], k[None, None, :, None]     # separable 5x5 binomial
 
@@ -81,15 +82,6 @@ def _stacked(frames) -> np.ndarray:
     return np.stack([np.asarray(f) for f in frames]) if isinstance(frames, (list, tuple)) else np.asarray(frames)
 
 
-def _n_levels(h: int, w: int, levels: int) -> int:
-    """The pyramid's level count for (h, w) frames, as :class:`~keyshape.tracker.eigenpoints.Pyramid`'s."""
-    n = 1
-    while n < levels and min(h, w) >= 64:
-        h, w = (h + 1) // 2, (w + 1) // 2
-        n += 1
-    return n
-
-
 def _crop(torch, frames, poses: np.ndarray, size: int, device, margin: float = 0.5, levels: int = 4):
     """The frames cut to the region the patches of ``poses`` can reach, as :class:`_Frames`.
 
@@ -105,7 +97,7 @@ def _crop(torch, frames, poses: np.ndarray, size: int, device, margin: float = 0
     if arr.ndim not in (3, 4) or len(arr) != len(poses) or not np.isfinite(poses).all():
         return _Frames(torch, arr, device, levels), (0, 0)
     H, W = arr.shape[1:3]
-    n = _n_levels(H, W, levels)
+    n = len(level_sizes(H, W, levels))
     corners = np.array([[0, 0, 1], [size, 0, 1], [0, size, 1], [size, size, 1]], np.float64)
     pts = np.einsum("bij,kj->bki", poses, corners).reshape(-1, 2)
     lo, hi = pts.min(0), pts.max(0)
