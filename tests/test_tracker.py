@@ -193,6 +193,49 @@ def test_lost_frame_is_marked_and_recovered(model, footage):
     assert all(0 < r.confidence <= 1 for r in out if r.success)
 
 
+def _pan(frames, labels, i, step, n):
+    """``n`` frames of training frame ``i`` moving ``step`` (dx, dy) pixels a frame, and their true points."""
+    out, truth = [], []
+    for k in range(n):
+        a = np.array([[1.0, 0, k * step[0]], [0, 1.0, k * step[1]]])
+        out.append(cv2.warpAffine(frames[i], a, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+        truth.append(labels[i] + np.array(step) * k)
+    return out, np.stack(truth)
+
+
+def test_a_fast_pan_is_followed_from_the_carried_motion(model, footage, monkeypatch):
+    """A face moving 8.5 px a frame: from the third frame on each starts from the last pose moved on by half
+    the last motion, 4.3 px short instead of 8.5, where the full-resolution polish alone reaches it (at most
+    ``n_polish`` steps); started from the last pose every frame needs the coarse-to-fine alignment. The
+    points stay on the truth either way."""
+    frames, labels = footage
+    seq, truth = _pan(frames, labels, 4, (8.0, -3.0), 10)
+    for carry in (Tracker.MOTION_CARRY, 0.0):
+        monkeypatch.setattr(Tracker, "MOTION_CARRY", carry)
+        tr = Tracker(model)
+        res = list(tr.track(seq))
+        assert all(r.success for r in res)
+        err = np.linalg.norm(np.stack([r.points for r in res]) - truth, axis=-1).mean(1)
+        assert err.max() < 0.2, (carry, err)
+        fast = [r.iterations <= tr.n_polish for r in res[2:]]
+        assert all(fast) if carry else not any(fast), (carry, [r.iterations for r in res])
+
+
+def test_a_restored_state_continues_as_the_tracker_would(model, footage):
+    """:meth:`Tracker.state` holds all a next step starts from, the carried motion included."""
+    frames, labels = footage
+    seq, _ = _pan(frames, labels, 2, (2.5, 1.0), 8)
+    a = Tracker(model)
+    first = list(a.track(seq[:4]))
+    b = Tracker(model)
+    b.restore(a.state())
+    assert b._motion is not None and first[-1].success
+    for f in seq[4:]:
+        ra, rb = a.step(f), b.step(f)
+        np.testing.assert_array_equal(ra.points, rb.points)
+        np.testing.assert_array_equal(ra.pose, rb.pose)
+
+
 # --------------------------------------------------------------------------- model files
 
 

@@ -115,7 +115,7 @@ def _reference_cases(tracking_model, frames, poses=None):
     return out
 
 
-def test_the_compiled_step_reads_what_the_numpy_step_read(model, footage):  # noqa: F811
+def test_the_compiled_step_reads_what_the_numpy_step_read(model, footage, monkeypatch):  # noqa: F811
     """Issue 40: the compiled per-frame step (``keyshape.tracker.kernels``) against the numpy and OpenCV step it
     replaced. ``tests/data/tracker_step_reference.npz`` was written by that step (commit 16c7cab, the last before
     the kernels) with :func:`_reference_cases` on this module's fixtures, its polish's products taken in double
@@ -127,9 +127,12 @@ def test_the_compiled_step_reads_what_the_numpy_step_read(model, footage):  # no
     At the same pose, each region's reading, the lips', the global reading and the polished pose are within
     a thousandth of a pixel (the rounding of sums, and one grey level in about 50,000 sampled pixels: the
     boxes are sampled by the kernel, not ``cv2.warpAffine``). The old step had no fit of the lips' shape after
-    the reading (``AppearanceModel.lip_refiner_``, issue 40 item 1), so the model here is without it."""
+    the reading (``AppearanceModel.lip_refiner_``, issue 40 item 1), so the model here is without it, and each
+    frame started from the previous frame's pose (no carried motion, ``Tracker.MOTION_CARRY``), so its track
+    is made that way."""
     frames, _ = footage
     want = np.load(REFERENCE)
+    monkeypatch.setattr(Tracker, "MOTION_CARRY", 0.0)
     bare = copy.copy(model)
     bare.lip_refiner_ = None
     with single_threaded():

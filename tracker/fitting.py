@@ -161,6 +161,28 @@ class _RegionTables:
                      np.zeros(npar), np.zeros((n_reg, 4)), self.pts)
 
 
+def _motion(a: np.ndarray, b: np.ndarray) -> tuple:
+    """The image-side motion ``m`` from pose ``a`` to pose ``b`` ((2, 3) affines), ``b = m ∘ a``, as 6 floats."""
+    (a00, a01, a02), (a10, a11, a12) = a.tolist()
+    (b00, b01, b02), (b10, b11, b12) = b.tolist()
+    det = a00 * a11 - a01 * a10
+    i00, i01, i10, i11 = a11 / det, -a01 / det, -a10 / det, a00 / det           # a's linear part inverted
+    m00, m01 = b00 * i00 + b01 * i10, b00 * i01 + b01 * i11
+    m10, m11 = b10 * i00 + b11 * i10, b10 * i01 + b11 * i11
+    return m00, m01, b02 - m00 * a02 - m01 * a12, m10, m11, b12 - m10 * a02 - m11 * a12
+
+
+def _moved_on(a: np.ndarray, m: tuple, k: float) -> np.ndarray:
+    """``(1 - k) a + k m ∘ a``: pose ``a`` moved on by the fraction ``k`` of the motion ``m`` (:func:`_motion`)."""
+    (a00, a01, a02), (a10, a11, a12) = a.tolist()
+    m00, m01, m02, m10, m11, m12 = m
+    j = 1.0 - k
+    return np.array([[j * a00 + k * (m00 * a00 + m01 * a10), j * a01 + k * (m00 * a01 + m01 * a11),
+                      j * a02 + k * (m00 * a02 + m01 * a12 + m02)],
+                     [j * a10 + k * (m10 * a00 + m11 * a10), j * a11 + k * (m10 * a01 + m11 * a11),
+                      j * a12 + k * (m10 * a02 + m11 * a12 + m12)]])
+
+
 class Tracker:
     """Track an :class:`AppearanceModel` through frames (``docs/tracker.md``, "How each frame is tracked").
 
@@ -279,12 +301,16 @@ class Tracker:
                              np.zeros(6))
         self.reset()
 
+    #: the fraction of the last frame's motion the next frame's alignment starts from (:meth:`step`)
+    MOTION_CARRY = 0.5
+
     def reset(self) -> None:
         """Forget the previous frame (next frame starts with a whole-frame search)."""
         self.pose = None
         self.last_good = None
         self.lost_for = 0
         self._last_r = 0.0
+        self._motion = None             # the last frame's motion (_motion): pose_t = motion ∘ pose_t-1
 
     def state(self) -> dict:
         """What the next :meth:`step` starts from (the previous frame's pose, the last good pose, how long
@@ -292,7 +318,8 @@ class Tracker:
         makes it continue exactly as this one would."""
         return {"pose": None if self.pose is None else np.array(self.pose),
                 "last_good": None if self.last_good is None else np.array(self.last_good),
-                "lost_for": int(self.lost_for), "last_r": float(self._last_r)}
+                "lost_for": int(self.lost_for), "last_r": float(self._last_r),
+                "motion": self._motion}
 
     def restore(self, state: dict) -> None:
         """Continue from a :meth:`state` (of this tracker or another of the same model)."""
@@ -300,6 +327,7 @@ class Tracker:
         self.last_good = None if state["last_good"] is None else np.array(state["last_good"], np.float64)
         self.lost_for = int(state["lost_for"])
         self._last_r = float(state["last_r"])
+        self._motion = None if state.get("motion") is None else tuple(float(v) for v in state["motion"])
 
     # ---------------------------------------------------------------- core steps
     def align(self, pyr: Pyramid, pose: np.ndarray, levels=(0,), n_iter: int | None = None) -> tuple[np.ndarray, int]:
@@ -557,19 +585,26 @@ class Tracker:
 
     # ---------------------------------------------------------------- per frame
     def step(self, frame: np.ndarray, index: int = 0) -> FrameResult:
-        """Track one frame (BGR or gray uint8)."""
+        """Track one frame (BGR or gray uint8).
+
+        The alignment starts from the previous frame's pose moved on by ``MOTION_CARRY`` of that frame's
+        own motion (a damped constant-velocity prediction, where the two frames before were both tracked):
+        a face moving fast stays within the polish's reach (docs/tracker.md, "Fast motion").
+        """
         pyr = Pyramid(frame)            # gray conversion and downsampling only where the face is looked at
         size = pyr.size
         n_pts = self.model.n_points
         best = None
         its_total = 0
-        if self.pose is not None:
+        prev = self.pose
+        if prev is not None:
+            start = prev if self._motion is None else _moved_on(prev, self._motion, self.MOTION_CARRY)
             # fast path: small motion needs only the full-resolution polish; fall back to the
             # coarse-to-fine alignment when the residual is not as good as the previous frame's
-            ok, r, pose, pts, its, m2 = self._evaluate(pyr, self.pose, size, levels=())
+            ok, r, pose, pts, its, m2 = self._evaluate(pyr, start, size, levels=())
             its_total += its
             if not (ok and r <= 1.2 * self._last_r + 0.01):
-                ok2, r2, pose2, pts2, its, m22 = self._evaluate(pyr, self.pose, size)
+                ok2, r2, pose2, pts2, its, m22 = self._evaluate(pyr, start, size)
                 its_total += its
                 if (ok2, -r2) > (ok, -r):
                     ok, r, pose, pts, m2 = ok2, r2, pose2, pts2, m22
@@ -597,11 +632,14 @@ class Tracker:
         conf = min(max((self.lost_threshold - r) / max(self.lost_threshold - self.ref_residual, 1e-9), 0.0), 1.0,
                    max((self.max_shape_m2 - m2) / (self.max_shape_m2 - self.typical_shape_m2), 0.0))
         if ok:
+            # the motion from the previous frame's pose, where that frame was tracked (not a held pose)
+            self._motion = None if prev is None or self.lost_for else _motion(prev, pose)
             self.pose = pose
             self.last_good = pose
             self._last_r = r
             self.lost_for = 0
         else:
+            self._motion = None
             self.lost_for += 1
             self.pose = self.last_good
             pts = np.full((n_pts, 2), np.nan)
