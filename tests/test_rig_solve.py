@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from keyshape.base.errors import InputError
 from keyshape.base.schemes import load_scheme
@@ -134,23 +136,57 @@ def test_eye_calibration_maps_the_deepest_closure_onto_the_rigs_closed_eye():
     # what it did, for the animator: both eyes, 0.7 closed at the deepest
     assert sorted(r.contour for r in report) == ["eye_left", "eye_right"]
     for r in report:
-        assert r.blink and not r.capped and r.deepest == pytest.approx(0.7, abs=0.01)
+        assert r.blink == 1 and not r.capped and r.deepest == pytest.approx(0.7, abs=0.01) and r.closed == 1
         assert r.size == pytest.approx(1.5) and "closes the rig's eye" in r.describe()
-    _, mo = _eye_motion(np.r_[np.zeros(100), 0.55, 0.55, 0.55, np.zeros(100)], rest)    # the scale capped at 2.5
+    tall = rest.copy()
+    tall[:, 1] *= 2.0                                  # a rig whose eyes are twice the actor's: x2.86 capped at 2.5
     report = []
-    assert np.allclose(eye_calibration(SCHEME, pts, rest, mo, rig_rest, report=report)[eye], 2.5)
-    assert all(r.blink and r.capped for r in report) and "do not quite meet" in report[0].describe()
-    # a closure under half the open lid is not a blink (a squint, a partial blink): the eyes' size only
+    assert np.allclose(eye_calibration(SCHEME, pts, rest, mo, tall, report=report)[eye], 2.5)
+    assert all(r.blink == 1 and r.capped for r in report) and "do not quite meet" in report[0].describe()
+    # a closure of at most 0.4 of the open lid is not a blink (a squint, a partial blink): the eyes' size only
     _, part = _eye_motion(np.r_[np.zeros(100), 0.4, 0.4, 0.4, np.zeros(100)], rest)
     report = []
     assert np.allclose(eye_calibration(SCHEME, pts, rest, part, rig_rest, report=report)[eye], 1.5)
     assert all(not r.blink for r in report) and "no blink in the take (deepest closure 0.40" in report[0].describe()
+    # half the open lid may be either: half way (d = 1 - 0.5 + 0.5 x 0.5), the rig's eye closed to 0.5 / 0.75
+    _, half = _eye_motion(np.r_[np.zeros(100), 0.5, 0.5, 0.5, np.zeros(100)], rest)
+    report = []
+    assert np.allclose(eye_calibration(SCHEME, pts, rest, half, rig_rest, report=report)[eye], 1.5 / 0.75)
+    for r in report:
+        assert r.blink == pytest.approx(0.5, abs=0.01) and r.closed == pytest.approx(2 / 3, abs=0.01)
+        assert "may be a blink read short or a partial one: it closes the rig's eye to 0.67" in r.describe()
     _, still = _eye_motion(np.full(203, 0.1), rest)                      # no blink: the eyes' size only
     report = []
     assert np.allclose(eye_calibration(SCHEME, pts, rest, still, rig_rest, report=report)[eye], 1.5)
     assert all(not r.blink and not r.capped for r in report) and "no blink" in report[0].describe()
     _, two = _eye_motion(np.r_[np.zeros(100), 0.9, 0.9, np.zeros(100)], rest)   # two wild frames do not count
     assert np.allclose(eye_calibration(SCHEME, pts, rest, two, rig_rest)[eye], 1.5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(0.0, 1.0), min_size=2, max_size=2))
+def test_the_rigs_closure_at_the_deepest_frame_rises_with_the_takes(closures):
+    """Property: the rig's closure at the take's deepest frame is its tracked closure up to 0.4 of the open lid,
+    shut from 0.6, and between them continuous and rising; a deeper take never closes the rig's eye less."""
+    from keyshape.data_synth.face_model import FaceModel
+    face, _ = FaceModel(rng=3).basis()
+    rest = np.asarray(face).reshape(-1, 2)[:48][SCHEME.region("eyes+brows")]
+    rig_rest = rest.copy()
+    rig_rest[:, 1] *= 1.2
+    pts = SCHEME.region("eyes+brows")
+    got = []
+    for c in sorted(closures):
+        _, mo = _eye_motion(np.r_[np.zeros(20), c, c, c, np.zeros(20)], rest)
+        report = []
+        eye_calibration(SCHEME, pts, rest, mo, rig_rest, report=report)
+        got.append(report[0].closed)
+        if c <= 0.4:
+            assert report[0].closed == pytest.approx(c, abs=1e-9)
+        elif c >= 0.6:
+            assert report[0].closed == pytest.approx(1.0)
+    assert got[0] <= got[1] + 1e-9
+    lo, hi = sorted(closures)
+    assert got[1] - got[0] <= 3.5 * (hi - lo) + 1e-9          # continuous: the ramp rises at most 3.42x the closure
 
 
 _ICT: dict = {}

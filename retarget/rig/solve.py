@@ -365,14 +365,18 @@ def yaw_stretch(shapes: np.ndarray, eye_line: np.ndarray, yaw: np.ndarray, rest_
 
 
 def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.ndarray, rig_rest: np.ndarray,
-                    frames: int = 3, min_closure: float = 0.5, max_scale: float = 2.5,
+                    frames: int = 3, blink_closure: tuple[float, float] = (0.4, 0.6), max_scale: float = 2.5,
                     report: list | None = None) -> np.ndarray:
     """Per-point scale of the actor's motion so that the take's deepest closure of each eye closes the rig's.
 
     For each eye contour: the actor's opening ``g_t`` (at rest ``g_0``), the rig's neutral opening ``r_0``, the
-    take's deepest closure ``k = 1 - g_min / g_0`` (``g_min`` the ``frames``-th smallest opening); the eye's
-    points' motion is scaled by ``r_0 / (k g_0)`` (at most ``max_scale``), or by ``r_0 / g_0`` where ``k`` is below
-    ``min_closure`` (no blink in the take).
+    take's deepest closure ``k = 1 - g_min / g_0`` (``g_min`` the ``frames``-th smallest opening). A closure of
+    at least ``blink_closure[1]`` is a blink read short: the eye's points' motion is scaled by ``r_0 / (k g_0)``
+    (at most ``max_scale``), so that it shuts the rig's eye. One of at most ``blink_closure[0]`` is no blink (a
+    squint, a partial blink): the scale is ``r_0 / g_0``, the eye's size only. Between the two the closure may
+    be either, and the scale is ``r_0 / (d g_0)`` with ``d = 1 - w + w k``, ``w`` the closure's place in the
+    range (0 to 1): the rig's closure at that frame, ``k / d``, rises continuously from ``k`` to shut, so a take
+    whose closure reads a little deeper or shallower moves the rig's eye a little, not between half shut and shut.
 
     Parameters
     ----------
@@ -381,7 +385,7 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
     motion : (T, len(points), 2) the actor's motion from ``rest`` (rig frame)
     rig_rest : (len(points), 2) the rig's neutral points
     frames : the deepest closure is the ``frames``-th deepest frame's
-    min_closure : least closure (fraction of the opening) that counts as a blink
+    blink_closure : closures (fractions of the opening) up to which a take has no blink, and from which it has one
     max_scale : largest scale
     report : a list that receives one :class:`EyeCalibration` per eye calibrated
 
@@ -402,28 +406,35 @@ def eye_calibration(scheme, points: np.ndarray, rest: np.ndarray, motion: np.nda
             continue
         g = sign * np.einsum("rpd,tpd->tr", M, motion[ok]).mean(axis=1) + g0
         deepest = 1 - float(np.sort(g)[min(frames, len(g)) - 1]) / g0
-        k = min(r0 / g0 / (deepest if deepest >= min_closure else 1.0), max_scale)
+        lo, hi = blink_closure
+        w = min(max((deepest - lo) / (hi - lo), 0.0), 1.0)
+        k = min(r0 / g0 / (1.0 - w + w * deepest), max_scale)
         contour = [loc[int(p)] for p in scheme.contours[name[: -len(" opening")]] if int(p) in loc]
         scale[contour] = k
         if report is not None:
-            report.append(EyeCalibration(name[: -len(" opening")], deepest, k, deepest >= min_closure,
-                                         k >= max_scale, r0 / g0))
+            report.append(EyeCalibration(name[: -len(" opening")], deepest, k, w, k >= max_scale, r0 / g0))
     return scale
 
 
 @dataclass(frozen=True)
 class EyeCalibration:
     """How :func:`eye_calibration` scaled one eye: ``contour`` (the scheme's name, image-left or -right), the
-    take's ``deepest`` closure (fraction of the open lid gap), the ``scale`` of the lids' motion, whether that
-    closure counted as a ``blink`` (else the eye is only sized to the rig's, ``size``), and whether the scale hit
-    its ``capped`` maximum (the rig's lids then do not quite meet at the deepest closure)."""
+    take's ``deepest`` closure (fraction of the open lid gap), the ``scale`` of the lids' motion, how far that
+    closure counted as a ``blink`` (1: it shuts the rig's eye; 0: the eye is only sized to the rig's, ``size``;
+    between: it closes the rig's eye to ``closed``), and whether the scale hit its ``capped`` maximum (the rig's
+    lids then do not quite meet at the deepest closure)."""
 
     contour: str
     deepest: float
     scale: float
-    blink: bool
+    blink: float
     capped: bool
     size: float
+
+    @property
+    def closed(self) -> float:
+        """The rig's closure at the take's deepest closure (1: shut)."""
+        return self.deepest * self.scale / self.size
 
     def describe(self) -> str:
         """One line an animator reads."""
@@ -433,9 +444,13 @@ class EyeCalibration:
         if not self.blink:
             return (f"{eye}: no blink in the take (deepest closure {self.deepest:.2f} of the open lid), "
                     f"the lids keep their tracked travel at the rig's eye size")
+        travel = f"lid travel x{self.scale / self.size:.2f} over the rig's eye size"
+        if self.blink < 1:
+            return (f"{eye}: the take's deepest closure, {self.deepest:.2f} of the open lid, may be a blink read "
+                    f"short or a partial one: it closes the rig's eye to {self.closed:.2f} ({travel})")
         tail = ", the most it may: the rig's lids do not quite meet there" if self.capped else ""
         return (f"{eye}: the take's deepest closure, {self.deepest:.2f} of the open lid, closes the rig's "
-                f"eye (lid travel x{self.scale / self.size:.2f} over the rig's eye size{tail})")
+                f"eye ({travel}{tail})")
 
 
 def brow_calibration(scheme, points: np.ndarray, A: np.ndarray, motion: np.ndarray, curves: np.ndarray,
