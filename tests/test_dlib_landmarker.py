@@ -85,3 +85,60 @@ def test_averaged_prediction_is_closer_to_mediapipe(landmarker, shared_data):
     m[:, 0] = w - 1 - m[:, 0]
     np.testing.assert_allclose(a, m, atol=0.05 * np.linalg.norm(a[36] - a[45]))
     assert sorted(IBUG68_MIRROR.tolist()) == list(range(68))
+
+
+def test_a_close_up_reaching_past_the_frame_is_found_whole(landmarker, shared_data, monkeypatch):
+    """A close-up (glasses_rom.mp4 enlarged 1.8 times about its face: the face fills the frame, the forehead and
+    chin at or past its edges): the pre-fill's points, against dlib's reference points of the whole frame mapped
+    into the close-up, within 0.015 inter-ocular distances on each frame. dlib's detector alone puts frame 120's
+    box short of the face (its window cannot leave the image), 0.075 off; the bordered frame finds it whole."""
+    import cv2
+
+    from keyshape.base.formats.video import VideoReader
+    from keyshape.tracker.labelling import dlib_landmarker as dl
+    ref = np.load(shared_data / "video" / "references" / "glasses_rom_references.npz")["dlib68"].astype(float)
+    frames = [40, 120, 200, 420]
+    imgs = VideoReader(shared_data / "video" / "glasses_rom.mp4", gray=True).read_frames(frames)
+    h, w = imgs[0].shape
+    z = 1.8
+    x0, y0 = np.clip(np.median(ref.reshape(-1, 2), 0) - (w / z / 2, h / z / 2), 0, (w - w / z, h - h / z))
+    A = np.array([[z, 0, -z * x0], [0, z, -z * y0]])
+
+    def errors():
+        out = []
+        for i, g in zip(frames, imgs):
+            pts = landmarker.detect(cv2.warpAffine(g, A, (w, h), flags=cv2.INTER_LINEAR), averaged=True)
+            want = ref[i] * z - (z * x0, z * y0)
+            out.append(np.linalg.norm(pts - want, axis=1).mean() / np.linalg.norm(want[36] - want[45]))
+        return np.array(out)
+
+    assert errors().max() < 0.015
+    monkeypatch.setattr(dl, "inside", lambda box, shape: True)        # never bordered
+    assert errors()[1] > 0.04
+
+
+def test_a_close_up_the_detector_misses_is_read_near_the_whole_video_pass(landmarker, shared_data):
+    """Frame 541 of the same close-up: dlib's detector finds no face, bordered or not. The pre-fill then reads it
+    from a box around the whole-video pass's points of that frame (here: the reference points of the frame
+    before, as the pass carries them), within 0.02 inter-ocular distances of the frame's own reference points;
+    without them it gives nothing (the label page's generic shape)."""
+    import cv2
+
+    from keyshape.base.formats.video import VideoReader
+    from keyshape.base.schemes import load_scheme
+    from keyshape.tracker.labelling.prepare import prefill
+    ref = np.load(shared_data / "video" / "references" / "glasses_rom_references.npz")["dlib68"].astype(float)
+    img = VideoReader(shared_data / "video" / "glasses_rom.mp4").read_frames([541])[0]
+    h, w = img.shape[:2]
+    z = 1.8
+    x0, y0 = np.clip(np.median(ref.reshape(-1, 2), 0) - (w / z / 2, h / z / 2), 0, (w - w / z, h - h / z))
+    A = np.array([[z, 0, -z * x0], [0, z, -z * y0]])
+    close = cv2.warpAffine(img, A, (w, h), flags=cv2.INTER_LINEAR)
+    want, near = (ref[k] * z - (z * x0, z * y0) for k in (541, 540))
+    assert landmarker.detect(close) is None
+    pts = landmarker.read_around(landmarker._gray(close), near, averaged=True)
+    assert np.linalg.norm(pts - want, axis=1).mean() / np.linalg.norm(want[36] - want[45]) < 0.02
+    scheme = load_scheme("contours48").full()
+    assert prefill(close[None], scheme, landmarker)[0] is None
+    got = prefill(close[None], scheme, landmarker, near[None])[0]
+    assert got is not None and got.shape == (scheme.n_points, 2)

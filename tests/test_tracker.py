@@ -623,3 +623,31 @@ def test_labels_of_another_point_count_are_refused_naming_the_scheme(files, tmp_
     err = capsys.readouterr().err
     assert "labels of 50 points, expected 48 for scheme 'contours48' (53 with its nose points)" in err
     assert str(lab) in err and not out.exists()
+
+
+def test_a_frame_left_at_the_generic_shape_is_not_trained_on(files, tmp_path, capsys):
+    """A frame where dlib found no face starts from the label page's generic shape (``session.json``'s
+    ``no_face``); while its points are still that shape it is not a label: ``train`` leaves it out and says so,
+    and refuses a folder of nothing else. Once its points are placed, it is trained on."""
+    import json
+
+    from keyshape.tracker.commands import fit_model
+    from keyshape.tracker.labelling.prepare import template_points
+    _, video, _, labels = files
+    d = tmp_path / "labels"
+    write_labels(d, LABELLED, labels[LABELLED])
+    generic = template_points(SCHEME, W, H)
+    write_pts(d / "000008.pts", generic)
+    (d / "session.json").write_text(json.dumps({"scheme": "contours48", "video": str(video), "frames": LABELLED,
+                                                "no_face": [8]}))
+    model = fit_model(video, d)
+    assert len(model.train_poses_) == 4
+    assert "frames [8] still hold the generic shape" in capsys.readouterr().out
+    write_pts(d / "000008.pts", labels[8])                 # placed by hand: a label again
+    assert len(fit_model(video, d).train_poses_) == 5
+    for f in LABELLED:
+        write_pts(d / f"{f:06d}.pts", generic)
+    (d / "session.json").write_text(json.dumps({"scheme": "contours48", "video": str(video), "frames": LABELLED,
+                                                "no_face": LABELLED}))
+    with pytest.raises(InputError, match="every label is still the generic shape"):
+        fit_model(video, d)

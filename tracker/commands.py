@@ -68,6 +68,8 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
             raise InputError(f"labels: expected frames (n,) and shapes (n, {sch.n_points}, 2) for scheme "
                              f"{sch.name!r}, got {frames.shape} and {shapes.shape}")
     info = video_info(video)
+    if source is not None:
+        frames, shapes = _without_generic_shapes(source, frames, shapes, sch, info)
     if info.n_frames > 0 and frames.max() >= info.n_frames:
         bad = [int(f) for f in frames if f >= info.n_frames]
         raise InputError(f"labels for frames {bad[:5]} but the video has {info.n_frames} frames "
@@ -82,6 +84,31 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
         raise InputError(f"points far outside the {w}x{h} frame: are these labels for this video?",
                          None if source is None else source / f"{f:06d}.pts")
     return AppearanceModel(sch, n_components=n_components, n_morphs=n_morphs, rng=rng).fit(list(images), shapes)
+
+
+def _without_generic_shapes(source: Path, frames: np.ndarray, shapes: np.ndarray, scheme, info):
+    """The labels but those of frames where dlib found no face (``session.json``'s ``no_face``) whose points are
+    still the label page's generic shape: not a label of the frame, so not trained on (a line says which).
+    Raises where no label is left."""
+    from keyshape.base.formats.labels import read_session
+    from keyshape.tracker.labelling.prepare import template_points
+
+    if not (source / "session.json").is_file():
+        return frames, shapes
+    no_face = set(read_session(source).get("no_face", []))
+    if not no_face:
+        return frames, shapes
+    generic = template_points(scheme, info.width, info.height)
+    left = np.array([not (int(f) in no_face and np.allclose(s, generic, atol=1e-3)) for f, s in zip(frames, shapes)])
+    if not left.all():
+        skipped = [int(f) for f in frames[~left]]
+        if not left.any():
+            raise InputError(f"every label is still the generic shape dlib's pre-fill left where it found no face "
+                             f"(frames {skipped}): place their points (keyshape label VIDEO -o {source} --serve)",
+                             source)
+        print(f"keyshape train: frames {skipped} still hold the generic shape (dlib found no face there): not "
+              f"trained on; place their points with keyshape label --serve")
+    return frames[left], shapes[left]
 
 
 def model_fingerprint(model: AppearanceModel) -> str:

