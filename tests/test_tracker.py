@@ -651,3 +651,21 @@ def test_a_frame_left_at_the_generic_shape_is_not_trained_on(files, tmp_path, ca
                                                 "no_face": LABELLED}))
     with pytest.raises(InputError, match="every label is still the generic shape"):
         fit_model(video, d)
+
+
+def test_a_face_mostly_outside_the_picture_is_not_a_reading(model, footage):
+    """``Tracker._sane`` refuses a reading with more than ``MAX_OUTSIDE`` (0.4) of the face's points outside the
+    picture (a close-up whose face leaves the frame: the model's guess there, 0.10 inter-ocular distances off on
+    franck.mp4 enlarged twice), and keeps one with 0.3 outside."""
+    frames, labels = footage
+    tr = Tracker(model)
+    pose = model.train_poses_[4]
+    shape = apply_affine(invert_affine(pose), labels[4])           # the model-frame points
+    for frac, ok in ((0.0, True), (0.3, True), (0.45, False), (0.7, False)):
+        x = np.sort(labels[4][:, 0])
+        shift = 0.0 if frac == 0 else W - 0.5 - x[int(round((1 - frac) * len(x))) - 1] + 1e-6
+        p = compose_affine(np.array([[1.0, 0, shift], [0, 1.0, 0]]), pose)
+        pts = labels[4] + (shift, 0)
+        outside = ((pts[:, 0] > W - 0.5) | (pts[:, 0] < -0.5)).mean()
+        assert abs(outside - frac) < 0.03, (frac, outside)
+        assert tr._sane(p, shape, pts, (H, W)) is ok, frac

@@ -303,6 +303,8 @@ class Tracker:
 
     #: the fraction of the last frame's motion the next frame's alignment starts from (:meth:`step`)
     MOTION_CARRY = 0.5
+    #: a frame is lost where more than this fraction of the face's points fall outside the picture (:meth:`_sane`)
+    MAX_OUTSIDE = 0.4
 
     def reset(self) -> None:
         """Forget the previous frame (next frame starts with a whole-frame search)."""
@@ -489,7 +491,7 @@ class Tracker:
     def _is_lip(self, rm) -> bool:
         return self.lip_stretch > 0 and rm.name.startswith(("lip", "mouth"))
 
-    def _sane(self, pose: np.ndarray, shape: np.ndarray, image_size: tuple[int, int]) -> bool:
+    def _sane(self, pose: np.ndarray, shape: np.ndarray, pts: np.ndarray, image_size: tuple[int, int]) -> bool:
         lin = pose[:, :2]
         det = float(lin[0, 0] * lin[1, 1] - lin[0, 1] * lin[1, 0])
         if det <= 0:
@@ -509,6 +511,10 @@ class Tracker:
         h, w = image_size
         if not (-0.1 * w < centre[0] < 1.1 * w and -0.1 * h < centre[1] < 1.1 * h):
             return False
+        # most of the face outside the picture: its points there are the model's guess (docs/tracker.md, "Close-ups")
+        outside = (pts[:, 0] < -0.5) | (pts[:, 0] > w - 0.5) | (pts[:, 1] < -0.5) | (pts[:, 1] > h - 0.5)
+        if outside.mean() > self.MAX_OUTSIDE:
+            return False
         if self.last_good is not None:
             g = self.last_good
             s0 = math.sqrt(abs(float(g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0])))
@@ -521,7 +527,7 @@ class Tracker:
         shape, pts, r = self.read(pyr, pose)
         m2 = self._m2
         ok = (r < self.lost_threshold and self._contrast >= self.min_contrast and m2 < self.max_shape_m2
-              and self._sane(pose, shape, image_size))
+              and self._sane(pose, shape, pts, image_size))
         return ok, r, pose, pts, its, m2
 
     # ---------------------------------------------------------------- search
