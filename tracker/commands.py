@@ -87,9 +87,8 @@ def fit_model(video, labels, scheme: str | None = None, n_components: int | None
 
 
 def _without_generic_shapes(source: Path, frames: np.ndarray, shapes: np.ndarray, scheme, info):
-    """The labels but those of frames where dlib found no face (``session.json``'s ``no_face``) whose points are
-    still the label page's generic shape: not a label of the frame, so not trained on (a line says which).
-    Raises where no label is left."""
+    """The labels but those still at the generic shape where dlib found no face (``session.json``'s ``no_face``),
+    saying which; raises where none is left."""
     from keyshape.base.formats.labels import read_session
     from keyshape.tracker.labelling.prepare import template_points
 

@@ -126,10 +126,9 @@ class DlibLandmarker:
         return acc / (2 * len(_BOX_MOVES))
 
     def read_around(self, gray: np.ndarray, points: np.ndarray, averaged: bool = False) -> np.ndarray | None:
-        """The face's (68, 2) points read from a box around ``points`` (a nearby frame's), without the detector:
-        the box placed as the HOG detector places it (as wide as the points' larger extent, its centre a tenth of
-        that above theirs; one centred on the points drifts down and shrinks), on the bordered frame where it
-        reaches past it (:func:`bordered`). None where the points are not finite or the reading collapses."""
+        """The (68, 2) points read from a box around ``points`` (a nearby frame's) placed as the HOG detector places
+        it (a centred box drifts down and shrinks), on the :func:`bordered` frame where it reaches past the frame.
+        None where the points are not finite or the reading collapses."""
         points = np.asarray(points, np.float64)
         if not np.all(np.isfinite(points)):
             return None
@@ -170,10 +169,9 @@ def inside(box, shape) -> bool:
 
 
 def bordered(gray: np.ndarray, border: float = BORDER) -> tuple[np.ndarray, int]:
-    """``gray`` with a border of ``border`` times its larger side on every edge, in its mean grey, and the
-    border's width: where a face reaches past the frame, dlib's HOG detector finds it whole only with room
-    around it (its window cannot leave the image), and the shape predictor reads a neutral grey there rather
-    than black (docs/label.md, "Close-ups")."""
+    """``gray`` with a border of ``border`` times its larger side, in its mean grey, and the border's width: dlib's
+    detector finds a face reaching past the frame whole only with room around it, and the shape predictor reads
+    grey there rather than black (docs/label.md, "Close-ups")."""
     import cv2  # noqa: PLC0415
 
     p = int(round(border * max(gray.shape)))
