@@ -52,7 +52,7 @@ def main() -> None:
                 kept.append(i)
     kept = np.array(kept)
     for part in ("references", "mediapipe_blendshapes"):
-        d = dict(np.load(VIDEOS / "references" / f"{a.clip}_{part}.npz"))
+        d = refs if part == "references" else dict(np.load(VIDEOS / "references" / f"{a.clip}_{part}.npz"))
         n = len(d["dlib68"] if "dlib68" in d else d["scores"])
         if n != reader.n_read:
             raise SystemExit(f"{a.clip}_{part}.npz: {n} frames, the clip {reader.n_read}")

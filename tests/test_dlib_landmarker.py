@@ -136,7 +136,7 @@ def test_a_close_up_the_detector_misses_is_read_near_the_whole_video_pass(landma
     close = cv2.warpAffine(img, A, (w, h), flags=cv2.INTER_LINEAR)
     want, near = (ref[k] * z - (z * x0, z * y0) for k in (541, 540))
     assert landmarker.detect(close) is None
-    pts = landmarker.read_around(landmarker._gray(close), near, averaged=True)
+    pts = landmarker.read_around(close, near, averaged=True)
     assert np.linalg.norm(pts - want, axis=1).mean() / np.linalg.norm(want[36] - want[45]) < 0.02
     scheme = load_scheme("contours48").full()
     assert prefill(close[None], scheme, landmarker)[0] is None

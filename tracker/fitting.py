@@ -161,7 +161,7 @@ class _RegionTables:
                      np.zeros(npar), np.zeros((n_reg, 4)), self.pts)
 
 
-def _motion(a: np.ndarray, b: np.ndarray) -> tuple:
+def _pose_change(a: np.ndarray, b: np.ndarray) -> tuple:
     """The image-side motion ``m`` from pose ``a`` to pose ``b`` ((2, 3) affines), ``b = m ∘ a``, as 6 floats."""
     (a00, a01, a02), (a10, a11, a12) = a.tolist()
     (b00, b01, b02), (b10, b11, b12) = b.tolist()
@@ -173,7 +173,7 @@ def _motion(a: np.ndarray, b: np.ndarray) -> tuple:
 
 
 def _moved_on(a: np.ndarray, m: tuple, k: float) -> np.ndarray:
-    """``(1 - k) a + k m ∘ a``: pose ``a`` moved on by the fraction ``k`` of the motion ``m`` (:func:`_motion`)."""
+    """``(1 - k) a + k m ∘ a``: pose ``a`` moved on by the fraction ``k`` of the motion ``m`` (:func:`_pose_change`)."""
     (a00, a01, a02), (a10, a11, a12) = a.tolist()
     m00, m01, m02, m10, m11, m12 = m
     j = 1.0 - k
@@ -312,7 +312,7 @@ class Tracker:
         self.last_good = None
         self.lost_for = 0
         self._last_r = 0.0
-        self._motion = None             # the last frame's motion (_motion): pose_t = motion ∘ pose_t-1
+        self._motion = None             # the last frame's motion (_pose_change): pose_t = motion ∘ pose_t-1
 
     def state(self) -> dict:
         """What the next :meth:`step` starts from (the previous frame's pose, the last good pose, how long
@@ -639,7 +639,7 @@ class Tracker:
                    max((self.max_shape_m2 - m2) / (self.max_shape_m2 - self.typical_shape_m2), 0.0))
         if ok:
             # the motion from the previous frame's pose, where that frame was tracked (not a held pose)
-            self._motion = None if prev is None or self.lost_for else _motion(prev, pose)
+            self._motion = None if prev is None or self.lost_for else _pose_change(prev, pose)
             self.pose = pose
             self.last_good = pose
             self._last_r = r

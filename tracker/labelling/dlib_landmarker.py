@@ -125,13 +125,14 @@ class DlibLandmarker:
             acc += m
         return acc / (2 * len(_BOX_MOVES))
 
-    def read_around(self, gray: np.ndarray, points: np.ndarray, averaged: bool = False) -> np.ndarray | None:
-        """The (68, 2) points read from a box around ``points`` (a nearby frame's) placed as the HOG detector places
-        it (a centred box drifts down and shrinks), on the :func:`bordered` frame where it reaches past the frame.
-        None where the points are not finite or the reading collapses."""
+    def read_around(self, image: np.ndarray, points: np.ndarray, averaged: bool = False) -> np.ndarray | None:
+        """The (68, 2) points of ``image`` (gray or BGR) read from a box around ``points`` (a nearby frame's) placed
+        as the HOG detector places it (a centred box drifts down and shrinks), on the :func:`bordered` frame where
+        it reaches past the frame. None where the points are not finite or the reading collapses."""
         points = np.asarray(points, np.float64)
         if not np.all(np.isfinite(points)):
             return None
+        gray = self._gray(image)
         lo, hi = points.min(0), points.max(0)
         half = 0.49 * max(hi - lo)
         c = (lo + hi) / 2 - (0.0, 0.2 * half)
@@ -150,17 +151,22 @@ class DlibLandmarker:
 
         ``averaged``: the points of :meth:`predict_averaged` (14 views) instead of one prediction.
         """
-        gray = self._gray(image)
+        gray, box, off = self.find(self._gray(image), previous)
+        if box is None:
+            return None
+        return (self.predict_averaged(gray, box) if averaged else self.predict(gray, box)) - off
+
+    def find(self, gray: np.ndarray, previous: np.ndarray | None = None) -> tuple[np.ndarray, object, int]:
+        """``(image, box, offset)``: :meth:`detect_box`'s box in ``gray``, or where that box reaches past the frame
+        or there is none, the box found in the :func:`bordered` frame, that frame and its border's width (box None
+        where neither finds a face)."""
         box = self.detect_box(gray, previous)
-        off = 0
         if box is None or not inside(box, gray.shape):
             big, p = bordered(gray)
             found = self.detect_box(big, None if previous is None else np.asarray(previous, np.float64) + p)
             if found is not None:
-                gray, box, off = big, found, p
-        if box is None:
-            return None
-        return (self.predict_averaged(gray, box) if averaged else self.predict(gray, box)) - off
+                return big, found, p
+        return gray, box, 0
 
 
 def inside(box, shape) -> bool:
@@ -193,8 +199,8 @@ def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None =
 
     The HOG detector runs every ``detect_every`` frames (and whenever the face was lost); in between, and where
     its box reaches past the frame, the shape predictor (about 2 ms) starts from a box around the previous
-    frame's points (docs/label.md, "Which frames"; the frame bordered where that box reaches past it). ``per_frame(index, gray, points)`` is called for every frame with a face (extra cues
-    from the pixels).
+    frame's points (docs/label.md, "Which frames"; the frame bordered where that box reaches past it).
+    ``per_frame(index, gray, points)`` is called for every frame with a face (extra cues from the pixels).
     """
     from keyshape.base.formats.video import VideoReader  # noqa: PLC0415
 
@@ -206,12 +212,14 @@ def landmark_video_chained(path: str | Path, landmarker: DlibLandmarker | None =
     for i, gray in reader:
         gray = np.ascontiguousarray(gray, dtype=np.uint8)
         pts = None
-        if previous is None or i % max(1, int(detect_every)) == 0:
+        if previous is None:                     # a first face, a close-up's too: on the bordered frame if need be
+            img, b, off = lm.find(gray)
+            if b is not None:
+                pts = lm.predict(img, b) - off
+        elif i % max(1, int(detect_every)) == 0:
             b = lm.detect_box(gray, previous)
             if b is not None and inside(b, gray.shape):
                 pts = lm.predict(gray, b)
-            elif previous is None:
-                pts = lm.detect(gray)            # a close-up's first face: found on the bordered frame
         if pts is None and previous is not None:
             pts = lm.read_around(gray, previous)
         out.append(pts if pts is not None else np.full((68, 2), np.nan))

@@ -80,7 +80,7 @@ def prefill(images: np.ndarray, scheme, landmarker, near: np.ndarray | None = No
         hint = None if near is None or not np.isfinite(near[k]).all() else near[k]
         p = landmarker.detect(im, previous=hint, averaged=True)
         if p is None and hint is not None:
-            p = landmarker.read_around(landmarker._gray(im), hint, averaged=True)
+            p = landmarker.read_around(im, hint, averaged=True)
         out.append(None if p is None else _from_ibug68(
             p, scheme, im, f"dlib pre-fill gives ibug68 or contours48, not {scheme.name!r}: use --no-prefill"))
     return out
