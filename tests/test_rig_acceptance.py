@@ -12,11 +12,10 @@ left-right prior in ``pose``: 0.965, 0.953 / 0.965, 0.945, 0.625 x. Before (trac
 0.902 / 0.895 / 0.921 / 0.819 / 0.670. Seeds 12-15 (``bench/rig_accuracy.py``, README "Measured") do
 not all meet them: the error is 0.706 / 0.717 / 0.627 / 0.673 x, and seed 12's wide jaw openings are
 tracked at about half their size (jawOpen r 0.81). The exact contours (truth.csv) must meet them too.
-No component the exact contours' chain recovers (r >= 0.7) may be lost by the tracked one. mouthFunnel is lost
-by both (r 0.000 from the exact contours); the tracked chain had it at 0.850 while its eighth mouth key fell on
-a funnel frame posed with mouthFunnel 0.29 (frame 463), and at 0.000 since each frame's alignment starts from a
-prediction (the tracks' mouth error on this take 0.0030 mean, 0.0156 -> 0.0073 at worst, but the eighth key is
-frame 130, funnel 0.49 with smiles 0.5, posed as smiles and rolled lips).
+No component the exact contours' chain recovers (r >= 0.7) may be lost by the tracked one. mouthFunnel is not
+recovered from the exact contours (r 0.000): the pose step reads the keys that hold the synthetic funnel, mixed with
+smiles or the jaw, as smiles, rolled lips and dimples, so whether the tracked chain keeps it hangs on which frame
+the greedy selection's last mouth key falls (docs/tracker.md, "Fast motion"; CHANGELOG).
 """
 from __future__ import annotations
 

@@ -655,8 +655,8 @@ def test_a_frame_left_at_the_generic_shape_is_not_trained_on(files, tmp_path, ca
 
 def test_a_face_mostly_outside_the_picture_is_not_a_reading(model, footage):
     """``Tracker._sane`` refuses a reading with more than ``MAX_OUTSIDE`` (0.4) of the face's points outside the
-    picture (a close-up whose face leaves the frame: the model's guess there, 0.10 inter-ocular distances off on
-    franck.mp4 enlarged twice), and keeps one with 0.3 outside."""
+    picture (a close-up whose face leaves the frame: the points there are the model's guess; docs/tracker.md,
+    "Close-ups"), and keeps one with 0.3 outside."""
     frames, labels = footage
     tr = Tracker(model)
     pose = model.train_poses_[4]
